@@ -1,0 +1,1 @@
+"""Machine and power stage of the bike testbed: physics kernels (no ROS) and the plant node"""

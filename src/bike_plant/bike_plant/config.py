@@ -1,0 +1,203 @@
+"""Configuration files: ROS 2 parameter files read with or without ROS.
+
+A config is a ROS 2 parameter file (the format `--params-file` takes). Every node of the
+bike reads the parameters under ``/**: ros__parameters:`` (plus, if present, a section
+named after the node), so one file describes one bike. Offline tools (paper figures,
+benchmark, tests) read the same file through :func:`load_config`.
+
+Values are never evaluated as code: the file is parsed with ``yaml.safe_load``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import pathlib
+from typing import Any, Mapping
+
+import yaml
+
+WILDCARD = "/**"
+MAX_CONFIG_BYTES = 1 << 20  # a config is a few kB; refuse anything absurd before parsing
+
+
+class ConfigError(ValueError):
+    """A configuration problem, with the file and key it concerns."""
+
+    def __init__(self, message: str, path: str | os.PathLike | None = None, key: str | None = None):
+        where = str(path) if path else "<config>"
+        if key:
+            where += f": {key}"
+        super().__init__(f"{where}: {message}")
+        self.path = path
+        self.key = key
+
+
+def default_config_path() -> pathlib.Path:
+    """The default bike (BLDC, paper 000), found in the repository's config/ folder."""
+    root = os.environ.get("BIKE_ROOT")
+    if root:
+        return pathlib.Path(root, "config", "bldc_default.yaml")
+    here = pathlib.Path(__file__).resolve()
+    for parent in here.parents:
+        candidate = parent / "config" / "bldc_default.yaml"
+        if candidate.is_file():
+            return candidate
+    raise ConfigError("default config not found; set BIKE_ROOT or pass --config")
+
+
+def load_config(path: str | os.PathLike | None = None, node_name: str | None = None) -> dict:
+    """Read a parameter file and return the merged nested parameter dict.
+
+    Raises ConfigError naming the file (and key) for unreadable, malformed or
+    structurally wrong files. The returned dict carries ``_config_path`` so that relative
+    paths inside (profiles) resolve against the file's folder.
+    """
+    path = pathlib.Path(path) if path else default_config_path()
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise ConfigError(f"cannot read config ({exc.strerror})", path) from None
+    if size > MAX_CONFIG_BYTES:
+        raise ConfigError(f"file too large ({size} bytes > {MAX_CONFIG_BYTES})", path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ConfigError(f"not valid YAML{line}: {getattr(exc, 'problem', exc)}", path) from None
+    except UnicodeDecodeError:
+        raise ConfigError("not a text file", path) from None
+    if not isinstance(doc, dict):
+        raise ConfigError("expected a mapping of node names to 'ros__parameters'", path)
+    merged: dict = {}
+    sections = [WILDCARD] + ([node_name, f"/**/{node_name}"] if node_name else [])
+    found = False
+    for section in sections:
+        body = doc.get(section)
+        if body is None:
+            continue
+        if not isinstance(body, dict) or not isinstance(body.get("ros__parameters"), dict):
+            raise ConfigError("section needs a 'ros__parameters' mapping", path, section)
+        _deep_merge(merged, body["ros__parameters"])
+        found = True
+    if not found:
+        raise ConfigError(f"no '{WILDCARD}: ros__parameters:' section", path)
+    merged["_config_path"] = str(path.resolve())
+    return merged
+
+
+def _deep_merge(into: dict, other: Mapping) -> None:
+    for key, value in other.items():
+        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
+            _deep_merge(into[key], value)
+        else:
+            into[key] = value
+
+
+def flatten(params: Mapping, prefix: str = "") -> dict[str, Any]:
+    """Nested dict -> {'a.b.c': value}, the way ROS 2 names nested parameters."""
+    flat: dict[str, Any] = {}
+    for key, value in params.items():
+        if str(key).startswith("_"):
+            continue
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(flatten(value, name + "."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def unflatten(flat: Mapping[str, Any]) -> dict:
+    """{'a.b.c': value} -> nested dict (inverse of :func:`flatten`)."""
+    nested: dict = {}
+    for name, value in flat.items():
+        node = nested
+        *parents, leaf = name.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return nested
+
+
+def section(cfg: Mapping, key: str, path: str | None = None) -> Mapping:
+    """A sub-mapping of the config, empty if absent, ConfigError if not a mapping."""
+    value = cfg.get(key, {})
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ConfigError("expected a mapping", path or cfg.get("_config_path"), key)
+    return value
+
+
+def build_dataclass(cls, values: Mapping | None, key: str, path: str | None = None):
+    """Instantiate dataclass ``cls`` from ``values`` with type and range checks.
+
+    Unknown keys are an error (a typo must not silently fall back to a default);
+    numbers must be finite; bool/int/float/str/list fields are checked by type. The
+    dataclass may define ``validate(self) -> None`` raising ValueError for ranges.
+    """
+    values = dict(values or {})
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(fields))}", path, key)
+    kwargs = {}
+    for name, value in values.items():
+        field = fields[name]
+        if field.default is not dataclasses.MISSING:
+            default = field.default
+        elif field.default_factory is not dataclasses.MISSING:
+            default = field.default_factory()
+        else:
+            default = None
+        kwargs[name] = _check_value(value, default, f"{key}.{name}", path)
+    try:
+        obj = cls(**kwargs)
+        if hasattr(obj, "validate"):
+            obj.validate()
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        raise ConfigError(str(exc), path, key) from None
+    return obj
+
+
+def _check_value(value, default, key, path):
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"expected true/false, got {value!r}", path, key)
+        return value
+    if isinstance(default, (int, float)) and not isinstance(default, bool):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"expected a number, got {value!r}", path, key)
+        if not math.isfinite(value):
+            raise ConfigError(f"must be finite, got {value!r}", path, key)
+        if isinstance(default, int) and not isinstance(value, int):
+            if float(value).is_integer():
+                return int(value)
+            raise ConfigError(f"expected an integer, got {value!r}", path, key)
+        return type(default)(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"expected a string, got {value!r}", path, key)
+        return value
+    if isinstance(default, (list, tuple)):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"expected a list, got {value!r}", path, key)
+        for item in value:
+            if isinstance(item, bool) or not isinstance(item, (int, float, str)):
+                raise ConfigError(f"list items must be numbers or strings, got {item!r}", path, key)
+            if isinstance(item, float) and not math.isfinite(item):
+                raise ConfigError(f"list items must be finite, got {item!r}", path, key)
+        return list(value)
+    return value
+
+
+def require_positive(obj, *names: str) -> None:
+    """Raise ValueError naming the first field of ``obj`` that is not > 0."""
+    for name in names:
+        value = getattr(obj, name)
+        if not value > 0:
+            raise ValueError(f"{name} must be > 0, got {value!r}")

@@ -1,0 +1,1 @@
+"""Session manager, recorder, launcher and CLI of the bike testbed"""

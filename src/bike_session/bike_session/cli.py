@@ -1,0 +1,140 @@
+"""`./bike`: the front door of the testbed.
+
+    ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
+    ./bike report BAG                                          summarise a recorded session
+    ./bike paper NAME --out DIR                                reproduce a figure of a paper
+    ./bike bench [--json FILE]                                 speed figures and ratios
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import pathlib
+import sys
+
+PAPERS = {
+    "seed1-fig14": "paper 000 Fig. 14: torque-speed curve with Command = 1, prime mover 300..5400 rpm",
+    "seed1-current": "paper 000 Fig. 12/13: hysteresis current control at I* = 35 A and 50 A, 3000 rpm",
+}
+
+
+def repo_root() -> pathlib.Path:
+    root = os.environ.get("BIKE_ROOT")
+    return pathlib.Path(root) if root else pathlib.Path(__file__).resolve().parents[3]
+
+
+def default_launch_file() -> pathlib.Path:
+    return repo_root() / "config" / "launch" / "bike.launch.yaml"
+
+
+def _cmd_run(opts) -> int:
+    from bike_plant.config import ConfigError, load_config
+
+    from bike_session import launcher
+
+    config = pathlib.Path(opts.config or repo_root() / "config" / "bldc_default.yaml").resolve()
+    try:
+        cfg = load_config(config)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    duration_s = opts.duration if opts.duration is not None else float(cfg.get("duration_s", 60.0))
+    if not duration_s > 0:
+        print(f"error: --duration must be > 0, got {duration_s}", file=sys.stderr)
+        return 2
+    args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": opts.namespace}
+    bag_path = None
+    if opts.record:
+        record_dir = pathlib.Path(opts.record).resolve()
+        record_dir.mkdir(parents=True, exist_ok=True)
+        bag_name = "session_" + datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+        bag_path = record_dir / bag_name
+        suffix = 1
+        while bag_path.exists():
+            bag_path = record_dir / f"{bag_name}_{suffix}"
+            suffix += 1
+        args.update(record="true", record_dir=str(record_dir), bag_name=bag_path.name, storage=opts.storage)
+    print(f"[bike] config {config}, {duration_s:g} s simulated, namespace /{opts.namespace}"
+          + (f", recording to {bag_path}" if bag_path else ""), flush=True)
+    try:
+        code = launcher.run(str(opts.launch or default_launch_file()), args)
+    except launcher.LaunchError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if bag_path is not None and bag_path.exists():
+        from bike_session import report
+
+        print(f"[bike] bag written: {bag_path}")
+        report_code = report.main([str(bag_path)])
+        code = code or report_code
+    elif bag_path is not None:
+        print(f"error: the recorder wrote no bag at {bag_path}", file=sys.stderr)
+        code = code or 1
+    return code
+
+
+def _cmd_report(opts) -> int:
+    from bike_session import report
+
+    return report.main([opts.bag] + (["--out", opts.out] if opts.out else []))
+
+
+def _cmd_paper(opts) -> int:
+    from bike_session import paper
+
+    out = pathlib.Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    config = opts.config or str(repo_root() / "config" / "bldc_default.yaml")
+    runner = {"seed1-fig14": paper.fig14, "seed1-current": paper.current}[opts.name]
+    result = runner(config, str(out))
+    return 0 if result.get("passed", False) else 1
+
+
+def _cmd_bench(opts) -> int:
+    from bike_session import bench
+
+    return bench.main(json_path=opts.json, quick=opts.quick)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="bike", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="start the node graph (plant, controller, session[, recorder]) "
+                                     "for a number of simulated seconds")
+    run.add_argument("--config", help="bike config (ROS 2 parameter file); default config/bldc_default.yaml")
+    run.add_argument("--duration", type=float, help="simulated seconds (default: duration_s of the config)")
+    run.add_argument("--record", metavar="DIR", help="record every topic to an MCAP bag under DIR and summarise it")
+    run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
+    run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")
+    run.add_argument("--launch", help="launch description (default config/launch/bike.launch.yaml)")
+    run.set_defaults(func=_cmd_run)
+
+    rep = sub.add_parser("report", help="summarise a recorded bag: duration, power, energy, peak current, faults")
+    rep.add_argument("bag")
+    rep.add_argument("--out", help="also write charts and a summary into this folder")
+    rep.set_defaults(func=_cmd_report)
+
+    pap = sub.add_parser("paper", help="reproduce a figure of a paper: " + "; ".join(
+        f"{k} ({v})" for k, v in PAPERS.items()))
+    pap.add_argument("name", choices=sorted(PAPERS))
+    pap.add_argument("--out", required=True, help="output folder for CSV and PNG")
+    pap.add_argument("--config", help="bike config (default config/bldc_default.yaml)")
+    pap.set_defaults(func=_cmd_paper)
+
+    ben = sub.add_parser("bench", help="print speed figures and ratios (inner loop, node graph, DDS ping-pong)")
+    ben.add_argument("--json", help="also write the figures to this JSON file")
+    ben.add_argument("--quick", action="store_true", help="shorter runs (noisier figures)")
+    ben.set_defaults(func=_cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    opts = build_parser().parse_args(argv)
+    return opts.func(opts)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

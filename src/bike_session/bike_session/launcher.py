@@ -1,0 +1,255 @@
+"""A small process launcher for ROS 2 YAML launch descriptions.
+
+The `launch` / `ros2 launch` tools are not on PyPI (ROS2_ON_PIP.md), so the node graph is
+started here from the same declarative file that `ros2 launch` reads on a full ROS 2
+install. Supported subset of the YAML launch format:
+
+- ``arg`` (name, default), overridable from the caller;
+- ``node`` (pkg, exec, name, namespace, param: [{from: FILE} | {name, value}],
+  ros_args, if / unless, on_exit: shutdown);
+- substitutions ``$(var NAME)``, ``$(env NAME [DEFAULT])``, ``$(find-pkg-share PKG)``,
+  ``$(find-pkg-prefix PKG)``.
+
+Every node is a separate OS process in its own process group. On Ctrl-C / SIGTERM, or
+when a node marked ``on_exit: shutdown`` ends, the others get SIGINT, then SIGTERM and
+SIGKILL if they do not stop in time. Nothing in the file is evaluated as code.
+"""
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import yaml
+
+_SUBST = re.compile(r"\$\(([a-z-]+)((?:\s+[^()\s]+)*)\s*\)")
+TRUE_WORDS = {"true", "1", "yes", "on"}
+FALSE_WORDS = {"false", "0", "no", "off", ""}
+
+
+class LaunchError(ValueError):
+    """The launch description is malformed or names something that does not exist."""
+
+
+@dataclass
+class NodeSpec:
+    pkg: str
+    exec: str
+    name: str
+    namespace: str = ""
+    params_files: list[str] = field(default_factory=list)
+    params: dict[str, str] = field(default_factory=dict)
+    ros_args: list[str] = field(default_factory=list)
+    shutdown_on_exit: bool = False
+
+    def command(self) -> list[str]:
+        return [executable_path(self.pkg, self.exec)] + self.arguments()
+
+    def arguments(self) -> list[str]:
+        args = ["--ros-args", "-r", f"__node:={self.name}"]
+        if self.namespace:
+            args += ["-r", f"__ns:=/{self.namespace.strip('/')}"]
+        for path in self.params_files:
+            args += ["--params-file", path]
+        for key, value in self.params.items():
+            args += ["-p", f"{key}:={value}"]
+        return args + list(self.ros_args)
+
+
+def executable_path(pkg: str, exe: str) -> str:
+    """Where `ros2 run PKG EXE` looks: <prefix>/lib/<pkg>/<exe>."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        prefix = get_package_prefix(pkg)
+    except PackageNotFoundError:
+        raise LaunchError(f"package '{pkg}' not found (is the workspace built and sourced?)") from None
+    path = os.path.join(prefix, "lib", pkg, exe)
+    if not os.access(path, os.X_OK):
+        raise LaunchError(f"executable '{exe}' of package '{pkg}' not found at {path}")
+    return path
+
+
+def _substitute(text, args: dict[str, str]) -> str:
+    if not isinstance(text, str):
+        return text if not isinstance(text, bool) else str(text).lower()
+
+    def repl(match: re.Match) -> str:
+        kind, rest = match.group(1), match.group(2).split()
+        if kind == "var":
+            if len(rest) != 1 or rest[0] not in args:
+                raise LaunchError(f"unknown launch argument in {match.group(0)}")
+            return args[rest[0]]
+        if kind == "env":
+            if not rest:
+                raise LaunchError(f"{match.group(0)} needs a variable name")
+            return os.environ.get(rest[0], rest[1] if len(rest) > 1 else "")
+        if kind in ("find-pkg-share", "find-pkg-prefix"):
+            from ament_index_python.packages import (PackageNotFoundError, get_package_prefix,
+                                                     get_package_share_directory)
+            try:
+                return get_package_share_directory(rest[0]) if kind == "find-pkg-share" else get_package_prefix(rest[0])
+            except (PackageNotFoundError, IndexError):
+                raise LaunchError(f"{match.group(0)}: package not found") from None
+        raise LaunchError(f"unsupported substitution {match.group(0)}")
+
+    return _SUBST.sub(repl, text)
+
+
+def _truth(value: str, where: str) -> bool:
+    word = str(value).strip().lower()
+    if word in TRUE_WORDS:
+        return True
+    if word in FALSE_WORDS:
+        return False
+    raise LaunchError(f"{where}: condition must be true or false, got {value!r}")
+
+
+def parse_launch(path: str, overrides: dict[str, str] | None = None) -> list[NodeSpec]:
+    """Read a YAML launch file; return the nodes to start (conditions applied)."""
+    try:
+        with open(path) as stream:
+            doc = yaml.safe_load(stream)
+    except OSError as exc:
+        raise LaunchError(f"{path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise LaunchError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("launch"), list):
+        raise LaunchError(f"{path}: expected a top-level 'launch:' list")
+    overrides = dict(overrides or {})
+    args: dict[str, str] = {}
+    nodes: list[NodeSpec] = []
+    for index, entry in enumerate(doc["launch"]):
+        where = f"{path}: launch[{index}]"
+        if not isinstance(entry, dict) or len(entry) != 1:
+            raise LaunchError(f"{where}: each entry is a mapping with one key (arg or node)")
+        kind, body = next(iter(entry.items()))
+        if not isinstance(body, dict):
+            raise LaunchError(f"{where}.{kind}: expected a mapping")
+        if kind == "arg":
+            name = body.get("name")
+            if not isinstance(name, str):
+                raise LaunchError(f"{where}.arg: needs a name")
+            if name in overrides:
+                args[name] = str(overrides.pop(name))
+            elif "default" in body:
+                args[name] = _substitute(str(body["default"]) if not isinstance(body["default"], bool)
+                                         else str(body["default"]).lower(), args)
+            else:
+                raise LaunchError(f"{where}.arg: argument '{name}' has no default and was not given")
+        elif kind == "node":
+            if "if" in body and not _truth(_substitute(body["if"], args), where):
+                continue
+            if "unless" in body and _truth(_substitute(body["unless"], args), where):
+                continue
+            for key in ("pkg", "exec"):
+                if not isinstance(body.get(key), str):
+                    raise LaunchError(f"{where}.node: '{key}' is required")
+            spec = NodeSpec(pkg=body["pkg"], exec=body["exec"],
+                            name=_substitute(body.get("name", body["exec"]), args),
+                            namespace=_substitute(body.get("namespace", ""), args),
+                            shutdown_on_exit=body.get("on_exit") == "shutdown")
+            for pindex, param in enumerate(body.get("param", []) or []):
+                if not isinstance(param, dict):
+                    raise LaunchError(f"{where}.node.param[{pindex}]: expected a mapping")
+                if "from" in param:
+                    spec.params_files.append(_substitute(param["from"], args))
+                elif "name" in param and "value" in param:
+                    spec.params[param["name"]] = _substitute(param["value"], args)
+                else:
+                    raise LaunchError(f"{where}.node.param[{pindex}]: needs 'from' or 'name' + 'value'")
+            ros_args = body.get("ros_args", "")
+            spec.ros_args = _substitute(ros_args, args).split() if ros_args else []
+            nodes.append(spec)
+        else:
+            raise LaunchError(f"{where}: unsupported entry '{kind}' (supported: arg, node)")
+    if overrides:
+        raise LaunchError(f"{path}: unknown launch argument(s): {', '.join(sorted(overrides))}")
+    return nodes
+
+
+class Launcher:
+    """Starts NodeSpecs as processes and supervises them."""
+
+    def __init__(self, nodes: list[NodeSpec], *, prefix_output: bool = True, grace_s: float = 10.0,
+                 stdout=None):
+        self.nodes = nodes
+        self.prefix_output = prefix_output
+        self.grace_s = grace_s
+        self.stdout = stdout or sys.stdout
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._threads: list[threading.Thread] = []
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        for spec in self.nodes:
+            proc = subprocess.Popen(spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, start_new_session=True, text=True, bufsize=1)
+            self.procs[spec.name] = proc
+            thread = threading.Thread(target=self._pump, args=(spec.name, proc), daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def _pump(self, name: str, proc: subprocess.Popen) -> None:
+        for line in proc.stdout:
+            with self._lock:
+                self.stdout.write(f"[{name}] {line}" if self.prefix_output else line)
+                self.stdout.flush()
+
+    def request_stop(self, *_args) -> None:
+        self._stop.set()
+
+    def wait(self, timeout_s: float | None = None) -> dict[str, int]:
+        """Run until a shutdown node exits, every node exits, a signal, or the timeout."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        shutdown_names = {spec.name for spec in self.nodes if spec.shutdown_on_exit}
+        while not self._stop.is_set():
+            codes = {name: proc.poll() for name, proc in self.procs.items()}
+            if all(code is not None for code in codes.values()):
+                break
+            if any(codes[name] is not None for name in shutdown_names):
+                break
+            if deadline is not None and time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+        return self.shutdown()
+
+    def shutdown(self) -> dict[str, int]:
+        """SIGINT every running node, then SIGTERM, then SIGKILL; return exit codes."""
+        for sig, wait_s in ((signal.SIGINT, self.grace_s), (signal.SIGTERM, 3.0), (signal.SIGKILL, 2.0)):
+            running = [p for p in self.procs.values() if p.poll() is None]
+            if not running:
+                break
+            for proc in running:
+                try:
+                    os.killpg(proc.pid, sig)
+                except ProcessLookupError:
+                    pass
+            end = time.monotonic() + wait_s
+            while time.monotonic() < end and any(p.poll() is None for p in running):
+                time.sleep(0.05)
+        for thread in self._threads:
+            thread.join(timeout=1.0)
+        return {name: proc.wait() for name, proc in self.procs.items()}
+
+
+def run(launch_file: str, args: dict[str, str] | None = None, timeout_s: float | None = None) -> int:
+    """Launch, supervise and stop the graph; returns 0 when every node ended cleanly."""
+    launcher = Launcher(parse_launch(launch_file, args))
+    previous = {sig: signal.signal(sig, launcher.request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        launcher.start()
+        codes = launcher.wait(timeout_s)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    bad = {name: code for name, code in codes.items() if code not in (0, -signal.SIGINT, 130)}
+    for name, code in bad.items():
+        print(f"[launcher] node '{name}' exited with code {code}", file=sys.stderr)
+    return 1 if bad else 0

@@ -1,0 +1,78 @@
+"""Shared test helpers: isolated DDS domains and real node processes."""
+from __future__ import annotations
+
+import os
+import pathlib
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DEFAULT_CONFIG = ROOT / "config" / "bldc_default.yaml"
+LAUNCH_FILE = ROOT / "config" / "launch" / "bike.launch.yaml"
+
+
+@pytest.fixture
+def ros_domain(monkeypatch):
+    """A DDS domain of its own for this test, discovery limited to this host."""
+    domain = str(random.randint(1, 200))
+    monkeypatch.setenv("ROS_DOMAIN_ID", domain)
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    return int(domain)
+
+
+def bike_command(*args: str, timeout: float = 600, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run `python -m bike_session.cli ARGS` (what ./bike does inside the environment)."""
+    return subprocess.run([sys.executable, "-m", "bike_session.cli", *args], cwd=ROOT, env=env or os.environ.copy(),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+class NodeProcess:
+    """One node executable in its own process group, output captured to a file."""
+
+    def __init__(self, pkg: str, exe: str, args: list[str], log_dir: pathlib.Path):
+        from bike_session.launcher import executable_path
+
+        self.log_path = log_dir / f"{exe}.log"
+        self._log = open(self.log_path, "w")
+        self.proc = subprocess.Popen([executable_path(pkg, exe), *args], stdout=self._log, stderr=subprocess.STDOUT,
+                                     stdin=subprocess.DEVNULL, start_new_session=True)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def output(self) -> str:
+        self._log.flush()
+        return self.log_path.read_text()
+
+    def kill9(self) -> None:
+        os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self, timeout: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+    def wait(self, timeout: float) -> int:
+        return self.proc.wait(timeout)
+
+
+def wait_for(predicate, timeout_s: float, interval_s: float = 0.05) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(interval_s)
+    return predicate()

@@ -1,0 +1,83 @@
+"""Config files: ROS 2 parameter-file format, read without ROS, with clear errors."""
+import dataclasses
+
+import pytest
+
+from bike_plant.config import ConfigError, build_dataclass, flatten, load_config, unflatten
+
+from conftest import DEFAULT_CONFIG
+
+
+def test_default_config_loads_with_the_lockstep_defaults():
+    cfg = load_config(DEFAULT_CONFIG)
+    assert cfg["machine"] == "bldc"
+    assert cfg["sync_mode"] == "lockstep"
+    assert cfg["batch_periods"] == 20
+    assert cfg["control_period_s"] == pytest.approx(50e-6)
+    assert cfg["_config_path"].endswith("bldc_default.yaml")
+
+
+def test_node_section_overrides_the_wildcard(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    a: 1\n    s: {x: 1, y: 2}\n"
+                    "/**/plant:\n  ros__parameters:\n    s: {y: 3}\n")
+    assert load_config(path, "plant")["s"] == {"x": 1, "y": 3}
+    assert load_config(path)["s"] == {"x": 1, "y": 2}
+
+
+def test_flatten_roundtrip():
+    nested = {"a": 1, "b": {"c": 2.5, "d": {"e": [1, 2]}}, "_private": 0}
+    flat = flatten(nested)
+    assert flat == {"a": 1, "b.c": 2.5, "b.d.e": [1, 2]}
+    assert unflatten(flat) == {"a": 1, "b": {"c": 2.5, "d": {"e": [1, 2]}}}
+
+
+@pytest.mark.parametrize("text, message", [
+    ("a: [", "not valid YAML at line 1"),
+    ("- 1\n- 2\n", "expected a mapping"),
+    ("/**:\n  x: 1\n", "'ros__parameters' mapping"),
+    ("plant:\n  ros__parameters: {}\n", "no '/\\*\\*: ros__parameters:' section"),
+    ("!!python/object/apply:os.system ['true']", "not valid YAML"),
+])
+def test_malformed_config_names_the_file_and_problem(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message) as info:
+        load_config(path)
+    assert str(path) in str(info.value)
+
+
+def test_missing_and_binary_files(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read config"):
+        load_config(tmp_path / "nope.yaml")
+    binary = tmp_path / "bin.yaml"
+    binary.write_bytes(b"\xff\xfe\x00\x01" * 10)
+    with pytest.raises(ConfigError):
+        load_config(binary)
+
+
+@dataclasses.dataclass
+class Example:
+    r_ohm: float = 1.0
+    n: int = 2
+    on: bool = False
+    name: str = "x"
+    table: list = dataclasses.field(default_factory=lambda: [1.0])
+
+    def validate(self):
+        if self.r_ohm <= 0:
+            raise ValueError(f"r_ohm must be > 0, got {self.r_ohm}")
+
+
+def test_build_dataclass_checks_types_ranges_and_unknown_keys():
+    obj = build_dataclass(Example, {"r_ohm": 2, "n": 3.0, "table": [1, 2]}, "ex")
+    assert obj.r_ohm == 2.0 and isinstance(obj.r_ohm, float) and obj.n == 3 and obj.table == [1, 2]
+    for values, message in [({"r_ohm": "a"}, "ex.r_ohm: expected a number"),
+                            ({"r_ohm": float("nan")}, "must be finite"),
+                            ({"n": 2.5}, "expected an integer"),
+                            ({"on": 1}, "expected true/false"),
+                            ({"r_hom": 1.0}, "unknown parameter\\(s\\) r_hom"),
+                            ({"r_ohm": -1.0}, "r_ohm must be > 0"),
+                            ({"table": [1, float("inf")]}, "finite")]:
+        with pytest.raises(ConfigError, match=message):
+            build_dataclass(Example, values, "ex")

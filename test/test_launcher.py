@@ -1,0 +1,119 @@
+"""The YAML launch subset: parsing, substitutions, conditions, errors, supervision."""
+import signal
+import sys
+import time
+
+import pytest
+
+from bike_session import launcher
+from bike_session.launcher import LaunchError, Launcher, NodeSpec, parse_launch
+
+from conftest import LAUNCH_FILE
+
+
+def write(tmp_path, text):
+    path = tmp_path / "x.launch.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+def test_project_launch_file_parses_with_and_without_recorder(tmp_path):
+    nodes = parse_launch(str(LAUNCH_FILE), {"config": "/abs/c.yaml", "duration": "5.0"})
+    assert [n.name for n in nodes] == ["plant", "controller", "session"]
+    plant = nodes[0]
+    assert plant.shutdown_on_exit and plant.namespace == "bike"
+    assert plant.params_files == ["/abs/c.yaml"] and plant.params["duration_s"] == "5.0"
+    args = plant.arguments()
+    assert args[:5] == ["--ros-args", "-r", "__node:=plant", "-r", "__ns:=/bike"]
+    assert "--params-file" in args and "duration_s:=5.0" in args
+    nodes = parse_launch(str(LAUNCH_FILE), {"config": "/c.yaml", "record": "true", "record_dir": str(tmp_path)})
+    assert nodes[-1].name == "recorder" and nodes[-1].params["record_dir"] == str(tmp_path)
+
+
+def test_substitutions_and_conditions(tmp_path, monkeypatch):
+    monkeypatch.setenv("BIKE_TEST_VAR", "from-env")
+    path = write(tmp_path, """
+launch:
+- arg: {name: a, default: one}
+- arg: {name: b, default: "$(var a)-two"}
+- node: {pkg: p, exec: e, name: "$(var b)", namespace: "$(env BIKE_TEST_VAR)", param: [{name: k, value: "$(env NOPE fallback)"}]}
+- node: {pkg: p, exec: skipped, if: "false"}
+- node: {pkg: p, exec: kept, unless: "false"}
+""")
+    nodes = parse_launch(path)
+    assert [(n.name, n.namespace) for n in nodes] == [("one-two", "from-env"), ("kept", "")]
+    assert nodes[0].params == {"k": "fallback"}
+    assert parse_launch(path, {"a": "x"})[0].name == "x-two"
+
+
+@pytest.mark.parametrize("text, message", [
+    ("launch: 3", "top-level 'launch:' list"),
+    ("launch:\n- node: {exec: e}", "'pkg' is required"),
+    ("launch:\n- arg: {name: a}", "has no default"),
+    ("launch:\n- node: {pkg: p, exec: e, name: '$(var missing)'}", "unknown launch argument"),
+    ("launch:\n- node: {pkg: p, exec: e, if: maybe}", "condition must be true or false"),
+    ("launch:\n- include: {file: x}", "unsupported entry 'include'"),
+    ("launch: [", "not valid YAML"),
+    ("launch:\n- node: {pkg: p, exec: e, name: '$(python 1+1)'}", "unsupported substitution"),
+])
+def test_malformed_launch_files_give_one_clear_error(tmp_path, text, message):
+    with pytest.raises(LaunchError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        parse_launch(write(tmp_path, text))
+
+
+def test_unknown_override_is_an_error(tmp_path):
+    with pytest.raises(LaunchError, match="unknown launch argument"):
+        parse_launch(write(tmp_path, "launch:\n- arg: {name: a, default: x}\n"), {"b": "1"})
+
+
+class _Script(NodeSpec):
+    """A NodeSpec running a Python snippet instead of a ROS executable."""
+
+    def __init__(self, name, code, shutdown=False):
+        super().__init__(pkg="-", exec="-", name=name, shutdown_on_exit=shutdown)
+        self.code = code
+
+    def command(self):
+        return [sys.executable, "-c", self.code]
+
+
+def test_launcher_stops_all_when_shutdown_node_exits_and_forwards_sigint(tmp_path):
+    marker = tmp_path / "got-sigint"
+    waiter = (
+        "import signal, sys, time, pathlib\n"
+        f"def h(*a):\n    pathlib.Path({str(marker)!r}).write_text('x'); sys.exit(0)\n"
+        "signal.signal(signal.SIGINT, h)\nprint('waiting', flush=True)\n"
+        "while True: time.sleep(0.05)\n")
+    out = []
+
+    class Sink:
+        def write(self, text):
+            out.append(text)
+
+        def flush(self):
+            pass
+
+    launch = Launcher([_Script("quick", "import time; time.sleep(0.5)", shutdown=True), _Script("waiter", waiter)],
+                      stdout=Sink())
+    launch.start()
+    start = time.monotonic()
+    codes = launch.wait(timeout_s=20)
+    assert time.monotonic() - start < 10
+    assert codes == {"quick": 0, "waiter": 0}
+    assert marker.exists(), "the other node must receive SIGINT, not SIGKILL"
+    assert "[waiter] waiting\n" in out
+
+
+def test_launcher_escalates_to_sigkill_for_a_node_that_ignores_signals():
+    stubborn = "import signal, time\nfor s in (signal.SIGINT, signal.SIGTERM): signal.signal(s, signal.SIG_IGN)\n" \
+               "time.sleep(60)"
+    launch = Launcher([_Script("stubborn", stubborn)], grace_s=0.5, stdout=open("/dev/null", "w"))
+    launch.start()
+    time.sleep(0.3)
+    codes = launch.shutdown()
+    assert codes["stubborn"] == -signal.SIGKILL
+
+
+def test_missing_package_is_a_clear_error():
+    with pytest.raises(LaunchError, match="package 'no_such_pkg' not found"):
+        launcher.executable_path("no_such_pkg", "x")

@@ -1,0 +1,13 @@
+# Source this file to enter the workspace environment (the venv + the colcon install space).
+# Used by ./bike, the Makefile and the tests; safe to source more than once.
+_bike_root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+_bike_venv=${BIKE_VENV:-$_bike_root/.venv}
+export AMENT_PREFIX_PATH="$_bike_venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+# shellcheck disable=SC1091
+source "$_bike_venv/bin/activate"
+# shellcheck disable=SC1091
+source "$_bike_root/install/setup.bash"
+# Security default: DDS discovery stays on this host unless the user configures otherwise.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+export BIKE_ROOT="$_bike_root"
+export MPLBACKEND=${MPLBACKEND:-Agg}
