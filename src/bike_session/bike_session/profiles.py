@@ -1,0 +1,352 @@
+"""Workout profiles: a timeline of Command values (0..1) and modes, read from YAML.
+
+A profile file looks like::
+
+    name: demo_intervals            # optional, defaults to the file name
+    description: free text          # optional
+    mode: resistance                # optional default mode of every segment
+    segments:
+      - {kind: step, duration_s: 10, command: 0.3, label: warm-up}
+      - {kind: ramp, duration_s: 10, start: 0.2, end: 0.5}
+      - kind: intervals
+        repeat: 2
+        on:  {duration_s: 10, command: 0.9, label: effort}
+        off: {duration_s: 10, command: 0.4, label: recovery}
+      - kind: repeat
+        repeat: 3
+        segments: [ ...any segments, nested... ]
+
+Segment kinds
+  step       ``duration_s``, ``command``; optional ``mode``, ``label``
+  ramp       ``duration_s``, ``start``, ``end`` (linear); optional ``mode``, ``label``
+  intervals  ``repeat``, ``on``, ``off`` (each a step, or a ramp with ``kind: ramp``);
+             optional ``mode``/``label`` inherited by ``on``/``off``
+  repeat     ``repeat``, ``segments`` (a list of any segments, nesting allowed);
+             optional ``mode``/``label`` inherited by the children
+
+Modes are names (``resistance``, ``motoring``) mapped to the bike_msgs/Command constants
+by :data:`MODES`. Commands are in [0, 1]. A profile compiles into a flat list of leaf
+segments; :meth:`Profile.command_at` is a pure function of time. Every problem raises
+:class:`ProfileError` naming the file, the element (``segments[1].on.command``) and the
+reason. Files are parsed with ``yaml.safe_load`` only. No rclpy import here.
+"""
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import math
+import os
+import pathlib
+from typing import Any, Mapping
+
+import yaml
+
+# name -> bike_msgs/msg/Command mode constant (MODE_RESISTANCE=0, MODE_MOTORING=1)
+MODES: dict[str, int] = {"resistance": 0, "motoring": 1}
+MODE_NAMES: dict[int, str] = {v: k for k, v in MODES.items()}
+
+MAX_PROFILE_BYTES = 1 << 20   # a profile is a few kB; refuse absurd files before parsing
+MAX_LEAF_SEGMENTS = 100_000   # guards against nested repeats exploding in memory
+MAX_REPEAT = 10_000
+MAX_DEPTH = 16
+KINDS = ("step", "ramp", "intervals", "repeat")
+
+_COMMON = {"kind", "mode", "label"}
+_KEYS = {
+    "step": _COMMON | {"duration_s", "command"},
+    "ramp": _COMMON | {"duration_s", "start", "end"},
+    "intervals": _COMMON | {"repeat", "on", "off"},
+    "repeat": _COMMON | {"repeat", "segments"},
+}
+_REQUIRED = {
+    "step": ("duration_s", "command"),
+    "ramp": ("duration_s", "start", "end"),
+    "intervals": ("repeat", "on", "off"),
+    "repeat": ("repeat", "segments"),
+}
+_TOP_KEYS = {"name", "description", "mode", "segments"}
+
+
+class ProfileError(ValueError):
+    """A problem in a profile, naming the file and the element it concerns."""
+
+    def __init__(self, message: str, source: str | os.PathLike | None = None, where: str | None = None):
+        text = str(source) if source else "<profile>"
+        if where:
+            text += f": {where}"
+        super().__init__(f"{text}: {message}")
+        self.source = source
+        self.where = where
+        self.reason = message
+
+
+@dataclasses.dataclass(frozen=True)
+class Segment:
+    """One leaf of the compiled timeline: a constant or a linear ramp."""
+
+    index: int          # position in the flat timeline (SessionStatus.segment_index)
+    path: str           # where it came from in the file, e.g. segments[1].on (repeat 2)
+    start_s: float
+    duration_s: float
+    start: float        # command at start_s
+    end: float          # command at start_s + duration_s (== start for a step)
+    mode: int
+    label: str
+
+    @property
+    def end_s(self) -> float:
+        return self.start_s + self.duration_s
+
+    def value_at(self, t_s: float) -> float:
+        if self.start == self.end:
+            return self.start
+        frac = min(max((t_s - self.start_s) / self.duration_s, 0.0), 1.0)
+        return self.start + (self.end - self.start) * frac
+
+
+class Profile:
+    """A compiled workout: ``command_at(t)`` is a pure function of time.
+
+    Time is relative to the session start (sim time 0). Segments are half-open
+    intervals [start, end). Before 0 the first segment's initial value applies; from
+    ``duration_s`` on the workout is over: command 0, mode of the last segment,
+    ``segment_index == len(segments)``, label ``"end"``.
+    """
+
+    def __init__(self, name: str, segments: list[Segment], source: str = "<profile>", text: str = ""):
+        if not segments:
+            raise ProfileError("a profile needs at least one segment", source, "segments")
+        self.name = name
+        self.segments = segments
+        self.source = source
+        self.text = text
+        self._starts = [s.start_s for s in segments]
+        self.duration_s = segments[-1].end_s
+
+    def __repr__(self) -> str:
+        return f"Profile({self.name!r}, {len(self.segments)} segments, {self.duration_s:g} s)"
+
+    def segment_at(self, t_s: float) -> Segment | None:
+        """The leaf segment active at ``t_s`` (None past the end)."""
+        if not math.isfinite(t_s):
+            raise ValueError(f"time must be finite, got {t_s!r}")
+        if t_s >= self.duration_s:
+            return None
+        i = bisect.bisect_right(self._starts, t_s) - 1
+        return self.segments[max(i, 0)]
+
+    def command_at(self, t_s: float) -> tuple[float, int, int, str]:
+        """(command, mode, segment_index, label) at time ``t_s`` seconds."""
+        seg = self.segment_at(t_s)
+        if seg is None:
+            last = self.segments[-1]
+            return 0.0, last.mode, len(self.segments), "end"
+        value = seg.value_at(t_s)
+        return min(max(value, 0.0), 1.0), seg.mode, seg.index, seg.label
+
+    def timeline(self, period_s: float, duration_s: float | None = None) -> list[tuple[float, float, int]]:
+        """[(tau_j, command, mode)] for tau_j = j * period_s, j = 0 .. floor(duration / period)."""
+        if not (period_s > 0 and math.isfinite(period_s)):
+            raise ValueError(f"period_s must be > 0, got {period_s!r}")
+        duration = self.duration_s if duration_s is None else duration_s
+        n = int(math.floor(duration / period_s + 1e-9))
+        out = []
+        for j in range(n + 1):
+            tau = j * period_s
+            cmd, mode, _, _ = self.command_at(tau)
+            if tau >= duration:
+                cmd = 0.0
+            out.append((tau, cmd, mode))
+        return out
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def load_profile(path: str | os.PathLike) -> Profile:
+    """Read and compile a profile file; ProfileError for any problem (nothing starts)."""
+    path = pathlib.Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise ProfileError(f"cannot read profile ({exc.strerror})", path) from None
+    if not path.is_file():
+        raise ProfileError("not a regular file", path)
+    if size > MAX_PROFILE_BYTES:
+        raise ProfileError(f"file too large ({size} bytes > {MAX_PROFILE_BYTES})", path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise ProfileError("not a text file (not UTF-8)", path) from None
+    except OSError as exc:
+        raise ProfileError(f"cannot read profile ({exc.strerror})", path) from None
+    return parse_profile_text(text, source=str(path), default_name=path.stem)
+
+
+def parse_profile_text(text: str, source: str = "<profile>", default_name: str = "profile") -> Profile:
+    """Compile profile YAML text (``yaml.safe_load``)."""
+    if len(text.encode("utf-8", "surrogatepass")) > MAX_PROFILE_BYTES:
+        raise ProfileError(f"profile too large (> {MAX_PROFILE_BYTES} bytes)", source)
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ProfileError(f"not valid YAML{line}: {getattr(exc, 'problem', None) or exc}", source) from None
+    except RecursionError:
+        raise ProfileError("YAML nested too deeply", source) from None
+    profile = parse_profile(doc, source=source, default_name=default_name)
+    profile.text = text
+    return profile
+
+
+def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "profile") -> Profile:
+    """Compile an already-parsed profile document (a mapping)."""
+    if not isinstance(doc, Mapping):
+        raise ProfileError(f"expected a mapping with 'segments', got {_tname(doc)}", source)
+    unknown = sorted(str(k) for k in set(doc) - _TOP_KEYS)
+    if unknown:
+        raise ProfileError(f"unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(_TOP_KEYS))}", source)
+    name = doc.get("name", default_name)
+    if not isinstance(name, str) or not name.strip():
+        raise ProfileError(f"expected a non-empty string, got {name!r}", source, "name")
+    if "description" in doc and not isinstance(doc["description"], str):
+        raise ProfileError(f"expected a string, got {_tname(doc['description'])}", source, "description")
+    mode = _mode(doc["mode"], source, "mode") if "mode" in doc else MODES["resistance"]
+    if "segments" not in doc:
+        raise ProfileError("missing key 'segments'", source)
+    builder = _Builder(source)
+    builder.segment_list(doc["segments"], "segments", mode, None, 0, "")
+    if not builder.leaves:
+        raise ProfileError("a profile needs at least one segment", source, "segments")
+    return Profile(name, builder.leaves, source=source)
+
+
+class _Builder:
+    def __init__(self, source: str):
+        self.source = source
+        self.leaves: list[Segment] = []
+        self.t = 0.0
+
+    def err(self, where: str, message: str) -> ProfileError:
+        return ProfileError(message, self.source, where)
+
+    def segment_list(self, items, where, mode, label, depth, rep):
+        if not isinstance(items, list):
+            raise self.err(where, f"expected a list of segments, got {_tname(items)}")
+        if not items:
+            raise self.err(where, "empty list of segments")
+        for i, item in enumerate(items):
+            self.segment(item, f"{where}[{i}]", mode, label, depth, rep)
+
+    def segment(self, seg, where, mode, label, depth, rep, default_kind=None):
+        if depth > MAX_DEPTH:
+            raise self.err(where, f"segments nested deeper than {MAX_DEPTH} levels")
+        if not isinstance(seg, Mapping):
+            raise self.err(where, f"expected a mapping, got {_tname(seg)}")
+        seg = _yaml11_keys(seg)
+        kind = seg.get("kind", default_kind)
+        if kind is None:
+            raise self.err(where, f"missing key 'kind' (one of {', '.join(KINDS)})")
+        if not isinstance(kind, str) or kind not in KINDS:
+            raise self.err(f"{where}.kind", f"unknown kind {kind!r}; expected one of {', '.join(KINDS)}")
+        unknown = sorted(str(k) for k in set(seg) - _KEYS[kind])
+        if unknown:
+            raise self.err(where, f"unknown key(s) {', '.join(unknown)} for kind {kind}; known: {', '.join(sorted(_KEYS[kind]))}")
+        for key in _REQUIRED[kind]:
+            if key not in seg:
+                raise self.err(where, f"missing key '{key}' for kind {kind}")
+        if "mode" in seg:
+            mode = _mode(seg["mode"], self.source, f"{where}.mode")
+        if "label" in seg:
+            label = seg["label"]
+            if not isinstance(label, str):
+                raise self.err(f"{where}.label", f"expected a string, got {_tname(label)}")
+        if kind in ("step", "ramp"):
+            duration = self.number(seg["duration_s"], f"{where}.duration_s")
+            if duration <= 0:
+                raise self.err(f"{where}.duration_s", f"must be > 0, got {seg['duration_s']!r}")
+            if kind == "step":
+                start = end = self.command(seg["command"], f"{where}.command")
+            else:
+                start = self.command(seg["start"], f"{where}.start")
+                end = self.command(seg["end"], f"{where}.end")
+            if len(self.leaves) >= MAX_LEAF_SEGMENTS:
+                raise self.err(where, f"profile expands to more than {MAX_LEAF_SEGMENTS} segments")
+            self.leaves.append(Segment(len(self.leaves), where + rep, self.t, duration, start, end, mode,
+                                       label if label is not None else kind))
+            self.t += duration
+            if not math.isfinite(self.t):
+                raise self.err(where, "total duration is not finite")
+            return
+        count = self.repeat(seg["repeat"], f"{where}.repeat")
+        if kind == "intervals":
+            for part in ("on", "off"):
+                body = seg[part]
+                if isinstance(body, Mapping) and body.get("kind", "step") not in ("step", "ramp"):
+                    raise self.err(f"{where}.{part}.kind", f"must be step or ramp, got {body.get('kind')!r}")
+            for r in range(count):
+                r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
+                self.segment(seg["on"], f"{where}.on", mode, label, depth + 1, r_tag, "step")
+                self.segment(seg["off"], f"{where}.off", mode, label, depth + 1, r_tag, "step")
+        else:
+            for r in range(count):
+                r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
+                self.segment_list(seg["segments"], f"{where}.segments", mode, label, depth + 1, r_tag)
+
+    def number(self, value, where) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.err(where, f"expected a number, got {_tname(value)} {value!r}")
+        if not math.isfinite(value):
+            raise self.err(where, f"must be finite, got {value!r}")
+        return float(value)
+
+    def command(self, value, where) -> float:
+        x = self.number(value, where)
+        if not 0.0 <= x <= 1.0:
+            raise self.err(where, f"command must be in [0, 1], got {value!r}")
+        return x
+
+    def repeat(self, value, where) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+                value = int(value)
+            else:
+                raise self.err(where, f"expected an integer, got {_tname(value)} {value!r}")
+        if not 1 <= value <= MAX_REPEAT:
+            raise self.err(where, f"must be in [1, {MAX_REPEAT}], got {value!r}")
+        return value
+
+
+def _yaml11_keys(seg: Mapping) -> dict:
+    # yaml.safe_load follows YAML 1.1, where the bare keys `on` / `off` are booleans.
+    return {("on" if k is True else "off" if k is False else k): v for k, v in seg.items()}
+
+
+def _mode(value, source, where) -> int:
+    if not isinstance(value, str) or value not in MODES:
+        raise ProfileError(f"unknown mode {value!r}; expected one of {', '.join(MODES)}", source, where)
+    return MODES[value]
+
+
+def _tname(value) -> str:
+    if value is None:
+        return "nothing (null)"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, Mapping):
+        return "a mapping"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, (int, float)):
+        return "a number"
+    return type(value).__name__
+
+
+def step(duration_s: float, command: float, mode: str = "resistance", label: str = "step") -> Profile:
+    """A one-segment profile (constant command), handy for tests and quick runs."""
+    return parse_profile({"name": label, "mode": mode,
+                          "segments": [{"kind": "step", "duration_s": duration_s, "command": command, "label": label}]},
+                         source="<step>")

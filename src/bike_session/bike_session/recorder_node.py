@@ -1,0 +1,350 @@
+"""Recorder node: writes every topic of one bike to a rosbag2 bag (MCAP or sqlite3).
+
+Node name ``recorder`` (namespace ``/bike`` by default). Parameters:
+
+- ``record_dir`` (string, "."): folder of the bag; created if missing.
+- ``bag_name`` (string, "" -> ``session_<UTC timestamp>``): the bag directory inside record_dir.
+- ``storage`` (string, "mcap" | "sqlite3").
+- ``stop_on_end_of_run`` (bool, false): exit by itself once PlantState.end_of_run is recorded.
+
+Subscriptions take the serialized CDR bytes (``raw=True``): nothing is deserialized. The
+bag is written with rosbags (format version 9, rosbag2 Jazzy) and embeds the message
+definitions (bike_msgs from the installed .msg files), so ROS 2 tools, MCAP viewers and
+:mod:`bike_session.bags` read it without the workspace. Log time = sim time: the header
+stamp of messages that have one, the clock value for /clock, the latest clock otherwise.
+
+On SIGINT / SIGTERM the node keeps spinning until the PlantState with ``end_of_run``
+has been recorded or 3 s pass without any message, then closes the bag and exits 0.
+The first line on stdout is ``bag: PATH``.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import glob
+import importlib
+import os
+import pathlib
+import signal
+import struct
+import sys
+import time
+
+# (topic relative to the bike namespace unless absolute, ROS type, has std_msgs/Header first)
+TOPICS: tuple[tuple[str, str, bool], ...] = (
+    ("command", "bike_msgs/msg/Command", True),
+    ("plant_state", "bike_msgs/msg/PlantState", True),
+    ("drive_command", "bike_msgs/msg/DriveCommand", True),
+    ("controller_status", "bike_msgs/msg/ControllerStatus", True),
+    ("session_status", "bike_msgs/msg/SessionStatus", True),
+    ("session_info", "std_msgs/msg/String", False),
+    ("battery", "sensor_msgs/msg/BatteryState", True),
+    ("/clock", "rosgraph_msgs/msg/Clock", True),         # Clock's first field is a Time, like a header
+    ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", True),
+)
+LATCHED_TOPICS = {"session_info"}
+# The session publishes these transient_local (keep_last 100): a recorder whose reader matches
+# late still receives the first commands. If a volatile publisher appears on one of them (a
+# replayer), the incompatible-QoS event switches that subscription to volatile.
+PREFER_LATCHED = {"command", "session_status"}
+QOS_DEPTH = 1000
+SILENCE_S = 3.0
+STORAGES = ("mcap", "sqlite3")
+
+
+class SetupError(Exception):
+    """A start-up problem reported as one line on stderr (exit code 2)."""
+
+
+# ------------------------------------------------------------------- CDR helpers (no rclpy)
+
+def _cdr_layout(raw) -> tuple[str, int]:
+    """(struct byte-order char, max alignment) from the 4-byte encapsulation header."""
+    if len(raw) < 4:
+        raise ValueError("CDR data shorter than its encapsulation header")
+    rep = raw[1] | (raw[0] << 8)
+    if rep in (0x0000, 0x0001):      # CDR_BE / CDR_LE (XCDR1): 8-byte types align to 8
+        return ("<" if rep == 0x0001 else ">"), 8
+    if rep in (0x0006, 0x0007):      # CDR2_BE / CDR2_LE (plain XCDR2): max alignment 4
+        return ("<" if rep == 0x0007 else ">"), 4
+    raise ValueError(f"unsupported CDR representation 0x{rep:04x}")
+
+
+def stamp_ns_from_cdr(raw) -> int:
+    """Header stamp (or Clock value) of a serialized message whose first field is a Time."""
+    order, _ = _cdr_layout(raw)
+    if len(raw) < 12:
+        raise ValueError("CDR data too short for a time stamp")
+    sec, nsec = struct.unpack_from(order + "iI", raw, 4)
+    return sec * 1_000_000_000 + nsec
+
+
+def plant_state_end_of_run(raw) -> bool:
+    """The ``end_of_run`` flag of a serialized bike_msgs/PlantState, read in place.
+
+    Layout (PlantState.msg): header{stamp{int32, uint32}, string frame_id}, uint64 seq,
+    uint32 batch_periods, float64 control_period_s, string machine, string backend,
+    bool measured_by_drive, bool end_of_run.
+    """
+    order, maxalign = _cdr_layout(raw)
+    body = memoryview(raw)[4:]
+    pos = 8
+
+    def align(p, n):
+        n = min(n, maxalign)
+        return (p + n - 1) // n * n
+
+    def skip_string(p):
+        p = align(p, 4)
+        (n,) = struct.unpack_from(order + "I", body, p)
+        return p + 4 + n
+
+    pos = skip_string(pos)              # header.frame_id
+    pos = align(pos, 8) + 8             # seq
+    pos = align(pos, 4) + 4             # batch_periods
+    pos = align(pos, 8) + 8             # control_period_s
+    pos = skip_string(pos)              # machine
+    pos = skip_string(pos)              # backend
+    pos += 1                            # measured_by_drive
+    if pos >= len(body):
+        raise ValueError("PlantState data truncated")
+    return body[pos] != 0
+
+
+# ------------------------------------------------------------------- typestore (no rclpy)
+
+def bike_msgs_msg_dir() -> pathlib.Path:
+    from ament_index_python.packages import get_package_share_directory
+    return pathlib.Path(get_package_share_directory("bike_msgs")) / "msg"
+
+
+def build_typestore(msg_dir: str | os.PathLike | None = None):
+    """rosbags typestore: ROS 2 Jazzy standard types + bike_msgs from the installed .msg files."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    msg_dir = pathlib.Path(msg_dir) if msg_dir else bike_msgs_msg_dir()
+    types = {}
+    files = sorted(glob.glob(str(msg_dir / "*.msg")))
+    if not files:
+        raise SetupError(f"no bike_msgs .msg files in {msg_dir}")
+    for path in files:
+        name = f"bike_msgs/msg/{pathlib.Path(path).stem}"
+        types.update(get_types_from_msg(pathlib.Path(path).read_text(), name))
+    typestore.register(types)
+    return typestore
+
+
+def default_bag_name() -> str:
+    return "session_" + _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S_%fZ")
+
+
+def _rosbags_qos(latched: bool):
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                    QosTime)
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, QOS_DEPTH if not latched else 1, QosReliability.RELIABLE,
+               QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+
+
+class BagSink:
+    """The rosbags writer with one connection per recorded topic (no rclpy)."""
+
+    def __init__(self, path: pathlib.Path, storage: str, typestore, topics: list[tuple[str, str, bool, bool]]):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        if storage not in STORAGES:
+            raise SetupError(f"storage must be one of {', '.join(STORAGES)}, got {storage!r}")
+        if path.exists():
+            raise SetupError(f"bag {path} already exists; choose another bag_name or record_dir")
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise SetupError(f"cannot create record_dir {path.parent}: {exc.strerror}") from None
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        self.path = path
+        self.writer = Writer(path, version=9, storage_plugin=plugin)
+        try:
+            self.writer.open()
+        except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds
+            raise SetupError(f"cannot open bag {path}: {exc}") from None
+        self.connections = {}
+        for topic, msgtype, _has_header, latched in topics:
+            self.connections[topic] = self.writer.add_connection(
+                topic, msgtype, typestore=typestore, offered_qos_profiles=[_rosbags_qos(latched)])
+        self.counts = {topic: 0 for topic, *_ in topics}
+        self.closed = False
+
+    def write(self, topic: str, t_ns: int, data) -> None:
+        self.writer.write(self.connections[topic], max(int(t_ns), 0), bytes(data))
+        self.counts[topic] += 1
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.writer.close()
+
+
+# ------------------------------------------------------------------- node
+
+def _ros_type(msgtype: str):
+    pkg, sub, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.{sub}"), name)
+
+
+def _make_node_class():
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    class RecorderNode(Node):
+        def __init__(self):
+            super().__init__("recorder")
+            record_dir = self.declare_parameter("record_dir", ".").value
+            bag_name = self.declare_parameter("bag_name", "").value or default_bag_name()
+            storage = self.declare_parameter("storage", "mcap").value
+            self.stop_on_end_of_run = bool(self.declare_parameter("stop_on_end_of_run", False).value)
+            if "/" in bag_name or bag_name in (".", ".."):
+                raise SetupError(f"bag_name must be a plain name, got {bag_name!r}")
+            path = pathlib.Path(os.path.expanduser(record_dir or ".")).resolve() / bag_name
+
+            topics = []
+            for rel, msgtype, has_header in TOPICS:
+                full = self.resolve_topic_name(rel)
+                topics.append((full, msgtype, has_header, rel in LATCHED_TOPICS))
+            try:
+                typestore = build_typestore()
+            except SetupError:
+                raise
+            except Exception as exc:  # noqa: BLE001
+                raise SetupError(f"cannot load bike_msgs definitions: {exc}") from None
+            self.sink = BagSink(path, storage, typestore, topics)
+            self.bag_path = path
+            self.latest_clock_ns = 0
+            self.last_msg_wall = time.monotonic()
+            self.end_of_run_seen = False
+            self.bad_stamps = 0
+            self.plant_state_topic = self.resolve_topic_name("plant_state")
+            self.clock_topic = "/clock"
+            self.subs = {}
+            self._to_volatile: set[str] = set()
+            prefer = {self.resolve_topic_name(t) for t in PREFER_LATCHED}
+            self._specs = {}
+            for full, msgtype, has_header, latched in topics:
+                self._specs[full] = (msgtype, has_header, latched)
+                self._subscribe(full, transient_local=latched or full in prefer)
+            self._downgrade_timer = self.create_timer(0.2, self._apply_downgrades)
+
+        def _subscribe(self, full: str, transient_local: bool) -> None:
+            from rclpy.event_handler import SubscriptionEventCallbacks
+
+            msgtype, has_header, latched = self._specs[full]
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1 if latched else QOS_DEPTH,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL if transient_local else DurabilityPolicy.VOLATILE)
+            events = None
+            if transient_local and not latched:
+                events = SubscriptionEventCallbacks(incompatible_qos=lambda _status, t=full: self._to_volatile.add(t))
+            self.subs[full] = self.create_subscription(_ros_type(msgtype), full, self._make_callback(full, has_header),
+                                                       qos, raw=True, event_callbacks=events)
+
+        def _apply_downgrades(self) -> None:
+            while self._to_volatile:
+                full = self._to_volatile.pop()
+                self.get_logger().warning(f"{full}: a volatile publisher appeared; recording it with a volatile "
+                                          "subscription (messages sent before it matched are not in the bag)")
+                self.destroy_subscription(self.subs.pop(full))
+                self._subscribe(full, transient_local=False)
+
+        def _make_callback(self, topic: str, has_header: bool):
+            sink = self.sink
+            is_clock = topic == self.clock_topic
+            is_plant = topic == self.plant_state_topic
+
+            def callback(raw: bytes) -> None:
+                self.last_msg_wall = time.monotonic()
+                if sink.closed:
+                    return
+                t_ns = self.latest_clock_ns
+                if has_header:
+                    try:
+                        t_ns = stamp_ns_from_cdr(raw)
+                    except ValueError:
+                        self.bad_stamps += 1
+                        t_ns = self.latest_clock_ns
+                if is_clock:
+                    self.latest_clock_ns = max(self.latest_clock_ns, t_ns)
+                sink.write(topic, t_ns, raw)
+                if is_plant:
+                    try:
+                        if plant_state_end_of_run(raw):
+                            self.end_of_run_seen = True
+                    except (ValueError, struct.error):
+                        pass
+
+            return callback
+
+        def close(self) -> None:
+            self.sink.close()
+
+    return RecorderNode
+
+
+_signals = {"count": 0}
+
+
+def _on_signal(signum, frame):  # noqa: ARG001
+    _signals["count"] += 1
+
+
+def main(args=None) -> int:
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    node = None
+    rc = 0
+    try:
+        node = _make_node_class()()
+        print(f"bag: {node.bag_path}", flush=True)
+        node.get_logger().info(f"recording {len(node.subs)} topics to {node.bag_path}")
+        while rclpy.ok() and _signals["count"] == 0:
+            rclpy.spin_once(node, timeout_sec=0.1)
+            if node.stop_on_end_of_run and node.end_of_run_seen:
+                break
+        # drain: until end_of_run is recorded or SILENCE_S without messages (a second signal stops now)
+        while rclpy.ok() and not node.end_of_run_seen and _signals["count"] < 2:
+            if time.monotonic() - node.last_msg_wall > SILENCE_S:
+                break
+            rclpy.spin_once(node, timeout_sec=0.05)
+        # take what is already queued (trailing status / commands), 0.2 s of quiet at most
+        quiet_until = time.monotonic() + 0.2
+        while rclpy.ok() and time.monotonic() < quiet_until and _signals["count"] < 2:
+            before = node.last_msg_wall
+            rclpy.spin_once(node, timeout_sec=0.05)
+            if node.last_msg_wall != before:
+                quiet_until = time.monotonic() + 0.2
+        counts = {k: v for k, v in node.sink.counts.items() if v}
+        node.close()
+        node.get_logger().info(f"bag closed: {node.bag_path} {counts}")
+    except SetupError as exc:
+        print(f"recorder_node: error: {exc}", file=sys.stderr, flush=True)
+        rc = 2
+    except KeyboardInterrupt:
+        if node is not None:
+            node.close()
+    finally:
+        if node is not None:
+            try:
+                node.close()
+            except Exception as exc:  # noqa: BLE001
+                print(f"recorder_node: error closing bag: {exc}", file=sys.stderr, flush=True)
+                rc = 1
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,310 @@
+"""Session node: plays a workout profile as a Command timeline on sim time.
+
+Node name ``session`` (namespace ``/bike`` by default). Parameters:
+
+- ``session.profile`` (string): profile YAML; a relative path resolves against the
+  directory of ``config_path`` when that is set, else against the working directory.
+- ``session.period_s`` (0.1): Command period in sim seconds.
+- ``duration_s`` (0.0): run length in sim seconds; 0 = profile length.
+  ``session.duration_s`` (0.0), when > 0, takes precedence (DESIGN.md puts it there).
+- ``config_path`` (string): the scenario config file, used to resolve the profile path and
+  recorded verbatim in ``session_info``.
+
+Lockstep protocol (DESIGN.md): on every ``/clock`` value t the node publishes the Command
+for every tau_j = j * period_s with tau_j <= t + period_s that it has not published yet,
+stamped tau_j (so at t = 0 it sends tau_0 and tau_1). The command of a tau_j at or after the
+run's end is 0. One SessionStatus per period; at t >= duration a final DONE status and a
+Command of 0, then the node exits with code 0. A bad profile: one error line, exit code 2.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import pathlib
+import subprocess
+import sys
+
+from bike_session.profiles import MODE_NAMES, Profile, ProfileError, load_profile
+
+NODE_NAME = "session"
+COMMAND_QOS_DEPTH = 100
+
+
+class SetupError(Exception):
+    """A start-up problem reported as one line on stderr (exit code 2)."""
+
+
+def software_version() -> str:
+    """``git describe`` of the source tree when available, else the package version."""
+    here = pathlib.Path(__file__).resolve().parent
+    try:
+        out = subprocess.run(["git", "-C", str(here), "describe", "--always", "--dirty", "--tags"],
+                             capture_output=True, text=True, timeout=3)
+        if out.returncode == 0 and out.stdout.strip():
+            return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
+    try:
+        from importlib.metadata import version
+        return version("bike_session")
+    except Exception:  # noqa: BLE001 - metadata may be missing in odd installs
+        return "unknown"
+
+
+def resolve_profile_path(profile: str, config_path: str = "") -> pathlib.Path:
+    """Resolve ``session.profile`` against the config file's folder (or the cwd)."""
+    p = pathlib.Path(os.path.expanduser(profile))
+    if p.is_absolute():
+        return p
+    base = pathlib.Path(config_path).resolve().parent if config_path else pathlib.Path.cwd()
+    return base / p
+
+
+def collect_seeds(config_path: str) -> dict:
+    """Every parameter whose name ends in 'seed' in the config file (for reproducibility)."""
+    if not config_path:
+        return {}
+    try:
+        from bike_plant.config import flatten, load_config
+        cfg = load_config(config_path)
+    except Exception:  # noqa: BLE001 - the metadata must never stop a session
+        return {}
+    return {k: v for k, v in flatten(cfg).items() if k.split(".")[-1].endswith("seed")}
+
+
+def _read_text(path: str | os.PathLike, limit: int = 1 << 20) -> str | None:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(limit).decode("utf-8", "replace")
+    except OSError:
+        return None
+
+
+def build_session_info(profile: Profile, profile_path: pathlib.Path, config_path: str, *,
+                       period_s: float, duration_s: float, namespace: str) -> dict:
+    return {
+        "profile_name": profile.name,
+        "profile_path": str(profile_path),
+        "profile_text": profile.text,
+        "profile_duration_s": profile.duration_s,
+        "config_path": config_path or None,
+        "config_text": _read_text(config_path) if config_path else None,
+        "software_version": software_version(),
+        "start_wall_time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"),
+        "seeds": collect_seeds(config_path),
+        "period_s": period_s,
+        "duration_s": duration_s,
+        "namespace": namespace,
+        "modes": MODE_NAMES,
+    }
+
+
+def _make_node_class():
+    # rclpy is imported lazily so that the module's helpers import without ROS.
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from bike_msgs.msg import Command, SessionStatus
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from rosgraph_msgs.msg import Clock
+    from std_msgs.msg import String
+
+    any_type = ParameterDescriptor(dynamic_typing=True)
+
+    class SessionNode(Node):
+        def __init__(self):
+            super().__init__(NODE_NAME)
+            p = {}
+            for name, default in (("session.profile", ""), ("config_path", "")):
+                p[name] = self.declare_parameter(name, default).value
+            for name, default in (("session.period_s", 0.1), ("duration_s", 0.0), ("session.duration_s", 0.0)):
+                value = self.declare_parameter(name, default, any_type).value
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                    raise SetupError(f"parameter {name} must be a finite number, got {value!r}")
+                p[name] = float(value)
+            if p["session.period_s"] <= 0:
+                raise SetupError(f"parameter session.period_s must be > 0, got {p['session.period_s']!r}")
+            for name in ("duration_s", "session.duration_s"):
+                if p[name] < 0:
+                    raise SetupError(f"parameter {name} must be >= 0 (0 = profile length), got {p[name]!r}")
+            if not p["session.profile"]:
+                raise SetupError("parameter session.profile is empty: give a profile YAML file")
+            config_path = p["config_path"]
+            profile_path = resolve_profile_path(p["session.profile"], config_path)
+            try:
+                self.profile = load_profile(profile_path)
+            except ProfileError as exc:
+                raise SetupError(f"bad profile: {exc}") from None
+
+            self.period_ns = int(round(p["session.period_s"] * 1e9))
+            if self.period_ns <= 0:
+                raise SetupError(f"parameter session.period_s too small: {p['session.period_s']!r}")
+            self.period_s = self.period_ns * 1e-9
+            duration = p["session.duration_s"] or p["duration_s"] or self.profile.duration_s
+            self.duration_s = duration
+            self.duration_ns = int(round(duration * 1e9))
+
+            # reliable, keep_last 100; transient_local so that a subscriber matched late (the
+            # recorder, a controller started after the first /clock) still gets the first
+            # commands. Compatible with volatile subscriptions.
+            cmd_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=COMMAND_QOS_DEPTH,
+                                 reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                                 reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            clock_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                                   reliability=ReliabilityPolicy.RELIABLE)
+            self._Command, self._SessionStatus = Command, SessionStatus
+            self._DiagnosticArray, self._DiagnosticStatus, self._KeyValue = DiagnosticArray, DiagnosticStatus, KeyValue
+            self.pub_command = self.create_publisher(Command, "command", cmd_qos)
+            self.pub_status = self.create_publisher(SessionStatus, "session_status", cmd_qos)
+            self.pub_info = self.create_publisher(String, "session_info", latched)
+            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.sub_clock = self.create_subscription(Clock, "/clock", self._on_clock, clock_qos)
+
+            self.next_j = 0              # next tau index to publish
+            self.last_status_k = -1      # last period index a status was published for
+            self.last_t_ns = None
+            self.state = SessionStatus.STATE_WAITING
+            self.done = False
+            self.commands_published = 0
+
+            info = build_session_info(self.profile, profile_path, config_path, period_s=self.period_s,
+                                      duration_s=self.duration_s, namespace=self.get_namespace())
+            self.pub_info.publish(String(data=json.dumps(info, sort_keys=True)))
+            self._publish_status(0, SessionStatus.STATE_WAITING)
+            self._publish_diag("waiting for /clock")
+            self.wait_timer = self.create_timer(1.0, self._on_wait_timer)
+            self.get_logger().info(
+                f"profile {self.profile.name!r} ({self.profile.duration_s:g} s, {len(self.profile.segments)} segments) "
+                f"from {profile_path}; run {self.duration_s:g} s, period {self.period_s:g} s")
+
+        # ---------------------------------------------------------------- timeline
+        def command_for(self, tau_ns: int) -> tuple[float, int, int, str]:
+            cmd, mode, index, label = self.profile.command_at(tau_ns * 1e-9)
+            if tau_ns >= self.duration_ns:
+                cmd = 0.0
+            return cmd, mode, index, label
+
+        def _publish_command(self, j: int) -> None:
+            tau_ns = j * self.period_ns
+            cmd, mode, _, _ = self.command_for(tau_ns)
+            msg = self._Command()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(tau_ns, 1_000_000_000)
+            msg.command = float(cmd)
+            msg.mode = int(mode)
+            self.pub_command.publish(msg)
+            self.commands_published += 1
+
+        def _publish_status(self, t_ns: int, state: int) -> None:
+            SessionStatus = self._SessionStatus
+            msg = SessionStatus()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(max(t_ns, 0), 1_000_000_000)
+            msg.profile_name = self.profile.name
+            msg.state = state
+            elapsed = max(t_ns, 0) * 1e-9
+            msg.elapsed_s = elapsed
+            msg.duration_s = self.duration_s
+            msg.progress = min(max(elapsed / self.duration_s, 0.0), 1.0) if self.duration_s > 0 else 1.0
+            # the command in force at t is the one of the last tau_j <= t
+            tau_ns = (max(t_ns, 0) // self.period_ns) * self.period_ns
+            cmd, mode, index, label = self.command_for(tau_ns)
+            if state == SessionStatus.STATE_DONE:
+                cmd = 0.0
+            msg.segment_index = int(index)
+            msg.segment_label = label
+            msg.command = float(cmd)
+            msg.mode = int(mode)
+            self.pub_status.publish(msg)
+
+        def _publish_diag(self, message: str, level: int | None = None) -> None:
+            st = self._DiagnosticStatus()
+            st.level = self._DiagnosticStatus.OK if level is None else level
+            st.name = f"{self.get_fully_qualified_name()}"
+            st.message = message
+            st.hardware_id = self.get_namespace()
+            st.values = [self._KeyValue(key="profile", value=self.profile.name),
+                         self._KeyValue(key="commands_published", value=str(self.commands_published))]
+            arr = self._DiagnosticArray()
+            arr.header.stamp.sec, arr.header.stamp.nanosec = divmod(max(self.last_t_ns or 0, 0), 1_000_000_000)
+            arr.status = [st]
+            self.pub_diag.publish(arr)
+
+        def _on_wait_timer(self) -> None:
+            if self.state == self._SessionStatus.STATE_WAITING:
+                self._publish_status(0, self._SessionStatus.STATE_WAITING)
+
+        def _on_clock(self, msg) -> None:
+            if self.done:
+                return
+            t_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
+            if self.last_t_ns is not None and t_ns < self.last_t_ns:
+                self.get_logger().warning(f"/clock went backwards ({self.last_t_ns} -> {t_ns} ns); ignored")
+                return
+            self.last_t_ns = t_ns
+            SessionStatus = self._SessionStatus
+            if self.state == SessionStatus.STATE_WAITING:
+                self.state = SessionStatus.STATE_RUNNING
+                self.wait_timer.cancel()
+                self._publish_diag("running")
+            # ahead of time: every tau_j <= t + period not yet published
+            horizon = t_ns + self.period_ns
+            while self.next_j * self.period_ns <= horizon:
+                self._publish_command(self.next_j)
+                self.next_j += 1
+            if t_ns >= self.duration_ns:
+                self._publish_command(self.next_j)   # the final Command of 0
+                self.next_j += 1
+                self.state = SessionStatus.STATE_DONE
+                self._publish_status(t_ns, SessionStatus.STATE_DONE)
+                self._publish_diag("done")
+                self.done = True
+                self.get_logger().info(f"session done at t = {t_ns * 1e-9:g} s "
+                                       f"({self.commands_published} commands)")
+                return
+            k = t_ns // self.period_ns
+            if k > self.last_status_k:
+                self.last_status_k = k
+                self._publish_status(t_ns, SessionStatus.STATE_RUNNING)
+
+        def flush(self, timeout_s: float = 2.0) -> None:
+            from rclpy.duration import Duration
+            for pub in (self.pub_command, self.pub_status, self.pub_diag):
+                try:
+                    pub.wait_for_all_acked(Duration(seconds=timeout_s))
+                except Exception:  # noqa: BLE001 - best effort on the way out
+                    pass
+
+    return SessionNode
+
+
+def main(args=None) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=args)
+    node = None
+    rc = 0
+    try:
+        node = _make_node_class()()
+        while rclpy.ok() and not node.done:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        if node.done:
+            node.flush()
+    except SetupError as exc:
+        print(f"session_node: error: {exc}", file=sys.stderr, flush=True)
+        rc = 2
+    except (KeyboardInterrupt, ExternalShutdownException):
+        rc = 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,319 @@
+"""Session node + recorder node as real OS processes over DDS, driven by a test clock/plant.
+
+The test process plays the plant: it publishes /clock and PlantState (plus one message on
+every other bike topic), the session node answers with its Command timeline and the
+recorder writes the MCAP bag. Then the bag must hold every topic, decode with an EMPTY
+typestore (rosbags) and with mcap_ros2, carry sim-time log times, and the Command
+timeline must match the profile.
+"""
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import time
+
+import pytest
+
+from conftest import wait_for
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+LIB = ROOT / "install" / "bike_session" / "lib" / "bike_session"
+NS = "/bike"
+PERIOD = 0.1
+DURATION = 1.0
+STEP_NS = 10_000_000        # test plant: one PlantState per 10 ms of sim time
+PROFILE = """name: unit_profile
+segments:
+  - {kind: ramp, duration_s: 0.5, start: 0.0, end: 1.0, label: up}
+  - {kind: step, duration_s: 0.3, command: 0.5, mode: motoring, label: push}
+  - {kind: step, duration_s: 0.5, command: 0.25, label: tail}
+"""
+CONFIG = """/**:
+  ros__parameters:
+    use_sim_time: true
+    plant_seed: 42
+    duration_s: 1.0
+    session:
+      profile: unit_profile.yaml
+      period_s: 0.1
+"""
+
+
+class Proc:
+    def __init__(self, exe: str, args: list[str], log_dir: pathlib.Path):
+        self.log_path = log_dir / f"{exe}.log"
+        self.err_path = log_dir / f"{exe}.err"
+        self._out = open(self.log_path, "w")
+        self._err = open(self.err_path, "w")
+        self.proc = subprocess.Popen([str(LIB / exe), "--ros-args", "-r", f"__ns:={NS}", *args],
+                                     stdout=self._out, stderr=self._err, stdin=subprocess.DEVNULL,
+                                     start_new_session=True, env=os.environ.copy())
+
+    def out(self) -> str:
+        self._out.flush()
+        return self.log_path.read_text()
+
+    def err(self) -> str:
+        self._err.flush()
+        return self.err_path.read_text()
+
+    def signal(self, sig=signal.SIGINT) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, sig)
+
+    def wait(self, timeout: float) -> int:
+        try:
+            return self.proc.wait(timeout)
+        finally:
+            self._out.flush()
+            self._err.flush()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        self._out.close()
+        self._err.close()
+
+
+@pytest.fixture
+def procs():
+    started: list[Proc] = []
+    yield started
+    for p in started:
+        p.kill()
+
+
+def _expected_commands():
+    """(stamp_ns, command, mode) the session must publish for PROFILE / PERIOD / DURATION."""
+    from bike_session.profiles import parse_profile_text
+
+    prof = parse_profile_text(PROFILE)
+    out = []
+    # the clock reaches DURATION: tau_j <= DURATION + PERIOD (12 values) plus the final 0
+    for j in range(13):
+        tau_ns = j * 100_000_000
+        cmd, mode, _, _ = prof.command_at(tau_ns * 1e-9)
+        if tau_ns >= 1_000_000_000:
+            cmd = 0.0
+        out.append((tau_ns, cmd, mode))
+    return out
+
+
+def _qos(depth=100, latched=False):
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def _stamp(msg, t_ns):
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
+    return msg
+
+
+def test_session_and_recorder_processes(tmp_path, ros_domain, procs):
+    import rclpy
+    from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.context import Context
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import BatteryState
+    from std_msgs.msg import String
+
+    (tmp_path / "unit_profile.yaml").write_text(PROFILE)
+    config = tmp_path / "bike.yaml"
+    config.write_text(CONFIG)
+    record_dir = tmp_path / "runs"
+
+    recorder = Proc("recorder_node", ["-p", f"record_dir:={record_dir}", "-p", "bag_name:=bag"], tmp_path)
+    procs.append(recorder)
+    session = Proc("session_node", ["--params-file", str(config), "-p", f"config_path:={config}"], tmp_path)
+    procs.append(session)
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    node = rclpy.create_node("test_plant", namespace=NS, context=ctx)
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        got_cmd, got_status, got_info = [], [], []
+        node.create_subscription(Command, "command", got_cmd.append, _qos(latched=True))
+        node.create_subscription(SessionStatus, "session_status", got_status.append, _qos(latched=True))
+        node.create_subscription(String, "session_info", got_info.append, _qos(1, latched=True))
+        pub_clock = node.create_publisher(Clock, "/clock", _qos())
+        pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
+        others = {
+            "drive_command": node.create_publisher(DriveCommand, "drive_command", _qos()),
+            "controller_status": node.create_publisher(ControllerStatus, "controller_status", _qos()),
+            "battery": node.create_publisher(BatteryState, "battery", _qos()),
+            "/diagnostics": node.create_publisher(DiagnosticArray, "/diagnostics", _qos()),
+        }
+
+        def spin(seconds):
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.01)
+
+        # discovery: both nodes see our clock, the recorder sees every topic we publish
+        def ready():
+            spin(0.05)
+            return (pub_clock.get_subscription_count() >= 2 and pub_ps.get_subscription_count() >= 1
+                    and all(p.get_subscription_count() >= 1 for p in others.values())
+                    and node.count_subscribers(f"{NS}/command") >= 2 and node.count_publishers(f"{NS}/command") >= 1
+                    and len(got_info) == 1)
+        assert wait_for(ready, 15.0), (recorder.err()[-2000:], session.err()[-2000:])
+        assert recorder.out().startswith(f"bag: {record_dir / 'bag'}")
+
+        for name, pub in others.items():
+            msg = pub.msg_type()
+            _stamp(msg, 5_000_000)
+            pub.publish(msg)
+        steps = int(DURATION * 1e9) // STEP_NS
+        for k in range(steps + 1):
+            t_ns = k * STEP_NS
+            c = Clock()
+            c.clock.sec, c.clock.nanosec = divmod(t_ns, 1_000_000_000)
+            pub_clock.publish(c)
+            ps = _stamp(PlantState(), t_ns)
+            ps.seq = k
+            ps.machine, ps.backend = "bldc", "test"
+            ps.end_of_run = k == steps
+            pub_ps.publish(ps)
+            spin(0.003)
+
+        assert session.wait(10.0) == 0, session.err()[-2000:]
+        spin(0.3)
+        recorder.signal(signal.SIGINT)
+        assert recorder.wait(10.0) == 0, recorder.err()[-2000:]
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+
+    # ---- what the session published (as received live)
+    expected = _expected_commands()
+    live = [(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec, m.command, m.mode) for m in got_cmd]
+    assert [t for t, _, _ in live] == [t for t, _, _ in expected]
+    assert [(c, m) for _, c, m in live] == [(pytest.approx(c, abs=1e-12), m) for _, c, m in expected]
+    assert got_status[-1].state == SessionStatus.STATE_DONE
+    assert got_status[-1].profile_name == "unit_profile"
+    assert [s.state for s in got_status if s.state == SessionStatus.STATE_RUNNING]
+    info = json.loads(got_info[0].data)
+    assert info["profile_text"] == PROFILE and info["config_text"] == CONFIG
+    assert info["seeds"] == {"plant_seed": 42} and info["software_version"] and info["start_wall_time"]
+
+    # ---- the bag, read with an EMPTY typestore (definitions embedded)
+    bag = record_dir / "bag"
+    assert (bag / "metadata.yaml").is_file()
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    assert "bike_msgs/msg/PlantState" not in get_typestore(Stores.EMPTY).types
+    by_topic: dict[str, list] = {}
+    with AnyReader([bag]) as reader:
+        for conn, t_ns, raw in reader.messages():
+            by_topic.setdefault(conn.topic, []).append((t_ns, reader.deserialize(raw, conn.msgtype)))
+    all_topics = {"/clock", "/diagnostics", *(f"{NS}/{t}" for t in (
+        "command", "plant_state", "drive_command", "controller_status", "session_status", "session_info", "battery"))}
+    assert set(by_topic) == all_topics, {t: len(v) for t, v in by_topic.items()}
+    assert len(by_topic["/clock"]) == steps + 1
+    assert len(by_topic[f"{NS}/plant_state"]) == steps + 1
+    # log time = sim time
+    for t_ns, m in by_topic["/clock"]:
+        assert t_ns == m.clock.sec * 1_000_000_000 + m.clock.nanosec
+    for topic in ("plant_state", "command", "session_status", "battery", "drive_command", "controller_status"):
+        for t_ns, m in by_topic[f"{NS}/{topic}"]:
+            assert t_ns == m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+    assert by_topic[f"{NS}/session_info"][0][0] <= int(DURATION * 1e9)
+    assert by_topic[f"{NS}/plant_state"][-1][1].end_of_run
+    recorded = sorted((t, m.command, m.mode) for t, m in by_topic[f"{NS}/command"])
+    assert recorded == [(t, pytest.approx(c, abs=1e-12), m) for t, c, m in expected]
+
+    # ---- and with an independent decoder (mcap_ros2)
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    mcap_file = next(bag.glob("*.mcap"))
+    seen = {}
+    with open(mcap_file, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if channel.topic == f"{NS}/plant_state":
+                assert message.log_time == decoded.header.stamp.sec * 1_000_000_000 + decoded.header.stamp.nanosec
+                assert schema.name == "bike_msgs/msg/PlantState" and schema.encoding == "ros2msg"
+    assert seen == {t: len(v) for t, v in by_topic.items()}
+
+
+def test_session_bad_profile_exits_2(tmp_path, ros_domain, procs):
+    (tmp_path / "bad.yaml").write_text("segments:\n  - {kind: step, duration_s: 1, command: 3}\n")
+    session = Proc("session_node", ["-p", "session.profile:=bad.yaml", "-p", f"config_path:={tmp_path / 'x.yaml'}"],
+                   tmp_path)
+    procs.append(session)
+    assert session.wait(15.0) == 2
+    err = session.err()
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{tmp_path / 'bad.yaml'}: segments[0].command" in err and "[0, 1]" in err
+
+
+def test_recorder_sqlite3_stops_after_silence(tmp_path, ros_domain, procs):
+    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=quiet", "-p", "storage:=sqlite3"],
+               tmp_path)
+    procs.append(rec)
+    assert wait_for(lambda: rec.out().startswith("bag: "), 15.0), rec.err()
+    time.sleep(0.5)
+    start = time.monotonic()
+    rec.signal(signal.SIGTERM)
+    assert rec.wait(10.0) == 0, rec.err()
+    assert time.monotonic() - start < 6.0
+    from bike_session.bags import open_bag
+
+    with open_bag(tmp_path / "quiet") as bag:
+        assert len(bag.topics) == 9 and sum(bag.message_counts().values()) == 0
+    assert list((tmp_path / "quiet").glob("*.db3"))
+    # the same bag name again: refused with one line, exit 2
+    again = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=quiet"], tmp_path)
+    procs.append(again)
+    assert again.wait(15.0) == 2
+    assert "already exists" in again.err() and "Traceback" not in again.err()
+
+
+def test_recorder_adapts_to_volatile_command_publisher(tmp_path, ros_domain, procs):
+    """A replayer-like volatile Command publisher is still recorded (QoS downgrade)."""
+    import rclpy
+    from bike_msgs.msg import Command, PlantState
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=vol"], tmp_path)
+    procs.append(rec)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    node = rclpy.create_node("replayer", namespace=NS, context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        pub = node.create_publisher(Command, "command", _qos())          # volatile
+        pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
+        assert wait_for(lambda: pub.get_subscription_count() >= 1 and pub_ps.get_subscription_count() >= 1, 15.0), \
+            rec.err()[-2000:]
+        for j in range(3):
+            pub.publish(_stamp(Command(command=0.1 * j), j * 100_000_000))
+        pub_ps.publish(PlantState(end_of_run=True))
+        executor.spin_once(timeout_sec=0.3)
+        rec.signal(signal.SIGINT)
+        assert rec.wait(10.0) == 0, rec.err()[-2000:]
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+    from bike_session.bags import read_topic
+
+    assert [round(m.command, 6) for m in read_topic(tmp_path / "vol", "command")] == [0.0, 0.1, 0.2]
+    assert "volatile publisher appeared" in rec.err()
