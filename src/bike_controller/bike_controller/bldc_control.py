@@ -1,0 +1,407 @@
+"""BLDC torque controller of paper 000 (Fig. 7/10) with the batched inner loop.
+
+Per 50 us period: speed estimator (Eq. 1) -> torque command transformer (Eq. 2-5) ->
+torque-constant correction ktg = k(w) kt (Eq. 6-9) -> current command I* -> commutation
+from the Hall state + hysteresis current control with at most one switching edge per
+period (20 kHz PWM) -> gate interlock (in the plant's hardware).
+
+Batched inner loop (ARCHITECTURE.md): :class:`BatchController` answers one PlantState
+with N periods of gate decisions. Inside the batch it cannot measure, so it predicts the
+fast state with its own copy of the plant kernel (:func:`bike_plant.bldc.step_period`,
+nominal parameters, shaft speed held at the measured value, Hall edges predicted with the
+same capture-timer quantisation). With a matched model the result equals a per-period
+closed loop; with a mismatched one the error is reported (prediction_error_a).
+
+Generating (quadrant II, Fig. 5/6): in a sector with phase p at +E and phase n at -E the
+LOW switch of p is modulated: on -> the winding current rises through Q(low p) and the
+lower diode of n (boost inductor charging); off -> it flows into the battery through the
+upper diode of p. Motoring (quadrant I): upper p modulated, lower n on.
+Feedback current = (|ia| + |ib| + |ic|) / 2 (paper 000, Fig. 12b/13b).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from bike_plant import bldc as K
+from bike_plant import params as P
+from bike_plant.config import ConfigError, build_dataclass, require_positive, section
+
+from . import speed_estimator as _se
+from . import torque_command as _tc
+from .speed_estimator import speed_rpm_from_counts
+from .torque_command import (KGF_CM_TO_NM, MODE_MOTORING, MODE_RESISTANCE, k_factor, ktg_nm_per_a, region_of,
+                             torque_command_nm)
+
+# the kernels below inline bike_plant.bldc / params code: drop our numba cache if they changed
+K.invalidate_stale_numba_cache(__file__, [K.__file__, P.__file__, _se.__file__, _tc.__file__])
+
+QUADRANT_MOTORING = 1
+QUADRANT_GENERATING = 2
+
+
+@dataclass
+class ControllerParams:
+    """controller: section of the config (paper 000, section 4-5)."""
+    tmax_nm: float = 30.0 * KGF_CM_TO_NM          # 30 kgf cm = 2.942 N m
+    base_speed_rpm: float = 3300.0
+    pmax_w: float = 1016.68                        # Eq. 2 (see torque_command.py on 964.68 W)
+    k_speed_rpm: list = field(default_factory=lambda: [0.0, 4500.0])
+    k_factor: list = field(default_factory=lambda: [0.8, 1.0])
+    k_interp: str = "step"                         # step | linear
+    hysteresis_a: float = 1.5                      # half band h: I* - h .. I* + h
+    current_limit_a: float = 120.0
+    model: str = "nominal"                         # nominal | actual (see nominal_params_from_config)
+    command0: float = 0.0
+    mode0: int = 0
+
+    def validate(self) -> None:
+        require_positive(self, "tmax_nm", "base_speed_rpm", "pmax_w", "hysteresis_a", "current_limit_a")
+        P._check_table(self.k_speed_rpm, self.k_factor, "k_speed_rpm", "k_factor", 1e-6, 1.0)
+        if len(self.k_speed_rpm) > K_TABLE_MAX:
+            raise ValueError(f"at most {K_TABLE_MAX} k table points")
+        if self.k_interp not in ("step", "linear"):
+            raise ValueError(f"k_interp must be 'step' or 'linear', got {self.k_interp!r}")
+        if self.model not in ("nominal", "actual"):
+            raise ValueError(f"model must be 'nominal' or 'actual', got {self.model!r}")
+        validate_command(self.command0, self.mode0)
+
+
+def controller_params_from_config(cfg: dict) -> ControllerParams:
+    path = cfg.get("_config_path")
+    return build_dataclass(ControllerParams, section(cfg, "controller", path), "controller", path)
+
+
+def validate_command(command, mode) -> None:
+    """Eq. 5: Command in [0, 1]; mode 0 (resistance) or 1 (motoring). ValueError otherwise."""
+    if isinstance(command, bool) or not isinstance(command, (int, float, np.floating, np.integer)):
+        raise ValueError(f"command must be a number in [0, 1], got {command!r}")
+    if not math.isfinite(float(command)):
+        raise ValueError(f"command must be finite, got {command!r}")
+    if not 0.0 <= float(command) <= 1.0:
+        raise ValueError(f"command must be in [0, 1] (paper 000, Eq. 5), got {command!r}")
+    if isinstance(mode, bool) or int(mode) != mode or int(mode) not in (MODE_RESISTANCE, MODE_MOTORING):
+        raise ValueError(f"mode must be 0 (resistance) or 1 (motoring), got {mode!r}")
+
+
+# ---- controller parameter vector / state layout -------------------------------------------
+Q_TMAX, Q_WB, Q_PMAX, Q_H, Q_ILIM, Q_KT, Q_PP, Q_FC, Q_KN, Q_KLIN = range(10)
+K_TABLE_MAX = 24
+Q_KX = 10
+Q_KY = Q_KX + K_TABLE_MAX
+Q_SIZE = Q_KY + K_TABLE_MAX
+
+C_ON = 0            # hysteresis comparator memory (switch state)
+C_LAST_EDGE = 1     # capture count of the last Hall edge
+C_HAVE_EDGE = 2
+C_NC = 3            # counts between the last two edges (Eq. 1 nc)
+C_SPEED_EST = 4     # rpm, Eq. 1
+C_COMMAND = 5
+C_MODE = 6
+C_IOVERRIDE = 7     # current command override [A] (< 0: none) for the current-control tests
+C_TCMD = 8
+C_K = 9
+C_KTG = 10
+C_ICMD = 11
+C_REGION = 12
+C_QUADRANT = 13
+C_SIZE = 16
+
+
+def pack_controller(cp: ControllerParams, plant: P.PlantParams) -> np.ndarray:
+    q = np.zeros(Q_SIZE)
+    q[Q_TMAX] = cp.tmax_nm
+    q[Q_WB] = cp.base_speed_rpm
+    q[Q_PMAX] = cp.pmax_w
+    q[Q_H] = cp.hysteresis_a
+    q[Q_ILIM] = cp.current_limit_a
+    q[Q_KT] = plant.bldc.kt_nm_per_a
+    q[Q_PP] = plant.bldc.pole_pairs
+    q[Q_FC] = plant.hall.timer_hz
+    q[Q_KN] = len(cp.k_speed_rpm)
+    q[Q_KLIN] = 1.0 if cp.k_interp == "linear" else 0.0
+    for j, (x, y) in enumerate(zip(cp.k_speed_rpm, cp.k_factor)):
+        q[Q_KX + j] = x
+        q[Q_KY + j] = y
+    return q
+
+
+@njit(cache=True, error_model="numpy")
+def update_command(cs, q):
+    """Speed estimate -> Tcmd (Eq. 3-4) -> k, ktg (Eq. 7-9) -> I*."""
+    speed = cs[C_SPEED_EST]
+    mode = int(cs[C_MODE])
+    cs[C_REGION] = region_of(speed, q[Q_WB])
+    if mode == MODE_MOTORING:
+        tcmd = cs[C_COMMAND] * q[Q_TMAX]
+        k = 1.0
+        cs[C_QUADRANT] = QUADRANT_MOTORING
+    else:
+        tcmd = torque_command_nm(cs[C_COMMAND], speed, q[Q_TMAX], q[Q_WB], q[Q_PMAX])
+        k = k_factor(speed, q[Q_KX:Q_KX + K_TABLE_MAX], q[Q_KY:Q_KY + K_TABLE_MAX], int(q[Q_KN]), q[Q_KLIN] != 0.0)
+        cs[C_QUADRANT] = QUADRANT_GENERATING
+    ktg = ktg_nm_per_a(k, q[Q_KT])
+    icmd = tcmd / ktg
+    if cs[C_IOVERRIDE] >= 0.0:
+        icmd = cs[C_IOVERRIDE]
+    if icmd > q[Q_ILIM]:
+        icmd = q[Q_ILIM]
+    cs[C_TCMD] = tcmd
+    cs[C_K] = k
+    cs[C_KTG] = ktg
+    cs[C_ICMD] = icmd
+
+
+@njit(cache=True, error_model="numpy")
+def process_edge(cs, q, count):
+    """A captured Hall edge: Eq. 1 with nc = counts since the previous edge."""
+    if cs[C_HAVE_EDGE] != 0.0 and count > cs[C_LAST_EDGE]:
+        cs[C_NC] = count - cs[C_LAST_EDGE]
+        cs[C_SPEED_EST] = speed_rpm_from_counts(cs[C_NC], q[Q_FC], q[Q_PP])
+        update_command(cs, q)
+    cs[C_LAST_EDGE] = count
+    cs[C_HAVE_EDGE] = 1.0
+
+
+@njit(cache=True, error_model="numpy")
+def _bound_speed(cs, q, model, p):
+    """No edge for longer than the last interval: Eq. 1 of the elapsed count bounds the speed."""
+    if cs[C_HAVE_EDGE] != 0.0:
+        now = math.floor(model[K.S_PERIODS] * (p[P.P_TIMER_HZ] * p[P.P_DT]))   # the plant's timer formula
+        elapsed = now - cs[C_LAST_EDGE]
+        if elapsed > cs[C_NC] and elapsed > 0.0:
+            bound = speed_rpm_from_counts(elapsed, q[Q_FC], q[Q_PP])
+            if bound < cs[C_SPEED_EST]:
+                cs[C_SPEED_EST] = bound
+                update_command(cs, q)
+
+
+@njit(cache=True, error_model="numpy")
+def patterns(sector, mode):
+    """(on, off) gate patterns of the sector: generating modulates low p; motoring upper p + low n."""
+    pp_ = K.SECTOR_P[sector]
+    nn = K.SECTOR_N[sector]
+    if mode == MODE_MOTORING:
+        return (1 << (2 * pp_)) | (1 << (2 * nn + 1)), 1 << (2 * nn + 1)
+    return 1 << (2 * pp_ + 1), 0
+
+
+@njit(cache=True, error_model="numpy")
+def control_period(cs, q, model, p, ws, wi):
+    """Hysteresis current control for one period from the (measured or predicted) state
+    `model`; returns (gates_a, gates_b, split). Uses ws/wi as scratch and leaves the
+    period's back-EMF / inductances in ws (K.period_setup), so the step that follows
+    can skip recomputing them."""
+    K.period_setup(model, p, ws)
+    _bound_speed(cs, q, model, p)
+    hall = int(model[K.S_HALL])
+    sector = K.HALL_TO_SECTOR[hall & 7]
+    icmd = cs[C_ICMD]
+    if sector < 0 or icmd <= 0.0:
+        cs[C_ON] = 0.0
+        return 0, 0, 1.0
+    on_pat, off_pat = patterns(sector, int(cs[C_MODE]))
+    i_fb = 0.5 * (abs(model[0]) + abs(model[1]) + abs(model[2]))
+    h = q[Q_H]
+    upper = icmd + h
+    lower = icmd - h
+    on = cs[C_ON] != 0.0
+    # comparator with memory at the period start
+    if on and i_fb >= upper:
+        on = False
+    elif (not on) and i_fb <= lower:
+        on = True
+    pat = on_pat if on else off_pat
+    # predict the period with the active pattern; toggle where the opposite band edge is crossed
+    i_end = K.trial_currents(model, p, pat, ws, wi)
+    if on and i_end > upper and i_end > i_fb:
+        s = (upper - i_fb) / (i_end - i_fb)
+        # one edge per period: never so early that the rest of the period (off) carries the
+        # current below the lower band edge (the off slope is steeper than the on slope)
+        i_off = K.trial_currents(model, p, off_pat, ws, wi)
+        if i_off < lower:
+            s_keep = (lower - i_off) / (i_end - i_off)
+            if s_keep > s:
+                s = s_keep
+        cs[C_ON] = 0.0
+        return on_pat, off_pat, min(max(s, 0.0), 1.0)
+    if (not on) and i_end < lower and i_end < i_fb:
+        s = (i_fb - lower) / (i_fb - i_end)
+        i_on = K.trial_currents(model, p, on_pat, ws, wi)
+        if i_on > upper:
+            s_keep = (i_on - upper) / (i_on - i_end)
+            if s_keep > s:
+                s = s_keep
+        cs[C_ON] = 1.0
+        return off_pat, on_pat, min(max(s, 0.0), 1.0)
+    cs[C_ON] = 1.0 if on else 0.0
+    return pat, pat, 1.0
+
+
+@njit(cache=True, error_model="numpy")
+def control_batch(cs, q, model, p, ga, gb, sp, edge_counts, edge_states):
+    """N periods of control law + prediction with the controller's own plant kernel."""
+    ws = np.empty(K.WS_SIZE)
+    wi = np.empty(6, np.int64)
+    n = ga.shape[0]
+    for k in range(n):
+        a, b, s = control_period(cs, q, model, p, ws, wi)
+        s = np.float64(np.float32(s))    # DriveCommand carries split as float32: predict what the plant gets
+        ga[k] = a
+        gb[k] = b
+        sp[k] = s
+        ne = K.step_period(model, p, a, b, s, edge_counts, edge_states, 0, ws, wi, True)
+        for j in range(ne):
+            process_edge(cs, q, float(edge_counts[j]))
+
+
+@njit(cache=True, error_model="numpy")
+def run_fused(plant, p, cs, q, n, samples, rec_every, tem_out):
+    """Per-period closed loop (N = 1, perfect measurement): the controller reads the plant
+    state directly. The fastest form of the inner loop (benchmark); equal to the batched
+    loop with a matched model. samples[k // rec_every] = currents, tem_out the same for torque."""
+    ws = np.empty(K.WS_SIZE)
+    wi = np.empty(6, np.int64)
+    ec = np.empty(4, np.uint64)
+    es = np.empty(4, np.uint8)
+    for k in range(n):
+        a, b, s = control_period(cs, q, plant, p, ws, wi)
+        s = np.float64(np.float32(s))
+        ne = K.step_period(plant, p, a, b, s, ec, es, 0, ws, wi, True)
+        for j in range(ne):
+            process_edge(cs, q, float(ec[j]))
+        if rec_every > 0 and k % rec_every == 0:
+            r = k // rec_every
+            if r < samples.shape[0]:
+                samples[r, 0] = plant[0]
+                samples[r, 1] = plant[1]
+                samples[r, 2] = plant[2]
+                tem_out[r] = plant[K.S_TEM]
+
+
+class BatchController:
+    """The controller node's law without ROS (docs/DESIGN.md, Control API)."""
+
+    def __init__(self, cfg: dict, nominal_params: P.PlantParams | None = None, batch_periods: int | None = None):
+        self.cfg = cfg
+        self.cp = controller_params_from_config(cfg)
+        self.nominal = nominal_params if nominal_params is not None else P.nominal_params_from_config(cfg)
+        self.p = P.pack_params(self.nominal)
+        self.p[P.P_LOAD_KIND] = 0.0            # prediction: shaft speed held at the measured value
+        self.q = pack_controller(self.cp, self.nominal)
+        n = batch_periods if batch_periods is not None else cfg.get("batch_periods", 20)
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ConfigError(f"must be an integer >= 1, got {n!r}", cfg.get("_config_path"), "batch_periods")
+        self.batch_periods = n
+        self.cs = np.zeros(C_SIZE)
+        self.cs[C_IOVERRIDE] = -1.0
+        self.cs[C_COMMAND] = self.cp.command0
+        self.cs[C_MODE] = self.cp.mode0
+        update_command(self.cs, self.q)
+        self.model = None
+        self._est_saved = None
+        self.command_rejected = False
+        self.last_status: dict = {}
+        self.seq = 0
+
+    # ---------------------------------------------------------------- commands
+    def set_command(self, command: float, mode: int = MODE_RESISTANCE) -> None:
+        """Eq. 5 command (0..1) and mode (0 resistance / generating, 1 motoring)."""
+        try:
+            validate_command(command, mode)
+        except ValueError:
+            self.command_rejected = True
+            raise
+        self.command_rejected = False
+        self.cs[C_COMMAND] = float(command)
+        self.cs[C_MODE] = int(mode)
+        update_command(self.cs, self.q)
+
+    def set_current_override(self, current_a: float | None) -> None:
+        """Bypass Eq. 2-9 with a fixed current command (paper 000, Fig. 12/13: I* = 35, 50 A)."""
+        if current_a is None:
+            self.cs[C_IOVERRIDE] = -1.0
+        else:
+            if not math.isfinite(current_a) or current_a < 0:
+                raise ValueError(f"current override must be finite and >= 0, got {current_a!r}")
+            self.cs[C_IOVERRIDE] = float(current_a)
+        update_command(self.cs, self.q)
+
+    def torque_command_nm(self, speed_rpm: float, command: float = 1.0) -> float:
+        """Eq. 3-4 for this controller's Tmax, wb, Pmax."""
+        return float(torque_command_nm(command, speed_rpm, self.cp.tmax_nm, self.cp.base_speed_rpm, self.cp.pmax_w))
+
+    def k_factor(self, speed_rpm: float) -> float:
+        return float(k_factor(speed_rpm, self.q[Q_KX:Q_KX + K_TABLE_MAX], self.q[Q_KY:Q_KY + K_TABLE_MAX], int(self.q[Q_KN]),
+                              self.q[Q_KLIN] != 0.0))
+
+    def ktg(self, speed_rpm: float) -> float:
+        """Eq. 8-9: ktg = k(w) * kt."""
+        return float(ktg_nm_per_a(self.k_factor(speed_rpm), self.q[Q_KT]))
+
+    # ---------------------------------------------------------------- the batch
+    def _load_model(self, snap: dict) -> float:
+        """Overwrite the predictor's state with the measurement; returns the prediction error."""
+        cur = np.asarray(snap["phase_current_a"], dtype=np.float64)
+        err = 0.0
+        if self.model is None:
+            self.model = K.new_state(self.p, float(snap["speed_rpm"]), float(snap["battery_soc"]))
+            self.model[K.S_VFILT] = float(snap["dc_bus_v"])
+        else:
+            err = float(np.max(np.abs(cur - self.model[0:3])))
+        m = self.model
+        m[0:3] = cur
+        m[K.S_THETA_E] = float(snap["rotor_angle_elec_rad"])
+        m[K.S_OMEGA] = float(snap["speed_rad_s"])
+        m[K.S_SPEED_TARGET] = m[K.S_OMEGA]
+        m[K.S_VDC] = float(snap["dc_bus_v"])
+        m[K.S_SOC] = float(snap["battery_soc"])
+        m[K.S_S0] = 1.0 if snap["brake_resistor_on"] else 0.0
+        m[K.S_HALL] = float(snap["hall_state"])
+        fc_dt = self.nominal.hall.timer_hz * self.nominal.control_period_s
+        # period index from the capture timer (timer = floor(periods * fc * T), fc * T >= 1)
+        m[K.S_PERIODS] = float(math.ceil(int(snap["timer_count"]) / fc_dt - 1e-9))
+        return err
+
+    def decide(self, snapshot: dict, n: int | None = None):
+        """N periods of (gates_a, gates_b, split) answering PlantState `snapshot`, + status."""
+        n = self.batch_periods if n is None else int(n)
+        err = self._load_model(snapshot)
+        # measured Hall edges replace the ones predicted during the previous batch
+        if self._est_saved is not None:
+            self.cs[C_LAST_EDGE:C_SPEED_EST + 1] = self._est_saved
+        for c in snapshot.get("hall_edge_counts", ()):
+            process_edge(self.cs, self.q, float(c))
+        update_command(self.cs, self.q)
+        _bound_speed(self.cs, self.q, self.model, self.p)
+        self._est_saved = self.cs[C_LAST_EDGE:C_SPEED_EST + 1].copy()
+        status = self.status(snapshot.get("seq", 0), err)
+        ga = np.zeros(n, np.uint8)
+        gb = np.zeros(n, np.uint8)
+        sp = np.ones(n, np.float64)
+        ec = np.zeros(2 * n + 8, np.uint64)
+        es = np.zeros(2 * n + 8, np.uint8)
+        control_batch(self.cs, self.q, self.model, self.p, ga, gb, sp, ec, es)
+        self.last_status = status
+        return ga, gb, sp, status
+
+    def status(self, seq: int = 0, prediction_error_a: float = 0.0) -> dict:
+        """ControllerStatus fields (header excluded)."""
+        cs = self.cs
+        return {
+            "seq": int(seq),
+            "command": float(cs[C_COMMAND]),
+            "mode": int(cs[C_MODE]),
+            "command_rejected": bool(self.command_rejected),
+            "speed_est_rpm": float(cs[C_SPEED_EST]),
+            "torque_cmd_nm": float(cs[C_TCMD]),
+            "k_factor": float(cs[C_K]),
+            "ktg_nm_per_a": float(cs[C_KTG]),
+            "current_cmd_a": float(cs[C_ICMD]),
+            "region": int(cs[C_REGION]),
+            "quadrant": int(cs[C_QUADRANT]),
+            "prediction_error_a": float(prediction_error_a),
+        }

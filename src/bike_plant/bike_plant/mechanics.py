@@ -1,0 +1,31 @@
+"""Shaft loads of the bike (reference formulas; the per-period versions live in bldc.step_period).
+
+Rider model (ARCHITECTURE.md, mechanical load): crank torque from a torque-cadence line
+with two torque peaks per crank turn (one per leg),
+    T_crank = effort * T0 * (1 - cadence / cadence_max) * (1 + 0.5 cos(2 crank_angle)),
+seen by the motor through the gear ratio (motor / crank ~ 35): T_motor = T_crank / ratio.
+The rider holds a target cadence by adjusting effort (0..1) with a PI on the cadence error.
+A prime mover (paper 000, section 5) holds the speed exactly and supplies any torque.
+"""
+from __future__ import annotations
+
+import math
+
+from .params import RPM_PER_RAD_S, LoadParams
+
+
+def rider_crank_torque_nm(effort: float, cadence_rpm: float, crank_angle_rad: float, load: LoadParams) -> float:
+    """Crank torque of the rider (>= 0: a rider pedals, never brakes)."""
+    line = max(0.0, 1.0 - cadence_rpm / load.rider_cadence_max_rpm)
+    return min(max(effort, 0.0), 1.0) * load.rider_t0_nm * line * (1.0 + 0.5 * math.cos(2.0 * crank_angle_rad))
+
+
+def rider_motor_torque_nm(effort: float, motor_speed_rad_s: float, crank_angle_rad: float, load: LoadParams) -> float:
+    """The rider's torque on the motor shaft (through the gear)."""
+    cadence_rpm = motor_speed_rad_s / load.gear_ratio * RPM_PER_RAD_S
+    return rider_crank_torque_nm(effort, cadence_rpm, crank_angle_rad, load) / load.gear_ratio
+
+
+def prime_mover_torque_nm(torque_em_nm: float, friction_nms: float, speed_rad_s: float) -> float:
+    """Torque a prime mover supplies to hold the speed: it balances T_em and friction."""
+    return friction_nms * speed_rad_s - torque_em_nm

@@ -1,0 +1,298 @@
+"""Parameters of the BLDC bike (paper 000): machine, bridge, battery, mechanics, Hall sensors.
+
+Dataclasses in the style of motulator: one small dataclass per physical part, values in
+SI units with the unit in the name. They are built from the config dict (the
+``/**: ros__parameters`` section, see docs/DESIGN.md) with
+:func:`bike_plant.config.build_dataclass`, so a bad value raises ConfigError naming the key.
+
+The numba kernels in :mod:`bike_plant.bldc` do not take dataclasses: :func:`pack_params`
+flattens a :class:`PlantParams` into one float64 vector (layout ``P_*`` below).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import ConfigError, build_dataclass, require_positive, section
+
+TWO_PI = 2.0 * math.pi
+RPM_PER_RAD_S = 60.0 / TWO_PI
+
+
+@dataclass
+class BldcParams:
+    """Trapezoidal-EMF BLDC machine + 6-switch bridge (paper 000, Table 1, Fig. 2/6).
+
+    ke_v_per_rpm is the line-to-line back-EMF constant on the flat top, so the phase
+    constant is kph = ke * 60 / (2 pi) / 2 [V s/rad] and, with two phases conducting, the
+    torque constant is kt = 2 kph = ke * 60 / (2 pi) = 0.05204 N m/A.
+    inductance_h is the per-phase effective inductance L - M (117.25 uH, Table 1).
+    r_phase_ohm is not in the paper: 6 mOhm per phase (winding + switch on-resistance)
+    keeps 2 R I = 0.85 V below E_LL = 1.63 V at 300 rpm, so the ~70 A the paper's
+    Tmax / (0.8 kt) needs can still flow at the lowest speed of Fig. 14.
+    """
+    pole_pairs: int = 2
+    ke_v_per_rpm: float = 5.45e-3
+    inductance_h: float = 117.25e-6
+    r_phase_ohm: float = 0.006
+    # non-ideality 1 (paper 000, section 5, reason (1)): L_x = L0 (1 + eps cos(2 (theta_e - 120 deg x)))
+    inductance_variation: float = 0.0
+    # non-ideality 2 (paper 000, section 4.3 / Fig. 11): back-EMF shape blends from a
+    # sinusoid (amplitude emf_sine_amplitude, per unit of the flat top) at low speed to
+    # the ideal trapezoid at high speed; weight of the trapezoid from a piecewise-linear table.
+    emf_nonideal: bool = False
+    emf_sine_amplitude: float = 1.0
+    emf_shape_speed_rpm: list = field(default_factory=lambda: [0.0, 4500.0])
+    emf_trap_weight: list = field(default_factory=lambda: [1.0, 1.0])
+    overvoltage_v: float = 80.0   # FAULT_OVERVOLTAGE threshold of the DC bus
+
+    def validate(self) -> None:
+        require_positive(self, "pole_pairs", "ke_v_per_rpm", "inductance_h", "r_phase_ohm", "overvoltage_v")
+        if not 0.0 <= self.inductance_variation < 0.9:
+            raise ValueError(f"inductance_variation must be in [0, 0.9), got {self.inductance_variation!r}")
+        if not 0.0 < self.emf_sine_amplitude <= 2.0:
+            raise ValueError(f"emf_sine_amplitude must be in (0, 2], got {self.emf_sine_amplitude!r}")
+        _check_table(self.emf_shape_speed_rpm, self.emf_trap_weight, "emf_shape_speed_rpm", "emf_trap_weight", 0.0, 1.0)
+
+    @property
+    def kph_v_s_per_rad(self) -> float:
+        """Phase back-EMF constant (flat top), mechanical rad/s."""
+        return self.ke_v_per_rpm * RPM_PER_RAD_S / 2.0
+
+    @property
+    def kt_nm_per_a(self) -> float:
+        """Torque constant with two phases conducting (= ke in V s/rad, line-to-line)."""
+        return self.ke_v_per_rpm * RPM_PER_RAD_S
+
+
+@dataclass
+class BatteryParams:
+    """48 V pack (13S li-ion) + S0 brake resistor (paper 000, Fig. 2, dynamic braking)."""
+    v_empty_v: float = 42.0
+    v_full_v: float = 54.6
+    r_internal_ohm: float = 0.15
+    capacity_ah: float = 10.0
+    soc0: float = 0.7
+    r_brake_ohm: float = 4.0
+    s0_on_v: float = 54.6
+    s0_off_v: float = 54.0
+    s0_filter_s: float = 1.0e-3   # RC filter of the S0 comparator input (no bus capacitor in the model)
+
+    def validate(self) -> None:
+        require_positive(self, "v_empty_v", "v_full_v", "r_internal_ohm", "capacity_ah", "r_brake_ohm",
+                         "s0_on_v", "s0_off_v", "s0_filter_s")
+        if self.v_full_v <= self.v_empty_v:
+            raise ValueError("v_full_v must be > v_empty_v")
+        if not 0.0 <= self.soc0 <= 1.0:
+            raise ValueError(f"soc0 must be in [0, 1], got {self.soc0!r}")
+        if self.s0_off_v >= self.s0_on_v:
+            raise ValueError("s0_off_v must be < s0_on_v (hysteresis)")
+
+
+@dataclass
+class MechParams:
+    """Shaft: motor-side inertia (flywheel reflected) and viscous friction."""
+    inertia_kgm2: float = 0.01
+    friction_nms: float = 1.0e-4
+    speed0_rpm: float = 0.0
+
+    def validate(self) -> None:
+        require_positive(self, "inertia_kgm2")
+        if self.friction_nms < 0:
+            raise ValueError("friction_nms must be >= 0")
+
+
+LOAD_KINDS = ("prime_mover", "rider", "none")
+
+
+@dataclass
+class LoadParams:
+    """External load on the shaft.
+
+    prime_mover: speed held exactly (paper 000, section 5: 'a prime mover is used to
+    rotate the BLPMEM at a fixed speed'), optionally a schedule of (time_s, speed_rpm) steps.
+    rider: crank torque T = effort * T0 (1 - cadence/cadence_max) (1 + 0.5 cos(2 crank)),
+    two peaks per crank turn, through gear ratio motor/crank; effort from a PI on cadence.
+    """
+    kind: str = "prime_mover"
+    speed_rpm: float = 3000.0
+    schedule_time_s: list = field(default_factory=list)
+    schedule_speed_rpm: list = field(default_factory=list)
+    gear_ratio: float = 35.0
+    rider_t0_nm: float = 120.0
+    rider_cadence_max_rpm: float = 160.0
+    rider_target_cadence_rpm: float = 80.0
+    rider_kp: float = 0.05
+    rider_ki: float = 0.1
+    rider_effort0: float = 0.3
+
+    def validate(self) -> None:
+        if self.kind not in LOAD_KINDS:
+            raise ValueError(f"kind must be one of {', '.join(LOAD_KINDS)}, got {self.kind!r}")
+        require_positive(self, "gear_ratio", "rider_t0_nm", "rider_cadence_max_rpm")
+        if len(self.schedule_time_s) != len(self.schedule_speed_rpm):
+            raise ValueError("schedule_time_s and schedule_speed_rpm must have the same length")
+        if any(not isinstance(v, (int, float)) for v in list(self.schedule_time_s) + list(self.schedule_speed_rpm)):
+            raise ValueError("schedule entries must be numbers")
+        if list(self.schedule_time_s) != sorted(self.schedule_time_s):
+            raise ValueError("schedule_time_s must be increasing")
+        if not 0.0 <= self.rider_effort0 <= 1.0:
+            raise ValueError("rider_effort0 must be in [0, 1]")
+
+
+@dataclass
+class HallParams:
+    """Hall sensors + capture timer (paper 000, Eq. 1, Fig. 8).
+
+    timer_hz = 1.25 MHz: the TMS320F240's 20 MHz clock with a /16 prescaler. At 5400 rpm
+    an edge interval is 1157 counts (0.09 % speed resolution), and a 16-bit capture
+    register still covers edge intervals down to 95 rpm.
+    """
+    timer_hz: float = 1.25e6
+
+    def validate(self) -> None:
+        require_positive(self, "timer_hz")
+
+
+@dataclass
+class PlantParams:
+    bldc: BldcParams = field(default_factory=BldcParams)
+    battery: BatteryParams = field(default_factory=BatteryParams)
+    mech: MechParams = field(default_factory=MechParams)
+    load: LoadParams = field(default_factory=LoadParams)
+    hall: HallParams = field(default_factory=HallParams)
+    control_period_s: float = 5.0e-5
+
+
+def _check_table(xs, ys, xname, yname, lo, hi):
+    if len(xs) != len(ys) or len(xs) == 0:
+        raise ValueError(f"{xname} and {yname} must be non-empty and of equal length")
+    for v in list(xs) + list(ys):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ValueError(f"{xname}/{yname} entries must be finite numbers")
+    if any(b <= a for a, b in zip(xs, xs[1:])):
+        raise ValueError(f"{xname} must be strictly increasing")
+    if any(not lo <= y <= hi for y in ys):
+        raise ValueError(f"{yname} entries must be in [{lo}, {hi}]")
+
+
+def plant_params_from_config(cfg: dict) -> PlantParams:
+    """The plant's (authoritative) parameters from a loaded config dict."""
+    path = cfg.get("_config_path")
+    period = cfg.get("control_period_s", 5.0e-5)
+    if isinstance(period, bool) or not isinstance(period, (int, float)) or not (0 < period < 1e-2):
+        raise ConfigError(f"must be a number in (0, 0.01), got {period!r}", path, "control_period_s")
+    params = PlantParams(
+        bldc=build_dataclass(BldcParams, section(cfg, "bldc", path), "bldc", path),
+        battery=build_dataclass(BatteryParams, _battery_values(cfg, path), "battery", path),
+        mech=build_dataclass(MechParams, section(cfg, "mechanics", path), "mechanics", path),
+        load=build_dataclass(LoadParams, section(cfg, "load", path), "load", path),
+        hall=build_dataclass(HallParams, section(cfg, "hall", path), "hall", path),
+        control_period_s=float(period),
+    )
+    if params.hall.timer_hz * params.control_period_s < 1.0:
+        # the controller recovers the period index from the timer count of a PlantState
+        raise ConfigError(f"the capture timer must tick at least once per control period "
+                          f"(timer_hz * control_period_s = {params.hall.timer_hz * params.control_period_s:g})",
+                          path, "hall.timer_hz")
+    return params
+
+
+def _battery_values(cfg, path):
+    values = dict(section(cfg, "battery", path))
+    values.update(section(cfg, "brake_resistor", path))  # DESIGN.md allows a separate section
+    return values
+
+
+def nominal_params_from_config(cfg: dict) -> PlantParams:
+    """The controller's copy of the model: non-idealities off unless ``controller.model: actual``."""
+    params = plant_params_from_config(cfg)
+    ctrl = section(cfg, "controller", cfg.get("_config_path"))
+    model = ctrl.get("model", "nominal")
+    if model not in ("nominal", "actual"):
+        raise ConfigError(f"must be 'nominal' or 'actual', got {model!r}", cfg.get("_config_path"), "controller.model")
+    if model == "actual":
+        return params
+    params.bldc = dataclasses.replace(params.bldc, inductance_variation=0.0, emf_nonideal=False)
+    return params
+
+
+# ---------------------------------------------------------------------------------------
+# flat parameter vector for the kernels
+P_POLE_PAIRS = 0
+P_KPH = 1
+P_L0 = 2
+P_R = 3
+P_EPS = 4
+P_EMF_NONIDEAL = 5
+P_SINE_AMP = 6
+P_DT = 7
+P_V_EMPTY = 8
+P_V_FULL = 9
+P_R_BATT = 10
+P_CAP_AS = 11
+P_R_BRAKE = 12
+P_S0_ON = 13
+P_S0_OFF = 14
+P_S0_ALPHA = 15
+P_J = 16
+P_B = 17
+P_LOAD_KIND = 18         # 0 prime mover, 1 rider, 2 none
+P_GEAR = 19
+P_RIDER_T0 = 20
+P_RIDER_CADMAX = 21      # rad/s crank
+P_RIDER_TARGET = 22      # rad/s crank
+P_RIDER_KP = 23
+P_RIDER_KI = 24
+P_TIMER_HZ = 25
+P_OVERVOLTAGE = 26
+P_NTAB = 27              # number of EMF shape table points (max 8)
+P_TAB_X = 28             # 8 speeds [rad/s]
+P_TAB_Y = 36             # 8 weights
+P_SIZE = 44
+MAX_TABLE = 8
+
+
+def pack_params(p: PlantParams) -> np.ndarray:
+    """PlantParams -> float64 vector for the numba kernels (layout P_* above)."""
+    v = np.zeros(P_SIZE)
+    b = p.bldc
+    v[P_POLE_PAIRS] = b.pole_pairs
+    v[P_KPH] = b.kph_v_s_per_rad
+    v[P_L0] = b.inductance_h
+    v[P_R] = b.r_phase_ohm
+    v[P_EPS] = b.inductance_variation
+    v[P_EMF_NONIDEAL] = 1.0 if b.emf_nonideal else 0.0
+    v[P_SINE_AMP] = b.emf_sine_amplitude
+    v[P_DT] = p.control_period_s
+    bt = p.battery
+    v[P_V_EMPTY] = bt.v_empty_v
+    v[P_V_FULL] = bt.v_full_v
+    v[P_R_BATT] = bt.r_internal_ohm
+    v[P_CAP_AS] = bt.capacity_ah * 3600.0
+    v[P_R_BRAKE] = bt.r_brake_ohm
+    v[P_S0_ON] = bt.s0_on_v
+    v[P_S0_OFF] = bt.s0_off_v
+    v[P_S0_ALPHA] = 1.0 - math.exp(-p.control_period_s / bt.s0_filter_s)
+    v[P_J] = p.mech.inertia_kgm2
+    v[P_B] = p.mech.friction_nms
+    v[P_LOAD_KIND] = LOAD_KINDS.index(p.load.kind)
+    v[P_GEAR] = p.load.gear_ratio
+    v[P_RIDER_T0] = p.load.rider_t0_nm
+    v[P_RIDER_CADMAX] = p.load.rider_cadence_max_rpm / RPM_PER_RAD_S
+    v[P_RIDER_TARGET] = p.load.rider_target_cadence_rpm / RPM_PER_RAD_S
+    v[P_RIDER_KP] = p.load.rider_kp
+    v[P_RIDER_KI] = p.load.rider_ki
+    v[P_TIMER_HZ] = p.hall.timer_hz
+    v[P_OVERVOLTAGE] = b.overvoltage_v
+    xs, ys = list(b.emf_shape_speed_rpm), list(b.emf_trap_weight)
+    if len(xs) > MAX_TABLE:
+        raise ConfigError(f"at most {MAX_TABLE} points", None, "bldc.emf_shape_speed_rpm")
+    v[P_NTAB] = len(xs)
+    for k, (x, y) in enumerate(zip(xs, ys)):
+        v[P_TAB_X + k] = x / RPM_PER_RAD_S
+        v[P_TAB_Y + k] = y
+    return v

@@ -1,0 +1,83 @@
+"""Inner-loop benchmark: simulated seconds per wall second of plant + controller law.
+
+Two forms are timed, both with the default BLDC bike at 3000 rpm, Command = 1 (generating):
+- ``fused``: one numba call runs the per-period loop (control law on the plant state,
+  plant step); this is the inner loop itself (N = 1, perfect measurement);
+- ``batched``: the controller's predictor (its own copy of the kernel) + the plant, per
+  batch of N periods, with the Python exchange of :func:`run_offline` (no ROS).
+JIT compile time (first call; with cache=True mostly a cache load) is reported apart.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from bike_plant import bldc as K
+from bike_plant import params as P
+from bike_plant.config import load_config
+
+
+def _setup(cfg):
+    from bike_controller.bldc_control import BatchController, update_command, C_COMMAND, C_MODE
+    plant_params = P.plant_params_from_config(cfg)
+    p = P.pack_params(plant_params)
+    state = K.new_state(p, plant_params.load.speed_rpm, plant_params.battery.soc0)
+    ctrl = BatchController(cfg, plant_params, 1)
+    ctrl.cs[C_COMMAND] = 1.0
+    ctrl.cs[C_MODE] = 0
+    update_command(ctrl.cs, ctrl.q)
+    return p, state, ctrl
+
+
+def inner_loop_real_time(seconds: float = 1.0, cfg_path=None, speed_rpm: float = 3000.0,
+                         batched: bool = True) -> dict:
+    """Run `seconds` of simulated time; returns sim s per wall s (fused and batched),
+    ns per control period, and the JIT compile / cache-load time.
+
+    Keys: real_time (sim s per wall s of the fused inner loop), compile_s, sim_s,
+    fused_wall_s, fused_real_time_factor, fused_ns_per_period, jit_compile_s,
+    batched_wall_s, batched_real_time_factor, batch_periods, residual_j."""
+    from bike_controller.bldc_control import run_fused
+    from bike_controller.closed_loop import run_offline
+    cfg = load_config(cfg_path)
+    cfg["load"] = dict(cfg.get("load") or {}, kind="prime_mover", speed_rpm=float(speed_rpm))
+    dt = float(cfg["control_period_s"])
+    samples = np.zeros((1, 3))
+    tem = np.zeros(1)
+    # compile (or load from cache) on a short run
+    t0 = time.perf_counter()
+    p, state, ctrl = _setup(cfg)
+    run_fused(state, p, ctrl.cs, ctrl.q, 10, samples, 0, tem)
+    compile_s = time.perf_counter() - t0
+    # fused
+    p, state, ctrl = _setup(cfg)
+    n = int(round(seconds / dt))
+    t0 = time.perf_counter()
+    run_fused(state, p, ctrl.cs, ctrl.q, n, samples, 0, tem)
+    wall = time.perf_counter() - t0
+    res = {
+        "real_time": n * dt / wall,          # = fused_real_time_factor (key read by bench.py)
+        "compile_s": compile_s,              # = jit_compile_s
+        "sim_s": n * dt,
+        "fused_wall_s": wall,
+        "fused_real_time_factor": n * dt / wall,
+        "fused_ns_per_period": wall / n * 1e9,
+        "jit_compile_s": compile_s,
+        "control_period_s": dt,
+        "speed_rpm": speed_rpm,
+        "residual_j": K.ledger_of(state, p)["residual_j"],
+    }
+    if batched:
+        run_offline(cfg, 0.01, lambda t: (1.0, 0))         # warm-up (compile)
+        t0 = time.perf_counter()
+        run_offline(cfg, seconds, lambda t: (1.0, 0))
+        wall_b = time.perf_counter() - t0
+        res.update(batched_wall_s=wall_b, batched_real_time_factor=seconds / wall_b,
+                   batch_periods=int(cfg.get("batch_periods", 20)))
+    return res
+
+
+if __name__ == "__main__":   # pragma: no cover
+    import json
+    print(json.dumps(inner_loop_real_time(1.0), indent=2))

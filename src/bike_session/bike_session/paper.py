@@ -1,0 +1,208 @@
+"""Reproductions of paper 000 (regenerative braking of a BLDC exercise bike).
+
+- :func:`fig14`: Command = 1, a prime mover holds the shaft at 300 .. 5400 rpm; the steady
+  braking torque at each speed against Eq. 3-4 (constant torque below wb, constant power
+  above). Target: every point within 3 %.
+- :func:`current`: current commands 35 A and 50 A at 3000 rpm (Fig. 12/13): phase-U
+  current and the summed current (|ia| + |ib| + |ic|) / 2. Target: mean within 5 %.
+- :func:`calibrate_k`: measures the Eq. 7 factor k(w) of the simulated machine the way
+  the paper tuned theirs: steady braking torque / (kt I*) at Command = 1, iterated
+  because I* (and with it the commutation dip) depends on k.
+
+All runs go through :func:`bike_controller.closed_loop.run_offline` (plant + batched
+controller, the lockstep loop of the nodes without ROS).
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import math
+import pathlib
+
+import numpy as np
+
+from bike_plant.config import load_config
+from bike_controller.closed_loop import run_offline
+
+FIG14_SPEEDS_RPM = tuple(range(300, 5401, 300))
+FIG14_TOL = 0.03
+CURRENT_TOL = 0.05
+CURRENT_CMDS_A = (35.0, 50.0)
+CURRENT_SPEED_RPM = 3000.0
+
+
+def _load(cfg_or_path) -> dict:
+    if isinstance(cfg_or_path, dict):
+        return copy.deepcopy(cfg_or_path)
+    return load_config(cfg_or_path)
+
+
+def _prime_mover(cfg: dict, speed_rpm: float) -> dict:
+    cfg = copy.deepcopy(cfg)
+    load = dict(cfg.get("load") or {})
+    load.update(kind="prime_mover", speed_rpm=float(speed_rpm), schedule_time_s=[], schedule_speed_rpm=[])
+    cfg["load"] = load
+    return cfg
+
+
+def _window_s(speed_rpm: float, pole_pairs: int = 2) -> float:
+    """Averaging window: whole electrical revolutions (the torque ripple repeats every 60
+    degrees, but the hysteresis pattern only per revolution), at least 2 and >= 60 ms."""
+    rev_s = 60.0 / (abs(speed_rpm) * pole_pairs)
+    return max(2, math.ceil(0.06 / rev_s)) * rev_s
+
+
+def measure_steady(cfg: dict, speed_rpm: float, command: float = 1.0, mode: int = 0,
+                   current_override_a: float | None = None, settle_s: float = 0.06,
+                   record_samples: bool = False) -> dict:
+    """Run at a fixed prime-mover speed; steady means over whole sectors after settle_s."""
+    cfg = _prime_mover(cfg, speed_rpm)
+    dt = float(cfg.get("control_period_s", 5e-5))
+    n = int(cfg.get("batch_periods", 20))
+    window = _window_s(speed_rpm, int((cfg.get("bldc") or {}).get("pole_pairs", 2)))
+    duration = settle_s + window
+    out = run_offline(cfg, duration, lambda t: (command, mode), current_override_a=current_override_a,
+                      record_samples=True)
+    samples = out["samples_a"]
+    n_settle = int(round(settle_s / dt))
+    n_win = int(round(window / dt))
+    s = samples[n_settle:n_settle + n_win]
+    i_fb = 0.5 * np.abs(s).sum(axis=1)
+    # mean torque over the window from the per-batch means (batches fully inside the window)
+    t = out["time_s"]
+    sel = (t > settle_s + 1e-12) & (t <= settle_s + window + n * dt)
+    res = {
+        "speed_rpm": float(speed_rpm),
+        "torque_nm": float(-np.mean(out["torque_em_nm"][sel])),   # braking torque (generating > 0)
+        "torque_em_nm": float(np.mean(out["torque_em_nm"][sel])),
+        "torque_cmd_nm": float(out["torque_cmd_nm"][-1]),
+        "current_cmd_a": float(out["current_cmd_a"][-1]),
+        "current_mean_a": float(i_fb.mean()),
+        "ripple_a": float(i_fb.max() - i_fb.min()),
+        "k_factor": float(out["k_factor"][-1]),
+        "ledger": out["ledger"],
+    }
+    if record_samples:
+        res["samples_a"] = s
+        res["dt_s"] = dt
+    return res
+
+
+def expected_torque_nm(cfg: dict, speed_rpm: float, command: float = 1.0) -> float:
+    """Eq. 3-4 of paper 000 with the config's Tmax, wb, Pmax."""
+    from bike_controller.bldc_control import controller_params_from_config
+    from bike_controller.torque_command import torque_command_nm
+    cp = controller_params_from_config(cfg)
+    return float(torque_command_nm(command, speed_rpm, cp.tmax_nm, cp.base_speed_rpm, cp.pmax_w))
+
+
+def calibrate_k(cfg_or_path, speeds_rpm=(0.0, 1000.0, 2000.0, 3000.0, 3300.0, 4000.0, 4700.0, 5400.0),
+                iterations: int = 4) -> dict:
+    """Measure k(w) of the plant (Eq. 7): k_new = k * T_measured / T_cmd, iterated.
+
+    Speeds below 300 rpm are measured at 300 rpm (the lowest point of Fig. 14; below it
+    the 2 R I drop limits the current). Returns
+    {'k_speed_rpm': [...], 'k_factor': [...]} ready for the controller section."""
+    cfg = _load(cfg_or_path)
+    ks = []
+    for sp in speeds_rpm:
+        sp_run = max(float(sp), 300.0)
+        k = 0.85
+        for _ in range(iterations):
+            c = copy.deepcopy(cfg)
+            c["controller"] = dict(c.get("controller") or {}, k_speed_rpm=[0.0], k_factor=[k])
+            m = measure_steady(c, sp_run)
+            k = min(1.0, k * m["torque_nm"] / m["torque_cmd_nm"])
+        ks.append(round(k, 4))
+    return {"k_speed_rpm": [float(s) for s in speeds_rpm], "k_factor": ks}
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def fig14(cfg_path, out_dir) -> dict:
+    """seed1-fig14: torque-speed curve at Command = 1 (paper 000, Fig. 14)."""
+    cfg = _load(cfg_path)
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for sp in FIG14_SPEEDS_RPM:
+        m = measure_steady(cfg, sp)
+        exp = expected_torque_nm(cfg, sp)
+        rows.append({"speed_rpm": float(sp), "torque_nm": m["torque_nm"], "expected_nm": exp,
+                     "error": (m["torque_nm"] - exp) / exp, "current_cmd_a": m["current_cmd_a"],
+                     "k_factor": m["k_factor"]})
+    csv_path = out_dir / "fig14.csv"
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["speed_rpm", "torque_nm", "expected_nm"])
+        for r in rows:
+            w.writerow([f"{r['speed_rpm']:.1f}", f"{r['torque_nm']:.6f}", f"{r['expected_nm']:.6f}"])
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    grid = np.linspace(1.0, max(FIG14_SPEEDS_RPM), 400)
+    ax.plot(grid, [expected_torque_nm(cfg, s) for s in grid], "k-", label="Eq. 3-4 (Command = 1)")
+    ax.plot([r["speed_rpm"] for r in rows], [r["torque_nm"] for r in rows], "o", color="tab:red",
+            label="simulated, steady state")
+    ax.set_xlabel("speed [rpm]")
+    ax.set_ylabel("braking torque [N m]")
+    ax.set_title("Paper 000, Fig. 14: torque control in the generating mode")
+    ax.set_ylim(bottom=0)
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    png_path = out_dir / "fig14.png"
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+    max_err = max(abs(r["error"]) for r in rows)
+    ok = bool(max_err <= FIG14_TOL)
+    return {"name": "seed1-fig14", "points": rows, "max_error": max_err, "tolerance": FIG14_TOL,
+            "pass": ok, "passed": ok, "files": [str(csv_path), str(png_path)]}
+
+
+def current(cfg_path, out_dir) -> dict:
+    """seed1-current: I* = 35 A and 50 A at 3000 rpm (paper 000, Fig. 12/13)."""
+    cfg = _load(cfg_path)
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = []
+    traces = []
+    for icmd in CURRENT_CMDS_A:
+        m = measure_steady(cfg, CURRENT_SPEED_RPM, current_override_a=icmd, record_samples=True)
+        rows.append({"current_cmd_a": icmd, "current_mean_a": m["current_mean_a"], "ripple_a": m["ripple_a"],
+                     "error": (m["current_mean_a"] - icmd) / icmd, "torque_nm": m["torque_nm"]})
+        traces.append((icmd, m["samples_a"], m["dt_s"]))
+    csv_path = out_dir / "current.csv"
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["current_cmd_a", "current_mean_a", "ripple_a"])
+        for r in rows:
+            w.writerow([f"{r['current_cmd_a']:.1f}", f"{r['current_mean_a']:.6f}", f"{r['ripple_a']:.6f}"])
+    plt = _plt()
+    fig, axes = plt.subplots(2, len(traces), figsize=(10, 6), sharex=True)
+    for j, (icmd, s, dt) in enumerate(traces):
+        n_show = min(len(s), int(round(0.01 / dt)))          # 10 ms = 1.5 electrical periods at 3000 rpm
+        t_ms = np.arange(n_show) * dt * 1e3
+        axes[0, j].plot(t_ms, s[:n_show, 0], color="tab:blue")
+        axes[0, j].set_title(f"(a) phase U current, I* = {icmd:.0f} A")
+        axes[0, j].set_ylabel("i_u [A]")
+        axes[1, j].plot(t_ms, 0.5 * np.abs(s[:n_show]).sum(axis=1), color="tab:green")
+        axes[1, j].axhline(icmd, color="k", ls="--", lw=0.8)
+        axes[1, j].set_title("(b) (|ia| + |ib| + |ic|) / 2")
+        axes[1, j].set_ylabel("i [A]")
+        axes[1, j].set_xlabel("time [ms]")
+        for ax in axes[:, j]:
+            ax.grid(True, alpha=0.3)
+    fig.suptitle("Paper 000, Fig. 12/13: current control at 3000 rpm")
+    fig.tight_layout()
+    png_path = out_dir / "current.png"
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+    max_err = max(abs(r["error"]) for r in rows)
+    ok = bool(max_err <= CURRENT_TOL)
+    return {"name": "seed1-current", "points": rows, "max_error": max_err, "tolerance": CURRENT_TOL,
+            "pass": ok, "passed": ok, "files": [str(csv_path), str(png_path)]}

@@ -1,0 +1,155 @@
+"""BLDC controller (paper 000): Eq. 1-9 with the paper's numbers, commutation, validation."""
+from __future__ import annotations
+
+import copy
+import math
+import pathlib
+
+import numpy as np
+import pytest
+
+from bike_controller import bldc_control as C
+from bike_controller.closed_loop import run_offline
+from bike_controller.speed_estimator import HallSpeedEstimator, pulses_per_rev, speed_rpm_from_counts
+from bike_controller.torque_command import KGF_CM_TO_NM, pmax_w, torque_command_nm
+from bike_plant import bldc as K
+from bike_plant.config import load_config
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CFG_PATH = ROOT / "config" / "bldc_default.yaml"
+TMAX = 30 * KGF_CM_TO_NM
+
+
+def msg_fields(name):
+    fields = []
+    for line in (ROOT / "src" / "bike_msgs" / "msg" / f"{name}.msg").read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if line and "=" not in line and line.split()[1] != "header":
+            fields.append(line.split()[1])
+    return fields
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(CFG_PATH)
+
+
+@pytest.fixture
+def paper_cfg(cfg):
+    """The paper's own k table: 0.8 below 4500 rpm, 1.0 above (section 5)."""
+    c = copy.deepcopy(cfg)
+    c["controller"] = dict(c["controller"], k_speed_rpm=[0.0, 4500.0], k_factor=[0.8, 1.0], k_interp="step")
+    return c
+
+
+def test_eq1_speed_from_capture_counts():
+    assert pulses_per_rev(2) == 12
+    # 3000 rpm -> 12 edges per rev -> 600 edges/s -> 2083.3 counts at 1.25 MHz
+    assert speed_rpm_from_counts(2083, 1.25e6, 2) == pytest.approx(60 * 1.25e6 / (12 * 2083))
+    assert speed_rpm_from_counts(2083, 1.25e6, 2) == pytest.approx(3000.48, abs=0.01)
+    assert speed_rpm_from_counts(1157, 1.25e6, 2) == pytest.approx(5401.9, abs=0.1)
+    assert speed_rpm_from_counts(0, 1.25e6, 2) == 0.0
+    est = HallSpeedEstimator(1.25e6, 2)
+    est.edge(1000)
+    assert est.edge(1000 + 2500) == pytest.approx(2500.0)
+
+
+def test_eq2_pmax_and_the_printed_value():
+    assert TMAX == pytest.approx(2.942, abs=1e-3)
+    p = pmax_w(TMAX, 3300.0)
+    assert p == pytest.approx(1016.6, abs=0.2)
+    assert abs(p - 964.68) > 50          # the paper's printed Pmax contradicts its Eq. 2
+
+
+def test_eq3_eq4_torque_command(cfg):
+    ctrl = C.BatchController(cfg)
+    assert ctrl.torque_command_nm(2000.0) == pytest.approx(TMAX)
+    assert ctrl.torque_command_nm(4500.0) == pytest.approx(1016.68 / (4500 * 2 * math.pi / 60))
+    assert ctrl.torque_command_nm(4500.0) == pytest.approx(2.1575, abs=1e-3)
+    assert ctrl.torque_command_nm(2000.0, 0.5) == pytest.approx(TMAX / 2)
+    # continuous at the base speed with Pmax from Eq. 2
+    below = torque_command_nm(1.0, 3299.999, TMAX, 3300.0, 1016.68)
+    above = torque_command_nm(1.0, 3300.0, TMAX, 3300.0, 1016.68)
+    assert above == pytest.approx(below, rel=1e-4)
+
+
+def test_eq8_eq9_ktg_with_paper_table(paper_cfg):
+    ctrl = C.BatchController(paper_cfg)
+    kt = 5.45e-3 * 60 / (2 * math.pi)
+    assert ctrl.k_factor(2000.0) == 0.8
+    assert ctrl.ktg(2000.0) == pytest.approx(0.8 * kt)
+    assert ctrl.ktg(2000.0) == pytest.approx(0.04163, abs=1e-5)
+    assert ctrl.k_factor(4500.0) == 1.0
+    assert ctrl.ktg(4500.0) == pytest.approx(0.05204, abs=1e-5)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -0.01, 1.01, "0.5", None, True])
+def test_set_command_rejects_bad_values(cfg, bad):
+    ctrl = C.BatchController(cfg)
+    ctrl.set_command(0.5, 0)
+    with pytest.raises(ValueError, match="command"):
+        ctrl.set_command(bad, 0)
+    assert ctrl.command_rejected
+    assert ctrl.status()["command"] == 0.5           # the last valid command stays
+    ctrl.set_command(0.7, 0)
+    assert not ctrl.command_rejected
+
+
+def test_set_command_rejects_bad_mode(cfg):
+    ctrl = C.BatchController(cfg)
+    with pytest.raises(ValueError, match="mode"):
+        ctrl.set_command(0.5, 3)
+
+
+def test_commutation_patterns_fig5():
+    # sector 0 (U at +E, V at -E): generating modulates Q2 (U low), motoring Q1 with Q4 on
+    assert C.patterns(0, 0) == (0b000010, 0)
+    assert C.patterns(0, 1) == (0b001001, 0b001000)
+    for sector in range(6):
+        on, off = C.patterns(sector, 0)
+        assert bin(on).count("1") == 1 and on & 0b101010     # one low switch only
+        for pat in C.patterns(sector, 1):
+            assert K.blank_interlock(pat)[1] == 0
+
+
+def test_status_fields_and_decide_shapes(cfg):
+    from bike_plant import params as P
+    from bike_plant.sim import BldcPlant
+    plant = BldcPlant(P.plant_params_from_config(cfg))
+    ctrl = C.BatchController(cfg)
+    ctrl.set_command(1.0, 0)
+    ga, gb, sp, status = ctrl.decide(plant.snapshot())
+    assert len(ga) == len(gb) == len(sp) == cfg["batch_periods"]
+    assert list(status) == msg_fields("ControllerStatus")
+    assert status["quadrant"] == C.QUADRANT_GENERATING
+
+
+def test_closed_loop_gates_never_short_and_speed_estimate(cfg):
+    c = copy.deepcopy(cfg)
+    c["load"] = dict(c["load"], speed_rpm=4200.0)
+    out = run_offline(c, 0.05, lambda t: (1.0, 0))
+    ctrl, plant = out["controller"], out["plant"]
+    assert plant.snapshot()["interlock_blanked_count"] == 0
+    assert out["speed_est_rpm"][-1] == pytest.approx(4200.0, rel=2e-3)
+    assert out["current_cmd_a"][-1] == pytest.approx(
+        ctrl.torque_command_nm(4200.0) / ctrl.ktg(4200.0), rel=1e-2)
+    assert out["k_factor"][-1] == pytest.approx(ctrl.k_factor(4200.0), rel=1e-2)
+
+
+def test_motoring_quadrant_one(cfg):
+    c = copy.deepcopy(cfg)
+    c["load"] = dict(c["load"], speed_rpm=1000.0)
+    out = run_offline(c, 0.06, lambda t: (0.5, 1))
+    t_em = np.mean(out["torque_em_nm"][out["time_s"] > 0.02])
+    assert t_em > 0.0                                       # motoring: torque along the speed
+    assert t_em == pytest.approx(0.5 * TMAX, rel=0.15)      # k = 1 in motoring, commutation dip
+    assert out["battery_current_a"][-1] < 0.0               # battery discharging
+
+
+def test_current_hysteresis_mean_35a_at_3000rpm(cfg):
+    c = copy.deepcopy(cfg)
+    c["load"] = dict(c["load"], speed_rpm=3000.0)
+    out = run_offline(c, 0.06, lambda t: (1.0, 0), current_override_a=35.0, record_samples=True)
+    s = out["samples_a"][400:]
+    i_fb = 0.5 * np.abs(s).sum(axis=1)
+    assert i_fb.mean() == pytest.approx(35.0, rel=0.05)
