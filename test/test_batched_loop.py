@@ -22,13 +22,16 @@ CFG_PATH = ROOT / "config" / "bldc_default.yaml"
 
 @pytest.fixture(scope="module")
 def cfg():
-    return load_config(CFG_PATH)
+    """The default bike with the paper's load: a prime mover (the demo rides a rider model)."""
+    c = load_config(CFG_PATH)
+    c["load"] = dict(c["load"], kind="prime_mover")
+    return c
 
 
 @pytest.mark.parametrize("speed_rpm,command,mode", [(3000.0, 1.0, 0), (4800.0, 0.6, 0), (1500.0, 0.4, 1)])
 def test_matched_model_n1_equals_n20(cfg, speed_rpm, command, mode):
     c = copy.deepcopy(cfg)
-    c["load"] = dict(c["load"], speed_rpm=speed_rpm)
+    c["load"] = dict(c["load"], kind="prime_mover", speed_rpm=speed_rpm)
     rep = compare_batch_sizes(c, 0.04, (1, 20), command=command, mode=mode)
     r20 = rep["per_n"][20]
     assert r20["max_current_diff_a"] <= 1e-9
@@ -38,6 +41,7 @@ def test_matched_model_n1_equals_n20(cfg, speed_rpm, command, mode):
 
 @pytest.mark.parametrize("change", [{"inductance_variation": 0.2}, {"r_phase_ohm": 0.006 * 1.3}])
 def test_mismatched_plant_difference_is_reported(cfg, change):
+    cfg = dict(cfg, load=dict(cfg["load"], kind="prime_mover"))
     nominal = P.plant_params_from_config(cfg)
     actual = P.plant_params_from_config(cfg)
     actual.bldc = dataclasses.replace(actual.bldc, **change)
@@ -79,3 +83,13 @@ def test_energy_ledger_closes_over_10s_session(cfg):
     assert abs(led["residual_j"]) < 0.01 * scale
     assert abs(led["residual_j"]) < 1e-6 * scale      # what the kernel actually achieves
     assert led["energy_battery_j"] > 0.0
+
+
+def test_rider_load_speed_held_prediction_is_measured_and_small(cfg):
+    """With a rider the predictor holds the speed inside a batch: the difference to N = 1 is
+    reported (prediction error > 0) and stays far below the current ripple."""
+    c = dict(cfg, load=dict(cfg["load"], kind="rider"), mechanics=dict(cfg["mechanics"], speed0_rpm=2500.0))
+    per = compare_batch_sizes(c, 0.1, (1, 20), command=0.5, mode=0)["per_n"]
+    assert per[1]["prediction_error_max_a"] == 0.0
+    assert 0.0 < per[20]["prediction_error_max_a"] < 0.1
+    assert abs(per[20]["torque_diff_nm"]) < 0.01 * abs(per[1]["torque_em_nm"])

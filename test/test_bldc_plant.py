@@ -32,7 +32,10 @@ def msg_fields(name):
 
 @pytest.fixture(scope="module")
 def cfg():
-    return load_config(CFG_PATH)
+    """The default bike with the paper's load: a prime mover (the demo rides a rider model)."""
+    c = load_config(CFG_PATH)
+    c["load"] = dict(c["load"], kind="prime_mover")
+    return c
 
 
 def plant_at(cfg, speed_rpm, **bldc):

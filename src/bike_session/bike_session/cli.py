@@ -81,13 +81,24 @@ def _cmd_report(opts) -> int:
 
 
 def _cmd_paper(opts) -> int:
+    from bike_plant.config import ConfigError
+
     from bike_session import paper
 
     out = pathlib.Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
     config = opts.config or str(repo_root() / "config" / "bldc_default.yaml")
     runner = {"seed1-fig14": paper.fig14, "seed1-current": paper.current}[opts.name]
-    result = runner(config, str(out))
+    try:
+        result = runner(config, str(out))
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    verdict = "PASS" if result.get("passed") else "FAIL"
+    print(f"{result['name']}: {len(result['points'])} points, largest error {result['max_error'] * 100:.2f} % "
+          f"(target {result['tolerance'] * 100:.0f} %): {verdict}")
+    for path in result["files"]:
+        print(f"  wrote {path}")
     return 0 if result.get("passed", False) else 1
 
 
