@@ -328,6 +328,66 @@ def _topology(cur, co, gates, vdc, ws, wi, t):
 
 
 @njit(cache=True, error_model="numpy")
+def _fast_sym(cur, co, gates, vdc, ws, wi, t):
+    """Scalar fast path of _topology + _solve for the symmetric machine when the first
+    topology guess holds (>= 2 conducting legs, no floating terminal clamps): the same
+    floating-point operations in the same order, so bit-identical. Returns False (nothing
+    written but wi) when the general iteration is needed."""
+    i0 = cur[co]
+    i1 = cur[co + 1]
+    i2 = cur[co + 2]
+    # leg states (as _topology's first pass); d = diode-only leg
+    w0 = 2 if (gates & 1) else (1 if (gates & 2) else (1 if i0 > 0.0 else (2 if i0 < 0.0 else 0)))
+    w1 = 2 if (gates & 4) else (1 if (gates & 8) else (1 if i1 > 0.0 else (2 if i1 < 0.0 else 0)))
+    w2 = 2 if (gates & 16) else (1 if (gates & 32) else (1 if i2 > 0.0 else (2 if i2 < 0.0 else 0)))
+    d0 = 0 if (gates & 3) else 1
+    d1 = 0 if (gates & 12) else 1
+    d2 = 0 if (gates & 48) else 1
+    ncl = (w0 > 0) + (w1 > 0) + (w2 > 0)
+    if ncl < 2:
+        return False
+    e0 = ws[W_E]
+    e1 = ws[W_E + 1]
+    e2 = ws[W_E + 2]
+    r = ws[W_R]
+    g = t / (ws[W_L] + 0.5 * r * t)
+    v0 = vdc if w0 == 2 else 0.0
+    v1 = vdc if w1 == 2 else 0.0
+    v2 = vdc if w2 == 2 else 0.0
+    sw = 0.0
+    if w0 > 0:
+        sw += v0 - e0 - r * i0
+    if w1 > 0:
+        sw += v1 - e1 - r * i1
+    if w2 > 0:
+        sw += v2 - e2 - r * i2
+    vn = sw * 0.5 if ncl == 2 else sw / 3.0     # x * 0.5 == x / 2 exactly
+    # a floating terminal that would clamp needs the general iteration
+    if w0 == 0:
+        vt = vn + e0
+        if vt > vdc or vt < 0.0:
+            return False
+    if w1 == 0:
+        vt = vn + e1
+        if vt > vdc or vt < 0.0:
+            return False
+    if w2 == 0:
+        vt = vn + e2
+        if vt > vdc or vt < 0.0:
+            return False
+    ws[W_I1] = i0 + g * (v0 - e0 - r * i0 - vn) if w0 > 0 else 0.0
+    ws[W_I1 + 1] = i1 + g * (v1 - e1 - r * i1 - vn) if w1 > 0 else 0.0
+    ws[W_I1 + 2] = i2 + g * (v2 - e2 - r * i2 - vn) if w2 > 0 else 0.0
+    wi[0] = w0
+    wi[1] = w1
+    wi[2] = w2
+    wi[3] = d0
+    wi[4] = d1
+    wi[5] = d2
+    return True
+
+
+@njit(cache=True, error_model="numpy")
 def electrical_segment(cur, co, gates, t_seg, vdc, ws, wi, kph, acc):
     """Advance the currents cur[co:co+3] (in place) through t_seg seconds of pattern `gates`.
 
@@ -340,7 +400,8 @@ def electrical_segment(cur, co, gates, t_seg, vdc, ws, wi, kph, acc):
         if remaining <= 0.0:
             break
         t = remaining
-        if not _topology(cur, co, gates, vdc, ws, wi, t):
+        if not (ws[W_SYM] != 0.0 and _fast_sym(cur, co, gates, vdc, ws, wi, t)) and \
+                not _topology(cur, co, gates, vdc, ws, wi, t):
             for x in range(3):
                 cur[co + x] = 0.0
             break

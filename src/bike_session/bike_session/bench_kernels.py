@@ -37,7 +37,7 @@ def inner_loop_real_time(seconds: float = 1.0, cfg_path=None, speed_rpm: float =
 
     Keys: real_time (sim s per wall s of the fused inner loop), compile_s, sim_s,
     fused_wall_s, fused_real_time_factor, fused_ns_per_period, jit_compile_s,
-    batched_wall_s, batched_real_time_factor, batch_periods, residual_j."""
+    batched_wall_s, batched_real_time_factor, batched_ns_per_period, batch_periods, residual_j."""
     from bike_controller.bldc_control import run_fused
     from bike_controller.closed_loop import run_offline
     cfg = load_config(cfg_path)
@@ -73,7 +73,9 @@ def inner_loop_real_time(seconds: float = 1.0, cfg_path=None, speed_rpm: float =
         t0 = time.perf_counter()
         run_offline(cfg, seconds, lambda t: (1.0, 0))
         wall_b = time.perf_counter() - t0
+        n_b = int(round(seconds / dt))
         res.update(batched_wall_s=wall_b, batched_real_time_factor=seconds / wall_b,
+                   batched_ns_per_period=wall_b / max(n_b, 1) * 1e9,
                    batch_periods=int(cfg.get("batch_periods", 20)))
     return res
 

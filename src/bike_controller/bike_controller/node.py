@@ -1,0 +1,277 @@
+"""controller_node: the batched inner-loop torque controller as a ROS 2 node (thin adapter).
+
+Topics (relative names, namespace /bike by default; docs/DESIGN.md):
+  subscribes plant_state (bike_msgs/PlantState), command (bike_msgs/Command),
+             session_status (bike_msgs/SessionStatus)
+  publishes  drive_command (bike_msgs/DriveCommand, one per PlantState, same seq),
+             controller_status (bike_msgs/ControllerStatus, one per batch),
+             /diagnostics (WARN on a rejected Command, OK every ``diagnostics_period_s``)
+
+The law is bike_controller.bldc_control.BatchController (nominal params from the config).
+
+Commands: a Command that is not finite, outside [0, 1] or of an unknown mode is rejected
+(WARN diagnostic, ControllerStatus.command_rejected = true until the next valid one); the
+previous command stays in force. Valid Commands go into a timeline sorted by header.stamp.
+
+Determinism (lockstep, docs/DESIGN.md, Lockstep protocol): for the PlantState of batch k
+at sim time t_k the controller applies the newest Command with stamp <= t_k. It does not
+answer batch k until it holds the Command for j = floor(t_k / session.period_s + 1e-9),
+i.e. a Command stamped >= j * period (the session publishes in stamp order on a reliable
+topic, so everything up to tau_j is then in), unless a SessionStatus DONE was seen or
+nothing arrived for ``command_wait_s`` wall seconds (then it proceeds with the last / zero
+command, logs once, and stops waiting until a new Command arrives). A re-published
+PlantState that was already answered gets the cached answer again (decide() is never run
+twice for one seq). realtime: no waiting, same timeline rule.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+import sys
+import time
+
+import rclpy
+from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
+from bike_plant import msgconv
+from bike_plant.config import ConfigError
+from bike_plant.node import AUX_QOS, LOOP_QOS, install_signal_handlers
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
+
+CONTROLLER_DEFAULTS = {
+    "sync_mode": "lockstep",
+    "batch_periods": 20,
+    "control_period_s": 5.0e-5,
+    "command_wait_s": 2.0,
+    "diagnostics_period_s": 1.0,
+    "session": {"period_s": 0.1},
+}
+CONTROLLER_DESCRIPTIONS = {
+    "diagnostics_period_s": "publish an OK diagnostic at least this often [wall s]",
+}
+STAMP_TOL_NS = 1000          # 1 us: stamps are sim times computed in floating point
+
+
+class ControllerNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("controller", **kwargs)
+        from bike_plant.params import nominal_params_from_config
+        from bike_plant.rosparams import declare_config
+
+        from .bldc_control import BatchController
+
+        self.cfg = cfg = declare_config(self, CONTROLLER_DEFAULTS, CONTROLLER_DESCRIPTIONS)
+        path = cfg.get("_config_path")
+        self.sync_mode = str(cfg.get("sync_mode"))
+        if self.sync_mode not in ("lockstep", "realtime"):
+            raise ConfigError(f"must be 'lockstep' or 'realtime', got {self.sync_mode!r}", path, "sync_mode")
+        self.command_wait_s = _positive(cfg.get("command_wait_s"), "command_wait_s", path)
+        self.period_s = _positive((cfg.get("session") or {}).get("period_s"), "session.period_s", path)
+        self.diag_period_s = _positive(cfg.get("diagnostics_period_s"), "diagnostics_period_s", path)
+        self._make_law = lambda: BatchController(cfg, nominal_params_from_config(cfg))
+        self.ctrl = self._make_law()
+        self.n = self.ctrl.batch_periods
+        # Time comes from PlantState stamps; following /clock would only add a callback per batch.
+        self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
+
+        self.pub_drive = self.create_publisher(DriveCommand, "drive_command", LOOP_QOS)
+        self.pub_status = self.create_publisher(ControllerStatus, "controller_status", LOOP_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
+        self.create_subscription(PlantState, "plant_state", self._on_state, LOOP_QOS)
+        self.create_subscription(Command, "command", self._on_command, LOOP_QOS)
+        self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS)
+        self.executor_ = SingleThreadedExecutor()
+        self.executor_.add_node(self)
+
+        self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "controller"
+        self.stop_requested = False
+        self.stamps: list[int] = []        # timeline of valid Commands, sorted by stamp [ns]
+        self.commands: list[tuple[float, int]] = []
+        self.applied_index = -1            # timeline entry in force (-1: config command0/mode0)
+        self.max_stamp = None              # newest stamp received
+        self.rejected = False              # last received Command was invalid
+        self.reject_reason = ""
+        self.session_done = False
+        self.no_session = False            # gave up waiting (command_wait_s); cleared by a new Command
+        self.pending = None                # (PlantState, wall time received) not yet answered
+        self.last_seq = -1
+        self.cached = None                 # (seq, DriveCommand, ControllerStatus)
+        self.last_diag_wall = 0.0
+        self.stats = {"answered": 0, "rejected_commands": 0, "duplicates": 0, "waits": 0}
+        self.get_logger().info(
+            f"controller: sync_mode={self.sync_mode} N={self.n} session.period_s={self.period_s:g} "
+            f"command_wait_s={self.command_wait_s:g} config={path}")
+
+    # ------------------------------------------------------------ inputs
+    def _on_command(self, msg: Command) -> None:
+        problem = msgconv.command_problem(msg)
+        if problem is not None:
+            self.rejected = True
+            self.reject_reason = problem
+            self.stats["rejected_commands"] += 1
+            self.get_logger().warning(f"Command rejected: {problem}; keeping the previous command")
+            self._publish_diag(DiagnosticStatus.WARN, f"Command rejected: {problem}; previous command kept")
+            return
+        self.rejected = False
+        stamp = msgconv.stamp_ns(msg.header.stamp)
+        i = bisect.bisect_right(self.stamps, stamp)
+        if i > 0 and self.stamps[i - 1] == stamp:       # same stamp: the newer one replaces it
+            self.commands[i - 1] = (float(msg.command), int(msg.mode))
+            if self.applied_index == i - 1:
+                self.applied_index = -2                  # force re-application
+        else:
+            self.stamps.insert(i, stamp)
+            self.commands.insert(i, (float(msg.command), int(msg.mode)))
+            if self.applied_index >= i:
+                self.applied_index += 1
+        self.max_stamp = stamp if self.max_stamp is None else max(self.max_stamp, stamp)
+        self.no_session = False
+        self._try_answer()
+
+    def _on_session(self, msg: SessionStatus) -> None:
+        self.session_done = msg.state == SessionStatus.STATE_DONE
+        self._try_answer()
+
+    def _on_state(self, msg: PlantState) -> None:
+        seq = int(msg.seq)
+        if msg.end_of_run:
+            self.get_logger().info(f"end of run at seq {msg.seq}; ready for a new run")
+            self._new_run()
+            return
+        if seq == 0 and self.last_seq > 0:
+            self.get_logger().info("PlantState seq 0 again: the plant restarted, starting a new run")
+            self._new_run()
+        if self.cached is not None and seq == self.cached[0]:
+            self.stats["duplicates"] += 1                 # re-published state: same answer again
+            self.pub_drive.publish(self.cached[1])
+            self.pub_status.publish(self.cached[2])
+            return
+        if seq <= self.last_seq and self.last_seq - seq < 1000:
+            return                                        # stale copy of an older state
+        self.pending = (msg, time.monotonic())
+        self._try_answer()
+
+    def _new_run(self) -> None:
+        """Fresh law (estimator, predictor) for a new plant run; the Command timeline stays."""
+        self.ctrl = self._make_law()
+        self.applied_index = -1
+        self.pending = None
+        self.cached = None
+        self.last_seq = -1
+
+    # ------------------------------------------------------------ the batch
+    def _holds_command_for(self, t_ns: int) -> bool:
+        j = math.floor(t_ns * 1e-9 / self.period_s + 1e-9)
+        need = int(round(j * self.period_s * 1e9))
+        return self.max_stamp is not None and self.max_stamp >= need - STAMP_TOL_NS
+
+    def _try_answer(self) -> None:
+        if self.pending is None:
+            return
+        msg, received = self.pending
+        t_ns = msgconv.stamp_ns(msg.header.stamp)
+        if (self.sync_mode == "lockstep" and not self.session_done and not self.no_session
+                and not self._holds_command_for(t_ns)):
+            if time.monotonic() - received < self.command_wait_s:
+                return                                    # wait for the session
+            self.no_session = True
+            j = math.floor(t_ns * 1e-9 / self.period_s + 1e-9)
+            self.get_logger().warning(
+                f"no Command for t={j * self.period_s:g}s within command_wait_s={self.command_wait_s:g}s: "
+                "proceeding with the last command (the run is no longer a pure function of the config)")
+            self.stats["waits"] += 1
+        self._apply_timeline(t_ns)
+        snap = msgconv.snapshot_from_msg(msg)
+        n = int(msg.batch_periods) or self.n               # answer the batch length the plant asks for
+        ga, gb, sp, status = self.ctrl.decide(snap, n)
+        status["seq"] = msg.seq
+        status["command_rejected"] = self.rejected
+        torque = float(status.get("torque_cmd_nm", 0.0))
+        if int(status.get("quadrant", 0)) == ControllerStatus.QUADRANT_GENERATING:
+            torque = -torque                              # motoring positive, like torque_em_nm
+        drive = msgconv.drive_command_msg(msg.seq, ga, gb, sp, t_ns, torque, float(status.get("current_cmd_a", 0.0)))
+        stat = msgconv.controller_status_msg(status, t_ns)
+        self.pub_drive.publish(drive)
+        self.pub_status.publish(stat)
+        self.cached = (int(msg.seq), drive, stat)
+        self.last_seq = int(msg.seq)
+        self.pending = None
+        self.stats["answered"] += 1
+        now = time.monotonic()
+        if now - self.last_diag_wall >= self.diag_period_s:
+            level = DiagnosticStatus.WARN if self.rejected else DiagnosticStatus.OK
+            text = f"last Command rejected: {self.reject_reason}" if self.rejected else "running"
+            self._publish_diag(level, text, t_ns)
+
+    def _apply_timeline(self, t_ns: int) -> None:
+        """Put the newest Command with stamp <= t_k in force (set_command only on change)."""
+        i = bisect.bisect_right(self.stamps, t_ns + STAMP_TOL_NS) - 1
+        if i < 0 or i == self.applied_index:
+            return
+        value, mode = self.commands[i]
+        try:
+            self.ctrl.set_command(value, mode)
+        except ValueError as exc:                         # the law's own validation
+            self.rejected = True
+            self.reject_reason = str(exc)
+            self._publish_diag(DiagnosticStatus.WARN, f"Command rejected: {exc}; previous command kept")
+        self.applied_index = i
+        if i > 0:                                         # older entries can never apply again
+            del self.stamps[:i]
+            del self.commands[:i]
+            self.applied_index = 0
+
+    def _publish_diag(self, level: int, message: str, stamp: int | None = None) -> None:
+        status = DiagnosticStatus(level=level, name=self.diag_name, message=message,
+                                  hardware_id="bike_controller")
+        cmd = self.ctrl.status()
+        values = {"command": f"{cmd['command']:g}", "mode": str(cmd["mode"]),
+                  "command_rejected": str(self.rejected).lower(), "last_seq": str(self.last_seq)}
+        values.update({k: str(v) for k, v in self.stats.items()})
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        arr = DiagnosticArray(status=[status])
+        if stamp is not None:
+            arr.header.stamp = msgconv.time_msg(stamp)
+        self.pub_diag.publish(arr)
+        self.last_diag_wall = time.monotonic()
+
+    def run(self) -> int:
+        while not self.stop_requested:
+            self.executor_.spin_once(timeout_sec=0.1)
+            if self.pending is not None:
+                self._try_answer()                         # command_wait_s expiry
+        return 0
+
+
+def _positive(value, key, path) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"must be a number > 0, got {value!r}", path, key)
+    return float(value)
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    code = 0
+    try:
+        node = ControllerNode()
+        install_signal_handlers(node)
+        code = node.run()
+    except ConfigError as exc:
+        print(f"controller_node: configuration error: {exc}", file=sys.stderr)
+        code = 2
+    except KeyboardInterrupt:
+        code = 0
+    finally:
+        if node is not None:
+            node.executor_.remove_node(node)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

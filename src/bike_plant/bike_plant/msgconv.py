@@ -1,0 +1,204 @@
+"""Conversions between the physics/control dicts and arrays and the bike_msgs messages.
+
+Shared by the plant node, the controller node and the session tools. Array fields are
+filled from bytes (``array.array(code, ndarray.tobytes())``) and read back without a copy
+(``numpy.frombuffer``) so that a batch of 200 periods costs microseconds, not a Python
+loop per element. Field lists come from the message classes, so a field added to a .msg
+is converted without touching this file.
+"""
+from __future__ import annotations
+
+import array
+import math
+
+import numpy as np
+from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState
+from builtin_interfaces.msg import Time
+
+GATE_LIMIT = 64          # 6 gate bits: values 0..63
+
+_SEQ_CODES = {
+    "sequence<float>": ("f", np.float32), "sequence<double>": ("d", np.float64),
+    "sequence<uint8>": ("B", np.uint8), "sequence<int8>": ("b", np.int8),
+    "sequence<uint16>": ("H", np.uint16), "sequence<int16>": ("h", np.int16),
+    "sequence<uint32>": ("I", np.uint32), "sequence<int32>": ("i", np.int32),
+    "sequence<uint64>": ("Q", np.uint64), "sequence<int64>": ("q", np.int64),
+}
+_SCALAR_INT = {"uint8", "int8", "uint16", "int16", "uint32", "int32", "uint64", "int64", "octet"}
+_SCALAR_FLOAT = {"float", "double"}
+_FIXED = {"double": np.float64, "float": np.float32, "uint8": np.uint8, "int32": np.int32,
+          "uint32": np.uint32, "int64": np.int64, "uint64": np.uint64}
+
+
+# ---------------------------------------------------------------- time
+def stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def time_msg(ns: int) -> Time:
+    ns = int(ns)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def seconds_to_ns(t: float) -> int:
+    return int(round(float(t) * 1e9))
+
+
+# ---------------------------------------------------------------- generic field conversion
+def _setter(ftype: str):
+    if ftype in _SEQ_CODES:
+        code, dtype = _SEQ_CODES[ftype]
+
+        def conv(v):
+            if isinstance(v, array.array) and v.typecode == code:
+                return v
+            return array.array(code, np.ascontiguousarray(v, dtype=dtype).tobytes())
+        return conv
+    if ftype in _SCALAR_FLOAT:
+        return float
+    if ftype in _SCALAR_INT:
+        return int
+    if ftype == "boolean":
+        return bool
+    if ftype == "string":
+        return str
+    if "[" in ftype and ftype.endswith("]"):
+        base = ftype.split("[", 1)[0]
+        dtype = _FIXED.get(base)
+        if dtype is not None:
+            return lambda v: np.asarray(v, dtype=dtype)
+    return None
+
+
+def _getter(ftype: str):
+    if ftype in _SEQ_CODES:
+        dtype = _SEQ_CODES[ftype][1]
+        return lambda v: np.frombuffer(v, dtype=dtype) if len(v) else np.zeros(0, dtype)
+    if "[" in ftype and ftype.endswith("]"):
+        return np.asarray
+    return None
+
+
+class _Converter:
+    """dict <-> message for one message type (header handled separately)."""
+
+    def __init__(self, cls):
+        self.cls = cls
+        fields = cls.get_fields_and_field_types()
+        self.set = {}
+        self.get = {}
+        for name, ftype in fields.items():
+            if name == "header":
+                continue
+            conv = _setter(ftype)
+            if conv is not None:
+                self.set[name] = conv
+            self.get[name] = _getter(ftype)
+
+    def to_msg(self, values: dict, stamp: int | None = None, frame_id: str = ""):
+        msg = self.cls()
+        setters = self.set
+        for key, value in values.items():
+            conv = setters.get(key)
+            if conv is not None:
+                setattr(msg, key, conv(value))
+        if stamp is not None:
+            msg.header.stamp = time_msg(stamp)
+            msg.header.frame_id = frame_id
+        return msg
+
+    def to_dict(self, msg) -> dict:
+        out = {}
+        for key, conv in self.get.items():
+            value = getattr(msg, key)
+            out[key] = conv(value) if conv is not None else value
+        return out
+
+
+_PLANT = _Converter(PlantState)
+_STATUS = _Converter(ControllerStatus)
+
+
+def plant_state_msg(snapshot: dict, stamp: int, frame_id: str = "") -> PlantState:
+    """BldcPlant.snapshot() dict (+ any overrides) -> PlantState, header.stamp = ``stamp`` [ns]."""
+    return _PLANT.to_msg(snapshot, stamp, frame_id)
+
+
+def snapshot_from_msg(msg: PlantState) -> dict:
+    """PlantState -> the snapshot dict BatchController.decide() takes (arrays as numpy)."""
+    return _PLANT.to_dict(msg)
+
+
+def controller_status_msg(status: dict, stamp: int) -> ControllerStatus:
+    return _STATUS.to_msg(status, stamp)
+
+
+def controller_status_dict(msg: ControllerStatus) -> dict:
+    return _STATUS.to_dict(msg)
+
+
+# ---------------------------------------------------------------- drive commands
+def drive_command_msg(seq: int, gates_a, gates_b, split, stamp: int,
+                      torque_cmd_nm: float = 0.0, current_cmd_a: float = 0.0) -> DriveCommand:
+    msg = DriveCommand()
+    msg.header.stamp = time_msg(stamp)
+    msg.seq = int(seq)
+    msg.gates_a = array.array("B", np.ascontiguousarray(gates_a, dtype=np.uint8).tobytes())
+    msg.gates_b = array.array("B", np.ascontiguousarray(gates_b, dtype=np.uint8).tobytes())
+    msg.split = array.array("f", np.ascontiguousarray(split, dtype=np.float32).tobytes())
+    msg.torque_cmd_nm = float(torque_cmd_nm)
+    msg.current_cmd_a = float(current_cmd_a)
+    return msg
+
+
+def drive_arrays(msg: DriveCommand):
+    """(gates_a uint8[N], gates_b uint8[N], split float64[N]) views of a DriveCommand."""
+    ga = np.frombuffer(msg.gates_a, dtype=np.uint8) if len(msg.gates_a) else np.zeros(0, np.uint8)
+    gb = np.frombuffer(msg.gates_b, dtype=np.uint8) if len(msg.gates_b) else np.zeros(0, np.uint8)
+    sp = np.frombuffer(msg.split, dtype=np.float32).astype(np.float64) if len(msg.split) else np.zeros(0)
+    return ga, gb, sp
+
+
+def drive_command_problem(msg: DriveCommand, batch_periods: int) -> str | None:
+    """Why a DriveCommand cannot be applied (None: it can). Never raises."""
+    try:
+        n = int(batch_periods)
+        for name in ("gates_a", "gates_b", "split"):
+            if len(getattr(msg, name)) != n:
+                return f"{name} has {len(getattr(msg, name))} entries, batch_periods is {n}"
+        ga, gb, sp = drive_arrays(msg)
+        if ga.size and int(ga.max()) >= GATE_LIMIT:
+            return f"gates_a holds {int(ga.max())} (gate values must be < {GATE_LIMIT})"
+        if gb.size and int(gb.max()) >= GATE_LIMIT:
+            return f"gates_b holds {int(gb.max())} (gate values must be < {GATE_LIMIT})"
+        if sp.size and not np.all(np.isfinite(sp)):
+            return "split holds a non-finite value"
+        if sp.size and (float(sp.min()) < 0.0 or float(sp.max()) > 1.0):
+            return f"split outside [0, 1] ({float(sp.min())} .. {float(sp.max())})"
+        for name in ("torque_cmd_nm", "current_cmd_a"):
+            if not math.isfinite(getattr(msg, name)):
+                return f"{name} is not finite"
+    except Exception as exc:  # a malformed message must never take the node down
+        return f"unreadable DriveCommand ({exc})"
+    return None
+
+
+# ---------------------------------------------------------------- user commands
+def command_problem(msg: Command) -> str | None:
+    """Why a Command is rejected (Eq. 5: finite, 0..1, a known mode); None if valid."""
+    value = msg.command
+    if not math.isfinite(value):
+        return f"command {value!r} is not finite"
+    if value < 0.0 or value > 1.0:
+        return f"command {value!r} outside [0, 1]"
+    if msg.mode not in (Command.MODE_RESISTANCE, Command.MODE_MOTORING):
+        return f"unknown mode {msg.mode} (0 resistance, 1 motoring)"
+    return None
+
+
+def command_msg(value: float, mode: int = 0, stamp: int = 0) -> Command:
+    msg = Command()
+    msg.header.stamp = time_msg(stamp)
+    msg.command = float(value)
+    msg.mode = int(mode)
+    return msg

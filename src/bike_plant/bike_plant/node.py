@@ -1,0 +1,450 @@
+"""plant_node: the machine side of the bike as a ROS 2 node (thin adapter, no physics here).
+
+Topics (relative names, namespace /bike by default; docs/DESIGN.md):
+  publishes  /clock (rosgraph_msgs/Clock), plant_state (bike_msgs/PlantState),
+             battery (sensor_msgs/BatteryState, every ``battery_every`` batches),
+             /diagnostics (diagnostic_msgs/DiagnosticArray: on fault changes and every
+             ``diagnostics_period_s`` wall seconds)
+  subscribes drive_command (bike_msgs/DriveCommand)
+
+sync_mode lockstep: publish /clock = t_k and PlantState(seq=k), wait for DriveCommand(seq=k),
+  validate, apply with step_batch, repeat. The first state goes out once the controller is
+  matched (a plant_state subscriber and a drive_command publisher); the pending state is
+  re-published every ``republish_s`` wall seconds without an answer (late joiners, a lost
+  first message). The loop is single-threaded: ``executor.spin_once`` until the answer is
+  in (measured faster than a spinning thread + threading.Event).
+sync_mode realtime: one batch per wall-clock batch period. The newest valid DriveCommand is
+  applied; without a new one the last one is held (re-used); with none for
+  ``command_timeout_s`` the plant goes to its safe state (all gates off) with
+  FAULT_COMMAND_TIMEOUT and an ERROR diagnostic, cleared when commands return. Sim time
+  (/clock, stamps) advances by one batch per tick, i.e. it follows wall time.
+A DriveCommand that cannot be applied (lengths != batch_periods, split not finite / outside
+[0, 1], gate values >= 64) is rejected: FAULT_BAD_COMMAND, a diagnostic, all gates off for
+that batch. At ``duration_s`` of sim time (0 = forever) the node publishes a last PlantState
+with end_of_run = true, lingers ``end_linger_s`` so subscribers receive it, and exits 0.
+SIGINT / SIGTERM end the node cleanly (exit 0).
+
+Backends: ``backend: sim`` (BldcPlant). ``can`` (a real drive) will plug in behind the
+same small interface (:class:`SimBackend`); it is not implemented yet.
+"""
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+
+import rclpy
+from bike_msgs.msg import DriveCommand, PlantState
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import BatteryState
+
+from . import msgconv
+from .config import ConfigError
+
+LOOP_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+AUX_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+
+PLANT_DEFAULTS = {
+    "backend": "sim",
+    "sync_mode": "lockstep",
+    "batch_periods": 20,
+    "control_period_s": 5.0e-5,
+    "command_timeout_s": 0.05,
+    "duration_s": 0.0,
+    "seed": 0,
+    "republish_s": 1.0,
+    "end_linger_s": 0.5,
+    "battery_every": 10,
+    "diagnostics_period_s": 1.0,
+}
+PLANT_DESCRIPTIONS = {
+    "republish_s": "lockstep: re-publish the pending PlantState after this many wall seconds without an answer",
+    "end_linger_s": "wall seconds to keep running after the end_of_run PlantState so subscribers receive it",
+    "battery_every": "publish sensor_msgs/BatteryState every this many batches",
+    "diagnostics_period_s": "publish a diagnostic at least this often [wall s]",
+}
+
+FAULT_NAMES = {
+    PlantState.FAULT_INTERLOCK: "INTERLOCK",
+    PlantState.FAULT_COMMAND_TIMEOUT: "COMMAND_TIMEOUT",
+    PlantState.FAULT_OVERVOLTAGE: "OVERVOLTAGE",
+    PlantState.FAULT_BAD_COMMAND: "BAD_COMMAND",
+    PlantState.FAULT_DRIVE_LOST: "DRIVE_LOST",
+}
+ERROR_FAULTS = PlantState.FAULT_COMMAND_TIMEOUT | PlantState.FAULT_OVERVOLTAGE | PlantState.FAULT_DRIVE_LOST
+
+
+def fault_text(bits: int) -> str:
+    return "|".join(name for bit, name in FAULT_NAMES.items() if bits & bit) or "none"
+
+
+# ---------------------------------------------------------------- backends
+class SimBackend:
+    """The simulated bike (bike_plant.sim.BldcPlant) behind the node's backend interface:
+    time_s, snapshot(), step(ga, gb, split), safe_batch(), set_safe(on)."""
+
+    name = "sim"
+    measured_by_drive = False
+
+    def __init__(self, cfg: dict, seed: int):
+        from .params import plant_params_from_config
+        from .sim import BldcPlant
+
+        self.plant = BldcPlant(plant_params_from_config(cfg), seed=seed)
+
+    @property
+    def time_s(self) -> float:
+        return self.plant.time_s
+
+    def snapshot(self) -> dict:
+        return self.plant.snapshot()
+
+    def step(self, gates_a, gates_b, split) -> None:
+        self.plant.step_batch(gates_a, gates_b, split)
+
+    def safe_batch(self, n: int) -> None:
+        self.plant.step_batch(*self.plant.safe_gates(n))
+
+    def set_safe(self, on: bool) -> None:
+        if on:
+            self.plant.set_safe_state()
+        else:
+            self.plant.clear_safe_state()
+
+
+def make_backend(kind: str, cfg: dict, seed: int):
+    if kind == "sim":
+        return SimBackend(cfg, seed)
+    if kind == "can":
+        raise ConfigError("backend 'can' is not implemented yet (use 'sim')", cfg.get("_config_path"), "backend")
+    raise ConfigError(f"unknown backend {kind!r} (sim | can)", cfg.get("_config_path"), "backend")
+
+
+# ---------------------------------------------------------------- the node
+class PlantNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("plant", **kwargs)
+        from .rosparams import declare_config
+
+        self.cfg = cfg = declare_config(self, PLANT_DEFAULTS, PLANT_DESCRIPTIONS)
+        path = cfg.get("_config_path")
+        self.sync_mode = str(cfg.get("sync_mode"))
+        if self.sync_mode not in ("lockstep", "realtime"):
+            raise ConfigError(f"must be 'lockstep' or 'realtime', got {self.sync_mode!r}", path, "sync_mode")
+        self.n = _number(cfg, "batch_periods", int, 1, path)
+        self.dt = _number(cfg, "control_period_s", float, 1e-9, path)
+        self.duration_s = _number(cfg, "duration_s", float, 0.0, path)
+        self.command_timeout_s = _number(cfg, "command_timeout_s", float, 1e-6, path)
+        self.republish_s = _number(cfg, "republish_s", float, 1e-3, path)
+        self.end_linger_s = _number(cfg, "end_linger_s", float, 0.0, path)
+        self.battery_every = _number(cfg, "battery_every", int, 1, path)
+        self.diag_period_s = _number(cfg, "diagnostics_period_s", float, 1e-3, path)
+        self.batch_s = self.n * self.dt
+        self.backend = make_backend(str(cfg.get("backend")), cfg, _number(cfg, "seed", int, 0, path))
+        # The plant is the clock source: it does not follow /clock itself (that would also
+        # cost one extra callback per batch). Its stamps are the model's time.
+        self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
+
+        self.pub_clock = self.create_publisher(Clock, "/clock", LOOP_QOS)
+        self.pub_state = self.create_publisher(PlantState, "plant_state", LOOP_QOS)
+        self.pub_battery = self.create_publisher(BatteryState, "battery", AUX_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
+        self.sub_drive = self.create_subscription(DriveCommand, "drive_command", self._on_drive, LOOP_QOS)
+        self.executor_ = SingleThreadedExecutor()
+        self.executor_.add_node(self)
+
+        self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "plant"
+        self.stop_requested = False
+        self.k = 0                   # batches applied
+        self.pending_seq = -1        # lockstep: seq we wait for
+        self.answer = None           # lockstep: DriveCommand(seq=pending_seq)
+        self.latest = None           # realtime: newest DriveCommand received
+        self.latest_rx = None        # realtime: wall time it arrived
+        self.node_faults = 0
+        self.last_faults = -1
+        self.last_diag_wall = 0.0
+        self.problem = ""            # why the last bad command was rejected
+        self.stats = {"stale_commands": 0, "bad_commands": 0, "republished": 0, "held_batches": 0,
+                      "timeout_batches": 0, "overruns": 0}
+        self.get_logger().info(
+            f"plant: backend={self.backend.name} sync_mode={self.sync_mode} N={self.n} "
+            f"T={self.dt:g}s duration={self.duration_s:g}s config={path}")
+
+    # ------------------------------------------------------------ callbacks
+    def _on_drive(self, msg: DriveCommand) -> None:
+        if self.sync_mode == "lockstep":
+            if msg.seq == self.pending_seq and self.answer is None:
+                self.answer = msg
+            else:
+                self.stats["stale_commands"] += 1
+        else:
+            self.latest = msg
+            self.latest_rx = time.monotonic()
+
+    # ------------------------------------------------------------ publishing
+    def _publish_state(self, end_of_run: bool = False) -> None:
+        snap = self.backend.snapshot()
+        snap["seq"] = self.k
+        snap["batch_periods"] = self.n
+        snap["backend"] = self.backend.name
+        snap["measured_by_drive"] = self.backend.measured_by_drive
+        snap["end_of_run"] = end_of_run
+        faults = int(snap.get("faults", 0)) | self.node_faults
+        snap["faults"] = faults
+        stamp = msgconv.seconds_to_ns(self.backend.time_s)
+        self.pub_clock.publish(Clock(clock=msgconv.time_msg(stamp)))
+        self.pub_state.publish(msgconv.plant_state_msg(snap, stamp))
+        self._last_snap, self._last_stamp = snap, stamp
+        if self.k % self.battery_every == 0 or end_of_run:
+            self._publish_battery(snap, stamp)
+        now = time.monotonic()
+        if faults != self.last_faults or now - self.last_diag_wall >= self.diag_period_s or end_of_run:
+            self._publish_diag(snap, stamp, faults)
+            self.last_faults = faults
+            self.last_diag_wall = now
+
+    def _republish(self) -> None:
+        self.pub_clock.publish(Clock(clock=msgconv.time_msg(self._last_stamp)))
+        self.pub_state.publish(msgconv.plant_state_msg(self._last_snap, self._last_stamp))
+        self.stats["republished"] += 1
+
+    def _publish_battery(self, snap: dict, stamp: int) -> None:
+        msg = BatteryState()
+        msg.header.stamp = msgconv.time_msg(stamp)
+        msg.voltage = float(snap.get("dc_bus_v", math.nan))
+        msg.current = float(snap.get("battery_current_a", math.nan))     # ROS: charging positive
+        msg.percentage = float(snap.get("battery_soc", math.nan))
+        msg.charge = math.nan
+        msg.capacity = math.nan
+        msg.design_capacity = math.nan
+        msg.temperature = math.nan
+        msg.power_supply_status = (BatteryState.POWER_SUPPLY_STATUS_CHARGING if msg.current > 0
+                                   else BatteryState.POWER_SUPPLY_STATUS_DISCHARGING)
+        msg.power_supply_health = BatteryState.POWER_SUPPLY_HEALTH_GOOD
+        msg.power_supply_technology = BatteryState.POWER_SUPPLY_TECHNOLOGY_LION
+        msg.present = True
+        self.pub_battery.publish(msg)
+
+    def _publish_diag(self, snap: dict, stamp: int, faults: int) -> None:
+        status = DiagnosticStatus()
+        status.name = self.diag_name
+        status.hardware_id = f"bike_plant/{self.backend.name}"
+        if faults & ERROR_FAULTS:
+            status.level = DiagnosticStatus.ERROR
+        elif faults:
+            status.level = DiagnosticStatus.WARN
+        else:
+            status.level = DiagnosticStatus.OK
+        reasons = []
+        if faults & PlantState.FAULT_COMMAND_TIMEOUT:
+            reasons.append(f"no DriveCommand for more than command_timeout_s={self.command_timeout_s:g}s: "
+                           "safe state, all gates off")
+        if faults & PlantState.FAULT_BAD_COMMAND:
+            reasons.append(f"DriveCommand rejected: {self.problem}; all gates off for that batch")
+        if faults & PlantState.FAULT_INTERLOCK:
+            reasons.append("gate pattern with both switches of a leg on was blanked")
+        if faults & PlantState.FAULT_OVERVOLTAGE:
+            reasons.append("DC bus over the configured limit")
+        if self.sync_mode == "realtime" and self.latest_rx is None and not faults:
+            status.level = DiagnosticStatus.WARN
+            reasons.append("waiting for the first DriveCommand (gates off)")
+        status.message = "; ".join(reasons) if reasons else "running"
+        values = {
+            "faults": str(faults), "fault_names": fault_text(faults), "seq": str(self.k),
+            "sim_time_s": f"{stamp * 1e-9:.6f}", "sync_mode": self.sync_mode,
+            "speed_rpm": f"{float(snap.get('speed_rpm', 0.0)):.1f}",
+            "dc_bus_v": f"{float(snap.get('dc_bus_v', 0.0)):.2f}",
+        }
+        values.update({k: str(v) for k, v in self.stats.items()})
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = msgconv.time_msg(stamp)
+        arr.status = [status]
+        self.pub_diag.publish(arr)
+
+    # ------------------------------------------------------------ applying commands
+    def _apply(self, msg: DriveCommand | None) -> bool:
+        """Apply batch k: a valid DriveCommand, or all gates off (None / a rejected command).
+        Returns False if ``msg`` was rejected."""
+        try:
+            if msg is None:
+                self.backend.safe_batch(self.n)
+                return True
+            problem = msgconv.drive_command_problem(msg, self.n)
+            if problem is None:
+                try:
+                    self.backend.step(*msgconv.drive_arrays(msg))
+                    self.node_faults &= ~PlantState.FAULT_BAD_COMMAND
+                    return True
+                except ValueError as exc:       # the model's own validation
+                    problem = str(exc)
+            self.problem = problem
+            self.stats["bad_commands"] += 1
+            if not self.node_faults & PlantState.FAULT_BAD_COMMAND:
+                self.get_logger().warning(f"DriveCommand seq={msg.seq} rejected: {problem}")
+            self.node_faults |= PlantState.FAULT_BAD_COMMAND
+            self.backend.safe_batch(self.n)
+            return False
+        finally:
+            self.k += 1
+
+    def _finished(self) -> bool:
+        return self.duration_s > 0 and self.backend.time_s >= self.duration_s - 1e-9
+
+    def _spin(self, timeout: float) -> None:
+        self.executor_.spin_once(timeout_sec=max(timeout, 0.0))
+
+    # ------------------------------------------------------------ loops
+    def run(self) -> int:
+        if self.sync_mode == "lockstep":
+            self._run_lockstep()
+        else:
+            self._run_realtime()
+        return 0
+
+    def _end_of_run(self) -> None:
+        self._publish_state(end_of_run=True)
+        self.get_logger().info(f"end of run at t={self.backend.time_s:.6f}s after {self.k} batches")
+        end = time.monotonic() + self.end_linger_s
+        while not self.stop_requested and time.monotonic() < end:
+            self._spin(min(0.05, end - time.monotonic()))
+
+    def _run_lockstep(self) -> None:
+        log = self.get_logger()
+        next_log = time.monotonic() + 5.0
+        while not self.stop_requested and (self.pub_state.get_subscription_count() < 1
+                                           or self.sub_drive.get_publisher_count() < 1):
+            self._spin(0.05)
+            if time.monotonic() > next_log:
+                log.info("waiting for the controller (plant_state subscriber and drive_command publisher)")
+                next_log = time.monotonic() + 5.0
+        t1 = None                    # wall time of the first answer (rate excludes start-up waits)
+        while not self.stop_requested:
+            if self.k == 1:
+                t1 = time.monotonic()
+            if self._finished():
+                if t1 is not None and self.k > 1:
+                    rate = (self.k - 1) / max(time.monotonic() - t1, 1e-9)
+                    log.info(f"lockstep rate {rate:.0f} batches per wall second "
+                             f"({rate * self.batch_s:.2f} x real time)")
+                self._end_of_run()
+                return
+            self.pending_seq = self.k
+            self.answer = None
+            self._publish_state()
+            sent = time.monotonic()
+            while self.answer is None and not self.stop_requested:
+                self._spin(0.1)
+                if self.answer is None and time.monotonic() - sent > self.republish_s:
+                    self._republish()
+                    sent = time.monotonic()
+            if self.answer is None:
+                return
+            msg, self.answer = self.answer, None
+            self.pending_seq = -1
+            self._apply(msg)
+
+    def _run_realtime(self) -> None:
+        log = self.get_logger()
+        applied = None
+        timed_out = False
+        self._publish_state()
+        next_tick = time.monotonic() + self.batch_s
+        while not self.stop_requested:
+            now = time.monotonic()
+            if now < next_tick:
+                self._spin(next_tick - now)
+                continue
+            if now - next_tick > max(20 * self.batch_s, 0.02):
+                self.stats["overruns"] += 1
+                next_tick = now              # fell far behind (suspend, GC): resynchronise
+            next_tick += self.batch_s
+            # take what DDS already holds before judging a timeout (the loop itself may have
+            # been descheduled; a command waiting in the queue is not a missing command)
+            for _ in range(8):
+                before = self.latest_rx
+                self._spin(0.0)
+                if self.latest_rx is before:
+                    break
+            now = time.monotonic()
+            # choose this batch's command
+            msg = None
+            if self.latest_rx is not None:
+                if now - self.latest_rx > self.command_timeout_s:
+                    if not timed_out:
+                        log.error(f"no DriveCommand for {now - self.latest_rx:.3f}s > command_timeout_s="
+                                  f"{self.command_timeout_s:g}s: safe state (all gates off)")
+                        self.backend.set_safe(True)
+                        self.node_faults |= PlantState.FAULT_COMMAND_TIMEOUT
+                        timed_out = True
+                    self.stats["timeout_batches"] += 1
+                else:
+                    if timed_out:
+                        log.info("DriveCommands are back: leaving the safe state")
+                        self.backend.set_safe(False)
+                        self.node_faults &= ~PlantState.FAULT_COMMAND_TIMEOUT
+                        timed_out = False
+                    msg = self.latest
+                    if msg is applied:
+                        self.stats["held_batches"] += 1
+            applied = msg
+            if not self._apply(msg) and self.latest is msg:
+                self.latest = None           # do not hold a rejected command
+            if self._finished():
+                self._end_of_run()
+                return
+            self._publish_state()
+
+
+def _number(cfg: dict, key: str, kind, minimum, path):
+    value = cfg.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"expected a number, got {value!r}", path, key)
+    if not math.isfinite(value) or value < minimum:
+        raise ConfigError(f"must be finite and >= {minimum}, got {value!r}", path, key)
+    if kind is int:
+        if float(value) != int(value):
+            raise ConfigError(f"expected an integer, got {value!r}", path, key)
+        return int(value)
+    return float(value)
+
+
+def install_signal_handlers(node) -> None:
+    """SIGINT / SIGTERM ask the loop to stop (checked at least every 0.1 s)."""
+    def handler(signum, frame):
+        node.stop_requested = True
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    code = 0
+    try:
+        node = PlantNode()
+        install_signal_handlers(node)
+        code = node.run()
+    except ConfigError as exc:
+        print(f"plant_node: configuration error: {exc}", file=sys.stderr)
+        code = 2
+    except KeyboardInterrupt:
+        code = 0
+    finally:
+        if node is not None:
+            node.executor_.remove_node(node)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,156 @@
+"""Helpers for the tests that start real node processes (test_nodes_*.py).
+
+Each test gets its own ROS_DOMAIN_ID (random 1..200) and discovery limited to localhost;
+nodes run as separate OS processes (the installed console scripts), the test talks to
+them through its own rclpy context on the same domain.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import random
+import signal
+import subprocess
+import tempfile
+import threading
+import time
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "config" / "bldc_default.yaml"
+
+rclpy = pytest.importorskip("rclpy")
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+
+
+def executable(pkg: str, exe: str) -> str:
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        path = os.path.join(get_package_prefix(pkg), "lib", pkg, exe)
+    except PackageNotFoundError:
+        pytest.skip(f"package {pkg} not built / sourced (source tools/env.sh)")
+    if not os.access(path, os.X_OK):
+        pytest.skip(f"{path} not installed (colcon build)")
+    return path
+
+
+class NodeProcess:
+    """One node as an OS process (own process group), output captured to a file."""
+
+    def __init__(self, pkg: str, exe: str, domain: int, params: dict | None = None, ns: str = "/bike"):
+        args = [executable(pkg, exe), "--ros-args", "-r", f"__ns:={ns}", "--params-file", str(CONFIG)]
+        for key, value in (params or {}).items():
+            args += ["-p", f"{key}:={value}"]
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   BIKE_ROOT=str(ROOT), PYTHONUNBUFFERED="1")
+        self.log = tempfile.NamedTemporaryFile("w+", prefix=f"{exe}-", suffix=".log", delete=False)
+        self.name = exe
+        self.proc = subprocess.Popen(args, stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT),
+                                     start_new_session=True)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def output(self) -> str:
+        self.log.flush()
+        return pathlib.Path(self.log.name).read_text(errors="replace")
+
+    def wait(self, timeout: float) -> int | None:
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            return None
+
+    def signal(self, sig: int) -> None:
+        if self.alive():
+            os.killpg(self.proc.pid, sig)
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        """SIGINT, then SIGKILL if it does not end within ``timeout``; returns the exit code."""
+        if self.alive():
+            self.signal(signal.SIGINT)
+            if self.wait(timeout) is None:
+                self.signal(signal.SIGKILL)
+                self.wait(5.0)
+                return None
+        return self.proc.returncode
+
+
+class Collector:
+    """The test's own node: records what the bike publishes, publishes what the test needs."""
+
+    def __init__(self, domain: int, topics: dict, ns: str = "/bike"):
+        from bike_plant.node import AUX_QOS, LOOP_QOS
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.node = Node("test_collector", namespace=ns, context=self.context)
+        self.data: dict[str, list] = {}
+        self.stamps: dict[str, list] = {}
+        self.subs = {}
+        self.callbacks: dict[str, object] = {}
+        for topic, msg_type in topics.items():
+            self.data[topic] = []
+            self.stamps[topic] = []
+            qos = AUX_QOS if topic in ("/diagnostics", "battery", "session_status") else LOOP_QOS
+            self.subs[topic] = self.node.create_subscription(msg_type, topic, self._cb(topic), qos)
+        self.loop_qos = LOOP_QOS
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._stop = False
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _cb(self, topic):
+        def callback(msg):
+            self.data[topic].append(msg)
+            self.stamps[topic].append(time.monotonic())
+            hook = self.callbacks.get(topic)
+            if hook is not None:
+                hook(msg)
+        return callback
+
+    def _spin(self):
+        while not self._stop and self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # context shut down under us
+                break
+
+    def publisher(self, msg_type, topic):
+        return self.node.create_publisher(msg_type, topic, self.loop_qos)
+
+    def wait_for(self, predicate, timeout: float, what: str = "condition", procs=()) -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if predicate():
+                return
+            for p in procs:
+                if not p.alive():
+                    raise AssertionError(f"{p.name} exited ({p.proc.returncode}) while waiting for {what}:\n{p.output()}")
+            time.sleep(0.01)
+        logs = "\n".join(f"--- {p.name}:\n{p.output()[-3000:]}" for p in procs)
+        raise AssertionError(f"timeout ({timeout}s) waiting for {what}\n{logs}")
+
+    def close(self):
+        self._stop = True
+        self.thread.join(2.0)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+@pytest.fixture
+def domain():
+    return random.randint(1, 200)
+
+
+def stamp_ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)

@@ -1,0 +1,275 @@
+"""Lockstep plant_node + controller_node as real processes over real DDS."""
+from __future__ import annotations
+
+import math
+import signal
+import time
+
+import numpy as np
+import pytest
+from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns  # noqa: F401
+
+from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState  # noqa: E402
+from bike_plant import msgconv  # noqa: E402
+from bike_plant.config import load_config  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+CFG = load_config(CONFIG)
+DT = CFG["control_period_s"]
+PERIOD = CFG["session"]["period_s"]
+
+
+def dedupe(states):
+    """A PlantState left unanswered for republish_s is published again (same seq, same content)."""
+    out = []
+    for m in states:
+        if out and m.seq == out[-1].seq:
+            assert m == out[-1], "a re-published PlantState must be identical"
+            continue
+        out.append(m)
+    return out
+
+
+def _check_lockstep_states(states, n, duration_s):
+    states = dedupe(states)
+    seqs = [int(m.seq) for m in states]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "PlantState seq must increase by 1 without gaps"
+    assert seqs[0] == 0
+    stamps = np.array([stamp_ns(m.header.stamp) for m in states])
+    step_ns = n * DT * 1e9
+    assert np.all(np.abs(np.diff(stamps) - step_ns) <= 2), "sim time must advance N * T per batch"
+    assert states[-1].end_of_run and not any(m.end_of_run for m in states[:-1])
+    assert abs(stamps[-1] * 1e-9 - duration_s) < 1e-6
+    assert all(m.batch_periods == n for m in states)
+    return seqs, states
+
+
+def _start_plant_and_wait(col, domain, params, procs):
+    plant = NodeProcess("bike_plant", "plant_node", domain, params)
+    procs.append(plant)
+    # the plant starts publishing only when a controller is there; make sure the test's
+    # own subscriptions are matched first so no message is missed
+    col.wait_for(lambda: col.subs["plant_state"].get_publisher_count() >= 1, 20, "plant publisher", [plant])
+    return plant
+
+
+def _rate(col):
+    """Batches per wall second, from the first answered batch (start-up waits excluded)."""
+    first = {}
+    for m, t in zip(col.data["plant_state"], col.stamps["plant_state"]):
+        first.setdefault(int(m.seq), t)
+    seqs = sorted(first)
+    return (seqs[-1] - 1) / max(first[seqs[-1]] - first[1], 1e-9)
+
+
+def test_lockstep_closed_loop(domain):
+    """Seq / time bookkeeping, answers, Command following, invalid Commands, clean exits."""
+    duration = 0.6
+    col = Collector(domain, {"plant_state": PlantState, "drive_command": DriveCommand,
+                             "controller_status": ControllerStatus, "/diagnostics": DiagnosticArray,
+                             "/clock": Clock})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 10.0})
+        procs.append(ctrl)
+        col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
+        time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
+        # the session's timeline, published ahead: 0 until 0.2 s, then 0.5 (resistance)
+        for j in range(int(round(duration / PERIOD)) + 1):
+            tau = j * PERIOD
+            cmd_pub.publish(msgconv.command_msg(0.0 if tau < 0.2 - 1e-9 else 0.5, 0, msgconv.seconds_to_ns(tau)))
+        # invalid ones: rejected, the previous command stays
+        for bad_value, bad_mode in ((math.nan, 0), (2.0, 0), (-0.1, 0), (math.inf, 0), (0.5, 7)):
+            cmd_pub.publish(msgconv.command_msg(bad_value, bad_mode, msgconv.seconds_to_ns(0.05)))
+        col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 25, "end_of_run", [plant])
+        assert plant.wait(5.0) == 0, plant.output()
+        states = list(col.data["plant_state"])
+        seqs, states = _check_lockstep_states(states, CFG["batch_periods"], duration)
+        time.sleep(0.3)
+        drives = {int(m.seq): m for m in col.data["drive_command"]}
+        assert set(drives) == set(seqs[:-1]), "one DriveCommand answering every PlantState but the last"
+        for m in drives.values():
+            assert len(m.gates_a) == len(m.gates_b) == len(m.split) == CFG["batch_periods"]
+        statuses = {int(m.seq): m for m in col.data["controller_status"]}
+        assert set(statuses) == set(seqs[:-1])
+        assert stamp_ns(col.data["/clock"][-1].clock) == stamp_ns(states[-1].header.stamp)
+        # the torque command follows the Command timeline (stamp <= t_k)
+        t_of = {int(m.seq): stamp_ns(m.header.stamp) * 1e-9 for m in states}
+        before = [s for k, s in statuses.items() if t_of[k] < 0.2 - 1e-9]
+        after = [s for k, s in statuses.items() if t_of[k] >= 0.2 - 1e-9]
+        assert before and after
+        assert all(s.command == 0.0 and s.torque_cmd_nm == 0.0 for s in before)
+        assert all(s.command == 0.5 and s.mode == Command.MODE_RESISTANCE for s in after)
+        assert all(s.torque_cmd_nm > 0.5 and s.quadrant == ControllerStatus.QUADRANT_GENERATING for s in after)
+        assert all(drives[k].torque_cmd_nm < 0 for k, s in statuses.items() if t_of[k] >= 0.2)
+        # the plant brakes: mean electromagnetic torque clearly negative (generating) late in the run
+        late = [m.torque_em_nm for m in states if 0.4 <= stamp_ns(m.header.stamp) * 1e-9]
+        assert np.mean(late) < -0.5, np.mean(late)
+        early = [m.torque_em_nm for m in states if 0.01 <= stamp_ns(m.header.stamp) * 1e-9 < 0.2]
+        assert abs(np.mean(early)) < 0.05
+        # invalid Commands: WARN diagnostics, command_rejected, and the node kept running
+        warns = [s for a in col.data["/diagnostics"] for s in a.status
+                 if s.name.endswith("controller") and s.level == DiagnosticStatus.WARN and "rejected" in s.message]
+        assert len(warns) >= 5, [s.message for s in warns]
+        assert any("not finite" in s.message for s in warns) and any("outside [0, 1]" in s.message for s in warns)
+        assert any("unknown mode" in s.message for s in warns)
+        assert any(s.command_rejected for s in statuses.values())
+        assert ctrl.alive(), ctrl.output()
+        rate = _rate(col)
+        print(f"\nlockstep N={CFG['batch_periods']}: {rate:.0f} batches per wall second")
+        ctrl.signal(signal.SIGINT)
+        assert ctrl.wait(10.0) == 0, ctrl.output()
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+@pytest.mark.parametrize("n, duration", [(20, 2.0), (200, 10.0)])
+def test_lockstep_rate(domain, n, duration):
+    """Batches per wall second (printed; run with -s) for N = 20 and 200."""
+    col = Collector(domain, {"plant_state": PlantState})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        plant = _start_plant_and_wait(col, domain, {"duration_s": duration, "batch_periods": n}, procs)
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, {"batch_periods": n, "command_wait_s": 10.0})
+        procs.append(ctrl)
+        col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
+        time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
+        for tau in (0.0, duration):        # holds every batch's command: no waiting
+            cmd_pub.publish(msgconv.command_msg(0.5, 0, msgconv.seconds_to_ns(tau)))
+        col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 40, "end_of_run", procs)
+        assert plant.wait(5.0) == 0
+        _check_lockstep_states(list(col.data["plant_state"]), n, duration)
+        rate = _rate(col)
+        print(f"\nlockstep N={n}: {rate:.0f} batches/s = {rate * n * DT:.2f} x real time")
+        assert rate > 100, rate
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+def test_lockstep_rejects_malformed_drive_command(domain):
+    """The test answers the plant itself; malformed DriveCommands -> FAULT_BAD_COMMAND, no crash."""
+    n = CFG["batch_periods"]
+    batches = 14
+    duration = batches * n * DT
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
+    procs = []
+    try:
+        pub = col.publisher(DriveCommand, "drive_command")
+        zeros = np.zeros(n, np.uint8)
+        good = lambda k: msgconv.drive_command_msg(k, zeros, zeros, np.ones(n), 0)  # noqa: E731
+        bad = {
+            3: msgconv.drive_command_msg(3, np.zeros(n - 1, np.uint8), zeros, np.ones(n), 0),   # wrong length
+            5: msgconv.drive_command_msg(5, zeros, zeros, np.full(n, np.nan), 0),              # NaN split
+            7: msgconv.drive_command_msg(7, np.full(n, 64, np.uint8), zeros, np.ones(n), 0),  # gate >= 64
+            9: msgconv.drive_command_msg(9, zeros, zeros, np.full(n, 1.5), 0),                # split > 1
+            10: msgconv.drive_command_msg(10, zeros, zeros, np.zeros(0), 0),                   # empty split
+        }
+
+        def answer(state):
+            if not state.end_of_run:
+                k = int(state.seq)
+                pub.publish(bad.get(k) or good(k))
+        col.callbacks["plant_state"] = answer
+        plant = NodeProcess("bike_plant", "plant_node", domain, {"duration_s": duration})
+        procs.append(plant)
+        col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 25, "end_of_run", procs)
+        assert plant.wait(5.0) == 0, plant.output()
+        seqs, states = _check_lockstep_states(list(col.data["plant_state"]), n, duration)
+        faulty = {int(m.seq) for m in states if m.faults & PlantState.FAULT_BAD_COMMAND}
+        assert faulty == {4, 6, 8, 10, 11}, faulty        # state k+1 reports the rejected batch k
+        diag = [s for a in col.data["/diagnostics"] for s in a.status
+                if s.name.endswith("plant") and "DriveCommand rejected" in s.message]
+        assert diag and all(s.level == DiagnosticStatus.WARN for s in diag)
+        texts = " ".join(s.message for s in diag)
+        assert "entries, batch_periods is" in texts and "non-finite" in texts and "< 64" in texts
+        assert "split outside [0, 1]" in texts
+        assert any(s.level == DiagnosticStatus.OK for a in col.data["/diagnostics"] for s in a.status
+                   if s.name.endswith("plant") and stamp_ns(a.header.stamp) > 12 * n * DT * 1e9 - 1000)
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+def _run_once(domain, duration, commands):
+    col = Collector(domain, {"plant_state": PlantState})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 10.0})
+        procs.append(ctrl)
+        col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
+        time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
+        for tau, value in commands:
+            cmd_pub.publish(msgconv.command_msg(value, 0, msgconv.seconds_to_ns(tau)))
+        col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 25, "end_of_run", procs)
+        assert plant.wait(5.0) == 0
+        return [msgconv.snapshot_from_msg(m) | {"stamp": stamp_ns(m.header.stamp)} for m in dedupe(col.data["plant_state"])]
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+def test_lockstep_runs_are_identical(domain):
+    """Two lockstep runs with the same config and Command timeline record identical states."""
+    duration = 0.4
+    commands = [(j * PERIOD, [0.2, 0.8, 0.4, 1.0, 0.0][j]) for j in range(5)]
+    a = _run_once(domain, duration, commands)
+    b = _run_once(domain, duration, commands)
+    assert len(a) == len(b) == int(round(duration / (CFG["batch_periods"] * DT))) + 1
+    for x, y in zip(a, b):
+        for key in x:
+            assert np.array_equal(np.asarray(x[key]), np.asarray(y[key])), (x["seq"], key)
+
+
+def test_lockstep_controller_waits_for_the_session(domain):
+    """Batch k is not answered before the Command for floor(t_k / period) is in (or DONE)."""
+    from bike_msgs.msg import SessionStatus
+
+    duration = 0.5
+    col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        status_pub = col.node.create_publisher(SessionStatus, "session_status", 10)
+        plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 20.0})
+        procs.append(ctrl)
+        col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1 and status_pub.get_subscription_count() >= 1,
+                     20, "controller's subscriptions", procs)
+        time.sleep(0.2)
+        states = col.data["plant_state"]
+        t_last = lambda: stamp_ns(states[-1].header.stamp) * 1e-9 if states else -1.0  # noqa: E731
+
+        cmd_pub.publish(msgconv.command_msg(0.3, 0, 0))
+        col.wait_for(lambda: t_last() >= PERIOD - 1e-9, 10, "run up to the first missing Command", procs)
+        time.sleep(1.0)
+        assert abs(t_last() - PERIOD) < 1e-9, "the controller must hold batch k until the Command for j is in"
+        cmd_pub.publish(msgconv.command_msg(0.6, 0, msgconv.seconds_to_ns(PERIOD)))
+        col.wait_for(lambda: t_last() >= 2 * PERIOD - 1e-9, 10, "run up to the next missing Command", procs)
+        time.sleep(0.5)
+        assert abs(t_last() - 2 * PERIOD) < 1e-9
+        status_pub.publish(SessionStatus(state=SessionStatus.STATE_DONE))
+        col.wait_for(lambda: any(m.end_of_run for m in states), 10, "end_of_run after DONE", procs)
+        assert plant.wait(5.0) == 0
+        time.sleep(0.2)
+        t_of = {int(m.seq): stamp_ns(m.header.stamp) * 1e-9 for m in states}
+        for s in col.data["controller_status"]:
+            expected = 0.3 if t_of[int(s.seq)] < PERIOD - 1e-9 else 0.6
+            assert s.command == expected, (t_of[int(s.seq)], s.command)
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()

@@ -1,0 +1,123 @@
+"""Realtime plant_node + controller_node as real processes: wall-clock batches, command
+timeout -> safe state, recovery."""
+from __future__ import annotations
+
+import signal
+import time
+
+import numpy as np
+import pytest
+from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns  # noqa: F401
+
+from bike_msgs.msg import Command, PlantState  # noqa: E402
+from bike_plant import msgconv  # noqa: E402
+from bike_plant.config import load_config  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from sensor_msgs.msg import BatteryState  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+CFG = load_config(CONFIG)
+N = CFG["batch_periods"]
+DT = CFG["control_period_s"]
+TIMEOUT = CFG["command_timeout_s"]
+RT = {"sync_mode": "realtime"}
+
+
+def _peak_current(m) -> float:
+    return float(np.max(np.abs(np.asarray(m.phase_current_a))))
+
+
+def test_realtime_timeout_safe_state_and_recovery(domain):
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray, "battery": BatteryState})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+        procs.append(plant)
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+        procs.append(ctrl)
+        col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
+        states = col.data["plant_state"]
+
+        def commanding(pred):
+            # like a session: publish the Command periodically (a volatile subscription that is
+            # still completing its match may miss a single message)
+            def check():
+                cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))       # brake at half command from t = 0
+                return pred()
+            return check
+        # closed loop running: ~34 A phase current, no faults
+        col.wait_for(commanding(lambda: len(states) > 300 and all(_peak_current(m) > 10 and m.faults == 0
+                                                                  for m in states[-100:])),
+                     15, "braking current under realtime control", procs)
+        # wall-clock batches: sim time advances N*T per batch and follows wall time
+        window = list(states[-200:])
+        seqs = [int(m.seq) for m in window]
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+        assert np.all(np.abs(np.diff([stamp_ns(m.header.stamp) for m in window]) - N * DT * 1e9) <= 2)
+        times = col.stamps["plant_state"][-200:]
+        ratio = (len(times) - 1) * N * DT / (times[-1] - times[0])
+        assert 0.7 < ratio < 1.3, f"sim time / wall time = {ratio:.2f}"
+        assert col.data["battery"], "BatteryState is published"
+
+        # the controller dies without a word
+        ctrl.signal(signal.SIGKILL)
+        t_kill = time.monotonic()
+        k_kill = len(states)
+        col.wait_for(lambda: any(m.faults & PlantState.FAULT_COMMAND_TIMEOUT for m in states[k_kill:]),
+                     5, "FAULT_COMMAND_TIMEOUT", [plant])
+        i_fault = next(i for i in range(k_kill, len(states)) if states[i].faults & PlantState.FAULT_COMMAND_TIMEOUT)
+        t_fault = col.stamps["plant_state"][i_fault]
+        assert t_fault - t_kill < TIMEOUT + 0.25, f"fault after {t_fault - t_kill:.3f}s"
+        # currents decay to zero in the safe state (all gates off; back-EMF below the bus voltage)
+        col.wait_for(lambda: len(states) > i_fault + 200, 5, "states after the fault", [plant])
+        after = states[i_fault + 100:i_fault + 200]
+        assert all(m.faults & PlantState.FAULT_COMMAND_TIMEOUT for m in after)
+        assert max(_peak_current(m) for m in after) < 1e-3
+        errors = [s for a in col.data["/diagnostics"] for s in a.status
+                  if s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR]
+        assert errors and "no DriveCommand" in errors[0].message and "safe state" in errors[0].message
+        t_diag = next(t for a, t in zip(col.data["/diagnostics"], col.stamps["/diagnostics"])
+                      if any(s.level == DiagnosticStatus.ERROR for s in a.status))
+        assert t_diag - t_fault < 0.1
+        assert plant.alive()
+
+        # a new controller: commands return, the fault clears, braking resumes
+        ctrl2 = NodeProcess("bike_controller", "controller_node", domain, RT)
+        procs.append(ctrl2)
+        col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "second controller", procs[:1] + [ctrl2])
+        col.wait_for(commanding(lambda: any(m.faults == 0 and _peak_current(m) > 10 for m in states[-20:])), 15,
+                     "recovery", [plant, ctrl2])
+        col.wait_for(lambda: any(s.name.endswith("plant") and s.level == DiagnosticStatus.OK
+                                 for a in col.data["/diagnostics"][-5:] for s in a.status), 5, "OK diagnostic", [plant])
+
+        plant.signal(signal.SIGTERM)
+        assert plant.wait(10.0) == 0, plant.output()
+        ctrl2.signal(signal.SIGINT)
+        assert ctrl2.wait(10.0) == 0, ctrl2.output()
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+def test_realtime_without_controller_stays_safe_and_ends(domain):
+    """No controller at all: gates off, a WARN diagnostic, end_of_run at duration_s."""
+    duration = 0.3
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
+    procs = []
+    try:
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=duration))
+        procs.append(plant)
+        col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 20, "end_of_run", procs)
+        assert plant.wait(5.0) == 0, plant.output()
+        states = col.data["plant_state"]
+        assert abs(stamp_ns(states[-1].header.stamp) * 1e-9 - duration) < 1e-6
+        assert all(_peak_current(m) == 0.0 for m in states)
+        warns = [s for a in col.data["/diagnostics"] for s in a.status if s.level == DiagnosticStatus.WARN]
+        assert any("waiting for the first DriveCommand" in s.message for s in warns)
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
