@@ -30,16 +30,14 @@ import math
 import sys
 import time
 
-import rclpy
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv
 from bike_plant.config import ConfigError
-from bike_plant.node import AUX_QOS, LOOP_QOS, install_signal_handlers
+from bike_plant.node import AUX_QOS, LOOP_QOS, run_loop_node
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.signals import SignalHandlerOptions
 
 CONTROLLER_DEFAULTS = {
     "sync_mode": "lockstep",
@@ -253,24 +251,7 @@ def _positive(value, key, path) -> float:
 
 
 def main(args=None) -> int:
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    code = 0
-    try:
-        node = ControllerNode()
-        install_signal_handlers(node)
-        code = node.run()
-    except ConfigError as exc:
-        print(f"controller_node: configuration error: {exc}", file=sys.stderr)
-        code = 2
-    except KeyboardInterrupt:
-        code = 0
-    finally:
-        if node is not None:
-            node.executor_.remove_node(node)
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_loop_node(ControllerNode, "controller_node", args)
 
 
 if __name__ == "__main__":

@@ -425,16 +425,18 @@ def install_signal_handlers(node) -> None:
     signal.signal(signal.SIGTERM, handler)
 
 
-def main(args=None) -> int:
+def run_loop_node(node_factory, label: str, args=None) -> int:
+    """Shared main() of the loop nodes: init without rclpy's signal handlers, run the node's
+    own loop, turn a ConfigError into one line and exit code 2, always shut down cleanly."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     code = 0
     try:
-        node = PlantNode()
+        node = node_factory()
         install_signal_handlers(node)
         code = node.run()
     except ConfigError as exc:
-        print(f"plant_node: configuration error: {exc}", file=sys.stderr)
+        print(f"{label}: configuration error: {exc}", file=sys.stderr)
         code = 2
     except KeyboardInterrupt:
         code = 0
@@ -444,6 +446,10 @@ def main(args=None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+def main(args=None) -> int:
+    return run_loop_node(PlantNode, "plant_node", args)
 
 
 if __name__ == "__main__":

@@ -117,6 +117,16 @@ def calibrate_k(cfg_or_path, speeds_rpm=(0.0, 1000.0, 2000.0, 3000.0, 3300.0, 40
     return {"k_speed_rpm": [float(s) for s in speeds_rpm], "k_factor": ks}
 
 
+def _write_csv(path: pathlib.Path, rows: list[dict], formats: dict[str, str]) -> pathlib.Path:
+    """Write the named columns of ``rows`` (in the order of ``formats``) with their formats."""
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(list(formats))
+        for row in rows:
+            writer.writerow([format(row[name], fmt) for name, fmt in formats.items()])
+    return path
+
+
 def _plt():
     import matplotlib
     matplotlib.use("Agg")
@@ -136,12 +146,7 @@ def fig14(cfg_path, out_dir) -> dict:
         rows.append({"speed_rpm": float(sp), "torque_nm": m["torque_nm"], "expected_nm": exp,
                      "error": (m["torque_nm"] - exp) / exp, "current_cmd_a": m["current_cmd_a"],
                      "k_factor": m["k_factor"]})
-    csv_path = out_dir / "fig14.csv"
-    with open(csv_path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["speed_rpm", "torque_nm", "expected_nm"])
-        for r in rows:
-            w.writerow([f"{r['speed_rpm']:.1f}", f"{r['torque_nm']:.6f}", f"{r['expected_nm']:.6f}"])
+    csv_path = _write_csv(out_dir / "fig14.csv", rows, {"speed_rpm": ".1f", "torque_nm": ".6f", "expected_nm": ".6f"})
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     grid = np.linspace(1.0, max(FIG14_SPEEDS_RPM), 400)
@@ -176,12 +181,8 @@ def current(cfg_path, out_dir) -> dict:
         rows.append({"current_cmd_a": icmd, "current_mean_a": m["current_mean_a"], "ripple_a": m["ripple_a"],
                      "error": (m["current_mean_a"] - icmd) / icmd, "torque_nm": m["torque_nm"]})
         traces.append((icmd, m["samples_a"], m["dt_s"]))
-    csv_path = out_dir / "current.csv"
-    with open(csv_path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["current_cmd_a", "current_mean_a", "ripple_a"])
-        for r in rows:
-            w.writerow([f"{r['current_cmd_a']:.1f}", f"{r['current_mean_a']:.6f}", f"{r['ripple_a']:.6f}"])
+    csv_path = _write_csv(out_dir / "current.csv", rows,
+                          {"current_cmd_a": ".1f", "current_mean_a": ".6f", "ripple_a": ".6f"})
     plt = _plt()
     fig, axes = plt.subplots(2, len(traces), figsize=(10, 6), sharex=True)
     for j, (icmd, s, dt) in enumerate(traces):
