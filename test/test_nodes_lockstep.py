@@ -273,3 +273,44 @@ def test_lockstep_controller_waits_for_the_session(domain):
         for p in procs:
             p.stop()
         col.close()
+
+
+def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
+    """With recorder_window_batches the plant stays within the window of the recorder's
+    reported progress (nothing can overflow a DDS history), and gives a silent recorder up
+    with FAULT_RECORDER_LOST instead of hanging."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import UInt64
+
+    window = 10
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
+    procs = []
+    try:
+        # the test plays the recorder's progress reports (the real recorder is in test_graph)
+        progress = col.node.create_publisher(
+            UInt64, "recorder_progress",
+            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        col.publisher(Command, "command")
+        _start_plant_and_wait(col, domain, {"duration_s": 0.5, "recorder_window_batches": window,
+                                            "recorder_timeout_s": 3.0}, procs)
+        procs.append(NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 0.1}))
+        states = col.data["plant_state"]
+        # nothing reported yet (seq -1): seq 0 .. window - 1 may go out
+        col.wait_for(lambda: states and states[-1].seq >= window - 1, 20, "the first batches", procs)
+        time.sleep(0.5)
+        assert max(int(m.seq) for m in states) == window - 1, "the plant must wait for the recorder's report"
+        progress.publish(UInt64(data=30))
+        col.wait_for(lambda: states[-1].seq >= 30 + window, 10, "batches after the report", procs)
+        time.sleep(0.5)
+        assert max(int(m.seq) for m in states) == 30 + window
+        assert not any(m.faults & PlantState.FAULT_RECORDER_LOST for m in states)
+        # silence: after recorder_timeout_s the plant goes on, saying why
+        col.wait_for(lambda: any(m.end_of_run for m in states), 15, "end_of_run without the recorder", procs)
+        assert states[-1].faults & PlantState.FAULT_RECORDER_LOST
+        msgs = [s.message for a in col.data["/diagnostics"] for s in a.status if s.level == DiagnosticStatus.ERROR]
+        assert any("recorder went silent" in m for m in msgs), msgs
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()

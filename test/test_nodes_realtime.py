@@ -51,14 +51,16 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         col.wait_for(commanding(lambda: len(states) > 300 and all(_peak_current(m) > 10 and m.faults == 0
                                                                   for m in states[-100:])),
                      15, "braking current under realtime control", procs)
+        # a long window: receive times jitter by tens of ms on a loaded 2-core machine
+        col.wait_for(commanding(lambda: len(states) > 1100), 15, "1.1 s of realtime batches", procs)
         # wall-clock batches: sim time advances N*T per batch and follows wall time
         window = list(states[-200:])
         seqs = [int(m.seq) for m in window]
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
         assert np.all(np.abs(np.diff([stamp_ns(m.header.stamp) for m in window]) - N * DT * 1e9) <= 2)
-        times = col.stamps["plant_state"][-200:]
+        times = col.stamps["plant_state"][-1000:]
         ratio = (len(times) - 1) * N * DT / (times[-1] - times[0])
-        assert 0.7 < ratio < 1.3, f"sim time / wall time = {ratio:.2f}"
+        assert 0.8 < ratio < 1.2, f"sim time / wall time = {ratio:.2f}"
         assert col.data["battery"], "BatteryState is published"
 
         # the controller dies without a word

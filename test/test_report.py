@@ -93,7 +93,7 @@ def test_summary_numbers(tmp_path, storage):
     assert s["interlock_blanked"] == 4
     assert s["timeouts"] == 2
     assert s["fault_batches"] == {"interlock": 1, "command_timeout": 2, "overvoltage": 0, "bad_command": 0,
-                                  "drive_lost": 0}
+                                  "drive_lost": 0, "recorder_lost": 0}
     assert s["end_of_run"] is True
     assert s["final_soc"] == pytest.approx(0.51)
     assert s["session_state"] == "DONE" and s["profile_name"] == "unit"

@@ -12,7 +12,12 @@ sync_mode lockstep: publish /clock = t_k and PlantState(seq=k), wait for DriveCo
   matched (a plant_state subscriber and a drive_command publisher); the pending state is
   re-published every ``republish_s`` wall seconds without an answer (late joiners, a lost
   first message). The loop is single-threaded: ``executor.spin_once`` until the answer is
-  in (measured faster than a spinning thread + threading.Event).
+  in (measured faster than a spinning thread + threading.Event). With
+  ``recorder_window_batches`` > 0 (set by ``./bike run --record``) the plant first waits for
+  the recorder too, and never runs more than that many batches ahead of the last seq the
+  recorder reports on ``recorder_progress``: a slow recorder slows the run instead of losing
+  messages. A recorder silent for ``recorder_timeout_s`` is given up on (ERROR diagnostic,
+  the run goes on unrecorded rather than hanging).
 sync_mode realtime: one batch per wall-clock batch period. The newest valid DriveCommand is
   applied; without a new one the last one is held (re-used); with none for
   ``command_timeout_s`` the plant goes to its safe state (all gates off) with
@@ -48,7 +53,7 @@ from sensor_msgs.msg import BatteryState
 from . import msgconv
 from .config import ConfigError
 
-LOOP_QOS = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+LOOP_QOS = QoSProfile(depth=200, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 AUX_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -64,12 +69,17 @@ PLANT_DEFAULTS = {
     "end_linger_s": 0.5,
     "battery_every": 10,
     "diagnostics_period_s": 1.0,
+    "recorder_window_batches": 0,
+    "recorder_timeout_s": 10.0,
 }
 PLANT_DESCRIPTIONS = {
     "republish_s": "lockstep: re-publish the pending PlantState after this many wall seconds without an answer",
     "end_linger_s": "wall seconds to keep running after the end_of_run PlantState so subscribers receive it",
     "battery_every": "publish sensor_msgs/BatteryState every this many batches",
     "diagnostics_period_s": "publish a diagnostic at least this often [wall s]",
+    "recorder_window_batches": "lockstep: wait for the recorder and stay at most this many batches ahead of it "
+                               "(0 = do not wait for a recorder)",
+    "recorder_timeout_s": "lockstep: give up waiting for a silent recorder after this many wall seconds",
 }
 
 FAULT_NAMES = {
@@ -78,8 +88,10 @@ FAULT_NAMES = {
     PlantState.FAULT_OVERVOLTAGE: "OVERVOLTAGE",
     PlantState.FAULT_BAD_COMMAND: "BAD_COMMAND",
     PlantState.FAULT_DRIVE_LOST: "DRIVE_LOST",
+    PlantState.FAULT_RECORDER_LOST: "RECORDER_LOST",
 }
-ERROR_FAULTS = PlantState.FAULT_COMMAND_TIMEOUT | PlantState.FAULT_OVERVOLTAGE | PlantState.FAULT_DRIVE_LOST
+ERROR_FAULTS = (PlantState.FAULT_COMMAND_TIMEOUT | PlantState.FAULT_OVERVOLTAGE | PlantState.FAULT_DRIVE_LOST
+                | PlantState.FAULT_RECORDER_LOST)
 
 
 def fault_text(bits: int) -> str:
@@ -148,6 +160,13 @@ class PlantNode(Node):
         self.battery_every = _number(cfg, "battery_every", int, 1, path)
         self.diag_period_s = _number(cfg, "diagnostics_period_s", float, 1e-3, path)
         self.batch_s = self.n * self.dt
+        # must stay below LOOP_QOS depth: a sample lost on the transport is repaired from the
+        # writer's history, so the window must not let the history roll over it
+        self.recorder_window = _number(cfg, "recorder_window_batches", int, 0, path)
+        if self.recorder_window > LOOP_QOS.depth // 2:
+            raise ConfigError(f"must be at most {LOOP_QOS.depth // 2} (half the loop topics' DDS history), "
+                              f"got {self.recorder_window}", path, "recorder_window_batches")
+        self.recorder_timeout_s = _number(cfg, "recorder_timeout_s", float, 0.1, path)
         self.backend = make_backend(str(cfg.get("backend")), cfg, _number(cfg, "seed", int, 0, path))
         # The plant is the clock source: it does not follow /clock itself (that would also
         # cost one extra callback per batch). Its stamps are the model's time.
@@ -158,6 +177,14 @@ class PlantNode(Node):
         self.pub_battery = self.create_publisher(BatteryState, "battery", AUX_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
         self.sub_drive = self.create_subscription(DriveCommand, "drive_command", self._on_drive, LOOP_QOS)
+        self.recorder_seq = -1       # last plant_state seq the recorder reports written
+        self.recorder_rx = 0.0
+        if self.recorder_window > 0:
+            from std_msgs.msg import UInt64
+            self.sub_progress = self.create_subscription(
+                UInt64, "recorder_progress", self._on_progress,
+                QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
 
@@ -188,6 +215,25 @@ class PlantNode(Node):
         else:
             self.latest = msg
             self.latest_rx = time.monotonic()
+
+    def _on_progress(self, msg) -> None:
+        self.recorder_seq = max(self.recorder_seq, int(msg.data))
+        self.recorder_rx = time.monotonic()
+
+    def _wait_for_recorder(self) -> None:
+        """Lockstep flow control: block while the recorder is more than the window behind."""
+        if self.recorder_window <= 0 or self.k - self.recorder_seq <= self.recorder_window:
+            return
+        since = time.monotonic()
+        while not self.stop_requested and self.k - self.recorder_seq > self.recorder_window:
+            self._spin(0.05)
+            if time.monotonic() - max(self.recorder_rx, since) > self.recorder_timeout_s:
+                self.get_logger().error(
+                    f"the recorder reported nothing for {self.recorder_timeout_s:g}s (last seq "
+                    f"{self.recorder_seq}, plant at {self.k}): going on without waiting for it")
+                self.node_faults |= PlantState.FAULT_RECORDER_LOST
+                self.recorder_window = 0
+                return
 
     # ------------------------------------------------------------ publishing
     def _publish_state(self, end_of_run: bool = False) -> None:
@@ -253,6 +299,9 @@ class PlantNode(Node):
             reasons.append("gate pattern with both switches of a leg on was blanked")
         if faults & PlantState.FAULT_OVERVOLTAGE:
             reasons.append("DC bus over the configured limit")
+        if faults & PlantState.FAULT_RECORDER_LOST:
+            reasons.append(f"the recorder went silent for recorder_timeout_s={self.recorder_timeout_s:g}s: "
+                           "the rest of the run is not recorded")
         if self.sync_mode == "realtime" and self.latest_rx is None and not faults:
             status.level = DiagnosticStatus.WARN
             reasons.append("waiting for the first DriveCommand (gates off)")
@@ -320,12 +369,22 @@ class PlantNode(Node):
     def _run_lockstep(self) -> None:
         log = self.get_logger()
         next_log = time.monotonic() + 5.0
-        while not self.stop_requested and (self.pub_state.get_subscription_count() < 1
-                                           or self.sub_drive.get_publisher_count() < 1):
+        def waiting() -> bool:
+            controller = self.pub_state.get_subscription_count() >= 1 and self.sub_drive.get_publisher_count() >= 1
+            recorder = self.recorder_window <= 0 or self.sub_progress.get_publisher_count() >= 1
+            return not (controller and recorder)
+        start = time.monotonic()
+        while not self.stop_requested and waiting():
             self._spin(0.05)
             if time.monotonic() > next_log:
-                log.info("waiting for the controller (plant_state subscriber and drive_command publisher)")
+                log.info("waiting for the controller (plant_state subscriber and drive_command publisher)"
+                         + (" and the recorder" if self.recorder_window > 0 else ""))
                 next_log = time.monotonic() + 5.0
+            if (self.recorder_window > 0 and self.sub_progress.get_publisher_count() < 1
+                    and time.monotonic() - start > self.recorder_timeout_s):
+                log.error(f"no recorder after {self.recorder_timeout_s:g}s: running unrecorded")
+                self.node_faults |= PlantState.FAULT_RECORDER_LOST
+                self.recorder_window = 0
         t1 = None                    # wall time of the first answer (rate excludes start-up waits)
         while not self.stop_requested:
             if self.k == 1:
@@ -337,6 +396,7 @@ class PlantNode(Node):
                              f"({rate * self.batch_s:.2f} x real time)")
                 self._end_of_run()
                 return
+            self._wait_for_recorder()
             self.pending_seq = self.k
             self.answer = None
             self._publish_state()

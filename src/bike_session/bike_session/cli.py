@@ -24,6 +24,11 @@ def repo_root() -> pathlib.Path:
     return pathlib.Path(root) if root else pathlib.Path(__file__).resolve().parents[3]
 
 
+# lockstep flow control while recording (plant_node recorder_window_batches): small enough that
+# a sample lost on the transport is still in the writer's DDS history when it is re-requested
+RECORDER_WINDOW_BATCHES = 50
+
+
 def default_launch_file() -> pathlib.Path:
     return repo_root() / "config" / "launch" / "bike.launch.yaml"
 
@@ -54,7 +59,8 @@ def _cmd_run(opts) -> int:
         while bag_path.exists():
             bag_path = record_dir / f"{bag_name}_{suffix}"
             suffix += 1
-        args.update(record="true", record_dir=str(record_dir), bag_name=bag_path.name, storage=opts.storage)
+        args.update(record="true", record_dir=str(record_dir), bag_name=bag_path.name, storage=opts.storage,
+                    recorder_window=str(RECORDER_WINDOW_BATCHES))
     print(f"[bike] config {config}, {duration_s:g} s simulated, namespace /{opts.namespace}"
           + (f", recording to {bag_path}" if bag_path else ""), flush=True)
     try:

@@ -7,6 +7,12 @@ Node name ``recorder`` (namespace ``/bike`` by default). Parameters:
 - ``storage`` (string, "mcap" | "sqlite3").
 - ``stop_on_end_of_run`` (bool, false): exit by itself once PlantState.end_of_run is recorded.
 
+Flow control: after every ``PROGRESS_EVERY`` PlantStates written (and at end of run) the node
+publishes the last written ``seq`` on ``recorder_progress`` (std_msgs/UInt64). A lockstep plant
+with ``recorder_window_batches`` > 0 never runs more than that many batches ahead of it, so a
+recorder that is slower than the loop (a loaded machine, a slow disk) slows the run down
+instead of losing messages from a DDS history.
+
 Subscriptions take the serialized CDR bytes (``raw=True``): nothing is deserialized. The
 bag is written with rosbags (format version 9, rosbag2 Jazzy) and embeds the message
 definitions (bike_msgs from the installed .msg files), so ROS 2 tools, MCAP viewers and
@@ -47,6 +53,7 @@ LATCHED_TOPICS = {"session_info"}
 # replayer), the incompatible-QoS event switches that subscription to volatile.
 PREFER_LATCHED = {"command", "session_status"}
 QOS_DEPTH = 1000
+PROGRESS_EVERY = 10
 SILENCE_S = 3.0
 STORAGES = ("mcap", "sqlite3")
 
@@ -78,8 +85,8 @@ def stamp_ns_from_cdr(raw) -> int:
     return sec * 1_000_000_000 + nsec
 
 
-def plant_state_end_of_run(raw) -> bool:
-    """The ``end_of_run`` flag of a serialized bike_msgs/PlantState, read in place.
+def plant_state_seq_end(raw) -> tuple[int, bool]:
+    """``(seq, end_of_run)`` of a serialized bike_msgs/PlantState, read in place.
 
     Layout (PlantState.msg): header{stamp{int32, uint32}, string frame_id}, uint64 seq,
     uint32 batch_periods, float64 control_period_s, string machine, string backend,
@@ -99,7 +106,9 @@ def plant_state_end_of_run(raw) -> bool:
         return p + 4 + n
 
     pos = skip_string(pos)              # header.frame_id
-    pos = align(pos, 8) + 8             # seq
+    pos = align(pos, 8)
+    (seq,) = struct.unpack_from(order + "Q", body, pos)
+    pos += 8
     pos = align(pos, 4) + 4             # batch_periods
     pos = align(pos, 8) + 8             # control_period_s
     pos = skip_string(pos)              # machine
@@ -107,7 +116,12 @@ def plant_state_end_of_run(raw) -> bool:
     pos += 1                            # measured_by_drive
     if pos >= len(body):
         raise ValueError("PlantState data truncated")
-    return body[pos] != 0
+    return int(seq), body[pos] != 0
+
+
+def plant_state_end_of_run(raw) -> bool:
+    """The ``end_of_run`` flag of a serialized bike_msgs/PlantState."""
+    return plant_state_seq_end(raw)[1]
 
 
 # ------------------------------------------------------------------- typestore (no rclpy)
@@ -233,6 +247,14 @@ def _make_node_class():
                 self._specs[full] = (msgtype, has_header, latched)
                 self._subscribe(full, transient_local=latched or full in prefer)
             self._downgrade_timer = self.create_timer(0.2, self._apply_downgrades)
+            from std_msgs.msg import UInt64
+            self._progress_msg = UInt64()
+            # transient_local: a plant that (re)matches late still learns where the recorder is
+            self.pub_progress = self.create_publisher(
+                UInt64, "recorder_progress",
+                QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            self.plant_states_written = 0
 
         def _subscribe(self, full: str, transient_local: bool) -> None:
             from rclpy.event_handler import SubscriptionEventCallbacks
@@ -276,10 +298,15 @@ def _make_node_class():
                 sink.write(topic, t_ns, raw)
                 if is_plant:
                     try:
-                        if plant_state_end_of_run(raw):
-                            self.end_of_run_seen = True
+                        seq, end = plant_state_seq_end(raw)
                     except (ValueError, struct.error):
-                        pass
+                        return
+                    self.plant_states_written += 1
+                    if end:
+                        self.end_of_run_seen = True
+                    if end or self.plant_states_written % PROGRESS_EVERY == 0:
+                        self._progress_msg.data = seq
+                        self.pub_progress.publish(self._progress_msg)
 
             return callback
 

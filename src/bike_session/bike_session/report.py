@@ -33,6 +33,7 @@ FAULT_BITS = {
     "overvoltage": 4,
     "bad_command": 8,
     "drive_lost": 16,
+    "recorder_lost": 32,
 }
 SESSION_STATES = {0: "WAITING", 1: "RUNNING", 2: "DONE"}
 
