@@ -2,6 +2,7 @@
 
     ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
     ./bike report BAG                                          summarise a recorded session
+    ./bike bag recover BAG [--out DIR]                         rescue a crashed recording
     ./bike paper NAME --out DIR                                reproduce a figure of a paper
     ./bike bench [--json FILE]                                 speed figures and ratios
 """
@@ -86,6 +87,12 @@ def _cmd_report(opts) -> int:
     return report.main([opts.bag] + (["--out", opts.out] if opts.out else []))
 
 
+def _cmd_bag(opts) -> int:
+    from bike_session import recover
+
+    return recover.main([opts.bag] + (["--out", opts.out] if opts.out else []))
+
+
 def _cmd_paper(opts) -> int:
     from bike_plant.config import ConfigError
 
@@ -133,6 +140,14 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("bag")
     rep.add_argument("--out", help="also write charts and a summary into this folder")
     rep.set_defaults(func=_cmd_report)
+
+    bag = sub.add_parser("bag", help="bag tools: `bag recover BAG` turns a crashed recording into a normal bag")
+    bag_sub = bag.add_subparsers(dest="bag_command", required=True, metavar="TOOL")
+    rec = bag_sub.add_parser("recover", help="rewrite what survived of a crashed recording (no metadata.yaml) "
+                                             "into a new bag (BAG.recovered); the original is not modified")
+    rec.add_argument("bag")
+    rec.add_argument("--out", help="output bag directory (default BAG.recovered)")
+    rec.set_defaults(func=_cmd_bag)
 
     pap = sub.add_parser("paper", help="reproduce a figure of a paper: " + "; ".join(
         f"{k} ({v})" for k, v in PAPERS.items()))

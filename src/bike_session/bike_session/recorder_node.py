@@ -6,6 +6,10 @@ Node name ``recorder`` (namespace ``/bike`` by default). Parameters:
 - ``bag_name`` (string, "" -> ``session_<UTC timestamp>``): the bag directory inside record_dir.
 - ``storage`` (string, "mcap" | "sqlite3").
 - ``stop_on_end_of_run`` (bool, false): exit by itself once PlantState.end_of_run is recorded.
+- ``flush_period_s`` (float, 0.5): crash safety. At least this often, in sim time and in wall
+  time, the open MCAP chunk is closed and written out (sqlite3: the transaction is
+  committed) and the file is fsync'ed. A recorder killed with kill -9 therefore loses at
+  most this much data; ``./bike bag recover BAG`` turns what survived into a normal bag.
 
 Flow control: after every ``PROGRESS_EVERY`` PlantStates written (and at end of run) the node
 publishes the last written ``seq`` on ``recorder_progress`` (std_msgs/UInt64). A lockstep plant
@@ -162,9 +166,14 @@ def _rosbags_qos(latched: bool):
 
 
 class BagSink:
-    """The rosbags writer with one connection per recorded topic (no rclpy)."""
+    """The rosbags writer with one connection per recorded topic (no rclpy).
 
-    def __init__(self, path: pathlib.Path, storage: str, typestore, topics: list[tuple[str, str, bool, bool]]):
+    rosbags writes an MCAP chunk only when it reaches 1 MiB and commits sqlite3 only at
+    close, i.e. minutes of data would die with the process; :meth:`flush` forces both out
+    (through the storage objects of the pinned rosbags version, checked at open)."""
+
+    def __init__(self, path: pathlib.Path, storage: str, typestore, topics: list[tuple[str, str, bool, bool]],
+                 flush_period_s: float = 0.5):
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         if storage not in STORAGES:
@@ -188,10 +197,49 @@ class BagSink:
                 topic, msgtype, typestore=typestore, offered_qos_profiles=[_rosbags_qos(latched)])
         self.counts = {topic: 0 for topic, *_ in topics}
         self.closed = False
+        self.storage = storage
+        st = self.writer.storage
+        needed = ("close_chunk", "chunk", "bio") if storage == "mcap" else ("conn",)
+        if not all(hasattr(st, name) for name in needed):
+            self.writer.abort()
+            raise SetupError("this rosbags version does not expose the storage flush the recorder needs "
+                             "(tested with the version pinned in constraints.txt)")
+        if not flush_period_s > 0:
+            raise SetupError(f"flush_period_s must be > 0, got {flush_period_s!r}")
+        self.flush_ns = int(flush_period_s * 1e9)
+        self.flush_wall_s = float(flush_period_s)
+        self.last_flush_ns = None
+        self.last_flush_wall = time.monotonic()
+        self.flushes = 0
+        self.dirty = False
 
     def write(self, topic: str, t_ns: int, data) -> None:
-        self.writer.write(self.connections[topic], max(int(t_ns), 0), bytes(data))
+        t_ns = max(int(t_ns), 0)
+        self.writer.write(self.connections[topic], t_ns, bytes(data))
         self.counts[topic] += 1
+        self.dirty = True
+        if self.last_flush_ns is None:
+            self.last_flush_ns = t_ns
+        if t_ns - self.last_flush_ns >= self.flush_ns or time.monotonic() - self.last_flush_wall >= self.flush_wall_s:
+            self.flush(t_ns)
+
+    def flush(self, t_ns: int | None = None) -> None:
+        """Make everything written so far survive a kill -9 (and a power cut: fsync)."""
+        self.last_flush_wall = time.monotonic()
+        if t_ns is not None:
+            self.last_flush_ns = t_ns
+        if self.closed or not self.dirty:
+            return
+        st = self.writer.storage
+        if self.storage == "mcap":
+            if st.chunk.msgs:
+                st.close_chunk()
+            st.bio.flush()
+            os.fsync(st.bio.fileno())
+        else:
+            st.conn.commit()
+        self.dirty = False
+        self.flushes += 1
 
     def close(self) -> None:
         if not self.closed:
@@ -217,6 +265,7 @@ def _make_node_class():
             bag_name = self.declare_parameter("bag_name", "").value or default_bag_name()
             storage = self.declare_parameter("storage", "mcap").value
             self.stop_on_end_of_run = bool(self.declare_parameter("stop_on_end_of_run", False).value)
+            flush_period_s = self.declare_parameter("flush_period_s", 0.5).value
             if "/" in bag_name or bag_name in (".", ".."):
                 raise SetupError(f"bag_name must be a plain name, got {bag_name!r}")
             path = pathlib.Path(os.path.expanduser(record_dir or ".")).resolve() / bag_name
@@ -231,7 +280,11 @@ def _make_node_class():
                 raise
             except Exception as exc:  # noqa: BLE001
                 raise SetupError(f"cannot load bike_msgs definitions: {exc}") from None
-            self.sink = BagSink(path, storage, typestore, topics)
+            if not isinstance(flush_period_s, (int, float)) or isinstance(flush_period_s, bool):
+                raise SetupError(f"flush_period_s must be a number, got {flush_period_s!r}")
+            self.sink = BagSink(path, storage, typestore, topics, float(flush_period_s))
+            # also flush while nothing arrives (a paused or stalled run)
+            self._flush_timer = self.create_timer(float(flush_period_s), self._flush_idle)
             self.bag_path = path
             self.latest_clock_ns = 0
             self.last_msg_wall = time.monotonic()
@@ -309,6 +362,10 @@ def _make_node_class():
                         self.pub_progress.publish(self._progress_msg)
 
             return callback
+
+        def _flush_idle(self) -> None:
+            if time.monotonic() - self.sink.last_flush_wall >= self.sink.flush_wall_s:
+                self.sink.flush()
 
         def close(self) -> None:
             self.sink.close()

@@ -1,0 +1,181 @@
+"""Crash-safe recording: a recorder killed with kill -9 loses at most flush_period_s, and
+`./bike bag recover` turns what survived into a normal bag (the original untouched)."""
+from __future__ import annotations
+
+import hashlib
+import pathlib
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from bike_session.bags import BagError, open_bag, read_topic
+from bike_session.recover import recover
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+# A writer process: records Command messages stamped 1 ms apart in sim time, flushing every
+# 0.1 s of sim time, paced at ~2x real time; prints the stamp of each message after writing it.
+WRITER = textwrap.dedent("""
+    import pathlib, sys, time
+    from bike_session.recorder_node import BagSink, build_typestore
+    ts = build_typestore()
+    sink = BagSink(pathlib.Path(sys.argv[1]), sys.argv[2], ts,
+                   [("/bike/command", "bike_msgs/msg/Command", True, False)], flush_period_s=0.1)
+    Command = ts.types["bike_msgs/msg/Command"]
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    for k in range(100000):
+        t_ns = k * 1_000_000
+        msg = Command(header=Header(stamp=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id=""),
+                      command=0.5, mode=0)
+        sink.write("/bike/command", t_ns, ts.serialize_cdr(msg, "bike_msgs/msg/Command"))
+        print(t_ns, flush=True)
+        time.sleep(0.0005)
+""")
+
+
+def _digest(path: pathlib.Path) -> str:
+    h = hashlib.sha256()
+    for f in sorted(path.rglob("*")):
+        if f.is_file():
+            h.update(f.name.encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_killed_writer_loses_at_most_the_flush_period(tmp_path, storage):
+    bag = tmp_path / "crashed"
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(bag), storage], stdout=subprocess.PIPE, text=True)
+    last_ns = 0
+    t_end = time.monotonic() + 30
+    for line in proc.stdout:
+        last_ns = int(line)
+        if last_ns >= 1_500_000_000 or time.monotonic() > t_end:
+            break
+    proc.send_signal(signal.SIGKILL)            # no chance to close: metadata.yaml never written
+    proc.wait(10)
+    assert last_ns >= 1_500_000_000
+    assert not (bag / "metadata.yaml").exists()
+    with pytest.raises(BagError, match="not closed properly"):
+        open_bag(bag)
+    before = _digest(bag)
+    res = recover(bag)
+    assert _digest(bag) == before, "recovery must not modify the crashed bag"
+    out = pathlib.Path(res["out"])
+    assert out == tmp_path / "crashed.recovered"
+    msgs = read_topic(out, "command")
+    stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs]
+    # every message up to the recovered end is there, in order, none twice
+    assert stamps == [k * 1_000_000 for k in range(len(stamps))]
+    # lost: at most the flush period (0.1 s sim) plus what was written after the last printed line
+    assert stamps[-1] >= last_ns - 100_000_000 - 1_000_000, (stamps[-1], last_ns)
+    assert res["messages"] == len(msgs)
+    with open_bag(out) as b:
+        assert b.topics["/bike/command"][0] == "bike_msgs/msg/Command"
+    # a second recovery to the same place is refused (nothing overwritten)
+    with pytest.raises(BagError, match="already exists"):
+        recover(bag)
+
+
+def test_recover_refuses_bad_input_with_one_clear_error(tmp_path):
+    with pytest.raises(BagError, match="does not exist"):
+        recover(tmp_path / "nope")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(BagError, match="no .mcap or .db3"):
+        recover(empty)
+    garbage = tmp_path / "garbage"
+    garbage.mkdir()
+    (garbage / "garbage.mcap").write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 40)
+    with pytest.raises(BagError, match="no complete message survived"):
+        recover(garbage)
+    assert not (tmp_path / "garbage.recovered").exists(), "no half-written output on failure"
+    not_sqlite = tmp_path / "notsqlite"
+    not_sqlite.mkdir()
+    (not_sqlite / "notsqlite.db3").write_bytes(b"this is not a database" * 100)
+    with pytest.raises(BagError, match="sqlite3"):
+        recover(not_sqlite)
+    assert not (tmp_path / "notsqlite.recovered").exists()
+
+
+def test_recover_refuses_a_complete_bag(tmp_path):
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    sink = BagSink(tmp_path / "ok", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)])
+    sink.write("/x", 1, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"))
+    sink.close()
+    with pytest.raises(BagError, match="closed properly"):
+        recover(tmp_path / "ok")
+
+
+def test_cli_bag_recover(tmp_path):
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    sink = BagSink(tmp_path / "b", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)], flush_period_s=1.0)
+    for k in range(3):
+        sink.write("/x", k, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=str(k)), "std_msgs/msg/String"))
+    sink.flush()                                 # as the node's timer does; then the process "dies"
+    run = subprocess.run([str(ROOT / "bike"), "bag", "recover", str(tmp_path / "b"), "--out", str(tmp_path / "r")],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "recovered 3 messages" in run.stdout
+    assert [m.data for m in read_topic(tmp_path / "r", "/x")] == ["0", "1", "2"]
+    again = subprocess.run([str(ROOT / "bike"), "bag", "recover", str(tmp_path / "b"), "--out", str(tmp_path / "r")],
+                           capture_output=True, text=True, timeout=120)
+    assert again.returncode == 2 and again.stderr.count("error:") == 1 and "already exists" in again.stderr
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_real_recorder_mid_session(tmp_path):
+    """The node graph (plant, controller, session, recorder: separate processes, real DDS),
+    the recorder killed with SIGKILL mid-session; the recovered bag holds every batch from
+    the start up to at most 1 s of sim time before the kill, plus the session metadata."""
+    from node_harness import CONFIG, Collector, NodeProcess
+
+    from bike_msgs.msg import PlantState
+
+    import random
+    domain = random.randint(1, 200)
+    col = Collector(domain, {"plant_state": PlantState})
+    procs = []
+    try:
+        rec = NodeProcess("bike_session", "recorder_node", domain,
+                          {"record_dir": str(tmp_path), "bag_name": "crash", "flush_period_s": 0.5})
+        procs.append(rec)
+        procs.append(NodeProcess("bike_plant", "plant_node", domain,
+                                 {"duration_s": 60.0, "recorder_window_batches": 50, "recorder_timeout_s": 2.0}))
+        procs.append(NodeProcess("bike_controller", "controller_node", domain))
+        procs.append(NodeProcess("bike_session", "session_node", domain,
+                                 {"duration_s": 60.0, "config_path": str(CONFIG)}))
+        states = col.data["plant_state"]
+        col.wait_for(lambda: states and states[-1].seq >= 2500, 60, "2.5 s of recorded session", procs)
+        rec.signal(signal.SIGKILL)
+        seq_at_kill = int(states[-1].seq)
+        rec.wait(5.0)
+        # the plant notices, says why, and goes on unrecorded
+        col.wait_for(lambda: states[-1].faults & PlantState.FAULT_RECORDER_LOST, 10, "FAULT_RECORDER_LOST",
+                     procs[1:])
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+    bag = tmp_path / "crash"
+    assert not (bag / "metadata.yaml").exists()
+    res = recover(bag)
+    plant = read_topic(res["out"], "plant_state")
+    seqs = [int(m.seq) for m in plant]
+    # a state left unanswered (controller still starting) is re-published with the same seq
+    seqs = [k for i, k in enumerate(seqs) if i == 0 or k != seqs[i - 1]]
+    assert seqs == list(range(len(seqs))), "every batch from the start, none missing"
+    batch_s = plant[0].batch_periods * plant[0].control_period_s
+    assert seqs[-1] >= seq_at_kill - round(1.0 / batch_s), (seqs[-1], seq_at_kill)
+    info = read_topic(res["out"], "session_info")
+    assert info and "config_text" in info[0].data and "software_version" in info[0].data
+    assert len(read_topic(res["out"], "controller_status")) >= len(seqs) - 60
