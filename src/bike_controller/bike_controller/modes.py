@@ -1,0 +1,228 @@
+"""Session modes: what a Command in [0, 1] asks of the machine (batch rate, no rclpy).
+
+The 20 kHz current loop turns a torque into gate patterns; this module decides the torque,
+once per batch (1 ms), from the Command, the mode and the estimated speed. Sign
+convention: ``brake_torque_nm`` > 0 opposes the rider (generating quadrant, energy into the
+battery), < 0 assists (motoring quadrant, paper 001's downhill assist). All torques and
+speeds are at the MOTOR shaft; ``gear_ratio`` = motor speed / crank cadence.
+
+Modes (``bike_msgs/Command``):
+
+- RESISTANCE (0): paper 000 Eq. 2-5, Tcmd = C*Tmax below wb, C*Pmax/w above.
+- MOTORING (1): assist torque C*Tmax (quadrant I, paper 000 section 3).
+- ERG (2): hold P* = C * ``erg_power_max_w``: T = P*/max(w, w_min). Below the minimum
+  cadence the torque stops rising (it stays at P*/w_min, so power falls with cadence):
+  the rider who slows down is not pushed into the "spiral of death" of trainers that hold
+  power down to standstill (research notes, trainers.md section 5). T is capped at Tmax;
+  when that cap binds the output says so (``saturated``), the target is not met silently.
+- SLOPE (3): virtual terrain. Grade G = grade_min + C*(grade_max - grade_min) (C = 0.5
+  is flat with the default +-20 %). Road load at the virtual speed v (from cadence,
+  virtual gear and wheel radius):
+      F = m g (sin a + Crr cos a) + 1/2 rho CdA (v + v_wind)|v + v_wind|,  a = atan(G)
+  reflected to the motor: T = F * r_wheel * gear_virtual / gear_ratio. The kinetic energy
+  of rider + bike is emulated by a virtual flywheel: T += (J_eq - J_real) * dw/dt with
+  J_eq = m (r_wheel gear_virtual / gear_ratio)^2 (J_real is the machine's own flywheel)
+  and dw/dt from the speed estimate through a first-order filter. Negative F (downhill)
+  gives assist torque, at most ``assist_max_nm`` and only above ``assist_min_cadence_rpm``
+  (the motor never starts turning the cranks of a rider who stopped).
+- ISOKINETIC (4): constant cadence c* = cadence_min + C*(cadence_max - cadence_min) by a
+  PI speed loop (pole placement on J: both poles at -``isokinetic_bandwidth_rad_s``,
+  kp = 2 J wn, ki = J wn^2), braking above c*, assisting below, with integrator clamping.
+  Clinical slow / intermediate / fast tests are Commands of this mode.
+
+Mode switches are smooth: the torque handed to the current loop changes by at most
+``torque_rate_nm_per_s`` (a ramp, never a step); the resistance mode of the paper is
+passed straight through once the ramp has caught up, so the paper's curves are unchanged.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .torque_command import RPM_PER_RAD_S, torque_command_nm
+
+MODE_RESISTANCE = 0
+MODE_MOTORING = 1
+MODE_ERG = 2
+MODE_SLOPE = 3
+MODE_ISOKINETIC = 4
+MODE_NAMES = {MODE_RESISTANCE: "resistance", MODE_MOTORING: "motoring", MODE_ERG: "erg",
+              MODE_SLOPE: "slope", MODE_ISOKINETIC: "isokinetic"}
+G_MPS2 = 9.80665
+
+
+@dataclass(frozen=True)
+class ModeParams:
+    """Config section ``modes`` (plus machine figures passed in by the caller)."""
+    torque_rate_nm_per_s: float = 20.0       # motor shaft: Tmax (2.94 N m) in ~0.15 s
+    erg_power_max_w: float = 0.0             # 0 -> the machine's Pmax (Eq. 2)
+    erg_min_cadence_rpm: float = 40.0
+    grade_min: float = -0.20
+    grade_max: float = 0.20
+    rider_mass_kg: float = 75.0
+    bike_mass_kg: float = 10.0
+    crr: float = 0.004
+    cda_m2: float = 0.32
+    air_density_kg_m3: float = 1.204
+    wind_mps: float = 0.0                    # head wind positive
+    wheel_radius_m: float = 0.335
+    virtual_gear_ratio: float = 2.75         # wheel turns per crank turn (e.g. 50/18)
+    virtual_inertia: bool = True
+    accel_filter_s: float = 0.05
+    assist_max_nm: float = 0.0               # 0 -> Tmax
+    assist_min_cadence_rpm: float = 15.0
+    isokinetic_cadence_min_rpm: float = 20.0
+    isokinetic_cadence_max_rpm: float = 120.0
+    isokinetic_bandwidth_rad_s: float = 20.0
+
+    def __post_init__(self):
+        for name in ("torque_rate_nm_per_s", "erg_min_cadence_rpm", "rider_mass_kg", "wheel_radius_m",
+                     "virtual_gear_ratio", "accel_filter_s", "isokinetic_bandwidth_rad_s",
+                     "isokinetic_cadence_max_rpm"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a number > 0, got {v!r}")
+        for name in ("erg_power_max_w", "bike_mass_kg", "crr", "cda_m2", "air_density_kg_m3", "assist_max_nm",
+                     "assist_min_cadence_rpm", "isokinetic_cadence_min_rpm"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a number >= 0, got {v!r}")
+        if not (isinstance(self.wind_mps, (int, float)) and math.isfinite(self.wind_mps)):
+            raise ValueError(f"wind_mps must be a finite number, got {self.wind_mps!r}")
+        if not (-1.0 <= self.grade_min < self.grade_max <= 1.0):
+            raise ValueError(f"need -1 <= grade_min < grade_max <= 1, got {self.grade_min!r}, {self.grade_max!r}")
+        if not self.isokinetic_cadence_min_rpm < self.isokinetic_cadence_max_rpm:
+            raise ValueError("isokinetic_cadence_min_rpm must be below isokinetic_cadence_max_rpm")
+
+
+@dataclass
+class ModeOutput:
+    brake_torque_nm: float     # to the current loop (after the rate limit); > 0 brakes, < 0 assists
+    wanted_torque_nm: float    # what the mode law asked for (before the rate limit)
+    target: float              # W (erg), grade (slope), crank rpm (isokinetic), Command otherwise
+    virtual_speed_mps: float
+    saturated: bool            # a torque limit binds: the mode's target is not met
+    ramping: bool              # the rate limit binds (e.g. just after a mode switch)
+
+
+class ModeLaw:
+    """Per-batch torque law of every mode, with the switch-over rate limit."""
+
+    def __init__(self, mp: ModeParams, *, gear_ratio: float, inertia_kgm2: float, tmax_nm: float,
+                 pmax_w: float, base_speed_rpm: float):
+        self.mp = mp
+        self.gear_ratio = float(gear_ratio)
+        self.inertia_kgm2 = float(inertia_kgm2)
+        self.tmax_nm = float(tmax_nm)
+        self.pmax_w = float(pmax_w)
+        self.base_speed_rpm = float(base_speed_rpm)
+        self.erg_power_max_w = mp.erg_power_max_w or self.pmax_w
+        self.assist_max_nm = mp.assist_max_nm or self.tmax_nm
+        self.m_total_kg = mp.rider_mass_kg + mp.bike_mass_kg
+        # v = w_motor * mps_per_rad_s; J_eq = m * mps_per_rad_s^2 (kinetic energy of rider + bike)
+        self.mps_per_rad_s = mp.wheel_radius_m * mp.virtual_gear_ratio / self.gear_ratio
+        self.j_virtual_kgm2 = self.m_total_kg * self.mps_per_rad_s ** 2
+        wn = mp.isokinetic_bandwidth_rad_s
+        self.kp = 2.0 * self.inertia_kgm2 * wn
+        self.ki = self.inertia_kgm2 * wn * wn
+        self.reset()
+
+    def reset(self, torque_nm: float = 0.0) -> None:
+        self.torque_nm = float(torque_nm)     # last output (rate-limited)
+        self.integral_nm = 0.0
+        self.last_speed = None
+        self.accel_rad_s2 = 0.0
+        self.last_mode = None
+
+    # ---------------------------------------------------------------- the laws
+    def road_force_n(self, grade: float, v_mps: float) -> float:
+        """Road load of section 3 of the research notes (Gribble), drivetrain loss left out."""
+        mp = self.mp
+        a = math.atan(grade)
+        va = v_mps + mp.wind_mps
+        return (self.m_total_kg * G_MPS2 * (math.sin(a) + mp.crr * math.cos(a))
+                + 0.5 * mp.air_density_kg_m3 * mp.cda_m2 * va * abs(va))
+
+    def _wanted(self, command: float, mode: int, w: float, dt_s: float):
+        mp = self.mp
+        cadence_rpm = w * RPM_PER_RAD_S / self.gear_ratio
+        v = w * self.mps_per_rad_s
+        if mode == MODE_RESISTANCE:
+            return torque_command_nm(command, w * RPM_PER_RAD_S, self.tmax_nm, self.base_speed_rpm,
+                                     self.pmax_w), command, v, False
+        if mode == MODE_MOTORING:
+            return -command * self.tmax_nm, command, v, False
+        if mode == MODE_ERG:
+            p_w = command * self.erg_power_max_w
+            w_min = mp.erg_min_cadence_rpm * self.gear_ratio / RPM_PER_RAD_S
+            t = p_w / max(w, w_min)
+            return min(t, self.tmax_nm), p_w, v, t > self.tmax_nm
+        if mode == MODE_SLOPE:
+            grade = mp.grade_min + command * (mp.grade_max - mp.grade_min)
+            t = self.road_force_n(grade, v) * self.mps_per_rad_s
+            if mp.virtual_inertia:
+                t += (self.j_virtual_kgm2 - self.inertia_kgm2) * self.accel_rad_s2
+            sat = False
+            if t < 0.0:
+                if cadence_rpm < mp.assist_min_cadence_rpm:
+                    t = 0.0
+                elif t < -self.assist_max_nm:
+                    t, sat = -self.assist_max_nm, True
+            if t > self.tmax_nm:
+                t, sat = self.tmax_nm, True
+            return t, grade, v, sat
+        if mode == MODE_ISOKINETIC:
+            target_rpm = mp.isokinetic_cadence_min_rpm + command * (mp.isokinetic_cadence_max_rpm
+                                                                    - mp.isokinetic_cadence_min_rpm)
+            w_ref = target_rpm * self.gear_ratio / RPM_PER_RAD_S
+            err = w - w_ref                      # faster than the target -> brake
+            t_p = self.kp * err
+            integral = self.integral_nm + self.ki * err * dt_s
+            t = t_p + integral
+            lo, hi = -self.assist_max_nm, self.tmax_nm
+            sat = not (lo <= t <= hi)
+            if not sat:
+                self.integral_nm = integral     # conditional integration: no wind-up at a limit
+            t = min(max(t, lo), hi)
+            return t, target_rpm, v, sat
+        raise ValueError(f"unknown mode {mode!r}")
+
+    def step(self, command: float, mode: int, speed_rpm: float, dt_s: float) -> ModeOutput:
+        """One batch: the torque for the next ``dt_s`` seconds from the speed estimate."""
+        if not (math.isfinite(command) and 0.0 <= command <= 1.0):
+            raise ValueError(f"command must be in [0, 1], got {command!r}")
+        w = max(speed_rpm, 0.0) / RPM_PER_RAD_S
+        if self.last_speed is not None and dt_s > 0:
+            alpha = dt_s / (self.mp.accel_filter_s + dt_s)
+            self.accel_rad_s2 += alpha * ((w - self.last_speed) / dt_s - self.accel_rad_s2)
+        self.last_speed = w
+        if mode != self.last_mode and mode == MODE_ISOKINETIC:
+            # bumpless entry: the integrator starts from the torque in force
+            self.integral_nm = self.torque_nm
+        self.last_mode = mode
+        wanted, target, v, sat = self._wanted(command, mode, w, dt_s)
+        max_step = self.mp.torque_rate_nm_per_s * dt_s
+        delta = wanted - self.torque_nm
+        ramping = abs(delta) > max_step + 1e-12
+        self.torque_nm = wanted if not ramping else self.torque_nm + math.copysign(max_step, delta)
+        return ModeOutput(self.torque_nm, wanted, target, v, sat, ramping)
+
+
+def mode_params_from_config(cfg: dict) -> ModeParams:
+    """``modes`` section of a bike config (every key optional); ValueError names the key."""
+    section = cfg.get("modes") or {}
+    if not isinstance(section, dict):
+        raise ValueError("modes must be a mapping")
+    known = ModeParams.__dataclass_fields__
+    unknown = sorted(set(section) - set(known))
+    if unknown:
+        raise ValueError(f"modes: unknown key(s) {', '.join(unknown)}")
+    kwargs = {}
+    for k, v in section.items():
+        if isinstance(known[k].default, bool):
+            if not isinstance(v, bool):
+                raise ValueError(f"modes.{k} must be true or false, got {v!r}")
+        elif isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ValueError(f"modes.{k} must be a number, got {v!r}")
+        kwargs[k] = v if isinstance(v, bool) else float(v)
+    return ModeParams(**kwargs)
