@@ -123,8 +123,14 @@ def test_status_fields_and_decide_shapes(cfg):
     ctrl.set_command(1.0, 0)
     ga, gb, sp, status = ctrl.decide(plant.snapshot())
     assert len(ga) == len(gb) == len(sp) == cfg["batch_periods"]
-    assert list(status) == msg_fields("ControllerStatus")
+    assert set(status) < set(msg_fields("ControllerStatus"))
     assert status["quadrant"] == C.QUADRANT_GENERATING
+    # the node's law (session modes on top) fills every field of the message, in order
+    from bike_controller.session_control import ModedController
+    moded = ModedController(cfg)
+    moded.set_command(0.5, 2)
+    *_, status = moded.decide(plant.snapshot())
+    assert list(status) == msg_fields("ControllerStatus")
 
 
 def test_closed_loop_gates_never_short_and_speed_estimate(cfg):

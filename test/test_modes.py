@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import math
+import pathlib
 
+import numpy as np
 import pytest
 
 from bike_controller.modes import (MODE_ERG, MODE_ISOKINETIC, MODE_MOTORING, MODE_RESISTANCE, MODE_SLOPE,
@@ -81,19 +83,81 @@ def test_slope_road_load_uphill_brakes_downhill_assists():
     assert stopped.brake_torque_nm == 0.0
 
 
-def test_slope_virtual_flywheel_resists_acceleration():
-    m = law(virtual_inertia=True)
-    steady = settle(m, 0.5, MODE_SLOPE, 2800.0, n=600).brake_torque_nm
-    # accelerate at 300 rpm/s (motor) for 0.3 s: the emulated rider + bike mass pushes back
-    speed = 2800.0
-    for _ in range(300):
-        speed += 300.0 * DT
-        out = m.step(0.5, MODE_SLOPE, speed, DT)
-    alpha = 300.0 / RPM_PER_RAD_S
-    expected_extra = (m.j_virtual_kgm2 - J) * alpha
-    f_now = m.road_force_n(0.0, speed / RPM_PER_RAD_S * m.mps_per_rad_s) * m.mps_per_rad_s
-    assert out.brake_torque_nm - f_now == pytest.approx(expected_extra, rel=0.05)
-    assert out.brake_torque_nm > steady
+B = 1e-4
+
+
+def ride(m: ModeLaw, command, mode, rider_fn, w0, seconds, delay_batches=0):
+    """Closed loop on the flywheel J dw/dt = T_rider - T_brake - B w (Euler, 0.1 ms steps),
+    the law sampled every 1 ms from the speed at the batch start and applied over that batch
+    (as in the batched loop)."""
+    w = w0
+    crank = 0.0
+    pending = [0.0] * delay_batches
+    log = []
+    sub = 10
+    for k in range(int(round(seconds / DT))):
+        t = k * DT
+        out = m.step(command, mode, w * RPM_PER_RAD_S, DT)
+        pending.append(out.brake_torque_nm)
+        tb = pending.pop(0)
+        for _ in range(sub):
+            tr = rider_fn(t, crank)
+            w += (tr - tb - B * w) / J * (DT / sub)
+            crank += w / GEAR * (DT / sub)
+        log.append((t, w, tb, tr, out))
+    return log
+
+
+def test_slope_virtual_bike_feels_like_the_rider_mass():
+    """A step of rider torque accelerates the flywheel like rider + bike mass (J_eq), not
+    like the machine's own small flywheel J; the steady speed is the road-load equilibrium."""
+    m = ModeLaw(ModeParams(virtual_inertia=True), gear_ratio=GEAR, inertia_kgm2=J, tmax_nm=TMAX, pmax_w=PMAX,
+                base_speed_rpm=WB, friction_nms=B)
+    kk = m.mps_per_rad_s
+    # equilibrium speed for 1.0 N m of rider torque on the flat (command 0.5)
+    w_eq = 300.0
+    for _ in range(100):
+        w_eq += (1.0 - m.road_force_n(0.0, w_eq * kk) * kk) * 20.0
+    log = ride(m, 0.5, MODE_SLOPE, lambda t, c: 1.0 if t < 4.0 else 1.5, w_eq, 4.6)
+    steady = [w for t, w, *_ in log if 3.0 <= t < 4.0]
+    assert np.mean(steady) == pytest.approx(w_eq, rel=0.01)
+    # +0.5 N m at t = 4 s: acceleration over the next 0.5 s
+    w4 = next(w for t, w, *_ in log if t >= 4.0)
+    w45 = next(w for t, w, *_ in log if t >= 4.5)
+    accel = (w45 - w4) / 0.5
+    road_slope = (m.road_force_n(0.0, w45 * kk) - m.road_force_n(0.0, w4 * kk)) * kk  # road load grows a bit
+    expected = (0.5 - 0.5 * road_slope) / m.j_virtual_kgm2
+    assert accel == pytest.approx(expected, rel=0.15), (accel, expected, 0.5 / J)
+    assert accel < 0.3 * 0.5 / J
+
+
+def test_slope_virtual_bike_does_not_dissipate_the_pedal_stroke_ripple():
+    """Two torque peaks per crank turn: the mean braking power equals the road power at the
+    mean speed (no energy lost to the emulation), and the speed ripples like a heavy bike."""
+    def rider(mean):
+        return lambda t, c: mean * (1.0 + 0.5 * math.cos(2.0 * c))
+    res = {}
+    for inertia in (True, False):
+        m = ModeLaw(ModeParams(virtual_inertia=inertia), gear_ratio=GEAR, inertia_kgm2=J, tmax_nm=TMAX,
+                    pmax_w=PMAX, base_speed_rpm=WB, friction_nms=B)
+        w_eq = 280.0                                 # road-load equilibrium for the mean torque
+        for _ in range(200):
+            w_eq += (1.2 - m.road_force_n(0.04, w_eq * m.mps_per_rad_s) * m.mps_per_rad_s) * 20.0
+        log = ride(m, 0.5 + 0.04 / 0.4, MODE_SLOPE, rider(1.2), w_eq, 12.0)
+        tail = [(w, tb, tr) for t, w, tb, tr, _ in log if t >= 8.0]
+        w = np.array([x[0] for x in tail])
+        tb = np.array([x[1] for x in tail])
+        tr = np.array([x[2] for x in tail])
+        # the machine absorbs what the rider puts in, less the flywheel's own friction (no
+        # energy lost in the emulation); speed at the road-load equilibrium of the mean torque
+        d_kinetic_w = 0.5 * J * (w[-1] ** 2 - w[0] ** 2) / (len(w) * DT)     # the real flywheel's share
+        res[inertia] = (np.mean(tb * w) + B * np.mean(w * w) + d_kinetic_w, np.mean(tr * w), np.std(w) / np.mean(w),
+                        np.mean(w))
+        assert np.mean(w) == pytest.approx(w_eq, rel=0.01), (inertia, np.mean(w), w_eq)
+    for inertia in (True, False):
+        p_machine, p_rider, _, _ = res[inertia]
+        assert p_machine == pytest.approx(p_rider, rel=0.01), res
+    assert res[True][2] < 0.5 * res[False][2], "the heavy virtual bike smooths the pedal stroke"
 
 
 def test_isokinetic_holds_cadence_against_the_rider():
@@ -148,3 +212,61 @@ def test_bad_commands_and_config_are_refused():
     with pytest.raises(ValueError, match="rider_mass_kg"):
         mode_params_from_config({"modes": {"rider_mass_kg": -70}})
     assert mode_params_from_config({"modes": {"crr": 0.005}}).crr == 0.005
+
+
+# ------------------------------------------------------------------ closed loop with the plant
+def _ride_plant(command_fn, seconds, modes=None):
+    """The BLDC plant (rider load, default config) + ModedController, batched loop, no ROS."""
+    import copy
+
+    from bike_controller.closed_loop import run_offline
+    from bike_controller.session_control import ModedController
+    from bike_plant.config import load_config
+    cfg = copy.deepcopy(load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml"))
+    if modes:
+        cfg["modes"] = dict(cfg.get("modes") or {}, **modes)
+    ctrl = ModedController(cfg)
+    r = run_offline(cfg, seconds, command_fn, controller=ctrl)
+    return r, ctrl
+
+
+def _tail(r, t0):
+    m = r["time_s"] >= t0
+    w = r["speed_rpm"][m] / RPM_PER_RAD_S
+    return m, w, -(r["torque_em_nm"][m] * w).mean()
+
+
+def test_plant_erg_holds_the_target_power():
+    r, _ = _ride_plant(lambda t: (200.0 / PMAX, MODE_ERG), 6.0)
+    _, w, p_brake = _tail(r, 3.0)
+    assert p_brake == pytest.approx(200.0, rel=0.03)
+
+
+def test_plant_isokinetic_holds_cadence_against_a_rider_who_wants_80():
+    r, ctrl = _ride_plant(lambda t: (0.4, MODE_ISOKINETIC), 5.0)     # 60 rpm
+    m, w, _ = _tail(r, 3.0)
+    assert np.mean(r["speed_rpm"][m]) / GEAR == pytest.approx(60.0, abs=1.0)
+    assert ctrl.last_out.target == pytest.approx(60.0)
+
+
+def test_plant_slope_uphill_brakes_and_downhill_assists():
+    r, ctrl = _ride_plant(lambda t: (0.5 + 0.04 / 0.4, MODE_SLOPE), 5.0, {"virtual_inertia": False})
+    m, w, p_brake = _tail(r, 3.0)
+    law = ctrl.law
+    road = np.mean([law.road_force_n(0.04, x * law.mps_per_rad_s) * law.mps_per_rad_s * x for x in w])
+    friction = np.mean(1e-4 * w * w)
+    assert p_brake + friction == pytest.approx(road, rel=0.05)
+    r, _ = _ride_plant(lambda t: (0.5 - 0.08 / 0.4, MODE_SLOPE), 4.0, {"virtual_inertia": False})
+    m, w, p_brake = _tail(r, 2.0)
+    assert np.mean(r["torque_em_nm"][m]) > 0.05, "downhill: the motor assists (quadrant I)"
+    assert r["energy_battery_j"][-1] < r["energy_battery_j"][np.argmax(m)], "assist draws on the battery"
+
+
+def test_plant_mode_switch_is_a_ramp():
+    r, _ = _ride_plant(lambda t: (0.1, MODE_RESISTANCE) if t < 2.0 else (1.0, MODE_ERG), 3.0)
+    tc = r["torque_cmd_nm"]
+    t = r["time_s"]
+    around = (t > 1.9) & (t < 2.5)
+    steps = np.abs(np.diff(tc[around]))
+    assert steps.max() <= 20.0 * 1e-3 + 0.01, steps.max()
+    assert tc[(t > 2.4) & (t < 2.5)].mean() > tc[(t > 1.8) & (t < 1.9)].mean() + 1.0

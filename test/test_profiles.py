@@ -18,8 +18,11 @@ def write(tmp_path, text, name="p.yaml"):
 
 def test_mode_table_matches_command_msg():
     msg = (ROOT / "src" / "bike_msgs" / "msg" / "Command.msg").read_text()
-    assert "MODE_RESISTANCE=0" in msg and "MODE_MOTORING=1" in msg
-    assert MODES == {"resistance": 0, "motoring": 1}
+    for name, value in MODES.items():
+        assert f"MODE_{name.upper()}={value}" in msg
+    assert MODES == {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4}
+    from bike_controller.modes import MODE_NAMES as LAW_MODES
+    assert LAW_MODES == {v: k for k, v in MODES.items()}, "the controller's modes are the session's"
 
 
 def test_demo_profile():

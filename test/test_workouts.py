@@ -79,11 +79,11 @@ def test_zwo_every_element():
     assert w.command_at(2350)[0] == 0.2 and w.cadence_at(2350) == 85.0      # Freeride, CadenceLow/High mean
     # Cooldown 0.65 -> 0.35 descends
     assert tw(2400) == pytest.approx(162.5) and tw(2700) == pytest.approx(125.0)
-    assert w.command_at(3000) == (0.0, 0, 19, "end") and tw(3000) is None
-    # Command = W / Pmax, resistance mode
+    assert w.command_at(3000) == (0.0, 2, 19, "end") and tw(3000) is None
+    # Command = W / Pmax, ERG mode
     for t in (0, 300, 1050, 1095, 1440, 1830, 2700):
         cmd, mode, _, _ = w.command_at(t)
-        assert cmd == pytest.approx(tw(t) / PMAX) and mode == 0
+        assert cmd == pytest.approx(tw(t) / PMAX) and mode == 2
     # cadence targets
     assert (w.cadence_at(0), w.cadence_at(600), w.cadence_at(950)) == (85.0, 90.0, None)
     assert (w.cadence_at(1030), w.cadence_at(1090), w.cadence_at(1400)) == (100.0, 85.0, None)
@@ -369,7 +369,7 @@ def test_parameter_errors():
         load_workout(path, pmax_w=PMAX)
     for kw, words in (({"ftp_w": -1}, "ftp_w must be a number > 0"), ({"ftp_w": math.nan}, "ftp_w"),
                       ({"ftp_w": 5000}, "<= 2000"), ({"pmax_w": 0}, "pmax_w must be"),
-                      ({"mode": "erg"}, "unknown mode 'erg'"), ({"over_range": "clamp"}, "over_range"),
+                      ({"mode": "sprint"}, "unknown mode 'sprint'"), ({"over_range": "clamp"}, "over_range"),
                       ({"freeride_command": 2}, "freeride_command must be in [0, 1]")):
         args = {"ftp_w": 250, "pmax_w": PMAX, **kw}
         with pytest.raises(WorkoutError, match=None) as info:

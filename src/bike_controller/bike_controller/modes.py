@@ -19,10 +19,17 @@ Modes (``bike_msgs/Command``):
   is flat with the default +-20 %). Road load at the virtual speed v (from cadence,
   virtual gear and wheel radius):
       F = m g (sin a + Crr cos a) + 1/2 rho CdA (v + v_wind)|v + v_wind|,  a = atan(G)
-  reflected to the motor: T = F * r_wheel * gear_virtual / gear_ratio. The kinetic energy
-  of rider + bike is emulated by a virtual flywheel: T += (J_eq - J_real) * dw/dt with
-  J_eq = m (r_wheel gear_virtual / gear_ratio)^2 (J_real is the machine's own flywheel)
-  and dw/dt from the speed estimate through a first-order filter. Negative F (downhill)
+  reflected to the motor: T = F * r_wheel * gear_virtual / gear_ratio. With
+  ``virtual_inertia`` the rider also feels the mass of rider + bike, J_eq = m (r_wheel
+  gear_virtual / gear_ratio)^2 at the motor (about 6x the real flywheel). Feeding back a
+  measured acceleration cannot do this: with any delay, derivative feedback stronger than
+  the real inertia is unstable, and a low-pass makes it dissipative (+20 % power at 5 %
+  grade with 50 ms). Instead the law runs a virtual bike: a disturbance observer estimates
+  the rider's torque T_r = J dw/dt + T_brake + B w (low-pass ``observer_tau_s``), the
+  virtual speed follows J_eq dw_v/dt = T_r - T_road(w_v), and the flywheel is made to
+  follow w_v: T_brake = T_r - B w - J (T_r - T_road)/J_eq (feedforward; the derivative
+  part has gain 1 - J/J_eq < 1 so a delay cannot destabilise it) + PI on w - w_v (the
+  isokinetic gains). Negative F (downhill)
   gives assist torque, at most ``assist_max_nm`` and only above ``assist_min_cadence_rpm``
   (the motor never starts turning the cranks of a rider who stopped).
 - ISOKINETIC (4): constant cadence c* = cadence_min + C*(cadence_max - cadence_min) by a
@@ -30,9 +37,11 @@ Modes (``bike_msgs/Command``):
   kp = 2 J wn, ki = J wn^2), braking above c*, assisting below, with integrator clamping.
   Clinical slow / intermediate / fast tests are Commands of this mode.
 
-Mode switches are smooth: the torque handed to the current loop changes by at most
-``torque_rate_nm_per_s`` (a ramp, never a step); the resistance mode of the paper is
-passed straight through once the ramp has caught up, so the paper's curves are unchanged.
+Mode switches are smooth: at a switch the difference between the old torque and the new
+mode's torque becomes an offset that decays at ``torque_rate_nm_per_s`` (a ramp, never a
+step). Only the switch is ramped: a mode's own dynamics (the speed loops, the virtual bike
+answering the pedal stroke) pass unthrottled, and the resistance mode of the paper is
+passed straight through once the ramp is over, so the paper's curves are unchanged.
 """
 from __future__ import annotations
 
@@ -68,7 +77,7 @@ class ModeParams:
     wheel_radius_m: float = 0.335
     virtual_gear_ratio: float = 2.75         # wheel turns per crank turn (e.g. 50/18)
     virtual_inertia: bool = True
-    accel_filter_s: float = 0.05
+    observer_tau_s: float = 0.005            # rider-torque observer low-pass
     assist_max_nm: float = 0.0               # 0 -> Tmax
     assist_min_cadence_rpm: float = 15.0
     isokinetic_cadence_min_rpm: float = 20.0
@@ -77,7 +86,7 @@ class ModeParams:
 
     def __post_init__(self):
         for name in ("torque_rate_nm_per_s", "erg_min_cadence_rpm", "rider_mass_kg", "wheel_radius_m",
-                     "virtual_gear_ratio", "accel_filter_s", "isokinetic_bandwidth_rad_s",
+                     "virtual_gear_ratio", "observer_tau_s", "isokinetic_bandwidth_rad_s",
                      "isokinetic_cadence_max_rpm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -102,15 +111,16 @@ class ModeOutput:
     target: float              # W (erg), grade (slope), crank rpm (isokinetic), Command otherwise
     virtual_speed_mps: float
     saturated: bool            # a torque limit binds: the mode's target is not met
-    ramping: bool              # the rate limit binds (e.g. just after a mode switch)
+    ramping: bool              # a mode switch is being ramped
 
 
 class ModeLaw:
     """Per-batch torque law of every mode, with the switch-over rate limit."""
 
     def __init__(self, mp: ModeParams, *, gear_ratio: float, inertia_kgm2: float, tmax_nm: float,
-                 pmax_w: float, base_speed_rpm: float):
+                 pmax_w: float, base_speed_rpm: float, friction_nms: float = 0.0):
         self.mp = mp
+        self.friction_nms = float(friction_nms)
         self.gear_ratio = float(gear_ratio)
         self.inertia_kgm2 = float(inertia_kgm2)
         self.tmax_nm = float(tmax_nm)
@@ -129,10 +139,25 @@ class ModeLaw:
 
     def reset(self, torque_nm: float = 0.0) -> None:
         self.torque_nm = float(torque_nm)     # last output (rate-limited)
+        self.offset_nm = 0.0                  # what is left of a mode switch's step
         self.integral_nm = 0.0
-        self.last_speed = None
-        self.accel_rad_s2 = 0.0
         self.last_mode = None
+        self.obs_w = None                     # observer: low-passed speed ...
+        self.obs_tb = float(torque_nm)        # ... and low-passed applied braking torque
+        self.rider_torque_nm = 0.0            # observer output
+        self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
+
+    def _observe(self, w: float, dt_s: float) -> None:
+        """Rider torque T_r = J dw/dt + T_brake + B w, all through one low-pass (the
+        derivative as J (w - w_lp) / tau: no differentiation of the quantised estimate)."""
+        if self.obs_w is None:
+            self.obs_w = w
+        tau = self.mp.observer_tau_s
+        a = dt_s / (tau + dt_s)
+        self.obs_w += a * (w - self.obs_w)
+        self.obs_tb += a * (self.torque_nm - self.obs_tb)
+        self.rider_torque_nm = (self.inertia_kgm2 * (w - self.obs_w) / tau + self.obs_tb
+                                + self.friction_nms * self.obs_w)
 
     # ---------------------------------------------------------------- the laws
     def road_force_n(self, grade: float, v_mps: float) -> float:
@@ -159,9 +184,20 @@ class ModeLaw:
             return min(t, self.tmax_nm), p_w, v, t > self.tmax_nm
         if mode == MODE_SLOPE:
             grade = mp.grade_min + command * (mp.grade_max - mp.grade_min)
-            t = self.road_force_n(grade, v) * self.mps_per_rad_s
+            k = self.mps_per_rad_s
             if mp.virtual_inertia:
-                t += (self.j_virtual_kgm2 - self.inertia_kgm2) * self.accel_rad_s2
+                t_r = self.rider_torque_nm
+                t_road = self.road_force_n(grade, self.virtual_w * k) * k
+                self.virtual_w = max(self.virtual_w + (t_r - t_road) / self.j_virtual_kgm2 * dt_s, 0.0)
+                err = w - self.virtual_w
+                t_ff = t_r - self.friction_nms * w - self.inertia_kgm2 * (t_r - t_road) / self.j_virtual_kgm2
+                integral = self.integral_nm + self.ki * err * dt_s
+                t = t_ff + self.kp * err + integral
+                v = self.virtual_w * k
+            else:
+                integral = None
+                # the machine's own friction is part of the load already: the rider feels the road
+                t = self.road_force_n(grade, v) * k - self.friction_nms * w
             sat = False
             if t < 0.0:
                 if cadence_rpm < mp.assist_min_cadence_rpm:
@@ -170,6 +206,8 @@ class ModeLaw:
                     t, sat = -self.assist_max_nm, True
             if t > self.tmax_nm:
                 t, sat = self.tmax_nm, True
+            if integral is not None and not sat:
+                self.integral_nm = integral     # conditional integration
             return t, grade, v, sat
         if mode == MODE_ISOKINETIC:
             target_rpm = mp.isokinetic_cadence_min_rpm + command * (mp.isokinetic_cadence_max_rpm
@@ -187,24 +225,37 @@ class ModeLaw:
             return t, target_rpm, v, sat
         raise ValueError(f"unknown mode {mode!r}")
 
-    def step(self, command: float, mode: int, speed_rpm: float, dt_s: float) -> ModeOutput:
-        """One batch: the torque for the next ``dt_s`` seconds from the speed estimate."""
+    def step(self, command: float, mode: int, speed_rpm: float, dt_s: float,
+             speed_valid: bool = True) -> ModeOutput:
+        """One batch: the torque for the next ``dt_s`` seconds from the speed estimate.
+
+        ``speed_valid`` False (no speed estimate yet, e.g. before the second Hall edge):
+        the output holds and no mode starts, so the speed loops and the virtual bike start
+        from a real speed, not from 0."""
         if not (math.isfinite(command) and 0.0 <= command <= 1.0):
             raise ValueError(f"command must be in [0, 1], got {command!r}")
+        if mode not in MODE_NAMES:
+            raise ValueError(f"unknown mode {mode!r}")
+        if not speed_valid:
+            return ModeOutput(self.torque_nm, self.torque_nm, command, 0.0, False, False)
         w = max(speed_rpm, 0.0) / RPM_PER_RAD_S
-        if self.last_speed is not None and dt_s > 0:
-            alpha = dt_s / (self.mp.accel_filter_s + dt_s)
-            self.accel_rad_s2 += alpha * ((w - self.last_speed) / dt_s - self.accel_rad_s2)
-        self.last_speed = w
-        if mode != self.last_mode and mode == MODE_ISOKINETIC:
-            # bumpless entry: the integrator starts from the torque in force
-            self.integral_nm = self.torque_nm
+        if dt_s > 0:
+            self._observe(w, dt_s)
+        switched = self.last_mode is not None and mode != self.last_mode
+        if mode != self.last_mode:
+            if mode == MODE_ISOKINETIC:
+                self.integral_nm = self.torque_nm   # bumpless entry from the torque in force
+            elif mode == MODE_SLOPE:
+                self.integral_nm = 0.0              # the virtual bike starts at the real speed
+                self.virtual_w = w
         self.last_mode = mode
         wanted, target, v, sat = self._wanted(command, mode, w, dt_s)
+        if switched:
+            self.offset_nm = self.torque_nm - wanted
         max_step = self.mp.torque_rate_nm_per_s * dt_s
-        delta = wanted - self.torque_nm
-        ramping = abs(delta) > max_step + 1e-12
-        self.torque_nm = wanted if not ramping else self.torque_nm + math.copysign(max_step, delta)
+        self.offset_nm = math.copysign(max(abs(self.offset_nm) - max_step, 0.0), self.offset_nm)
+        ramping = self.offset_nm != 0.0
+        self.torque_nm = wanted + self.offset_nm
         return ModeOutput(self.torque_nm, wanted, target, v, sat, ramping)
 
 

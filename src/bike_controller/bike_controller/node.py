@@ -7,7 +7,8 @@ Topics (relative names, namespace /bike by default; docs/DESIGN.md):
              controller_status (bike_msgs/ControllerStatus, one per batch),
              /diagnostics (WARN on a rejected Command, OK every ``diagnostics_period_s``)
 
-The law is bike_controller.bldc_control.BatchController (nominal params from the config).
+The law is bike_controller.session_control.ModedController: the session modes of
+bike_controller.modes on top of bldc_control.BatchController (nominal params from the config).
 
 Commands: a Command that is not finite, outside [0, 1] or of an unknown mode is rejected
 (WARN diagnostic, ControllerStatus.command_rejected = true until the next valid one); the
@@ -59,7 +60,7 @@ class ControllerNode(Node):
         from bike_plant.params import nominal_params_from_config
         from bike_plant.rosparams import declare_config
 
-        from .bldc_control import BatchController
+        from .session_control import ModedController
 
         self.cfg = cfg = declare_config(self, CONTROLLER_DEFAULTS, CONTROLLER_DESCRIPTIONS)
         path = cfg.get("_config_path")
@@ -69,7 +70,7 @@ class ControllerNode(Node):
         self.command_wait_s = _positive(cfg.get("command_wait_s"), "command_wait_s", path)
         self.period_s = _positive((cfg.get("session") or {}).get("period_s"), "session.period_s", path)
         self.diag_period_s = _positive(cfg.get("diagnostics_period_s"), "diagnostics_period_s", path)
-        self._make_law = lambda: BatchController(cfg, nominal_params_from_config(cfg))
+        self._make_law = lambda: ModedController(cfg, nominal_params_from_config(cfg))
         self.ctrl = self._make_law()
         self.n = self.ctrl.batch_periods
         # Time comes from PlantState stamps; following /clock would only add a callback per batch.

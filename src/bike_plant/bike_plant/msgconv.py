@@ -191,8 +191,9 @@ def command_problem(msg: Command) -> str | None:
         return f"command {value!r} is not finite"
     if value < 0.0 or value > 1.0:
         return f"command {value!r} outside [0, 1]"
-    if msg.mode not in (Command.MODE_RESISTANCE, Command.MODE_MOTORING):
-        return f"unknown mode {msg.mode} (0 resistance, 1 motoring)"
+    if msg.mode not in (Command.MODE_RESISTANCE, Command.MODE_MOTORING, Command.MODE_ERG, Command.MODE_SLOPE,
+                        Command.MODE_ISOKINETIC):
+        return f"unknown mode {msg.mode} (0 resistance, 1 motoring, 2 erg, 3 slope, 4 isokinetic)"
     return None
 
 

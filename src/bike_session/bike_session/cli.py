@@ -1,6 +1,7 @@
 """`./bike`: the front door of the testbed.
 
     ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
+          [--workout FILE.zwo|.erg|.mrc [--ftp W]]             ... riding a workout file
     ./bike report BAG                                          summarise a recorded session
     ./bike bag recover BAG [--out DIR]                         rescue a crashed recording
     ./bike paper NAME --out DIR                                reproduce a figure of a paper
@@ -45,11 +46,19 @@ def _cmd_run(opts) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    duration_s = opts.duration if opts.duration is not None else float(cfg.get("duration_s", 60.0))
+    workout = None
+    if opts.workout:
+        workout = _load_workout_for_run(opts, cfg)
+        if workout is None:
+            return 2
+    default_s = workout.duration_s if workout is not None else float(cfg.get("duration_s", 60.0))
+    duration_s = opts.duration if opts.duration is not None else default_s
     if not duration_s > 0:
         print(f"error: --duration must be > 0, got {duration_s}", file=sys.stderr)
         return 2
     args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": opts.namespace}
+    if workout is not None:
+        args.update(workout=str(pathlib.Path(opts.workout).resolve()), ftp=repr(float(opts.ftp or 0.0)))
     bag_path = None
     if opts.record:
         record_dir = pathlib.Path(opts.record).resolve()
@@ -79,6 +88,29 @@ def _cmd_run(opts) -> int:
         print(f"error: the recorder wrote no bag at {bag_path}", file=sys.stderr)
         code = code or 1
     return code
+
+
+def _load_workout_for_run(opts, cfg):
+    """Read the workout once before anything starts: a bad file is one error, nothing runs."""
+    import warnings
+
+    from bike_session.profiles import ProfileError
+    from bike_session.workouts import WorkoutWarning, describe, load_workout, pmax_w_from_config
+
+    if opts.ftp is not None and not (0 < opts.ftp <= 2000):
+        print(f"error: --ftp must be in (0, 2000] W, got {opts.ftp}", file=sys.stderr)
+        return None
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", WorkoutWarning)
+            workout = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=pmax_w_from_config(cfg))
+    except ProfileError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    print(describe(workout), flush=True)
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr, flush=True)
+    return workout
 
 
 def _cmd_report(opts) -> int:
@@ -130,6 +162,11 @@ def build_parser() -> argparse.ArgumentParser:
                                      "for a number of simulated seconds")
     run.add_argument("--config", help="bike config (ROS 2 parameter file); default config/bldc_default.yaml")
     run.add_argument("--duration", type=float, help="simulated seconds (default: duration_s of the config)")
+    run.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc or a profile .yaml) "
+                                                        "instead of the config's profile; power targets in ERG mode; "
+                                                        "the run lasts the workout unless --duration is given")
+    run.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets "
+                                                            "(default: the file's own FTP when it has one)")
     run.add_argument("--record", metavar="DIR", help="record every topic to an MCAP bag under DIR and summarise it")
     run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
     run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")

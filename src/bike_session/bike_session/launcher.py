@@ -57,7 +57,8 @@ class NodeSpec:
         for path in self.params_files:
             args += ["--params-file", path]
         for key, value in self.params.items():
-            args += ["-p", f"{key}:={value}"]
+            # `-p name:=` would be a YAML null (rejected for a string parameter); '' is ""
+            args += ["-p", f"{key}:={value}" if str(value) != "" else f"{key}:=''"]
         return args + list(self.ros_args)
 
 

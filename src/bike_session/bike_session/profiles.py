@@ -41,8 +41,8 @@ from typing import Any, Mapping
 
 import yaml
 
-# name -> bike_msgs/msg/Command mode constant (MODE_RESISTANCE=0, MODE_MOTORING=1)
-MODES: dict[str, int] = {"resistance": 0, "motoring": 1}
+# name -> bike_msgs/msg/Command mode constant (bike_controller.modes)
+MODES: dict[str, int] = {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4}
 MODE_NAMES: dict[int, str] = {v: k for k, v in MODES.items()}
 
 MAX_PROFILE_BYTES = 1 << 20   # a profile is a few kB; refuse absurd files before parsing

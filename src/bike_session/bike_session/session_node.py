@@ -4,6 +4,11 @@ Node name ``session`` (namespace ``/bike`` by default). Parameters:
 
 - ``session.profile`` (string): profile YAML; a relative path resolves against the
   directory of ``config_path`` when that is set, else against the working directory.
+- ``session.workout`` (string, ""): a workout file (.zwo, .erg, .mrc or a profile .yaml)
+  ridden instead of ``session.profile`` when set (bike_session.workouts); power targets
+  ride in ERG mode. ``session.ftp_w`` (0 = the file's own FTP) is the rider's FTP and
+  ``session.over_range`` (warn | error) what to do with targets beyond the machine's
+  range. Text events of the workout are logged at their time.
 - ``session.period_s`` (0.1): Command period in sim seconds.
 - ``duration_s`` (0.0): run length in sim seconds; 0 = profile length.
   ``session.duration_s`` (0.0), when > 0, takes precedence (DESIGN.md puts it there).
@@ -98,6 +103,7 @@ def build_session_info(profile: Profile, profile_path: pathlib.Path, config_path
         "duration_s": duration_s,
         "namespace": namespace,
         "modes": MODE_NAMES,
+        "workout": profile.info() if hasattr(profile, "info") else None,
     }
 
 
@@ -118,9 +124,11 @@ def _make_node_class():
         def __init__(self):
             super().__init__(NODE_NAME)
             p = {}
-            for name, default in (("session.profile", ""), ("config_path", "")):
+            for name, default in (("session.profile", ""), ("config_path", ""), ("session.workout", ""),
+                                  ("session.over_range", "warn")):
                 p[name] = self.declare_parameter(name, default).value
-            for name, default in (("session.period_s", 0.1), ("duration_s", 0.0), ("session.duration_s", 0.0)):
+            for name, default in (("session.period_s", 0.1), ("duration_s", 0.0), ("session.duration_s", 0.0),
+                                  ("session.ftp_w", 0.0)):
                 value = self.declare_parameter(name, default, any_type).value
                 if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                     raise SetupError(f"parameter {name} must be a finite number, got {value!r}")
@@ -130,14 +138,19 @@ def _make_node_class():
             for name in ("duration_s", "session.duration_s"):
                 if p[name] < 0:
                     raise SetupError(f"parameter {name} must be >= 0 (0 = profile length), got {p[name]!r}")
-            if not p["session.profile"]:
-                raise SetupError("parameter session.profile is empty: give a profile YAML file")
+            if not p["session.profile"] and not p["session.workout"]:
+                raise SetupError("parameters session.profile and session.workout are empty: give a profile "
+                                 "or workout file")
             config_path = p["config_path"]
-            profile_path = resolve_profile_path(p["session.profile"], config_path)
-            try:
-                self.profile = load_profile(profile_path)
-            except ProfileError as exc:
-                raise SetupError(f"bad profile: {exc}") from None
+            if p["session.workout"]:
+                profile_path = pathlib.Path(os.path.expanduser(p["session.workout"])).resolve()
+                self.profile = self._load_workout(profile_path, config_path, p)
+            else:
+                profile_path = resolve_profile_path(p["session.profile"], config_path)
+                try:
+                    self.profile = load_profile(profile_path)
+                except ProfileError as exc:
+                    raise SetupError(f"bad profile: {exc}") from None
 
             self.period_ns = int(round(p["session.period_s"] * 1e9))
             if self.period_ns <= 0:
@@ -181,6 +194,23 @@ def _make_node_class():
             self.get_logger().info(
                 f"profile {self.profile.name!r} ({self.profile.duration_s:g} s, {len(self.profile.segments)} segments) "
                 f"from {profile_path}; run {self.duration_s:g} s, period {self.period_s:g} s")
+
+        def _load_workout(self, path: pathlib.Path, config_path: str, p: dict) -> Profile:
+            import warnings
+
+            from bike_plant.config import ConfigError, load_config
+            from bike_session.workouts import WorkoutWarning, load_workout, pmax_w_from_config
+            try:
+                pmax_w = pmax_w_from_config(load_config(config_path or None))
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", WorkoutWarning)     # logged below, once each
+                    profile = load_workout(path, ftp_w=p["session.ftp_w"] or None, pmax_w=pmax_w,
+                                           over_range=p["session.over_range"])
+            except (ProfileError, ConfigError) as exc:
+                raise SetupError(f"bad workout: {exc}") from None
+            for text in getattr(profile, "warnings", []):
+                self.get_logger().warning(text)
+            return profile
 
         # ---------------------------------------------------------------- timeline
         def command_for(self, tau_ns: int) -> tuple[float, int, int, str]:
@@ -244,7 +274,13 @@ def _make_node_class():
             if self.last_t_ns is not None and t_ns < self.last_t_ns:
                 self.get_logger().warning(f"/clock went backwards ({self.last_t_ns} -> {t_ns} ns); ignored")
                 return
+            previous_ns = self.last_t_ns
             self.last_t_ns = t_ns
+            events_between = getattr(self.profile, "events_between", None)
+            if events_between is not None:
+                t0 = -1e-9 if previous_ns is None else previous_ns * 1e-9
+                for ev in events_between(t0, t_ns * 1e-9):
+                    self.get_logger().info(f"workout t={ev.time_s:g}s: {ev.message}")
             SessionStatus = self._SessionStatus
             if self.state == SessionStatus.STATE_WAITING:
                 self.state = SessionStatus.STATE_RUNNING

@@ -42,15 +42,13 @@ Power -> Command (the choices, all explicit parameters)
   ridden as written. ``use_file_ftp=True`` rides the file's FTP instead (.erg: watts as
   written; .zwo ``<ftpOverride>``: fractions x that FTP). With ``ftp_w=None`` the file's FTP
   is used when there is one, else relative targets are an error.
-- ERG emulation: ``bike_msgs/Command`` has no power mode. A target of W watts becomes
-  ``Command = W / pmax_w`` in the Command mode ``mode`` (default ``resistance``). That is
-  exact in the machine's constant-power region (Eq. 4 of paper 000: braking power =
-  Command x Pmax for speeds >= the base speed wb); below wb the brake holds Command x Tmax,
-  i.e. the power is W x (w / wb), lower than the target (default config: wb = 3300 rpm is
-  94 rpm at the crank with the 35:1 gear; at 80 rpm the brake takes 85 % of W). Closing that loop needs the
-  speed, which a profile (a pure function of time) does not have; see the report of this
-  change. ``pmax_w`` is the machine's power range (``controller.pmax_w`` of the config,
-  1016.68 W by default; :func:`pmax_w_from_config`) and must be passed explicitly.
+- Power targets ride in ERG mode (``bike_msgs/Command.MODE_ERG``, bike_controller.modes):
+  a target of W watts is ``Command = W / pmax_w`` and the controller holds that power at
+  any cadence above its minimum (closing the loop on the measured torque). ``pmax_w`` is
+  the machine's ERG power range: ``modes.erg_power_max_w`` of the config, else
+  ``controller.pmax_w`` (1016.68 W by default; :func:`pmax_w_from_config`). ``mode`` can
+  name another Command mode (e.g. ``resistance``, where W / pmax_w is the paper's Command
+  and the power is exact only above the base speed).
 - Out of range: a target above ``pmax_w`` is *not* silently clamped. With
   ``over_range="warn"`` (default) the Command saturates at 1.0 from the moment the target
   crosses Pmax (ramps are split there) and one :class:`WorkoutWarning` per file element
@@ -195,7 +193,12 @@ class Workout(Profile):
 
 
 def pmax_w_from_config(cfg: Mapping) -> float:
-    """``controller.pmax_w`` of a loaded config (``bike_plant.config.load_config``)."""
+    """The ERG power range of a loaded config: ``modes.erg_power_max_w`` when set (> 0),
+    else ``controller.pmax_w`` (the controller's rule, bike_controller.modes)."""
+    modes = cfg.get("modes") if isinstance(cfg, Mapping) else None
+    erg = modes.get("erg_power_max_w") if isinstance(modes, Mapping) else None
+    if isinstance(erg, (int, float)) and not isinstance(erg, bool) and math.isfinite(erg) and erg > 0:
+        return float(erg)
     controller = cfg.get("controller") if isinstance(cfg, Mapping) else None
     value = controller.get("pmax_w") if isinstance(controller, Mapping) else None
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
@@ -205,7 +208,7 @@ def pmax_w_from_config(cfg: Mapping) -> float:
 
 
 def load_workout(path: str | os.PathLike, *, ftp_w: float | None = None, pmax_w: float | None = None,
-                 mode: str = "resistance", over_range: str = "warn", use_file_ftp: bool = False,
+                 mode: str = "erg", over_range: str = "warn", use_file_ftp: bool = False,
                  freeride_command: float = DEFAULT_FREERIDE_COMMAND,
                  maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND) -> Profile:
     """Read a workout (.zwo/.erg/.mrc, or a .yaml profile) into a Profile; WorkoutError on any problem."""
@@ -247,7 +250,7 @@ def read_bounded(path: pathlib.Path, limit: int = MAX_WORKOUT_BYTES) -> bytes:
 
 
 def parse_workout_bytes(data: bytes | str, fmt: str, *, source: str = "<workout>", default_name: str = "workout",
-                        ftp_w: float | None = None, pmax_w: float | None = None, mode: str = "resistance",
+                        ftp_w: float | None = None, pmax_w: float | None = None, mode: str = "erg",
                         over_range: str = "warn", use_file_ftp: bool = False,
                         freeride_command: float = DEFAULT_FREERIDE_COMMAND,
                         maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND) -> Workout:

@@ -1,0 +1,136 @@
+"""The BLDC controller with every session mode: :mod:`.modes` on top of the batched loop.
+
+:class:`ModedController` has the interface of :class:`.bldc_control.BatchController`
+(``set_command``, ``decide``, ``status``) and accepts all five Command modes. Per batch:
+
+1. the mode law (:class:`.modes.ModeLaw`) turns (Command, mode, speed estimate) into a
+   signed braking torque, rate-limited at mode switches;
+2. RESISTANCE with the ramp settled goes to the paper-000 law unchanged (Eq. 2-9, updated
+   at every Hall edge inside the batch), so the paper's curves are exactly those of
+   :class:`BatchController`; every other case hands the current loop a fixed current for
+   the batch: I* = T / ktg(w) (Eq. 8-9) braking, I* = |T| / kt motoring (k = 1 there).
+
+The speed estimate used is the one at the end of the previous batch (1 batch late: 1 ms at
+N = 20), the hysteresis current loop itself stays at 50 us.
+
+Torque trim: Eq. 6-9 with the paper's speed-only k(w) leaves the mean torque 7-12 % off the
+command at the currents of a workout (the commutation dip depends on the current level
+too). ERG, slope and motoring promise a power or a torque, so outside the paper's
+resistance mode a slow integral trim (time constant ``TRIM_TAU_S``) closes the loop on the
+measured mean torque of the last batch (PlantState.torque_em_nm: the model's torque in
+sim, the drive's torque estimate on CAN), clamped to +-``TRIM_MAX_FRACTION`` * Tmax.
+"""
+from __future__ import annotations
+
+import math
+
+from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
+from .modes import (MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
+                    mode_params_from_config)
+
+
+def validate_session_command(command, mode) -> None:
+    """Command in [0, 1] and one of the five modes; ValueError otherwise."""
+    if isinstance(command, bool) or not isinstance(command, (int, float)) or not math.isfinite(command):
+        raise ValueError(f"command must be a finite number, got {command!r}")
+    if not 0.0 <= command <= 1.0:
+        raise ValueError(f"command must be in [0, 1], got {command!r}")
+    if isinstance(mode, bool) or int(mode) != mode or int(mode) not in MODE_NAMES:
+        names = ", ".join(f"{k} {v}" for k, v in MODE_NAMES.items())
+        raise ValueError(f"unknown mode {mode!r} ({names})")
+
+
+TRIM_TAU_S = 0.3
+TRIM_MAX_FRACTION = 0.3
+
+
+class ModedController:
+    """BatchController + session modes (same decide/status interface)."""
+
+    def __init__(self, cfg: dict, nominal_params=None, batch_periods: int | None = None):
+        self.inner = BatchController(cfg, nominal_params, batch_periods)
+        try:
+            mp = mode_params_from_config(cfg)
+        except ValueError as exc:
+            from bike_plant.config import ConfigError
+            raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
+        nominal = self.inner.nominal
+        self.law = ModeLaw(mp, gear_ratio=nominal.load.gear_ratio, inertia_kgm2=nominal.mech.inertia_kgm2,
+                           tmax_nm=self.inner.cp.tmax_nm, pmax_w=self.inner.cp.pmax_w,
+                           base_speed_rpm=self.inner.cp.base_speed_rpm,
+                           friction_nms=nominal.mech.friction_nms)
+        self.kt = float(nominal.bldc.kt_nm_per_a)
+        self.command = float(self.inner.cs[C_COMMAND])
+        self.mode = int(self.inner.cs[C_MODE])
+        self.command_rejected = False
+        self.last_out: ModeOutput | None = None
+        self.trim_nm = 0.0
+        self.law.reset()
+
+    @property
+    def batch_periods(self) -> int:
+        return self.inner.batch_periods
+
+    @property
+    def cs(self):
+        return self.inner.cs
+
+    def set_command(self, command: float, mode: int = MODE_RESISTANCE) -> None:
+        try:
+            validate_session_command(command, mode)
+        except ValueError:
+            self.command_rejected = True
+            raise
+        self.command_rejected = False
+        self.command = float(command)
+        self.mode = int(mode)
+
+    def _apply_mode(self, dt_s: float, snapshot: dict) -> None:
+        inner = self.inner
+        speed_rpm = float(inner.cs[C_SPEED_EST])
+        prev = self.last_out
+        out = self.law.step(self.command, self.mode, speed_rpm, dt_s, speed_valid=inner.cs[C_NC] > 0)
+        self.last_out = out
+        if self.mode == MODE_RESISTANCE and not out.ramping:
+            self.trim_nm = 0.0
+            inner.cs[C_IOVERRIDE] = -1.0                         # no override: Eq. 2-9 inside the batch
+            inner.set_command(self.command, MODE_RESISTANCE)
+            return
+        measured = snapshot.get("torque_em_nm")
+        if prev is not None and measured is not None and math.isfinite(measured) and speed_rpm > 0:
+            # the last batch asked for prev.brake_torque_nm; braking torque is -torque_em
+            err = prev.brake_torque_nm - (-float(measured))
+            limit = TRIM_MAX_FRACTION * self.inner.cp.tmax_nm
+            self.trim_nm = min(max(self.trim_nm + err * dt_s / TRIM_TAU_S, -limit), limit)
+        torque = out.brake_torque_nm + self.trim_nm if out.brake_torque_nm != 0.0 else 0.0
+        if torque >= 0.0:
+            inner.set_command(self.command if self.mode == MODE_RESISTANCE else 0.0, MODE_RESISTANCE)
+            current = torque / inner.ktg(speed_rpm)
+        else:
+            inner.set_command(0.0, MODE_MOTORING)
+            current = -torque / self.kt
+        inner.set_current_override(current)
+
+    def decide(self, snapshot: dict, n: int | None = None):
+        n_eff = self.inner.batch_periods if n is None else int(n)
+        self._apply_mode(n_eff * self.inner.nominal.control_period_s, snapshot)
+        ga, gb, sp, status = self.inner.decide(snapshot, n)
+        return ga, gb, sp, self._status(status)
+
+    def _status(self, status: dict) -> dict:
+        out = self.last_out
+        status = dict(status)
+        status["command"] = self.command
+        status["mode"] = self.mode
+        status["command_rejected"] = self.command_rejected
+        if out is not None and not (self.mode == MODE_RESISTANCE and not out.ramping):
+            status["torque_cmd_nm"] = abs(out.brake_torque_nm)
+        status["mode_target"] = float(out.target) if out is not None else self.command
+        status["mode_saturated"] = bool(out is not None and out.saturated)
+        status["mode_ramping"] = bool(out is not None and out.ramping)
+        status["virtual_speed_mps"] = float(out.virtual_speed_mps) if out is not None else 0.0
+        status["torque_trim_nm"] = float(self.trim_nm)
+        return status
+
+    def status(self, seq: int = 0, prediction_error_a: float = 0.0) -> dict:
+        return self._status(self.inner.status(seq, prediction_error_a))
