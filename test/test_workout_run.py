@@ -14,7 +14,7 @@ DATA = pathlib.Path(__file__).resolve().parent / "data" / "workouts"
 
 
 @pytest.mark.slow
-def test_ride_an_erg_file_in_the_node_graph(tmp_path):
+def test_ride_an_erg_file_in_the_node_graph(tmp_path, ros_domain):
     # erg_smoke.erg: 100 W warm-up from t = 0 (FTP header 200 W, rider FTP 200: watts as written)
     result = bike_command("run", "--workout", str(DATA / "erg_smoke.erg"), "--ftp", "200", "--duration", "3",
                           "--record", str(tmp_path))
@@ -36,7 +36,7 @@ def test_ride_an_erg_file_in_the_node_graph(tmp_path):
 
 
 @pytest.mark.parametrize("bad", ["bad_xml.zwo", "decreasing.erg", "entity_bomb.zwo", "workout.txt"])
-def test_a_bad_workout_file_starts_nothing(tmp_path, bad):
+def test_a_bad_workout_file_starts_nothing(tmp_path, bad, ros_domain):
     result = bike_command("run", "--workout", str(DATA / "bad" / bad), "--duration", "1", "--record", str(tmp_path))
     assert result.returncode == 2
     assert result.stderr.count("error:") == 1 and bad in result.stderr, result.stderr

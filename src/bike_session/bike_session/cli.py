@@ -3,6 +3,7 @@
     ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
           [--workout FILE.zwo|.erg|.mrc [--ftp W]]             ... riding a workout file
     ./bike report BAG                                          summarise a recorded session
+    ./bike replay BAG [--config OTHER] [--record DIR]          ride a recorded session again
     ./bike bag recover BAG [--out DIR]                         rescue a crashed recording
     ./bike paper NAME --out DIR                                reproduce a figure of a paper
     ./bike bench [--json FILE]                                 speed figures and ratios
@@ -71,6 +72,13 @@ def _cmd_run(opts) -> int:
             suffix += 1
         args.update(record="true", record_dir=str(record_dir), bag_name=bag_path.name, storage=opts.storage,
                     recorder_window=str(RECORDER_WINDOW_BATCHES))
+    if not os.environ.get("ROS_DOMAIN_ID"):
+        # a private DDS domain: two simulations on one host must not ride each other's
+        # /clock and commands (an explicit ROS_DOMAIN_ID is always respected)
+        import random
+        os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 100))
+        print(f"[bike] ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} (a private domain for this run; "
+              "export ROS_DOMAIN_ID to choose one, e.g. to watch with ros2 topic echo)", flush=True)
     print(f"[bike] config {config}, {duration_s:g} s simulated, namespace /{opts.namespace}"
           + (f", recording to {bag_path}" if bag_path else ""), flush=True)
     try:
@@ -117,6 +125,12 @@ def _cmd_report(opts) -> int:
     from bike_session import report
 
     return report.main([opts.bag] + (["--out", opts.out] if opts.out else []))
+
+
+def _cmd_replay(opts) -> int:
+    from bike_session import replay
+
+    return replay.main(opts.args)
 
 
 def _cmd_bag(opts) -> int:
@@ -178,6 +192,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--out", help="also write charts and a summary into this folder")
     rep.set_defaults(func=_cmd_report)
 
+    rpl = sub.add_parser("replay", add_help=False,
+                         help="ride a recorded session's Command timeline again, on the recorded bike or "
+                              "--config OTHER, with the recorded rider; records a new bag "
+                              "(replay BAG [--config OTHER] [--load recorded|config] [--record DIR])")
+    rpl.add_argument("args", nargs=argparse.REMAINDER)
+    rpl.set_defaults(func=_cmd_replay)
+
     bag = sub.add_parser("bag", help="bag tools: `bag recover BAG` turns a crashed recording into a normal bag")
     bag_sub = bag.add_subparsers(dest="bag_command", required=True, metavar="TOOL")
     rec = bag_sub.add_parser("recover", help="rewrite what survived of a crashed recording (no metadata.yaml) "
@@ -201,6 +222,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["replay"]:                       # its own parser (--help lists its options)
+        from bike_session import replay
+        return replay.main(argv[1:])
     opts = build_parser().parse_args(argv)
     return opts.func(opts)
 

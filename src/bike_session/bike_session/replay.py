@@ -1,0 +1,169 @@
+"""``./bike replay BAG [--config OTHER]``: ride a recorded session again on a fresh bike.
+
+The recorded Command timeline (stamp, value, mode of every ``command`` message) becomes a
+profile of steps, so the new session publishes exactly the same Commands at exactly the
+same sim times. The bike is ``--config OTHER`` (another controller, machine, battery ...)
+or, without it, the recorded config (``session_info.config_text``). The load:
+
+- ``--load recorded`` (default): the recorded config's ``load`` section (the same rider
+  model with the same parameters and seed, or the same prime-mover schedule), so an A/B
+  comparison changes only the bike. The rider is a model that reacts to the bike, not a
+  torque trace played open loop (that would make the speed run away with another brake).
+- ``--load config``: the load of OTHER.
+
+Both files the replay rides are written next to the new bag's folder
+(``replay_<bag>_profile.yaml`` and ``..._config.yaml``) and the new bag's session_info
+records them, so a replay is itself replayable. With the same config, lockstep replays
+are bit-identical to the original recording (tested).
+"""
+from __future__ import annotations
+
+import json
+import pathlib
+
+import yaml
+
+from bike_session.bags import BagError, open_bag
+
+EARLY_NS = 1000
+MODE_TO_NAME = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinetic"}
+
+
+def command_timeline(bag_path) -> tuple[list[tuple[int, float, int]], dict]:
+    """Sorted (stamp_ns, command, mode) of the bag's Commands (duplicates dropped) and its
+    session_info (empty dict when absent)."""
+    timeline: dict[int, tuple[float, int]] = {}
+    info: dict = {}
+    with open_bag(bag_path) as bag:
+        cmd_topic = bag.resolve("command")
+        try:
+            info_topic = bag.resolve("session_info")
+        except BagError:
+            info_topic = None
+        topics = [cmd_topic] + ([info_topic] if info_topic else [])
+        for topic, _t, msg in bag.messages(topics):
+            if topic == info_topic:
+                try:
+                    info = json.loads(msg.data)
+                except (ValueError, TypeError):
+                    raise BagError("session_info is not valid JSON", bag_path) from None
+                continue
+            stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+            timeline[stamp] = (float(msg.command), int(msg.mode))
+    if not timeline:
+        raise BagError("the command topic is empty: nothing to replay", bag_path)
+    return [(t, c, m) for t, (c, m) in sorted(timeline.items())], info
+
+
+def profile_from_timeline(timeline, duration_s: float, name: str) -> dict:
+    """A profile document of steps reproducing the timeline (equal neighbours merged)."""
+    segments = []
+    end_ns = int(round(duration_s * 1e9))
+    points = [(t, c, m) for t, c, m in timeline if t < end_ns]
+    if not points or points[0][0] > 0:
+        points.insert(0, (0, 0.0, points[0][2] if points else 0))
+    # each step starts EARLY_NS before its stamp: the profile sums float durations, and the
+    # session asks for the command exactly at the stamps, so a boundary must never land on one
+    def start(i):
+        return 0 if i == 0 else max(points[i][0] - EARLY_NS, 0)
+    for i, (_t, c, m) in enumerate(points):
+        t = start(i)
+        t_next = start(i + 1) if i + 1 < len(points) else end_ns
+        if t_next <= t:
+            continue
+        mode = MODE_TO_NAME.get(m)
+        if mode is None:
+            raise BagError(f"recorded Command at t={t * 1e-9:g}s has unknown mode {m}")
+        if segments and segments[-1]["command"] == c and segments[-1]["mode"] == mode:
+            segments[-1]["duration_s"] = round(segments[-1]["duration_s"] + (t_next - t) * 1e-9, 9)
+            continue
+        segments.append({"kind": "step", "duration_s": round((t_next - t) * 1e-9, 9), "command": c,
+                         "mode": mode})
+    return {"name": name, "description": "Command timeline replayed from a recorded bag", "segments": segments}
+
+
+def _recorded_config(info: dict, bag_path) -> dict:
+    text = info.get("config_text")
+    if not text:
+        raise BagError("the bag has no recorded config (session_info.config_text); give --config", bag_path)
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError:
+        raise BagError("the recorded config is not valid YAML", bag_path) from None
+    if not isinstance(doc, dict) or not isinstance((doc.get("/**") or {}).get("ros__parameters"), dict):
+        raise BagError("the recorded config has no '/**: ros__parameters:' section", bag_path)
+    return doc
+
+
+def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded") -> dict:
+    """Write the replay's profile and config into out_dir; returns their paths + facts."""
+    from bike_plant.config import ConfigError, load_config
+
+    if load not in ("recorded", "config"):
+        raise ValueError(f"load must be 'recorded' or 'config', got {load!r}")
+    bag_path = pathlib.Path(bag_path)
+    timeline, info = command_timeline(bag_path)
+    duration_s = float(info.get("duration_s") or 0.0) or timeline[-1][0] * 1e-9
+    recorded = _recorded_config(info, bag_path) if (config is None or load == "recorded") else None
+    if config is not None:
+        path = pathlib.Path(config).resolve()
+        load_config(path)                                 # one clear ConfigError if it is bad
+        try:
+            doc = yaml.safe_load(path.read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"cannot read config: {exc}", path) from None
+        base_dir = path.parent
+    else:
+        doc = recorded
+        base_dir = pathlib.Path(info.get("config_path") or ".").parent
+    params = doc["/**"]["ros__parameters"]
+    if load == "recorded":
+        rec_load = recorded["/**"]["ros__parameters"].get("load")
+        if rec_load is not None:
+            params["load"] = rec_load
+    # relative paths in the config (none needed now, but keep them resolvable)
+    params.setdefault("session", {})
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = f"replay_{bag_path.name}"
+    profile_path = out_dir / f"{stem}_profile.yaml"
+    config_path = out_dir / f"{stem}_config.yaml"
+    profile = profile_from_timeline(timeline, duration_s, f"replay of {bag_path.name}")
+    profile_path.write_text(yaml.safe_dump(profile, sort_keys=False))
+    params["session"]["profile"] = str(profile_path.resolve())
+    if "period_s" in info:
+        params["session"]["period_s"] = float(info["period_s"])
+    params["duration_s"] = duration_s
+    header = (f"# Replay of {bag_path.resolve()} ({'recorded' if config is None else config} bike, "
+              f"{load} load); written by ./bike replay\n")
+    config_path.write_text(header + yaml.safe_dump(doc, sort_keys=False))
+    load_config(config_path)
+    return {"profile": profile_path, "config": config_path, "duration_s": duration_s,
+            "commands": len(timeline), "segments": len(profile["segments"]), "base_dir": str(base_dir)}
+
+
+def main(argv: list[str]) -> int:
+    """``bike replay BAG [--config OTHER] [--load recorded|config] [--record DIR]``."""
+    import argparse
+    import sys
+
+    from bike_plant.config import ConfigError
+
+    ap = argparse.ArgumentParser(prog="bike replay", description=__doc__.split("\n\n")[0])
+    ap.add_argument("bag")
+    ap.add_argument("--config", help="the bike to ride it on (default: the recorded config)")
+    ap.add_argument("--load", choices=["recorded", "config"], default="recorded",
+                    help="rider / load: the recorded one (default) or the one of --config")
+    ap.add_argument("--record", default="runs", metavar="DIR", help="where the new bag goes (default runs/)")
+    ap.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
+    opts = ap.parse_args(argv)
+    try:
+        prep = prepare(opts.bag, opts.record, opts.config, opts.load)
+    except (BagError, ConfigError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"[bike] replaying {prep['commands']} Commands ({prep['segments']} steps, {prep['duration_s']:g} s) "
+          f"of {opts.bag} with {prep['config']}", flush=True)
+    from bike_session import cli
+    return cli.main(["run", "--config", str(prep["config"]), "--duration", repr(prep["duration_s"]),
+                     "--record", opts.record, "--storage", opts.storage])
