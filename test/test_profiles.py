@@ -226,3 +226,47 @@ def test_profile_error_is_value_error_and_text_source():
         parse_profile_text("segments: nope", source="inline")
     p = parse_profile_text("segments:\n  - {kind: step, duration_s: 1, command: 0.1}\n")
     assert isinstance(p, Profile) and p.text.startswith("segments")
+
+
+def test_targets_in_each_modes_unit(tmp_path):
+    from bike_session.profiles import ModeUnits, load_profile
+
+    units = ModeUnits(erg_power_max_w=1000.0, grade_min=-0.2, grade_max=0.2, cadence_min_rpm=20.0,
+                      cadence_max_rpm=120.0)
+    path = write(tmp_path, name="t.yaml", text="""
+segments:
+  - {kind: step, duration_s: 1, mode: erg, target: 250}
+  - {kind: step, duration_s: 1, mode: slope, target: -5}
+  - {kind: ramp, duration_s: 2, mode: isokinetic, start_target: 40, end_target: 90}
+  - {kind: step, duration_s: 1, mode: resistance, command: 0.3}
+""")
+    prof = load_profile(path, units=units)
+    assert prof.command_at(0.5)[:2] == (pytest.approx(0.25), MODES["erg"])
+    assert prof.command_at(1.5)[:2] == (pytest.approx(0.375), MODES["slope"])       # (-0.05 + 0.2) / 0.4
+    assert prof.command_at(2.0)[0] == pytest.approx(0.2) and prof.command_at(3.0)[0] == pytest.approx(0.45)
+    assert prof.command_at(4.5)[:2] == (0.3, MODES["resistance"])
+    # without the bike's ranges a target cannot be ridden
+    with pytest.raises(ProfileError, match=r"segments\[0\]\.target: a target needs the bike's ranges"):
+        load_profile(path)
+    bad = [("{kind: step, duration_s: 1, mode: erg, target: 1500}", r"segments\[0\]\.target: .*outside .*\[0, 1000\] W"),
+           ("{kind: step, duration_s: 1, mode: slope, target: 25}", r"outside .*\[-20, 20\] % grade"),
+           ("{kind: step, duration_s: 1, mode: resistance, target: 3}", "no target unit"),
+           ("{kind: step, duration_s: 1, mode: erg, target: 100, command: 0.1}", "not both"),
+           ("{kind: step, duration_s: 1, mode: erg}", "missing key 'command'")]
+    for seg, words in bad:
+        p = write(tmp_path, f"segments:\n  - {seg}\n", "bad.yaml")
+        with pytest.raises(ProfileError, match=words):
+            load_profile(p, units=units)
+
+
+def test_mode_units_follow_the_config():
+    from bike_plant.config import load_config
+    from bike_session.profiles import mode_units_from_config
+
+    cfg = load_config(ROOT / "config" / "bldc_default.yaml")
+    u = mode_units_from_config(cfg)
+    assert u.erg_power_max_w == cfg["controller"]["pmax_w"]
+    cfg["modes"] = {"erg_power_max_w": 600.0, "grade_max": 0.1}
+    u = mode_units_from_config(cfg)
+    assert u.erg_power_max_w == 600.0 and u.grade_max == 0.1
+    assert load_profile(ROOT / "config" / "profiles" / "all_modes.yaml", units=u).duration_s == 20.0

@@ -41,3 +41,28 @@ def test_a_bad_workout_file_starts_nothing(tmp_path, bad, ros_domain):
     assert result.returncode == 2
     assert result.stderr.count("error:") == 1 and bad in result.stderr, result.stderr
     assert not any(tmp_path.iterdir()), "no bag, no node started"
+
+
+@pytest.mark.slow
+def test_every_mode_in_the_node_graph(tmp_path, ros_domain):
+    """config/profiles/all_modes.yaml: resistance, ERG, slope up, isokinetic, slope down,
+    ridden by the rider model through plant, controller and session processes."""
+    root = DATA.parents[2]
+    result = bike_command("run", "--workout", str(root / "config/profiles/all_modes.yaml"), "--record", str(tmp_path))
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    bag = next(p for p in tmp_path.iterdir() if p.is_dir())
+    states = read_topic(bag, "plant_state")
+    status = read_topic(bag, "controller_status")
+
+    def window(msgs, t0, t1):
+        return [m for m in msgs if t0 <= m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 < t1]
+
+    modes = [window(status, 4 * k + 3, 4 * k + 4) for k in range(5)]
+    assert [{s.mode for s in w} for w in modes] == [{0}, {2}, {3}, {4}, {3}]
+    erg = window(states, 7, 8)
+    assert np.mean([-m.torque_em_nm * m.speed_rad_s for m in erg]) == pytest.approx(180.0, rel=0.05)
+    assert modes[2][0].mode_target == pytest.approx(0.04)
+    iso = window(states, 15, 16)
+    assert np.mean([m.speed_rpm for m in iso]) / 35.0 == pytest.approx(70.0, abs=1.5)
+    assert not any(s.mode_saturated for w in modes for s in w)
+    assert all(m.faults == 0 for m in states)

@@ -102,7 +102,7 @@ def _load_workout_for_run(opts, cfg):
     """Read the workout once before anything starts: a bad file is one error, nothing runs."""
     import warnings
 
-    from bike_session.profiles import ProfileError
+    from bike_session.profiles import ProfileError, mode_units_from_config
     from bike_session.workouts import WorkoutWarning, describe, load_workout, pmax_w_from_config
 
     if opts.ftp is not None and not (0 < opts.ftp <= 2000):
@@ -111,8 +111,9 @@ def _load_workout_for_run(opts, cfg):
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", WorkoutWarning)
-            workout = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=pmax_w_from_config(cfg))
-    except ProfileError as exc:
+            workout = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=pmax_w_from_config(cfg),
+                                   units=mode_units_from_config(cfg))
+    except (ProfileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return None
     print(describe(workout), flush=True)

@@ -24,8 +24,13 @@ Segment kinds
   repeat     ``repeat``, ``segments`` (a list of any segments, nesting allowed);
              optional ``mode``/``label`` inherited by the children
 
-Modes are names (``resistance``, ``motoring``) mapped to the bike_msgs/Command constants
-by :data:`MODES`. Commands are in [0, 1]. A profile compiles into a flat list of leaf
+Modes are names (``resistance``, ``motoring``, ``erg``, ``slope``, ``isokinetic``) mapped
+to the bike_msgs/Command constants by :data:`MODES`. Commands are in [0, 1]. Instead of a
+command, a step may give ``target`` and a ramp ``start_target`` / ``end_target`` in the
+mode's own unit: W (erg), grade in % (slope), crank rpm (isokinetic); they are turned
+into commands with the bike's ranges (:class:`ModeUnits`, from the config's ``modes`` and
+``controller`` sections), so such a profile needs the config (``./bike run`` passes it).
+A target outside the bike's range is an error, never clamped. A profile compiles into a flat list of leaf
 segments; :meth:`Profile.command_at` is a pure function of time. Every problem raises
 :class:`ProfileError` naming the file, the element (``segments[1].on.command``) and the
 reason. Files are parsed with ``yaml.safe_load`` only. No rclpy import here.
@@ -53,18 +58,57 @@ KINDS = ("step", "ramp", "intervals", "repeat")
 
 _COMMON = {"kind", "mode", "label"}
 _KEYS = {
-    "step": _COMMON | {"duration_s", "command"},
-    "ramp": _COMMON | {"duration_s", "start", "end"},
+    "step": _COMMON | {"duration_s", "command", "target"},
+    "ramp": _COMMON | {"duration_s", "start", "end", "start_target", "end_target"},
     "intervals": _COMMON | {"repeat", "on", "off"},
     "repeat": _COMMON | {"repeat", "segments"},
 }
 _REQUIRED = {
-    "step": ("duration_s", "command"),
-    "ramp": ("duration_s", "start", "end"),
+    "step": ("duration_s",),
+    "ramp": ("duration_s",),
     "intervals": ("repeat", "on", "off"),
     "repeat": ("repeat", "segments"),
 }
 _TOP_KEYS = {"name", "description", "mode", "segments"}
+
+
+@dataclasses.dataclass(frozen=True)
+class ModeUnits:
+    """The bike's ranges that map a mode's target to a Command in [0, 1] (the inverse of
+    bike_controller.modes: P = C * erg_power_max_w, grade = min + C (max - min), ...)."""
+
+    erg_power_max_w: float
+    grade_min: float
+    grade_max: float
+    cadence_min_rpm: float
+    cadence_max_rpm: float
+
+    def to_command(self, mode: int, target: float) -> tuple[float, str]:
+        """(command, unit) for a target of ``mode``; ValueError when out of range."""
+        if mode == MODES["erg"]:
+            lo, hi, unit, value = 0.0, self.erg_power_max_w, "W", target
+            c = value / hi
+        elif mode == MODES["slope"]:
+            lo, hi, unit, value = 100 * self.grade_min, 100 * self.grade_max, "% grade", target
+            c = (value / 100 - self.grade_min) / (self.grade_max - self.grade_min)
+        elif mode == MODES["isokinetic"]:
+            lo, hi, unit, value = self.cadence_min_rpm, self.cadence_max_rpm, "rpm", target
+            c = (value - lo) / (hi - lo)
+        else:
+            raise ValueError(f"mode {MODE_NAMES.get(mode, mode)} has no target unit: give 'command' (0..1)")
+        if not lo - 1e-9 <= value <= hi + 1e-9:
+            raise ValueError(f"target {target!r} {unit} outside this bike's range [{lo:g}, {hi:g}] {unit}")
+        return min(max(c, 0.0), 1.0), unit
+
+
+def mode_units_from_config(cfg: Mapping) -> ModeUnits:
+    """ModeUnits of a loaded config (bike_plant.config.load_config)."""
+    from bike_controller.modes import mode_params_from_config
+
+    mp = mode_params_from_config(cfg)
+    pmax = float((cfg.get("controller") or {}).get("pmax_w", 0.0) or 0.0)
+    return ModeUnits(mp.erg_power_max_w or pmax, mp.grade_min, mp.grade_max, mp.isokinetic_cadence_min_rpm,
+                     mp.isokinetic_cadence_max_rpm)
 
 
 class ProfileError(ValueError):
@@ -163,7 +207,7 @@ class Profile:
 # --------------------------------------------------------------------------- parsing
 
 
-def load_profile(path: str | os.PathLike) -> Profile:
+def load_profile(path: str | os.PathLike, units: ModeUnits | None = None) -> Profile:
     """Read and compile a profile file; ProfileError for any problem (nothing starts)."""
     path = pathlib.Path(path)
     try:
@@ -180,10 +224,11 @@ def load_profile(path: str | os.PathLike) -> Profile:
         raise ProfileError("not a text file (not UTF-8)", path) from None
     except OSError as exc:
         raise ProfileError(f"cannot read profile ({exc.strerror})", path) from None
-    return parse_profile_text(text, source=str(path), default_name=path.stem)
+    return parse_profile_text(text, source=str(path), default_name=path.stem, units=units)
 
 
-def parse_profile_text(text: str, source: str = "<profile>", default_name: str = "profile") -> Profile:
+def parse_profile_text(text: str, source: str = "<profile>", default_name: str = "profile",
+                       units: ModeUnits | None = None) -> Profile:
     """Compile profile YAML text (``yaml.safe_load``)."""
     if len(text.encode("utf-8", "surrogatepass")) > MAX_PROFILE_BYTES:
         raise ProfileError(f"profile too large (> {MAX_PROFILE_BYTES} bytes)", source)
@@ -195,12 +240,13 @@ def parse_profile_text(text: str, source: str = "<profile>", default_name: str =
         raise ProfileError(f"not valid YAML{line}: {getattr(exc, 'problem', None) or exc}", source) from None
     except RecursionError:
         raise ProfileError("YAML nested too deeply", source) from None
-    profile = parse_profile(doc, source=source, default_name=default_name)
+    profile = parse_profile(doc, source=source, default_name=default_name, units=units)
     profile.text = text
     return profile
 
 
-def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "profile") -> Profile:
+def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "profile",
+                  units: ModeUnits | None = None) -> Profile:
     """Compile an already-parsed profile document (a mapping)."""
     if not isinstance(doc, Mapping):
         raise ProfileError(f"expected a mapping with 'segments', got {_tname(doc)}", source)
@@ -215,7 +261,7 @@ def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "prof
     mode = _mode(doc["mode"], source, "mode") if "mode" in doc else MODES["resistance"]
     if "segments" not in doc:
         raise ProfileError("missing key 'segments'", source)
-    builder = _Builder(source)
+    builder = _Builder(source, units)
     builder.segment_list(doc["segments"], "segments", mode, None, 0, "")
     if not builder.leaves:
         raise ProfileError("a profile needs at least one segment", source, "segments")
@@ -223,8 +269,9 @@ def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "prof
 
 
 class _Builder:
-    def __init__(self, source: str):
+    def __init__(self, source: str, units: ModeUnits | None = None):
         self.source = source
+        self.units = units
         self.leaves: list[Segment] = []
         self.t = 0.0
 
@@ -267,10 +314,10 @@ class _Builder:
             if duration <= 0:
                 raise self.err(f"{where}.duration_s", f"must be > 0, got {seg['duration_s']!r}")
             if kind == "step":
-                start = end = self.command(seg["command"], f"{where}.command")
+                start = end = self.value(seg, "command", "target", mode, where)
             else:
-                start = self.command(seg["start"], f"{where}.start")
-                end = self.command(seg["end"], f"{where}.end")
+                start = self.value(seg, "start", "start_target", mode, where)
+                end = self.value(seg, "end", "end_target", mode, where)
             if len(self.leaves) >= MAX_LEAF_SEGMENTS:
                 raise self.err(where, f"profile expands to more than {MAX_LEAF_SEGMENTS} segments")
             self.leaves.append(Segment(len(self.leaves), where + rep, self.t, duration, start, end, mode,
@@ -300,6 +347,23 @@ class _Builder:
         if not math.isfinite(value):
             raise self.err(where, f"must be finite, got {value!r}")
         return float(value)
+
+    def value(self, seg, key, target_key, mode, where) -> float:
+        """The command of ``seg[key]``, or of ``seg[target_key]`` in the mode's unit."""
+        if key in seg and target_key in seg:
+            raise self.err(where, f"give either '{key}' or '{target_key}', not both")
+        if key in seg:
+            return self.command(seg[key], f"{where}.{key}")
+        if target_key not in seg:
+            raise self.err(where, f"missing key '{key}' (command 0..1) or '{target_key}' (in the mode's unit)")
+        target = self.number(seg[target_key], f"{where}.{target_key}")
+        if self.units is None:
+            raise self.err(f"{where}.{target_key}", "a target needs the bike's ranges: ride the profile with "
+                                                    "./bike run (which passes the config)")
+        try:
+            return self.units.to_command(mode, target)[0]
+        except ValueError as exc:
+            raise self.err(f"{where}.{target_key}", str(exc)) from None
 
     def command(self, value, where) -> float:
         x = self.number(value, where)

@@ -107,6 +107,19 @@ def build_session_info(profile: Profile, profile_path: pathlib.Path, config_path
     }
 
 
+def _units(config_path: str):
+    """The bike's mode ranges for profile targets (None without a config)."""
+    if not config_path:
+        return None
+    from bike_plant.config import ConfigError, load_config
+
+    from bike_session.profiles import mode_units_from_config
+    try:
+        return mode_units_from_config(load_config(config_path))
+    except (ConfigError, ValueError) as exc:
+        raise SetupError(f"bad config: {exc}") from None
+
+
 def _make_node_class():
     # rclpy is imported lazily so that the module's helpers import without ROS.
     from rcl_interfaces.msg import ParameterDescriptor
@@ -148,7 +161,7 @@ def _make_node_class():
             else:
                 profile_path = resolve_profile_path(p["session.profile"], config_path)
                 try:
-                    self.profile = load_profile(profile_path)
+                    self.profile = load_profile(profile_path, units=_units(config_path))
                 except ProfileError as exc:
                     raise SetupError(f"bad profile: {exc}") from None
 
@@ -205,7 +218,7 @@ def _make_node_class():
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", WorkoutWarning)     # logged below, once each
                     profile = load_workout(path, ftp_w=p["session.ftp_w"] or None, pmax_w=pmax_w,
-                                           over_range=p["session.over_range"])
+                                           over_range=p["session.over_range"], units=_units(config_path))
             except (ProfileError, ConfigError) as exc:
                 raise SetupError(f"bad workout: {exc}") from None
             for text in getattr(profile, "warnings", []):

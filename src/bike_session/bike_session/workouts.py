@@ -210,8 +210,9 @@ def pmax_w_from_config(cfg: Mapping) -> float:
 def load_workout(path: str | os.PathLike, *, ftp_w: float | None = None, pmax_w: float | None = None,
                  mode: str = "erg", over_range: str = "warn", use_file_ftp: bool = False,
                  freeride_command: float = DEFAULT_FREERIDE_COMMAND,
-                 maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND) -> Profile:
-    """Read a workout (.zwo/.erg/.mrc, or a .yaml profile) into a Profile; WorkoutError on any problem."""
+                 maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND, units=None) -> Profile:
+    """Read a workout (.zwo/.erg/.mrc, or a .yaml profile) into a Profile; WorkoutError on any problem.
+    ``units`` (profiles.ModeUnits) lets a .yaml profile give targets in W / % / rpm."""
     path = pathlib.Path(path)
     fmt = FORMATS.get(path.suffix.lower())
     if fmt is None:
@@ -220,7 +221,7 @@ def load_workout(path: str | os.PathLike, *, ftp_w: float | None = None, pmax_w:
         raise WorkoutError(f"unsupported workout extension {path.suffix or '(none)'!r}{extra}; "
                            f"expected one of {known}", path)
     if fmt == "yaml":
-        return load_profile(path)
+        return load_profile(path, units=units)
     data = read_bounded(path)
     return parse_workout_bytes(data, fmt, source=str(path), default_name=path.stem, ftp_w=ftp_w, pmax_w=pmax_w,
                                mode=mode, over_range=over_range, use_file_ftp=use_file_ftp,
