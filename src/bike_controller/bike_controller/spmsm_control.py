@@ -1,0 +1,936 @@
+"""SPMSM speed and current control of paper 001 (sections 3-5) and an offline closed-loop runner.
+
+Two controller families, selected by ``controller.family``, same telemetry:
+
+* predictive (paper 001, Eq. 7-24 speed, Eq. 25-65 current): incremental one-step models
+  from the zero-order-hold discretisation,
+      x(k+1) = x(k) + a dx(k) + b du(k),
+  one-step cost J = (x*(k+1) - x(k+1))^2 + r du(k)^2, dJ/du = 0 gives
+      du(k) = b (x*(k+1) - x(k) - a dx(k)) / (b^2 + r),     u(k) = u(k-1) + du(k).
+  Speed loop (1 ms): x = w [rad/s], u = iq* [A], a = exp(-B Ts/J), b = Kt (1 - a)/B.
+  Current loops (100 us): x = id, iq [A], u = the decoupled voltages (Eq. 29-30)
+      v'd = vd + we Lq iq,   v'q = vq - we (Ld id + lambda),
+  a = exp(-R T/L), b = (1 - a)/R; the coupling terms are added back (Eq. 62-63) when the
+  voltage is formed. (a, b) come from bike_plant.spmsm.zoh_* with the NOMINAL parameters:
+  the predictor's model is the plant's model code.
+  With beta = b^2/(b^2 + r) the closed loop (ideal inner loop, a ~ 1) has the poles of
+  z^2 - (1 - beta)(1 + a) z + a (1 - beta): beta = 1 (r = 0) is dead-beat, small beta is
+  slow AND lightly damped (zeta ~ sqrt(beta)/2: the law is an I-P controller with Kp/Ki =
+  a T). Defaults (simulated compromise, see SpmsmControllerParams): beta = 0.15 for the
+  speed loop, whose loop also holds the speed measurement and the current loop, and
+  beta = 0.7 for the current loops.
+* pi: velocity-form PI controllers on the same discrete plants, tuned by pole placement:
+  for x(k+1) = a x(k) + b u(k) and u(k) = u(k-1) + Kp (e(k) - e(k-1)) + Ki T e(k) the
+  characteristic polynomial (z - 1)(z - a) + b (Kp (z - 1) + Ki T z) is set to (z - p)^2,
+  p = exp(-2 pi f T):  Kp = (a - p^2)/b,  Ki T = (1 - p)^2/b.
+
+Anti-windup (both families): u(k-1) is always the APPLIED (limited) value: the speed loop
+integrates onto the iq* the region logic let through, the current loops onto the voltage
+the modulator could make (back-computed through the decoupling). The voltage command is
+limited along the segment from the steady-state voltage of the present currents
+(:func:`limit_voltage`), so saturation never removes the back-EMF compensation; and when
+the current loop was voltage limited during a speed period, the speed loop continues from
+the measured iq instead of the reference the current loop could not deliver (cascade
+anti-windup; without it the speed loop winds up in flux weakening, where the voltage
+headroom and with it the torque slew rate are small, and limit-cycles through MTPV).
+
+Operating regions (paper 001, section 5, Fig. 5-7) by :func:`current_reference`, with the
+stator resistance kept in the voltage limit (Rs = 6.84 ohm is 6x we L at 180 r/min; the
+paper's R-free Eq. 68-71 would be badly wrong here). In the dq current plane (Ld = Lq) the
+steady-state voltage limit |(R + j we L) i + j we lambda| <= Vlim is a disc with centre
+-j we lambda/(R + j we L) (-> -lambda/Ld, the characteristic current, as R/(we L) -> 0)
+and radius Vlim/|R + j we L|; the current limit is the disc |i| <= Imax. For the demanded
+iq (torque, Eq. 8) the reference is the point of the feasible set on the line iq = iq*
+with id closest to 0:
+  constant torque (id = 0 feasible, region 0), flux weakening (id < 0, region 1: the
+  advance angle beta = atan(-id/iq) grows with speed, Fig. 7b);
+and if iq* is not reachable, the feasible point of extreme iq: the current-limited top of
+the current disc (region 0, constant torque at Imax), the intersection of the two circles
+(region 1, current and voltage limited: constant power), or the top of the voltage disc
+(region 2, MTPV: id fixed by the voltage disc, iq reduced, Fig. 7c). The reference is a
+continuous function of (iq*, speed, Vdc) - the extreme point of a strictly convex set moves
+continuously - so region boundaries cause no torque step or current spike.
+Vlim = voltage_margin * (Vdc/sqrt(3) for SVPWM, Vdc/2 for sine-triangle) leaves the
+current loops headroom; a slow voltage feedback lowers it while the current loop saturates
+(dead time and parameter errors cost voltage the model does not know about) and lets it
+recover afterwards. ``flux_weakening: false`` keeps id = 0 (paper Fig. 19).
+
+Measurement: phase currents sampled at the period start (carrier valley), Clarke/Park with
+the encoder angle (count + 1/2 count, x4 decoding of 2500 lines). Speed (the paper does not
+say how it measured it): by default a speed observer run every 100 us, driven by the encoder
+angle error with the measured torque Kt iq fed forward through the nominal J and B (triple
+pole at ``observer_pole_hz``); or (``speed_estimator: mt``) the M/T method at 1 ms: counts
+between the last edges of two samples over their capture-timer time difference. The M/T
+estimate is half a sample old and, below ~20 r/min, arrives every few ms: the paper's
+one-step speed law (zeta = sqrt(beta)/2, see above) limit-cycles on it at 2-10 r/min,
+while the observer holds 2 r/min within 0.02 r/min.
+
+Generating (relay on the rectifier path): the braking torque demand sets the buck duty by
+inverting the rectifier's steady state (bike_plant.spmsm.rectifier_steady_state).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from bike_plant import bldc as _bldc
+from bike_plant import spmsm as M
+from bike_plant.config import ConfigError, build_dataclass, require_positive, section
+from bike_plant.params import RPM_PER_RAD_S, TWO_PI
+
+_bldc.invalidate_stale_numba_cache(__file__, [M.__file__])
+
+FAMILIES = ("predictive", "pi")
+JIT = M.JIT
+SQRT3 = math.sqrt(3.0)
+
+REGION_CONSTANT_TORQUE = 0
+REGION_FLUX_WEAKENING = 1
+REGION_MTPV = 2
+LIMIT_CURRENT = 1     # torque demand cut by the current limit
+LIMIT_VOLTAGE = 2     # ... by the voltage limit
+
+
+@dataclass
+class SpmsmControllerParams:
+    """controller: section of an SPMSM config (paper 001, sections 3-5, 7).
+
+    Weights (SI units: speed in rad/s, current in A, voltage in V):
+    speed_weight_r [(rad/s)^2/A^2] = 0.068 -> beta_s = b^2/(b^2 + r) = 0.15 (b = 0.11 rad/s per A);
+    current_weight_r [A^2/V^2] = 4.2e-5 -> beta_c = 0.70 (b = 0.00985 A/V).
+    beta_s = 0.15 was chosen by simulation: larger values limit-cycle once the measurement
+    delay (M/T estimate, ~half a speed sample) and the current loop are in the loop, smaller
+    ones ring (zeta = sqrt(beta)/2) and recover more slowly.
+    PI poles: double real poles at pi_speed_pole_hz / pi_current_pole_hz (see module doc).
+    """
+    family: str = "predictive"
+    speed_loop_periods: int = 10          # 1 ms speed loop / 100 us current loop (section 7)
+    speed_weight_r: float = 0.068
+    current_weight_r: float = 4.2e-5
+    pi_speed_pole_hz: float = 1.5
+    pi_current_pole_hz: float = 200.0
+    current_limit_a: float = 15.0
+    voltage_margin: float = 0.95
+    flux_weakening: bool = True
+    angle_compensation: bool = True       # inverse Park at the period's mid angle
+    speed_estimator: str = "observer"     # observer | mt (M/T method from the encoder capture)
+    observer_pole_hz: float = 15.0        # triple pole of the speed observer
+    speed_delay_compensation: bool = False  # mt only: extrapolate the M/T estimate by half a sample
+    speed_ref0_rpm: float = 0.0
+    brake_torque0_nm: float = 0.0
+    model: str = "nominal"
+
+    def validate(self) -> None:
+        if self.family not in FAMILIES:
+            raise ValueError(f"family must be one of {', '.join(FAMILIES)}, got {self.family!r}")
+        require_positive(self, "speed_loop_periods", "pi_speed_pole_hz", "pi_current_pole_hz", "current_limit_a",
+                         "voltage_margin")
+        if self.speed_weight_r < 0 or self.current_weight_r < 0:
+            raise ValueError("speed_weight_r and current_weight_r must be >= 0")
+        if self.voltage_margin > 1.0:
+            raise ValueError(f"voltage_margin must be in (0, 1], got {self.voltage_margin!r}")
+        if self.model not in ("nominal", "actual"):
+            raise ValueError(f"model must be 'nominal' or 'actual', got {self.model!r}")
+        if self.speed_estimator not in ("observer", "mt"):
+            raise ValueError(f"speed_estimator must be 'observer' or 'mt', got {self.speed_estimator!r}")
+        require_positive(self, "observer_pole_hz")
+        if self.brake_torque0_nm < 0:
+            raise ValueError("brake_torque0_nm must be >= 0")
+
+
+def controller_params_from_config(cfg: dict) -> SpmsmControllerParams:
+    path = cfg.get("_config_path")
+    return build_dataclass(SpmsmControllerParams, section(cfg, "controller", path), "controller", path)
+
+
+def pi_gains_pole_placement(a: float, b: float, pole_hz: float, dt_s: float) -> tuple[float, float]:
+    """(Kp, Ki*T) of the velocity-form PI for x(k+1) = a x(k) + b u(k), double pole at
+    z = exp(-2 pi pole_hz T) (see module docstring)."""
+    pz = math.exp(-TWO_PI * pole_hz * dt_s)
+    return (a - pz * pz) / b, (1.0 - pz) ** 2 / b
+
+
+@njit(**JIT)
+def predictive_increment(x_ref_next, x, dx, a, b, r):
+    """Closed form of min over du of (x* - (x + a dx + b du))^2 + r du^2 (Eq. 22-23, 58-61)."""
+    return b * (x_ref_next - x - a * dx) / (b * b + r)
+
+
+# ---- controller parameter vector / state layout ----------------------------------------
+(Q_FAMILY, Q_DT, Q_NS, Q_TS, Q_AC, Q_BC, Q_AS, Q_BS, Q_RC, Q_RS, Q_KPC, Q_KIC, Q_KPS, Q_KIS, Q_PP, Q_R, Q_L,
+ Q_LAM, Q_KT, Q_IMAX, Q_VMARGIN, Q_VDC, Q_VMAX_FACTOR, Q_MODULATION, Q_FW, Q_CPR, Q_FCAP, Q_BUCK_V, Q_LINK_MAX,
+ Q_RECT_DIODE_V, Q_ANGLE_COMP, Q_GC, Q_GS, Q_FAMILY_CURRENT, Q_DELAY_COMP, Q_OBSERVER, Q_OBS_L1, Q_OBS_L2, Q_OBS_L3,
+ Q_JN, Q_BN) = range(41)
+Q_SIZE = 44
+
+(C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
+ C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
+ C_VQP_PREV, C_ED_PREV, C_EQ_PREV, C_VD, C_VQ, C_REGION, C_LIMITS, C_TORQUE_EST, C_ADVANCE, C_RELAY_REQ,
+ C_BUCK_DUTY, C_BRAKE_T, C_DA, C_DB, C_DC, C_CUR_ACTIVE, C_SPEED_ACTIVE, C_THETA_E, C_COS, C_SIN, C_CNT,
+ C_HAVE_ANGLE, C_VSAT, C_SPEED_RAW_PREV, C_OBS_TH, C_OBS_W, C_OBS_D, C_OBS_INIT, C_DV) = range(47)
+C_SIZE = 48
+
+
+def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
+    """Controller parameters + the nominal model's ZOH coefficients (from bike_plant.spmsm)."""
+    q = np.zeros(Q_SIZE)
+    m = nominal.spmsm
+    dt = nominal.control_period_s
+    ts = dt * cp.speed_loop_periods
+    r = m.rs_ohm * m.rs_scale
+    ind = m.inductance_h * m.inductance_scale
+    lam = m.flux_linkage_vs * m.flux_scale
+    kt = 1.5 * m.pole_pairs * lam
+    ac, bc = M.zoh_current_coefficients(r, ind, dt)
+    a_s, b_s = M.zoh_speed_coefficients(kt, nominal.mech.inertia_kgm2, nominal.mech.friction_nms, ts)
+    kpc, kic = pi_gains_pole_placement(ac, bc, cp.pi_current_pole_hz, dt)
+    kps, kis = pi_gains_pole_placement(a_s, b_s, cp.pi_speed_pole_hz, ts)
+    q[Q_FAMILY] = FAMILIES.index(cp.family)            # speed loop
+    q[Q_FAMILY_CURRENT] = FAMILIES.index(cp.family)    # current loops (same family; split for studies)
+    q[Q_DT] = dt
+    q[Q_NS] = cp.speed_loop_periods
+    q[Q_TS] = ts
+    q[Q_AC], q[Q_BC], q[Q_AS], q[Q_BS] = ac, bc, a_s, b_s
+    q[Q_RC], q[Q_RS] = cp.current_weight_r, cp.speed_weight_r
+    q[Q_KPC], q[Q_KIC], q[Q_KPS], q[Q_KIS] = kpc, kic, kps, kis
+    q[Q_PP], q[Q_R], q[Q_L], q[Q_LAM], q[Q_KT] = m.pole_pairs, r, ind, lam, kt
+    q[Q_IMAX] = cp.current_limit_a
+    q[Q_VMARGIN] = cp.voltage_margin
+    q[Q_VDC] = nominal.inverter.dc_link_v
+    q[Q_MODULATION] = M.MODULATIONS.index(nominal.inverter.modulation)
+    q[Q_VMAX_FACTOR] = 1.0 / SQRT3 if nominal.inverter.modulation == "svpwm" else 0.5
+    q[Q_FW] = 1.0 if cp.flux_weakening else 0.0
+    q[Q_CPR] = nominal.encoder.counts_per_rev
+    q[Q_FCAP] = nominal.encoder.capture_timer_hz
+    q[Q_BUCK_V] = nominal.regen.buck_output_v
+    q[Q_LINK_MAX] = nominal.regen.link_max_v
+    q[Q_RECT_DIODE_V] = nominal.regen.diode_drop_v
+    q[Q_ANGLE_COMP] = 1.0 if cp.angle_compensation else 0.0
+    # predictive gains b / (b^2 + r) of the closed form (predictive_increment), precomputed
+    q[Q_GC] = bc / (bc * bc + cp.current_weight_r)
+    q[Q_GS] = b_s / (b_s * b_s + cp.speed_weight_r)
+    q[Q_DELAY_COMP] = 1.0 if cp.speed_delay_compensation else 0.0
+    q[Q_OBSERVER] = 1.0 if cp.speed_estimator == "observer" else 0.0
+    q[Q_OBS_L1], q[Q_OBS_L2], q[Q_OBS_L3] = observer_gains(cp.observer_pole_hz, dt)
+    q[Q_JN] = nominal.mech.inertia_kgm2
+    q[Q_BN] = nominal.mech.friction_nms
+    return q
+
+
+def observer_gains(pole_hz: float, dt_s: float) -> tuple[float, float, float]:
+    """Gains L of the speed observer (states: angle, speed, disturbance acceleration; the
+    measured torque Kt iq is fed forward): x(k|k) = x(k|k-1) + L (theta_enc - theta(k|k-1)),
+    x(k+1|k) = F x(k|k) + G Te/J. The error dynamics F (I - L C) get a triple pole at
+    z = exp(-2 pi pole_hz T) (Ackermann on the pair (F, C F))."""
+    h = dt_s
+    f = np.array([[1.0, h, 0.5 * h * h], [0.0, 1.0, h], [0.0, 0.0, 1.0]])
+    c = np.array([[1.0, 0.0, 0.0]])
+    z = math.exp(-TWO_PI * pole_hz * h)
+    # F (I - L C) = F - (F L) C: place the poles of F - K C with K = F L (predictor form)
+    obs = np.vstack([c, c @ f, c @ f @ f])
+    pf = np.linalg.matrix_power(f - z * np.eye(3), 3)
+    k = pf @ np.linalg.solve(obs, np.array([0.0, 0.0, 1.0]))
+    gain = np.linalg.solve(f, k)
+    return float(gain[0]), float(gain[1]), float(gain[2])
+
+
+# =======================================================================================
+# operating regions (section 5)
+# =======================================================================================
+@njit(**JIT)
+def current_reference(iq_dem, we, vlim, imax, r, l_h, lam, fw):
+    """(id*, iq*, region, limits) for the demanded iq at electrical speed we (module doc)."""
+    z = complex(r, we * l_h)
+    z2 = r * r + (we * l_h) ** 2
+    c = complex(0.0, -we * lam) / z          # voltage-disc centre [A]
+    rho = vlim / math.sqrt(z2)               # voltage-disc radius [A]
+    cd = c.real
+    cq = c.imag
+    if fw == 0.0:
+        # id = 0 only: the chord of the voltage disc on the q axis, within +-Imax
+        h2 = rho * rho - cd * cd
+        if h2 < 0.0:
+            return 0.0, min(max(cq, -imax), imax), REGION_CONSTANT_TORQUE, LIMIT_VOLTAGE
+        h = math.sqrt(h2)
+        lo = max(-imax, cq - h)
+        hi = min(imax, cq + h)
+        if lo > hi:
+            return 0.0, min(max(cq, -imax), imax), REGION_CONSTANT_TORQUE, LIMIT_VOLTAGE | LIMIT_CURRENT
+        iq = min(max(iq_dem, lo), hi)
+        lim = 0
+        if iq != iq_dem:
+            bound = hi if iq_dem > hi else lo
+            lim = LIMIT_CURRENT if abs(bound) >= imax else LIMIT_VOLTAGE
+        return 0.0, iq, REGION_CONSTANT_TORQUE, lim
+    # the line iq = iq* inside both discs: id closest to 0
+    if abs(iq_dem) <= imax and abs(iq_dem - cq) <= rho:
+        wi = math.sqrt(imax * imax - iq_dem * iq_dem)
+        wv = math.sqrt(rho * rho - (iq_dem - cq) ** 2)
+        lo = max(-wi, cd - wv)
+        hi = min(wi, cd + wv)
+        if lo <= hi:
+            idr = min(max(0.0, lo), hi)
+            return idr, iq_dem, REGION_CONSTANT_TORQUE if idr == 0.0 else REGION_FLUX_WEAKENING, 0
+    # not reachable: the feasible point of extreme iq in the demanded direction
+    sgn = 1.0 if iq_dem >= 0.0 else -1.0
+    dist = abs(c)
+    if dist >= imax + rho:
+        # the discs do not meet (over speed): least-voltage current within the limit
+        if dist > 0.0:
+            return cd / dist * imax, cq / dist * imax, REGION_MTPV, LIMIT_VOLTAGE | LIMIT_CURRENT
+        return 0.0, 0.0, REGION_MTPV, LIMIT_VOLTAGE | LIMIT_CURRENT
+    best_q = -1e300
+    bid = 0.0
+    biq = 0.0
+    breg = REGION_MTPV
+    blim = LIMIT_VOLTAGE
+    tol = 1e-12 * (1.0 + imax * imax)
+    # (1) extreme of the voltage disc (MTPV) if within the current limit
+    qv = cq + sgn * rho
+    if cd * cd + qv * qv <= imax * imax + tol:
+        best_q = sgn * qv
+        bid = cd
+        biq = qv
+        breg = REGION_MTPV
+        blim = LIMIT_VOLTAGE
+    # (2) extreme of the current disc (constant torque at Imax) if within the voltage limit
+    qi = sgn * imax
+    if cd * cd + (qi - cq) ** 2 <= rho * rho + tol and sgn * qi > best_q:
+        best_q = sgn * qi
+        bid = 0.0
+        biq = qi
+        breg = REGION_CONSTANT_TORQUE
+        blim = LIMIT_CURRENT
+    # (3) intersections of the circles (current and voltage limited: constant power)
+    if dist > abs(imax - rho) and dist > 0.0:
+        a = (imax * imax - rho * rho + dist * dist) / (2.0 * dist)
+        h = math.sqrt(max(imax * imax - a * a, 0.0))
+        ux = cd / dist
+        uy = cq / dist
+        for sg in (1.0, -1.0):
+            px = a * ux - sg * h * uy
+            py = a * uy + sg * h * ux
+            if sgn * py > best_q:
+                best_q = sgn * py
+                bid = px
+                biq = py
+                breg = REGION_FLUX_WEAKENING if px < 0.0 else REGION_CONSTANT_TORQUE
+                blim = LIMIT_CURRENT | LIMIT_VOLTAGE
+    return bid, biq, breg, blim
+
+
+def steady_state_max_speed_rpm(q: np.ndarray, load_torque_nm: float = 0.0, flux_weakening: bool = True,
+                               voltage_margin: float = 1.0, speed_limit_rpm: float = 5000.0) -> float:
+    """Highest speed at which the region logic (same voltage and current limits, steady
+    state) still delivers the torque load_torque_nm + B w, with the full modulator voltage
+    times voltage_margin. Bisection on the speed; q from :func:`pack_controller`."""
+    vlim = voltage_margin * q[Q_VMAX_FACTOR] * q[Q_VDC]
+
+    def feasible(rpm):
+        w = rpm / RPM_PER_RAD_S
+        need = (load_torque_nm + q[Q_BN] * w) / q[Q_KT]
+        _, iq, _, _ = current_reference(need, q[Q_PP] * w, vlim, q[Q_IMAX], q[Q_R], q[Q_L], q[Q_LAM],
+                                        1.0 if flux_weakening else 0.0)
+        return iq >= need - 1e-9
+
+    lo, hi = 0.0, speed_limit_rpm
+    if not feasible(lo):
+        return 0.0
+    if feasible(hi):
+        return hi
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if feasible(mid):
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@njit(**JIT)
+def brake_torque_nm(vlink, we, q):
+    """Braking torque (>= 0 opposes the rotation) of the machine on the rectifier at link vlink."""
+    vr = M.rectifier_voltage(vlink, q[Q_RECT_DIODE_V])
+    i = M.rectifier_steady_state(vr, we, q[Q_R], q[Q_L], q[Q_LAM])
+    te = 1.5 * q[Q_PP] * q[Q_LAM] * i.imag
+    return -te if we >= 0.0 else te
+
+
+@njit(**JIT)
+def buck_duty_for_brake_torque(t_brake, we, q):
+    """Buck duty D = Vbus / Vlink that makes the rectifier brake with t_brake (steady state);
+    clipped to the range the hardware has (D = 1: strongest braking)."""
+    vbus = q[Q_BUCK_V]
+    vmax = q[Q_LINK_MAX]
+    if t_brake <= 0.0 or brake_torque_nm(vmax, we, q) >= t_brake:
+        return vbus / vmax
+    if brake_torque_nm(vbus, we, q) <= t_brake:
+        return 1.0
+    lo = vbus
+    hi = vmax
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        if brake_torque_nm(mid, we, q) > t_brake:
+            lo = mid
+        else:
+            hi = mid
+    return vbus / (0.5 * (lo + hi))
+
+
+# =======================================================================================
+# the control law
+# =======================================================================================
+@njit(**JIT)
+def modulate(valpha, vbeta, vdc, modulation):
+    """(alpha, beta) voltage -> duty cycles: SVPWM (min-max common mode) or sine-triangle."""
+    va = valpha
+    vb = -0.5 * valpha + 0.5 * SQRT3 * vbeta
+    vc = -0.5 * valpha - 0.5 * SQRT3 * vbeta
+    off = 0.0
+    if modulation == 0.0:
+        off = -0.5 * (max(va, vb, vc) + min(va, vb, vc))
+    g = 1.0 / vdc
+    da = min(max(0.5 + (va + off) * g, 0.0), 1.0)
+    db = min(max(0.5 + (vb + off) * g, 0.0), 1.0)
+    dc = min(max(0.5 + (vc + off) * g, 0.0), 1.0)
+    return da, db, dc
+
+
+@njit(**JIT)
+def limit_voltage(vd, vq, id_a, iq_a, we, vmax, q):
+    """Keep the voltage command inside the modulator's circle |v| <= vmax by shortening it
+    along the segment from the steady-state voltage of the present currents,
+    v_ss = (R + j we L) i + j we lambda (bike_plant.spmsm.steady_state_voltage), towards the
+    command. The back-EMF compensation is kept and only the dynamic part is cut: a plain
+    d-axis-first clip would, in flux weakening, leave vq ~ 0 against a 15 V back-EMF and
+    drive iq (and the torque) the wrong way. If even v_ss is out of reach, scale radially."""
+    v2 = vd * vd + vq * vq
+    if v2 <= vmax * vmax:
+        return vd, vq
+    vs = M.steady_state_voltage(id_a, iq_a, we, q[Q_R], q[Q_L], q[Q_LAM])
+    s2 = vs.real * vs.real + vs.imag * vs.imag
+    if s2 >= vmax * vmax:
+        g = vmax / math.sqrt(v2)
+        return vd * g, vq * g
+    # |vs + alpha (v - vs)| = vmax, alpha in (0, 1)
+    dx = vd - vs.real
+    dy = vq - vs.imag
+    a2 = dx * dx + dy * dy
+    b1 = vs.real * dx + vs.imag * dy
+    alpha = (-b1 + math.sqrt(b1 * b1 + a2 * (vmax * vmax - s2))) / a2
+    return vs.real + alpha * dx, vs.imag + alpha * dy
+
+
+@njit(**JIT)
+def speed_sample(cs, q, meas):
+    """M/T speed estimate from the encoder count and the last edge's capture time."""
+    cpr = q[Q_CPR]
+    fcap = q[Q_FCAP]
+    cnt = meas[M.S_COUNT]
+    et = meas[M.S_EDGE_TICKS]
+    now = math.floor(meas[M.S_PERIODS] * (q[Q_DT] * fcap))
+    if cs[C_HAVE_REF] == 0.0:
+        cs[C_REF_COUNT] = cnt
+        cs[C_REF_TICKS] = et if cnt != 0.0 or et != 0.0 else now
+        cs[C_HAVE_REF] = 1.0
+        return
+    if cnt != cs[C_REF_COUNT] and et > cs[C_REF_TICKS]:
+        cs[C_SPEED_EST] = (cnt - cs[C_REF_COUNT]) * TWO_PI / cpr * fcap / (et - cs[C_REF_TICKS])
+        cs[C_REF_COUNT] = cnt
+        cs[C_REF_TICKS] = et
+    else:
+        elapsed = now - cs[C_REF_TICKS]
+        if elapsed > 0.0:
+            bound = TWO_PI / cpr * fcap / elapsed
+            if abs(cs[C_SPEED_EST]) > bound:
+                cs[C_SPEED_EST] = bound if cs[C_SPEED_EST] > 0.0 else -bound
+
+
+@njit(**JIT)
+def observer_update(cs, q, meas, iq_a):
+    """Speed observer, once per current period: correct with the encoder angle (count + 1/2
+    count), then predict one period with the measured torque Kt iq (nominal Kt, J, B; pass
+    iq_a = 0 for a pure tracking filter)."""
+    th_meas = (meas[M.S_COUNT] + 0.5) * TWO_PI / q[Q_CPR]
+    if cs[C_OBS_INIT] == 0.0:
+        cs[C_OBS_TH] = th_meas
+        cs[C_OBS_W] = cs[C_SPEED_EST]
+        cs[C_OBS_D] = 0.0
+        cs[C_OBS_INIT] = 1.0
+    e = th_meas - cs[C_OBS_TH]
+    th = cs[C_OBS_TH] + q[Q_OBS_L1] * e
+    w = cs[C_OBS_W] + q[Q_OBS_L2] * e
+    d = cs[C_OBS_D] + q[Q_OBS_L3] * e
+    cs[C_SPEED_EST] = w
+    h = q[Q_DT]
+    acc = (q[Q_KT] * iq_a - q[Q_BN] * w) / q[Q_JN] + d
+    cs[C_OBS_TH] = th + h * w + 0.5 * h * h * acc
+    cs[C_OBS_W] = w + h * acc
+    cs[C_OBS_D] = d
+
+
+@njit(**JIT)
+def speed_loop(cs, q):
+    """Speed controller (1 ms) + region logic -> (id*, iq*)."""
+    w = cs[C_SPEED_EST]
+    # the M/T estimate is the mean speed over the last sample, i.e. half a sample old:
+    # optionally extrapolate it to now with the last change (delay compensation)
+    w_raw = w
+    if q[Q_OBSERVER] == 0.0:
+        w = w + 0.5 * q[Q_DELAY_COMP] * (w_raw - cs[C_SPEED_RAW_PREV])
+    cs[C_SPEED_RAW_PREV] = w_raw
+    if cs[C_SPEED_ACTIVE] == 0.0:
+        cs[C_IQ_REF_PREV] = 0.0
+        cs[C_SPEED_PREV] = w
+        cs[C_E_SPEED_PREV] = cs[C_SPEED_REF] - w
+        cs[C_SPEED_ACTIVE] = 1.0
+    e = cs[C_SPEED_REF] - w
+    # voltage feedback on the region logic: while the current loop saturates, the planning
+    # voltage drops (0.2 V per fully saturated ms), else it recovers (0.02 V per ms). It
+    # absorbs what the model does not know (dead time, parameter error) and keeps the
+    # references reachable; it moves slowly, so the references stay continuous.
+    vmax_mod = q[Q_VMAX_FACTOR] * q[Q_VDC]
+    dv = cs[C_DV] + 0.2 * cs[C_VSAT] / q[Q_NS] - 0.02
+    cs[C_DV] = min(max(dv, 0.0), 0.3 * vmax_mod)
+    if cs[C_VSAT] > 0.0:
+        # the current loop was voltage limited during the last speed period: continue from
+        # the iq it delivered, not from the reference it could not reach (cascade anti-windup)
+        iqm = cs[C_IQ]
+        iqp = cs[C_IQ_REF_PREV]
+        if (iqp > iqm and iqp > 0.0) or (iqp < iqm and iqp < 0.0):
+            cs[C_IQ_REF_PREV] = iqm
+    cs[C_VSAT] = 0.0
+    if q[Q_FAMILY] == 0.0:
+        # predictive_increment(w*(k+1), w, dw, a, b, r) with b / (b^2 + r) precomputed
+        du = q[Q_GS] * (cs[C_SPEED_REF_NEXT] - w - q[Q_AS] * (w - cs[C_SPEED_PREV]))
+    else:
+        du = q[Q_KPS] * (e - cs[C_E_SPEED_PREV]) + q[Q_KIS] * e
+    iq_dem = cs[C_IQ_REF_PREV] + du
+    vlim = q[Q_VMARGIN] * vmax_mod - cs[C_DV]
+    idr, iqr, reg, lim = current_reference(iq_dem, q[Q_PP] * w, vlim, q[Q_IMAX], q[Q_R], q[Q_L], q[Q_LAM],
+                                           q[Q_FW])
+    cs[C_IQ_DEMAND] = iq_dem
+    cs[C_ID_REF] = idr
+    cs[C_IQ_REF] = iqr
+    cs[C_IQ_REF_PREV] = iqr         # anti-windup: integrate onto what was let through
+    cs[C_REGION] = reg
+    cs[C_LIMITS] = lim
+    cs[C_ADVANCE] = math.atan2(-idr, abs(iqr)) if (idr != 0.0 or iqr != 0.0) else 0.0
+    cs[C_SPEED_PREV] = w
+    cs[C_E_SPEED_PREV] = e
+
+
+@njit(**JIT)
+def control_period(cs, q, meas):
+    """One 100 us period of the control law from the measurable part of a plant state vector
+    (phase currents, encoder count / edge time, period counter, relay state). Returns
+    (da, db, dc, relay_request, buck_duty)."""
+    relay = meas[M.S_RELAY]
+    # currents in the encoder frame; the angle's sincos is tracked by small rotations as the
+    # count moves (exact sincos every 64 periods and on large jumps)
+    pp = q[Q_PP]
+    cnt = meas[M.S_COUNT]
+    th = pp * (cnt + 0.5) * TWO_PI / q[Q_CPR]
+    dth = pp * (cnt - cs[C_CNT]) * TWO_PI / q[Q_CPR]
+    if cs[C_HAVE_ANGLE] == 0.0 or (int(meas[M.S_PERIODS]) & 63) == 0 or abs(dth) > 0.5:
+        c = math.cos(th)
+        s = math.sin(th)
+        cs[C_HAVE_ANGLE] = 1.0
+    elif dth != 0.0:
+        e = M._rot_small(complex(cs[C_COS], -cs[C_SIN]), dth)      # exp(-j th)
+        c = e.real
+        s = -e.imag
+    else:
+        c = cs[C_COS]
+        s = cs[C_SIN]
+    cs[C_COS] = c
+    cs[C_SIN] = s
+    cs[C_CNT] = cnt
+    ial = (2.0 * meas[M.S_IA] - meas[M.S_IB] - meas[M.S_IC]) * (1.0 / 3.0)
+    ibe = (meas[M.S_IB] - meas[M.S_IC]) * (1.0 / SQRT3)
+    idm = ial * c + ibe * s
+    iqm = -ial * s + ibe * c
+    cs[C_ID] = idm
+    cs[C_IQ] = iqm
+    cs[C_THETA_E] = th
+    if q[Q_OBSERVER] != 0.0:
+        # torque feed-forward only while the inverter controls the machine; on the rectifier
+        # path the observer is a pure encoder tracking filter (a stiff prime mover would
+        # otherwise make every braking-torque change look like an acceleration)
+        inv = relay == M.REL_INVERTER or (relay == M.REL_DRAIN and meas[M.S_RELAY_FROM] == M.REL_INVERTER)
+        observer_update(cs, q, meas, iqm if inv else 0.0)
+    ns = q[Q_NS]
+    if cs[C_SUB] == 0.0:
+        if q[Q_OBSERVER] == 0.0:
+            speed_sample(cs, q, meas)
+        if relay == M.REL_INVERTER:
+            speed_loop(cs, q)
+        else:
+            cs[C_SPEED_ACTIVE] = 0.0
+            if relay == M.REL_RECTIFIER:
+                cs[C_BUCK_DUTY] = buck_duty_for_brake_torque(cs[C_BRAKE_T], q[Q_PP] * cs[C_SPEED_EST], q)
+    sub = cs[C_SUB] + 1.0
+    cs[C_SUB] = 0.0 if sub >= ns else sub            # (no integer modulo in the hot path)
+    cs[C_TORQUE_EST] = 1.5 * pp * q[Q_LAM] * iqm
+    draining = relay == M.REL_DRAIN and meas[M.S_RELAY_FROM] == M.REL_INVERTER
+    if draining:
+        # relay switch-over pending: the inverter drives the current to zero first
+        cs[C_ID_REF] = 0.0
+        cs[C_IQ_REF] = 0.0
+        cs[C_SPEED_ACTIVE] = 0.0
+    elif relay != M.REL_INVERTER:
+        cs[C_CUR_ACTIVE] = 0.0
+        cs[C_ID_PREV] = idm
+        cs[C_IQ_PREV] = iqm
+        cs[C_VD] = 0.0
+        cs[C_VQ] = 0.0
+        cs[C_DA] = 0.5
+        cs[C_DB] = 0.5
+        cs[C_DC] = 0.5
+        return 0.5, 0.5, 0.5, cs[C_RELAY_REQ], cs[C_BUCK_DUTY]
+    r = q[Q_R]
+    lh = q[Q_L]
+    we = pp * cs[C_SPEED_EST]
+    if cs[C_CUR_ACTIVE] == 0.0:
+        # bumpless start: decoupled voltages of the measured steady state, no increments
+        cs[C_VDP_PREV] = r * idm
+        cs[C_VQP_PREV] = r * iqm
+        cs[C_ID_PREV] = idm
+        cs[C_IQ_PREV] = iqm
+        cs[C_ED_PREV] = cs[C_ID_REF] - idm
+        cs[C_EQ_PREV] = cs[C_IQ_REF] - iqm
+        cs[C_CUR_ACTIVE] = 1.0
+    ed = cs[C_ID_REF] - idm
+    eq = cs[C_IQ_REF] - iqm
+    if q[Q_FAMILY_CURRENT] == 0.0:
+        # predictive_increment(i*, i, di, a, b, r) with b / (b^2 + r) precomputed
+        dvd = q[Q_GC] * (ed - q[Q_AC] * (idm - cs[C_ID_PREV]))
+        dvq = q[Q_GC] * (eq - q[Q_AC] * (iqm - cs[C_IQ_PREV]))
+    else:
+        dvd = q[Q_KPC] * (ed - cs[C_ED_PREV]) + q[Q_KIC] * ed
+        dvq = q[Q_KPC] * (eq - cs[C_EQ_PREV]) + q[Q_KIC] * eq
+    # coupling terms added back (Eq. 62-63): vd = v'd - we L iq, vq = v'q + we (L id + lambda)
+    cpl_d = -we * lh * iqm
+    cpl_q = we * (lh * idm + q[Q_LAM])
+    vd = cs[C_VDP_PREV] + dvd + cpl_d
+    vq = cs[C_VQP_PREV] + dvq + cpl_q
+    vmax = q[Q_VMAX_FACTOR] * q[Q_VDC]
+    if vd * vd + vq * vq > vmax * vmax:
+        vd, vq = limit_voltage(vd, vq, idm, iqm, we, vmax, q)
+        cs[C_VSAT] += 1.0
+    cs[C_VDP_PREV] = vd - cpl_d          # anti-windup: the applied voltage, decoupled
+    cs[C_VQP_PREV] = vq - cpl_q
+    cs[C_ID_PREV] = idm
+    cs[C_IQ_PREV] = iqm
+    cs[C_ED_PREV] = ed
+    cs[C_EQ_PREV] = eq
+    cs[C_VD] = vd
+    cs[C_VQ] = vq
+    if q[Q_ANGLE_COMP] != 0.0:
+        rot = M._rot_small(complex(c, -s), -0.5 * we * q[Q_DT]).conjugate()   # exp(j (th + we T / 2))
+        ca = rot.real
+        sa = rot.imag
+    else:
+        ca = c
+        sa = s
+    da, db, dc = modulate(vd * ca - vq * sa, vd * sa + vq * ca, q[Q_VDC], q[Q_MODULATION])
+    cs[C_DA] = da
+    cs[C_DB] = db
+    cs[C_DC] = dc
+    return da, db, dc, cs[C_RELAY_REQ], cs[C_BUCK_DUTY]
+
+
+def init_controller_state(q: np.ndarray, cp: SpmsmControllerParams, meas: np.ndarray | None = None) -> np.ndarray:
+    """Controller memory. With a measured plant state, the drive is taken as already running
+    (speed estimate = the true speed, bumpless current loops)."""
+    cs = np.zeros(C_SIZE)
+    w0 = cp.speed_ref0_rpm / RPM_PER_RAD_S
+    cs[C_SPEED_REF] = w0
+    cs[C_SPEED_REF_NEXT] = w0
+    cs[C_BRAKE_T] = cp.brake_torque0_nm
+    cs[C_BUCK_DUTY] = q[Q_BUCK_V] / q[Q_LINK_MAX]
+    if meas is not None:
+        cs[C_SPEED_EST] = meas[M.S_OMEGA]
+    return cs
+
+
+# telemetry (ControllerStatus-like), identical for both families
+STATUS_FIELDS = ("speed_est_rpm", "speed_ref_rpm", "id_a", "iq_a", "id_ref_a", "iq_ref_a", "iq_demand_a", "vd_v",
+                 "vq_v", "region", "limits", "torque_est_nm", "advance_angle_rad", "relay_request", "buck_duty")
+
+
+def status_of(cs: np.ndarray) -> dict:
+    return {
+        "speed_est_rpm": float(cs[C_SPEED_EST] * RPM_PER_RAD_S),
+        "speed_ref_rpm": float(cs[C_SPEED_REF] * RPM_PER_RAD_S),
+        "id_a": float(cs[C_ID]), "iq_a": float(cs[C_IQ]),
+        "id_ref_a": float(cs[C_ID_REF]), "iq_ref_a": float(cs[C_IQ_REF]), "iq_demand_a": float(cs[C_IQ_DEMAND]),
+        "vd_v": float(cs[C_VD]), "vq_v": float(cs[C_VQ]),
+        "region": int(cs[C_REGION]), "limits": int(cs[C_LIMITS]),
+        "torque_est_nm": float(cs[C_TORQUE_EST]), "advance_angle_rad": float(cs[C_ADVANCE]),
+        "relay_request": int(cs[C_RELAY_REQ]), "buck_duty": float(cs[C_BUCK_DUTY]),
+    }
+
+
+@njit(**JIT)
+def control_batch(cs, q, model, p_nom, duties, relay, buck, ws):
+    """N periods answering one measured state: the control law runs on the state predicted
+    with the controller's own copy of the plant kernel (nominal parameters; the caller sets
+    the model's load to hold the measured speed), ARCHITECTURE.md batched inner loop."""
+    n = duties.shape[0]
+    for k in range(n):
+        da, db, dc, rr, bd = control_period(cs, q, model)
+        duties[k, 0] = da
+        duties[k, 1] = db
+        duties[k, 2] = dc
+        relay[k] = rr
+        buck[k] = bd
+        M.step_period(model, p_nom, da, db, dc, rr, bd, ws)
+
+
+class SpmsmController:
+    """The SPMSM control law without ROS: per-period kernel + batched prediction."""
+
+    def __init__(self, cfg: dict, nominal_params: M.SpmsmPlantParams | None = None, family: str | None = None,
+                 batch_periods: int | None = None):
+        cp = controller_params_from_config(cfg)
+        if family is not None:
+            if family not in FAMILIES:
+                raise ValueError(f"family must be one of {', '.join(FAMILIES)}, got {family!r}")
+            cp.family = family
+        self.cp = cp
+        self.nominal = nominal_params if nominal_params is not None else M.nominal_params_from_config(cfg)
+        self.q = pack_controller(cp, self.nominal)
+        self.p = M.pack_params(self.nominal)
+        self.p[M.P_LOAD_KIND] = M.LOAD_PRIME_MOVER     # prediction: shaft speed held at the measured value
+        n = batch_periods if batch_periods is not None else cfg.get("batch_periods", cp.speed_loop_periods)
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ConfigError(f"must be an integer >= 1, got {n!r}", cfg.get("_config_path"), "batch_periods")
+        self.batch_periods = n
+        self.cs = init_controller_state(self.q, cp)
+        self.model = None
+        self.ws = np.zeros(M.WS_SIZE)
+
+    def reset_from(self, plant_state: np.ndarray) -> None:
+        """Start as an already running drive at the plant's state (offline runs)."""
+        self.cs = init_controller_state(self.q, self.cp, plant_state)
+
+    def set_speed_ref(self, speed_rpm: float, next_speed_rpm: float | None = None) -> None:
+        """Speed command; the predictive law's cost uses the reference one speed sample ahead."""
+        for v in (speed_rpm, next_speed_rpm):
+            if v is not None and not math.isfinite(v):
+                raise ValueError(f"speed reference must be finite, got {v!r}")
+        self.cs[C_SPEED_REF] = speed_rpm / RPM_PER_RAD_S
+        self.cs[C_SPEED_REF_NEXT] = (speed_rpm if next_speed_rpm is None else next_speed_rpm) / RPM_PER_RAD_S
+
+    def set_relay(self, rectifier: bool) -> None:
+        self.cs[C_RELAY_REQ] = 1.0 if rectifier else 0.0
+
+    def set_brake_torque(self, torque_nm: float) -> None:
+        if not (math.isfinite(torque_nm) and torque_nm >= 0.0):
+            raise ValueError(f"brake torque must be finite and >= 0, got {torque_nm!r}")
+        self.cs[C_BRAKE_T] = float(torque_nm)
+
+    def decide(self, plant_state: np.ndarray, n: int | None = None):
+        """N periods of (duties N x 3, relay request N, buck duty N) answering a measured
+        plant state vector (layout bike_plant.spmsm.S_*), + status."""
+        n = self.batch_periods if n is None else int(n)
+        self.model = np.array(plant_state, dtype=np.float64, copy=True)
+        self.model[M.S_SPEED_TARGET] = self.model[M.S_OMEGA]
+        duties = np.zeros((n, 3))
+        relay = np.zeros(n)
+        buck = np.zeros(n)
+        control_batch(self.cs, self.q, self.model, self.p, duties, relay, buck, self.ws)
+        return duties, relay, buck, status_of(self.cs)
+
+    def status(self) -> dict:
+        return status_of(self.cs)
+
+
+# =======================================================================================
+# offline closed loop
+# =======================================================================================
+REC_FIELDS = ("t", "speed_rpm", "speed_est_rpm", "speed_ref_rpm", "id", "iq", "id_ref", "iq_ref", "iq_demand",
+              "vd", "vq", "ia", "ib", "ic", "torque", "torque_est", "load_torque", "region", "limits", "relay",
+              "buck_duty", "battery_current", "advance_angle", "iterations")
+(R_T, R_SPEED, R_SPEED_EST, R_SPEED_REF, R_ID, R_IQ, R_ID_REF, R_IQ_REF, R_IQ_DEM, R_VD, R_VQ, R_IA, R_IB, R_IC,
+ R_TORQUE, R_TORQUE_EST, R_TLOAD, R_REGION, R_LIMITS, R_RELAY, R_BUCK, R_IBATT, R_ADV, R_ITER) = range(len(REC_FIELDS))
+N_REC = len(REC_FIELDS)
+
+
+@njit(**JIT)
+def run_kernel(plant, p, cs, q, k0, k1, ref_w, tl, relay_req, brake_t, rec, rec_every, ws):
+    """Closed loop for periods k0..k1-1 (global indices): per speed sample j = k // Ns the
+    references ref_w[j] (and ref_w[j+1] for the predictive cost), dynamometer torque tl[j]
+    (NaN: the plant's configured load), relay request and brake torque; records one row
+    every rec_every periods (the state after the period)."""
+    ns = int(q[Q_NS])
+    # speed-sample index and phase, record row and phase: counters, not integer division
+    j = k0 // ns
+    sub = k0 - j * ns
+    r = k0 // rec_every if rec_every > 0 else 0
+    rsub = k0 - r * rec_every if rec_every > 0 else 1
+    for k in range(k0, k1):
+        if sub == 0:
+            cs[C_SPEED_REF] = ref_w[j]
+            cs[C_SPEED_REF_NEXT] = ref_w[j + 1]
+            cs[C_RELAY_REQ] = relay_req[j]
+            cs[C_BRAKE_T] = brake_t[j]
+            if not math.isnan(tl[j]):
+                plant[M.S_TEXT] = -tl[j]
+        da, db, dc, rr, bd = control_period(cs, q, plant)
+        M.step_period(plant, p, da, db, dc, rr, bd, ws)
+        sub += 1
+        if sub == ns:
+            sub = 0
+            j += 1
+        if rsub == 0:
+            if r < rec.shape[0]:
+                rec[r, R_T] = plant[M.S_PERIODS] * p[M.P_DT]
+                rec[r, R_SPEED] = plant[M.S_OMEGA] * 9.549296585513721
+                rec[r, R_SPEED_EST] = cs[C_SPEED_EST] * 9.549296585513721
+                rec[r, R_SPEED_REF] = cs[C_SPEED_REF] * 9.549296585513721
+                rec[r, R_ID] = plant[M.S_ID]
+                rec[r, R_IQ] = plant[M.S_IQ]
+                rec[r, R_ID_REF] = cs[C_ID_REF]
+                rec[r, R_IQ_REF] = cs[C_IQ_REF]
+                rec[r, R_IQ_DEM] = cs[C_IQ_DEMAND]
+                rec[r, R_VD] = cs[C_VD]
+                rec[r, R_VQ] = cs[C_VQ]
+                rec[r, R_IA] = plant[M.S_IA]
+                rec[r, R_IB] = plant[M.S_IB]
+                rec[r, R_IC] = plant[M.S_IC]
+                rec[r, R_TORQUE] = plant[M.S_TEM]
+                rec[r, R_TORQUE_EST] = cs[C_TORQUE_EST]
+                rec[r, R_TLOAD] = plant[M.S_TLOAD]
+                rec[r, R_REGION] = cs[C_REGION]
+                rec[r, R_LIMITS] = cs[C_LIMITS]
+                rec[r, R_RELAY] = plant[M.S_RELAY]
+                rec[r, R_BUCK] = cs[C_BUCK_DUTY]
+                rec[r, R_IBATT] = plant[M.S_IBATT]
+                rec[r, R_ADV] = cs[C_ADVANCE]
+                rec[r, R_ITER] = plant[M.S_ITER]
+            r += 1
+        if rec_every > 0:
+            rsub += 1
+            if rsub == rec_every:
+                rsub = 0
+
+
+def _sample_fn(fn, t: np.ndarray, default: float, name: str) -> np.ndarray:
+    """Evaluate fn on the sample times: vectorised if fn accepts an array, else per sample."""
+    if fn is None:
+        return np.full(t.shape, float(default))
+    if not callable(fn):
+        return np.full(t.shape, float(fn))
+    try:
+        out = np.asarray(fn(t), dtype=np.float64)
+        if out.shape != t.shape:
+            raise ValueError
+    except Exception:
+        out = np.array([float(fn(float(x))) for x in t])
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name} returned a non-finite value")
+    return out
+
+
+def _relay_value(v) -> float:
+    if isinstance(v, str):
+        if v not in ("inverter", "rectifier"):
+            raise ValueError(f"relay must be 'inverter' or 'rectifier', got {v!r}")
+        return 1.0 if v == "rectifier" else 0.0
+    return 1.0 if float(v) >= 0.5 else 0.0
+
+
+def run_spmsm_offline(cfg: dict, duration_s: float, speed_ref_fn=None, load_fn=None, controller: str = "predictive",
+                      switching: bool = False, *, relay_fn=None, brake_torque_fn=None, load_hook=None,
+                      record_every: int = 1, plant_params: M.SpmsmPlantParams | None = None,
+                      nominal_params: M.SpmsmPlantParams | None = None) -> dict:
+    """Plant + controller closed loop without ROS (per-period loop, fused in numba).
+
+    speed_ref_fn(t) -> speed command [r/min] (None: controller.speed_ref0_rpm);
+    load_fn(t) -> dynamometer torque TL [N m] of Eq. 3 (positive opposes rotation; None:
+    the config's load); both are sampled once per speed-loop period (1 ms), vectorised when
+    they accept arrays. relay_fn(t) -> 0 / 'inverter' or 1 / 'rectifier'; brake_torque_fn(t)
+    -> braking torque demand [N m] on the rectifier path. load_hook(t, speed_rad_s, dt_s) ->
+    torque on the shaft (accelerating positive), state dependent, called every 1 ms.
+    controller: 'predictive' | 'pi'; switching: the switching inverter model (else average).
+
+    Returns a dict of numpy arrays named by REC_FIELDS (one row every `record_every`
+    periods), plus 'ledger', 'plant', 'controller', 'wall_s'.
+    """
+    if not (isinstance(duration_s, (int, float)) and duration_s > 0 and math.isfinite(duration_s)):
+        raise ValueError(f"duration_s must be > 0, got {duration_s!r}")
+    if controller not in FAMILIES:
+        raise ValueError(f"controller must be one of {', '.join(FAMILIES)}, got {controller!r}")
+    if load_fn is not None and load_hook is not None:
+        raise ValueError("give load_fn (a dynamometer torque profile) or load_hook (state dependent), not both")
+    params = plant_params or M.plant_params_from_config(cfg)
+    if switching:
+        params.inverter.model = "switching"
+    elif plant_params is None:
+        params.inverter.model = "average"
+    plant = M.SpmsmPlant(params, load_hook=load_hook)
+    if load_fn is not None:
+        plant.p[M.P_LOAD_KIND] = M.LOAD_HOOK
+    ctrl = SpmsmController(cfg, nominal_params, family=controller)
+    ctrl.reset_from(plant.state)
+    q = ctrl.q
+    dt = params.control_period_s
+    ns = int(q[Q_NS])
+    n_periods = int(math.ceil(duration_s / dt - 1e-9))
+    n_speed = n_periods // ns + 2
+    ts = np.arange(n_speed + 1) * (dt * ns)
+    ref_w = _sample_fn(speed_ref_fn, ts, ctrl.cp.speed_ref0_rpm, "speed_ref_fn") / RPM_PER_RAD_S
+    tl = np.full(n_speed + 1, np.nan) if load_fn is None else _sample_fn(load_fn, ts, 0.0, "load_fn")
+    if relay_fn is None:
+        relay = np.zeros(n_speed + 1)
+    else:
+        relay = np.array([_relay_value(relay_fn(float(x))) for x in ts])
+    brake = _sample_fn(brake_torque_fn, ts, ctrl.cp.brake_torque0_nm, "brake_torque_fn")
+    if np.any(brake < 0):
+        raise ValueError("brake_torque_fn must return values >= 0")
+    record_every = max(int(record_every), 1)
+    rec = np.zeros((n_periods // record_every + 1, N_REC))
+    ws = np.zeros(M.WS_SIZE)
+    t_wall = time.perf_counter()
+    if load_hook is None:
+        run_kernel(plant.state, plant.p, ctrl.cs, q, 0, n_periods, ref_w, tl, relay, brake, rec, record_every, ws)
+    else:
+        for k0 in range(0, n_periods, ns):
+            plant.before_batch(ns)
+            run_kernel(plant.state, plant.p, ctrl.cs, q, k0, min(k0 + ns, n_periods), ref_w, tl, relay, brake, rec,
+                       record_every, ws)
+    wall = time.perf_counter() - t_wall
+    n_rec = (n_periods - 1) // record_every + 1
+    out = {name: rec[:n_rec, i].copy() for i, name in enumerate(REC_FIELDS)}
+    out["ledger"] = plant.ledger()
+    out["plant"] = plant
+    out["controller"] = ctrl
+    out["wall_s"] = wall
+    return out
+
+
+def harmonic_amplitudes(t_s: np.ndarray, x: np.ndarray, f0_hz: float, n_harmonics: int = 15) -> np.ndarray:
+    """Amplitudes of harmonics 1..n of x(t) (uniform samples), by correlation over the
+    longest whole number of fundamental periods at the end of the record."""
+    t_s = np.asarray(t_s, dtype=np.float64)
+    x = np.asarray(x, dtype=np.float64)
+    n_per = int(math.floor((t_s[-1] - t_s[0]) * f0_hz + 1e-9))
+    if n_per < 1:
+        raise ValueError("the record is shorter than one fundamental period")
+    sel = t_s >= t_s[-1] - n_per / f0_hz + 0.5 * (t_s[1] - t_s[0])
+    tt, xx = t_s[sel], x[sel]
+    return np.array([2.0 * abs(np.mean(xx * np.exp(-2j * math.pi * h * f0_hz * tt)))
+                     for h in range(1, n_harmonics + 1)])
+
+
+def thd_percent(t_s: np.ndarray, x: np.ndarray, f0_hz: float, up_to: int = 15) -> float:
+    """Total harmonic distortion [%] from the 2nd to the `up_to`-th harmonic (paper 001,
+    Fig. 15b/16b: up to the 15th). f0 = pp * speed_rpm / 60 for a phase current."""
+    a = harmonic_amplitudes(t_s, x, f0_hz, up_to)
+    return float(100.0 * math.sqrt(float(np.sum(a[1:] ** 2))) / a[0])

@@ -1,0 +1,1326 @@
+"""SPMSM bike (paper 001): dq machine model, inverter, relay + rectifier/buck/charger path, shaft.
+
+Everything that runs once per 100 us control period is a numba kernel
+(``@njit(**JIT)``); the controller's predictor and its region
+logic call the same functions with the nominal parameter vector (ARCHITECTURE.md).
+
+Machine (paper 001, Eq. 1-6; section 6 parameters), rotor (dq) frame, motor convention:
+    vd = Rs id + Ld did/dt - we Lq iq
+    vq = Rs iq + Lq diq/dt + we Ld id + we lambda
+    Te = 1.5 pp (lambda iq + (Ld - Lq) id iq),   J dwm/dt = Te - B wm - TL,   we = pp wm
+Surface magnets: Ld = Lq = L (one ``inductance_h``), so Te = 1.5 pp lambda iq.
+
+Conventions (documented because the paper does not state them):
+- dq is the amplitude-invariant Park transform (dq magnitudes are phase peak values), so
+  the 1.5 of Eq. 2 holds and ``flux_linkage_vs`` = 0.122 V s/rad is the PEAK phase flux
+  linkage of the magnets per electrical radian. Back-EMF at 200 r/min: 15.3 V phase peak,
+  26.6 V line-to-line peak ("near 24 V", section 7 / Fig. 19). Read this way the id = 0
+  drive saturates at ~175 r/min with 24 V and SVPWM (|v| <= 24/sqrt(3) = 13.86 V).
+- Complex notation i = id + j iq, v = vd + j vq: L di/dt = v - (R + j we L) i - j we lambda.
+
+Discretisation (exact for the linear electrical part): over one period the speed is frozen
+at w (see the shaft below) and the inverter output is a constant vector in the STATIONARY
+frame (average model: the period's mean; switching model: each switch-state segment), i.e.
+v_dq(t) = v0 + V1 exp(-j we t) in the rotor frame. Then, with a = R/L, s = a + j we,
+    i(t) = p0 + p1 exp(-j we t) + d exp(-s t),  p0 = (v0 - j we lambda) / (L s),
+    p1 = V1 / (L a),  d = i(0) - p0 - p1,
+exactly (the zero-order hold / matrix exponential of the dq model at frozen speed, with the
+rotation of a stationary voltage vector included). The same closed form gives the exact
+integrals of i, |i|^2 and v.i over the segment, so copper loss, terminal energy and
+electromechanical energy are evaluated exactly, not by quadrature (:func:`segment`).
+
+Shaft: implicit midpoint. The electrical part is solved at the period's mean speed
+w_mid = (w0 + w1) / 2, w1 = w0 + T (mean Te + T_ext - B w_mid) / J, by fixed-point
+iteration (contraction ~1e-4 per pass: the electrical coupling over 100 us is weak; the
+first guess takes a Taylor step of iq; the iteration stops when w_mid moves by less than
+1e-11 (1 + |w|) rad/s, typically after 2 solves). Electromechanical energy T Te w_mid then
+equals the kinetic-energy change minus load and friction work up to T Te * 1e-11 per
+period, so the ledger closes to ~1e-12 relative (round-off level).
+Between exact evaluations every 64 periods the rotating phasors exp(j theta_e) and
+exp(-j we T) are advanced by small-angle rotations (error ~1e-16 per period): sin/cos are
+the expensive part of a period, which is otherwise a short chain of complex arithmetic.
+
+Inverter: (a) average model: the three duty cycles of the period give the mean phase
+voltages d_x * Vdc; duties are clipped to [0, 1], so the reachable set is the DC-link
+HEXAGON (the controller's modulator keeps to the inscribed circle Vdc/sqrt(3), its linear
+range). (b) switching model: centre-aligned triangular carrier, one carrier period per
+control period (``carrier_multiple`` carrier periods of equal duty per control period),
+sampled at the carrier valley (zero vector) so the sampled current is ripple free; each
+constant-switch-state segment is integrated exactly; optional dead time (edge delay by the
+sign of the phase current at the period start).
+
+Regeneration path (paper 001, Fig. 2/8): a relay connects the machine either to the
+inverter (motoring / assist, DC link = 24 V battery) or to a 3-phase diode rectifier ->
+DC link -> buck converter (output ~25 V) -> charger -> 24 V battery (generating /
+braking), with a dump resistor on the 25 V bus taking the power once the battery is full.
+Average model of a diode bridge on a stiff DC voltage Vdc: its phase-voltage fundamental is
+a vector of magnitude Vr = (2/pi)(Vdc + 2 Vf) opposing the current (six-step waveform), the
+DC current is (3/pi)|i|; it conducts when |we| lambda > Vr. (The real bridge starts
+conducting in short pulses at sqrt(3) |we| lambda > Vdc + 2 Vf, ~10 % earlier; the
+fundamental model is accurate at the currents that matter.) A buck in continuous conduction
+with a regulated output makes its input look like Vlink = Vout / D: the buck duty D sets
+the rectifier voltage and with it the braking torque.
+Relay switch-over is break-before-make (hardware): the active path first drives the current
+to zero (inverter: the controller commands zero current; in the safe state the gates are
+off and its diodes freewheel into the battery; rectifier path: buck duty at its minimum,
+i.e. the link at ``link_max_v``, the diodes block), the relay opens once |i| is below
+``relay_open_current_a`` (or after ``drain_timeout_s``, raising FAULT_RELAY_FORCED: at
+speeds where the back-EMF exceeds what the path can oppose, zero current is unreachable),
+the magnetic energy left is booked as relay loss, the relay stays open ``relay_dead_s``
+with both paths off, then closes onto the requested path. Both paths are never connected
+at once (S_OVERLAP counts it: always 0).
+
+Loads (``load.kind``): dynamometer (piecewise-constant torque TL(t) of Eq. 3, positive
+opposes positive rotation; the paper's 1 N m step), prime_mover (speed held; schedule),
+rider (bike_plant.mechanics rider model through :class:`RiderLoad`, evaluated per batch
+and held), none. Any Python callable can be the load hook (:class:`SpmsmPlant` load_hook).
+In the state and telemetry ``load_torque_nm`` is the torque the load applies to the shaft,
+positive accelerating (the BLDC plant's sign); the dynamometer's TL is its negative.
+
+Energy ledger [J], cumulative: mechanical in (load work) = copper + friction + converter
+(diodes, buck, charger, relay) losses + battery + dump resistor + stored (kinetic +
+magnetic) change; ``residual_j`` closes to round-off.
+"""
+from __future__ import annotations
+
+import cmath
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from . import mechanics
+from .config import ConfigError, build_dataclass, require_positive, section
+from .params import RPM_PER_RAD_S, TWO_PI, LoadParams, MechParams
+
+# numba options of every kernel: FMA contraction and reciprocal division (latency-bound
+# serial chains: ~30 % faster); NaN / Inf semantics stay IEEE (no 'fast' flag set).
+JIT = dict(cache=True, error_model="numpy", fastmath={"contract", "arcp"})
+SQRT3 = math.sqrt(3.0)
+MAX_DYNO_POINTS = 16
+
+
+# =======================================================================================
+# parameters
+# =======================================================================================
+@dataclass
+class SpmsmParams:
+    """Outer-rotor surface PMSM, 36 slots / 12 poles (paper 001, section 6).
+
+    flux_linkage_vs is the PEAK phase flux linkage [V s/rad electrical] of the amplitude-
+    invariant dq model (see the module docstring); inductance_h is Ld = Lq.
+    The *_scale factors make the simulated machine differ from the controller's nominal
+    model (paper 001, Fig. 23: parameter variation); the nominal copy has them at 1.
+    """
+    pole_pairs: int = 6
+    rs_ohm: float = 6.84
+    inductance_h: float = 9.8e-3
+    flux_linkage_vs: float = 0.122
+    rated_speed_rpm: float = 200.0
+    rs_scale: float = 1.0
+    inductance_scale: float = 1.0
+    flux_scale: float = 1.0
+
+    def validate(self) -> None:
+        require_positive(self, "pole_pairs", "rs_ohm", "inductance_h", "flux_linkage_vs", "rated_speed_rpm",
+                         "rs_scale", "inductance_scale", "flux_scale")
+
+    @property
+    def torque_constant_nm_per_a(self) -> float:
+        """Kt = 1.5 pp lambda (Eq. 8, Ld = Lq)."""
+        return 1.5 * self.pole_pairs * self.flux_linkage_vs
+
+    @property
+    def characteristic_current_a(self) -> float:
+        """lambda / Ld (paper 001, Eq. 72): the d current that cancels the magnet flux."""
+        return self.flux_linkage_vs / self.inductance_h
+
+
+INVERTER_MODELS = ("average", "switching")
+MODULATIONS = ("svpwm", "sine_triangle")
+
+
+@dataclass
+class InverterParams:
+    """Two-level inverter on the 24 V DC link (the paper's DC supply / battery)."""
+    dc_link_v: float = 24.0
+    model: str = "average"             # average | switching
+    modulation: str = "svpwm"          # svpwm (|v| <= Vdc/sqrt(3)) | sine_triangle (|v| <= Vdc/2)
+    carrier_multiple: int = 1          # carrier periods per control period (1: 10 kHz carrier)
+    dead_time_s: float = 0.0           # switching model only
+    diode_drop_v: float = 0.7          # freewheel diodes (gates off)
+
+    def validate(self) -> None:
+        require_positive(self, "dc_link_v", "carrier_multiple")
+        if self.carrier_multiple > 8:
+            raise ValueError(f"carrier_multiple must be <= 8, got {self.carrier_multiple!r}")
+        if self.model not in INVERTER_MODELS:
+            raise ValueError(f"model must be one of {', '.join(INVERTER_MODELS)}, got {self.model!r}")
+        if self.modulation not in MODULATIONS:
+            raise ValueError(f"modulation must be one of {', '.join(MODULATIONS)}, got {self.modulation!r}")
+        if not 0.0 <= self.dead_time_s < 1e-5:
+            raise ValueError(f"dead_time_s must be in [0, 10 us), got {self.dead_time_s!r}")
+        if self.diode_drop_v < 0:
+            raise ValueError("diode_drop_v must be >= 0")
+
+
+@dataclass
+class RegenParams:
+    """Relay + 3-phase diode rectifier + buck (~25 V) + charger (paper 001, Fig. 2/8, 17/18)."""
+    buck_output_v: float = 25.0
+    link_max_v: float = 60.0           # DC-link (buck input) limit: buck duty >= buck_output_v / link_max_v
+    diode_drop_v: float = 0.7
+    buck_efficiency: float = 0.95
+    charger_efficiency: float = 0.92
+    relay_dead_s: float = 2.0e-4       # both paths open; >= one control period
+    drain_timeout_s: float = 5.0e-3    # wait this long for zero current before opening anyway
+    relay_open_current_a: float = 0.02  # the relay opens once |i| is below this
+
+    def validate(self) -> None:
+        require_positive(self, "buck_output_v", "link_max_v", "buck_efficiency", "charger_efficiency",
+                         "relay_dead_s", "drain_timeout_s", "relay_open_current_a")
+        if self.link_max_v <= self.buck_output_v:
+            raise ValueError("link_max_v must be > buck_output_v (a buck steps down)")
+        for name in ("buck_efficiency", "charger_efficiency"):
+            if getattr(self, name) > 1.0:
+                raise ValueError(f"{name} must be in (0, 1]")
+        if self.diode_drop_v < 0:
+            raise ValueError("diode_drop_v must be >= 0")
+
+
+@dataclass
+class SpmsmBatteryParams:
+    """24 V battery set: feeds the inverter, takes the charger's output (paper 001, section 6)."""
+    nominal_v: float = 24.0
+    capacity_ah: float = 10.0
+    soc0: float = 0.7
+    dump_above_soc: float = 0.98       # charger off above this: regenerated power goes to the dump resistor
+
+    def validate(self) -> None:
+        require_positive(self, "nominal_v", "capacity_ah")
+        if not 0.0 <= self.soc0 <= 1.0:
+            raise ValueError(f"soc0 must be in [0, 1], got {self.soc0!r}")
+        if not 0.0 < self.dump_above_soc <= 1.0:
+            raise ValueError("dump_above_soc must be in (0, 1]")
+
+
+@dataclass
+class EncoderParams:
+    """Incremental encoder, 2500 pulses/rev (paper 001, section 6), x4 quadrature decoding
+    (the F28035 eQEP counts every edge of A and B: 10000 counts/rev); a capture timer stamps
+    the last edge for the M/T speed estimate (60 MHz SYSCLK / 32 = 1.875 MHz)."""
+    pulses_per_rev: int = 2500
+    quadrature: int = 4
+    capture_timer_hz: float = 1.875e6
+
+    def validate(self) -> None:
+        require_positive(self, "pulses_per_rev", "capture_timer_hz")
+        if self.quadrature not in (1, 2, 4):
+            raise ValueError(f"quadrature must be 1, 2 or 4, got {self.quadrature!r}")
+
+    @property
+    def counts_per_rev(self) -> int:
+        return self.pulses_per_rev * self.quadrature
+
+
+SPMSM_LOAD_KINDS = ("dynamometer", "prime_mover", "rider", "none")
+
+
+@dataclass
+class SpmsmLoadParams:
+    """External load on the shaft (paper 001, Fig. 9b: dynamometer; ARCHITECTURE.md loads).
+
+    dynamometer: TL(t) piecewise constant, TL = dyno_torque_nm[k] from dyno_time_s[k] on
+    (Eq. 3 sign: positive opposes positive rotation). prime_mover: speed held at speed_rpm
+    (optional schedule). rider: the torque-cadence rider of bike_plant.mechanics through the
+    gear motor/crank (the outer rotor turns ~2.5x the crank). none: free shaft.
+    """
+    kind: str = "dynamometer"
+    dyno_time_s: list = field(default_factory=lambda: [0.0])
+    dyno_torque_nm: list = field(default_factory=lambda: [0.0])
+    speed_rpm: float = 200.0
+    schedule_time_s: list = field(default_factory=list)
+    schedule_speed_rpm: list = field(default_factory=list)
+    gear_ratio: float = 2.5
+    rider_t0_nm: float = 120.0
+    rider_cadence_max_rpm: float = 160.0
+    rider_target_cadence_rpm: float = 80.0
+    rider_kp: float = 0.05
+    rider_ki: float = 0.1
+    rider_effort0: float = 0.3
+
+    def validate(self) -> None:
+        if self.kind not in SPMSM_LOAD_KINDS:
+            raise ValueError(f"kind must be one of {', '.join(SPMSM_LOAD_KINDS)}, got {self.kind!r}")
+        for name in ("dyno_time_s", "dyno_torque_nm", "schedule_time_s", "schedule_speed_rpm"):
+            if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in getattr(self, name)):
+                raise ValueError(f"{name} entries must be numbers")
+        if len(self.dyno_time_s) != len(self.dyno_torque_nm) or not self.dyno_time_s:
+            raise ValueError("dyno_time_s and dyno_torque_nm must be non-empty and of equal length")
+        if len(self.dyno_time_s) > MAX_DYNO_POINTS:
+            raise ValueError(f"at most {MAX_DYNO_POINTS} dynamometer profile points")
+        if any(b <= a for a, b in zip(self.dyno_time_s, self.dyno_time_s[1:])):
+            raise ValueError("dyno_time_s must be strictly increasing")
+        if len(self.schedule_time_s) != len(self.schedule_speed_rpm):
+            raise ValueError("schedule_time_s and schedule_speed_rpm must have the same length")
+        if list(self.schedule_time_s) != sorted(self.schedule_time_s):
+            raise ValueError("schedule_time_s must be increasing")
+        require_positive(self, "gear_ratio", "rider_t0_nm", "rider_cadence_max_rpm")
+        if not 0.0 <= self.rider_effort0 <= 1.0:
+            raise ValueError("rider_effort0 must be in [0, 1]")
+
+    def rider_load_params(self) -> LoadParams:
+        """The same rider as bike_plant.params.LoadParams (for bike_plant.mechanics)."""
+        return LoadParams(kind="rider", gear_ratio=self.gear_ratio, rider_t0_nm=self.rider_t0_nm,
+                          rider_cadence_max_rpm=self.rider_cadence_max_rpm,
+                          rider_target_cadence_rpm=self.rider_target_cadence_rpm, rider_kp=self.rider_kp,
+                          rider_ki=self.rider_ki, rider_effort0=self.rider_effort0)
+
+
+def _default_mech() -> MechParams:
+    return MechParams(inertia_kgm2=0.01, friction_nms=0.005, speed0_rpm=0.0)
+
+
+@dataclass
+class SpmsmPlantParams:
+    spmsm: SpmsmParams = field(default_factory=SpmsmParams)
+    inverter: InverterParams = field(default_factory=InverterParams)
+    regen: RegenParams = field(default_factory=RegenParams)
+    battery: SpmsmBatteryParams = field(default_factory=SpmsmBatteryParams)
+    mech: MechParams = field(default_factory=_default_mech)
+    load: SpmsmLoadParams = field(default_factory=SpmsmLoadParams)
+    encoder: EncoderParams = field(default_factory=EncoderParams)
+    control_period_s: float = 1.0e-4
+
+
+def plant_params_from_config(cfg: dict) -> SpmsmPlantParams:
+    """The plant's (authoritative) parameters from a loaded config (``machine: spmsm``)."""
+    path = cfg.get("_config_path")
+    machine = cfg.get("machine", "spmsm")
+    if machine != "spmsm":
+        raise ConfigError(f"expected 'spmsm' for this loader, got {machine!r}", path, "machine")
+    period = cfg.get("control_period_s", 1.0e-4)
+    if isinstance(period, bool) or not isinstance(period, (int, float)) or not (1e-6 <= period <= 1e-3):
+        raise ConfigError(f"must be a number in [1e-6, 1e-3] s, got {period!r}", path, "control_period_s")
+    mech_values = dict(inertia_kgm2=0.01, friction_nms=0.005, speed0_rpm=0.0)
+    mech_values.update(section(cfg, "mechanics", path))
+    params = SpmsmPlantParams(
+        spmsm=build_dataclass(SpmsmParams, section(cfg, "spmsm", path), "spmsm", path),
+        inverter=build_dataclass(InverterParams, section(cfg, "inverter", path), "inverter", path),
+        regen=build_dataclass(RegenParams, section(cfg, "regen", path), "regen", path),
+        battery=build_dataclass(SpmsmBatteryParams, section(cfg, "battery", path), "battery", path),
+        mech=build_dataclass(MechParams, mech_values, "mechanics", path),
+        load=build_dataclass(SpmsmLoadParams, section(cfg, "load", path), "load", path),
+        encoder=build_dataclass(EncoderParams, section(cfg, "encoder", path), "encoder", path),
+        control_period_s=float(period),
+    )
+    if params.regen.relay_dead_s < params.control_period_s * (1 - 1e-9):
+        raise ConfigError(f"must be at least one control period ({params.control_period_s:g} s)", path,
+                          "regen.relay_dead_s")
+    if params.inverter.dead_time_s * 4 > params.control_period_s / params.inverter.carrier_multiple:
+        raise ConfigError("dead time must be < 1/4 of a carrier period", path, "inverter.dead_time_s")
+    return params
+
+
+def nominal_params_from_config(cfg: dict) -> SpmsmPlantParams:
+    """The controller's copy of the model: the configured machine with the variation scales
+    at 1 and no dead time, unless ``controller.model: actual`` (then the plant's own)."""
+    params = plant_params_from_config(cfg)
+    ctrl = section(cfg, "controller", cfg.get("_config_path"))
+    model = ctrl.get("model", "nominal")
+    if model not in ("nominal", "actual"):
+        raise ConfigError(f"must be 'nominal' or 'actual', got {model!r}", cfg.get("_config_path"), "controller.model")
+    if model == "actual":
+        return params
+    params.spmsm = dataclasses.replace(params.spmsm, rs_scale=1.0, inductance_scale=1.0, flux_scale=1.0)
+    params.inverter = dataclasses.replace(params.inverter, dead_time_s=0.0)
+    return params
+
+
+# ---- flat parameter vector for the kernels ---------------------------------------------
+P_PP = 0
+P_R = 1                 # actual (scaled) values
+P_L = 2
+P_LAMBDA = 3
+P_DT = 4
+P_A = 5                 # R / L
+P_EAH = 6               # exp(-a T)
+P_J = 7
+P_B = 8
+P_VDC = 9
+P_MODEL = 10            # 0 average, 1 switching
+P_MODULATION = 11       # 0 svpwm, 1 sine-triangle (the controller's modulator; informational here)
+P_CARRIER = 12
+P_DEAD_TIME = 13
+P_INV_DIODE_V = 14
+P_BUCK_V = 15
+P_LINK_MAX = 16
+P_RECT_DIODE_V = 17
+P_ETA_BUCK = 18
+P_ETA_CHG = 19
+P_RELAY_DEAD_N = 20     # periods
+P_DRAIN_N = 21          # periods
+P_BATT_V = 22
+P_BATT_CAP_J = 23
+P_DUMP_SOC = 24
+P_LOAD_KIND = 25        # 0 dynamometer, 1 prime mover, 2 rider / hook (S_TEXT), 3 none
+P_CPR = 26
+P_FCAP = 27
+P_DYNO_N = 28
+P_DYNO_T = 29
+P_DYNO_TQ = P_DYNO_T + MAX_DYNO_POINTS
+P_IEA = P_DYNO_TQ + MAX_DYNO_POINTS     # integral of exp(-a tau) over one period
+P_IE2A = P_IEA + 1                      # integral of exp(-2 a tau) over one period
+P_RELAY_OPEN_I = P_IE2A + 1
+P_SIZE = P_RELAY_OPEN_I + 1
+
+LOAD_DYNO, LOAD_PRIME_MOVER, LOAD_HOOK, LOAD_NONE = 0, 1, 2, 3
+
+
+def pack_params(p: SpmsmPlantParams) -> np.ndarray:
+    """SpmsmPlantParams -> float64 vector for the kernels (layout P_* above)."""
+    v = np.zeros(P_SIZE)
+    m = p.spmsm
+    r = m.rs_ohm * m.rs_scale
+    ind = m.inductance_h * m.inductance_scale
+    v[P_PP] = m.pole_pairs
+    v[P_R] = r
+    v[P_L] = ind
+    v[P_LAMBDA] = m.flux_linkage_vs * m.flux_scale
+    v[P_DT] = p.control_period_s
+    v[P_A] = r / ind
+    v[P_EAH] = math.exp(-r / ind * p.control_period_s)
+    v[P_IEA] = -math.expm1(-r / ind * p.control_period_s) / (r / ind)
+    v[P_IE2A] = -math.expm1(-2.0 * r / ind * p.control_period_s) / (2.0 * r / ind)
+    v[P_J] = p.mech.inertia_kgm2
+    v[P_B] = p.mech.friction_nms
+    inv = p.inverter
+    v[P_VDC] = inv.dc_link_v
+    v[P_MODEL] = INVERTER_MODELS.index(inv.model)
+    v[P_MODULATION] = MODULATIONS.index(inv.modulation)
+    v[P_CARRIER] = inv.carrier_multiple
+    v[P_DEAD_TIME] = inv.dead_time_s
+    v[P_INV_DIODE_V] = inv.diode_drop_v
+    rg = p.regen
+    v[P_BUCK_V] = rg.buck_output_v
+    v[P_LINK_MAX] = rg.link_max_v
+    v[P_RECT_DIODE_V] = rg.diode_drop_v
+    v[P_ETA_BUCK] = rg.buck_efficiency
+    v[P_ETA_CHG] = rg.charger_efficiency
+    v[P_RELAY_DEAD_N] = max(1, int(math.ceil(rg.relay_dead_s / p.control_period_s - 1e-9)))
+    v[P_DRAIN_N] = max(1, int(math.ceil(rg.drain_timeout_s / p.control_period_s - 1e-9)))
+    v[P_RELAY_OPEN_I] = rg.relay_open_current_a
+    bt = p.battery
+    v[P_BATT_V] = bt.nominal_v
+    v[P_BATT_CAP_J] = bt.nominal_v * bt.capacity_ah * 3600.0
+    v[P_DUMP_SOC] = bt.dump_above_soc
+    kind = p.load.kind
+    v[P_LOAD_KIND] = {"dynamometer": LOAD_DYNO, "prime_mover": LOAD_PRIME_MOVER, "rider": LOAD_HOOK,
+                      "none": LOAD_NONE}[kind]
+    v[P_CPR] = p.encoder.counts_per_rev
+    v[P_FCAP] = p.encoder.capture_timer_hz
+    v[P_DYNO_N] = len(p.load.dyno_time_s)
+    for k, (t, tq) in enumerate(zip(p.load.dyno_time_s, p.load.dyno_torque_nm)):
+        v[P_DYNO_T + k] = t
+        v[P_DYNO_TQ + k] = tq
+    return v
+
+
+# =======================================================================================
+# state vector
+# =======================================================================================
+S_ID, S_IQ = 0, 1          # rotor-frame currents [A] (authoritative electrical state)
+S_IA, S_IB, S_IC = 2, 3, 4  # phase currents at the period boundary (what the ADC samples)
+S_THETA_M = 5              # mechanical angle in [0, 2 pi)
+S_REV = 6                  # whole revolutions (signed)
+S_OMEGA = 7                # mechanical speed [rad/s]
+S_PERIODS = 8              # control periods since start (time = periods * T)
+S_ACCEL = 9                # mean acceleration of the last period (midpoint guess)
+S_COUNT = 10               # encoder count (integer valued, unwrapped)
+S_EDGE_TICKS = 11          # capture-timer ticks of the last encoder edge
+S_COS_E, S_SIN_E = 12, 13  # cos / sin of the electrical angle now
+S_RELAY = 14               # REL_* state
+S_RELAY_FROM = 15          # path connected while draining
+S_RELAY_TO = 16            # path to connect after the dead interval
+S_RELAY_TIMER = 17         # periods in the current relay state
+S_OVERLAP = 18             # periods with both paths connected (must stay 0)
+S_RELAY_SWITCHES = 19      # completed switch-overs
+S_GATES_OFF = 20           # safe state: inverter gates off
+S_SOC = 21
+S_SPEED_TARGET = 22        # prime mover [rad/s]
+S_TEXT = 23                # hook load torque on the shaft [N m], accelerating positive
+S_TEM = 24                 # mean Te of the last period
+S_TLOAD = 25               # mean external torque of the last period (accelerating positive)
+S_VD, S_VQ = 26, 27        # mean applied dq voltage of the last period (at its mid angle)
+S_IBATT = 28               # mean battery current of the last period, charging positive
+S_VLINK = 29               # rectifier DC link of the last period
+S_FAULTS = 30
+S_ITER = 31                # midpoint iterations used in the last period
+S_E_MECH = 32              # ---- ledger, cumulative [J]
+S_E_BATT = 33              # into the battery (negative: drawn by the inverter)
+S_E_RES = 34               # dump resistor
+S_E_CU = 35
+S_E_FRIC = 36
+S_E_CONV = 37              # diodes + buck + charger + relay losses
+S_E_STORED0 = 38
+S_E_EM = 39                # electromechanical conversion (diagnostic)
+S_E_TERM = 40              # into the machine terminals (diagnostic)
+S_MID_RESID = 41           # accumulated midpoint residual (diagnostic, ~1e-16 J)
+S_E1H_RE, S_E1H_IM = 42, 43  # exp(-j we T) of the last period (start of the next guess)
+S_WE_LAST = 44             # the we it belongs to
+S_SIZE = 48
+
+REL_INVERTER, REL_RECTIFIER, REL_DRAIN, REL_DEAD = 0, 1, 2, 3
+FAULT_RELAY_FORCED = 32      # relay opened under current after the drain timeout
+FAULT_OVERSPEED_DIODES = 64  # gates off but the inverter diodes conduct (uncontrolled generation)
+
+# workspace (switching segments) layout
+W_NSEG = 0
+W_T = 1                      # 8 * carrier segment durations
+W_VA = W_T + 64
+W_VB = W_VA + 64
+WS_SIZE = W_VB + 64
+
+
+# =======================================================================================
+# model functions shared with the controller
+# =======================================================================================
+@njit(**JIT)
+def zoh_current_coefficients(r_ohm, l_h, dt_s):
+    """ZOH discretisation of the decoupled current model L di/dt = -R i + v' (paper 001,
+    Eq. 27-47): i(k+1) = a i(k) + b v'(k), a = exp(-R T / L), b = (1 - a) / R."""
+    a = math.exp(-r_ohm * dt_s / l_h)
+    return a, -math.expm1(-r_ohm * dt_s / l_h) / r_ohm
+
+
+@njit(**JIT)
+def zoh_speed_coefficients(kt_nm_per_a, j_kgm2, b_nms, dt_s):
+    """ZOH discretisation of J dw/dt = Kt iq - B w (paper 001, Eq. 7-16, load neglected):
+    w(k+1) = a w(k) + b iq(k), a = exp(-B T / J), b = Kt (1 - a) / B (Kt T / J for B = 0)."""
+    if b_nms <= 0.0:
+        return 1.0, kt_nm_per_a * dt_s / j_kgm2
+    a = math.exp(-b_nms * dt_s / j_kgm2)
+    return a, -kt_nm_per_a * math.expm1(-b_nms * dt_s / j_kgm2) / b_nms
+
+
+@njit(**JIT)
+def torque_nm(iq_a, p):
+    """Eq. 2 with Ld = Lq: Te = 1.5 pp lambda iq."""
+    return 1.5 * p[P_PP] * p[P_LAMBDA] * iq_a
+
+
+@njit(**JIT)
+def steady_state_voltage(id_a, iq_a, we, r_ohm, l_h, lam):
+    """Eq. 1 at constant current: v = (R + j we L) i + j we lambda (complex dq)."""
+    return complex(r_ohm * id_a - we * l_h * iq_a, r_ohm * iq_a + we * (l_h * id_a + lam))
+
+
+@njit(**JIT)
+def rectifier_voltage(vdc, diode_drop_v):
+    """Fundamental phase-voltage magnitude of a 6-pulse diode bridge on Vdc: (2/pi)(Vdc + 2 Vf)."""
+    return 2.0 / math.pi * (vdc + 2.0 * diode_drop_v)
+
+
+@njit(**JIT)
+def rectifier_steady_state(vr, we, r_ohm, l_h, lam):
+    """Steady current (complex dq) of the machine on a diode bridge of fundamental voltage vr:
+    0 = -vr u - (R + j we L) i - j we lambda with i = |i| u. Zero unless |we| lambda > vr."""
+    e = abs(we) * lam
+    if e <= vr:
+        return complex(0.0, 0.0)
+    z = complex(r_ohm, we * l_h)
+    z2 = r_ohm * r_ohm + (we * l_h) ** 2
+    disc = (r_ohm * vr) ** 2 - z2 * (vr * vr - e * e)
+    mag = (-r_ohm * vr + math.sqrt(max(disc, 0.0))) / z2
+    u = complex(0.0, -we * lam) / (z * mag + vr)
+    un = abs(u)
+    if un > 0.0:
+        u = u / un
+    return mag * u
+
+
+@njit(**JIT)
+def _one_minus_exp_over(y, t):
+    """t (1 - exp(-y)) / y for complex y = s t, series near 0 (no cancellation)."""
+    if abs(y) < 0.05:
+        # 1 - y/2 + y^2/6 - y^3/24 + y^4/120 - y^5/720 + y^6/5040 - y^7/40320
+        s = 1.0 + y * (-1.0 / 2 + y * (1.0 / 6 + y * (-1.0 / 24 + y * (1.0 / 120 + y * (
+            -1.0 / 720 + y * (1.0 / 5040 + y * (-1.0 / 40320)))))))
+        return t * s
+    return t * (1.0 - cmath.exp(-y)) / y
+
+
+@njit(**JIT)
+def segment(i0, v0, v1, we, t, e1, eat, a, l_h, lam):
+    """Exact solution of L di/dt = v0 + v1 exp(-j we tau) - (R + j we L) i - j we lambda over
+    [0, t] (speed frozen). e1 = exp(-j we t), eat = exp(-a t) are passed in (callers reuse
+    them). Returns (i(t), integral of i, integral of |i|^2, integral of Re(v conj(i)))."""
+    s = complex(a, we)
+    p0 = (v0 - complex(0.0, we * lam)) / (l_h * s)
+    p1 = v1 / (l_h * a)
+    d = i0 - p0 - p1
+    es = eat * e1
+    i1 = p0 + p1 * e1 + d * es
+    ie1 = _one_minus_exp_over(complex(0.0, we * t), t)      # int exp(-j we tau)
+    ies = _one_minus_exp_over(s * t, t)                      # int exp(-s tau)
+    iea = t * (-math.expm1(-a * t)) / (a * t) if a * t > 0.0 else t
+    ie2a = t * (-math.expm1(-2.0 * a * t)) / (2.0 * a * t) if a * t > 0.0 else t
+    int_i = p0 * t + p1 * ie1 + d * ies
+    cp0 = p0.conjugate()
+    cp1 = v1.conjugate() / (l_h * a)
+    cd = d.conjugate()
+    int_i2 = ((p0.real * p0.real + p0.imag * p0.imag + p1.real * p1.real + p1.imag * p1.imag) * t
+              + (d.real * d.real + d.imag * d.imag) * ie2a
+              + 2.0 * ((cp0 * p1 * ie1).real + (cp0 * d * ies).real + (cp1 * d).real * iea))
+    e_term = (v0 * int_i.conjugate()).real + (v1 * (cp0 * ie1 + cp1 * t + cd * iea)).real
+    return i1, int_i, int_i2, e_term
+
+
+@njit(**JIT)
+def _rot_small(e1, dx):
+    """e1 * exp(-j dx) for |dx| << 1 (series to round-off below 1e-3)."""
+    if abs(dx) < 1e-3:
+        x2 = dx * dx
+        c = 1.0 - 0.5 * x2 + x2 * x2 / 24.0
+        s = dx * (1.0 - x2 / 6.0 + x2 * x2 / 120.0)
+    else:
+        c = math.cos(dx)
+        s = math.sin(dx)
+    return e1 * complex(c, -s)
+
+
+# =======================================================================================
+# inverter
+# =======================================================================================
+@njit(**JIT)
+def duties_to_valphabeta(da, db, dc, vdc):
+    """Mean phase voltages d_x Vdc -> amplitude-invariant (alpha, beta) vector (common mode drops)."""
+    va = da * vdc
+    vb = db * vdc
+    vc = dc * vdc
+    return complex((2.0 * va - vb - vc) / 3.0, (vb - vc) / SQRT3)
+
+
+@njit(**JIT)
+def _clip01(x):
+    if not (x >= 0.0):      # also NaN
+        return 0.0
+    if x > 1.0:
+        return 1.0
+    return x
+
+
+@njit(**JIT)
+def switching_segments(da, db, dc, ia, ib, ic, p, ws):
+    """Constant-switch-state segments of one control period (centre-aligned carrier, dead
+    time by current sign) into ws: count, durations, (alpha, beta) voltages."""
+    m = int(p[P_CARRIER])
+    hc = p[P_DT] / m
+    td = p[P_DEAD_TIME]
+    vdc = p[P_VDC]
+    tr = np.empty(3)
+    tf = np.empty(3)
+    duty = (da, db, dc)
+    cur = (ia, ib, ic)
+    for x in range(3):
+        d = duty[x]
+        r = 0.5 * (1.0 - d) * hc
+        f = 0.5 * (1.0 + d) * hc
+        if td > 0.0:
+            # both switches off for td after each turn-off: the diode picked by the current
+            # sign holds the leg (i > 0 out of the leg: low; i < 0: high)
+            if cur[x] > 0.0:
+                r += td
+            elif cur[x] < 0.0:
+                f += td
+            else:
+                r += 0.5 * td
+                f += 0.5 * td
+        tr[x] = min(max(r, 0.0), hc)
+        tf[x] = min(max(f, 0.0), hc)
+    pts = np.empty(8)
+    n = 0
+    pts[n] = 0.0
+    n += 1
+    for x in range(3):
+        if tf[x] > tr[x]:
+            pts[n] = tr[x]
+            pts[n + 1] = tf[x]
+            n += 2
+    pts[n] = hc
+    n += 1
+    # insertion sort (<= 8 values)
+    for i in range(1, n):
+        v = pts[i]
+        j = i - 1
+        while j >= 0 and pts[j] > v:
+            pts[j + 1] = pts[j]
+            j -= 1
+        pts[j + 1] = v
+    ns = 0
+    for c in range(m):
+        for k in range(n - 1):
+            t = pts[k + 1] - pts[k]
+            if t <= 0.0:
+                continue
+            mid = 0.5 * (pts[k] + pts[k + 1])
+            sa = 1.0 if (tf[0] > tr[0] and tr[0] <= mid < tf[0]) else 0.0
+            sb = 1.0 if (tf[1] > tr[1] and tr[1] <= mid < tf[1]) else 0.0
+            sc = 1.0 if (tf[2] > tr[2] and tr[2] <= mid < tf[2]) else 0.0
+            ws[W_T + ns] = t
+            ws[W_VA + ns] = vdc * (2.0 * sa - sb - sc) / 3.0
+            ws[W_VB + ns] = vdc * (sb - sc) / SQRT3
+            ns += 1
+    ws[W_NSEG] = ns
+    return ns
+
+
+@njit(**JIT)
+def _solve_switching(i0, ej0, we, p, ws):
+    """Exact solution through the switching segments in ws (rotor angle exp(j theta0) = ej0)."""
+    a = p[P_A]
+    lh = p[P_L]
+    lam = p[P_LAMBDA]
+    ns = int(ws[W_NSEG])
+    rot = ej0.conjugate()            # exp(-j theta(t)) at the segment start
+    i = i0
+    int_i = complex(0.0, 0.0)
+    int_i2 = 0.0
+    e_term = 0.0
+    for k in range(ns):
+        t = ws[W_T + k]
+        v1 = complex(ws[W_VA + k], ws[W_VB + k]) * rot
+        x = we * t
+        e1 = complex(math.cos(x), -math.sin(x))
+        eat = math.exp(-a * t)
+        # the rotor-frame integrals are accumulated as is (frame-independent quantities)
+        i, ii, ii2, et = segment(i, complex(0.0, 0.0), v1, we, t, e1, eat, a, lh, lam)
+        int_i += ii
+        int_i2 += ii2
+        e_term += et
+        rot = rot * e1
+    return i, int_i, int_i2, e_term
+
+
+@njit(**JIT)
+def _ie1(x, t):
+    """t (1 - exp(-j x)) / (j x) = t (sin x / x + j (cos x - 1) / x), series below 0.05."""
+    if abs(x) < 0.05:
+        x2 = x * x
+        re = 1.0 - x2 / 6.0 * (1.0 - x2 / 20.0 * (1.0 - x2 / 42.0 * (1.0 - x2 / 72.0)))
+        im = -0.5 * x * (1.0 - x2 / 12.0 * (1.0 - x2 / 30.0 * (1.0 - x2 / 56.0)))
+        return complex(t * re, t * im)
+    return complex(t * math.sin(x) / x, t * (math.cos(x) - 1.0) / x)
+
+
+@njit(**JIT)
+def _avg_eval(i0, v1, we, e1, p):
+    """Fast form of :func:`segment` for one full period with v0 = 0 (average inverter):
+    the end current and the integral of i (what the midpoint iteration needs), plus the
+    closed-form coefficients for :func:`_avg_energy`."""
+    a = p[P_A]
+    t = p[P_DT]
+    den = a * a + we * we
+    inv_s = complex(a / den, -we / den)
+    p0 = complex(0.0, -we * p[P_LAMBDA] / p[P_L]) * inv_s
+    p1 = v1 * (1.0 / p[P_R])                 # v1 / (L a)
+    d = i0 - p0 - p1
+    es = p[P_EAH] * e1
+    i1 = p0 + p1 * e1 + d * es
+    ie1 = _ie1(we * t, t)
+    ies = (1.0 - es) * inv_s
+    int_i = p0 * t + p1 * ie1 + d * ies
+    return i1, int_i, p0, p1, d, ie1, ies
+
+
+@njit(**JIT)
+def _avg_energy(p0, p1, d, ie1, ies, v1, p):
+    """Integral of |i|^2 and of Re(v conj(i)) for the :func:`_avg_eval` solution."""
+    t = p[P_DT]
+    iea = p[P_IEA]
+    cp0 = p0.conjugate()
+    cp1 = p1.conjugate()
+    int_i2 = ((p0.real * p0.real + p0.imag * p0.imag + p1.real * p1.real + p1.imag * p1.imag) * t
+              + (d.real * d.real + d.imag * d.imag) * p[P_IE2A]
+              + 2.0 * ((cp0 * p1 * ie1).real + (cp0 * d * ies).real + (cp1 * d).real * iea))
+    e_term = (v1 * (cp0 * ie1 + cp1 * t + d.conjugate() * iea)).real
+    return int_i2, e_term
+
+
+# =======================================================================================
+# diode bridge (rectifier path, or the inverter's freewheel diodes with the gates off)
+# =======================================================================================
+@njit(**JIT)
+def _solve_diode_bridge(i0, we, vr, t, p):
+    """Machine on a diode bridge of fundamental voltage vr over t (average model, see module
+    docstring). The voltage vector -vr u is held over the period with u the current's
+    direction at its start (the steady-state direction when starting from zero). If the
+    current would reverse against the diodes, the bridge blocks at that instant (bisection on
+    the closed form): the current goes to exactly zero and the small magnetic energy left in
+    the perpendicular component is returned as loss (diode reverse recovery / snubber).
+    Returns (i1, int_i, int_i2, e_term, loss_j)."""
+    a = p[P_A]
+    lh = p[P_L]
+    lam = p[P_LAMBDA]
+    conducting = abs(we) * lam > vr
+    z0 = complex(0.0, 0.0)
+    e1 = complex(math.cos(we * t), -math.sin(we * t))
+    eat = math.exp(-a * t)
+    if i0.real == 0.0 and i0.imag == 0.0:
+        if not conducting:
+            return z0, z0, 0.0, 0.0, 0.0
+        # conduction starts: the current grows along the EMF-driven transient, not yet along
+        # the steady-state direction; take the direction the period ends in (two passes)
+        u = rectifier_steady_state(vr, we, p[P_R], lh, lam)
+        u = u / abs(u)
+        for _ in range(2):
+            i1, ii, ii2, et = segment(i0, -vr * u, z0, we, t, e1, eat, a, lh, lam)
+            if abs(i1) > 0.0:
+                u = i1 / abs(i1)
+        i1, ii, ii2, et = segment(i0, -vr * u, z0, we, t, e1, eat, a, lh, lam)
+        return i1, ii, ii2, et, 0.0
+    u = i0 / abs(i0)
+    v0 = -vr * u
+    i1, ii, ii2, et = segment(i0, v0, z0, we, t, e1, eat, a, lh, lam)
+    cu = u.conjugate()
+    if (i1 * cu).real >= 0.0:
+        return i1, ii, ii2, et, 0.0
+    # the current reverses against the diodes: find the blocking instant
+    lo = 0.0
+    hi = t
+    for _ in range(48):
+        mid = 0.5 * (lo + hi)
+        e1m = complex(math.cos(we * mid), -math.sin(we * mid))
+        im, _a, _b, _c = segment(i0, v0, z0, we, mid, e1m, math.exp(-a * mid), a, lh, lam)
+        if (im * cu).real > 0.0:
+            lo = mid
+        else:
+            hi = mid
+    tz = lo
+    e1z = complex(math.cos(we * tz), -math.sin(we * tz))
+    iz, ii, ii2, et = segment(i0, v0, z0, we, tz, e1z, math.exp(-a * tz), a, lh, lam)
+    loss = 0.75 * lh * (iz.real * iz.real + iz.imag * iz.imag)
+    return z0, ii, ii2, et, loss
+
+
+# =======================================================================================
+# one control period
+# =======================================================================================
+@njit(**JIT)
+def dyno_torque_nm(t_s, p):
+    """TL(t) of the dynamometer profile (piecewise constant; 0 before the first point)."""
+    n = int(p[P_DYNO_N])
+    tl = 0.0
+    for k in range(n):
+        if t_s + 1e-12 >= p[P_DYNO_T + k]:
+            tl = p[P_DYNO_TQ + k]
+    return tl
+
+
+@njit(**JIT)
+def stored_energy(state, p):
+    """Kinetic + magnetic energy: 0.5 J w^2 + 0.75 L |i|^2 (amplitude-invariant dq)."""
+    return 0.5 * p[P_J] * state[S_OMEGA] ** 2 + 0.75 * p[P_L] * (state[S_ID] ** 2 + state[S_IQ] ** 2)
+
+
+@njit(**JIT)
+def _set_angle_outputs(state, p):
+    """cos/sin of the electrical angle and the phase currents from (id, iq)."""
+    th = p[P_PP] * state[S_THETA_M]
+    _set_phase_currents(state, math.cos(th), math.sin(th))
+
+
+@njit(**JIT)
+def _set_phase_currents(state, c, s):
+    state[S_COS_E] = c
+    state[S_SIN_E] = s
+    ial = state[S_ID] * c - state[S_IQ] * s
+    ibe = state[S_ID] * s + state[S_IQ] * c
+    state[S_IA] = ial
+    state[S_IB] = -0.5 * ial + 0.5 * SQRT3 * ibe
+    state[S_IC] = -0.5 * ial - 0.5 * SQRT3 * ibe
+
+
+@njit(**JIT)
+def init_state(state, p, speed_rad_s, soc0, theta_m):
+    state[:] = 0.0
+    state[S_OMEGA] = speed_rad_s
+    state[S_SPEED_TARGET] = speed_rad_s
+    th = theta_m % TWO_PI
+    state[S_THETA_M] = th
+    state[S_COUNT] = math.floor(th * p[P_CPR] / TWO_PI)
+    state[S_SOC] = soc0
+    state[S_RELAY] = REL_INVERTER
+    state[S_RELAY_TO] = REL_INVERTER
+    _set_angle_outputs(state, p)
+    state[S_E_STORED0] = stored_energy(state, p)
+
+
+@njit(**JIT)
+def _relay_update(state, p, relay_request):
+    """Break-before-make relay sequencing at the period start. Returns the active path:
+    0 inverter, 1 rectifier, 2 inverter freewheel (gates off), 3 rectifier draining, 4 open."""
+    req = REL_RECTIFIER if relay_request >= 0.5 else REL_INVERTER
+    rel = int(state[S_RELAY])
+    if (rel == REL_INVERTER or rel == REL_RECTIFIER) and req != rel:
+        state[S_RELAY_FROM] = rel
+        state[S_RELAY_TO] = req
+        state[S_RELAY] = REL_DRAIN
+        state[S_RELAY_TIMER] = 0.0
+        rel = REL_DRAIN
+    if rel == REL_DRAIN:
+        state[S_RELAY_TO] = req      # the latest request wins after the dead interval
+        i2 = state[S_ID] ** 2 + state[S_IQ] ** 2
+        forced = state[S_RELAY_TIMER] >= p[P_DRAIN_N]
+        if i2 <= p[P_RELAY_OPEN_I] ** 2 or forced:
+            # the relay opens: the contacts / snubber take what magnetic energy is left
+            # (exactly zero after a diode drain; ~1e-9 J below the opening current)
+            state[S_E_CONV] += 0.75 * p[P_L] * i2
+            state[S_ID] = 0.0
+            state[S_IQ] = 0.0
+            if forced and i2 > p[P_RELAY_OPEN_I] ** 2:
+                state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_RELAY_FORCED
+            state[S_RELAY] = REL_DEAD
+            state[S_RELAY_TIMER] = 0.0
+            rel = REL_DEAD
+            _set_angle_outputs(state, p)
+    if rel == REL_DEAD:
+        if state[S_RELAY_TIMER] >= p[P_RELAY_DEAD_N]:
+            rel = int(state[S_RELAY_TO]) if state[S_RELAY_TO] == REL_RECTIFIER else REL_INVERTER
+            state[S_RELAY] = rel
+            state[S_RELAY_TIMER] = 0.0
+            state[S_RELAY_SWITCHES] += 1.0
+    on_inv = rel == REL_INVERTER or (rel == REL_DRAIN and state[S_RELAY_FROM] == REL_INVERTER)
+    on_rect = rel == REL_RECTIFIER or (rel == REL_DRAIN and state[S_RELAY_FROM] == REL_RECTIFIER)
+    if on_inv and on_rect:
+        state[S_OVERLAP] += 1.0
+    if rel == REL_INVERTER:
+        return 2 if state[S_GATES_OFF] != 0.0 else 0
+    if rel == REL_RECTIFIER:
+        return 1
+    if rel == REL_DRAIN:
+        if state[S_RELAY_FROM] == REL_INVERTER:
+            return 2 if state[S_GATES_OFF] != 0.0 else 0     # inverter drives the current to zero
+        return 3
+    return 4
+
+
+@njit(**JIT)
+def _electrical(path, i0, ej0, v1, we, e1h, p, ws, vr):
+    """Electrical solution of the period on the active path at frozen speed we.
+    Returns (i1, int_i, int_i2, e_term, loss_j)."""
+    dt = p[P_DT]
+    z0 = complex(0.0, 0.0)
+    if path == 0:
+        if p[P_MODEL] == 0.0:
+            i1, ii, ii2, et = segment(i0, z0, v1, we, dt, e1h, p[P_EAH], p[P_A], p[P_L], p[P_LAMBDA])
+        else:
+            i1, ii, ii2, et = _solve_switching(i0, ej0, we, p, ws)
+        return i1, ii, ii2, et, 0.0
+    if path == 4:
+        return z0, z0, 0.0, 0.0, 0.0
+    return _solve_diode_bridge(i0, we, vr, dt, p)
+
+
+@njit(**JIT)
+def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
+    """One control period of the plant: relay sequencing, electrical (exact at frozen speed),
+    shaft (implicit midpoint), DC side, encoder, ledger. ws: float64[WS_SIZE] scratch."""
+    dt = p[P_DT]
+    pp = p[P_PP]
+    if state[S_RELAY] == REL_INVERTER and relay_request < 0.5:
+        path = 2 if state[S_GATES_OFF] != 0.0 else 0       # common case: nothing to sequence
+    else:
+        path = _relay_update(state, p, relay_request)
+    # exact sincos every 64 periods; in between, phasors are rotated (error ~1e-16 per period)
+    resync = (int(state[S_PERIODS]) & 63) == 0
+    t0 = state[S_PERIODS] * dt
+    i0 = complex(state[S_ID], state[S_IQ])
+    ej0 = complex(state[S_COS_E], state[S_SIN_E])
+    # ---- inputs of the active path
+    v1 = complex(0.0, 0.0)
+    vr = 0.0
+    vlink = 0.0
+    if path == 0:
+        if p[P_MODEL] == 0.0:
+            vab = duties_to_valphabeta(_clip01(da), _clip01(db), _clip01(dc), p[P_VDC])
+            v1 = vab * ej0.conjugate()
+        else:
+            switching_segments(_clip01(da), _clip01(db), _clip01(dc), state[S_IA], state[S_IB], state[S_IC], p, ws)
+    elif path == 2:
+        vlink = p[P_VDC]
+        vr = rectifier_voltage(vlink, p[P_INV_DIODE_V])
+    elif path == 1 or path == 3:
+        dmin = p[P_BUCK_V] / p[P_LINK_MAX]
+        d = buck_duty if path == 1 else dmin
+        if not (d >= dmin):
+            d = dmin
+        if d > 1.0:
+            d = 1.0
+        vlink = p[P_BUCK_V] / d
+        vr = rectifier_voltage(vlink, p[P_RECT_DIODE_V])
+    # ---- external torque (accelerating positive)
+    kind = int(p[P_LOAD_KIND])
+    w0 = state[S_OMEGA]
+    J = p[P_J]
+    B = p[P_B]
+    t_ext = 0.0
+    if kind == LOAD_DYNO:
+        t_ext = -dyno_torque_nm(t0, p)
+    elif kind == LOAD_HOOK:
+        t_ext = state[S_TEXT]
+    # ---- electrical + shaft (implicit midpoint by fixed-point iteration)
+    fast = path == 0 and p[P_MODEL] == 0.0          # average inverter: specialised closed form
+    z0 = complex(0.0, 0.0)
+    p0 = z0
+    p1 = z0
+    dd = z0
+    ie1 = z0
+    ies = z0
+    ii2 = 0.0
+    et = 0.0
+    loss = 0.0
+    if kind == LOAD_PRIME_MOVER:
+        wg = w0
+        x = pp * wg * dt
+        e1h = complex(math.cos(x), -math.sin(x))
+        if fast:
+            i1, ii, p0, p1, dd, ie1, ies = _avg_eval(i0, v1, pp * wg, e1h, p)
+        else:
+            i1, ii, ii2, et, loss = _electrical(path, i0, ej0, v1, pp * wg, e1h, p, ws, vr)
+        tem = 1.5 * pp * p[P_LAMBDA] * ii.imag / dt
+        t_ext = B * wg - tem
+        wn = wg
+        w1 = state[S_SPEED_TARGET]
+        n_it = 1
+    else:
+        if fast:
+            # first guess of the mean torque from a Taylor step of iq with the period's mean
+            # voltage (the previous period's acceleration lags the control by a period)
+            we0 = pp * w0
+            vq_m = (v1 * _rot_small(complex(1.0, 0.0), 0.5 * we0 * dt)).imag
+            diq = (vq_m - p[P_R] * i0.imag - we0 * (p[P_L] * i0.real + p[P_LAMBDA])) / p[P_L]
+            tem_g = 1.5 * pp * p[P_LAMBDA] * (i0.imag + 0.5 * dt * diq)
+            wg = (w0 + 0.5 * dt * (tem_g + t_ext) / J) / (1.0 + 0.5 * dt * B / J)
+        else:
+            wg = w0 + 0.5 * dt * state[S_ACCEL]
+        if resync:
+            x = pp * wg * dt
+            e1h = complex(math.cos(x), -math.sin(x))
+        else:
+            # rotate last period's exp(-j we T) by the small speed change (no sincos)
+            e1h = _rot_small(complex(state[S_E1H_RE], state[S_E1H_IM]), (pp * wg - state[S_WE_LAST]) * dt)
+        tol = 1e-11 * (1.0 + abs(w0))      # ledger residual ~1e-11 * T Te per period
+        n_it = 0
+        for it in range(8):
+            if fast:
+                i1, ii, p0, p1, dd, ie1, ies = _avg_eval(i0, v1, pp * wg, e1h, p)
+            else:
+                i1, ii, ii2, et, loss = _electrical(path, i0, ej0, v1, pp * wg, e1h, p, ws, vr)
+            n_it += 1
+            tem = 1.5 * pp * p[P_LAMBDA] * ii.imag / dt
+            wn = w0 + 0.5 * dt * (tem + t_ext - B * wg) / J
+            if abs(wn - wg) <= tol or it == 7:
+                break
+            e1h = _rot_small(e1h, pp * (wn - wg) * dt)
+            wg = wn
+        w1 = w0 + dt * (tem + t_ext - B * wg) / J
+    if fast:
+        ii2, et = _avg_energy(p0, p1, dd, ie1, ies, v1, p)
+    # ---- ledger: electrical side (exact closed-form integrals)
+    e_term = 1.5 * et
+    e_cu = 1.5 * p[P_R] * ii2
+    e_em = 1.5 * pp * wg * p[P_LAMBDA] * ii.imag           # = T mean(Te) * w_used
+    state[S_E_TERM] += e_term
+    state[S_E_CU] += e_cu
+    state[S_E_EM] += e_em
+    state[S_E_CONV] += loss
+    ibatt = 0.0
+    if path == 0:
+        state[S_E_BATT] -= e_term                          # ideal inverter on the battery
+        ibatt = -e_term / (p[P_BATT_V] * dt)
+    elif path == 2:
+        e_out = -e_term                                    # freewheel diodes into the battery
+        e_d = e_out * 2.0 * p[P_INV_DIODE_V] / (vlink + 2.0 * p[P_INV_DIODE_V])
+        state[S_E_CONV] += e_d
+        state[S_E_BATT] += e_out - e_d
+        ibatt = (e_out - e_d) / (p[P_BATT_V] * dt)
+        if e_out > 0.0:
+            state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_OVERSPEED_DIODES
+    elif path == 1 or path == 3:
+        e_out = -e_term
+        e_d = e_out * 2.0 * p[P_RECT_DIODE_V] / (vlink + 2.0 * p[P_RECT_DIODE_V])
+        e_link = e_out - e_d
+        e_bus = p[P_ETA_BUCK] * e_link
+        state[S_E_CONV] += e_d + (e_link - e_bus)
+        if state[S_SOC] < p[P_DUMP_SOC]:
+            e_b = p[P_ETA_CHG] * e_bus
+            state[S_E_CONV] += e_bus - e_b
+            state[S_E_BATT] += e_b
+            ibatt = e_b / (p[P_BATT_V] * dt)
+        else:
+            state[S_E_RES] += e_bus
+    state[S_SOC] += ibatt * dt * p[P_BATT_V] / p[P_BATT_CAP_J]
+    state[S_IBATT] = ibatt
+    state[S_VLINK] = vlink
+    # mean applied dq voltage (telemetry): terminal power / current is not unique; report the
+    # period-mean voltage vector at the mid angle
+    if path == 0:
+        if p[P_MODEL] == 0.0:
+            vm = v1
+        else:
+            vm = complex(0.0, 0.0)
+            for k in range(int(ws[W_NSEG])):
+                vm += complex(ws[W_VA + k], ws[W_VB + k]) * ws[W_T + k]
+            vm = vm * ej0.conjugate() / dt
+        vm = _rot_small(vm, 0.5 * pp * wg * dt)
+    elif path == 4:
+        vm = complex(0.0, 0.0)
+    else:
+        u = i0 if (i0.real != 0.0 or i0.imag != 0.0) else i1
+        vm = -vr * u / abs(u) if abs(u) > 0.0 else complex(0.0, 0.0)
+    state[S_VD] = vm.real
+    state[S_VQ] = vm.imag
+    # ---- ledger: shaft
+    w_avg = 0.5 * (w0 + w1)
+    if kind == LOAD_PRIME_MOVER:
+        state[S_E_MECH] += t_ext * wg * dt
+        state[S_E_FRIC] += B * wg * wg * dt
+        if w1 != w0:
+            state[S_E_MECH] += 0.5 * J * (w1 * w1 - w0 * w0)   # schedule step: the prime mover supplies it
+    else:
+        state[S_E_MECH] += t_ext * w_avg * dt
+        state[S_E_FRIC] += B * wg * w_avg * dt
+        state[S_MID_RESID] += tem * (wg - w_avg) * dt
+    state[S_ITER] = n_it
+    state[S_TEM] = tem
+    state[S_TLOAD] = t_ext
+    state[S_ACCEL] = (w1 - w0) / dt if kind != LOAD_PRIME_MOVER else 0.0
+    state[S_OMEGA] = w1
+    state[S_ID] = i1.real
+    state[S_IQ] = i1.imag
+    # ---- angle and encoder (angle linear in time at the frozen speed wg)
+    th0 = state[S_THETA_M]
+    th1 = th0 + wg * dt
+    cpr = p[P_CPR]
+    rev = state[S_REV]
+    c0 = state[S_COUNT]
+    c1 = rev * cpr + math.floor(th1 * cpr / TWO_PI)
+    if c1 != c0:
+        # last edge crossed: position c1 (forward) or c1 + 1 (backward), time by linear motion
+        edge = c1 if c1 > c0 else c1 + 1.0
+        th_edge = (edge - rev * cpr) * TWO_PI / cpr
+        frac = (th_edge - th0) / (wg * dt) if wg != 0.0 else 1.0
+        frac = min(max(frac, 0.0), 1.0)
+        state[S_EDGE_TICKS] = math.floor((state[S_PERIODS] + frac) * (dt * p[P_FCAP]))
+        state[S_COUNT] = c1
+    if th1 >= TWO_PI:
+        th1 -= TWO_PI
+        state[S_REV] = rev + 1.0
+    elif th1 < 0.0:
+        th1 += TWO_PI
+        state[S_REV] = rev - 1.0
+    if not (0.0 <= th1 < TWO_PI):
+        k = math.floor(th1 / TWO_PI)
+        th1 -= k * TWO_PI
+        state[S_REV] += k
+    state[S_THETA_M] = th1
+    state[S_PERIODS] += 1.0
+    state[S_RELAY_TIMER] += 1.0
+    state[S_E1H_RE] = e1h.real
+    state[S_E1H_IM] = e1h.imag
+    state[S_WE_LAST] = pp * wg
+    if resync:
+        _set_angle_outputs(state, p)               # exact resync of the rotating phasor
+    else:
+        # exp(j theta_e) advanced by exp(j we_used T): the rotation the electrical solution used
+        ej1 = ej0 * e1h.conjugate()
+        _set_phase_currents(state, ej1.real, ej1.imag)
+
+
+@njit(**JIT)
+def step_batch(state, p, duties, relay_request, buck_duty, samples, sums):
+    """N periods (duties: N x 3, relay_request / buck_duty: N). samples[k] = phase currents
+    at the end of period k; sums = [sum Te, sum T_load, sum i_batt] over the periods."""
+    ws = np.zeros(WS_SIZE)
+    n = duties.shape[0]
+    sums[0] = 0.0
+    sums[1] = 0.0
+    sums[2] = 0.0
+    for k in range(n):
+        step_period(state, p, duties[k, 0], duties[k, 1], duties[k, 2], relay_request[k], buck_duty[k], ws)
+        samples[k, 0] = state[S_IA]
+        samples[k, 1] = state[S_IB]
+        samples[k, 2] = state[S_IC]
+        sums[0] += state[S_TEM]
+        sums[1] += state[S_TLOAD]
+        sums[2] += state[S_IBATT]
+
+
+# =======================================================================================
+# Python shell
+# =======================================================================================
+def new_state(p: np.ndarray, speed_rpm: float, soc0: float, theta_m_rad: float = 0.0) -> np.ndarray:
+    s = np.zeros(S_SIZE)
+    init_state(s, p, speed_rpm / RPM_PER_RAD_S, soc0, theta_m_rad)
+    return s
+
+
+def ledger_of(state: np.ndarray, p: np.ndarray) -> dict:
+    """Energy ledger [J], cumulative. residual = mech in - battery - resistor - losses - stored."""
+    e_mech = state[S_E_MECH]
+    e_batt = state[S_E_BATT]
+    e_res = state[S_E_RES]
+    e_loss = state[S_E_CU] + state[S_E_FRIC] + state[S_E_CONV]
+    e_stored = stored_energy(state, p) - state[S_E_STORED0]
+    return {
+        "energy_mech_in_j": float(e_mech),
+        "energy_battery_j": float(e_batt),
+        "energy_resistor_j": float(e_res),
+        "energy_loss_j": float(e_loss),
+        "energy_copper_j": float(state[S_E_CU]),
+        "energy_friction_j": float(state[S_E_FRIC]),
+        "energy_converter_j": float(state[S_E_CONV]),
+        "energy_stored_j": float(e_stored),
+        "residual_j": float(e_mech - e_batt - e_res - e_loss - e_stored),
+    }
+
+
+class RiderLoad:
+    """Load hook: the rider of bike_plant.mechanics (torque-cadence line, two peaks per crank
+    turn, effort PI on cadence: the same model and constants as the BLDC plant's rider)
+    seen by the SPMSM through ``gear_ratio``. Called once per batch, the torque is held."""
+
+    def __init__(self, load: SpmsmLoadParams):
+        self.params = load.rider_load_params()
+        self.effort = load.rider_effort0
+        self.integ = load.rider_effort0
+        self.crank_rad = 0.0
+
+    def __call__(self, t_s: float, speed_rad_s: float, dt_s: float) -> float:
+        lp = self.params
+        cad = speed_rad_s / lp.gear_ratio
+        err = lp.rider_target_cadence_rpm / RPM_PER_RAD_S - cad
+        self.integ = min(max(self.integ + lp.rider_ki * err * dt_s, -1.0), 1.0)
+        self.effort = min(max(lp.rider_kp * err + self.integ, 0.0), 1.0)
+        torque = mechanics.rider_motor_torque_nm(self.effort, speed_rad_s, self.crank_rad, lp)
+        self.crank_rad = (self.crank_rad + cad * dt_s) % TWO_PI
+        return torque
+
+
+@dataclasses.dataclass
+class SpmsmBatchResult:
+    torque_em_nm: float
+    load_torque_nm: float
+    battery_current_a: float
+    current_samples_a: np.ndarray
+    faults: int
+
+
+class SpmsmPlant:
+    """The authoritative SPMSM plant (counterpart of bike_plant.sim.BldcPlant).
+
+    load_hook(t_s, speed_rad_s, dt_s) -> torque on the shaft [N m, accelerating positive]
+    replaces the configured load (a rider, a recorded torque, ...); it is evaluated at each
+    batch start and held for the batch. ``load.kind: rider`` installs :class:`RiderLoad`.
+    """
+
+    def __init__(self, params: SpmsmPlantParams, load_hook=None):
+        self.params = params
+        self.p = pack_params(params)
+        load = params.load
+        if load_hook is None and load.kind == "rider":
+            load_hook = RiderLoad(load)
+        self.load_hook = load_hook
+        if load_hook is not None:
+            self.p[P_LOAD_KIND] = LOAD_HOOK
+        speed0 = load.speed_rpm if load.kind == "prime_mover" else params.mech.speed0_rpm
+        if load.kind == "prime_mover" and load.schedule_time_s:
+            speed0 = self._scheduled_speed_rpm(0.0, speed0)
+        self.state = new_state(self.p, speed0, params.battery.soc0)
+        self.ws = np.zeros(WS_SIZE)
+        self.seq = 0
+
+    @property
+    def time_s(self) -> float:
+        return float(self.state[S_PERIODS] * self.params.control_period_s)
+
+    def _scheduled_speed_rpm(self, t, default):
+        speed = default
+        for ts, sp in zip(self.params.load.schedule_time_s, self.params.load.schedule_speed_rpm):
+            if t + 1e-12 >= ts:
+                speed = sp
+        return speed
+
+    def before_batch(self, n_periods: int) -> None:
+        """Per-batch inputs: prime-mover schedule, load hook torque."""
+        load = self.params.load
+        if load.kind == "prime_mover" and load.schedule_time_s:
+            self.state[S_SPEED_TARGET] = self._scheduled_speed_rpm(self.time_s, load.speed_rpm) / RPM_PER_RAD_S
+        if self.load_hook is not None:
+            self.state[S_TEXT] = float(self.load_hook(self.time_s, float(self.state[S_OMEGA]),
+                                                      n_periods * self.params.control_period_s))
+
+    def step_batch(self, duties, relay_request=0.0, buck_duty=1.0) -> SpmsmBatchResult:
+        """Apply N control periods: duties (N x 3, each in [0, 1]), relay request (0 inverter,
+        1 rectifier) and buck duty, scalars or length-N arrays."""
+        d = np.asarray(duties, dtype=np.float64)
+        if d.ndim != 2 or d.shape[1] != 3:
+            raise ValueError(f"duties must be N x 3, got shape {d.shape}")
+        if d.size and not (np.all(d >= 0.0) and np.all(d <= 1.0)):     # NaN fails too
+            raise ValueError("duties must be finite and in [0, 1]")
+        n = d.shape[0]
+        rr = np.broadcast_to(np.asarray(relay_request, dtype=np.float64), (n,)).copy()
+        bd = np.broadcast_to(np.asarray(buck_duty, dtype=np.float64), (n,)).copy()
+        if n and not (np.all(np.isfinite(rr)) and np.all(np.isfinite(bd))):
+            raise ValueError("relay_request and buck_duty must be finite")
+        self.before_batch(n)
+        samples = np.zeros((n, 3))
+        sums = np.zeros(3)
+        self.state[S_FAULTS] = 0.0
+        step_batch(self.state, self.p, d, rr, bd, samples, sums)
+        self.seq += 1
+        nn = max(n, 1)
+        return SpmsmBatchResult(float(sums[0] / nn), float(sums[1] / nn), float(sums[2] / nn), samples,
+                                int(self.state[S_FAULTS]))
+
+    def set_safe_state(self) -> None:
+        """Inverter gates off: the bridge becomes a diode rectifier into the battery."""
+        self.state[S_GATES_OFF] = 1.0
+
+    def clear_safe_state(self) -> None:
+        self.state[S_GATES_OFF] = 0.0
+
+    def ledger(self) -> dict:
+        return ledger_of(self.state, self.p)
+
+    def snapshot(self) -> dict:
+        """Measured quantities at the start of the next batch (PlantState names where they exist)."""
+        s = self.state
+        led = self.ledger()
+        return {
+            "seq": int(self.seq),
+            "control_period_s": float(self.params.control_period_s),
+            "machine": "spmsm",
+            "backend": "sim",
+            "phase_current_a": [float(s[S_IA]), float(s[S_IB]), float(s[S_IC])],
+            "rotor_angle_elec_rad": float((self.p[P_PP] * s[S_THETA_M]) % TWO_PI),
+            "speed_rad_s": float(s[S_OMEGA]),
+            "speed_rpm": float(s[S_OMEGA] * RPM_PER_RAD_S),
+            "encoder_count": int(s[S_COUNT]),
+            "encoder_edge_ticks": int(s[S_EDGE_TICKS]),
+            "dc_bus_v": float(self.p[P_VDC]),
+            "relay_state": int(s[S_RELAY]),
+            "torque_em_nm": float(s[S_TEM]),
+            "load_torque_nm": float(s[S_TLOAD]),
+            "battery_soc": float(s[S_SOC]),
+            "battery_current_a": float(s[S_IBATT]),
+            "energy_mech_in_j": led["energy_mech_in_j"],
+            "energy_battery_j": led["energy_battery_j"],
+            "energy_resistor_j": led["energy_resistor_j"],
+            "energy_loss_j": led["energy_loss_j"],
+            "energy_stored_j": led["energy_stored_j"],
+            "faults": int(s[S_FAULTS]),
+        }

@@ -1,0 +1,264 @@
+"""SPMSM control (paper 001, sections 3-5): predictive law vs its closed form, the
+predictor's model is the plant's, PI pole placement, operating regions, closed loop."""
+from __future__ import annotations
+
+import copy
+import math
+import pathlib
+
+import numpy as np
+import pytest
+
+from bike_plant import spmsm as M
+from bike_plant.config import ConfigError, load_config
+from bike_controller import spmsm_control as C
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CFG_PATH = ROOT / "config" / "spmsm_default.yaml"
+LOW_R = 0.684     # the Rs under which the paper's 200 r/min / 1 N m and 350 r/min are feasible at 24 V
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    # these tests use the paper's printed Rs = 6.84 ohm; the default config reads it as
+    # 0.684 ohm (see its comment) and the cases that need that set it explicitly
+    c = load_config(CFG_PATH)
+    assert c["spmsm"]["rs_ohm"] == 0.684
+    c["spmsm"]["rs_ohm"] = 6.84
+    return c
+
+
+def variant(cfg, **sections):
+    c = copy.deepcopy(cfg)
+    for name, values in sections.items():
+        c[name] = dict(c.get(name, {}), **values)
+    return c
+
+
+def test_predictive_increment_is_the_minimiser_of_the_one_step_cost():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        x_ref, x, dx = rng.normal(size=3)
+        a, b, r = rng.uniform(0.5, 1.0), rng.uniform(0.01, 1.0), rng.uniform(0.0, 0.5)
+        du = C.predictive_increment(x_ref, x, dx, a, b, r)
+
+        def cost(u):
+            return (x_ref - (x + a * dx + b * u)) ** 2 + r * u * u
+        # dJ/du = 0 and J is minimal there
+        eps = 1e-6
+        assert (cost(du + eps) - cost(du - eps)) / (2 * eps) == pytest.approx(0.0, abs=1e-8)
+        assert cost(du) <= min(cost(du + 1e-3), cost(du - 1e-3))
+    # r = 0: dead beat, the predicted x(k+1) hits the reference
+    du = C.predictive_increment(2.0, 1.0, 0.3, 0.9, 0.5, 0.0)
+    assert 1.0 + 0.9 * 0.3 + 0.5 * du == pytest.approx(2.0)
+
+
+def test_predictor_model_comes_from_the_plant_model(cfg):
+    ctrl = C.SpmsmController(cfg)
+    nom = ctrl.nominal
+    a, b = M.zoh_current_coefficients(nom.spmsm.rs_ohm, nom.spmsm.inductance_h, nom.control_period_s)
+    assert (ctrl.q[C.Q_AC], ctrl.q[C.Q_BC]) == (a, b)
+    a_s, b_s = M.zoh_speed_coefficients(nom.spmsm.torque_constant_nm_per_a, 0.01, 0.005, 1e-3)
+    assert (ctrl.q[C.Q_AS], ctrl.q[C.Q_BS]) == pytest.approx((a_s, b_s))
+    # the ZOH model is the plant's exact solution at standstill: i(k+1) = a i(k) + b v
+    p = M.pack_params(nom)
+    i1, _, _, _ = M.segment(0.3 + 0.2j, 5.0 + 2.0j, 0j, 0.0, p[M.P_DT], 1 + 0j, p[M.P_EAH], p[M.P_A], p[M.P_L],
+                            p[M.P_LAMBDA])
+    assert i1 == pytest.approx(a * (0.3 + 0.2j) + b * (5.0 + 2.0j), abs=1e-14)
+    # nominal copy ignores the plant's parameter variation (paper Fig. 23)
+    varied = variant(cfg, spmsm={"rs_scale": 1.3})
+    assert C.SpmsmController(varied).q[C.Q_AC] == a
+    assert M.SpmsmPlant(M.plant_params_from_config(varied)).p[M.P_R] == pytest.approx(1.3 * 6.84)
+
+
+@pytest.mark.parametrize("a,b", [(0.9326, 0.00985), (0.9995, 0.1098)])
+def test_pi_gains_place_a_double_pole(a, b):
+    pole_hz, dt = 20.0, 1e-3
+    kp, ki = C.pi_gains_pole_placement(a, b, pole_hz, dt)
+    # (z - 1)(z - a) + b (Kp (z - 1) + Ki T z)
+    poly = np.polyadd(np.polymul([1, -1], [1, -a]), b * np.array([kp + ki, -kp]))
+    assert np.allclose(np.sort_complex(np.roots(poly)), [math.exp(-2 * math.pi * pole_hz * dt)] * 2, atol=1e-6)
+
+
+def _reference(x, sweep, q, vlim, fw=1.0):
+    rpm, dem = (x, 14.0) if sweep == "speed" else (380.0, x)
+    we = 6 * rpm / M.RPM_PER_RAD_S
+    return we, C.current_reference(dem, we, vlim, 15.0, q[C.Q_R], q[C.Q_L], q[C.Q_LAM], fw)
+
+
+def test_regions_are_continuous_and_respect_both_limits(cfg):
+    """Sweep the speed at a large torque demand and the demand at a high speed: the reference
+    moves through constant torque -> flux weakening -> MTPV, never leaves the current disc or
+    the steady-state voltage disc, and has no jump: the largest step between grid points
+    shrinks when the grid is refined (at the voltage disc's tangency it moves like a square
+    root: steep, but continuous)."""
+    q = C.SpmsmController(variant(cfg, spmsm={"rs_ohm": LOW_R})).q
+    vlim = 13.0
+    for sweep, top in (("speed", 450.0), ("demand", 20.0)):
+        xs = np.linspace(0.0, top, 20001)
+        pts = []
+        regions = []
+        for x in xs:
+            we, (idr, iqr, reg, _) = _reference(x, sweep, q, vlim)
+            v = M.steady_state_voltage(idr, iqr, we, q[C.Q_R], q[C.Q_L], q[C.Q_LAM])
+            assert math.hypot(idr, iqr) <= 15.0 + 1e-9
+            assert abs(v) <= vlim + 1e-9
+            pts.append((idr, iqr))
+            if not regions or regions[-1] != reg:
+                regions.append(reg)
+        pts = np.array(pts)
+        if sweep == "speed":
+            assert np.max(np.abs(np.diff(pts[:, 1]))) < 0.01     # the torque (iq) never steps
+        steps = np.hypot(*np.diff(pts, axis=0).T)
+        k = int(np.argmax(steps))
+        assert steps[k] < 0.5
+        fine = [_reference(x, sweep, q, vlim)[1][:2] for x in np.linspace(xs[k], xs[k + 1], 101)]
+        assert np.max(np.hypot(*np.diff(np.array(fine), axis=0).T)) < 0.3 * steps[k]
+        if sweep == "speed":
+            assert regions == [C.REGION_CONSTANT_TORQUE, C.REGION_FLUX_WEAKENING, C.REGION_MTPV]
+        else:
+            assert C.REGION_FLUX_WEAKENING in regions and regions[-1] == C.REGION_MTPV
+    # without flux weakening id stays 0 and the voltage limit cuts the torque
+    _, (idr, _, _, lim) = _reference(20.0, "demand", q, vlim, fw=0.0)
+    assert idr == 0.0 and lim & C.LIMIT_VOLTAGE
+
+
+def test_id0_saturates_near_175_rpm_and_flux_weakening_reaches_350(cfg):
+    """Steady state (region logic, full Vdc/sqrt(3)) and closed loop. With the printed
+    Rs = 6.84 ohm the machine saturates at ~173 r/min with id = 0 and flux weakening cannot
+    help (Rs >> we L); with Rs = 0.684 ohm id = 0 saturates at ~180 r/min and flux weakening
+    reaches 350 r/min."""
+    q_hi = C.SpmsmController(cfg).q
+    q_lo = C.SpmsmController(variant(cfg, spmsm={"rs_ohm": LOW_R})).q
+    assert 170.0 < C.steady_state_max_speed_rpm(q_hi, 0.0, flux_weakening=False) < 181.0
+    assert C.steady_state_max_speed_rpm(q_hi, 0.0, flux_weakening=True) < 185.0
+    assert 175.0 < C.steady_state_max_speed_rpm(q_lo, 0.0, flux_weakening=False) < 181.0
+    assert C.steady_state_max_speed_rpm(q_lo, 0.0, flux_weakening=True) > 350.0
+    # closed loop, ramp to 350 r/min, no load
+    ref = lambda t: np.minimum(400.0 * t, 350.0)   # noqa: E731
+    for fw, low, high in ((False, 160.0, 181.0), (True, 349.0, 351.0)):
+        c = variant(cfg, spmsm={"rs_ohm": LOW_R}, load={"kind": "none"}, controller={"flux_weakening": fw})
+        out = C.run_spmsm_offline(c, 1.6, ref, None, record_every=10)
+        final = out["speed_rpm"][out["t"] > 1.3].mean()
+        assert low < final < high, (fw, final)
+        if fw:
+            assert np.all(out["id"][out["t"] > 1.3] < -1.0)          # flux weakening current
+            assert set(np.unique(out["region"])) >= {C.REGION_CONSTANT_TORQUE, C.REGION_FLUX_WEAKENING}
+
+
+def test_region_transition_in_closed_loop_has_no_torque_step(cfg):
+    """Ramp through the constant-torque -> flux-weakening boundary under load: around the
+    region change the references and the torque change as smoothly as elsewhere."""
+    c = variant(cfg, spmsm={"rs_ohm": LOW_R},
+                load={"kind": "dynamometer", "dyno_time_s": [0.0], "dyno_torque_nm": [0.5]},
+                mechanics={"speed0_rpm": 120.0})
+    out = C.run_spmsm_offline(c, 1.0, lambda t: 120.0 + 100.0 * t, None, record_every=10)
+    t = out["t"]
+    change = np.where(np.diff(out["region"]) != 0)[0]
+    assert len(change) >= 1
+    near = np.zeros(len(t) - 1, bool)
+    for k in change:
+        near |= np.abs(t[1:] - t[k]) < 0.02
+    steady = t[1:] > 0.1                     # after the start-up transient
+    for name in ("iq_ref", "id_ref", "torque"):
+        d = np.abs(np.diff(out[name]))
+        assert d[near].max() < 0.02, name                                   # 1 ms rows
+        assert d[near].max() <= 1.5 * d[steady & ~near].max() + 1e-3, name
+    ia = out["ia"]
+    assert np.max(np.abs(ia[t > 0.1])) < 1.2 * np.max(np.abs(ia[t > 0.9]))   # no current spike
+
+
+def _load_step(cfg, family, rs_ohm=LOW_R, speed=200.0, torque=1.0):
+    c = variant(cfg, spmsm={"rs_ohm": rs_ohm}, load={"kind": "none"}, mechanics={"speed0_rpm": speed})
+    out = C.run_spmsm_offline(c, 1.2, lambda t: np.full_like(t, speed), lambda t: np.where(t >= 0.3, torque, 0.0),
+                              controller=family, record_every=10)
+    t, s = out["t"], out["speed_rpm"]
+    after = t >= 0.3
+    drop = speed - s[after].min()
+    outside = np.where((np.abs(s - speed) > 0.02 * speed) & after)[0]
+    recovery = t[outside[-1]] - 0.3 if len(outside) else 0.0
+    return drop, recovery, out
+
+
+def test_load_step_both_families_predictive_recovers_faster(cfg):
+    """Paper Table 1 / Fig. 11b (1 N m at 200 r/min; 20 vs 40 r/min drop, 0.2 vs 0.5 s):
+    the PI (poles chosen to match the paper's PI column) drops ~40 r/min and recovers in
+    ~0.5 s; the predictive law drops less and recovers faster."""
+    d_pred, r_pred, out_pred = _load_step(cfg, "predictive")
+    d_pi, r_pi, out_pi = _load_step(cfg, "pi")
+    assert 30.0 < d_pi < 50.0 and 0.35 < r_pi < 0.7
+    assert d_pred < 0.5 * d_pi and r_pred < 0.5 * r_pi
+    for out in (out_pred, out_pi):
+        assert set(C.REC_FIELDS) <= set(out)
+        assert abs(out["speed_rpm"][-1] - 200.0) < 2.0
+        assert abs(out["torque"][-1] - 1.0 - 0.005 * 200 / M.RPM_PER_RAD_S) < 0.05
+        assert abs(out["ledger"]["residual_j"]) < 1e-9
+
+
+@pytest.mark.parametrize("family", ["predictive", "pi"])
+def test_speed_steps_from_2_to_150_rpm(cfg, family):
+    """Step responses at the printed Rs (paper Fig. 14 goes to 350 r/min, which 6.84 ohm
+    cannot reach at 24 V): every step settles on the command, same telemetry."""
+    c = variant(cfg, load={"kind": "none"})
+    for ref in (2.0, 50.0, 150.0):
+        out = C.run_spmsm_offline(c, 1.0, lambda t, r=ref: np.where(t >= 0.01, r, 0.0), None, controller=family,
+                                  record_every=10)
+        settled = out["speed_rpm"][out["t"] > 0.8]
+        assert abs(settled.mean() - ref) < 0.01 * ref + 0.05, (ref, settled.mean())
+        assert np.ptp(settled) < 0.02 * ref + 0.2
+
+
+def test_generating_mode_brakes_with_the_demanded_torque(cfg):
+    c = variant(cfg, load={"kind": "prime_mover", "speed_rpm": 300.0})
+    out = C.run_spmsm_offline(c, 0.6, 300.0, None, relay_fn=lambda t: "rectifier" if t >= 0.1 else "inverter",
+                              brake_torque_fn=lambda t: np.where(t < 0.35, 0.3, 0.6), record_every=10)
+    t = out["t"]
+    for t0, t1, demand in ((0.25, 0.35, 0.3), (0.5, 0.6, 0.6)):
+        sel = (t > t0) & (t < t1)
+        assert np.all(out["relay"][sel] == M.REL_RECTIFIER)
+        assert -out["torque"][sel].mean() == pytest.approx(demand, rel=0.03)
+    plant = out["plant"]
+    assert plant.state[M.S_OVERLAP] == 0
+    led = out["ledger"]
+    assert led["energy_battery_j"] > 0 and abs(led["residual_j"]) < 1e-9
+
+
+def test_switching_model_runs_the_same_loop(cfg):
+    c = variant(cfg, spmsm={"rs_ohm": LOW_R}, load={"kind": "dynamometer", "dyno_time_s": [0.0],
+                                                    "dyno_torque_nm": [1.0]},
+                mechanics={"speed0_rpm": 200.0}, inverter={"dead_time_s": 1e-6})
+    for family in ("predictive", "pi"):
+        out = C.run_spmsm_offline(c, 1.0, 200.0, None, controller=family, switching=True)
+        late = out["t"] > 0.8
+        assert abs(out["speed_rpm"][late].mean() - 200.0) < 3.0
+        assert out["id"][late].mean() < -1.0                     # flux weakening at 200 r/min
+        assert abs(out["ledger"]["residual_j"]) < 1e-9
+
+
+def test_batched_decide_returns_duties_and_status(cfg):
+    plant = M.SpmsmPlant(M.plant_params_from_config(variant(cfg, load={"kind": "none"})))
+    ctrl = C.SpmsmController(cfg)
+    ctrl.reset_from(plant.state)
+    ctrl.set_speed_ref(50.0)
+    for _ in range(100):
+        duties, relay, buck, status = ctrl.decide(plant.state, 10)
+        plant.step_batch(duties, relay, buck)
+    assert duties.shape == (10, 3) and np.all((duties >= 0) & (duties <= 1))
+    assert set(status) == set(C.STATUS_FIELDS)
+    assert plant.state[M.S_OMEGA] * M.RPM_PER_RAD_S == pytest.approx(50.0, abs=1.5)
+
+
+@pytest.mark.parametrize("key,value", [("family", "mpc"), ("speed_weight_r", -1.0), ("voltage_margin", 1.5),
+                                       ("speed_estimator", "hall"), ("current_limit_a", 0.0), ("typo", 1)])
+def test_bad_controller_config_is_one_clear_error(cfg, key, value):
+    with pytest.raises(ConfigError, match="controller"):
+        C.SpmsmController(variant(cfg, controller={key: value}))
+
+
+def test_runner_rejects_bad_arguments(cfg):
+    with pytest.raises(ValueError):
+        C.run_spmsm_offline(cfg, -1.0)
+    with pytest.raises(ValueError):
+        C.run_spmsm_offline(cfg, 0.01, controller="lqr")
+    with pytest.raises(ValueError):
+        C.run_spmsm_offline(cfg, 0.01, lambda t: np.full_like(t, np.nan))
