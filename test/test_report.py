@@ -1,6 +1,11 @@
 """Bag reading and the session summary, on bags written here with rosbags (no DDS)."""
+import atexit
 import json
+import os
+import pathlib
+import random
 import shutil
+import tempfile
 
 import numpy as np
 import pytest
@@ -8,6 +13,7 @@ import pytest
 from bike_session.bags import BagError, open_bag, plant_state_array, read_topic, read_topic_stamped
 from bike_session.recorder_node import TOPICS, BagSink, build_typestore
 from bike_session.report import format_summary, main, summarise
+from conftest import ROOT, bike_command
 
 NS = "/bike"
 N = 11           # PlantState at t = 0.0, 0.1, ..., 1.0
@@ -93,7 +99,8 @@ def test_summary_numbers(tmp_path, storage):
     assert s["interlock_blanked"] == 4
     assert s["timeouts"] == 2
     assert s["fault_batches"] == {"interlock": 1, "command_timeout": 2, "overvoltage": 0, "bad_command": 0,
-                                  "drive_lost": 0, "recorder_lost": 0}
+                                  "drive_lost": 0, "recorder_lost": 0, "relay_forced": 0,
+                                  "uncontrolled_generation": 0}
     assert s["end_of_run"] is True
     assert s["final_soc"] == pytest.approx(0.51)
     assert s["session_state"] == "DONE" and s["profile_name"] == "unit"
@@ -185,4 +192,322 @@ def test_report_out_folder(tmp_path, capsys):
     assert main([str(good), "--out", str(out)]) == 0
     assert json.loads((out / "summary.json").read_text())["energy_battery_j"] == pytest.approx(12.0)
     assert "energy into battery" in (out / "summary.txt").read_text()
-    assert (out / "session.png").stat().st_size > 1000
+    for name in CHARTS:
+        assert (out / name).stat().st_size > 1000, name
+    page = (out / "summary.html").read_text()
+    assert page.count("data:image/png;base64,") == len(CHARTS) and "energy into battery" in page
+    assert "wrote " + str(out / "summary.html") in capsys.readouterr().out
+
+
+# ---------------------------------------------------------------- a session with modes (synthetic, exact)
+
+CHARTS = ("power.png", "cadence.png", "torque_speed.png", "battery.png", "energy.png", "session.png")
+RPM_PER_RAD_S = 60.0 / (2.0 * np.pi)
+CONFIG_TEXT = """/**:
+  ros__parameters:
+    load:
+      gear_ratio: 10.0
+    controller:
+      tmax_nm: 1.8
+      base_speed_rpm: 3000.0
+      pmax_w: 565.4866776461628
+"""
+PMAX = 565.4866776461628
+W = 100.0                      # motor speed [rad/s]
+CADENCE = W * RPM_PER_RAD_S / 10.0
+
+
+def session_mode(k, erg_targets=(90.0, 120.0)):
+    """(mode, command, mode_target, saturated) decided at t = k ms: ERG 0-0.4 s (two targets),
+    isokinetic 90 rpm 0.4-0.7 s (saturated), resistance C = 0.5 from 0.7 s."""
+    if k < 400:
+        target = erg_targets[0] if k < 200 else erg_targets[1]
+        return 2, target / PMAX, target, False
+    if k < 700:
+        return 4, 0.7, 90.0, True                # 20 + 0.7 * (120 - 20) rpm
+    return 0, 0.5, 0.5, False
+
+
+def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
+                      status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None):
+    """A 1 kHz session of n PlantStates (t = i ms): 100 rad/s, 1 N m of braking (100 W),
+    rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()."""
+    from bike_msgs.msg import Command, ControllerStatus, PlantState
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import BatteryState
+    from std_msgs.msg import String
+
+    topics = [(_full(t), m, h, t == "session_info") for t, m, h in TOPICS]
+    sink = BagSink(path, storage, typestore or build_typestore(), topics)
+    info = {"profile_name": "modes", "software_version": "test-1", "config_text": config_text}
+    sink.write(_full("session_info"), 0, serialize_message(String(data=json.dumps(info))))
+    ms = 1_000_000
+    for i in range(n):
+        t_ns = i * ms
+        m = PlantState()
+        m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
+        m.seq = i
+        m.machine, m.backend = "bldc", "sim"
+        m.end_of_run = i == n - 1
+        m.speed_rad_s = W
+        m.speed_rpm = W * RPM_PER_RAD_S
+        m.torque_em_nm = -1.0 if i else 0.0
+        m.phase_current_a = [1.0, -0.5, -0.5]
+        m.current_samples_a = [0.0] * 60
+        if i == 333:
+            m.current_samples_a = [0.0] * 30 + [-9.0] + [0.0] * 29
+        m.hall_edge_counts = [i, i + 1] if i % 3 == 0 else []
+        m.hall_edge_states = [1, 3] if i % 3 == 0 else []
+        m.dc_bus_v = 50.0
+        m.battery_soc = 0.5 + 0.01 * i / 1000
+        t = i / 1000
+        m.energy_mech_in_j, m.energy_battery_j = 150.0 * t, 80.0 * t
+        m.energy_resistor_j, m.energy_loss_j = 5.0 * t, 15.0 * t
+        m.faults = 2 if i in (3, 4) else 0
+        data = serialize_message(m)
+        sink.write(_full("plant_state"), t_ns, data)
+        if plant_dups:
+            sink.write(_full("plant_state"), t_ns, data)
+        if conflict_at == i:
+            m.energy_mech_in_j += 1.0
+            sink.write(_full("plant_state"), t_ns, serialize_message(m))
+        if i < n - 1:
+            mode, command, target, sat = session_mode(i, erg_targets)
+            if i % 100 == 0:
+                c = Command(command=command, mode=mode)
+                c.header.stamp = m.header.stamp
+                sink.write(_full("command"), t_ns, serialize_message(c))
+            if status:
+                if status_type is not None:
+                    sink.write(_full("controller_status"), t_ns, status_type(m.header.stamp, i, mode, command))
+                else:
+                    s = ControllerStatus(seq=i, command=command, mode=mode, mode_target=target, mode_saturated=sat)
+                    s.header.stamp = m.header.stamp
+                    sink.write(_full("controller_status"), t_ns, serialize_message(s))
+        if i % 10 == 0:
+            b = BatteryState(voltage=50.0, current=1.6, percentage=m.battery_soc)
+            b.header.stamp = m.header.stamp
+            sink.write(_full("battery"), t_ns, serialize_message(b))
+    sink.close()
+    return path
+
+
+SQRT250 = float(np.sqrt(250.0))       # ERG errors +10 W (0-0.2 s), -20 W (0.2-0.4 s)
+
+
+def check_modes_summary(s):
+    assert s["plant_states"] == 1001 and s["duration_s"] == pytest.approx(1.0)
+    assert s["mean_braking_power_w"] == pytest.approx(100.0, rel=1e-9)
+    assert s["mean_rider_power_w"] == pytest.approx(150.0, rel=1e-9)
+    assert s["mean_cadence_rpm"] == pytest.approx(CADENCE, rel=1e-9)
+    assert s["machine"]["gear_ratio"] == 10.0 and s["machine"]["tmax_nm"] == 1.8
+    assert s["peak_phase_current_a"] == 9.0 and s["timeouts"] == 2
+    modes = s["time_in_mode_s"]
+    assert set(modes) == {"erg", "isokinetic", "resistance"}
+    assert (modes["erg"], modes["isokinetic"], modes["resistance"]) == pytest.approx((0.4, 0.3, 0.3))
+    tr = s["tracking"]
+    erg, iso, res = tr["erg_power"], tr["isokinetic_cadence"], tr["resistance_torque"]
+    assert erg["windows"] == 4 and erg["window_s"] == pytest.approx(0.1)
+    assert erg["rms"] == pytest.approx(SQRT250, rel=1e-9) and erg["max_abs"] == pytest.approx(20.0, rel=1e-9)
+    assert erg["mean"] == pytest.approx(-5.0, rel=1e-9) and erg["rms_batch"] == pytest.approx(SQRT250, rel=1e-9)
+    assert erg["max_abs_batch"] == pytest.approx(20.0) and erg["mean_target"] == pytest.approx(105.0)
+    assert iso["windows"] == 3 and iso["rms"] == pytest.approx(CADENCE - 90.0, rel=1e-9)
+    assert iso["mean_target"] == pytest.approx(90.0)
+    # Eq. 3 at C = 0.5 below wb: 0.5 * 1.8 = 0.9 N m; the machine brakes with 1.0 N m
+    assert res["windows"] == 3 and res["rms"] == pytest.approx(0.1, rel=1e-9) and res["mean"] == pytest.approx(0.1)
+    return tr
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_modes_and_tracking_exact(tmp_path, storage):
+    from bike_session.report import analyse
+
+    d = analyse(write_session_bag(tmp_path / "bag", storage=storage))
+    tr = check_modes_summary(d.summary)
+    assert tr["isokinetic_cadence"]["saturated_fraction"] == pytest.approx(1.0)
+    assert tr["erg_power"]["saturated_fraction"] == 0.0
+    assert d.res_commands == {0.5: pytest.approx(0.3)}
+    assert d.summary["software_version"] == "test-1" and d.summary["warnings"] == []
+    text = format_summary(d.summary)
+    assert "tracking erg_power:" in text and "rms 15.811 W" in text and "max 20.000 W" in text
+    assert "mean cadence:          95.5 rpm  (gear ratio 10)" in text
+
+
+def test_tracking_from_commands_when_there_is_no_controller_status(tmp_path):
+    """No ControllerStatus (or one without mode_target): the mode and command come from the
+    Command topic and the target from the config, with the same numbers."""
+    s = summarise(write_session_bag(tmp_path / "bag", status=False))
+    assert s["messages"]["/bike/controller_status"] == 0
+    check_modes_summary(s)
+
+
+def test_older_controller_status_without_mode_target(tmp_path):
+    """A bag recorded before ControllerStatus had mode_target: the embedded (older) definition
+    decodes, the missing fields get their defaults and the target comes from the config."""
+    from bike_session.recorder_node import bike_msgs_msg_dir
+
+    msg_dir = tmp_path / "msg"
+    msg_dir.mkdir()
+    for f in bike_msgs_msg_dir().glob("*.msg"):
+        text = f.read_text()
+        if f.stem == "ControllerStatus":
+            text = text[:text.index("float64 mode_target")]
+        (msg_dir / f.name).write_text(text)
+    ts = build_typestore(msg_dir)
+    cls = ts.types["bike_msgs/msg/ControllerStatus"]
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+
+    def old_status(stamp, seq, mode, command):
+        msg = cls(header=Header(stamp=Time(sec=stamp.sec, nanosec=stamp.nanosec), frame_id=""), seq=seq,
+                  command=command, mode=mode, command_rejected=False, speed_est_rpm=0.0, torque_cmd_nm=0.0,
+                  k_factor=0.8, ktg_nm_per_a=0.04, current_cmd_a=0.0, region=0, quadrant=2, prediction_error_a=0.0)
+        return bytes(ts.serialize_cdr(msg, "bike_msgs/msg/ControllerStatus"))
+
+    bag = write_session_bag(tmp_path / "bag", typestore=ts, status_type=old_status)
+    with open_bag(bag) as b:
+        assert "mode_target" not in b.typestore.types["bike_msgs/msg/ControllerStatus"].__dataclass_fields__
+    s = summarise(bag)
+    assert s["messages"]["/bike/controller_status"] == 1000
+    tr = check_modes_summary(s)
+    assert tr["isokinetic_cadence"]["saturated_fraction"] == 0.0     # unknown in the old bag
+
+
+def test_fast_field_reader_matches_the_typestore(tmp_path):
+    """The CDR walker gives what rosbags' full decoder gives, field by field (strings of odd
+    length, empty and full uint64 sequences in front of the wanted fields)."""
+    from bike_session.report import BATTERY_SPEC, COMMAND_SPEC, PLANT_SPEC, STATUS_SPEC, FieldReader
+
+    bag = write_session_bag(tmp_path / "bag", n=40)
+    with open_bag(bag) as b:
+        for topic, spec in (("plant_state", PLANT_SPEC), ("controller_status", STATUS_SPEC),
+                            ("command", COMMAND_SPEC), ("battery", BATTERY_SPEC)):
+            full = b.resolve(topic)
+            reader = FieldReader(b.typestore, b.topics[full][0], spec)
+            assert reader.fast is not None, topic
+            raws = [raw for _, _, raw in b.messages([full], raw=True)]
+            assert raws
+            for raw in raws:
+                assert reader.fast(raw) == reader.generic(raw), topic
+    from bike_msgs.msg import PlantState
+    from rclpy.serialization import serialize_message
+
+    reader = FieldReader(build_typestore(), "bike_msgs/msg/PlantState", PLANT_SPEC)
+    for machine, edges in (("b", []), ("bldc-x", [7]), ("spmsm", [1, 2, 3]), ("", [5])):
+        m = PlantState(machine=machine, backend="s" * len(edges), hall_edge_counts=edges,
+                       hall_edge_states=list(range(len(edges))), torque_em_nm=-1.25, energy_loss_j=3.5,
+                       current_samples_a=[0.5, -2.5] * len(edges), interlock_blanked_count=9, seq=2 ** 40)
+        raw = serialize_message(m)
+        assert reader.fast(raw) == reader.generic(raw)
+        got = dict(zip([p for p, *_ in PLANT_SPEC], reader.fast(raw)))
+        assert got["torque_em_nm"] == -1.25 and got["energy_loss_j"] == 3.5 and got["seq"] == 2 ** 40
+        assert got["current_samples_a"] == (2.5 if edges else 0.0) and got["interlock_blanked_count"] == 9
+
+
+def test_repeated_plant_states_count_once(tmp_path):
+    s = summarise(write_session_bag(tmp_path / "bag", plant_dups=True))
+    assert s["plant_states"] == 1001 and s["plant_state_duplicates"] == 1001
+    assert s["plant_state_conflicts"] == 0 and s["warnings"] == []
+    check_modes_summary(s)                                  # fault batches not doubled, same powers
+    s = summarise(write_session_bag(tmp_path / "bag2", conflict_at=500))
+    assert s["plant_state_conflicts"] == 1
+    assert any("more than one plant" in w for w in s["warnings"])
+
+
+def test_report_files_and_progress(tmp_path, capsys, monkeypatch):
+    from bike_session import report
+
+    bag = write_session_bag(tmp_path / "bag")
+    monkeypatch.setattr(report, "PROGRESS_MIN", 100)
+    out = tmp_path / "out"
+    assert main([str(bag), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("bike report: ")]
+    assert len(lines) == 10 and lines[0].endswith("messages)") and " 10 % " in lines[0] and " 100 % " in lines[-1]
+    saved = json.loads((out / "summary.json").read_text())
+    assert saved["tracking"]["erg_power"]["rms"] == pytest.approx(SQRT250)
+    for name in CHARTS:
+        assert (out / name).stat().st_size > 5000, name
+    assert (out / "summary.html").read_text().count("<img") == len(CHARTS)
+    monkeypatch.setattr(report, "PROGRESS_MIN", 10 ** 9)
+    assert main([str(bag)]) == 0
+    assert "%" not in capsys.readouterr().err
+
+
+def test_series_for_the_charts(tmp_path):
+    """The binned series behind the charts: ERG target only where ERG rides, isokinetic
+    target where that mode rides, cadence from the configured gear ratio, ledger energies."""
+    from bike_session.report import analyse, series
+
+    d = analyse(write_session_bag(tmp_path / "bag"))
+    assert d.bin_s == 0.01 and d.n_bins == 100
+    s = series(d)
+    assert len(s["t"]) == 100 and s["t"][0] == pytest.approx(0.005)
+    assert np.allclose(s["p_brake"], 100.0) and np.allclose(s["p_rider"], 150.0)
+    assert np.allclose(s["cadence"], CADENCE)
+    assert np.allclose(s["erg_target"][:20], 90.0) and np.allclose(s["erg_target"][20:40], 120.0)
+    assert np.isnan(s["erg_target"][40:]).all()
+    assert np.allclose(s["iso_target"][40:70], 90.0) and np.isnan(s["iso_target"][70:]).all()
+    assert s["E_bat"][-1] == pytest.approx(80.0) and s["E_res"][49] == pytest.approx(2.5)
+    assert np.allclose(s["bat_v"][::1], 50.0) and np.nanmax(s["ipk"]) == 9.0
+    coarse = series(d, points=10)
+    assert len(coarse["t"]) == 10 and np.allclose(coarse["erg_target"][:2], 90.0)
+    assert coarse["E_bat"][-1] == pytest.approx(80.0) and np.allclose(coarse["p_brake"], 100.0)
+
+
+# ---------------------------------------------------------------- a real recorded session
+
+REAL_RUNS: dict = {}
+
+
+def real_session(kind: str) -> pathlib.Path:
+    """A 2 s session ridden in the node graph and recorded (each kind runs once per test
+    process; test_compare uses them too): 'resistance' = the default profile, 'erg' = the
+    erg_smoke workout. A DDS domain of its own, so other runs on the host do not leak in."""
+    if kind not in REAL_RUNS:
+        tmp = pathlib.Path(tempfile.mkdtemp(prefix=f"bike_report_{kind}_"))
+        atexit.register(shutil.rmtree, tmp, True)
+        env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 200)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        extra = [] if kind == "resistance" else ["--workout", str(ROOT / "test/data/workouts/erg_smoke.erg"),
+                                                 "--ftp", "200"]
+        result = bike_command("run", *extra, "--duration", "2", "--record", str(tmp), env=env)
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+        REAL_RUNS[kind] = (next(p for p in tmp.iterdir() if p.is_dir()), result.stdout)
+    return REAL_RUNS[kind][0]
+
+
+@pytest.mark.slow
+def test_report_of_a_real_session(tmp_path):
+    bag = real_session("resistance")
+    assert "tracking resistance_torque:" in REAL_RUNS["resistance"][1], "./bike run prints the new summary"
+    out = tmp_path / "out"
+    assert main([str(bag), "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    # independent numbers from the decoded messages
+    ps = plant_state_array(bag)
+    keep = np.r_[True, (np.diff(ps["time_s"]) != 0) | (np.diff(ps["seq"].astype(float)) != 0)]
+    ps = ps[keep]
+    dt = np.diff(ps["time_s"])
+    p = -ps["torque_em_nm"][1:] * 0.5 * (ps["speed_rad_s"][1:] + ps["speed_rad_s"][:-1])
+    assert s["plant_states"] == ps.size and s["duration_s"] == pytest.approx(2.0)
+    assert s["mean_braking_power_w"] == pytest.approx(np.sum(p * dt) / 2.0, rel=1e-9)
+    assert s["energy_battery_j"] == pytest.approx(ps["energy_battery_j"][-1] - ps["energy_battery_j"][0])
+    assert s["peak_phase_current_a"] == pytest.approx(ps["phase_current_peak_a"].max())
+    assert s["mean_cadence_rpm"] == pytest.approx(np.sum(0.5 * (ps["speed_rpm"][1:] + ps["speed_rpm"][:-1]) * dt)
+                                                  / 2.0 / 35.0, rel=1e-9)
+    assert s["machine"] == {"gear_ratio": 35.0, "tmax_nm": 2.941995, "base_speed_rpm": 3300.0, "pmax_w": 1016.68,
+                            "source": "session_info config_text"}
+    assert s["time_in_mode_s"]["resistance"] == pytest.approx(2.0, abs=0.002)
+    # resistance tracking against Eq. 3-4 computed here from the ControllerStatus commands
+    status = read_topic(bag, "controller_status")
+    st_t = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in status])
+    cmd = np.array([m.command for m in status])
+    idx = np.searchsorted(st_t, ps["time_s"][:-1], side="right") - 1
+    rpm = 0.5 * (ps["speed_rpm"][1:] + ps["speed_rpm"][:-1])
+    ref = np.where(rpm < 3300.0, cmd[idx] * 2.941995, cmd[idx] * 1016.68 / (rpm / RPM_PER_RAD_S))
+    err = -ps["torque_em_nm"][1:] - ref
+    tr = s["tracking"]["resistance_torque"]
+    assert tr["rms_batch"] == pytest.approx(np.sqrt(np.sum(err ** 2 * dt) / np.sum(dt)), rel=1e-6)
+    assert tr["max_abs_batch"] == pytest.approx(np.abs(err).max(), rel=1e-9)
+    assert tr["windows"] == 20 and tr["rms"] <= tr["rms_batch"] + 1e-12
+    for name in CHARTS:
+        assert (out / name).stat().st_size > 5000, name

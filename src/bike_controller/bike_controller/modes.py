@@ -259,6 +259,44 @@ class ModeLaw:
         return ModeOutput(self.torque_nm, wanted, target, v, sat, ramping)
 
 
+@dataclass(frozen=True)
+class MachineFigures:
+    """What the mode laws need to know about the bike's machine (motor shaft figures)."""
+    machine: str
+    tmax_nm: float
+    base_speed_rpm: float
+    pmax_w: float
+    gear_ratio: float            # motor speed / crank cadence
+
+
+def machine_figures(cfg: dict) -> MachineFigures:
+    """Tmax, base speed, Pmax (= Tmax wb, Eq. 2 of paper 000) and gear of either machine:
+    BLDC from ``controller`` (paper 000's Tmax / wb / Pmax); SPMSM: ``controller.tmax_nm``
+    or Kt * current limit, the rated speed as wb. ValueError names what is missing."""
+    machine = str(cfg.get("machine", "bldc"))
+    ctrl = cfg.get("controller") or {}
+    load = cfg.get("load") or {}
+    if machine == "spmsm":
+        from bike_plant.spmsm import nominal_params_from_config
+
+        from .spmsm_control import controller_params_from_config
+        nominal = nominal_params_from_config(cfg)
+        tmax = float(ctrl.get("tmax_nm") or nominal.spmsm.torque_constant_nm_per_a
+                     * controller_params_from_config(cfg).current_limit_a)
+        base = float(nominal.spmsm.rated_speed_rpm)
+        return MachineFigures("spmsm", tmax, base, tmax * base / RPM_PER_RAD_S, float(nominal.load.gear_ratio))
+    if machine != "bldc":
+        raise ValueError(f"unknown machine {machine!r} (bldc | spmsm)")
+    values = []
+    for key in ("tmax_nm", "base_speed_rpm", "pmax_w"):
+        v = ctrl.get(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            raise ValueError(f"controller.{key} must be a number > 0, got {v!r}")
+        values.append(float(v))
+    gear = load.get("gear_ratio", 35.0)
+    return MachineFigures("bldc", *values, float(gear))
+
+
 def mode_params_from_config(cfg: dict) -> ModeParams:
     """``modes`` section of a bike config (every key optional); ValueError names the key."""
     section = cfg.get("modes") or {}
@@ -277,3 +315,32 @@ def mode_params_from_config(cfg: dict) -> ModeParams:
             raise ValueError(f"modes.{k} must be a number, got {v!r}")
         kwargs[k] = v if isinstance(v, bool) else float(v)
     return ModeParams(**kwargs)
+
+
+class TorqueTrim:
+    """Slow integral trim closing the torque loop on the measured mean torque of the last
+    batch (PlantState.torque_em_nm: the model's torque in sim, the drive's estimate on
+    CAN). The mode laws promise a power or a torque; the machine's torque-per-current is
+    not exact (paper 000: k(w) depends on speed only; the SPMSM's rectifier path is
+    controlled through a buck duty), so the requested torque is corrected by
+    ``trim``, clamped to +-``max_fraction`` * Tmax. Time constant ``tau_s``."""
+
+    def __init__(self, tmax_nm: float, tau_s: float = 0.3, max_fraction: float = 0.3):
+        self.limit_nm = max_fraction * tmax_nm
+        self.tau_s = tau_s
+        self.trim_nm = 0.0
+        self.asked_nm: float | None = None
+
+    def reset(self) -> None:
+        self.trim_nm = 0.0
+        self.asked_nm = None
+
+    def correct(self, brake_torque_nm: float, measured_em_torque_nm, dt_s: float) -> float:
+        """The torque to request for ``brake_torque_nm``, given the measured mean
+        electromagnetic torque of the last batch (motoring positive; None: unknown)."""
+        if (self.asked_nm is not None and measured_em_torque_nm is not None
+                and math.isfinite(measured_em_torque_nm)):
+            err = self.asked_nm - (-float(measured_em_torque_nm))
+            self.trim_nm = min(max(self.trim_nm + err * dt_s / self.tau_s, -self.limit_nm), self.limit_nm)
+        self.asked_nm = brake_torque_nm
+        return brake_torque_nm + self.trim_nm if brake_torque_nm != 0.0 else 0.0

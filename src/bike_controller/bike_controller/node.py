@@ -70,8 +70,18 @@ class ControllerNode(Node):
         self.command_wait_s = _positive(cfg.get("command_wait_s"), "command_wait_s", path)
         self.period_s = _positive((cfg.get("session") or {}).get("period_s"), "session.period_s", path)
         self.diag_period_s = _positive(cfg.get("diagnostics_period_s"), "diagnostics_period_s", path)
-        self._make_law = lambda: ModedController(cfg, nominal_params_from_config(cfg))
-        self.ctrl = self._make_law()
+        self.machine = str(cfg.get("machine", "bldc"))
+        if self.machine == "spmsm":
+            from .spmsm_session import ModedSpmsmController
+            self._make_law = lambda: ModedSpmsmController(cfg)
+        elif self.machine == "bldc":
+            self._make_law = lambda: ModedController(cfg, nominal_params_from_config(cfg))
+        else:
+            raise ConfigError(f"unknown machine {self.machine!r} (bldc | spmsm)", path, "machine")
+        try:
+            self.ctrl = self._make_law()
+        except ValueError as exc:
+            raise ConfigError(str(exc), path) from None
         self.n = self.ctrl.batch_periods
         # Time comes from PlantState stamps; following /clock would only add a callback per batch.
         self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
@@ -185,13 +195,14 @@ class ControllerNode(Node):
         self._apply_timeline(t_ns)
         snap = msgconv.snapshot_from_msg(msg)
         n = int(msg.batch_periods) or self.n               # answer the batch length the plant asks for
-        ga, gb, sp, status = self.ctrl.decide(snap, n)
+        a, b, c, status = self.ctrl.decide(snap, n)
         status["seq"] = msg.seq
         status["command_rejected"] = self.rejected
         torque = float(status.get("torque_cmd_nm", 0.0))
         if int(status.get("quadrant", 0)) == ControllerStatus.QUADRANT_GENERATING:
             torque = -torque                              # motoring positive, like torque_em_nm
-        drive = msgconv.drive_command_msg(msg.seq, ga, gb, sp, t_ns, torque, float(status.get("current_cmd_a", 0.0)))
+        build = msgconv.spmsm_drive_msg if self.machine == "spmsm" else msgconv.drive_command_msg
+        drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)))
         stat = msgconv.controller_status_msg(status, t_ns)
         self.pub_drive.publish(drive)
         self.pub_status.publish(stat)

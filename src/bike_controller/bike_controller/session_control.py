@@ -16,9 +16,8 @@ N = 20), the hysteresis current loop itself stays at 50 us.
 Torque trim: Eq. 6-9 with the paper's speed-only k(w) leaves the mean torque 7-12 % off the
 command at the currents of a workout (the commutation dip depends on the current level
 too). ERG, slope and motoring promise a power or a torque, so outside the paper's
-resistance mode a slow integral trim (time constant ``TRIM_TAU_S``) closes the loop on the
-measured mean torque of the last batch (PlantState.torque_em_nm: the model's torque in
-sim, the drive's torque estimate on CAN), clamped to +-``TRIM_MAX_FRACTION`` * Tmax.
+resistance mode a slow integral trim (:class:`.modes.TorqueTrim`) closes the loop on the
+measured mean torque of the last batch.
 """
 from __future__ import annotations
 
@@ -26,7 +25,7 @@ import math
 
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
-                    mode_params_from_config)
+                    TorqueTrim, mode_params_from_config)
 
 
 def validate_session_command(command, mode) -> None:
@@ -38,10 +37,6 @@ def validate_session_command(command, mode) -> None:
     if isinstance(mode, bool) or int(mode) != mode or int(mode) not in MODE_NAMES:
         names = ", ".join(f"{k} {v}" for k, v in MODE_NAMES.items())
         raise ValueError(f"unknown mode {mode!r} ({names})")
-
-
-TRIM_TAU_S = 0.3
-TRIM_MAX_FRACTION = 0.3
 
 
 class ModedController:
@@ -64,7 +59,7 @@ class ModedController:
         self.mode = int(self.inner.cs[C_MODE])
         self.command_rejected = False
         self.last_out: ModeOutput | None = None
-        self.trim_nm = 0.0
+        self.trim = TorqueTrim(self.inner.cp.tmax_nm)
         self.law.reset()
 
     @property
@@ -88,21 +83,14 @@ class ModedController:
     def _apply_mode(self, dt_s: float, snapshot: dict) -> None:
         inner = self.inner
         speed_rpm = float(inner.cs[C_SPEED_EST])
-        prev = self.last_out
         out = self.law.step(self.command, self.mode, speed_rpm, dt_s, speed_valid=inner.cs[C_NC] > 0)
         self.last_out = out
         if self.mode == MODE_RESISTANCE and not out.ramping:
-            self.trim_nm = 0.0
+            self.trim.reset()
             inner.cs[C_IOVERRIDE] = -1.0                         # no override: Eq. 2-9 inside the batch
             inner.set_command(self.command, MODE_RESISTANCE)
             return
-        measured = snapshot.get("torque_em_nm")
-        if prev is not None and measured is not None and math.isfinite(measured) and speed_rpm > 0:
-            # the last batch asked for prev.brake_torque_nm; braking torque is -torque_em
-            err = prev.brake_torque_nm - (-float(measured))
-            limit = TRIM_MAX_FRACTION * self.inner.cp.tmax_nm
-            self.trim_nm = min(max(self.trim_nm + err * dt_s / TRIM_TAU_S, -limit), limit)
-        torque = out.brake_torque_nm + self.trim_nm if out.brake_torque_nm != 0.0 else 0.0
+        torque = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt_s)
         if torque >= 0.0:
             inner.set_command(self.command if self.mode == MODE_RESISTANCE else 0.0, MODE_RESISTANCE)
             current = torque / inner.ktg(speed_rpm)
@@ -129,7 +117,9 @@ class ModedController:
         status["mode_saturated"] = bool(out is not None and out.saturated)
         status["mode_ramping"] = bool(out is not None and out.ramping)
         status["virtual_speed_mps"] = float(out.virtual_speed_mps) if out is not None else 0.0
-        status["torque_trim_nm"] = float(self.trim_nm)
+        status["torque_trim_nm"] = float(self.trim.trim_nm)
+        # the SPMSM's dq telemetry does not apply to this machine
+        status.update(family="", speed_ref_rpm=0.0, id_a=0.0, iq_a=0.0, id_ref_a=0.0, iq_ref_a=0.0, vd_v=0.0, vq_v=0.0)
         return status
 
     def status(self, seq: int = 0, prediction_error_a: float = 0.0) -> dict:

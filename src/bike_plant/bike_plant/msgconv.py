@@ -159,8 +159,52 @@ def drive_arrays(msg: DriveCommand):
     return ga, gb, sp
 
 
+def spmsm_drive_msg(seq: int, duties, relay, buck, stamp: int, torque_cmd_nm: float = 0.0,
+                    current_cmd_a: float = 0.0) -> DriveCommand:
+    """SPMSM batch: duties (N x 3), relay requests (N), buck duties (N)."""
+    msg = DriveCommand()
+    msg.header.stamp = time_msg(stamp)
+    msg.seq = int(seq)
+    msg.duty_abc = array.array("f", np.ascontiguousarray(duties, dtype=np.float32).tobytes())
+    msg.relay_request = array.array("f", np.ascontiguousarray(relay, dtype=np.float32).tobytes())
+    msg.buck_duty = array.array("f", np.ascontiguousarray(buck, dtype=np.float32).tobytes())
+    msg.torque_cmd_nm = float(torque_cmd_nm)
+    msg.current_cmd_a = float(current_cmd_a)
+    return msg
+
+
+def spmsm_drive_arrays(msg: DriveCommand):
+    """(duties float64[N, 3], relay float64[N], buck float64[N]) of an SPMSM DriveCommand."""
+    def arr(v):
+        return np.frombuffer(v, dtype=np.float32).astype(np.float64) if len(v) else np.zeros(0)
+    return arr(msg.duty_abc).reshape(-1, 3), arr(msg.relay_request), arr(msg.buck_duty)
+
+
+def spmsm_drive_problem(msg: DriveCommand, batch_periods: int) -> str | None:
+    """Why an SPMSM DriveCommand cannot be applied (None: it can). Never raises."""
+    try:
+        n = int(batch_periods)
+        if len(msg.duty_abc) != 3 * n:
+            return f"duty_abc has {len(msg.duty_abc)} entries, 3 x batch_periods is {3 * n}"
+        for name in ("relay_request", "buck_duty"):
+            if len(getattr(msg, name)) != n:
+                return f"{name} has {len(getattr(msg, name))} entries, batch_periods is {n}"
+        duties, relay, buck = spmsm_drive_arrays(msg)
+        for name, a in (("duty_abc", duties), ("relay_request", relay), ("buck_duty", buck)):
+            if a.size and not np.all(np.isfinite(a)):
+                return f"{name} holds a non-finite value"
+            if a.size and (float(a.min()) < 0.0 or float(a.max()) > 1.0):
+                return f"{name} outside [0, 1] ({float(a.min())} .. {float(a.max())})"
+        for name in ("torque_cmd_nm", "current_cmd_a"):
+            if not math.isfinite(getattr(msg, name)):
+                return f"{name} is not finite"
+    except Exception as exc:  # a malformed message must never take the node down
+        return f"unreadable DriveCommand ({exc})"
+    return None
+
+
 def drive_command_problem(msg: DriveCommand, batch_periods: int) -> str | None:
-    """Why a DriveCommand cannot be applied (None: it can). Never raises."""
+    """Why a (BLDC) DriveCommand cannot be applied (None: it can). Never raises."""
     try:
         n = int(batch_periods)
         for name in ("gates_a", "gates_b", "split"):

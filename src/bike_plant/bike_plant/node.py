@@ -89,6 +89,8 @@ FAULT_NAMES = {
     PlantState.FAULT_BAD_COMMAND: "BAD_COMMAND",
     PlantState.FAULT_DRIVE_LOST: "DRIVE_LOST",
     PlantState.FAULT_RECORDER_LOST: "RECORDER_LOST",
+    PlantState.FAULT_RELAY_FORCED: "RELAY_FORCED",
+    PlantState.FAULT_UNCONTROLLED_GENERATION: "UNCONTROLLED_GENERATION",
 }
 ERROR_FAULTS = (PlantState.FAULT_COMMAND_TIMEOUT | PlantState.FAULT_OVERVOLTAGE | PlantState.FAULT_DRIVE_LOST
                 | PlantState.FAULT_RECORDER_LOST)
@@ -100,11 +102,17 @@ def fault_text(bits: int) -> str:
 
 # ---------------------------------------------------------------- backends
 class SimBackend:
-    """The simulated bike (bike_plant.sim.BldcPlant) behind the node's backend interface:
-    time_s, snapshot(), step(ga, gb, split), safe_batch(), set_safe(on)."""
+    """The simulated BLDC bike (bike_plant.sim.BldcPlant) behind the node's backend interface:
+    time_s, snapshot(), problem(msg, n), apply(msg), safe_batch(n), set_safe(on)."""
 
     name = "sim"
     measured_by_drive = False
+
+    def problem(self, msg, n: int) -> str | None:
+        return msgconv.drive_command_problem(msg, n)
+
+    def apply(self, msg) -> None:
+        self.step(*msgconv.drive_arrays(msg))
 
     def __init__(self, cfg: dict, seed: int):
         from .params import plant_params_from_config
@@ -132,9 +140,72 @@ class SimBackend:
             self.plant.clear_safe_state()
 
 
+class SpmsmSimBackend:
+    """The simulated SPMSM bike (bike_plant.spmsm.SpmsmPlant, paper 001), same interface."""
+
+    name = "sim"
+    measured_by_drive = False
+
+    def __init__(self, cfg: dict, seed: int):  # noqa: ARG002 - the SPMSM model has no random part
+        from .spmsm import SpmsmPlant, plant_params_from_config
+
+        try:
+            self.plant = SpmsmPlant(plant_params_from_config(cfg))
+        except ValueError as exc:
+            raise ConfigError(str(exc), cfg.get("_config_path")) from None
+        self.n_last = 0
+
+    @property
+    def time_s(self) -> float:
+        return self.plant.time_s
+
+    def snapshot(self) -> dict:
+        from . import spmsm as M
+        snap = self.plant.snapshot()
+        snap["relay_state"] = min(int(snap.get("relay_state", 0)), PlantState.RELAY_SWITCHING)
+        # the model's own fault bits -> the PlantState bits (the numbers differ)
+        model_faults = int(snap.get("faults", 0))
+        snap["faults"] = ((PlantState.FAULT_RELAY_FORCED if model_faults & M.FAULT_RELAY_FORCED else 0)
+                          | (PlantState.FAULT_UNCONTROLLED_GENERATION if model_faults & M.FAULT_OVERSPEED_DIODES
+                             else 0))
+        s = self.plant.state
+        snap["rotor_angle_mech_rad"] = float(s[M.S_THETA_M])
+        snap["encoder_count"] = int(s[M.S_COUNT])
+        snap["encoder_edge_ticks"] = int(s[M.S_EDGE_TICKS])
+        return snap
+
+    def problem(self, msg, n: int) -> str | None:
+        return msgconv.spmsm_drive_problem(msg, n)
+
+    def apply(self, msg) -> None:
+        duties, relay, buck = msgconv.spmsm_drive_arrays(msg)
+        self.plant.step_batch(duties, relay, buck)
+
+    def safe_batch(self, n: int) -> None:
+        import numpy as np
+        self.plant.set_safe_state()
+        try:
+            self.plant.step_batch(np.zeros((n, 3)), 0.0, 0.0)
+        finally:
+            if not self._safe:
+                self.plant.clear_safe_state()
+
+    _safe = False
+
+    def set_safe(self, on: bool) -> None:
+        self._safe = bool(on)
+        if on:
+            self.plant.set_safe_state()
+        else:
+            self.plant.clear_safe_state()
+
+
 def make_backend(kind: str, cfg: dict, seed: int):
+    machine = str(cfg.get("machine", "bldc"))
+    if machine not in ("bldc", "spmsm"):
+        raise ConfigError(f"unknown machine {machine!r} (bldc | spmsm)", cfg.get("_config_path"), "machine")
     if kind == "sim":
-        return SimBackend(cfg, seed)
+        return SpmsmSimBackend(cfg, seed) if machine == "spmsm" else SimBackend(cfg, seed)
     if kind == "can":
         raise ConfigError("backend 'can' is not implemented yet (use 'sim')", cfg.get("_config_path"), "backend")
     raise ConfigError(f"unknown backend {kind!r} (sim | can)", cfg.get("_config_path"), "backend")
@@ -299,6 +370,10 @@ class PlantNode(Node):
             reasons.append("gate pattern with both switches of a leg on was blanked")
         if faults & PlantState.FAULT_OVERVOLTAGE:
             reasons.append("DC bus over the configured limit")
+        if faults & PlantState.FAULT_RELAY_FORCED:
+            reasons.append("relay opened under current after its drain timeout (energy booked as loss)")
+        if faults & PlantState.FAULT_UNCONTROLLED_GENERATION:
+            reasons.append("gates off but the inverter diodes conduct: uncontrolled generation (overspeed)")
         if faults & PlantState.FAULT_RECORDER_LOST:
             reasons.append(f"the recorder went silent for recorder_timeout_s={self.recorder_timeout_s:g}s: "
                            "the rest of the run is not recorded")
@@ -327,10 +402,10 @@ class PlantNode(Node):
             if msg is None:
                 self.backend.safe_batch(self.n)
                 return True
-            problem = msgconv.drive_command_problem(msg, self.n)
+            problem = self.backend.problem(msg, self.n)
             if problem is None:
                 try:
-                    self.backend.step(*msgconv.drive_arrays(msg))
+                    self.backend.apply(msg)
                     self.node_faults &= ~PlantState.FAULT_BAD_COMMAND
                     return True
                 except ValueError as exc:       # the model's own validation

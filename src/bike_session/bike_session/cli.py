@@ -3,6 +3,7 @@
     ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
           [--workout FILE.zwo|.erg|.mrc [--ftp W]]             ... riding a workout file
     ./bike report BAG                                          summarise a recorded session
+    ./bike compare BAG_A BAG_B [--out DIR]                     A/B report of two recorded sessions
     ./bike replay BAG [--config OTHER] [--record DIR]          ride a recorded session again
     ./bike bag recover BAG [--out DIR]                         rescue a crashed recording
     ./bike paper NAME --out DIR                                reproduce a figure of a paper
@@ -125,7 +126,14 @@ def _load_workout_for_run(opts, cfg):
 def _cmd_report(opts) -> int:
     from bike_session import report
 
-    return report.main([opts.bag] + (["--out", opts.out] if opts.out else []))
+    return report.main([opts.bag] + (["--out", opts.out] if opts.out else []) + (["--json"] if opts.json else []))
+
+
+def _cmd_compare(opts) -> int:
+    from bike_session import compare
+
+    return compare.main([opts.bag_a, opts.bag_b] + (["--out", opts.out] if opts.out else [])
+                        + (["--json"] if opts.json else []))
 
 
 def _cmd_replay(opts) -> int:
@@ -190,8 +198,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     rep = sub.add_parser("report", help="summarise a recorded bag: duration, power, energy, peak current, faults")
     rep.add_argument("bag")
-    rep.add_argument("--out", help="also write charts and a summary into this folder")
+    rep.add_argument("--out", help="also write charts (PNG) and summary.txt/.json/.html into this folder")
+    rep.add_argument("--json", action="store_true", help="print the summary as JSON")
     rep.set_defaults(func=_cmd_report)
+
+    cmp = sub.add_parser("compare", help="A/B comparison of two recorded sessions: tracking error, power, "
+                                         "energy, current peaks, config differences (on the overlapping time range)")
+    cmp.add_argument("bag_a")
+    cmp.add_argument("bag_b")
+    cmp.add_argument("--out", help="write compare.txt/.json/.html and overlay charts into this folder")
+    cmp.add_argument("--json", action="store_true", help="print the comparison as JSON")
+    cmp.set_defaults(func=_cmd_compare)
 
     rpl = sub.add_parser("replay", add_help=False,
                          help="ride a recorded session's Command timeline again, on the recorded bike or "

@@ -103,11 +103,11 @@ class ModeUnits:
 
 def mode_units_from_config(cfg: Mapping) -> ModeUnits:
     """ModeUnits of a loaded config (bike_plant.config.load_config)."""
-    from bike_controller.modes import mode_params_from_config
+    from bike_controller.modes import machine_figures, mode_params_from_config
 
     mp = mode_params_from_config(cfg)
-    pmax = float((cfg.get("controller") or {}).get("pmax_w", 0.0) or 0.0)
-    return ModeUnits(mp.erg_power_max_w or pmax, mp.grade_min, mp.grade_max, mp.isokinetic_cadence_min_rpm,
+    pmax = mp.erg_power_max_w or machine_figures(cfg).pmax_w
+    return ModeUnits(pmax, mp.grade_min, mp.grade_max, mp.isokinetic_cadence_min_rpm,
                      mp.isokinetic_cadence_max_rpm)
 
 

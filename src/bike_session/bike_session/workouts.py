@@ -194,17 +194,18 @@ class Workout(Profile):
 
 def pmax_w_from_config(cfg: Mapping) -> float:
     """The ERG power range of a loaded config: ``modes.erg_power_max_w`` when set (> 0),
-    else ``controller.pmax_w`` (the controller's rule, bike_controller.modes)."""
+    else the machine's Pmax (bike_controller.modes.machine_figures: the controller's rule)."""
+    from bike_controller.modes import machine_figures
+
     modes = cfg.get("modes") if isinstance(cfg, Mapping) else None
     erg = modes.get("erg_power_max_w") if isinstance(modes, Mapping) else None
     if isinstance(erg, (int, float)) and not isinstance(erg, bool) and math.isfinite(erg) and erg > 0:
         return float(erg)
-    controller = cfg.get("controller") if isinstance(cfg, Mapping) else None
-    value = controller.get("pmax_w") if isinstance(controller, Mapping) else None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
-        raise WorkoutError(f"controller.pmax_w must be a number > 0, got {value!r}",
-                           cfg.get("_config_path") if isinstance(cfg, Mapping) else None, "controller.pmax_w")
-    return float(value)
+    try:
+        return machine_figures(dict(cfg)).pmax_w
+    except (ValueError, TypeError) as exc:
+        raise WorkoutError(str(exc), cfg.get("_config_path") if isinstance(cfg, Mapping) else None,
+                           "controller.pmax_w") from None
 
 
 def load_workout(path: str | os.PathLike, *, ftp_w: float | None = None, pmax_w: float | None = None,

@@ -1,0 +1,171 @@
+"""The SPMSM bike (paper 001) in a session: session modes on top of the SPMSM control law.
+
+:class:`ModedSpmsmController` is to :class:`.spmsm_control.SpmsmController` what
+:class:`.session_control.ModedController` is to the BLDC law: same ``set_command`` /
+``decide`` / ``status`` interface, all five Command modes, per batch:
+
+- the mode law (:class:`.modes.ModeLaw`, the same code as the BLDC bike's) turns
+  (Command, mode, speed) into a signed braking torque, ramped at mode switches;
+- braking (torque >= 0): the relay selects the rectifier + buck + charger path and the buck
+  duty sets the braking torque (paper 001, Fig. 2/8: "generating: braking torque when it
+  goes uphill");
+- assist (torque < 0, downhill or motoring) and ISOKINETIC: the relay selects the inverter;
+  isokinetic runs the paper's speed loop (predictive or PI) at the target cadence, assist
+  hands the current loops iq* = T / Kt (:meth:`SpmsmController.set_torque_command`) when
+  the law has that input, else holds the present speed (documented limitation).
+
+Machine figures for the mode law: gear = ``load.gear_ratio`` (motor / crank), Tmax =
+``controller.tmax_nm`` or Kt * current limit, base speed = the rated speed (200 r/min),
+Pmax = Tmax * wb (the resistance curve of paper 000, Eq. 2-4, on this machine).
+
+The controller sees the PlantState measurement; the predictor's model vector is rebuilt
+from it (:func:`model_state_from_snapshot`): currents, encoder, angle, speed, relay, SOC.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from bike_plant import spmsm as M
+from bike_plant.params import RPM_PER_RAD_S
+
+from .modes import MODE_ISOKINETIC, machine_figures, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim, mode_params_from_config
+from .session_control import validate_session_command
+from .spmsm_control import SpmsmController, controller_params_from_config
+
+
+def model_state_from_snapshot(p_nom: np.ndarray, snap: dict) -> np.ndarray:
+    """The plant-model state vector (bike_plant.spmsm.S_*) from a PlantState snapshot."""
+    theta_m = float(snap.get("rotor_angle_mech_rad", 0.0))
+    s = M.new_state(p_nom, float(snap["speed_rpm"]), float(snap.get("battery_soc", 0.5)), theta_m)
+    ia, ib, ic = (float(x) for x in snap["phase_current_a"])
+    s[M.S_IA], s[M.S_IB], s[M.S_IC] = ia, ib, ic
+    # Park with the electrical angle: amplitude-invariant Clarke, as the plant's model
+    th_e = p_nom[M.P_PP] * theta_m
+    i_al = (2.0 * ia - ib - ic) / 3.0
+    i_be = (ib - ic) / math.sqrt(3.0)
+    c, sn = math.cos(th_e), math.sin(th_e)
+    s[M.S_ID] = c * i_al + sn * i_be
+    s[M.S_IQ] = -sn * i_al + c * i_be
+    count = float(snap.get("encoder_count", s[M.S_COUNT]))
+    s[M.S_COUNT] = count
+    # whole revolutions: the model's count is rev * cpr + floor(theta cpr / 2 pi)
+    s[M.S_REV] = float(math.floor((count - math.floor(theta_m * p_nom[M.P_CPR] / (2.0 * math.pi)))
+                                  / p_nom[M.P_CPR] + 0.5))
+    s[M.S_EDGE_TICKS] = float(snap.get("encoder_edge_ticks", 0))
+    s[M.S_PERIODS] = float(int(snap.get("seq", 0)) * int(snap.get("batch_periods", 0) or 0))
+    relay = int(snap.get("relay_state", 0))
+    s[M.S_RELAY] = relay if relay in (M.REL_INVERTER, M.REL_RECTIFIER) else M.REL_DRAIN
+    s[M.S_RELAY_TO] = s[M.S_RELAY] if relay in (M.REL_INVERTER, M.REL_RECTIFIER) else M.REL_INVERTER
+    s[M.S_SPEED_TARGET] = s[M.S_OMEGA]
+    return s
+
+
+class ModedSpmsmController:
+    """SpmsmController + session modes (same decide/status interface as ModedController)."""
+
+    def __init__(self, cfg: dict, nominal_params=None, batch_periods: int | None = None):
+        self.inner = SpmsmController(cfg, nominal_params, batch_periods=batch_periods)
+        nominal = self.inner.nominal
+        cp = controller_params_from_config(cfg)
+        self.kt = float(nominal.spmsm.torque_constant_nm_per_a)
+        fig = machine_figures(cfg)
+        tmax, base = fig.tmax_nm, fig.base_speed_rpm
+        try:
+            mp = mode_params_from_config(cfg)
+        except ValueError as exc:
+            from bike_plant.config import ConfigError
+            raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
+        self.gear = float(nominal.load.gear_ratio)
+        self.law = ModeLaw(mp, gear_ratio=self.gear, inertia_kgm2=nominal.mech.inertia_kgm2, tmax_nm=tmax,
+                           pmax_w=tmax * base / RPM_PER_RAD_S, base_speed_rpm=base,
+                           friction_nms=nominal.mech.friction_nms)
+        self.family = cp.family
+        self.command = 0.0
+        self.mode = MODE_RESISTANCE
+        self.command_rejected = False
+        self.last_out: ModeOutput | None = None
+        self.started = False
+        self.trim = TorqueTrim(tmax)
+
+    @property
+    def batch_periods(self) -> int:
+        return self.inner.batch_periods
+
+    def set_command(self, command: float, mode: int = MODE_RESISTANCE) -> None:
+        try:
+            validate_session_command(command, mode)
+        except ValueError:
+            self.command_rejected = True
+            raise
+        self.command_rejected = False
+        self.command = float(command)
+        self.mode = int(mode)
+
+    def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm) -> None:
+        inner = self.inner
+        out = self.law.step(self.command, self.mode, speed_rpm, dt_s)
+        self.last_out = out
+        if self.mode == MODE_ISOKINETIC and not out.ramping:
+            self.trim.reset()
+            inner.set_relay(False)
+            target = out.target * self.gear
+            inner.set_speed_ref(target, target)
+            self._torque_command(None)
+            return
+        torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s)
+        if torque >= 0.0:
+            inner.set_relay(True)
+            inner.set_brake_torque(torque)
+            self._torque_command(None)
+        else:
+            inner.set_relay(False)
+            if not self._torque_command(torque):
+                inner.set_speed_ref(speed_rpm, speed_rpm)
+
+    def _torque_command(self, brake_torque_nm: float | None) -> bool:
+        """Assist through the current loops when the law has a torque input."""
+        setter = getattr(self.inner, "set_torque_command", None)
+        if setter is None:
+            return False
+        setter(None if brake_torque_nm is None else -brake_torque_nm)
+        return True
+
+    def decide(self, snapshot: dict, n: int | None = None):
+        """(duties N x 3, relay N, buck N, status) answering a PlantState snapshot."""
+        inner = self.inner
+        n_eff = inner.batch_periods if n is None else int(n)
+        model = model_state_from_snapshot(inner.p, snapshot)
+        if not self.started:
+            inner.reset_from(model)            # bumpless: the drive starts at the measured speed
+            self.started = True
+        speed_rpm = float(inner.status()["speed_est_rpm"])
+        self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"))
+        duties, relay, buck, status = inner.decide(model, n_eff)
+        return duties, relay, buck, self._status(status)
+
+    def _status(self, st: dict) -> dict:
+        out = self.last_out
+        speed = st["speed_est_rpm"]
+        torque = abs(out.brake_torque_nm) if out is not None else 0.0
+        region = int(st["region"])
+        return {
+            "command": self.command, "mode": self.mode, "command_rejected": self.command_rejected,
+            "speed_est_rpm": speed, "torque_cmd_nm": torque, "k_factor": 1.0, "ktg_nm_per_a": self.kt,
+            "current_cmd_a": st["iq_ref_a"], "region": region,
+            "quadrant": 2 if (out is not None and out.brake_torque_nm >= 0.0 and self.mode != MODE_ISOKINETIC) else 1,
+            "prediction_error_a": 0.0,
+            "mode_target": float(out.target) if out is not None else self.command,
+            "mode_saturated": bool(out is not None and out.saturated),
+            "mode_ramping": bool(out is not None and out.ramping),
+            "virtual_speed_mps": float(out.virtual_speed_mps) if out is not None else 0.0,
+            "torque_trim_nm": float(self.trim.trim_nm),
+            "family": self.family, "speed_ref_rpm": st["speed_ref_rpm"], "id_a": st["id_a"], "iq_a": st["iq_a"],
+            "id_ref_a": st["id_ref_a"], "iq_ref_a": st["iq_ref_a"], "vd_v": st["vd_v"], "vq_v": st["vq_v"],
+        }
+
+    def status(self, seq: int = 0, prediction_error_a: float = 0.0) -> dict:  # noqa: ARG002
+        st = self._status(self.inner.status())
+        st["seq"] = int(seq)
+        return st

@@ -1,0 +1,800 @@
+"""bike-drive-emulator: an ODrive-like drive (CANSimple 0.6.x) on any python-can bus.
+
+It stands in for a real drive so the plant node's ``backend: can``, a script or a test
+can talk CAN without hardware. Three layers, each usable alone (no ROS imports):
+
+* :class:`AverageTorqueDrive` -- physics of the bike from a config file
+  (config/bldc_default.yaml by default): an *average torque* model of the machine,
+  ``T_em = kt * iq``, with a first-order closed current loop ``iq' = (iq* - iq) / tau``,
+  driving the shaft and external load the sim plant uses (inertia + viscous friction;
+  rider model, prime mover, dynamometer profile or none; bike_plant.params.LoadParams
+  and bike_plant.mechanics), and the battery (+ brake resistor) of the config.
+* :class:`DriveFirmware` -- the axis logic of an ODrive: states IDLE(1) and
+  CLOSED_LOOP_CONTROL(8), torque (1) and velocity (2) control, limits, error latching,
+  Clear_Errors, the watchdog.
+* :class:`DriveEmulator` -- the CAN side: decodes host frames with the same codec as
+  the host (:class:`bike_plant.can.protocol.OdriveCanSimpleCodec`), answers RTR
+  requests, sends cyclic messages, and paces physics against time.monotonic in real
+  time (a 1 kHz tick with sub-steps). Fault injection: --silent-after-s, --garbage-rate.
+
+Modelling choices (what a host sees):
+* velocities and positions are at the MOTOR shaft (rev/s, rev); crank cadence =
+  motor speed / load.gear_ratio (35 for the default bike);
+* current-loop time constant: an ODrive's current controller is a PI tuned to a
+  bandwidth (motor.config.current_control_bandwidth, default 1000 rad/s), so the closed
+  loop is first order with tau = 1 / bandwidth = 1 ms (--current-tau-s). The motor's own
+  L/R (117 uH / 6 mOhm = 20 ms for the default BLDC) is the open-loop constant a PI
+  cancels, not the closed-loop response. No voltage limit is modelled;
+* copper loss: BLDC 2 R_phase iq^2 (two phases conduct), SPMSM 1.5 R_s iq^2;
+* bus: the battery of the config (OCV(soc), internal resistance) with the brake
+  resistor switched by its hysteresis (s0_on_v / s0_off_v); Bus_Current is the DC
+  current drawn from the battery by the drive incl. its brake resistor (positive =
+  discharging); Electrical_Power = mechanical power + copper loss;
+* watchdog (0.6.x: axis.config.watchdog_timeout): fed by Set_Input_Torque,
+  Set_Input_Vel and Set_Axis_State; checked only in CLOSED_LOOP_CONTROL; on expiry the
+  axis drops to IDLE with ODRIVE_ERROR_WATCHDOG_TIMER_EXPIRED = 0x01000000 (source:
+  odriverobotics/ros_odrive odrive_base/include/odrive_enums.h) in Axis_Error,
+  Active_Errors and Disarm_Reason, Procedure_Result DISARMED (3), torque zero;
+* inputs (torque, velocity) are zeroed whenever the axis leaves closed loop, so a
+  re-enabled axis starts from zero torque; entering closed loop with latched errors is
+  refused (stays IDLE, Procedure_Result DISARMED); calibration states (2, 3, 4, 6, 7,
+  10, 12, 13, 14) complete at once with SUCCESS (the model needs no calibration); other
+  requests get INVALID_STATE;
+* protections: overspeed (|v| > 1.2 vel_limit in closed loop) -> VELOCITY_LIMIT_VIOLATION;
+  bus above the machine's overvoltage_v -> DC_BUS_OVER_VOLTAGE, below 0.75 of the empty
+  pack voltage -> DC_BUS_UNDER_VOLTAGE; both disarm;
+* torque mode limits the torque near the velocity limit like ODrive's
+  enable_torque_mode_vel_limit: T in [(-v_lim - v) k_v, (v_lim - v) k_v].
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import random
+import signal
+import sys
+import threading
+import time
+from typing import Callable
+
+import can
+
+from .. import mechanics
+from ..config import ConfigError, load_config, section
+from ..params import RPM_PER_RAD_S, TWO_PI, LoadParams
+from .protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, AxisState, ControlMode, InputMode,
+                       ODriveError, OdriveCanSimpleCodec, ProcedureResult, _EchoFilter, error_names)
+
+CALIBRATION_STATES = frozenset({2, 3, 4, 6, 7, 10, 12, 13, 14})
+DEFAULT_CURRENT_TAU_S = 1.0e-3     # 1 / ODrive's default current_control_bandwidth (1000 rad/s)
+OVERSPEED_TOLERANCE = 1.2          # ODrive controller.config.vel_limit_tolerance default
+LOAD_KINDS = ("rider", "prime_mover", "dynamometer", "none")
+
+
+# =======================================================================================
+# physics
+@dataclasses.dataclass
+class DriveModelParams:
+    """Everything the average-torque model needs, from either machine's config."""
+    machine: str
+    torque_constant_nm_per_a: float
+    copper_resistance_ohm: float        # P_cu = R * iq^2
+    inertia_kgm2: float
+    friction_nms: float
+    speed0_rpm: float
+    load: LoadParams                    # kind rider / prime_mover / none (+ gear, rider, speed schedule)
+    load_kind: str                      # LOAD_KINDS (dynamometer only from an SPMSM config)
+    dyno_time_s: list
+    dyno_torque_nm: list                # opposes positive rotation (paper 001, Eq. 3)
+    v_empty_v: float
+    v_full_v: float
+    r_internal_ohm: float
+    capacity_ah: float
+    soc0: float
+    r_brake_ohm: float                  # 0: no brake resistor
+    s0_on_v: float
+    s0_off_v: float
+    overvoltage_v: float
+    undervoltage_v: float
+    current_limit_a: float              # drive default (Set_Limits changes it at run time)
+    current_tau_s: float = DEFAULT_CURRENT_TAU_S
+
+    @classmethod
+    def from_config(cls, cfg: dict, current_tau_s: float = DEFAULT_CURRENT_TAU_S) -> "DriveModelParams":
+        """From a loaded config (bike_plant.config.load_config): machine bldc or spmsm."""
+        machine = cfg.get("machine", "bldc")
+        path = cfg.get("_config_path")
+        ctrl = section(cfg, "controller", path)
+        if machine == "bldc":
+            from ..params import plant_params_from_config
+            p = plant_params_from_config(cfg)
+            b, bt = p.bldc, p.battery
+            return cls(machine="bldc", torque_constant_nm_per_a=b.kt_nm_per_a,
+                       copper_resistance_ohm=2.0 * b.r_phase_ohm,
+                       inertia_kgm2=p.mech.inertia_kgm2, friction_nms=p.mech.friction_nms,
+                       speed0_rpm=p.mech.speed0_rpm, load=p.load, load_kind=p.load.kind,
+                       dyno_time_s=[0.0], dyno_torque_nm=[0.0],
+                       v_empty_v=bt.v_empty_v, v_full_v=bt.v_full_v, r_internal_ohm=bt.r_internal_ohm,
+                       capacity_ah=bt.capacity_ah, soc0=bt.soc0, r_brake_ohm=bt.r_brake_ohm,
+                       s0_on_v=bt.s0_on_v, s0_off_v=bt.s0_off_v, overvoltage_v=b.overvoltage_v,
+                       undervoltage_v=0.75 * bt.v_empty_v,
+                       current_limit_a=float(ctrl.get("current_limit_a", 60.0)), current_tau_s=current_tau_s)
+        if machine == "spmsm":
+            try:
+                from ..spmsm import plant_params_from_config as spmsm_params
+            except ImportError as exc:   # pragma: no cover - depends on the SPMSM module
+                raise ConfigError(f"machine 'spmsm' needs bike_plant.spmsm ({exc})", path, "machine") from None
+            p = spmsm_params(cfg)
+            m, bt, ld = p.spmsm, p.battery, p.load
+            load = ld.rider_load_params() if ld.kind == "rider" else LoadParams(
+                kind=ld.kind if ld.kind in ("prime_mover", "none") else "none", speed_rpm=ld.speed_rpm,
+                schedule_time_s=list(ld.schedule_time_s), schedule_speed_rpm=list(ld.schedule_speed_rpm),
+                gear_ratio=ld.gear_ratio)
+            # the SPMSM battery is a fixed-voltage set: no OCV curve, internal resistance assumed 50 mOhm
+            return cls(machine="spmsm",
+                       torque_constant_nm_per_a=m.torque_constant_nm_per_a * m.flux_scale,
+                       copper_resistance_ohm=1.5 * m.rs_ohm * m.rs_scale,
+                       inertia_kgm2=p.mech.inertia_kgm2, friction_nms=p.mech.friction_nms,
+                       speed0_rpm=p.mech.speed0_rpm, load=load, load_kind=ld.kind,
+                       dyno_time_s=list(ld.dyno_time_s), dyno_torque_nm=list(ld.dyno_torque_nm),
+                       v_empty_v=bt.nominal_v, v_full_v=bt.nominal_v, r_internal_ohm=0.05,
+                       capacity_ah=bt.capacity_ah, soc0=bt.soc0, r_brake_ohm=0.0,
+                       s0_on_v=math.inf, s0_off_v=math.inf, overvoltage_v=p.regen.link_max_v,
+                       undervoltage_v=0.75 * bt.nominal_v,
+                       current_limit_a=float(ctrl.get("current_limit_a", 15.0)), current_tau_s=current_tau_s)
+        raise ConfigError(f"the drive emulator supports machine 'bldc' or 'spmsm', got {machine!r}", path, "machine")
+
+
+class AverageTorqueDrive:
+    """Motor (average torque, first-order current loop) + shaft + load + battery.
+
+    :meth:`step` advances ``dt_s`` with a current setpoint; everything else is state
+    read by the firmware. Explicit Euler for the shaft (dt ~ 0.25 ms against a
+    mechanical time constant of seconds), exact discretisation for the current loop.
+    """
+
+    def __init__(self, params: DriveModelParams):
+        self.params = params
+        p = params
+        self.time_s = 0.0
+        self.iq_a = 0.0
+        self.iq_setpoint_a = 0.0
+        load = p.load
+        speed0_rpm = load.speed_rpm if p.load_kind == "prime_mover" else p.speed0_rpm
+        if p.load_kind == "prime_mover" and load.schedule_time_s:
+            speed0_rpm = self._scheduled_speed_rpm(0.0)
+        self.speed_rad_s = speed0_rpm / RPM_PER_RAD_S
+        self.position_rev = 0.0
+        self.soc = p.soc0
+        self.brake_on = False
+        self.crank_angle_rad = 0.0
+        self.rider_effort = load.rider_effort0
+        self.rider_integrator = load.rider_effort0
+        self.torque_em_nm = 0.0
+        self.load_torque_nm = 0.0
+        self.mechanical_power_w = 0.0
+        self.electrical_power_w = 0.0
+        self.bus_voltage_v = self.ocv_v()
+        self.bus_current_a = 0.0
+
+    # ------------------------------------------------------------ helpers
+    def ocv_v(self) -> float:
+        p = self.params
+        return p.v_empty_v + (p.v_full_v - p.v_empty_v) * min(max(self.soc, 0.0), 1.0)
+
+    @property
+    def speed_rev_s(self) -> float:
+        return self.speed_rad_s / TWO_PI
+
+    @property
+    def torque_estimate_nm(self) -> float:
+        return self.params.torque_constant_nm_per_a * self.iq_a
+
+    def _scheduled_speed_rpm(self, t_s: float) -> float:
+        load = self.params.load
+        speed = load.speed_rpm
+        for ts, sp in zip(load.schedule_time_s, load.schedule_speed_rpm):
+            if t_s + 1e-12 >= ts:
+                speed = sp
+        return speed
+
+    def _dyno_torque_nm(self, t_s: float) -> float:
+        p = self.params
+        torque = p.dyno_torque_nm[0]
+        for ts, tq in zip(p.dyno_time_s, p.dyno_torque_nm):
+            if t_s + 1e-12 >= ts:
+                torque = tq
+        return torque
+
+    def _rider_torque_nm(self, omega_rad_s: float, dt_s: float) -> float:
+        """The rider of the sim plant (bike_plant.bldc._rider): PI effort on cadence, crank
+        torque from bike_plant.mechanics, seen at the motor through the gear."""
+        load = self.params.load
+        cadence_rad_s = omega_rad_s / load.gear_ratio
+        err = load.rider_target_cadence_rpm / RPM_PER_RAD_S - cadence_rad_s
+        self.rider_integrator = min(max(self.rider_integrator + load.rider_ki * err * dt_s, -1.0), 1.0)
+        self.rider_effort = min(max(load.rider_kp * err + self.rider_integrator, 0.0), 1.0)
+        t_crank = mechanics.rider_crank_torque_nm(self.rider_effort, cadence_rad_s * RPM_PER_RAD_S,
+                                                  self.crank_angle_rad, load)
+        self.crank_angle_rad = (self.crank_angle_rad + cadence_rad_s * dt_s) % TWO_PI
+        return t_crank / load.gear_ratio
+
+    # ------------------------------------------------------------ step
+    def step(self, dt_s: float, iq_setpoint_a: float) -> None:
+        p = self.params
+        self.iq_setpoint_a = iq_setpoint_a
+        self.iq_a += (1.0 - math.exp(-dt_s / p.current_tau_s)) * (iq_setpoint_a - self.iq_a)
+        t_em = p.torque_constant_nm_per_a * self.iq_a
+        omega = self.speed_rad_s
+        kind = p.load_kind
+        if kind == "prime_mover":
+            # speed held exactly; the prime mover supplies whatever torque that takes
+            t_load = p.friction_nms * omega - t_em
+            omega_new = self._scheduled_speed_rpm(self.time_s + dt_s) / RPM_PER_RAD_S
+        else:
+            if kind == "rider":
+                t_load = self._rider_torque_nm(omega, dt_s)
+            elif kind == "dynamometer":
+                t_load = -self._dyno_torque_nm(self.time_s)
+            else:
+                t_load = 0.0
+            omega_new = omega + dt_s * (t_em + t_load - p.friction_nms * omega) / p.inertia_kgm2
+        omega_avg = 0.5 * (omega + omega_new)
+        self.speed_rad_s = omega_new
+        self.position_rev += omega_avg * dt_s / TWO_PI
+        self.torque_em_nm = t_em
+        self.load_torque_nm = t_load
+        self.mechanical_power_w = t_em * omega_avg
+        self.electrical_power_w = self.mechanical_power_w + p.copper_resistance_ohm * self.iq_a ** 2
+        self._dc_bus(dt_s)
+        self.time_s += dt_s
+
+    def _dc_bus(self, dt_s: float) -> None:
+        """Battery (OCV, R_int) || brake resistor feeding the drive's power P:
+        V = OCV - R_int (P / V + s0 V / R_brake)  ->  a V^2 - OCV V + R_int P = 0."""
+        p = self.params
+        voc = self.ocv_v()
+        s0 = 1.0 if (self.brake_on and p.r_brake_ohm > 0) else 0.0
+        a = 1.0 + s0 * p.r_internal_ohm / p.r_brake_ohm if s0 else 1.0
+        disc = voc * voc - 4.0 * a * p.r_internal_ohm * self.electrical_power_w
+        v = (voc + math.sqrt(max(disc, 0.0))) / (2.0 * a)    # max(): overload collapses the bus
+        i_drive = self.electrical_power_w / v if v > 1e-6 else 0.0
+        i_res = s0 * v / p.r_brake_ohm if s0 else 0.0
+        self.bus_voltage_v = v
+        self.bus_current_a = i_drive + i_res
+        self.soc -= self.bus_current_a * dt_s / (p.capacity_ah * 3600.0)
+        if not self.brake_on and v > p.s0_on_v:
+            self.brake_on = True
+        elif self.brake_on and v < p.s0_off_v:
+            self.brake_on = False
+
+
+# =======================================================================================
+# firmware
+class DriveFirmware:
+    """ODrive-like axis logic (no CAN, no clock: callers pass monotonic times in seconds)."""
+
+    def __init__(self, model: AverageTorqueDrive, *, watchdog_timeout_s: float = 0.5,
+                 velocity_limit_rev_s: float = 100.0, current_limit_a: float | None = None,
+                 vel_gain_nm_per_rev_s: float = 0.5, vel_integrator_gain_nm_per_rev: float = 2.0,
+                 vel_ramp_rate_rev_s2: float = 50.0, log: Callable[[str], None] | None = None):
+        self.model = model
+        self.watchdog_timeout_s = float(watchdog_timeout_s)     # 0: watchdog disabled
+        self.velocity_limit_rev_s = float(velocity_limit_rev_s)
+        self.current_limit_a = float(current_limit_a if current_limit_a is not None
+                                     else model.params.current_limit_a)
+        self.vel_gain = vel_gain_nm_per_rev_s
+        self.vel_integrator_gain = vel_integrator_gain_nm_per_rev
+        self.vel_ramp_rate_rev_s2 = vel_ramp_rate_rev_s2
+        self.log = log or (lambda text: None)
+        self.axis_state = int(AxisState.IDLE)
+        self.active_errors = 0
+        self.disarm_reason = 0
+        self.procedure_result = int(ProcedureResult.SUCCESS)
+        self.control_mode = int(ControlMode.TORQUE_CONTROL)
+        self.input_mode = int(InputMode.PASSTHROUGH)
+        self.input_torque_nm = 0.0
+        self.input_vel_rev_s = 0.0
+        self.input_torque_ff_nm = 0.0
+        self.vel_setpoint_rev_s = 0.0
+        self.vel_integrator_nm = 0.0
+        self.torque_setpoint_nm = 0.0
+        self.last_feed_s = -math.inf
+
+    @property
+    def armed(self) -> bool:
+        return self.axis_state == AxisState.CLOSED_LOOP_CONTROL
+
+    # ------------------------------------------------------------ host commands
+    def feed_watchdog(self, now_s: float) -> None:
+        self.last_feed_s = now_s
+
+    def request_state(self, state: int, now_s: float) -> None:
+        self.feed_watchdog(now_s)
+        if state == AxisState.CLOSED_LOOP_CONTROL:
+            if self.active_errors:
+                self.procedure_result = int(ProcedureResult.DISARMED)
+                self.log(f"closed loop refused: active errors {error_names(self.active_errors)}")
+                return
+            if not self.armed:
+                self._reset_inputs()
+                self.vel_setpoint_rev_s = self.model.speed_rev_s if self.control_mode == ControlMode.VELOCITY_CONTROL \
+                    else 0.0
+                self.axis_state = int(AxisState.CLOSED_LOOP_CONTROL)
+                self.procedure_result = int(ProcedureResult.BUSY)
+                self.log("axis state CLOSED_LOOP_CONTROL")
+        elif state == AxisState.IDLE:
+            if self.armed:
+                self.log("axis state IDLE (requested)")
+                self.procedure_result = int(ProcedureResult.SUCCESS)
+            self._to_idle()
+        elif state in CALIBRATION_STATES:
+            self._to_idle()
+            self.procedure_result = int(ProcedureResult.SUCCESS)
+        else:
+            self.procedure_result = int(ProcedureResult.INVALID_STATE)
+
+    def set_controller_mode(self, control_mode: int, input_mode: int) -> bool:
+        if control_mode not in (ControlMode.TORQUE_CONTROL, ControlMode.VELOCITY_CONTROL) or \
+                input_mode not in (InputMode.PASSTHROUGH, InputMode.VEL_RAMP):
+            return False
+        if control_mode != self.control_mode:
+            self.vel_integrator_nm = 0.0
+            self.vel_setpoint_rev_s = self.model.speed_rev_s
+        self.control_mode = int(control_mode)
+        self.input_mode = int(input_mode)
+        return True
+
+    def set_input_torque(self, torque_nm: float, now_s: float) -> None:
+        self.feed_watchdog(now_s)
+        self.input_torque_nm = float(torque_nm)
+
+    def set_input_vel(self, speed_rev_s: float, torque_ff_nm: float, now_s: float) -> None:
+        self.feed_watchdog(now_s)
+        self.input_vel_rev_s = float(speed_rev_s)
+        self.input_torque_ff_nm = float(torque_ff_nm)
+
+    def set_limits(self, velocity_limit_rev_s: float, current_limit_a: float) -> None:
+        self.velocity_limit_rev_s = float(velocity_limit_rev_s)
+        self.current_limit_a = float(current_limit_a)
+
+    def clear_errors(self) -> None:
+        if self.active_errors:
+            self.log(f"errors cleared: {error_names(self.active_errors)}")
+        self.active_errors = 0
+        self.disarm_reason = 0
+
+    # ------------------------------------------------------------ supervision
+    def disarm(self, error: int) -> None:
+        """Latch ``error``, drop to IDLE, zero torque."""
+        self.active_errors |= int(error)
+        if self.armed:
+            self.disarm_reason = int(error)
+            self.procedure_result = int(ProcedureResult.DISARMED)
+            self.log(f"disarmed: {error_names(int(error))}")
+        self._to_idle()
+
+    def check_watchdog(self, now_s: float) -> bool:
+        """Trip if armed and not fed for the timeout; returns True when it tripped now."""
+        if self.armed and self.watchdog_timeout_s > 0 and now_s - self.last_feed_s > self.watchdog_timeout_s:
+            self.disarm(ODriveError.WATCHDOG_TIMER_EXPIRED)
+            return True
+        return False
+
+    def _reset_inputs(self) -> None:
+        self.input_torque_nm = 0.0
+        self.input_vel_rev_s = 0.0
+        self.input_torque_ff_nm = 0.0
+        self.vel_integrator_nm = 0.0
+        self.torque_setpoint_nm = 0.0
+
+    def _to_idle(self) -> None:
+        self.axis_state = int(AxisState.IDLE)
+        self._reset_inputs()
+
+    # ------------------------------------------------------------ control + physics
+    def step(self, dt_s: float) -> None:
+        """One sub-step: controller (if armed) -> iq setpoint -> physics -> protections."""
+        m = self.model
+        kt = m.params.torque_constant_nm_per_a
+        if self.armed:
+            vel = m.speed_rev_s
+            vlim = self.velocity_limit_rev_s
+            if self.control_mode == ControlMode.VELOCITY_CONTROL:
+                target = min(max(self.input_vel_rev_s, -vlim), vlim)
+                if self.input_mode == InputMode.VEL_RAMP:
+                    step = self.vel_ramp_rate_rev_s2 * dt_s
+                    self.vel_setpoint_rev_s += min(max(target - self.vel_setpoint_rev_s, -step), step)
+                else:
+                    self.vel_setpoint_rev_s = target
+                err = self.vel_setpoint_rev_s - vel
+                torque_max = self.current_limit_a * kt
+                # integrator clamped to the torque range (anti-windup)
+                self.vel_integrator_nm = min(max(self.vel_integrator_nm + self.vel_integrator_gain * err * dt_s,
+                                                 -torque_max), torque_max)
+                torque = self.vel_gain * err + self.vel_integrator_nm + self.input_torque_ff_nm
+            else:
+                torque = self.input_torque_nm
+                # ODrive enable_torque_mode_vel_limit: fade torque out at the velocity limit
+                torque = min(max(torque, (-vlim - vel) * self.vel_gain), (vlim - vel) * self.vel_gain)
+            iq_sp = min(max(torque / kt, -self.current_limit_a), self.current_limit_a)
+            self.torque_setpoint_nm = iq_sp * kt
+        else:
+            iq_sp = 0.0
+            self.torque_setpoint_nm = 0.0
+        m.step(dt_s, iq_sp)
+        p = m.params
+        if self.armed and abs(m.speed_rev_s) > OVERSPEED_TOLERANCE * self.velocity_limit_rev_s:
+            self.disarm(ODriveError.VELOCITY_LIMIT_VIOLATION)
+        if m.bus_voltage_v > p.overvoltage_v:
+            self.disarm(ODriveError.DC_BUS_OVER_VOLTAGE)
+        elif m.bus_voltage_v < p.undervoltage_v:
+            self.disarm(ODriveError.DC_BUS_UNDER_VOLTAGE)
+
+    # ------------------------------------------------------------ what goes on the bus
+    def signals(self, name: str) -> dict[str, float | int]:
+        """DBC signal values of drive -> host message ``name``."""
+        m = self.model
+        if name == "Heartbeat":
+            return {"Axis_Error": self.active_errors, "Axis_State": self.axis_state,
+                    "Procedure_Result": self.procedure_result, "Trajectory_Done_Flag": 1}
+        if name == "Get_Error":
+            return {"Active_Errors": self.active_errors, "Disarm_Reason": self.disarm_reason}
+        if name == "Get_Encoder_Estimates":
+            return {"Pos_Estimate": m.position_rev, "Vel_Estimate": m.speed_rev_s}
+        if name == "Get_Iq":
+            return {"Iq_Setpoint": m.iq_setpoint_a, "Iq_Measured": m.iq_a}
+        if name == "Get_Bus_Voltage_Current":
+            return {"Bus_Voltage": m.bus_voltage_v, "Bus_Current": m.bus_current_a}
+        if name == "Get_Torques":
+            return {"Torque_Target": self.torque_setpoint_nm, "Torque_Estimate": m.torque_estimate_nm}
+        if name == "Get_Powers":
+            return {"Electrical_Power": m.electrical_power_w, "Mechanical_Power": m.mechanical_power_w}
+        raise KeyError(name)
+
+
+# =======================================================================================
+# CAN side
+class DriveEmulator:
+    """An ODrive CANSimple 0.6.x node on ``bus`` whose axis is ``firmware``.
+
+    cyclic_s: period [s] per drive -> host message name (0 or absent: only on RTR).
+    Call :meth:`run` (blocking, real time) or drive it yourself with :meth:`handle`
+    and :meth:`tick` (tests).
+    """
+
+    def __init__(self, bus: can.BusABC, firmware: DriveFirmware, node_id: int = 0, *,
+                 cyclic_s: dict[str, float] | None = None, tick_s: float = 1.0e-3, substeps: int = 4,
+                 silent_after_s: float | None = None, garbage_rate_hz: float = 0.0, seed: int = 0,
+                 clock: Callable[[], float] = time.monotonic, log: Callable[[str], None] | None = None):
+        if not tick_s > 0 or substeps < 1:
+            raise ValueError("tick_s must be > 0 and substeps >= 1")
+        self.bus = bus
+        self.firmware = firmware
+        self.codec = OdriveCanSimpleCodec(node_id)
+        self.node_id = node_id
+        cyclic = {"Heartbeat": 0.1, "Get_Encoder_Estimates": 0.01} if cyclic_s is None else dict(cyclic_s)
+        unknown = set(cyclic) - DRIVE_TO_HOST
+        if unknown:
+            raise ValueError(f"not drive -> host messages: {', '.join(sorted(unknown))}")
+        self.cyclic_s = {name: float(period) for name, period in cyclic.items() if period and period > 0}
+        self.tick_s = tick_s
+        self.substep_s = tick_s / substeps
+        self.silent_after_s = silent_after_s
+        self.garbage_rate_hz = max(0.0, float(garbage_rate_hz))
+        self.rng = random.Random(seed)
+        self.clock = clock
+        self.log = log or (lambda text: None)
+        self.counters: dict[str, int] = {}
+        self._echo = _EchoFilter()
+        self._t0: float | None = None
+        self._due: dict[str, float] = {}
+        self._next_garbage_s = math.inf
+        self._silent_logged = False
+        self._signal_ranges = {m.name: {s.name: (s.minimum, s.maximum, s.is_float) for s in m.signals}
+                               for m in self.codec.db.messages}
+
+    def _count(self, key: str, n: int = 1) -> None:
+        self.counters[key] = self.counters.get(key, 0) + n
+
+    # ------------------------------------------------------------ time
+    def start(self, now_s: float) -> None:
+        self._t0 = now_s
+        self._due = {name: now_s for name in self.cyclic_s}
+        if self.garbage_rate_hz > 0:
+            self._next_garbage_s = now_s + self.rng.expovariate(self.garbage_rate_hz)
+
+    def silent(self, now_s: float) -> bool:
+        return self.silent_after_s is not None and self._t0 is not None and now_s - self._t0 >= self.silent_after_s
+
+    # ------------------------------------------------------------ transmit
+    def _send(self, msg: can.Message, now_s: float, what: str) -> bool:
+        if self.silent(now_s):
+            if not self._silent_logged:
+                self._silent_logged = True
+                self.log("silent: no longer transmitting (--silent-after-s)")
+            self._count("tx_suppressed")
+            return False
+        self._echo.sent(msg, now_s)
+        try:
+            self.bus.send(msg, timeout=0.01)
+        except Exception:  # noqa: BLE001 -- a full TX queue must not stop the drive
+            self._count("tx_failed")
+            return False
+        self._count("tx_frames")
+        self._count(f"tx:{what}")
+        return True
+
+    def send_message(self, name: str, now_s: float) -> bool:
+        """Send drive -> host message ``name`` with the current values (clamped to the DBC range)."""
+        values = {}
+        for sig, value in self.firmware.signals(name).items():
+            lo, hi, is_float = self._signal_ranges[name][sig]
+            if not math.isfinite(value):
+                self._count("tx_nonfinite_replaced")
+                value = 0.0
+            clamped = min(max(value, lo), hi)
+            values[sig] = clamped if is_float else int(clamped)
+        return self._send(self.codec.encode(name, values), now_s, name)
+
+    # ------------------------------------------------------------ receive
+    def handle(self, msg: can.Message, now_s: float) -> None:
+        """Act on one received frame; counts and ignores anything unusable. Never raises."""
+        self._count("rx_frames")
+        try:
+            if self._echo.is_echo(msg, now_s):
+                self._count("echo")
+                return
+            result = self.codec.classify(msg, HOST_TO_DRIVE, answers_requests=True)
+            if isinstance(result, str):
+                self._count(result)
+                return
+            self._count(f"rx:{result.name}{'?' if result.is_request else ''}")
+            if result.is_request:
+                self.send_message(result.name, now_s)
+                return
+            self._apply(result.name, result.signals, now_s)
+        except Exception:  # noqa: BLE001 -- a frame must never crash the drive
+            self._count("decode_error")
+
+    def _apply(self, name: str, s, now_s: float) -> None:
+        fw = self.firmware
+        if name == "Set_Axis_State":
+            fw.request_state(int(s["Axis_Requested_State"]), now_s)
+        elif name == "Set_Input_Torque":
+            fw.set_input_torque(s["Input_Torque"], now_s)
+        elif name == "Set_Input_Vel":
+            fw.set_input_vel(s["Input_Vel"], s["Input_Torque_FF"], now_s)
+        elif name == "Set_Controller_Mode":
+            if not fw.set_controller_mode(int(s["Control_Mode"]), int(s["Input_Mode"])):
+                self._count("unsupported_mode")
+        elif name == "Set_Limits":
+            fw.set_limits(s["Velocity_Limit"], s["Current_Limit"])
+        elif name == "Clear_Errors":
+            fw.clear_errors()
+
+    # ------------------------------------------------------------ periodic work
+    def tick(self, now_s: float) -> None:
+        """Advance physics to ``now_s``, check the watchdog, send what is due."""
+        if self._t0 is None:
+            self.start(now_s)
+        fw = self.firmware
+        elapsed = now_s - self._t0
+        n = int((elapsed - fw.model.time_s) / self.substep_s)
+        max_steps = int(round(0.1 / self.substep_s))      # at most 100 ms of catch-up per tick
+        if n > max_steps:
+            self._count("physics_skipped_ms", int((n - max_steps) * self.substep_s * 1000))
+            fw.model.time_s += (n - max_steps) * self.substep_s
+            n = max_steps
+        for _ in range(max(n, 0)):
+            fw.step(self.substep_s)
+        fw.check_watchdog(now_s)
+        for name, period in self.cyclic_s.items():
+            due = self._due[name]
+            if now_s >= due:
+                self.send_message(name, now_s)
+                due += period
+                if due <= now_s:            # fell behind (loaded machine): resynchronise
+                    self._count("cyclic_late")
+                    due = now_s + period
+                self._due[name] = due
+        while now_s >= self._next_garbage_s:
+            self._send(self._garbage_frame(), now_s, "garbage")
+            self._next_garbage_s += self.rng.expovariate(self.garbage_rate_hz)
+
+    def _garbage_frame(self) -> can.Message:
+        """A random malformed or foreign frame. Never a valid command for any node: the
+        only host -> drive ids used are this node's own (as RTR), so it is bench-safe."""
+        rng = self.rng
+        node = self.node_id << 5
+        kind = rng.randrange(8)
+        if kind == 0:       # unknown command id of this node
+            known = {m.frame_id for m in self.codec.db.messages}
+            cmd = rng.choice([c for c in range(32) if c not in known])
+            return can.Message(arbitration_id=node | cmd, data=rng.randbytes(rng.randrange(9)), is_extended_id=False)
+        if kind == 1:       # measurement with the wrong length
+            cmd = self.codec.messages[rng.choice(sorted(DRIVE_TO_HOST))].frame_id
+            return can.Message(arbitration_id=node | cmd, data=rng.randbytes(rng.randrange(8)), is_extended_id=False)
+        if kind == 2:       # NaN / inf estimates
+            bad = rng.choice([math.nan, math.inf, -math.inf])
+            data = (bytes(4) + _f32(bad)) if rng.random() < 0.5 else (_f32(bad) + bytes(4))
+            return can.Message(arbitration_id=node | 0x09, data=data, is_extended_id=False)
+        if kind == 3:       # heartbeat with an axis state out of range
+            data = bytes(4) + bytes([rng.randrange(15, 256)]) + bytes(3)
+            return can.Message(arbitration_id=node | 0x01, data=data, is_extended_id=False)
+        if kind == 4:
+            return can.Message(is_error_frame=True, arbitration_id=0x4, data=bytes(8), dlc=8)
+        if kind == 5:       # extended id
+            return can.Message(arbitration_id=rng.randrange(0x800, 1 << 29), data=rng.randbytes(8),
+                               is_extended_id=True)
+        if kind == 6:       # RTR of one of this node's commands
+            cmd = self.codec.messages[rng.choice(sorted(HOST_TO_DRIVE))].frame_id
+            return can.Message(arbitration_id=node | cmd, is_remote_frame=True, dlc=8, is_extended_id=False)
+        # a phantom node's heartbeat (drive -> host: no drive acts on it)
+        other = rng.choice([n for n in range(64) if n != self.node_id])
+        return can.Message(arbitration_id=(other << 5) | 0x01, data=rng.randbytes(8), is_extended_id=False)
+
+    # ------------------------------------------------------------ main loop
+    def run(self, stop: threading.Event | None = None, duration_s: float | None = None) -> None:
+        """Real-time loop until ``stop`` is set or ``duration_s`` passed."""
+        stop = stop or threading.Event()
+        now = self.clock()
+        self.start(now)
+        end = math.inf if duration_s is None else now + duration_s
+        next_tick = now
+        while not stop.is_set():
+            now = self.clock()
+            if now >= end:
+                break
+            if now >= next_tick:
+                self.tick(now)
+                next_tick += self.tick_s
+                if next_tick <= now:
+                    self._count("tick_overrun")
+                    next_tick = now + self.tick_s
+                continue
+            try:
+                msg = self.bus.recv(timeout=next_tick - now)
+            except Exception:  # noqa: BLE001 -- e.g. an undecodable datagram on udp_multicast
+                self._count("bus_error")
+                time.sleep(0.001)
+                continue
+            if msg is not None:
+                self.handle(msg, self.clock())
+
+    def dropped(self) -> int:
+        return sum(self.counters.get(r, 0) for r in MALFORMED_REASONS)
+
+
+def _f32(value: float) -> bytes:
+    import struct
+    return struct.pack("<f", value)
+
+
+# =======================================================================================
+# command line
+def build_arg_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="bike-drive-emulator",
+        description="An ODrive CANSimple 0.6.x drive emulator on a python-can bus; physics from a bike config.")
+    bus = ap.add_argument_group("bus")
+    bus.add_argument("--interface", default="virtual",
+                     help="python-can interface: virtual (same process), udp_multicast (across processes), "
+                          "socketcan, pcan, ... (default: virtual)")
+    bus.add_argument("--channel", default=None,
+                     help="channel, e.g. can0; for udp_multicast a multicast group such as 239.74.163.2 "
+                          "(default: the interface's default)")
+    bus.add_argument("--port", type=int, default=None, help="udp_multicast UDP port (one per test / bench)")
+    bus.add_argument("--bitrate", type=int, default=1000000, help="CAN bitrate (real interfaces)")
+    bus.add_argument("--node-id", type=int, default=0, help="ODrive node id 0..63 (default 0)")
+    phys = ap.add_argument_group("physics")
+    phys.add_argument("--config", default=None, help="bike config (default: config/bldc_default.yaml)")
+    phys.add_argument("--load", choices=("config",) + LOAD_KINDS, default="config",
+                      help="override the config's load.kind")
+    phys.add_argument("--current-tau-s", type=float, default=DEFAULT_CURRENT_TAU_S,
+                      help="closed current-loop time constant (default 1 ms = 1/1000 rad/s)")
+    phys.add_argument("--physics-hz", type=float, default=1000.0, help="real-time tick rate (default 1000)")
+    phys.add_argument("--substeps", type=int, default=4, help="physics sub-steps per tick (default 4)")
+    drv = ap.add_argument_group("drive")
+    drv.add_argument("--heartbeat-ms", type=float, default=100.0, help="Heartbeat period (default 100; 0 off)")
+    drv.add_argument("--encoder-ms", type=float, default=10.0, help="Get_Encoder_Estimates period (default 10; 0 off)")
+    for name, flag in (("Get_Iq", "iq"), ("Get_Bus_Voltage_Current", "bus"), ("Get_Torques", "torques"),
+                       ("Get_Powers", "powers"), ("Get_Error", "error")):
+        drv.add_argument(f"--{flag}-ms", type=float, default=0.0, help=f"{name} period (default 0: RTR only)")
+    drv.add_argument("--watchdog-s", type=float, default=0.5, help="watchdog timeout (default 0.5; 0 disables)")
+    drv.add_argument("--current-limit-a", type=float, default=None,
+                     help="initial current limit (default: controller.current_limit_a of the config)")
+    drv.add_argument("--velocity-limit-rev-s", type=float, default=100.0, help="initial velocity limit (motor)")
+    fault = ap.add_argument_group("test faults")
+    fault.add_argument("--silent-after-s", type=float, default=None,
+                       help="stop transmitting after this many seconds but keep running")
+    fault.add_argument("--garbage-rate", type=float, default=0.0,
+                       help="inject this many random malformed/foreign frames per second")
+    fault.add_argument("--seed", type=int, default=0, help="random seed of the garbage")
+    ap.add_argument("--duration-s", type=float, default=None, help="exit 0 after this many seconds")
+    ap.add_argument("--quiet", action="store_true", help="no event log on stderr")
+    return ap
+
+
+def _bus_kwargs(args) -> dict:
+    kwargs = {"interface": args.interface, "bitrate": args.bitrate}
+    if args.channel is not None:
+        kwargs["channel"] = args.channel
+    elif args.interface == "virtual":
+        kwargs["channel"] = "bike_can"
+    if args.port is not None:
+        kwargs["port"] = args.port
+    return kwargs
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry ``bike-drive-emulator``; SIGINT / SIGTERM end it with exit code 0."""
+    args = build_arg_parser().parse_args(argv)
+    stop = threading.Event()
+
+    def on_signal(signum, _frame):
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+
+    def log(text: str) -> None:
+        if not args.quiet:
+            print(f"bike-drive-emulator: {text}", file=sys.stderr, flush=True)
+
+    try:
+        if not 0 <= args.node_id <= 0x3F:
+            raise ValueError(f"--node-id must be in 0..63, got {args.node_id}")
+        for name in ("heartbeat_ms", "encoder_ms", "iq_ms", "bus_ms", "torques_ms", "powers_ms", "error_ms",
+                     "watchdog_s", "garbage_rate"):
+            value = getattr(args, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+        if not (args.physics_hz > 0 and args.current_tau_s > 0 and args.substeps >= 1):
+            raise ValueError("--physics-hz, --current-tau-s must be > 0 and --substeps >= 1")
+        cfg = load_config(args.config)
+        params = DriveModelParams.from_config(cfg, current_tau_s=args.current_tau_s)
+        if args.load != "config":
+            params.load_kind = args.load
+            params.load = dataclasses.replace(params.load, kind=args.load if args.load != "dynamometer" else "none")
+    except (ConfigError, ValueError) as exc:
+        print(f"bike-drive-emulator: {exc}", file=sys.stderr)
+        return 2
+    model = AverageTorqueDrive(params)
+    firmware = DriveFirmware(model, watchdog_timeout_s=args.watchdog_s,
+                             velocity_limit_rev_s=args.velocity_limit_rev_s,
+                             current_limit_a=args.current_limit_a, log=log)
+    cyclic = {"Heartbeat": args.heartbeat_ms, "Get_Encoder_Estimates": args.encoder_ms, "Get_Iq": args.iq_ms,
+              "Get_Bus_Voltage_Current": args.bus_ms, "Get_Torques": args.torques_ms,
+              "Get_Powers": args.powers_ms, "Get_Error": args.error_ms}
+    try:
+        bus = can.Bus(**_bus_kwargs(args))
+    except Exception as exc:  # noqa: BLE001 -- report any interface problem as a usage error
+        print(f"bike-drive-emulator: cannot open bus {_bus_kwargs(args)}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        emu = DriveEmulator(bus, firmware, args.node_id, cyclic_s={k: v / 1000.0 for k, v in cyclic.items()},
+                            tick_s=1.0 / args.physics_hz, substeps=args.substeps,
+                            silent_after_s=args.silent_after_s, garbage_rate_hz=args.garbage_rate,
+                            seed=args.seed, log=log)
+        channel = _bus_kwargs(args).get("channel", "default")
+        print(f"bike-drive-emulator ready: node_id={args.node_id} interface={args.interface} channel={channel} "
+              f"port={args.port} machine={params.machine} load={params.load_kind} "
+              f"kt={params.torque_constant_nm_per_a:.5f}Nm/A watchdog_s={args.watchdog_s}", flush=True)
+        emu.run(stop, duration_s=args.duration_s)
+    finally:
+        try:
+            bus.shutdown()
+        except Exception:  # noqa: BLE001
+            pass
+    summary = dict(sorted(emu.counters.items()))
+    summary["axis_state"] = firmware.axis_state
+    summary["active_errors"] = firmware.active_errors
+    log("exit " + json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
