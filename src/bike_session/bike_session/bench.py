@@ -3,6 +3,9 @@
 Figures (keys of the JSON; real-time factors end in `_real_time`):
 - inner_loop_bldc_real_time: plant + controller inner loop alone, BLDC switching level
   at 20 kHz, one core (compiled kernels; JIT compile time reported separately);
+- inner_loop_spmsm_real_time / inner_loop_spmsm_switching_real_time: the SPMSM bike of
+  paper 001 (predictive speed + current control, 10 kHz current loop), average and
+  switching inverter model, prime mover at 200 r/min, 1 s simulated;
 - graph_lockstep_n20_real_time / graph_lockstep_n200_real_time: the whole node graph
   (plant, controller, session: separate processes over DDS) in lockstep;
 - dds_pingpong_n20_round_trips_per_s / ..._n200_...: the bare DDS round trip of the same
@@ -80,6 +83,27 @@ def graph_real_time(batch_periods: int, duration_s: float, base_config: pathlib.
     return {"real_time": sim_span / wall_span, "wall_total_s": wall_total, "exit_codes": codes}
 
 
+def spmsm_inner_loop_real_time(seconds: float = 1.0, switching: bool = False) -> tuple[float, float]:
+    """(sim s per wall s, first-call seconds) of the SPMSM plant + predictive controller
+    kernel (bike_controller.spmsm_control.run_spmsm_offline), prime mover at 200 r/min."""
+    from bike_controller.spmsm_control import run_spmsm_offline
+    from bike_plant.config import load_config
+
+    from bike_session.cli import repo_root
+
+    cfg = load_config(repo_root() / "config" / "spmsm_default.yaml")
+    cfg["load"] = dict(cfg.get("load") or {}, kind="prime_mover", speed_rpm=200.0)
+    t0 = time.perf_counter()
+    run_spmsm_offline(cfg, 0.01, speed_ref_fn=lambda t: 200.0, switching=switching)
+    compile_s = time.perf_counter() - t0
+    best = float("inf")
+    for _ in range(3):
+        t0 = time.perf_counter()
+        run_spmsm_offline(cfg, seconds, speed_ref_fn=lambda t: 200.0, switching=switching, record_every=1000)
+        best = min(best, time.perf_counter() - t0)
+    return seconds / best, compile_s
+
+
 def main(json_path: str | None = None, quick: bool = False) -> int:
     from bike_plant.config import default_config_path
 
@@ -104,6 +128,13 @@ def main(json_path: str | None = None, quick: bool = False) -> int:
         show(f"inner loop, BLDC 20 kHz, one core: {inner['real_time']:.0f}x real time "
              f"(target >= {TARGET_INNER_LOOP_REAL_TIME:.0f}x: ratio {inner['real_time'] / TARGET_INNER_LOOP_REAL_TIME:.2f}); "
              f"JIT compile {figures['inner_loop_bldc_compile_s']:.1f} s")
+    for key, switching in (("inner_loop_spmsm_real_time", False), ("inner_loop_spmsm_switching_real_time", True)):
+        rt, compile_s = spmsm_inner_loop_real_time(seconds=0.5 if quick else 1.0, switching=switching)
+        figures[key] = rt
+        figures[key.replace("_real_time", "_compile_s")] = compile_s
+        show(f"inner loop, SPMSM 10 kHz ({'switching' if switching else 'average'} inverter), one core: "
+             f"{rt:.0f}x real time (target >= {TARGET_INNER_LOOP_REAL_TIME:.0f}x: ratio "
+             f"{rt / TARGET_INNER_LOOP_REAL_TIME:.2f}); JIT compile / cache load {compile_s:.1f} s")
     base = default_config_path()
     period_s = float(yaml.safe_load(base.read_text())["/**"]["ros__parameters"]["control_period_s"])
     for n in (20, 200):
