@@ -23,6 +23,7 @@ CONFIG = ROOT / "config" / "bldc_default.yaml"
 rclpy = pytest.importorskip("rclpy")
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
+from rclpy.qos import QoSProfile  # noqa: E402
 
 
 def executable(pkg: str, exe: str) -> str:
@@ -100,6 +101,9 @@ class Collector:
             self.data[topic] = []
             self.stamps[topic] = []
             qos = AUX_QOS if topic in ("/diagnostics", "battery", "session_status") else LOOP_QOS
+            # the test is not in the loop (no flow control): a deep reader queue so that a
+            # busy test process never loses a message the plant sent
+            qos = QoSProfile(history=qos.history, depth=10000, reliability=qos.reliability, durability=qos.durability)
             self.subs[topic] = self.node.create_subscription(msg_type, topic, self._cb(topic), qos)
         self.loop_qos = LOOP_QOS
         self.executor = SingleThreadedExecutor(context=self.context)

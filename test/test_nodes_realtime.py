@@ -60,7 +60,9 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         assert np.all(np.abs(np.diff([stamp_ns(m.header.stamp) for m in window]) - N * DT * 1e9) <= 2)
         times = col.stamps["plant_state"][-1000:]
         ratio = (len(times) - 1) * N * DT / (times[-1] - times[0])
-        assert 0.8 < ratio < 1.2, f"sim time / wall time = {ratio:.2f}"
+        # sim time follows wall time; a loaded machine makes the plant resynchronise (drop
+        # time) rather than run ahead, so only the upper bound is tight
+        assert 0.6 < ratio < 1.15, f"sim time / wall time = {ratio:.2f}"
         assert col.data["battery"], "BatteryState is published"
 
         # the controller dies without a word

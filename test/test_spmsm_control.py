@@ -16,6 +16,10 @@ from bike_controller import spmsm_control as C
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CFG_PATH = ROOT / "config" / "spmsm_default.yaml"
 LOW_R = 0.684     # the Rs under which the paper's 200 r/min / 1 N m and 350 r/min are feasible at 24 V
+# the plant's non-idealities off (back-EMF harmonics, cogging, Coulomb friction, dead time):
+# for the tests of the control law's own properties (the defaults are ridden elsewhere)
+IDEAL = {"spmsm": {"emf_harmonic_5": 0.0, "emf_harmonic_7": 0.0, "cogging_torque_nm": 0.0, "dry_friction_nm": 0.0},
+         "inverter": {"dead_time_s": 0.0}}
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +29,9 @@ def cfg():
     c = load_config(CFG_PATH)
     assert c["spmsm"]["rs_ohm"] == 0.684
     c["spmsm"]["rs_ohm"] = 6.84
+    # the paper's test bench, not the bike: dynamometer load, shaft at rest
+    c["load"]["kind"] = "dynamometer"
+    c["mechanics"]["speed0_rpm"] = 0.0
     return c
 
 
@@ -33,6 +40,12 @@ def variant(cfg, **sections):
     for name, values in sections.items():
         c[name] = dict(c.get(name, {}), **values)
     return c
+
+
+def ideal(cfg, **sections):
+    """variant() of the ideal machine (IDEAL) with the given sections on top."""
+    c = variant(cfg, **IDEAL)
+    return variant(c, **sections)
 
 
 def test_predictive_increment_is_the_minimiser_of_the_one_step_cost():
@@ -127,7 +140,8 @@ def test_id0_saturates_near_175_rpm_and_flux_weakening_reaches_350(cfg):
     """Steady state (region logic, full Vdc/sqrt(3)) and closed loop. With the printed
     Rs = 6.84 ohm the machine saturates at ~173 r/min with id = 0 and flux weakening cannot
     help (Rs >> we L); with Rs = 0.684 ohm id = 0 saturates at ~180 r/min and flux weakening
-    reaches 350 r/min."""
+    reaches 350 r/min. The closed loop rides the default (non-ideal) machine: the 1.5 us dead
+    time and the back-EMF harmonics cost ~1 V, so id = 0 tops out a little lower (~160)."""
     q_hi = C.SpmsmController(cfg).q
     q_lo = C.SpmsmController(variant(cfg, spmsm={"rs_ohm": LOW_R})).q
     assert 170.0 < C.steady_state_max_speed_rpm(q_hi, 0.0, flux_weakening=False) < 181.0
@@ -136,7 +150,7 @@ def test_id0_saturates_near_175_rpm_and_flux_weakening_reaches_350(cfg):
     assert C.steady_state_max_speed_rpm(q_lo, 0.0, flux_weakening=True) > 350.0
     # closed loop, ramp to 350 r/min, no load
     ref = lambda t: np.minimum(400.0 * t, 350.0)   # noqa: E731
-    for fw, low, high in ((False, 160.0, 181.0), (True, 349.0, 351.0)):
+    for fw, low, high in ((False, 150.0, 181.0), (True, 349.0, 351.0)):
         c = variant(cfg, spmsm={"rs_ohm": LOW_R}, load={"kind": "none"}, controller={"flux_weakening": fw})
         out = C.run_spmsm_offline(c, 1.6, ref, None, record_every=10)
         final = out["speed_rpm"][out["t"] > 1.3].mean()
@@ -148,8 +162,9 @@ def test_id0_saturates_near_175_rpm_and_flux_weakening_reaches_350(cfg):
 
 def test_region_transition_in_closed_loop_has_no_torque_step(cfg):
     """Ramp through the constant-torque -> flux-weakening boundary under load: around the
-    region change the references and the torque change as smoothly as elsewhere."""
-    c = variant(cfg, spmsm={"rs_ohm": LOW_R},
+    region change the references and the torque change as smoothly as elsewhere (ideal
+    machine: the harmonics and the dead time make the references ripple everywhere)."""
+    c = ideal(cfg, spmsm={"rs_ohm": LOW_R},
                 load={"kind": "dynamometer", "dyno_time_s": [0.0], "dyno_torque_nm": [0.5]},
                 mechanics={"speed0_rpm": 120.0})
     out = C.run_spmsm_offline(c, 1.0, lambda t: 120.0 + 100.0 * t, None, record_every=10)
@@ -168,38 +183,44 @@ def test_region_transition_in_closed_loop_has_no_torque_step(cfg):
     assert np.max(np.abs(ia[t > 0.1])) < 1.2 * np.max(np.abs(ia[t > 0.9]))   # no current spike
 
 
-def _load_step(cfg, family, rs_ohm=LOW_R, speed=200.0, torque=1.0):
+def _load_step(cfg, family, rs_ohm=LOW_R, speed=200.0, torque=1.0, at=1.0):
     c = variant(cfg, spmsm={"rs_ohm": rs_ohm}, load={"kind": "none"}, mechanics={"speed0_rpm": speed})
-    out = C.run_spmsm_offline(c, 1.2, lambda t: np.full_like(t, speed), lambda t: np.where(t >= 0.3, torque, 0.0),
-                              controller=family, record_every=10)
+    out = C.run_spmsm_offline(c, at + 1.2, lambda t: np.full_like(t, speed),
+                              lambda t: np.where(t >= at, torque, 0.0), controller=family, record_every=10)
     t, s = out["t"], out["speed_rpm"]
-    after = t >= 0.3
+    after = t >= at
     drop = speed - s[after].min()
     outside = np.where((np.abs(s - speed) > 0.02 * speed) & after)[0]
-    recovery = t[outside[-1]] - 0.3 if len(outside) else 0.0
+    recovery = t[outside[-1]] - at if len(outside) else 0.0
     return drop, recovery, out
 
 
 def test_load_step_both_families_predictive_recovers_faster(cfg):
     """Paper Table 1 / Fig. 11b (1 N m at 200 r/min; 20 vs 40 r/min drop, 0.2 vs 0.5 s):
-    the PI (poles chosen to match the paper's PI column) drops ~40 r/min and recovers in
-    ~0.5 s; the predictive law drops less and recovers faster."""
+    with the default 5 Hz speed observer the PI (1.5 Hz poles) drops ~57 r/min and recovers
+    in ~0.5 s; the predictive law drops less than half as much and recovers in less than
+    half the time (bike_session.paper_spmsm runs the whole Table 1)."""
     d_pred, r_pred, out_pred = _load_step(cfg, "predictive")
     d_pi, r_pi, out_pi = _load_step(cfg, "pi")
-    assert 30.0 < d_pi < 50.0 and 0.35 < r_pi < 0.7
+    assert 40.0 < d_pi < 75.0 and 0.35 < r_pi < 0.7
     assert d_pred < 0.5 * d_pi and r_pred < 0.5 * r_pi
     for out in (out_pred, out_pi):
         assert set(C.REC_FIELDS) <= set(out)
-        assert abs(out["speed_rpm"][-1] - 200.0) < 2.0
-        assert abs(out["torque"][-1] - 1.0 - 0.005 * 200 / M.RPM_PER_RAD_S) < 0.05
+        late = out["t"] > out["t"][-1] - 0.1
+        assert abs(out["speed_rpm"][late].mean() - 200.0) < 2.0
+        # load + viscous + Coulomb friction (the back-EMF harmonics add no mean torque)
+        need = 1.0 + 0.005 * 200 / M.RPM_PER_RAD_S + 0.1
+        assert abs(out["torque"][late].mean() - need) < 0.05
         assert abs(out["ledger"]["residual_j"]) < 1e-9
 
 
 @pytest.mark.parametrize("family", ["predictive", "pi"])
 def test_speed_steps_from_2_to_150_rpm(cfg, family):
     """Step responses at the printed Rs (paper Fig. 14 goes to 350 r/min, which 6.84 ohm
-    cannot reach at 24 V): every step settles on the command, same telemetry."""
-    c = variant(cfg, load={"kind": "none"})
+    cannot reach at 24 V): every step settles on the command, same telemetry. Ideal machine:
+    at 2 r/min the default cogging (36 per turn: 1.2 Hz) ripples the speed by ~1.5 r/min
+    (bike_session.paper_spmsm rides Fig. 14 with it)."""
+    c = ideal(cfg, load={"kind": "none"})
     for ref in (2.0, 50.0, 150.0):
         out = C.run_spmsm_offline(c, 1.0, lambda t, r=ref: np.where(t >= 0.01, r, 0.0), None, controller=family,
                                   record_every=10)
@@ -216,7 +237,9 @@ def test_generating_mode_brakes_with_the_demanded_torque(cfg):
     for t0, t1, demand in ((0.25, 0.35, 0.3), (0.5, 0.6, 0.6)):
         sel = (t > t0) & (t < t1)
         assert np.all(out["relay"][sel] == M.REL_RECTIFIER)
-        assert -out["torque"][sel].mean() == pytest.approx(demand, rel=0.03)
+        # the buck duty comes from the controller's ideal (sinusoidal) model: the back-EMF
+        # harmonics of the default machine shift the braking torque by a few percent
+        assert -out["torque"][sel].mean() == pytest.approx(demand, rel=0.05)
     plant = out["plant"]
     assert plant.state[M.S_OVERLAP] == 0
     led = out["ledger"]
@@ -240,7 +263,7 @@ def test_batched_decide_returns_duties_and_status(cfg):
     ctrl = C.SpmsmController(cfg)
     ctrl.reset_from(plant.state)
     ctrl.set_speed_ref(50.0)
-    for _ in range(100):
+    for _ in range(200):
         duties, relay, buck, status = ctrl.decide(plant.state, 10)
         plant.step_batch(duties, relay, buck)
     assert duties.shape == (10, 3) and np.all((duties >= 0) & (duties <= 1))
@@ -248,8 +271,21 @@ def test_batched_decide_returns_duties_and_status(cfg):
     assert plant.state[M.S_OMEGA] * M.RPM_PER_RAD_S == pytest.approx(50.0, abs=1.5)
 
 
+def test_m_method_speed_is_counts_per_millisecond(cfg):
+    """speed_estimator m: counts in the last 1 ms -> 2 pi / 10000 / 1 ms = 6 r/min steps."""
+    c = variant(cfg, load={"kind": "prime_mover", "speed_rpm": 200.0}, controller={"speed_estimator": "m"})
+    out = C.run_spmsm_offline(c, 0.2, 200.0, None, record_every=10)
+    est = out["speed_est_rpm"][5:]
+    assert np.allclose(est / 6.0, np.round(est / 6.0), atol=1e-9)           # whole counts
+    assert set(np.round(est).astype(int)) <= {198, 204}                      # 33 or 34 counts
+    assert est.mean() == pytest.approx(200.0, abs=0.5)
+    q = C.SpmsmController(variant(cfg, controller={"speed_filter_hz": 5.0})).q
+    assert q[C.Q_SPEED_KF] == pytest.approx(1.0 - math.exp(-2 * math.pi * 5.0 * 1e-3))
+
+
 @pytest.mark.parametrize("key,value", [("family", "mpc"), ("speed_weight_r", -1.0), ("voltage_margin", 1.5),
-                                       ("speed_estimator", "hall"), ("current_limit_a", 0.0), ("typo", 1)])
+                                       ("speed_estimator", "hall"), ("current_limit_a", 0.0), ("typo", 1),
+                                       ("speed_filter_hz", -1.0)])
 def test_bad_controller_config_is_one_clear_error(cfg, key, value):
     with pytest.raises(ConfigError, match="controller"):
         C.SpmsmController(variant(cfg, controller={key: value}))

@@ -29,10 +29,12 @@ integrates onto the iq* the region logic let through, the current loops onto the
 the modulator could make (back-computed through the decoupling). The voltage command is
 limited along the segment from the steady-state voltage of the present currents
 (:func:`limit_voltage`), so saturation never removes the back-EMF compensation; and when
-the current loop was voltage limited during a speed period, the speed loop continues from
-the measured iq instead of the reference the current loop could not deliver (cascade
-anti-windup; without it the speed loop winds up in flux weakening, where the voltage
-headroom and with it the torque slew rate are small, and limit-cycles through MTPV).
+the current loop was voltage limited during a whole speed period, the speed loop continues
+from the mean measured iq of that period instead of the reference the current loop could
+not deliver (cascade anti-windup; an occasional saturated period, e.g. at a back-EMF
+harmonic's peak, does not count: resetting on it would freeze the speed integral; without
+the anti-windup the speed loop winds up in flux weakening, where the voltage headroom and
+with it the torque slew rate are small, and limit-cycles through MTPV).
 
 Operating regions (paper 001, section 5, Fig. 5-7) by :func:`current_reference`, with the
 stator resistance kept in the voltage limit (Rs = 6.84 ohm is 6x we L at 180 r/min; the
@@ -59,11 +61,17 @@ Measurement: phase currents sampled at the period start (carrier valley), Clarke
 the encoder angle (count + 1/2 count, x4 decoding of 2500 lines). Speed (the paper does not
 say how it measured it): by default a speed observer run every 100 us, driven by the encoder
 angle error with the measured torque Kt iq fed forward through the nominal J and B (triple
-pole at ``observer_pole_hz``); or (``speed_estimator: mt``) the M/T method at 1 ms: counts
-between the last edges of two samples over their capture-timer time difference. The M/T
-estimate is half a sample old and, below ~20 r/min, arrives every few ms: the paper's
-one-step speed law (zeta = sqrt(beta)/2, see above) limit-cycles on it at 2-10 r/min,
-while the observer holds 2 r/min within 0.02 r/min.
+pole at ``observer_pole_hz``; bumpless when the relay switches the feed-forward off / on);
+or (``speed_estimator: mt``) the M/T method at 1 ms: counts between the last edges of two
+samples over their capture-timer time difference; or (``m``) the counts of the last 1 ms
+(6 r/min steps with 10000 counts / turn). The M/T estimate is half a sample old and, below
+~20 r/min, arrives every few ms: the paper's one-step speed law (zeta = sqrt(beta)/2, see
+above) limit-cycles on it at 2-10 r/min, while the observer holds 2 r/min within 0.02 r/min.
+An optional first-order low-pass (``speed_filter_hz``, the usual DSP speed filter) acts on
+the speed the speed law sees: with 10-40 Hz the one-step law rings or diverges (its
+integral time is one sample), so it is off by default. The observer's pole sets how fast a
+load torque is seen and with it the load-step drop and recovery of both families; the
+default 5 Hz is calibrated on the paper's Fig. 11b (config comment).
 
 Generating (relay on the rectifier path): the braking torque demand sets the buck duty by
 inverting the rectifier's steady state (bike_plant.spmsm.rectifier_steady_state).
@@ -118,8 +126,9 @@ class SpmsmControllerParams:
     flux_weakening: bool = True
     angle_compensation: bool = True       # inverse Park at the period's mid angle
     speed_estimator: str = "observer"     # observer | mt (M/T method from the encoder capture)
-    observer_pole_hz: float = 15.0        # triple pole of the speed observer
+    observer_pole_hz: float = 5.0         # triple pole of the speed observer (config comment)
     speed_delay_compensation: bool = False  # mt only: extrapolate the M/T estimate by half a sample
+    speed_filter_hz: float = 0.0          # first-order low-pass on the speed the speed law sees (0: off)
     speed_ref0_rpm: float = 0.0
     brake_torque0_nm: float = 0.0
     model: str = "nominal"
@@ -135,8 +144,10 @@ class SpmsmControllerParams:
             raise ValueError(f"voltage_margin must be in (0, 1], got {self.voltage_margin!r}")
         if self.model not in ("nominal", "actual"):
             raise ValueError(f"model must be 'nominal' or 'actual', got {self.model!r}")
-        if self.speed_estimator not in ("observer", "mt"):
-            raise ValueError(f"speed_estimator must be 'observer' or 'mt', got {self.speed_estimator!r}")
+        if self.speed_estimator not in ("observer", "mt", "m"):
+            raise ValueError(f"speed_estimator must be 'observer', 'mt' or 'm', got {self.speed_estimator!r}")
+        if not self.speed_filter_hz >= 0.0:
+            raise ValueError(f"speed_filter_hz must be >= 0, got {self.speed_filter_hz!r}")
         require_positive(self, "observer_pole_hz")
         if self.brake_torque0_nm < 0:
             raise ValueError("brake_torque0_nm must be >= 0")
@@ -164,15 +175,16 @@ def predictive_increment(x_ref_next, x, dx, a, b, r):
 (Q_FAMILY, Q_DT, Q_NS, Q_TS, Q_AC, Q_BC, Q_AS, Q_BS, Q_RC, Q_RS, Q_KPC, Q_KIC, Q_KPS, Q_KIS, Q_PP, Q_R, Q_L,
  Q_LAM, Q_KT, Q_IMAX, Q_VMARGIN, Q_VDC, Q_VMAX_FACTOR, Q_MODULATION, Q_FW, Q_CPR, Q_FCAP, Q_BUCK_V, Q_LINK_MAX,
  Q_RECT_DIODE_V, Q_ANGLE_COMP, Q_GC, Q_GS, Q_FAMILY_CURRENT, Q_DELAY_COMP, Q_OBSERVER, Q_OBS_L1, Q_OBS_L2, Q_OBS_L3,
- Q_JN, Q_BN) = range(41)
+ Q_JN, Q_BN, Q_SPEED_KF, Q_MMETHOD) = range(43)
 Q_SIZE = 44
 
 (C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
  C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
  C_VQP_PREV, C_ED_PREV, C_EQ_PREV, C_VD, C_VQ, C_REGION, C_LIMITS, C_TORQUE_EST, C_ADVANCE, C_RELAY_REQ,
  C_BUCK_DUTY, C_BRAKE_T, C_DA, C_DB, C_DC, C_CUR_ACTIVE, C_SPEED_ACTIVE, C_THETA_E, C_COS, C_SIN, C_CNT,
- C_HAVE_ANGLE, C_VSAT, C_SPEED_RAW_PREV, C_OBS_TH, C_OBS_W, C_OBS_D, C_OBS_INIT, C_DV) = range(47)
-C_SIZE = 48
+ C_HAVE_ANGLE, C_VSAT, C_SPEED_RAW_PREV, C_OBS_TH, C_OBS_W, C_OBS_D, C_OBS_INIT, C_DV, C_SPEED_FILT,
+ C_FILT_INIT, C_IQ_SUM, C_IQ_N, C_OBS_IQFF, C_OBS_INV) = range(53)
+C_SIZE = 54
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -218,6 +230,8 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_OBS_L1], q[Q_OBS_L2], q[Q_OBS_L3] = observer_gains(cp.observer_pole_hz, dt)
     q[Q_JN] = nominal.mech.inertia_kgm2
     q[Q_BN] = nominal.mech.friction_nms
+    q[Q_SPEED_KF] = -math.expm1(-TWO_PI * cp.speed_filter_hz * ts) if cp.speed_filter_hz > 0 else 0.0
+    q[Q_MMETHOD] = 1.0 if cp.speed_estimator == "m" else 0.0
     return q
 
 
@@ -438,6 +452,11 @@ def speed_sample(cs, q, meas):
         cs[C_REF_TICKS] = et if cnt != 0.0 or et != 0.0 else now
         cs[C_HAVE_REF] = 1.0
         return
+    if q[Q_MMETHOD] != 0.0:
+        # M method: counts in the last speed period over the period
+        cs[C_SPEED_EST] = (cnt - cs[C_REF_COUNT]) * TWO_PI / cpr / q[Q_TS]
+        cs[C_REF_COUNT] = cnt
+        return
     if cnt != cs[C_REF_COUNT] and et > cs[C_REF_TICKS]:
         cs[C_SPEED_EST] = (cnt - cs[C_REF_COUNT]) * TWO_PI / cpr * fcap / (et - cs[C_REF_TICKS])
         cs[C_REF_COUNT] = cnt
@@ -483,6 +502,13 @@ def speed_loop(cs, q):
     if q[Q_OBSERVER] == 0.0:
         w = w + 0.5 * q[Q_DELAY_COMP] * (w_raw - cs[C_SPEED_RAW_PREV])
     cs[C_SPEED_RAW_PREV] = w_raw
+    if q[Q_SPEED_KF] > 0.0:
+        # low-pass on the measured speed (DSP speed-calculation filter)
+        if cs[C_FILT_INIT] == 0.0:
+            cs[C_SPEED_FILT] = w
+            cs[C_FILT_INIT] = 1.0
+        cs[C_SPEED_FILT] += q[Q_SPEED_KF] * (w - cs[C_SPEED_FILT])
+        w = cs[C_SPEED_FILT]
     if cs[C_SPEED_ACTIVE] == 0.0:
         cs[C_IQ_REF_PREV] = 0.0
         cs[C_SPEED_PREV] = w
@@ -496,14 +522,19 @@ def speed_loop(cs, q):
     vmax_mod = q[Q_VMAX_FACTOR] * q[Q_VDC]
     dv = cs[C_DV] + 0.2 * cs[C_VSAT] / q[Q_NS] - 0.02
     cs[C_DV] = min(max(dv, 0.0), 0.3 * vmax_mod)
-    if cs[C_VSAT] > 0.0:
-        # the current loop was voltage limited during the last speed period: continue from
-        # the iq it delivered, not from the reference it could not reach (cascade anti-windup)
-        iqm = cs[C_IQ]
+    if cs[C_VSAT] >= q[Q_NS] and cs[C_IQ_N] > 0.0:
+        # the current loop was voltage limited during the whole last speed period: continue
+        # from the iq it delivered (its mean over the period), not from the reference it could
+        # not reach (cascade anti-windup). An occasional saturated period (a noisy speed in the
+        # decoupling term, a back-EMF harmonic peak) does not count, and the mean ignores the
+        # current ripple: resetting to an instantaneous low would freeze the integral.
+        iqm = cs[C_IQ_SUM] / cs[C_IQ_N]
         iqp = cs[C_IQ_REF_PREV]
         if (iqp > iqm and iqp > 0.0) or (iqp < iqm and iqp < 0.0):
             cs[C_IQ_REF_PREV] = iqm
     cs[C_VSAT] = 0.0
+    cs[C_IQ_SUM] = 0.0
+    cs[C_IQ_N] = 0.0
     if q[Q_FAMILY] == 0.0:
         # predictive_increment(w*(k+1), w, dw, a, b, r) with b / (b^2 + r) precomputed
         du = q[Q_GS] * (cs[C_SPEED_REF_NEXT] - w - q[Q_AS] * (w - cs[C_SPEED_PREV]))
@@ -556,13 +587,23 @@ def control_period(cs, q, meas):
     iqm = -ial * s + ibe * c
     cs[C_ID] = idm
     cs[C_IQ] = iqm
+    cs[C_IQ_SUM] += iqm
+    cs[C_IQ_N] += 1.0
     cs[C_THETA_E] = th
     if q[Q_OBSERVER] != 0.0:
         # torque feed-forward only while the inverter controls the machine; on the rectifier
         # path the observer is a pure encoder tracking filter (a stiff prime mover would
         # otherwise make every braking-torque change look like an acceleration)
         inv = relay == M.REL_INVERTER or (relay == M.REL_DRAIN and meas[M.S_RELAY_FROM] == M.REL_INVERTER)
-        observer_update(cs, q, meas, iqm if inv else 0.0)
+        iq_ff = iqm if inv else 0.0
+        inv_f = 1.0 if inv else 0.0
+        if cs[C_OBS_INIT] != 0.0 and inv_f != cs[C_OBS_INV]:
+            # feed-forward switched on / off (relay): the disturbance state takes over the
+            # torque the feed-forward stops (or starts) explaining, so the estimate is bumpless
+            cs[C_OBS_D] += q[Q_KT] * (cs[C_OBS_IQFF] - iq_ff) / q[Q_JN]
+        cs[C_OBS_IQFF] = iq_ff
+        cs[C_OBS_INV] = inv_f
+        observer_update(cs, q, meas, iq_ff)
     ns = q[Q_NS]
     if cs[C_SUB] == 0.0:
         if q[Q_OBSERVER] == 0.0:

@@ -49,6 +49,26 @@ sampled at the carrier valley (zero vector) so the sampled current is ripple fre
 constant-switch-state segment is integrated exactly; optional dead time (edge delay by the
 sign of the phase current at the period start).
 
+Non-idealities of the real machine and bridge (``spmsm.*`` / ``inverter.dead_time_s``; the
+paper gives none of them, config/spmsm_default.yaml documents the chosen values; 0 = the
+paper's ideal Eq. 1-6 machine, which is also the controller's model):
+- back-EMF 5th / 7th harmonics (ratios k5, k7 of the phase EMF's fundamental, phases phi5,
+  phi7): magnet flux linkage lambda (e^{j th} + k5/5 e^{j phi5} e^{-j5 th} + k7/7 e^{j phi7}
+  e^{j7 th}) (amplitude-invariant), i.e. in the rotor frame an EMF j we lambda + we g(th) with
+  g = j lambda (k7 e^{j(6 th + phi7)} - k5 e^{j(phi5 - 6 th)}) (:func:`emf_harmonic_shape`) and
+  a torque 1.5 pp (lambda iq + Re(g conj(i))). Over a period the harmonic EMF is held at the
+  period's mid angle (a constant rotor-frame voltage v0 in :func:`segment`; error ~(6 we T)^2
+  / 24, 3e-4 of the harmonic at 200 r/min); the energy it converts is exactly the torque's
+  work, so the ledger still closes to round-off.
+- cogging torque -Tc sin(N theta_m + phi), N = ``cogging_per_rev`` = LCM(36 slots, 12 poles)
+  = 36: a conservative torque with co-energy W = -(Tc / N) cos(N theta_m + phi) (counted in
+  the stored energy); the period's mean is the exact change of W over the rotation
+  (:func:`cogging_mean_torque`), inside the shaft's midpoint iteration.
+- Coulomb friction Tc tanh(w / w_s) (bearings, belt, the coupled brake's idle drag) next to
+  the viscous B w (:func:`friction_torque`), booked as friction loss.
+- dead time: the switching model delays the turn-on edges by the current's sign; the average
+  model applies the same mean error, d_x - sign(i_x) * carrier_multiple * td / T.
+
 Regeneration path (paper 001, Fig. 2/8): a relay connects the machine either to the
 inverter (motoring / assist, DC link = 24 V battery) or to a 3-phase diode rectifier ->
 DC link -> buck converter (output ~25 V) -> charger -> 24 V battery (generating /
@@ -122,10 +142,25 @@ class SpmsmParams:
     rs_scale: float = 1.0
     inductance_scale: float = 1.0
     flux_scale: float = 1.0
+    # non-idealities of the real machine (module docstring "Non-idealities"); 0 = ideal
+    emf_harmonic_5: float = 0.0        # 5th harmonic of the phase back-EMF / fundamental
+    emf_harmonic_7: float = 0.0        # 7th harmonic / fundamental
+    emf_phase_5_deg: float = 0.0       # e_a ~ sin(th) + k5 sin(5 th + phi5) + k7 sin(7 th + phi7)
+    emf_phase_7_deg: float = 0.0
+    cogging_torque_nm: float = 0.0     # peak cogging torque
+    cogging_per_rev: int = 36          # cogging periods per mechanical turn: LCM(36 slots, 12 poles)
+    cogging_phase_deg: float = 0.0
+    dry_friction_nm: float = 0.0       # Coulomb friction (bearings, belt, coupled brake's idle drag)
+    dry_friction_speed_rpm: float = 1.0  # ... smoothed as Tc tanh(w / w_s) below this speed
 
     def validate(self) -> None:
         require_positive(self, "pole_pairs", "rs_ohm", "inductance_h", "flux_linkage_vs", "rated_speed_rpm",
-                         "rs_scale", "inductance_scale", "flux_scale")
+                         "rs_scale", "inductance_scale", "flux_scale", "cogging_per_rev")
+        require_positive(self, "dry_friction_speed_rpm")
+        for name in ("emf_harmonic_5", "emf_harmonic_7", "cogging_torque_nm", "dry_friction_nm"):
+            if not 0.0 <= getattr(self, name) <= (0.5 if name.startswith("emf") else 10.0):
+                raise ValueError(f"{name} must be in [0, {0.5 if name.startswith('emf') else 10.0}], "
+                                 f"got {getattr(self, name)!r}")
 
     @property
     def torque_constant_nm_per_a(self) -> float:
@@ -326,7 +361,8 @@ def plant_params_from_config(cfg: dict) -> SpmsmPlantParams:
 
 def nominal_params_from_config(cfg: dict) -> SpmsmPlantParams:
     """The controller's copy of the model: the configured machine with the variation scales
-    at 1 and no dead time, unless ``controller.model: actual`` (then the plant's own)."""
+    at 1, a sinusoidal back-EMF, no cogging, no Coulomb friction and no dead time (the paper's
+    Eq. 1-6 model), unless ``controller.model: actual`` (then the plant's own)."""
     params = plant_params_from_config(cfg)
     ctrl = section(cfg, "controller", cfg.get("_config_path"))
     model = ctrl.get("model", "nominal")
@@ -334,7 +370,9 @@ def nominal_params_from_config(cfg: dict) -> SpmsmPlantParams:
         raise ConfigError(f"must be 'nominal' or 'actual', got {model!r}", cfg.get("_config_path"), "controller.model")
     if model == "actual":
         return params
-    params.spmsm = dataclasses.replace(params.spmsm, rs_scale=1.0, inductance_scale=1.0, flux_scale=1.0)
+    params.spmsm = dataclasses.replace(params.spmsm, rs_scale=1.0, inductance_scale=1.0, flux_scale=1.0,
+                                       emf_harmonic_5=0.0, emf_harmonic_7=0.0, cogging_torque_nm=0.0,
+                                       dry_friction_nm=0.0)
     params.inverter = dataclasses.replace(params.inverter, dead_time_s=0.0)
     return params
 
@@ -374,7 +412,21 @@ P_DYNO_TQ = P_DYNO_T + MAX_DYNO_POINTS
 P_IEA = P_DYNO_TQ + MAX_DYNO_POINTS     # integral of exp(-a tau) over one period
 P_IE2A = P_IEA + 1                      # integral of exp(-2 a tau) over one period
 P_RELAY_OPEN_I = P_IE2A + 1
-P_SIZE = P_RELAY_OPEN_I + 1
+P_EMF_ON = P_RELAY_OPEN_I + 1           # 1: back-EMF harmonics present
+P_K5_RE = P_EMF_ON + 1                  # j lambda k5 exp(j phi5) (complex, rotor frame)
+P_K5_IM = P_K5_RE + 1
+P_K7_RE = P_K5_IM + 1                   # j lambda k7 exp(j phi7)
+P_K7_IM = P_K7_RE + 1
+P_COG_T = P_K7_IM + 1                   # peak cogging torque [N m]
+P_COG_N = P_COG_T + 1                   # periods per mechanical turn
+P_COG_PHI = P_COG_N + 1                 # phase [rad]
+P_DT_DUTY = P_COG_PHI + 1               # average model: dead-time duty error carrier_multiple * td / T
+P_DRY_T = P_DT_DUTY + 1                 # Coulomb friction [N m]
+P_DRY_WS = P_DRY_T + 1                  # its smoothing speed [rad/s]
+P_COG_SIX = P_DRY_WS + 1                # 1: N = 6 pp, exp(j N theta_m) = exp(j 6 theta_e) (no sincos)
+P_COG_C = P_COG_SIX + 1                 # cos / sin of the cogging phase
+P_COG_S = P_COG_C + 1
+P_SIZE = P_COG_S + 1
 
 LOAD_DYNO, LOAD_PRIME_MOVER, LOAD_HOOK, LOAD_NONE = 0, 1, 2, 3
 
@@ -412,6 +464,20 @@ def pack_params(p: SpmsmPlantParams) -> np.ndarray:
     v[P_RELAY_DEAD_N] = max(1, int(math.ceil(rg.relay_dead_s / p.control_period_s - 1e-9)))
     v[P_DRAIN_N] = max(1, int(math.ceil(rg.drain_timeout_s / p.control_period_s - 1e-9)))
     v[P_RELAY_OPEN_I] = rg.relay_open_current_a
+    lam = m.flux_linkage_vs * m.flux_scale
+    k5 = 1j * lam * m.emf_harmonic_5 * cmath.exp(1j * math.radians(m.emf_phase_5_deg))
+    k7 = 1j * lam * m.emf_harmonic_7 * cmath.exp(1j * math.radians(m.emf_phase_7_deg))
+    v[P_EMF_ON] = 1.0 if (m.emf_harmonic_5 > 0.0 or m.emf_harmonic_7 > 0.0) else 0.0
+    v[P_K5_RE], v[P_K5_IM], v[P_K7_RE], v[P_K7_IM] = k5.real, k5.imag, k7.real, k7.imag
+    v[P_COG_T] = m.cogging_torque_nm
+    v[P_COG_N] = m.cogging_per_rev
+    v[P_COG_PHI] = math.radians(m.cogging_phase_deg)
+    v[P_DT_DUTY] = inv.carrier_multiple * inv.dead_time_s / p.control_period_s
+    v[P_DRY_T] = m.dry_friction_nm
+    v[P_DRY_WS] = m.dry_friction_speed_rpm / RPM_PER_RAD_S
+    v[P_COG_SIX] = 1.0 if m.cogging_per_rev == 6 * m.pole_pairs else 0.0
+    v[P_COG_C] = math.cos(math.radians(m.cogging_phase_deg))
+    v[P_COG_S] = math.sin(math.radians(m.cogging_phase_deg))
     bt = p.battery
     v[P_BATT_V] = bt.nominal_v
     v[P_BATT_CAP_J] = bt.nominal_v * bt.capacity_ah * 3600.0
@@ -470,6 +536,7 @@ S_E_TERM = 40              # into the machine terminals (diagnostic)
 S_MID_RESID = 41           # accumulated midpoint residual (diagnostic, ~1e-16 J)
 S_E1H_RE, S_E1H_IM = 42, 43  # exp(-j we T) of the last period (start of the next guess)
 S_WE_LAST = 44             # the we it belongs to
+S_TCOG = 45                # mean cogging torque of the last period (accelerating positive)
 S_SIZE = 48
 
 REL_INVERTER, REL_RECTIFIER, REL_DRAIN, REL_DEAD = 0, 1, 2, 3
@@ -678,8 +745,9 @@ def switching_segments(da, db, dc, ia, ib, ic, p, ws):
 
 
 @njit(**JIT)
-def _solve_switching(i0, ej0, we, p, ws):
-    """Exact solution through the switching segments in ws (rotor angle exp(j theta0) = ej0)."""
+def _solve_switching(i0, ej0, we, p, ws, v0):
+    """Exact solution through the switching segments in ws (rotor angle exp(j theta0) = ej0);
+    v0: a rotor-frame voltage held over the period (minus the back-EMF harmonics)."""
     a = p[P_A]
     lh = p[P_L]
     lam = p[P_LAMBDA]
@@ -696,7 +764,7 @@ def _solve_switching(i0, ej0, we, p, ws):
         e1 = complex(math.cos(x), -math.sin(x))
         eat = math.exp(-a * t)
         # the rotor-frame integrals are accumulated as is (frame-independent quantities)
-        i, ii, ii2, et = segment(i, complex(0.0, 0.0), v1, we, t, e1, eat, a, lh, lam)
+        i, ii, ii2, et = segment(i, v0, v1, we, t, e1, eat, a, lh, lam)
         int_i += ii
         int_i2 += ii2
         e_term += et
@@ -716,15 +784,16 @@ def _ie1(x, t):
 
 
 @njit(**JIT)
-def _avg_eval(i0, v1, we, e1, p):
-    """Fast form of :func:`segment` for one full period with v0 = 0 (average inverter):
+def _avg_eval(i0, v0, v1, we, e1, p):
+    """Fast form of :func:`segment` for one full period (average inverter; v0: minus the
+    back-EMF harmonics, 0 for a sinusoidal machine):
     the end current and the integral of i (what the midpoint iteration needs), plus the
     closed-form coefficients for :func:`_avg_energy`."""
     a = p[P_A]
     t = p[P_DT]
     den = a * a + we * we
     inv_s = complex(a / den, -we / den)
-    p0 = complex(0.0, -we * p[P_LAMBDA] / p[P_L]) * inv_s
+    p0 = complex(v0.real / p[P_L], (v0.imag - we * p[P_LAMBDA]) / p[P_L]) * inv_s
     p1 = v1 * (1.0 / p[P_R])                 # v1 / (L a)
     d = i0 - p0 - p1
     es = p[P_EAH] * e1
@@ -753,13 +822,14 @@ def _avg_energy(p0, p1, d, ie1, ies, v1, p):
 # diode bridge (rectifier path, or the inverter's freewheel diodes with the gates off)
 # =======================================================================================
 @njit(**JIT)
-def _solve_diode_bridge(i0, we, vr, t, p):
+def _solve_diode_bridge(i0, we, vr, t, p, vh):
     """Machine on a diode bridge of fundamental voltage vr over t (average model, see module
     docstring). The voltage vector -vr u is held over the period with u the current's
     direction at its start (the steady-state direction when starting from zero). If the
     current would reverse against the diodes, the bridge blocks at that instant (bisection on
     the closed form): the current goes to exactly zero and the small magnetic energy left in
     the perpendicular component is returned as loss (diode reverse recovery / snubber).
+    vh: minus the back-EMF harmonics, held over the period (added to the bridge voltage).
     Returns (i1, int_i, int_i2, e_term, loss_j)."""
     a = p[P_A]
     lh = p[P_L]
@@ -776,13 +846,13 @@ def _solve_diode_bridge(i0, we, vr, t, p):
         u = rectifier_steady_state(vr, we, p[P_R], lh, lam)
         u = u / abs(u)
         for _ in range(2):
-            i1, ii, ii2, et = segment(i0, -vr * u, z0, we, t, e1, eat, a, lh, lam)
+            i1, ii, ii2, et = segment(i0, vh - vr * u, z0, we, t, e1, eat, a, lh, lam)
             if abs(i1) > 0.0:
                 u = i1 / abs(i1)
-        i1, ii, ii2, et = segment(i0, -vr * u, z0, we, t, e1, eat, a, lh, lam)
+        i1, ii, ii2, et = segment(i0, vh - vr * u, z0, we, t, e1, eat, a, lh, lam)
         return i1, ii, ii2, et, 0.0
     u = i0 / abs(i0)
-    v0 = -vr * u
+    v0 = vh - vr * u
     i1, ii, ii2, et = segment(i0, v0, z0, we, t, e1, eat, a, lh, lam)
     cu = u.conjugate()
     if (i1 * cu).real >= 0.0:
@@ -821,8 +891,91 @@ def dyno_torque_nm(t_s, p):
 
 @njit(**JIT)
 def stored_energy(state, p):
-    """Kinetic + magnetic energy: 0.5 J w^2 + 0.75 L |i|^2 (amplitude-invariant dq)."""
-    return 0.5 * p[P_J] * state[S_OMEGA] ** 2 + 0.75 * p[P_L] * (state[S_ID] ** 2 + state[S_IQ] ** 2)
+    """Kinetic + magnetic energy: 0.5 J w^2 + 0.75 L |i|^2 (amplitude-invariant dq), plus the
+    cogging co-energy W(theta) = -(Tc / N) cos(N theta + phi) (the cogging torque is -dW/dtheta)."""
+    e = 0.5 * p[P_J] * state[S_OMEGA] ** 2 + 0.75 * p[P_L] * (state[S_ID] ** 2 + state[S_IQ] ** 2)
+    if p[P_COG_T] != 0.0:
+        e -= p[P_COG_T] / p[P_COG_N] * math.cos(p[P_COG_N] * state[S_THETA_M] + p[P_COG_PHI])
+    return e
+
+
+@njit(**JIT)
+def emf_harmonic_shape(ej, x, p):
+    """g with back-EMF harmonics E_h = we g (rotor frame) at the electrical angle th + x,
+    exp(j th) = ej: g = j lambda (k7 exp(j (6 th + phi7)) - k5 exp(j (phi5 - 6 th)))."""
+    e2 = ej * ej
+    h6 = e2 * e2 * e2 * complex(math.cos(6.0 * x), math.sin(6.0 * x))
+    return complex(p[P_K7_RE], p[P_K7_IM]) * h6 - complex(p[P_K5_RE], p[P_K5_IM]) * h6.conjugate()
+
+
+@njit(**JIT)
+def _sixth(ej0, e1h):
+    """exp(j 6 th_mid) = exp(j th0)^6 conj(exp(-j we T))^3: the sixth harmonic's phasor at
+    the period's mid angle from the phasors the period already has (no sincos)."""
+    e2 = ej0 * ej0
+    c = e1h.conjugate()
+    return e2 * e2 * e2 * (c * c * c)
+
+
+@njit(**JIT)
+def _harmonic_g(h6, p):
+    """:func:`emf_harmonic_shape` from exp(j 6 th) = h6."""
+    return complex(p[P_K7_RE], p[P_K7_IM]) * h6 - complex(p[P_K5_RE], p[P_K5_IM]) * h6.conjugate()
+
+
+@njit(**JIT)
+def _sinc(x):
+    if abs(x) < 0.1:
+        x2 = x * x
+        return 1.0 - x2 / 6.0 * (1.0 - x2 / 20.0 * (1.0 - x2 / 42.0 * (1.0 - x2 / 72.0)))
+    return math.sin(x) / x
+
+
+@njit(**JIT)
+def _cogging_mean(th_m0, dtheta, h6, p):
+    """:func:`cogging_mean_torque`, without sincos when N = 6 pp (h6 = exp(j 6 th_e,mid))."""
+    if p[P_COG_SIX] != 0.0:
+        sn = h6.real * p[P_COG_S] + h6.imag * p[P_COG_C]          # sin(N th_mid + phi)
+        return -p[P_COG_T] * sn * _sinc(0.5 * p[P_COG_N] * dtheta)
+    return cogging_mean_torque(th_m0, dtheta, p)
+
+
+@njit(**JIT)
+def cogging_mean_torque(theta_m0, dtheta, p):
+    """Mean cogging torque over the rotation theta_m0 -> theta_m0 + dtheta (exact: the change of
+    W over dtheta), T(theta) = -Tc sin(N theta + phi)."""
+    n = p[P_COG_N]
+    x = 0.5 * n * dtheta
+    if abs(x) < 1e-3:
+        sinc = 1.0 - x * x / 6.0 * (1.0 - x * x / 20.0)
+    else:
+        sinc = math.sin(x) / x
+    return -p[P_COG_T] * math.sin(n * (theta_m0 + 0.5 * dtheta) + p[P_COG_PHI]) * sinc
+
+
+@njit(**JIT)
+def friction_torque(w, p):
+    """Friction opposing the rotation [N m]: viscous B w (paper 001, Eq. 3) + Coulomb
+    Tc tanh(w / w_s) (smoothed through standstill)."""
+    f = p[P_B] * w
+    if p[P_DRY_T] != 0.0:
+        x = w / p[P_DRY_WS]
+        if x > 19.0:                 # tanh(19) = 1 - 6e-17: saves the tanh
+            f += p[P_DRY_T]
+        elif x < -19.0:
+            f -= p[P_DRY_T]
+        else:
+            f += p[P_DRY_T] * math.tanh(x)
+    return f
+
+
+@njit(**JIT)
+def _sgn(x):
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    return 0.0
 
 
 @njit(**JIT)
@@ -908,20 +1061,21 @@ def _relay_update(state, p, relay_request):
 
 
 @njit(**JIT)
-def _electrical(path, i0, ej0, v1, we, e1h, p, ws, vr):
-    """Electrical solution of the period on the active path at frozen speed we.
-    Returns (i1, int_i, int_i2, e_term, loss_j)."""
+def _electrical(path, i0, ej0, v0, v1, we, e1h, p, ws, vr):
+    """Electrical solution of the period on the active path at frozen speed we; v0: minus
+    the back-EMF harmonics (rotor frame, held). Returns (i1, int_i, int_i2, e_term, loss_j),
+    e_term including v0's share (the caller removes it)."""
     dt = p[P_DT]
     z0 = complex(0.0, 0.0)
     if path == 0:
         if p[P_MODEL] == 0.0:
-            i1, ii, ii2, et = segment(i0, z0, v1, we, dt, e1h, p[P_EAH], p[P_A], p[P_L], p[P_LAMBDA])
+            i1, ii, ii2, et = segment(i0, v0, v1, we, dt, e1h, p[P_EAH], p[P_A], p[P_L], p[P_LAMBDA])
         else:
-            i1, ii, ii2, et = _solve_switching(i0, ej0, we, p, ws)
+            i1, ii, ii2, et = _solve_switching(i0, ej0, we, p, ws, v0)
         return i1, ii, ii2, et, 0.0
     if path == 4:
         return z0, z0, 0.0, 0.0, 0.0
-    return _solve_diode_bridge(i0, we, vr, dt, p)
+    return _solve_diode_bridge(i0, we, vr, dt, p, v0)
 
 
 @njit(**JIT)
@@ -945,7 +1099,17 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     vlink = 0.0
     if path == 0:
         if p[P_MODEL] == 0.0:
-            vab = duties_to_valphabeta(_clip01(da), _clip01(db), _clip01(dc), p[P_VDC])
+            da = _clip01(da)
+            db = _clip01(db)
+            dc = _clip01(dc)
+            kd = p[P_DT_DUTY]
+            if kd > 0.0:
+                # mean dead-time error of each leg: the diode picked by the current sign holds
+                # the leg for td after every turn-off (as the switching model's edge shift)
+                da = _clip01(da - kd * _sgn(state[S_IA]))
+                db = _clip01(db - kd * _sgn(state[S_IB]))
+                dc = _clip01(dc - kd * _sgn(state[S_IC]))
+            vab = duties_to_valphabeta(da, db, dc, p[P_VDC])
             v1 = vab * ej0.conjugate()
         else:
             switching_segments(_clip01(da), _clip01(db), _clip01(dc), state[S_IA], state[S_IB], state[S_IC], p, ws)
@@ -982,16 +1146,30 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     ii2 = 0.0
     et = 0.0
     loss = 0.0
+    emf_on = p[P_EMF_ON] != 0.0
+    cog_on = p[P_COG_T] != 0.0
+    gh = z0
+    v0 = z0
+    tcog = 0.0
+    fr = 0.0
+    th_m0 = state[S_THETA_M]
     if kind == LOAD_PRIME_MOVER:
         wg = w0
         x = pp * wg * dt
         e1h = complex(math.cos(x), -math.sin(x))
+        h6 = _sixth(ej0, e1h) if (emf_on or cog_on) else z0
+        if emf_on:
+            gh = _harmonic_g(h6, p)
+            v0 = -pp * wg * gh
         if fast:
-            i1, ii, p0, p1, dd, ie1, ies = _avg_eval(i0, v1, pp * wg, e1h, p)
+            i1, ii, p0, p1, dd, ie1, ies = _avg_eval(i0, v0, v1, pp * wg, e1h, p)
         else:
-            i1, ii, ii2, et, loss = _electrical(path, i0, ej0, v1, pp * wg, e1h, p, ws, vr)
-        tem = 1.5 * pp * p[P_LAMBDA] * ii.imag / dt
-        t_ext = B * wg - tem
+            i1, ii, ii2, et, loss = _electrical(path, i0, ej0, v0, v1, pp * wg, e1h, p, ws, vr)
+        tem = 1.5 * pp * (p[P_LAMBDA] * ii.imag + gh.real * ii.real + gh.imag * ii.imag) / dt
+        if cog_on:
+            tcog = _cogging_mean(th_m0, wg * dt, h6, p)
+        fr = friction_torque(wg, p)
+        t_ext = fr - tem - tcog
         wn = wg
         w1 = state[S_SPEED_TARGET]
         n_it = 1
@@ -1001,9 +1179,21 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             # voltage (the previous period's acceleration lags the control by a period)
             we0 = pp * w0
             vq_m = (v1 * _rot_small(complex(1.0, 0.0), 0.5 * we0 * dt)).imag
+            g0 = z0
+            tg = 0.0
+            if emf_on or cog_on:
+                # harmonics and cogging at the mid angle of last period's rotation (the guess
+                # must be good to ~1e-4 N m for the iteration to stop after two solves)
+                h6g = _sixth(ej0, complex(state[S_E1H_RE], state[S_E1H_IM]))
+                if emf_on:
+                    g0 = _harmonic_g(h6g, p)
+                    vq_m -= we0 * g0.imag
+                if cog_on:
+                    tg = _cogging_mean(th_m0, w0 * dt, h6g, p)
             diq = (vq_m - p[P_R] * i0.imag - we0 * (p[P_L] * i0.real + p[P_LAMBDA])) / p[P_L]
-            tem_g = 1.5 * pp * p[P_LAMBDA] * (i0.imag + 0.5 * dt * diq)
-            wg = (w0 + 0.5 * dt * (tem_g + t_ext) / J) / (1.0 + 0.5 * dt * B / J)
+            iq_m = i0.imag + 0.5 * dt * diq
+            tem_g = 1.5 * pp * (p[P_LAMBDA] * iq_m + g0.real * i0.real + g0.imag * iq_m) + tg
+            wg = (w0 + 0.5 * dt * (tem_g + t_ext - friction_torque(w0, p) + B * w0) / J) / (1.0 + 0.5 * dt * B / J)
         else:
             wg = w0 + 0.5 * dt * state[S_ACCEL]
         if resync:
@@ -1014,25 +1204,37 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             e1h = _rot_small(complex(state[S_E1H_RE], state[S_E1H_IM]), (pp * wg - state[S_WE_LAST]) * dt)
         tol = 1e-11 * (1.0 + abs(w0))      # ledger residual ~1e-11 * T Te per period
         n_it = 0
+        h6 = z0
         for it in range(8):
+            if emf_on or cog_on:
+                h6 = _sixth(ej0, e1h)
+            if emf_on:
+                # harmonics held at the period's mid angle (rotor frame; error ~(6 we T)^2 / 24)
+                gh = _harmonic_g(h6, p)
+                v0 = -pp * wg * gh
             if fast:
-                i1, ii, p0, p1, dd, ie1, ies = _avg_eval(i0, v1, pp * wg, e1h, p)
+                i1, ii, p0, p1, dd, ie1, ies = _avg_eval(i0, v0, v1, pp * wg, e1h, p)
             else:
-                i1, ii, ii2, et, loss = _electrical(path, i0, ej0, v1, pp * wg, e1h, p, ws, vr)
+                i1, ii, ii2, et, loss = _electrical(path, i0, ej0, v0, v1, pp * wg, e1h, p, ws, vr)
             n_it += 1
-            tem = 1.5 * pp * p[P_LAMBDA] * ii.imag / dt
-            wn = w0 + 0.5 * dt * (tem + t_ext - B * wg) / J
+            tem = 1.5 * pp * (p[P_LAMBDA] * ii.imag + gh.real * ii.real + gh.imag * ii.imag) / dt
+            if cog_on:
+                tcog = _cogging_mean(th_m0, wg * dt, h6, p)
+            fr = friction_torque(wg, p)
+            wn = w0 + 0.5 * dt * (tem + tcog + t_ext - fr) / J
             if abs(wn - wg) <= tol or it == 7:
                 break
             e1h = _rot_small(e1h, pp * (wn - wg) * dt)
             wg = wn
-        w1 = w0 + dt * (tem + t_ext - B * wg) / J
+        w1 = w0 + dt * (tem + tcog + t_ext - fr) / J
     if fast:
-        ii2, et = _avg_energy(p0, p1, dd, ie1, ies, v1, p)
+        ii2, et = _avg_energy(p0, p1, dd, ie1, ies, v1, p)    # terminal share only
+    elif emf_on:
+        et -= v0.real * ii.real + v0.imag * ii.imag            # segment's e_term includes v0's share
     # ---- ledger: electrical side (exact closed-form integrals)
     e_term = 1.5 * et
     e_cu = 1.5 * p[P_R] * ii2
-    e_em = 1.5 * pp * wg * p[P_LAMBDA] * ii.imag           # = T mean(Te) * w_used
+    e_em = tem * wg * dt                                   # = T mean(Te) * w_used
     state[S_E_TERM] += e_term
     state[S_E_CU] += e_cu
     state[S_E_EM] += e_em
@@ -1087,15 +1289,16 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     w_avg = 0.5 * (w0 + w1)
     if kind == LOAD_PRIME_MOVER:
         state[S_E_MECH] += t_ext * wg * dt
-        state[S_E_FRIC] += B * wg * wg * dt
+        state[S_E_FRIC] += fr * wg * dt
         if w1 != w0:
             state[S_E_MECH] += 0.5 * J * (w1 * w1 - w0 * w0)   # schedule step: the prime mover supplies it
     else:
         state[S_E_MECH] += t_ext * w_avg * dt
-        state[S_E_FRIC] += B * wg * w_avg * dt
-        state[S_MID_RESID] += tem * (wg - w_avg) * dt
+        state[S_E_FRIC] += fr * w_avg * dt
+        state[S_MID_RESID] += (tem + tcog) * (wg - w_avg) * dt
     state[S_ITER] = n_it
     state[S_TEM] = tem
+    state[S_TCOG] = tcog
     state[S_TLOAD] = t_ext
     state[S_ACCEL] = (w1 - w0) / dt if kind != LOAD_PRIME_MOVER else 0.0
     state[S_OMEGA] = w1

@@ -20,6 +20,7 @@ import sys
 PAPERS = {
     "seed1-fig14": "paper 000 Fig. 14: torque-speed curve with Command = 1, prime mover 300..5400 rpm",
     "seed1-current": "paper 000 Fig. 12/13: hysteresis current control at I* = 35 A and 50 A, 3000 rpm",
+    "seed2-table1": "paper 001 Table 1 (Fig. 11-16): predictive vs PI speed/current control of the SPMSM",
 }
 
 
@@ -59,6 +60,11 @@ def _cmd_run(opts) -> int:
         print(f"error: --duration must be > 0, got {duration_s}", file=sys.stderr)
         return 2
     args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": opts.namespace}
+    can_params = None
+    if str(cfg.get("backend", "sim")) == "can":
+        can_params = _can_run_args(cfg, args)
+        if can_params is None:
+            return 2
     if workout is not None:
         args.update(workout=str(pathlib.Path(opts.workout).resolve()), ftp=repr(float(opts.ftp or 0.0)))
     bag_path = None
@@ -73,6 +79,9 @@ def _cmd_run(opts) -> int:
             suffix += 1
         args.update(record="true", record_dir=str(record_dir), bag_name=bag_path.name, storage=opts.storage,
                     recorder_window=str(RECORDER_WINDOW_BATCHES))
+        if can_params is not None and can_params.log_format != "none" and not can_params.log_file:
+            # the CAN traffic beside the bag, in a format CAN tools read (python-can .asc / .blf)
+            args["can_log"] = str(record_dir / f"{bag_path.name}.can.{can_params.log_format}")
     if not os.environ.get("ROS_DOMAIN_ID"):
         # a private DDS domain: two simulations on one host must not ride each other's
         # /clock and commands (an explicit ROS_DOMAIN_ID is always respected)
@@ -97,6 +106,26 @@ def _cmd_run(opts) -> int:
         print(f"error: the recorder wrote no bag at {bag_path}", file=sys.stderr)
         code = code or 1
     return code
+
+
+def _can_run_args(cfg, args: dict):
+    """backend can: the emulator launch arguments from the config's can: section (None: error)."""
+    import shlex
+
+    from bike_plant.can.backend import can_params_from_config, emulator_args_from_config
+    from bike_plant.config import ConfigError
+
+    try:
+        params = can_params_from_config(cfg)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    if params.emulator:
+        args.update(emulator="true", emulator_args=" ".join(shlex.quote(a) for a in emulator_args_from_config(cfg)))
+    print(f"[bike] drive on CAN: {params.describe()}"
+          + (", started here as bike-drive-emulator" if params.emulator else ", a real drive (can.emulator false)")
+          + "; sim time pauses while the drive is not armed", flush=True)
+    return params
 
 
 def _load_workout_for_run(opts, cfg):
@@ -155,6 +184,18 @@ def _cmd_paper(opts) -> int:
 
     out = pathlib.Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
+    if opts.name == "seed2-table1":
+        from bike_session import paper_spmsm
+        config = opts.config or str(repo_root() / "config" / "spmsm_default.yaml")
+        try:
+            result = paper_spmsm.table1(config, str(out))
+        except ConfigError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        print(paper_spmsm.summary(result))
+        for path in result["files"]:
+            print(f"  wrote {path}")
+        return 0 if result["passed"] else 1
     config = opts.config or str(repo_root() / "config" / "bldc_default.yaml")
     runner = {"seed1-fig14": paper.fig14, "seed1-current": paper.current}[opts.name]
     try:
@@ -229,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
         f"{k} ({v})" for k, v in PAPERS.items()))
     pap.add_argument("name", choices=sorted(PAPERS))
     pap.add_argument("--out", required=True, help="output folder for CSV and PNG")
-    pap.add_argument("--config", help="bike config (default config/bldc_default.yaml)")
+    pap.add_argument("--config", help="bike config (default config/bldc_default.yaml; seed2-*: config/spmsm_default.yaml)")
     pap.set_defaults(func=_cmd_paper)
 
     ben = sub.add_parser("bench", help="print speed figures and ratios (inner loop, node graph, DDS ping-pong)")
