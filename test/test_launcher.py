@@ -117,3 +117,16 @@ def test_launcher_escalates_to_sigkill_for_a_node_that_ignores_signals():
 def test_missing_package_is_a_clear_error():
     with pytest.raises(LaunchError, match="package 'no_such_pkg' not found"):
         launcher.executable_path("no_such_pkg", "x")
+
+
+def test_launcher_stops_the_graph_when_any_node_fails():
+    """A node that exits with an error (e.g. a bad parameter) stops the graph instead of
+    leaving the others waiting for it forever."""
+    launch = Launcher([_Script("plant", "import time; time.sleep(60)", shutdown=True),
+                       _Script("broken", "import sys, time; time.sleep(0.3); sys.exit(2)")],
+                      grace_s=2.0, stdout=open("/dev/null", "w"))
+    launch.start()
+    start = time.monotonic()
+    codes = launch.wait(timeout_s=30)
+    assert time.monotonic() - start < 10
+    assert codes["broken"] == 2 and codes["plant"] != 0

@@ -344,3 +344,8 @@ class TorqueTrim:
             self.trim_nm = min(max(self.trim_nm + err * dt_s / self.tau_s, -self.limit_nm), self.limit_nm)
         self.asked_nm = brake_torque_nm
         return brake_torque_nm + self.trim_nm if brake_torque_nm != 0.0 else 0.0
+
+    @property
+    def saturated(self) -> bool:
+        """The trim is at its limit: the machine cannot deliver the asked torque here."""
+        return abs(self.trim_nm) >= 0.999 * self.limit_nm

@@ -9,6 +9,10 @@ Topics (relative names, namespace /bike by default; docs/DESIGN.md):
 
 The law is bike_controller.session_control.ModedController: the session modes of
 bike_controller.modes on top of bldc_control.BatchController (nominal params from the config).
+A PlantState with ``measured_by_drive`` (plant backend ``can``: the drive's firmware owns the
+current loop) gets a torque-only answer: the mode torque from the measured speed, trimmed on
+the drive's torque estimate, in DriveCommand.torque_cmd_nm (motoring positive), no gates or
+duties (session_control.DriveTorqueLaw).
 
 Commands: a Command that is not finite, outside [0, 1] or of an unknown mode is rejected
 (WARN diagnostic, ControllerStatus.command_rejected = true until the next valid one); the
@@ -194,6 +198,7 @@ class ControllerNode(Node):
             self.stats["waits"] += 1
         self._apply_timeline(t_ns)
         snap = msgconv.snapshot_from_msg(msg)
+        snap["stamp_ns"] = t_ns                            # a drive on CAN: the law's time base
         n = int(msg.batch_periods) or self.n               # answer the batch length the plant asks for
         a, b, c, status = self.ctrl.decide(snap, n)
         status["seq"] = msg.seq

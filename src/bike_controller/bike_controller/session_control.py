@@ -18,14 +18,26 @@ command at the currents of a workout (the commutation dip depends on the current
 too). ERG, slope and motoring promise a power or a torque, so outside the paper's
 resistance mode a slow integral trim (:class:`.modes.TorqueTrim`) closes the loop on the
 measured mean torque of the last batch.
+
+A drive on CAN (PlantState.measured_by_drive): the drive's firmware owns the current loop,
+so there are no gates to decide. :class:`DriveTorqueLaw` runs the same mode law on the
+measured speed, trims on the drive's torque estimate, and the controller answers with a
+torque setpoint only (empty gate arrays; the node puts it in DriveCommand.torque_cmd_nm,
+motoring positive). Time is the PlantState stamp, so the law holds while the plant's sim
+time stands still (drive not armed); while the drive is lost (FAULT_DRIVE_LOST) it answers
+zero torque and restarts with a ramp from zero when the drive is back.
 """
 from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
                     TorqueTrim, mode_params_from_config)
+
+FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this module imports no ROS)
 
 
 def validate_session_command(command, mode) -> None:
@@ -37,6 +49,64 @@ def validate_session_command(command, mode) -> None:
     if isinstance(mode, bool) or int(mode) != mode or int(mode) not in MODE_NAMES:
         names = ", ".join(f"{k} {v}" for k, v in MODE_NAMES.items())
         raise ValueError(f"unknown mode {mode!r} ({names})")
+
+
+class DriveTorqueLaw:
+    """Torque-only answer for a drive that owns its current loop (measured_by_drive).
+
+    Per PlantState: dt = stamp - previous stamp (the nominal batch time for the first, 0
+    while the plant's sim time stands still, at most 10 batches); mode torque from the
+    measured speed (:class:`.modes.ModeLaw`), trimmed on the measured torque
+    (:class:`.modes.TorqueTrim`). Returns the braking torque (> 0 brakes) and the law's
+    output. With FAULT_DRIVE_LOST: zero, and the next step ramps up from zero like a mode
+    switch (no torque step for the rider when the drive comes back)."""
+
+    def __init__(self, law: ModeLaw, trim: TorqueTrim, batch_s: float):
+        self.law = law
+        self.trim = trim
+        self.batch_s = float(batch_s)
+        self.last_stamp_ns: int | None = None
+        self.lost = False
+
+    def step(self, command: float, mode: int, snapshot: dict) -> tuple[float, ModeOutput]:
+        stamp = snapshot.get("stamp_ns")
+        if stamp is None or self.last_stamp_ns is None:
+            dt = self.batch_s
+        else:
+            dt = min(max((int(stamp) - self.last_stamp_ns) * 1e-9, 0.0), 10.0 * self.batch_s)
+        if stamp is not None:
+            self.last_stamp_ns = int(stamp)
+        if int(snapshot.get("faults", 0)) & FAULT_DRIVE_LOST:
+            if not self.lost:
+                self.lost = True
+                self.law.reset(0.0)
+                self.law.last_mode = -1          # not a mode: the next step is a switch, ramped from 0
+                self.trim.reset()
+            return 0.0, ModeOutput(0.0, 0.0, command, 0.0, False, True)
+        self.lost = False
+        speed_rpm = float(snapshot.get("speed_rpm", 0.0))
+        out = self.law.step(command, mode, speed_rpm, dt, speed_valid=math.isfinite(speed_rpm))
+        brake = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt)
+        return brake, out
+
+
+def drive_status(base: dict, brake_nm: float, out: ModeOutput, speed_rpm: float, kt: float,
+                 base_speed_rpm: float, trim_nm: float) -> dict:
+    """ControllerStatus fields of a torque-only answer (``base``: command, mode, ...)."""
+    status = dict(base)
+    status.update({
+        "speed_est_rpm": float(speed_rpm), "torque_cmd_nm": abs(brake_nm), "k_factor": 1.0,
+        "ktg_nm_per_a": float(kt), "current_cmd_a": abs(brake_nm) / kt if kt > 0 else 0.0,
+        "region": 0 if speed_rpm < base_speed_rpm else 1,
+        "quadrant": 2 if brake_nm >= 0.0 else 1,            # ControllerStatus.QUADRANT_*
+        "prediction_error_a": 0.0,
+        "mode_target": float(out.target), "mode_saturated": bool(out.saturated),
+        "mode_ramping": bool(out.ramping), "virtual_speed_mps": float(out.virtual_speed_mps),
+        "torque_trim_nm": float(trim_nm),
+        "family": "", "speed_ref_rpm": 0.0, "id_a": 0.0, "iq_a": 0.0, "id_ref_a": 0.0, "iq_ref_a": 0.0,
+        "vd_v": 0.0, "vq_v": 0.0,
+    })
+    return status
 
 
 class ModedController:
@@ -61,6 +131,8 @@ class ModedController:
         self.last_out: ModeOutput | None = None
         self.trim = TorqueTrim(self.inner.cp.tmax_nm)
         self.law.reset()
+        self.drive_law = DriveTorqueLaw(self.law, self.trim,
+                                        self.inner.batch_periods * nominal.control_period_s)
 
     @property
     def batch_periods(self) -> int:
@@ -100,10 +172,23 @@ class ModedController:
         inner.set_current_override(current)
 
     def decide(self, snapshot: dict, n: int | None = None):
+        if snapshot.get("measured_by_drive"):
+            return self._decide_torque(snapshot)
         n_eff = self.inner.batch_periods if n is None else int(n)
         self._apply_mode(n_eff * self.inner.nominal.control_period_s, snapshot)
         ga, gb, sp, status = self.inner.decide(snapshot, n)
         return ga, gb, sp, self._status(status)
+
+    def _decide_torque(self, snapshot: dict):
+        """A drive on CAN: no gates, a torque setpoint (see :class:`DriveTorqueLaw`)."""
+        brake, out = self.drive_law.step(self.command, self.mode, snapshot)
+        self.last_out = out
+        speed = float(snapshot.get("speed_rpm", 0.0))
+        base = {"seq": int(snapshot.get("seq", 0)), "command": self.command, "mode": self.mode,
+                "command_rejected": self.command_rejected}
+        status = drive_status(base, brake, out, speed, self.kt, self.inner.cp.base_speed_rpm, self.trim.trim_nm)
+        empty = np.zeros(0, np.uint8)
+        return empty, empty.copy(), np.zeros(0), status
 
     def _status(self, status: dict) -> dict:
         out = self.last_out
@@ -114,7 +199,7 @@ class ModedController:
         if out is not None and not (self.mode == MODE_RESISTANCE and not out.ramping):
             status["torque_cmd_nm"] = abs(out.brake_torque_nm)
         status["mode_target"] = float(out.target) if out is not None else self.command
-        status["mode_saturated"] = bool(out is not None and out.saturated)
+        status["mode_saturated"] = bool(out is not None and out.saturated) or self.trim.saturated
         status["mode_ramping"] = bool(out is not None and out.ramping)
         status["virtual_speed_mps"] = float(out.virtual_speed_mps) if out is not None else 0.0
         status["torque_trim_nm"] = float(self.trim.trim_nm)

@@ -183,8 +183,8 @@ Q_SIZE = 44
  C_VQP_PREV, C_ED_PREV, C_EQ_PREV, C_VD, C_VQ, C_REGION, C_LIMITS, C_TORQUE_EST, C_ADVANCE, C_RELAY_REQ,
  C_BUCK_DUTY, C_BRAKE_T, C_DA, C_DB, C_DC, C_CUR_ACTIVE, C_SPEED_ACTIVE, C_THETA_E, C_COS, C_SIN, C_CNT,
  C_HAVE_ANGLE, C_VSAT, C_SPEED_RAW_PREV, C_OBS_TH, C_OBS_W, C_OBS_D, C_OBS_INIT, C_DV, C_SPEED_FILT,
- C_FILT_INIT, C_IQ_SUM, C_IQ_N, C_OBS_IQFF, C_OBS_INV) = range(53)
-C_SIZE = 54
+ C_FILT_INIT, C_IQ_SUM, C_IQ_N, C_OBS_IQFF, C_OBS_INV, C_TORQUE_MODE, C_TORQUE_CMD) = range(55)
+C_SIZE = 56
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -541,6 +541,10 @@ def speed_loop(cs, q):
     else:
         du = q[Q_KPS] * (e - cs[C_E_SPEED_PREV]) + q[Q_KIS] * e
     iq_dem = cs[C_IQ_REF_PREV] + du
+    if cs[C_TORQUE_MODE] != 0.0:
+        # torque control (session modes: assist downhill): the demanded torque replaces the
+        # speed controller's output, through the same region logic and limits
+        iq_dem = cs[C_TORQUE_CMD] / q[Q_KT]
     vlim = q[Q_VMARGIN] * vmax_mod - cs[C_DV]
     idr, iqr, reg, lim = current_reference(iq_dem, q[Q_PP] * w, vlim, q[Q_IMAX], q[Q_R], q[Q_L], q[Q_LAM],
                                            q[Q_FW])
@@ -775,6 +779,18 @@ class SpmsmController:
         if not (math.isfinite(torque_nm) and torque_nm >= 0.0):
             raise ValueError(f"brake torque must be finite and >= 0, got {torque_nm!r}")
         self.cs[C_BRAKE_T] = float(torque_nm)
+
+    def set_torque_command(self, torque_nm: float | None) -> None:
+        """Torque control through the inverter (motoring positive, Eq. 8: iq* = T / Kt) in
+        place of the speed controller; None returns to speed control (bumpless: the speed
+        loop continues from the iq reference in force)."""
+        if torque_nm is None:
+            self.cs[C_TORQUE_MODE] = 0.0
+            return
+        if not math.isfinite(torque_nm):
+            raise ValueError(f"torque command must be finite, got {torque_nm!r}")
+        self.cs[C_TORQUE_MODE] = 1.0
+        self.cs[C_TORQUE_CMD] = float(torque_nm)
 
     def decide(self, plant_state: np.ndarray, n: int | None = None):
         """N periods of (duties N x 3, relay request N, buck duty N) answering a measured

@@ -31,7 +31,7 @@ from bike_plant import spmsm as M
 from bike_plant.params import RPM_PER_RAD_S
 
 from .modes import MODE_ISOKINETIC, machine_figures, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim, mode_params_from_config
-from .session_control import validate_session_command
+from .session_control import DriveTorqueLaw, drive_status, validate_session_command
 from .spmsm_control import SpmsmController, controller_params_from_config
 
 
@@ -88,6 +88,9 @@ class ModedSpmsmController:
         self.last_out: ModeOutput | None = None
         self.started = False
         self.trim = TorqueTrim(tmax)
+        self.base_speed_rpm = base
+        # a drive on CAN (measured_by_drive): torque setpoints only, see session_control
+        self.drive_law = DriveTorqueLaw(self.law, self.trim, self.inner.batch_periods * nominal.control_period_s)
 
     @property
     def batch_periods(self) -> int:
@@ -134,6 +137,8 @@ class ModedSpmsmController:
 
     def decide(self, snapshot: dict, n: int | None = None):
         """(duties N x 3, relay N, buck N, status) answering a PlantState snapshot."""
+        if snapshot.get("measured_by_drive"):
+            return self._decide_torque(snapshot)
         inner = self.inner
         n_eff = inner.batch_periods if n is None else int(n)
         model = model_state_from_snapshot(inner.p, snapshot)
@@ -144,6 +149,16 @@ class ModedSpmsmController:
         self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"))
         duties, relay, buck, status = inner.decide(model, n_eff)
         return duties, relay, buck, self._status(status)
+
+    def _decide_torque(self, snapshot: dict):
+        """A drive on CAN owns the current loop: a torque setpoint, no duties / relay / buck."""
+        brake, out = self.drive_law.step(self.command, self.mode, snapshot)
+        self.last_out = out
+        base = {"seq": int(snapshot.get("seq", 0)), "command": self.command, "mode": self.mode,
+                "command_rejected": self.command_rejected}
+        status = drive_status(base, brake, out, float(snapshot.get("speed_rpm", 0.0)), self.kt,
+                              self.base_speed_rpm, self.trim.trim_nm)
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0), status
 
     def _status(self, st: dict) -> dict:
         out = self.last_out
@@ -157,7 +172,7 @@ class ModedSpmsmController:
             "quadrant": 2 if (out is not None and out.brake_torque_nm >= 0.0 and self.mode != MODE_ISOKINETIC) else 1,
             "prediction_error_a": 0.0,
             "mode_target": float(out.target) if out is not None else self.command,
-            "mode_saturated": bool(out is not None and out.saturated),
+            "mode_saturated": bool(out is not None and out.saturated) or self.trim.saturated,
             "mode_ramping": bool(out is not None and out.ramping),
             "virtual_speed_mps": float(out.virtual_speed_mps) if out is not None else 0.0,
             "torque_trim_nm": float(self.trim.trim_nm),

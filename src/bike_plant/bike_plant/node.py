@@ -29,8 +29,14 @@ that batch. At ``duration_s`` of sim time (0 = forever) the node publishes a las
 with end_of_run = true, lingers ``end_linger_s`` so subscribers receive it, and exits 0.
 SIGINT / SIGTERM end the node cleanly (exit 0).
 
-Backends: ``backend: sim`` (BldcPlant). ``can`` (a real drive) will plug in behind the
-same small interface (:class:`SimBackend`); it is not implemented yet.
+Backends: ``backend: sim`` (BldcPlant / SpmsmPlant) and ``backend: can`` (a real or emulated
+drive on a python-can bus, ODrive CANSimple 0.6.x: bike_plant.can.backend.CanBackend; realtime
+only). With ``can`` the drive's firmware owns the current loop: each DriveCommand's
+``torque_cmd_nm`` goes out as a torque setpoint the moment it arrives, PlantState carries the
+drive's measurements (``measured_by_drive``), and sim time stands still (no /clock, PlantState
+keeps its stamp) while the drive is not armed or lost (FAULT_DRIVE_LOST after the
+heartbeat timeout, an ERROR diagnostic, zero torque), so the session pauses; it resumes when
+the drive is back and re-armed. CAN statistics are part of the plant's diagnostic (``can_*``).
 """
 from __future__ import annotations
 
@@ -71,6 +77,7 @@ PLANT_DEFAULTS = {
     "diagnostics_period_s": 1.0,
     "recorder_window_batches": 0,
     "recorder_timeout_s": 10.0,
+    "can_log_file": "",
 }
 PLANT_DESCRIPTIONS = {
     "republish_s": "lockstep: re-publish the pending PlantState after this many wall seconds without an answer",
@@ -80,6 +87,8 @@ PLANT_DESCRIPTIONS = {
     "recorder_window_batches": "lockstep: wait for the recorder and stay at most this many batches ahead of it "
                                "(0 = do not wait for a recorder)",
     "recorder_timeout_s": "lockstep: give up waiting for a silent recorder after this many wall seconds",
+    "can_log_file": "backend can: log every CAN frame to this .asc / .blf file (overrides can.log_file; "
+                    "./bike run --record puts it beside the bag)",
 }
 
 FAULT_NAMES = {
@@ -207,7 +216,11 @@ def make_backend(kind: str, cfg: dict, seed: int):
     if kind == "sim":
         return SpmsmSimBackend(cfg, seed) if machine == "spmsm" else SimBackend(cfg, seed)
     if kind == "can":
-        raise ConfigError("backend 'can' is not implemented yet (use 'sim')", cfg.get("_config_path"), "backend")
+        if str(cfg.get("sync_mode", "lockstep")) != "realtime":
+            raise ConfigError("backend 'can' drives a real drive in real time: set sync_mode: realtime",
+                              cfg.get("_config_path"), "sync_mode")
+        from .can.backend import CanBackend
+        return CanBackend(cfg, log_file=str(cfg.get("can_log_file") or "") or None)
     raise ConfigError(f"unknown backend {kind!r} (sim | can)", cfg.get("_config_path"), "backend")
 
 
@@ -268,6 +281,7 @@ class PlantNode(Node):
         self.latest_rx = None        # realtime: wall time it arrived
         self.node_faults = 0
         self.last_faults = -1
+        self.last_drive_level = 0
         self.last_diag_wall = 0.0
         self.problem = ""            # why the last bad command was rejected
         self.stats = {"stale_commands": 0, "bad_commands": 0, "republished": 0, "held_batches": 0,
@@ -286,6 +300,9 @@ class PlantNode(Node):
         else:
             self.latest = msg
             self.latest_rx = time.monotonic()
+            submit = getattr(self.backend, "submit", None)
+            if submit is not None:               # CAN: the setpoint goes out now, not at the next tick
+                submit(msg, self.n)
 
     def _on_progress(self, msg) -> None:
         self.recorder_seq = max(self.recorder_seq, int(msg.data))
@@ -317,15 +334,20 @@ class PlantNode(Node):
         faults = int(snap.get("faults", 0)) | self.node_faults
         snap["faults"] = faults
         stamp = msgconv.seconds_to_ns(self.backend.time_s)
-        self.pub_clock.publish(Clock(clock=msgconv.time_msg(stamp)))
+        if not getattr(self.backend, "time_frozen", False):      # CAN: no /clock while the drive is not armed
+            self.pub_clock.publish(Clock(clock=msgconv.time_msg(stamp)))
         self.pub_state.publish(msgconv.plant_state_msg(snap, stamp))
         self._last_snap, self._last_stamp = snap, stamp
         if self.k % self.battery_every == 0 or end_of_run:
             self._publish_battery(snap, stamp)
         now = time.monotonic()
-        if faults != self.last_faults or now - self.last_diag_wall >= self.diag_period_s or end_of_run:
+        drive_level_of = getattr(self.backend, "diagnostic_level", None)
+        drive_level = drive_level_of() if drive_level_of is not None else 0
+        if (faults != self.last_faults or drive_level != self.last_drive_level
+                or now - self.last_diag_wall >= self.diag_period_s or end_of_run):
             self._publish_diag(snap, stamp, faults)
             self.last_faults = faults
+            self.last_drive_level = drive_level
             self.last_diag_wall = now
 
     def _republish(self) -> None:
@@ -363,7 +385,7 @@ class PlantNode(Node):
         reasons = []
         if faults & PlantState.FAULT_COMMAND_TIMEOUT:
             reasons.append(f"no DriveCommand for more than command_timeout_s={self.command_timeout_s:g}s: "
-                           "safe state, all gates off")
+                           f"safe state, {getattr(self.backend, 'safe_state_text', 'all gates off')}")
         if faults & PlantState.FAULT_BAD_COMMAND:
             reasons.append(f"DriveCommand rejected: {self.problem}; all gates off for that batch")
         if faults & PlantState.FAULT_INTERLOCK:
@@ -379,7 +401,15 @@ class PlantNode(Node):
                            "the rest of the run is not recorded")
         if self.sync_mode == "realtime" and self.latest_rx is None and not faults:
             status.level = DiagnosticStatus.WARN
-            reasons.append("waiting for the first DriveCommand (gates off)")
+            reasons.append("waiting for the first DriveCommand ("
+                           + ("drive idle" if self.backend.measured_by_drive else "gates off") + ")")
+        drive_values = {}
+        drive_diag = getattr(self.backend, "diagnostic", None)
+        if drive_diag is not None:                  # CAN: link, drive errors, statistics
+            level, drive_reasons, drive_values = drive_diag()
+            current = status.level[0] if isinstance(status.level, (bytes, bytearray)) else int(status.level)
+            status.level = bytes([max(current, level)])       # diagnostic_msgs' level is a byte
+            reasons.extend(r for r in drive_reasons if r not in reasons)
         status.message = "; ".join(reasons) if reasons else "running"
         values = {
             "faults": str(faults), "fault_names": fault_text(faults), "seq": str(self.k),
@@ -388,6 +418,7 @@ class PlantNode(Node):
             "dc_bus_v": f"{float(snap.get('dc_bus_v', 0.0)):.2f}",
         }
         values.update({k: str(v) for k, v in self.stats.items()})
+        values.update(drive_values)
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         arr = DiagnosticArray()
         arr.header.stamp = msgconv.time_msg(stamp)
@@ -428,15 +459,23 @@ class PlantNode(Node):
 
     # ------------------------------------------------------------ loops
     def run(self) -> int:
-        if self.sync_mode == "lockstep":
-            self._run_lockstep()
-        else:
-            self._run_realtime()
+        try:
+            if self.sync_mode == "lockstep":
+                self._run_lockstep()
+            else:
+                self._run_realtime()
+        finally:
+            close = getattr(self.backend, "close", None)
+            if close is not None:                # CAN: zero torque + IDLE, close the log and the bus
+                close()
         return 0
 
     def _end_of_run(self) -> None:
         self._publish_state(end_of_run=True)
         self.get_logger().info(f"end of run at t={self.backend.time_s:.6f}s after {self.k} batches")
+        close = getattr(self.backend, "close", None)
+        if close is not None:                    # CAN: zero torque + IDLE now, not after the linger
+            close()
         end = time.monotonic() + self.end_linger_s
         while not self.stop_requested and time.monotonic() < end:
             self._spin(min(0.05, end - time.monotonic()))
@@ -487,10 +526,27 @@ class PlantNode(Node):
             self.pending_seq = -1
             self._apply(msg)
 
+    def _service_backend(self) -> None:
+        """CAN: receive frames, supervise the drive, (re-)arm, request; log its events."""
+        service = getattr(self.backend, "service", None)
+        if service is None:
+            return
+        service()
+        log = self.get_logger()
+        for level, text in self.backend.pop_events():
+            # one call site per severity: rclpy refuses a severity change at a call site
+            if level == "error":
+                log.error(text)
+            elif level == "warning":
+                log.warning(text)
+            else:
+                log.info(text)
+
     def _run_realtime(self) -> None:
         log = self.get_logger()
         applied = None
         timed_out = False
+        self._service_backend()
         self._publish_state()
         next_tick = time.monotonic() + self.batch_s
         while not self.stop_requested:
@@ -509,6 +565,7 @@ class PlantNode(Node):
                 self._spin(0.0)
                 if self.latest_rx is before:
                     break
+            self._service_backend()
             now = time.monotonic()
             # choose this batch's command
             msg = None

@@ -7,6 +7,10 @@ install. Supported subset of the YAML launch format:
 - ``arg`` (name, default), overridable from the caller;
 - ``node`` (pkg, exec, name, namespace, param: [{from: FILE} | {name, value}],
   ros_args, if / unless, on_exit: shutdown);
+- ``executable`` (cmd, args, name, cwd, env: [{name, value}], if / unless, on_exit:
+  shutdown): any program, e.g. the drive emulator. ``cmd`` (+ ``args``) is split into
+  words like a shell would (shlex) but never run through a shell; a first word without a
+  slash is looked up on PATH;
 - substitutions ``$(var NAME)``, ``$(env NAME [DEFAULT])``, ``$(find-pkg-share PKG)``,
   ``$(find-pkg-prefix PKG)``.
 
@@ -18,6 +22,8 @@ from __future__ import annotations
 
 import os
 import re
+import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -50,6 +56,9 @@ class NodeSpec:
     def command(self) -> list[str]:
         return [executable_path(self.pkg, self.exec)] + self.arguments()
 
+    def popen_kwargs(self) -> dict:
+        return {}
+
     def arguments(self) -> list[str]:
         args = ["--ros-args", "-r", f"__node:={self.name}"]
         if self.namespace:
@@ -60,6 +69,57 @@ class NodeSpec:
             # `-p name:=` would be a YAML null (rejected for a string parameter); '' is ""
             args += ["-p", f"{key}:={value}" if str(value) != "" else f"{key}:=''"]
         return args + list(self.ros_args)
+
+
+@dataclass
+class ExecutableSpec:
+    """An ``executable`` action: a program with its arguments (no ROS arguments added)."""
+    name: str
+    argv: list[str]
+    cwd: str | None = None
+    env: dict[str, str] = field(default_factory=dict)
+    shutdown_on_exit: bool = False
+
+    def command(self) -> list[str]:
+        program = self.argv[0]
+        if os.sep not in program:
+            found = shutil.which(program)
+            if found is None:
+                raise LaunchError(f"executable '{program}' not found on PATH")
+            program = found
+        elif not os.access(program, os.X_OK):
+            raise LaunchError(f"executable '{program}' not found or not executable")
+        return [program] + self.argv[1:]
+
+    def popen_kwargs(self) -> dict:
+        kwargs = {}
+        if self.cwd:
+            kwargs["cwd"] = self.cwd
+        if self.env:
+            kwargs["env"] = dict(os.environ, **self.env)
+        return kwargs
+
+
+def _executable(body: dict, args: dict[str, str], where: str) -> ExecutableSpec:
+    if not isinstance(body.get("cmd"), str) or not body["cmd"].strip():
+        raise LaunchError(f"{where}.executable: 'cmd' is required")
+    try:
+        argv = shlex.split(_substitute(body["cmd"], args))
+        extra = body.get("args", "")
+        if extra:
+            argv += shlex.split(_substitute(str(extra), args))
+    except ValueError as exc:
+        raise LaunchError(f"{where}.executable: cannot split the command line ({exc})") from None
+    if not argv:
+        raise LaunchError(f"{where}.executable: 'cmd' is empty after substitution")
+    env = {}
+    for eindex, item in enumerate(body.get("env", []) or []):
+        if not isinstance(item, dict) or "name" not in item or "value" not in item:
+            raise LaunchError(f"{where}.executable.env[{eindex}]: needs 'name' and 'value'")
+        env[str(item["name"])] = _substitute(str(item["value"]), args)
+    cwd = _substitute(body["cwd"], args) if body.get("cwd") else None
+    name = _substitute(body.get("name") or os.path.basename(argv[0]), args)
+    return ExecutableSpec(name=name, argv=argv, cwd=cwd, env=env, shutdown_on_exit=body.get("on_exit") == "shutdown")
 
 
 def executable_path(pkg: str, exe: str) -> str:
@@ -111,7 +171,7 @@ def _truth(value: str, where: str) -> bool:
     raise LaunchError(f"{where}: condition must be true or false, got {value!r}")
 
 
-def parse_launch(path: str, overrides: dict[str, str] | None = None) -> list[NodeSpec]:
+def parse_launch(path: str, overrides: dict[str, str] | None = None) -> list[NodeSpec | ExecutableSpec]:
     """Read a YAML launch file; return the nodes to start (conditions applied)."""
     try:
         with open(path) as stream:
@@ -124,11 +184,11 @@ def parse_launch(path: str, overrides: dict[str, str] | None = None) -> list[Nod
         raise LaunchError(f"{path}: expected a top-level 'launch:' list")
     overrides = dict(overrides or {})
     args: dict[str, str] = {}
-    nodes: list[NodeSpec] = []
+    nodes: list[NodeSpec | ExecutableSpec] = []
     for index, entry in enumerate(doc["launch"]):
         where = f"{path}: launch[{index}]"
         if not isinstance(entry, dict) or len(entry) != 1:
-            raise LaunchError(f"{where}: each entry is a mapping with one key (arg or node)")
+            raise LaunchError(f"{where}: each entry is a mapping with one key (arg, node or executable)")
         kind, body = next(iter(entry.items()))
         if not isinstance(body, dict):
             raise LaunchError(f"{where}.{kind}: expected a mapping")
@@ -143,10 +203,13 @@ def parse_launch(path: str, overrides: dict[str, str] | None = None) -> list[Nod
                                          else str(body["default"]).lower(), args)
             else:
                 raise LaunchError(f"{where}.arg: argument '{name}' has no default and was not given")
-        elif kind == "node":
+        elif kind in ("node", "executable"):
             if "if" in body and not _truth(_substitute(body["if"], args), where):
                 continue
             if "unless" in body and _truth(_substitute(body["unless"], args), where):
+                continue
+            if kind == "executable":
+                nodes.append(_executable(body, args, where))
                 continue
             for key in ("pkg", "exec"):
                 if not isinstance(body.get(key), str):
@@ -168,7 +231,7 @@ def parse_launch(path: str, overrides: dict[str, str] | None = None) -> list[Nod
             spec.ros_args = _substitute(ros_args, args).split() if ros_args else []
             nodes.append(spec)
         else:
-            raise LaunchError(f"{where}: unsupported entry '{kind}' (supported: arg, node)")
+            raise LaunchError(f"{where}: unsupported entry '{kind}' (supported: arg, node, executable)")
     if overrides:
         raise LaunchError(f"{path}: unknown launch argument(s): {', '.join(sorted(overrides))}")
     return nodes
@@ -177,7 +240,7 @@ def parse_launch(path: str, overrides: dict[str, str] | None = None) -> list[Nod
 class Launcher:
     """Starts NodeSpecs as processes and supervises them."""
 
-    def __init__(self, nodes: list[NodeSpec], *, prefix_output: bool = True, grace_s: float = 10.0,
+    def __init__(self, nodes: list[NodeSpec | ExecutableSpec], *, prefix_output: bool = True, grace_s: float = 10.0,
                  stdout=None):
         self.nodes = nodes
         self.prefix_output = prefix_output
@@ -189,9 +252,11 @@ class Launcher:
         self._lock = threading.Lock()
 
     def start(self) -> None:
-        for spec in self.nodes:
-            proc = subprocess.Popen(spec.command(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, start_new_session=True, text=True, bufsize=1)
+        commands = [spec.command() for spec in self.nodes]     # every program found before any starts
+        for spec, command in zip(self.nodes, commands):
+            proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, start_new_session=True, text=True, bufsize=1,
+                                    **spec.popen_kwargs())
             self.procs[spec.name] = proc
             thread = threading.Thread(target=self._pump, args=(spec.name, proc), daemon=True)
             thread.start()
@@ -207,7 +272,8 @@ class Launcher:
         self._stop.set()
 
     def wait(self, timeout_s: float | None = None) -> dict[str, int]:
-        """Run until a shutdown node exits, every node exits, a signal, or the timeout."""
+        """Run until a shutdown node exits, any node fails (exit code != 0), every node
+        exits, a signal, or the timeout: a graph missing a node would otherwise wait forever."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         shutdown_names = {spec.name for spec in self.nodes if spec.shutdown_on_exit}
         while not self._stop.is_set():
@@ -216,6 +282,8 @@ class Launcher:
                 break
             if any(codes[name] is not None for name in shutdown_names):
                 break
+            if any(code not in (None, 0) for code in codes.values()):
+                break                       # a node failed (its error is on the output): stop the graph
             if deadline is not None and time.monotonic() > deadline:
                 break
             time.sleep(0.05)

@@ -16,6 +16,10 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
 - ``fault_batches``        number of PlantState messages with each FAULT_* bit set;
   ``timeouts`` = fault_batches['command_timeout'].
 - ``messages``             number of messages per topic.
+- ``can``                  plant backend ``can`` only: the CAN statistics of the plant's last
+  diagnostic (frames received / sent, dropped by reason, drive lost / re-armed, setpoints,
+  RTR requests, the CAN log file) and ``error_diagnostics``, the number of ERROR
+  diagnostics of the CAN plant.
 - ``mean_cadence_rpm``     time mean of speed_rpm / gear_ratio (gear_ratio = load.gear_ratio
   of the config recorded in session_info; 35 when the bag has none).
 - ``time_in_mode_s``       batch time per Command mode. The mode (and command, mode_target)
@@ -540,6 +544,13 @@ class _Analyser:
         n_plant = counts.get(self.topic["plant_state"], 0) if self.topic["plant_state"] else 0
         self.stride = max(1, n_plant // SCATTER_POINTS)
         wanted = [t for t in self.topic.values() if t]
+        try:                                     # CAN statistics live in the plant's diagnostics
+            self.topic_diag = bag.resolve("/diagnostics")
+            wanted.append(self.topic_diag)
+        except BagError:
+            self.topic_diag = None
+        self.can: dict = {}
+        self.can_errors = 0
         self.wanted = wanted
         self.progress = _Progress(sum(counts.get(t, 0) for t in wanted), progress_label,
                                   bag.path) if progress_label else None
@@ -579,6 +590,7 @@ class _Analyser:
     def run(self) -> None:
         tp, tcs, tcmd = self.topic["plant_state"], self.topic["controller_status"], self.topic["command"]
         tbat, tss, tinfo = self.topic["battery"], self.topic["session_status"], self.topic["session_info"]
+        tdiag = self.topic_diag
         rd = self.readers
         n = 0
         prog = self.progress
@@ -611,6 +623,8 @@ class _Analyser:
                     self.last_status_raw = raw
                 elif topic == tinfo:
                     self._session_info(raw)
+                elif topic == tdiag:
+                    self._diagnostic(raw)
         except BagError:
             raise
         except Exception as exc:  # noqa: BLE001 - struct.error, rosbags' decoder errors, ...
@@ -632,6 +646,19 @@ class _Analyser:
         if isinstance(info, dict) and (not self.info or info.get("config_text")):
             self.info = info
             self.machine = machine_from_info(info)
+
+    def _diagnostic(self, raw) -> None:
+        """Keep the newest CAN statistics of the plant (hardware_id bike_plant/can)."""
+        try:
+            msg = self.bag.typestore.deserialize_cdr(raw, self.bag.topics[self.topic_diag][0])
+        except Exception:  # noqa: BLE001 - a broken diagnostic is not fatal for the report
+            return
+        for status in msg.status:
+            if status.hardware_id != "bike_plant/can":
+                continue
+            self.can = {kv.key[4:]: kv.value for kv in status.values if kv.key.startswith("can_")}
+            if int(status.level) >= 2:
+                self.can_errors += 1
 
     # ---------------------------------------------------------------- one block
     def flush(self) -> None:
@@ -832,6 +859,8 @@ class _Analyser:
             "tracking": {},
             "warnings": list(mc["notes"]),
         }
+        if self.can:
+            out["can"] = dict(self.can, error_diagnostics=self.can_errors)
         if self.conflicts:
             out["warnings"].append(f"{self.conflicts} PlantStates share stamp and seq with a different one: "
                                    "the bag holds more than one plant (two runs in one ROS domain?)")
@@ -1033,6 +1062,18 @@ def format_summary(summary: dict) -> str:
     faults = s.get("fault_batches") or {}
     active = {k: v for k, v in faults.items() if v}
     lines.append("fault batches:         " + (", ".join(f"{k} {v}" for k, v in active.items()) if active else "none"))
+    can = s.get("can")
+    if can:
+        dropped = ", ".join(f"{k[len('dropped_'):]} {v}" for k, v in can.items() if k.startswith("dropped_"))
+        lines.append(f"CAN:                   {can.get('interface', '?')} {can.get('channel', '?')}, node "
+                     f"{can.get('node_id', '?')}: rx {can.get('rx_frames', '?')} frames, tx {can.get('tx_frames', '?')}, "
+                     f"dropped {can.get('dropped', '?')}" + (f" ({dropped})" if dropped else ""))
+        lines.append(f"                       heartbeats {can.get('heartbeats', '?')}, setpoints "
+                     f"{can.get('setpoints', '?')}, RTR requests {can.get('requests', '?')}, drive lost "
+                     f"{can.get('drive_lost', '?')}x, armed {can.get('armed', '?')}x, ERROR diagnostics "
+                     f"{can.get('error_diagnostics', 0)}, last axis error {can.get('axis_error', '?')}")
+        if can.get("log_file"):
+            lines.append(f"CAN log:               {can['log_file']} ({can.get('log_frames', '?')} frames)")
     modes = s.get("time_in_mode_s") or {}
     if modes:
         lines.append("time in mode:          " + ", ".join(f"{k} {v:.2f} s" for k, v in modes.items()))

@@ -1,0 +1,658 @@
+"""The plant node's ``backend: can``: a real (or emulated) drive on a python-can bus.
+
+No ROS imports: :class:`CanBackend` has the plant node's backend interface (``time_s``,
+``snapshot()``, ``problem(msg, n)``, ``apply(msg)``, ``safe_batch(n)``, ``set_safe(on)``,
+``measured_by_drive``) plus what a drive on a bus needs (``service()``, ``submit()``,
+``time_frozen``, ``diagnostic()``, ``pop_events()``, ``close()``). A DriveCommand is any
+object with ``torque_cmd_nm`` / ``current_cmd_a`` attributes, so tests and scripts can use
+it without rclpy.
+
+What it does
+------------
+* Opens the bus (``can.interface``: socketcan, virtual, udp_multicast, pcan, ... any
+  python-can interface; ``channel``, ``bitrate``, ``port`` for udp_multicast) and speaks
+  ODrive CANSimple 0.6.x through :class:`bike_plant.can.protocol.OdriveCanSimple`.
+* Setpoints: the firmware of the drive owns the current loop, so per batch the
+  controller's ``DriveCommand.torque_cmd_nm`` (N m at the motor shaft, motoring positive,
+  the same sign as ODrive's torque) goes out as ``Set_Input_Torque``, clamped to
+  ``torque_limit_nm``. It is sent the moment the DriveCommand arrives (:meth:`submit`,
+  called from the node's subscription callback), not at the next batch tick, and repeated
+  every ``watchdog_feed_s`` so the drive's watchdog stays fed.
+* Measurements -> PlantState (``measured_by_drive`` true, no gate-level data):
+  speed from Get_Encoder_Estimates (motor rev/s -> rad/s and rpm), rotor angle from the
+  position (mechanical = 2 pi frac(pos), electrical = pole_pairs x that), torque_em_nm =
+  Get_Torques' Torque_Estimate (motoring positive), dc_bus_v = Bus_Voltage,
+  battery_current_a = -Bus_Current (ODrive: positive = drawn from the bus; PlantState:
+  charging positive). Messages that are not cyclic on the drive are requested by RTR every
+  ``request_period_s`` (``request``: torque, bus, current; a kind that arrives cyclically
+  on its own is not requested). phase_current_a is a reconstruction from Get_Iq
+  (id = 0, Iq at the encoder's electrical angle: the amplitude is |Iq|, the phase is
+  nominal because the drive's encoder offset is not on the bus); current_samples_a,
+  Hall and timer fields stay empty / zero; battery_soc and battery_ocv_v are NaN (a drive
+  does not know them).
+* Energy ledger, integrated over the batches while sim time runs (J):
+  battery = int V I_charge dt; stored = 1/2 J (w^2 - w0^2) (J, B from ``mechanics`` of
+  the config); mech_in = int (-T_em w + B w^2) dt + stored; loss = mech_in - battery -
+  stored (copper, inverter and friction losses); resistor = 0 (not observable on CAN).
+* Time: sim time advances one batch per :meth:`apply` / :meth:`safe_batch` only while the
+  drive is alive and in closed-loop control (:attr:`time_frozen` is False). The node then
+  stops /clock, so the session node (which plays on /clock) pauses by itself.
+* Safety:
+  - the drive's watchdog stops torque when setpoints stop (host dead, cable cut);
+  - the host treats a drive without Heartbeat for ``heartbeat_timeout_s`` (3 heartbeat
+    periods by default) as lost: FAULT_DRIVE_LOST, zero torque commanded (in case only
+    our receive path broke), the watchdog is no longer fed; once heartbeats return and
+    DriveCommands flow, Clear_Errors + closed-loop torque control re-arm it;
+  - :meth:`set_safe` (the node's DriveCommand timeout): zero torque, then the watchdog is
+    no longer fed, so the drive disarms itself after its own watchdog timeout
+    (WATCHDOG_TIMER_EXPIRED, reported in the diagnostic); re-armed when commands return;
+  - frames that are error frames, of unknown ids, of the wrong length, NaN / inf or
+    outside the DBC's ranges are counted and ignored by the protocol layer, never raised.
+* Statistics (:meth:`stats`), shown in the plant's diagnostic (keys ``can_*``) and by
+  ``./bike report``; an optional log of every frame sent and received in python-can's
+  ``.asc`` or ``.blf`` format (``log_file``; the suffix picks the writer).
+
+Config section ``can:`` of a bike config: see :class:`CanParams`.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import math
+import pathlib
+import time
+from typing import Callable
+
+import can
+
+from ..config import ConfigError, build_dataclass, section
+from .protocol import (MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, ODriveError, OdriveCanSimple,
+                       error_names)
+
+TWO_PI = 2.0 * math.pi
+RPM_PER_REV_S = 60.0
+
+# PlantState fault bits (bike_msgs/PlantState; numbers duplicated so this module stays ROS-free)
+FAULT_OVERVOLTAGE = 4
+FAULT_DRIVE_LOST = 16
+
+# diagnostic levels (diagnostic_msgs/DiagnosticStatus)
+OK, WARN, ERROR = 0, 1, 2
+
+LOG_SUFFIXES = (".asc", ".blf")
+REQUEST_KINDS = tuple(k for k in MEASUREMENT_KINDS if k != "status")
+
+
+@dataclasses.dataclass
+class CanParams:
+    """The ``can:`` section of a bike config."""
+    interface: str = "socketcan"        # any python-can interface: socketcan, virtual, udp_multicast, pcan, ...
+    channel: str = "can0"               # can0 / a virtual channel name / a multicast group (239.74.163.2)
+    port: int = 0                       # udp_multicast UDP port (0: python-can's default 43113)
+    bitrate: int = 1000000              # interfaces that set it (pcan, kvaser, ...); socketcan: `ip link`
+    node_id: int = 0                    # ODrive axis node id 0..63
+    heartbeat_period_s: float = 0.1     # the drive's heartbeat_msg_rate_ms (informative)
+    heartbeat_timeout_s: float = 0.3    # no Heartbeat this long -> FAULT_DRIVE_LOST (3 periods)
+    watchdog_feed_s: float = 0.1        # re-send the setpoint at least this often (drive watchdog)
+    request_period_s: float = 0.01      # RTR period of the measurements in `request`
+    request: list = dataclasses.field(default_factory=lambda: ["torque", "bus", "current"])
+    enable_retry_s: float = 0.5         # re-arm attempts (Clear_Errors + closed loop) at most this often
+    torque_limit_nm: float = 0.0        # clamp of the torque setpoint; 0: controller.tmax_nm (none if absent)
+    current_limit_a: float = 0.0        # > 0: Set_Limits at arming (with velocity_limit_rev_s)
+    velocity_limit_rev_s: float = 0.0   # > 0: Set_Limits at arming
+    log_file: str = ""                  # .asc or .blf: log every frame sent / received ("" = off)
+    log_format: str = "asc"             # ./bike run --record: log beside the bag as asc | blf | none
+    idle_on_exit: bool = True           # on shutdown: zero torque + IDLE
+    emulator: bool = False              # ./bike run also starts bike-drive-emulator on this bus
+    emulator_watchdog_s: float = 0.5    # the emulator's watchdog timeout (--watchdog-s)
+    emulator_args: list = dataclasses.field(default_factory=list)   # more bike-drive-emulator options
+
+    def validate(self) -> None:
+        if not self.interface:
+            raise ValueError("interface must not be empty")
+        if not 0 <= self.node_id <= 0x3F:
+            raise ValueError(f"node_id must be in 0..63, got {self.node_id}")
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"port must be in 0..65535, got {self.port}")
+        for name in ("heartbeat_period_s", "heartbeat_timeout_s", "watchdog_feed_s", "request_period_s",
+                     "enable_retry_s", "bitrate"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("torque_limit_nm", "current_limit_a", "velocity_limit_rev_s", "emulator_watchdog_s"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        unknown = [k for k in self.request if k not in REQUEST_KINDS]
+        if unknown:
+            raise ValueError(f"request: unknown kind(s) {unknown} (known: {', '.join(REQUEST_KINDS)})")
+        if self.log_file and pathlib.Path(self.log_file).suffix.lower() not in LOG_SUFFIXES:
+            raise ValueError(f"log_file must end in .asc or .blf, got {self.log_file!r}")
+        if self.log_format not in ("asc", "blf", "none"):
+            raise ValueError(f"log_format must be asc, blf or none, got {self.log_format!r}")
+        if not all(isinstance(a, str) for a in self.emulator_args):
+            raise ValueError("emulator_args must be a list of strings")
+
+    def bus_kwargs(self) -> dict:
+        """Keyword arguments of ``can.Bus``."""
+        kwargs = {"interface": self.interface, "channel": self.channel, "bitrate": self.bitrate}
+        if self.interface == "udp_multicast" and self.port:
+            kwargs["port"] = self.port
+        return kwargs
+
+    def describe(self) -> str:
+        port = f" port {self.port}" if self.interface == "udp_multicast" and self.port else ""
+        return f"node {self.node_id} on {self.interface} {self.channel}{port}"
+
+
+def can_params_from_config(cfg: dict) -> CanParams:
+    """The ``can:`` section (every key optional); ConfigError names the key."""
+    path = cfg.get("_config_path")
+    return build_dataclass(CanParams, section(cfg, "can", path), "can", path)
+
+
+def emulator_args_from_config(cfg: dict) -> list[str]:
+    """bike-drive-emulator options for the bus and node of a config's ``can:`` section
+    (``./bike run`` starts the emulator with these plus ``--config``)."""
+    p = can_params_from_config(cfg)
+    args = ["--interface", p.interface, "--channel", p.channel, "--bitrate", str(p.bitrate),
+            "--node-id", str(p.node_id), "--heartbeat-ms", f"{p.heartbeat_period_s * 1000:g}",
+            "--watchdog-s", f"{p.emulator_watchdog_s:g}"]
+    if p.interface == "udp_multicast" and p.port:
+        args += ["--port", str(p.port)]
+    return args + list(p.emulator_args)
+
+
+def _number(cfg: dict, dotted: str, default: float) -> float:
+    node = cfg
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return default
+        node = node[part]
+    if isinstance(node, bool) or not isinstance(node, (int, float)) or not math.isfinite(node):
+        return default
+    return float(node)
+
+
+class _BusTap:
+    """The bus as the protocol sees it: frames sent also go to the CAN log (Tx)."""
+
+    def __init__(self, bus: can.BusABC, backend: "CanBackend"):
+        self._bus = bus
+        self._backend = backend
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._bus.send(msg, timeout=timeout)
+        self._backend._log(msg, rx=False)
+
+    def recv(self, timeout: float | None = None):
+        return self._bus.recv(timeout=timeout)
+
+
+class CanBackend:
+    """A drive on CAN behind the plant node's backend interface (see the module doc)."""
+
+    name = "can"
+    measured_by_drive = True
+    safe_state_text = "zero torque, then the drive's watchdog is no longer fed"
+
+    def __init__(self, cfg: dict, *, bus: can.BusABC | None = None, log_file: str | None = None,
+                 clock: Callable[[], float] = time.monotonic):
+        path = cfg.get("_config_path")
+        self.params = p = can_params_from_config(cfg)
+        if log_file:
+            p.log_file = str(log_file)
+            try:
+                p.validate()
+            except ValueError as exc:
+                raise ConfigError(str(exc), path, "can.log_file") from None
+        self.machine = str(cfg.get("machine", "bldc"))
+        self.batch_periods = int(cfg.get("batch_periods", 20))
+        self.control_period_s = float(cfg.get("control_period_s", 5e-5))
+        self.pole_pairs = int(_number(cfg, f"{self.machine}.pole_pairs", 1.0))
+        self.inertia_kgm2 = _number(cfg, "mechanics.inertia_kgm2", 0.0)
+        self.friction_nms = _number(cfg, "mechanics.friction_nms", 0.0)
+        limit = p.torque_limit_nm or _number(cfg, "controller.tmax_nm", 0.0)
+        self.torque_limit_nm = limit if limit > 0 else math.inf
+        self.clock = clock
+        self._own_bus = bus is None
+        if bus is None:
+            try:
+                bus = can.Bus(**p.bus_kwargs())
+            except Exception as exc:  # noqa: BLE001 -- any interface problem is a set-up error
+                raise ConfigError(f"cannot open the CAN bus {p.bus_kwargs()}: {exc}", path, "can") from None
+        self.bus = bus
+        self.logger = None
+        self.log_path = None
+        self.log_frames = 0
+        if p.log_file:
+            self.log_path = pathlib.Path(p.log_file).expanduser().resolve()
+            try:
+                self.log_path.parent.mkdir(parents=True, exist_ok=True)
+                self.logger = can.Logger(str(self.log_path))
+            except Exception as exc:  # noqa: BLE001
+                self._shutdown_bus()
+                raise ConfigError(f"cannot write the CAN log {self.log_path}: {exc}", path, "can.log_file") from None
+        self.drive = OdriveCanSimple(_BusTap(bus, self), p.node_id, heartbeat_timeout_s=p.heartbeat_timeout_s,
+                                     watchdog_feed_interval_s=p.watchdog_feed_s, clock=clock)
+        self.counters: collections.Counter = collections.Counter()
+        self.events: list[tuple[str, str]] = []
+        # link / arming state
+        self.seen = False              # a heartbeat arrived once
+        self.lost = False              # seen, then silent for heartbeat_timeout_s
+        self.safe = False              # the node's DriveCommand timeout
+        self.commanded = False         # valid DriveCommands are flowing: the drive should be armed
+        self.was_enabled = False
+        self.last_enable_s = -math.inf
+        self.last_request_s = {k: -math.inf for k in p.request}
+        self.rx_at_request: dict[str, int] = {}
+        self.clamp_msg = None          # DriveCommand whose torque was last converted
+        self.clamp_nm = 0.0
+        self.setpoint_nm = 0.0
+        self.sent_msg = None           # DriveCommand whose setpoint went out last
+        self.started_s = clock()
+        self.lost_since_s = None
+        self.arm_errors_logged = None
+        self._closed = False
+        # sim time and ledger
+        self.time_s = 0.0
+        self.omega0 = None
+        self.e_battery_j = 0.0
+        self.e_shaft_j = 0.0           # int (-T_em w) dt: mechanical power into the machine
+        self.e_friction_j = 0.0
+        # latency of submit(): DriveCommand callback -> frame handed to the bus
+        self.submit_latency_s: collections.deque = collections.deque(maxlen=2000)
+
+    # ------------------------------------------------------------------ CAN log
+    def _log(self, msg: can.Message, rx: bool) -> None:
+        if self.logger is None:
+            return
+        try:
+            if not rx:
+                msg = can.Message(timestamp=time.time(), arbitration_id=msg.arbitration_id, data=bytes(msg.data),
+                                  dlc=msg.dlc, is_extended_id=msg.is_extended_id,
+                                  is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame,
+                                  is_rx=False, channel=0)
+            else:
+                msg.channel = 0                   # one channel in the log, whatever the interface calls it
+                if not msg.timestamp:
+                    msg.timestamp = time.time()
+            self.logger.on_message_received(msg)
+            self.log_frames += 1
+        except Exception:  # noqa: BLE001 -- a logging problem must not stop the drive
+            self.counters["log_errors"] += 1
+
+    # ------------------------------------------------------------------ events for the node's log
+    def _event(self, level: str, text: str) -> None:
+        self.events.append((level, text))
+
+    def pop_events(self) -> list[tuple[str, str]]:
+        """(level 'info' | 'warning' | 'error', text) since the last call."""
+        out, self.events = self.events, []
+        return out
+
+    # ------------------------------------------------------------------ state
+    @property
+    def link_alive(self) -> bool:
+        return self.seen and not self.lost
+
+    @property
+    def drive_enabled(self) -> bool:
+        return self.link_alive and self.drive.enabled
+
+    @property
+    def time_frozen(self) -> bool:
+        """True while sim time must not advance: no drive yet, drive lost, or not armed."""
+        return not self.drive_enabled
+
+    @property
+    def faults(self) -> int:
+        bits = FAULT_DRIVE_LOST if self.lost else 0
+        if self.seen and self.drive.active_errors & ODriveError.DC_BUS_OVER_VOLTAGE:
+            bits |= FAULT_OVERVOLTAGE
+        return bits
+
+    # ------------------------------------------------------------------ periodic work
+    def service(self, now_s: float | None = None, max_frames: int = 2000) -> None:
+        """Receive what the bus holds, supervise the link, (re-)arm, request, keep alive.
+        Call once per batch tick; never blocks, never raises for bus trouble."""
+        now = self.clock() if now_s is None else now_s
+        self._receive(now, max_frames)
+        drive = self.drive
+        alive = drive.link_alive(now)
+        if not self.seen and alive:
+            self.seen = True
+            self._event("info", f"drive found: {self.params.describe()}, axis state {drive.axis_state}, "
+                                f"errors {error_names(drive.active_errors) or 'none'}")
+        if self.seen:
+            if not alive and not self.lost:
+                self._on_lost(now)
+            elif alive and self.lost:
+                self.lost = False
+                self.counters["drive_back"] += 1
+                gone = now - self.lost_since_s if self.lost_since_s is not None else math.nan
+                self._event("info", f"the drive is back after {gone:.2f}s (axis state {drive.axis_state}, errors "
+                                    f"{error_names(drive.active_errors) or 'none'}): re-arming when DriveCommands flow")
+        if self.link_alive:
+            enabled = drive.enabled
+            if enabled and not self.was_enabled:
+                self.counters["armed"] += 1
+                self._event("info", "drive in closed-loop torque control")
+                if self.commanded and not self.safe:
+                    self._send_setpoint(self.setpoint_nm)
+            elif not enabled and self.was_enabled:
+                self.counters["disarmed"] += 1
+                errors = error_names(drive.active_errors)
+                self._event("error" if errors else "warning",
+                            f"drive left closed-loop control (axis state {drive.axis_state}"
+                            + (f", errors {', '.join(errors)}" if errors else "") + ")")
+            self.was_enabled = enabled
+            retry_due = now - self.last_enable_s >= self.params.enable_retry_s
+            if self.commanded and not self.safe and not enabled and retry_due:
+                self._arm(now)
+            self._request(now)
+            if not self.safe:
+                if drive.keepalive(now):
+                    self.counters["keepalive"] += 1
+
+    def _receive(self, now: float, max_frames: int) -> None:
+        drive = self.drive
+        for _ in range(max_frames):
+            try:
+                msg = self.bus.recv(timeout=0.0)
+            except Exception:  # noqa: BLE001 -- e.g. udp_multicast cannot unpack a datagram
+                drive.counters["bus_error"] += 1
+                return
+            if msg is None:
+                return
+            echoes = drive.counters["echo"]
+            drive.receive(msg, now)
+            if drive.counters["echo"] == echoes:
+                self._log(msg, rx=True)
+
+    def _on_lost(self, now: float) -> None:
+        self.lost = True
+        self.lost_since_s = now
+        self.was_enabled = False
+        self.counters["drive_lost"] += 1
+        age = self.drive.heartbeat_age_s(now)
+        self._event("error", f"drive silent: no Heartbeat for {age:.3f}s > heartbeat_timeout_s="
+                             f"{self.params.heartbeat_timeout_s:g}s ({self.params.describe()}): "
+                             "FAULT_DRIVE_LOST, zero torque, sim time paused")
+        # zero torque in case only our receive path broke, then stop feeding the watchdog
+        self._send_setpoint(0.0)
+        self.drive.forget_setpoint()
+        self.sent_msg = None
+
+    def _arm(self, now: float) -> None:
+        drive = self.drive
+        p = self.params
+        self.last_enable_s = now
+        self.counters["enable_attempts"] += 1
+        if drive.active_errors and drive.active_errors != self.arm_errors_logged:
+            self._event("info", f"Clear_Errors ({', '.join(error_names(drive.active_errors))})")
+        self.arm_errors_logged = drive.active_errors
+        drive.clear_errors()
+        if p.current_limit_a > 0 or p.velocity_limit_rev_s > 0:
+            drive.set_limits(p.velocity_limit_rev_s or 1000.0, p.current_limit_a or 1000.0)
+        drive.enable("torque")
+        drive.request("status")              # the answer tells us at once that we are armed
+        self._send_setpoint(self.setpoint_nm)
+
+    def _request(self, now: float) -> None:
+        period = self.params.request_period_s
+        counters = self.drive.counters
+        for kind, t in self.last_request_s.items():
+            if now - t < period:
+                continue
+            received = counters[f"rx:{MESSAGE_OF_KIND[kind]}"]
+            self.last_request_s[kind] = now
+            if received - self.rx_at_request.get(kind, 0) >= 2:
+                self.rx_at_request[kind] = received   # it arrived twice since the last look: cyclic
+                continue
+            self.rx_at_request[kind] = received
+            if self.drive.request(kind):
+                self.counters["requests"] += 1
+
+    def _send_setpoint(self, torque_nm: float) -> bool:
+        ok = self.drive.set_input_torque(float(torque_nm))
+        if ok:
+            self.counters["setpoints"] += 1
+        return ok
+
+    # ------------------------------------------------------------------ commands
+    def _torque_of(self, msg) -> float:
+        if msg is self.clamp_msg:
+            return self.clamp_nm
+        t = float(msg.torque_cmd_nm)
+        lim = self.torque_limit_nm
+        if abs(t) > lim:
+            self.counters["torque_clamped"] += 1
+            t = math.copysign(lim, t)
+        self.clamp_msg, self.clamp_nm = msg, t
+        return t
+
+    def problem(self, msg, n: int) -> str | None:  # noqa: ARG002 -- a setpoint has no per-period arrays
+        """Why a DriveCommand cannot be applied (None: it can). Never raises. Gate / duty
+        arrays are ignored: the drive's firmware owns the current loop."""
+        try:
+            for name in ("torque_cmd_nm", "current_cmd_a"):
+                if not math.isfinite(float(getattr(msg, name))):
+                    return f"{name} is not finite"
+        except Exception as exc:  # noqa: BLE001
+            return f"unreadable DriveCommand ({exc})"
+        return None
+
+    def submit(self, msg, n: int | None = None) -> bool:
+        """Send the setpoint of DriveCommand ``msg`` now (called when it arrives).
+        Returns True if a frame went out. Invalid commands, the safe state, a lost or
+        unarmed drive: nothing is sent (the batch tick decides)."""
+        t0 = self.clock()
+        if self._closed or self.safe or self.problem(msg, n or self.batch_periods) is not None:
+            return False
+        self.setpoint_nm = self._torque_of(msg)
+        self.commanded = True
+        if not self.drive_enabled or msg is self.sent_msg:
+            return False
+        self.sent_msg = msg
+        ok = self._send_setpoint(self.setpoint_nm)
+        if ok:
+            self.submit_latency_s.append(self.clock() - t0)
+        return ok
+
+    def apply(self, msg) -> None:
+        """One batch with DriveCommand ``msg`` (validated by :meth:`problem`)."""
+        self.setpoint_nm = self._torque_of(msg)
+        self.commanded = True
+        if self.drive_enabled and msg is not self.sent_msg:
+            self.sent_msg = msg
+            self._send_setpoint(self.setpoint_nm)
+        self._advance()
+
+    def safe_batch(self, n: int) -> None:  # noqa: ARG002
+        """One batch without a (valid) DriveCommand."""
+        if self.commanded and not self.safe and self.drive_enabled and self.setpoint_nm != 0.0:
+            self.setpoint_nm = 0.0               # a rejected command: zero torque until the next good one
+            self.sent_msg = None
+            self._send_setpoint(0.0)
+        self._advance()
+
+    def set_safe(self, on: bool) -> None:
+        """The node's DriveCommand timeout: zero torque and stop feeding the watchdog (the
+        drive disarms itself after its watchdog timeout); off: re-arm with the next command."""
+        if on and not self.safe:
+            self.safe = True
+            self.commanded = False
+            self.setpoint_nm = 0.0
+            self.sent_msg = None
+            if self.link_alive:
+                self._send_setpoint(0.0)
+            self.drive.forget_setpoint()
+            self.counters["safe_state"] += 1
+        elif not on:
+            self.safe = False
+
+    # ------------------------------------------------------------------ time and ledger
+    def _advance(self) -> None:
+        if self.time_frozen:
+            self.counters["frozen_batches"] += 1
+            return
+        dt = self.batch_periods * self.control_period_s
+        v = self.drive.values()
+        w = float(v.get("speed_rev_s", 0.0)) * TWO_PI
+        if self.omega0 is None:
+            self.omega0 = w
+        t_em = float(v.get("torque_estimate_nm", 0.0))
+        if "bus_voltage_v" in v:
+            self.e_battery_j += float(v["bus_voltage_v"]) * -float(v["bus_current_a"]) * dt
+        self.e_shaft_j += -t_em * w * dt
+        self.e_friction_j += self.friction_nms * w * w * dt
+        self.time_s += dt
+
+    # ------------------------------------------------------------------ PlantState
+    def snapshot(self) -> dict:
+        v = self.drive.values()
+        rev_s = float(v.get("speed_rev_s", 0.0))
+        w = rev_s * TWO_PI
+        pos = float(v.get("position_rev", 0.0))
+        theta_m = TWO_PI * (pos - math.floor(pos))
+        theta_e = (self.pole_pairs * theta_m) % TWO_PI
+        iq = float(v.get("iq_measured_a", 0.0))
+        ia = -iq * math.sin(theta_e)
+        ib = -iq * math.sin(theta_e - TWO_PI / 3.0)
+        ic = -iq * math.sin(theta_e + TWO_PI / 3.0)
+        stored = 0.5 * self.inertia_kgm2 * (w * w - self.omega0 * self.omega0) if self.omega0 is not None else 0.0
+        mech_in = self.e_shaft_j + self.e_friction_j + stored
+        vbus = float(v.get("bus_voltage_v", math.nan))
+        ibat = -float(v["bus_current_a"]) if "bus_current_a" in v else math.nan
+        return {
+            "machine": self.machine,
+            "control_period_s": self.control_period_s,
+            "phase_current_a": [ia, ib, ic],
+            "rotor_angle_elec_rad": theta_e,
+            "rotor_angle_mech_rad": theta_m,
+            "speed_rad_s": w,
+            "speed_rpm": rev_s * RPM_PER_REV_S,
+            "hall_state": 0,
+            "timer_count": 0,
+            "dc_bus_v": vbus,
+            "brake_resistor_on": False,
+            "hall_edge_counts": [],
+            "hall_edge_states": [],
+            "torque_em_nm": float(v.get("torque_estimate_nm", 0.0)),
+            "load_torque_nm": math.nan,
+            "current_samples_a": [],
+            "battery_ocv_v": math.nan,
+            "battery_soc": math.nan,
+            "battery_current_a": ibat,
+            "energy_mech_in_j": mech_in,
+            "energy_battery_j": self.e_battery_j,
+            "energy_resistor_j": 0.0,
+            "energy_loss_j": mech_in - self.e_battery_j - stored,
+            "energy_stored_j": stored,
+            "faults": self.faults,
+            "interlock_blanked_count": 0,
+        }
+
+    # ------------------------------------------------------------------ statistics and diagnostics
+    def stats(self) -> dict:
+        """CAN statistics: frames (rx without our own frames echoed by the bus), drops by
+        reason, requests, setpoints, link events."""
+        c = self.drive.counters
+        out = {
+            "rx_frames": c["rx_frames"] - c["echo"], "tx_frames": c["tx_frames"], "decoded": c["decoded"],
+            "dropped": self.drive.dropped, "echo": c["echo"], "other_node": c["other_node"],
+            "other_direction": c["other_direction"], "tx_failed": c["tx_failed"],
+            "heartbeats": c["rx:Heartbeat"], "requests": self.counters["requests"],
+            "setpoints": self.counters["setpoints"], "keepalive": self.counters["keepalive"],
+            "torque_clamped": self.counters["torque_clamped"], "drive_lost": self.counters["drive_lost"],
+            "drive_back": self.counters["drive_back"], "armed": self.counters["armed"],
+            "disarmed": self.counters["disarmed"], "enable_attempts": self.counters["enable_attempts"],
+            "safe_state": self.counters["safe_state"], "frozen_batches": self.counters["frozen_batches"],
+        }
+        for reason in MALFORMED_REASONS:
+            if c[reason]:
+                out[f"dropped_{reason}"] = c[reason]
+        if self.logger is not None:
+            out["log_frames"] = self.log_frames
+        if self.counters["log_errors"]:
+            out["log_errors"] = self.counters["log_errors"]
+        if self.submit_latency_s:
+            lat = sorted(self.submit_latency_s)
+            out["submit_latency_p50_us"] = round(lat[len(lat) // 2] * 1e6, 1)
+            out["submit_latency_max_us"] = round(lat[-1] * 1e6, 1)
+        return out
+
+    def diagnostic_level(self) -> int:
+        """The level :meth:`diagnostic` would report (cheap: for change detection per batch)."""
+        if not self.seen:
+            return WARN
+        if self.lost or self.drive.active_errors:
+            return ERROR
+        return OK if self.drive.enabled else WARN
+
+    def diagnostic(self, now_s: float | None = None) -> tuple[int, list[str], dict[str, str]]:
+        """(level, reasons, key/values) for the plant's DiagnosticStatus."""
+        now = self.clock() if now_s is None else now_s
+        drive = self.drive
+        p = self.params
+        reasons: list[str] = []
+        level = OK
+        if not self.seen:
+            level = WARN
+            reasons.append(f"waiting for the drive's Heartbeat ({p.describe()}, "
+                           f"{now - self.started_s:.0f}s): sim time paused")
+        elif self.lost:
+            level = ERROR
+            reasons.append(f"drive silent for {drive.heartbeat_age_s(now):.2f}s (heartbeat_timeout_s="
+                           f"{p.heartbeat_timeout_s:g}s): zero torque commanded, sim time paused")
+        else:
+            errors = error_names(drive.active_errors)
+            if errors:
+                level = ERROR
+                reasons.append(f"drive errors: {', '.join(errors)}")
+            if not drive.enabled:
+                level = max(level, WARN)
+                why = ("re-arming (Clear_Errors + closed loop)" if self.commanded and not self.safe
+                       else "waiting for DriveCommands")
+                reasons.append(f"drive not in closed-loop control (axis state {drive.axis_state}): {why}; "
+                               "sim time paused")
+        values = {f"can_{k}": str(v) for k, v in self.stats().items()}
+        v = drive.values(now)
+        values.update({
+            "can_interface": p.interface, "can_channel": p.channel, "can_node_id": str(p.node_id),
+            "can_link": "lost" if self.lost else ("alive" if self.seen else "waiting"),
+            "can_axis_state": str(drive.axis_state),
+            "can_axis_error": "|".join(error_names(drive.active_errors)) or "none",
+            "can_heartbeat_age_ms": f"{drive.heartbeat_age_s(now) * 1e3:.0f}" if self.seen else "inf",
+            "can_torque_setpoint_nm": f"{self.setpoint_nm:.4f}",
+        })
+        if "torque_target_nm" in v:
+            values["can_torque_target_nm"] = f"{v['torque_target_nm']:.4f}"
+        if self.log_path is not None:
+            values["can_log_file"] = str(self.log_path)
+        return level, reasons, values
+
+    # ------------------------------------------------------------------ shutdown
+    def close(self) -> None:
+        """Zero torque and IDLE (``idle_on_exit``), close the log and the bus. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            if self.params.idle_on_exit and self.seen:
+                self._send_setpoint(0.0)
+                self.drive.disable()
+        except Exception:  # noqa: BLE001
+            pass
+        if self.logger is not None:
+            try:
+                self.logger.stop()
+            except Exception:  # noqa: BLE001
+                pass
+        self._shutdown_bus()
+
+    def _shutdown_bus(self) -> None:
+        if self._own_bus and self.bus is not None:
+            try:
+                self.bus.shutdown()
+            except Exception:  # noqa: BLE001
+                pass

@@ -1,0 +1,439 @@
+"""The plant's CAN backend (bike_plant.can.backend.CanBackend) without ROS, on python-can's
+in-process ``virtual`` bus: scripted drive frames (a fake clock where timing matters) and the
+drive emulator in a thread. Also the controller's torque-only answer to a drive's PlantState."""
+from __future__ import annotations
+
+import math
+import pathlib
+import struct
+import threading
+import time
+import uuid
+
+import can
+import pytest
+
+from bike_plant.can import HOST_TO_DRIVE, AxisState, ODriveError, OdriveCanSimpleCodec
+from bike_plant.can.backend import (FAULT_DRIVE_LOST, CanBackend, can_params_from_config,
+                                    emulator_args_from_config)
+from bike_plant.can.emulator import AverageTorqueDrive, DriveEmulator, DriveFirmware, DriveModelParams
+from bike_plant.config import ConfigError, load_config
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CAN_CONFIG = ROOT / "config" / "bldc_can.yaml"
+TMAX = 2.941995
+WATCHDOG = int(ODriveError.WATCHDOG_TIMER_EXPIRED)
+
+
+class Clock:
+    def __init__(self, t: float = 100.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Cmd:
+    """What the backend reads of a bike_msgs/DriveCommand."""
+
+    def __init__(self, torque_nm: float, current_a: float = 0.0):
+        self.torque_cmd_nm = torque_nm
+        self.current_cmd_a = current_a
+
+
+class Rig:
+    """A CanBackend and the drive's end of the same virtual bus (scripted frames)."""
+
+    def __init__(self, clock=None, **can_changes):
+        self.cfg = load_config(CAN_CONFIG)
+        self.channel = uuid.uuid4().hex
+        self.cfg["can"].update(interface="virtual", channel=self.channel, **can_changes)
+        self.drive_bus = can.Bus(interface="virtual", channel=self.channel)
+        self.codec = OdriveCanSimpleCodec(0)
+        self.backend = CanBackend(self.cfg, **({"clock": clock} if clock else {}))
+
+    def send(self, name: str, **signals) -> None:
+        self.drive_bus.send(self.codec.encode(name, signals))
+
+    def heartbeat(self, state: int = AxisState.CLOSED_LOOP_CONTROL, error: int = 0) -> None:
+        self.send("Heartbeat", Axis_Error=error, Axis_State=int(state), Procedure_Result=0, Trajectory_Done_Flag=1)
+
+    def host_frames(self) -> list[tuple[str, object]]:
+        """(message name, signals | 'RTR') of everything the host sent since the last call."""
+        out = []
+        while True:
+            msg = self.drive_bus.recv(timeout=0.0)
+            if msg is None:
+                return out
+            r = self.codec.classify(msg, HOST_TO_DRIVE, answers_requests=True)
+            assert not isinstance(r, str), f"host sent a frame the drive rejects: {r} {msg}"
+            out.append((r.name, "RTR" if r.is_request else dict(r.signals)))
+
+    def torques(self) -> list[float]:
+        return [s["Input_Torque"] for name, s in self.host_frames() if name == "Set_Input_Torque"]
+
+    def close(self) -> None:
+        self.backend.close()
+        self.backend.bus.shutdown()
+        self.drive_bus.shutdown()
+
+
+@pytest.fixture
+def rig():
+    made = []
+
+    def make(clock=None, **changes) -> Rig:
+        r = Rig(clock, **changes)
+        made.append(r)
+        return r
+
+    yield make
+    for r in made:
+        r.close()
+
+
+def armed(rig_factory, clock=None, **changes) -> Rig:
+    """A rig whose drive is in closed-loop control and has been commanded once."""
+    r = rig_factory(clock, **changes)
+    r.heartbeat()
+    r.backend.service()
+    assert r.backend.drive_enabled and not r.backend.time_frozen
+    r.host_frames()
+    return r
+
+
+# ----------------------------------------------------------------------------- mapping
+def test_drive_measurements_become_a_plant_state_with_plant_signs(rig):
+    r = armed(rig)
+    b = r.backend
+    r.send("Get_Encoder_Estimates", Pos_Estimate=3.25, Vel_Estimate=40.0)
+    r.send("Get_Torques", Torque_Target=-1.0, Torque_Estimate=-0.9)            # braking
+    r.send("Get_Bus_Voltage_Current", Bus_Voltage=50.0, Bus_Current=-4.0)      # ODrive: -4 A drawn = charging
+    r.send("Get_Iq", Iq_Setpoint=-19.0, Iq_Measured=-17.3)
+    b.service()
+    s = b.snapshot()
+    assert b.measured_by_drive and b.name == "can" and s["machine"] == "bldc"
+    assert s["speed_rad_s"] == pytest.approx(40.0 * 2 * math.pi)
+    assert s["speed_rpm"] == pytest.approx(2400.0)
+    assert s["rotor_angle_mech_rad"] == pytest.approx(math.pi / 2)
+    assert s["rotor_angle_elec_rad"] == pytest.approx(math.pi)                  # 2 pole pairs
+    assert s["torque_em_nm"] == pytest.approx(-0.9)                            # motoring positive
+    assert s["dc_bus_v"] == 50.0 and s["battery_current_a"] == 4.0              # charging positive
+    ia, ib, ic = s["phase_current_a"]
+    assert ia + ib + ic == pytest.approx(0.0, abs=1e-9)
+    assert math.sqrt((ia * ia + ib * ib + ic * ic) / 1.5) == pytest.approx(17.3, rel=1e-6)   # amplitude |Iq|
+    assert s["current_samples_a"] == [] and s["hall_edge_counts"] == []
+    assert math.isnan(s["battery_soc"]) and math.isnan(s["battery_ocv_v"]) and math.isnan(s["load_torque_nm"])
+    assert s["faults"] == 0
+    # energy ledger over 50 batches of 5 ms at constant speed: battery 50 V x 4 A, shaft 0.9 N m x w
+    for _ in range(50):
+        b.apply(Cmd(-1.0))
+    dt = 50 * 100 * 5e-5
+    w = 40.0 * 2 * math.pi
+    s = b.snapshot()
+    assert b.time_s == pytest.approx(dt)
+    assert s["energy_battery_j"] == pytest.approx(200.0 * dt)
+    friction = 1e-4 * w * w * dt
+    assert s["energy_mech_in_j"] == pytest.approx(0.9 * w * dt + friction)
+    assert s["energy_stored_j"] == pytest.approx(0.0)
+    assert s["energy_loss_j"] == pytest.approx(s["energy_mech_in_j"] - s["energy_battery_j"])
+
+
+def test_setpoints_go_out_at_once_clamped_and_bad_ones_are_refused(rig):
+    r = armed(rig)
+    b = r.backend
+    assert b.submit(Cmd(-0.7))
+    assert r.torques() == [pytest.approx(-0.7)]
+    msg = Cmd(0.3)
+    assert b.submit(msg)
+    b.apply(msg)                                       # the same command at the tick: not sent twice
+    assert r.torques() == [pytest.approx(0.3)]
+    assert b.submit(Cmd(-100.0))
+    assert r.torques() == [pytest.approx(-TMAX)]       # clamped to controller.tmax_nm
+    assert b.stats()["torque_clamped"] == 1
+    for bad in (Cmd(math.nan), Cmd(math.inf), Cmd(0.1, math.nan)):
+        assert b.problem(bad, 100) is not None
+        assert not b.submit(bad)
+    assert r.torques() == []
+    assert b.problem(Cmd(0.2), 100) is None
+
+
+def test_arming_clear_errors_closed_loop_then_the_setpoint(rig):
+    r = rig()
+    b = r.backend
+    b.apply(Cmd(-0.5))                     # commands flow, but there is no drive yet
+    b.service()
+    assert b.time_frozen and b.time_s == 0.0 and r.host_frames() == []
+    level, reasons, values = b.diagnostic()
+    assert level == 1 and "waiting for the drive's Heartbeat" in reasons[0] and values["can_link"] == "waiting"
+    r.heartbeat(AxisState.IDLE, error=WATCHDOG)        # the drive is there, disarmed with a latched error
+    b.service()
+    frames = r.host_frames()
+    names = [n for n, _ in frames]
+    assert names[:3] == ["Clear_Errors", "Set_Controller_Mode", "Set_Axis_State"]
+    assert frames[1][1] == {"Control_Mode": 1, "Input_Mode": 1} and frames[2][1] == {"Axis_Requested_State": 8}
+    assert ("Heartbeat", "RTR") in frames
+    b.apply(Cmd(-0.5))
+    assert b.time_s == 0.0, "sim time stands still until the drive reports closed loop"
+    r.heartbeat()
+    b.service()
+    assert b.drive_enabled and r.torques() == [pytest.approx(-0.5)]
+    b.apply(Cmd(-0.5))
+    assert b.time_s == pytest.approx(5e-3)
+    assert b.diagnostic()[0] == 0
+
+
+def test_malformed_frames_are_counted_and_ignored(rig):
+    r = armed(rig)
+    b = r.backend
+    r.send("Get_Encoder_Estimates", Pos_Estimate=1.0, Vel_Estimate=30.0)
+    b.service()
+    bad = [
+        can.Message(is_error_frame=True, arbitration_id=0x4, data=bytes(8)),
+        can.Message(arbitration_id=0x1E, data=bytes(8), is_extended_id=False),                  # unknown cmd
+        can.Message(arbitration_id=0x09, data=bytes(4), is_extended_id=False),                  # wrong DLC
+        can.Message(arbitration_id=0x09, data=struct.pack("<ff", 0.0, math.nan), is_extended_id=False),
+        can.Message(arbitration_id=0x09, data=struct.pack("<ff", 0.0, 5000.0), is_extended_id=False),
+        can.Message(arbitration_id=0x01, data=bytes(4) + bytes([200, 0, 0, 0]), is_extended_id=False),
+        can.Message(arbitration_id=(5 << 5) | 0x09, data=struct.pack("<ff", 0.0, -7.0), is_extended_id=False),
+        can.Message(arbitration_id=0x12345, data=bytes(8), is_extended_id=True),
+        can.Message(arbitration_id=0x0E, is_remote_frame=True, dlc=8, is_extended_id=False),     # RTR of a command
+        can.Message(arbitration_id=0x09, is_remote_frame=True, dlc=8, is_extended_id=False),     # another host asks
+    ]
+    for msg in bad:
+        r.drive_bus.send(msg)
+    b.service()
+    stats = b.stats()
+    assert stats["dropped"] == 8 and stats["other_node"] == 1 and stats["other_direction"] == 1
+    for reason in ("error_frame", "unknown_cmd", "bad_dlc", "non_finite", "out_of_range", "extended_id",
+                   "unexpected_rtr"):
+        assert stats[f"dropped_{reason}"] >= 1, reason
+    s = b.snapshot()
+    assert s["speed_rpm"] == pytest.approx(1800.0) and s["faults"] == 0 and b.drive_enabled
+    assert b.diagnostic()[2]["can_dropped"] == "8"
+
+
+# ----------------------------------------------------------------------------- link loss, safe state
+def test_silent_drive_is_lost_after_three_heartbeat_periods_then_recovers(rig):
+    clock = Clock()
+    r = armed(rig, clock)
+    b = r.backend
+    assert b.submit(Cmd(-0.8)) and r.torques() == [pytest.approx(-0.8)]
+    b.apply(Cmd(-0.8))
+    clock.t += 0.29
+    b.service()
+    assert not b.lost and b.faults == 0
+    clock.t += 0.02                                      # 0.31 s > 3 x 100 ms without a heartbeat
+    b.service()
+    assert b.lost and b.faults & FAULT_DRIVE_LOST and b.snapshot()["faults"] & FAULT_DRIVE_LOST
+    assert r.torques()[-1] == 0.0, "zero torque commanded when the drive goes silent"
+    events = b.pop_events()
+    assert events[-1][0] == "error" and "FAULT_DRIVE_LOST" in events[-1][1]
+    level, reasons, _ = b.diagnostic()
+    assert level == 2 and "drive silent" in reasons[0]
+    t_before = b.time_s
+    for _ in range(10):                                   # commands keep coming: nothing is sent, time stands
+        clock.t += 0.05
+        b.apply(Cmd(0.0))
+        b.service()
+    assert b.time_s == t_before and b.time_frozen
+    assert r.host_frames() == [], "the watchdog is no longer fed while the drive is lost"
+    # the drive is back, its watchdog tripped meanwhile
+    r.heartbeat(AxisState.IDLE, error=WATCHDOG)
+    b.service()
+    assert not b.lost and b.faults == 0
+    names = [n for n, _ in r.host_frames()]
+    assert names[:3] == ["Clear_Errors", "Set_Controller_Mode", "Set_Axis_State"]
+    r.heartbeat()
+    b.service()
+    b.apply(Cmd(-0.4))
+    assert r.torques() == [0.0, pytest.approx(-0.4)] and not b.time_frozen
+    assert b.stats()["drive_lost"] == 1 and b.stats()["drive_back"] == 1
+
+
+def test_safe_state_zero_torque_and_no_more_watchdog_feeding(rig):
+    clock = Clock()
+    r = armed(rig, clock, watchdog_feed_s=0.1)
+    b = r.backend
+    b.apply(Cmd(-1.2))
+    assert r.torques() == [pytest.approx(-1.2)]
+    clock.t += 0.05
+    r.heartbeat()
+    b.service()
+    assert r.torques() == []
+    clock.t += 0.06                                       # 0.11 s since the setpoint: keepalive
+    r.heartbeat()
+    b.service()
+    assert r.torques() == [pytest.approx(-1.2)]
+    b.set_safe(True)                                      # the node's DriveCommand timeout
+    b.safe_batch(100)
+    assert r.torques() == [0.0]
+    for _ in range(10):
+        clock.t += 0.05
+        r.heartbeat()
+        b.service()
+        b.safe_batch(100)
+    assert r.host_frames() == [] or all(n != "Set_Input_Torque" for n, _ in r.host_frames())
+    b.set_safe(False)
+    b.apply(Cmd(-0.6))
+    assert r.torques() == [pytest.approx(-0.6)]
+
+
+def test_can_log_in_asc_and_blf_and_a_clean_close(rig, tmp_path):
+    for suffix in ("asc", "blf"):
+        path = tmp_path / f"traffic.{suffix}"
+        r = rig(log_file=str(path))
+        r.heartbeat()
+        r.backend.service()
+        r.send("Get_Encoder_Estimates", Pos_Estimate=0.5, Vel_Estimate=10.0)
+        r.backend.submit(Cmd(-0.25))
+        r.backend.service()
+        r.backend.close()
+        frames = r.host_frames()
+        assert frames[-2:] == [("Set_Input_Torque", {"Input_Torque": 0.0}),
+                               ("Set_Axis_State", {"Axis_Requested_State": 1})], "close(): zero torque + IDLE"
+        logged = list(can.LogReader(str(path)))
+        rx = [m for m in logged if m.is_rx]
+        tx = [m for m in logged if not m.is_rx]
+        assert {m.arbitration_id for m in rx} == {0x01, 0x09}
+        assert 0x0E in {m.arbitration_id for m in tx} and 0x07 in {m.arbitration_id for m in tx}
+        assert len(logged) == r.backend.log_frames
+        stamps = [m.timestamp for m in logged]               # rx: the bus's receive time, tx: the send time
+        assert max(stamps) - min(stamps) < 5.0 and len({m.channel for m in logged}) == 1
+
+
+# ----------------------------------------------------------------------------- against the emulator
+def test_against_the_drive_emulator_in_process(rig):
+    r = rig()
+    params = DriveModelParams.from_config(r.cfg)
+    emu = DriveEmulator(r.drive_bus, DriveFirmware(AverageTorqueDrive(params)), 0)
+    stop = threading.Event()
+    thread = threading.Thread(target=emu.run, args=(stop,), daemon=True)
+    thread.start()
+    b = r.backend
+    seen = {}
+    try:
+        for torque in (-1.0, 0.6):
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end:
+                msg = Cmd(torque)
+                b.submit(msg)
+                b.service()
+                b.apply(msg)
+                time.sleep(0.005)
+            seen[torque] = (b.snapshot(), b.time_s)
+    finally:
+        stop.set()
+        thread.join(5.0)
+    brake, t1 = seen[-1.0]
+    motor, t2 = seen[0.6]
+    assert brake["torque_em_nm"] == pytest.approx(-1.0, abs=0.02)
+    assert brake["battery_current_a"] > 0 and motor["battery_current_a"] < 0     # charging while braking
+    assert motor["torque_em_nm"] == pytest.approx(0.6, abs=0.02)
+    assert brake["energy_battery_j"] > 0 and brake["speed_rpm"] > 500
+    assert 0 < t1 < t2 and b.stats()["dropped"] == 0 and b.stats()["armed"] == 1
+    assert emu.counters.get("rx:Set_Input_Torque", 0) >= 100
+
+
+# ----------------------------------------------------------------------------- config
+def test_config_section_and_emulator_arguments(tmp_path):
+    cfg = load_config(CAN_CONFIG)
+    p = can_params_from_config(cfg)
+    assert (p.interface, p.node_id, p.heartbeat_timeout_s) == ("udp_multicast", 0, pytest.approx(0.3))
+    args = emulator_args_from_config(cfg)
+    assert args[args.index("--port") + 1] == str(p.port) and args[args.index("--heartbeat-ms") + 1] == "100"
+    for key, value, text in (("node_id", 64, "node_id"), ("log_file", "x.txt", ".asc or .blf"),
+                             ("request", ["torque", "nope"], "unknown kind"), ("bogus", 1, "unknown parameter"),
+                             ("heartbeat_timeout_s", 0.0, "> 0")):
+        bad = load_config(CAN_CONFIG)
+        bad["can"][key] = value
+        with pytest.raises(ConfigError, match=text):
+            can_params_from_config(bad)
+    from bike_plant.node import make_backend
+    lockstep = load_config(CAN_CONFIG)
+    lockstep["sync_mode"] = "lockstep"
+    with pytest.raises(ConfigError, match="realtime"):
+        make_backend("can", lockstep, 0)
+
+
+# ----------------------------------------------------------------------------- the controller's answer
+def _drive_snapshot(speed_rpm, torque_em=0.0, faults=0, stamp_ns=0, seq=0):
+    return {"measured_by_drive": True, "speed_rpm": speed_rpm, "speed_rad_s": speed_rpm / 9.549296585513721,
+            "torque_em_nm": torque_em, "faults": faults, "stamp_ns": stamp_ns, "seq": seq}
+
+
+def test_controller_answers_a_drive_with_a_torque_only(tmp_path):
+    from bike_controller.session_control import ModedController
+    from bike_plant.params import nominal_params_from_config
+
+    cfg = load_config(CAN_CONFIG)
+    ctrl = ModedController(cfg, nominal_params_from_config(cfg))
+    ctrl.set_command(0.2, 2)                                  # ERG: 0.2 x Pmax = 203.3 W
+    batch_ns = 5_000_000
+    ga, gb, sp, st = ctrl.decide(_drive_snapshot(2800.0, stamp_ns=0), 100)
+    assert len(ga) == len(gb) == len(sp) == 0
+    w = 2800.0 / 9.549296585513721
+    assert st["torque_cmd_nm"] == pytest.approx(0.2 * 1016.68 / w, rel=1e-6) and st["quadrant"] == 2
+    assert st["speed_est_rpm"] == 2800.0 and st["mode_target"] == pytest.approx(0.2 * 1016.68)
+    t_ns = 0
+    for k in range(1, 40):                                     # the drive delivers only 90 %: the trim raises it
+        t_ns = k * batch_ns
+        _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, -0.9 * st["torque_cmd_nm"], stamp_ns=t_ns), 100)
+    assert st["torque_trim_nm"] > 0 and st["torque_cmd_nm"] > 0.2 * 1016.68 / w
+    held = st["torque_cmd_nm"]
+    _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, -0.9 * held, stamp_ns=t_ns), 100)   # stamp frozen: holds
+    assert st["torque_cmd_nm"] == pytest.approx(held)
+    _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, faults=FAULT_DRIVE_LOST, stamp_ns=t_ns), 100)
+    assert st["torque_cmd_nm"] == 0.0
+    torques = []
+    for k in range(1, 6):                                      # back: ramped up from zero (20 N m/s)
+        _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, stamp_ns=t_ns + k * batch_ns), 100)
+        torques.append(st["torque_cmd_nm"])
+        assert st["mode_ramping"]
+    assert torques[0] == pytest.approx(0.1)                     # 20 N m/s x 5 ms (+ the trim, slowly)
+    assert all(0.09 < b - a < 0.13 for a, b in zip(torques, torques[1:]))
+    ctrl.set_command(0.5, 1)                                   # motoring: assist torque, quadrant I
+    for k in range(6, 200):
+        em = st["torque_cmd_nm"] * (-1 if st["quadrant"] == 2 else 1)   # the drive delivers what it is asked
+        _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, em, stamp_ns=t_ns + k * batch_ns), 100)
+    assert st["quadrant"] == 1 and st["torque_cmd_nm"] == pytest.approx(0.5 * TMAX, rel=0.05)
+
+
+def test_spmsm_controller_answers_a_drive_with_a_torque_only():
+    from bike_controller.spmsm_session import ModedSpmsmController
+
+    cfg = load_config(ROOT / "config" / "spmsm_default.yaml")
+    ctrl = ModedSpmsmController(cfg)
+    ctrl.set_command(0.5, 0)
+    duties, relay, buck, st = ctrl.decide(_drive_snapshot(200.0), 10)
+    assert duties.shape == (0, 3) and len(relay) == len(buck) == 0
+    assert st["torque_cmd_nm"] > 0 and st["quadrant"] == 2 and st["family"] == ""
+
+
+def test_the_launch_file_starts_the_emulator_with_the_bus_of_the_config(tmp_path):
+    """config/launch/bike.launch.yaml: the ROS 2 YAML `executable` action (cmd, if) as ./bike run
+    fills it for a config with can.emulator: true."""
+    import shlex
+
+    from bike_session.launcher import ExecutableSpec, LaunchError, NodeSpec, parse_launch
+
+    launch = ROOT / "config" / "launch" / "bike.launch.yaml"
+    args = " ".join(shlex.quote(a) for a in emulator_args_from_config(load_config(CAN_CONFIG)))
+    specs = parse_launch(str(launch), {"config": str(CAN_CONFIG), "emulator": "true", "emulator_args": args,
+                                       "can_log": "/tmp/x.can.asc"})
+    emu = specs[0]
+    assert isinstance(emu, ExecutableSpec) and emu.name == "drive_emulator"
+    assert emu.argv[0].endswith("lib/bike_plant/bike-drive-emulator") and not emu.shutdown_on_exit
+    assert emu.argv[emu.argv.index("--config") + 1] == str(CAN_CONFIG)
+    assert emu.argv[emu.argv.index("--port") + 1] == "43213" and emu.argv[emu.argv.index("--node-id") + 1] == "0"
+    plant = specs[1]
+    assert isinstance(plant, NodeSpec) and plant.params["can_log_file"] == "/tmp/x.can.asc"
+    assert [s.name for s in parse_launch(str(launch), {"config": str(CAN_CONFIG)})] == \
+        ["plant", "controller", "session"], "no emulator unless asked"
+    bad = tmp_path / "x.launch.yaml"
+    bad.write_text("launch:\n- executable: {cmd: '', name: e}\n")
+    with pytest.raises(LaunchError, match="'cmd' is required"):
+        parse_launch(str(bad))
+    bad.write_text("launch:\n- executable: {cmd: no-such-program-here --x 1}\n")
+    with pytest.raises(LaunchError, match="not found on PATH"):
+        parse_launch(str(bad))[0].command()

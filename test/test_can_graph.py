@@ -1,0 +1,403 @@
+"""The bike through its CAN path, in separate processes: bike-drive-emulator, plant_node
+(backend can, realtime), controller_node (torque-only answers), session and recorder, over
+python-can's udp_multicast bus (a UDP port of its own per test). Faults: the emulator
+killed and restarted, a silent emulator, garbage frames, the drive's watchdog.
+
+Timing assertions carry slack for a loaded 2-core machine; the numbers are printed (-s).
+"""
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import random
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+
+import can
+import pytest
+import yaml
+from conftest import NodeProcess, bike_command
+from node_harness import Collector, stamp_ns
+
+from bike_msgs.msg import Command, DriveCommand, PlantState  # noqa: E402
+from bike_plant import msgconv  # noqa: E402
+from bike_plant.can import ODriveError  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+
+pytestmark = pytest.mark.timeout(120)
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CAN_CONFIG = ROOT / "config" / "bldc_can.yaml"
+GROUP = "239.74.163.2"
+LOST = PlantState.FAULT_DRIVE_LOST
+HEARTBEAT_TIMEOUT_S = 0.3                 # 3 x 100 ms (config/bldc_can.yaml)
+SLACK_S = 0.3                             # scheduling + DDS on a loaded 2-core machine
+WATCHDOG_NAME = "WATCHDOG_TIMER_EXPIRED"
+
+
+def _port() -> int:
+    return random.SystemRandom().randint(41000, 48999)
+
+
+def write_config(tmp_path: pathlib.Path, port: int, emulator: bool = False, profile: dict | None = None,
+                 **can_changes) -> pathlib.Path:
+    doc = yaml.safe_load(CAN_CONFIG.read_text())
+    p = doc["/**"]["ros__parameters"]
+    p["can"].update(port=port, channel=GROUP, emulator=emulator, **can_changes)
+    if profile is not None:
+        path = tmp_path / "profile.yaml"
+        path.write_text(yaml.safe_dump(profile))
+        p["session"]["profile"] = str(path)
+    else:
+        p["session"]["profile"] = str(ROOT / "config" / "profiles" / "demo_intervals.yaml")
+    out = tmp_path / f"bike_can_{port}.yaml"
+    out.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return out
+
+
+class Emulator:
+    """bike-drive-emulator as a process on the test's port."""
+
+    def __init__(self, tmp_path: pathlib.Path, config: pathlib.Path, port: int, *args: str):
+        self.out = tmp_path / f"emulator_{port}_{time.monotonic_ns()}.out"
+        self._out = open(self.out, "w")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "bike_plant.can.emulator", "--interface", "udp_multicast", "--channel", GROUP,
+             "--port", str(port), "--config", str(config), *args],
+            stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+        end = time.monotonic() + 30.0
+        while "ready" not in self.out.read_text():
+            assert self.proc.poll() is None, self.out.read_text()
+            assert time.monotonic() < end, "emulator did not start"
+            time.sleep(0.05)
+
+    def kill9(self) -> None:
+        os.killpg(self.proc.pid, signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self) -> dict:
+        """SIGTERM; the exit summary (counters, axis state, errors) it prints."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+        self._out.close()
+        for line in self.out.read_text().splitlines():
+            if line.startswith("bike-drive-emulator: exit "):
+                return json.loads(line[len("bike-drive-emulator: exit "):])
+        return {}
+
+
+class BusListener:
+    """Everything on the test's CAN bus, with receive times (a thread of the test process)."""
+
+    def __init__(self, port: int):
+        self.bus = can.Bus(interface="udp_multicast", channel=GROUP, port=port)
+        self.frames: list[tuple[float, can.Message]] = []
+        self._stop = False
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self):
+        while not self._stop:
+            try:
+                msg = self.bus.recv(0.05)
+            except Exception:  # noqa: BLE001 -- garbage the bus cannot unpack
+                continue
+            if msg is not None:
+                self.frames.append((time.monotonic(), msg))
+
+    def torques_after(self, t0: float) -> list[float]:
+        return [struct.unpack("<f", bytes(m.data[:4]))[0] for t, m in list(self.frames)
+                if t >= t0 and m.arbitration_id == 0x0E and not m.is_remote_frame and len(m.data) >= 4]
+
+    def heartbeats_after(self, t0: float) -> list[tuple[int, int]]:
+        """(axis error, axis state) of node 0's heartbeats after t0."""
+        return [(struct.unpack("<I", bytes(m.data[:4]))[0], m.data[4]) for t, m in list(self.frames)
+                if t >= t0 and m.arbitration_id == 0x01 and len(m.data) == 8]
+
+    def close(self):
+        self._stop = True
+        self.thread.join(2.0)
+        self.bus.shutdown()
+
+
+class Rig:
+    """Plant (can, realtime) + controller as processes, the test's ROS node and CAN listener."""
+
+    def __init__(self, tmp_path: pathlib.Path, domain: int, start_controller: bool = True, **can_changes):
+        self.tmp_path = tmp_path
+        self.port = _port()
+        self.config = write_config(tmp_path, self.port, **can_changes)
+        self.col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray, "/clock": Clock,
+                                      "drive_command": DriveCommand})
+        self.listener = BusListener(self.port)
+        self.procs: list = []
+        self.emulators: list[Emulator] = []
+        self.cmd_pub = self.col.publisher(Command, "command")
+        self._commanding = True
+        self.plant = self.node("bike_plant", "plant_node")
+        self.controller = self.node("bike_controller", "controller_node") if start_controller else None
+        self.cmd_thread = threading.Thread(target=self._publish_commands, daemon=True)
+        self.cmd_thread.start()
+
+    def node(self, pkg: str, exe: str) -> NodeProcess:
+        args = ["--ros-args", "-r", "__ns:=/bike", "--params-file", str(self.config),
+                "-p", f"config_path:={self.config}", "-p", "duration_s:=0.0"]
+        log_dir = self.tmp_path / f"{exe}_{len(self.procs)}"
+        log_dir.mkdir()
+        proc = NodeProcess(pkg, exe, args, log_dir)
+        proc.name = exe
+        self.procs.append(proc)
+        return proc
+
+    def emulator(self, *args: str) -> Emulator:
+        emu = Emulator(self.tmp_path, self.config, self.port, *args)
+        self.emulators.append(emu)
+        return emu
+
+    def _publish_commands(self):
+        # like a session: resistance at half command, re-published (a late match may miss one)
+        while self._commanding:
+            self.cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
+            time.sleep(0.2)
+
+    @property
+    def states(self) -> list:
+        return self.col.data["plant_state"]
+
+    def logs(self) -> str:
+        return "\n".join(f"--- {p.name}:\n{p.output()[-4000:]}" for p in self.procs) + "".join(
+            f"\n--- emulator:\n{e.out.read_text()[-2000:]}" for e in self.emulators)
+
+    def wait_for(self, predicate, timeout: float, what: str) -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if predicate():
+                return
+            time.sleep(0.01)
+        raise AssertionError(f"timeout ({timeout}s) waiting for {what}\n{self.logs()}")
+
+    def braking(self, k: int = 20) -> bool:
+        """The last k PlantStates: drive armed, no fault, braking torque from the drive."""
+        last = self.states[-k:]
+        return len(last) == k and all(m.faults == 0 and m.torque_em_nm < -0.1 for m in last)
+
+    def diagnostics(self, since: int = 0, level=None) -> list:
+        out = []
+        for arr in self.col.data["/diagnostics"][since:]:
+            for s in arr.status:
+                if s.hardware_id == "bike_plant/can" and (level is None or s.level == level):
+                    out.append(s)
+        return out
+
+    def clock_ns(self) -> list[int]:
+        return [stamp_ns(c.clock) for c in self.col.data["/clock"]]
+
+    def close(self):
+        self._commanding = False
+        self.cmd_thread.join(2.0)
+        for p in self.procs:
+            try:
+                p.stop()
+            except Exception:  # noqa: BLE001
+                pass
+        for e in self.emulators:
+            e.stop()
+        self.listener.close()
+        self.col.close()
+
+
+def value(status, key: str) -> str | None:
+    return next((kv.value for kv in status.values if kv.key == key), None)
+
+
+@pytest.fixture
+def rig(tmp_path, ros_domain):
+    made: list[Rig] = []
+
+    def make(**kwargs) -> Rig:
+        r = Rig(tmp_path, ros_domain, **kwargs)
+        made.append(r)
+        return r
+
+    yield make
+    for r in made:
+        r.close()
+
+
+# =======================================================================================
+def test_a_workout_through_the_can_path_end_to_end(tmp_path, ros_domain):
+    """`./bike run --config <can config>` starts the emulator too, rides, records, reports."""
+    port = _port()
+    profile = {"name": "can_smoke", "segments": [
+        {"kind": "step", "duration_s": 2.5, "command": 0.5, "mode": "resistance", "label": "resistance"},
+        {"kind": "step", "duration_s": 2.5, "target": 150, "mode": "erg", "label": "ERG 150 W"}]}
+    config = write_config(tmp_path, port, emulator=True, profile=profile)
+    result = bike_command("run", "--config", str(config), "--duration", "5", "--record", str(tmp_path / "runs"),
+                          timeout=100)
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out[-6000:]
+    assert "bike-drive-emulator ready" in out and "drive in closed-loop torque control" in out
+    bag = next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
+    from bike_session.bags import read_topic
+    from bike_session.report import summarise
+
+    states = read_topic(bag, "plant_state")
+    drive = read_topic(bag, "drive_command")
+    status = read_topic(bag, "controller_status")
+    assert states[-1].end_of_run and stamp_ns(states[-1].header.stamp) == pytest.approx(5e9, abs=1e6)
+    assert all(m.measured_by_drive and m.backend == "can" for m in states)
+    assert all(len(d.gates_a) == len(d.split) == 0 and len(d.duty_abc) == 0 for d in drive), "torque only"
+    t = lambda m: stamp_ns(m.header.stamp) * 1e-9  # noqa: E731
+    # resistance at 0.5: the drive brakes with the paper's torque curve at the measured speed
+    res = [m for m in states if 1.0 < t(m) < 2.4 and not m.faults]
+    res_cmd = [s for s in status if 1.0 < t(s) < 2.4]
+    assert res and res_cmd and all(s.mode == 0 and s.quadrant == 2 for s in res_cmd)
+    asked = sum(s.torque_cmd_nm for s in res_cmd) / len(res_cmd)
+    got = -sum(m.torque_em_nm for m in res) / len(res)
+    assert 0.5 < asked < 1.6 and got == pytest.approx(asked, rel=0.05), (asked, got)
+    # ERG 150 W: the drive's braking power follows the target
+    erg = [m for m in states if 4.0 < t(m) < 4.95 and not m.faults]
+    power = sum(-m.torque_em_nm * m.speed_rad_s for m in erg) / len(erg)
+    assert power == pytest.approx(150.0, rel=0.08), power
+    assert all(d.torque_cmd_nm < 0 for d in drive if 4.0 < t(d) < 4.95), "braking = negative torque (motoring +)"
+    assert states[-1].energy_battery_j > 100 and states[-1].dc_bus_v > 40
+    summary = summarise(bag)
+    can_stats = summary["can"]
+    assert can_stats["dropped"] == "0" and int(can_stats["setpoints"]) > 500 and int(can_stats["rx_frames"]) > 500
+    log_path = pathlib.Path(can_stats["log_file"])
+    assert log_path.parent == bag.parent and log_path.suffix == ".asc"
+    logged = list(can.LogReader(str(log_path)))
+    assert len(logged) > 1000 and {0x01, 0x09, 0x0E} <= {m.arbitration_id for m in logged}
+    assert "CAN:" in result.stdout and "CAN log:" in result.stdout, "the report shows the CAN statistics"
+
+
+def test_emulator_killed_drive_lost_session_paused_then_recovered(rig):
+    r = rig()
+    r.wait_for(lambda: len(r.states) > 10, 30, "PlantState while waiting for the drive")
+    r.wait_for(lambda: len(r.col.data["drive_command"]) > 5, 30, "the controller answering")
+    assert not r.col.data["/clock"], "no /clock before the drive is armed"
+    r.emulator()
+    r.wait_for(r.braking, 30, "braking through the drive")
+    r.wait_for(lambda: len(r.clock_ns()) > 100, 10, "/clock running")
+    n_diag = len(r.col.data["/diagnostics"])
+    t_kill = time.monotonic()
+    k_kill = len(r.states)
+    r.emulators[0].kill9()
+    r.wait_for(lambda: any(m.faults & LOST for m in r.states[k_kill:]), 5, "FAULT_DRIVE_LOST")
+    i = next(i for i in range(k_kill, len(r.states)) if r.states[i].faults & LOST)
+    t_fault = r.col.stamps["plant_state"][i]
+    print(f"FAULT_DRIVE_LOST {1e3 * (t_fault - t_kill):.0f} ms after kill -9 (heartbeat timeout 300 ms)")
+    assert t_fault - t_kill < HEARTBEAT_TIMEOUT_S + SLACK_S
+    r.wait_for(lambda: r.diagnostics(n_diag, DiagnosticStatus.ERROR), 2, "ERROR diagnostic")
+    err = r.diagnostics(n_diag, DiagnosticStatus.ERROR)[0]
+    assert "drive silent" in err.message and value(err, "can_link") == "lost"
+    r.wait_for(lambda: r.listener.torques_after(t_kill) and r.listener.torques_after(t_kill)[-1] == 0.0, 2,
+               "zero torque on the bus")
+    # the session pauses: /clock stops, PlantState keeps coming with its stamp frozen
+    frozen = stamp_ns(r.states[i].header.stamp)
+    r.wait_for(lambda: len(r.states) > i + 100, 5, "PlantState while the drive is lost")
+    time.sleep(0.3)
+    later = r.states[i:]
+    assert all(stamp_ns(m.header.stamp) == frozen and m.faults & LOST for m in later)
+    assert max(r.clock_ns()) <= frozen
+    assert [m.seq for m in later[:50]] == list(range(later[0].seq, later[0].seq + 50))
+    assert all(d.torque_cmd_nm == 0.0 for d in r.col.data["drive_command"][-20:]), "the controller holds zero"
+    assert r.plant.proc.poll() is None
+    # the drive comes back: re-armed, sim time and braking resume
+    k_back = len(r.states)
+    r.emulator()
+    r.wait_for(lambda: len(r.states) > k_back + 50 and r.braking(), 30, "recovery")
+    assert max(r.clock_ns()) > frozen
+    assert "the drive is back" in r.plant.output()
+    n = len(r.col.data["/diagnostics"])
+    r.wait_for(lambda: any(s.level == DiagnosticStatus.OK for s in r.diagnostics(n)), 5, "OK diagnostic")
+    assert r.plant.stop() == 0, r.plant.output()
+
+
+def test_garbage_is_counted_then_a_silent_drive_pauses_the_session(rig):
+    r = rig()
+    r.wait_for(lambda: len(r.states) > 10, 30, "PlantState while waiting for the drive")
+    r.wait_for(lambda: len(r.col.data["drive_command"]) > 5, 30, "the controller answering")
+    emu = r.emulator("--garbage-rate", "300", "--seed", "3", "--silent-after-s", "5.0")
+    r.wait_for(r.braking, 30, "braking through the drive under garbage")
+    n = len(r.col.data["/diagnostics"])
+    r.wait_for(lambda: any(int(value(s, "can_dropped") or 0) >= 100 for s in r.diagnostics(n)), 10,
+               "garbage counted")
+    s = r.diagnostics(n)[-1]
+    assert int(value(s, "can_other_node") or 0) > 0 and value(s, "can_link") == "alive"
+    assert r.braking(), "garbage changes nothing"
+    print("plant CAN counters under garbage:", {kv.key: kv.value for kv in s.values if kv.key.startswith("can_d")})
+    # --silent-after-s: the emulator keeps running but sends nothing more
+    k = len(r.states)
+    r.wait_for(lambda: any(m.faults & LOST for m in r.states[k:]), 10, "FAULT_DRIVE_LOST of a silent drive")
+    i = next(i for i in range(k, len(r.states)) if r.states[i].faults & LOST)
+    r.wait_for(lambda: r.diagnostics(n, DiagnosticStatus.ERROR), 2, "ERROR diagnostic")
+    frozen = stamp_ns(r.states[i].header.stamp)
+    time.sleep(1.0)                     # the drive's watchdog (0.5 s) trips: nobody feeds it any more
+    assert max(r.clock_ns()) <= frozen and all(m.faults & LOST for m in r.states[i:])
+    assert r.plant.proc.poll() is None and r.controller.proc.poll() is None
+    summary = emu.stop()
+    assert summary["tx:garbage"] >= 100 and summary["tx_suppressed"] > 0
+    assert summary["axis_state"] == 1 and summary["active_errors"] & int(ODriveError.WATCHDOG_TIMER_EXPIRED), \
+        "the silent drive stopped itself: its watchdog was no longer fed"
+
+
+def test_controller_killed_the_drive_watchdog_trips_and_the_plant_reports_it(rig):
+    r = rig()
+    r.emulator("--watchdog-s", "0.5")
+    r.wait_for(r.braking, 40, "braking through the drive")
+    n = len(r.col.data["/diagnostics"])
+    t_kill = time.monotonic()
+    os.killpg(r.controller.pid, signal.SIGKILL)
+    # the plant's command timeout (0.25 s) -> zero torque, watchdog no longer fed -> the drive disarms
+    r.wait_for(lambda: any(value(s, "can_axis_error") == WATCHDOG_NAME for s in r.diagnostics(n)), 5,
+               "the drive's watchdog error in the plant's diagnostic")
+    s = next(s for s in r.diagnostics(n) if value(s, "can_axis_error") == WATCHDOG_NAME)
+    assert s.level == DiagnosticStatus.ERROR and WATCHDOG_NAME in s.message
+    assert "no DriveCommand" in s.message
+    r.wait_for(lambda: any(err & int(ODriveError.WATCHDOG_TIMER_EXPIRED) and state == 1
+                           for err, state in r.listener.heartbeats_after(t_kill)), 3,
+               "the drive's heartbeat: IDLE with WATCHDOG_TIMER_EXPIRED")
+    assert r.listener.torques_after(t_kill)[-1] == 0.0, "zero torque was the last setpoint"
+    k = len(r.states)
+    time.sleep(0.3)
+    assert all(m.faults & PlantState.FAULT_COMMAND_TIMEOUT for m in r.states[k:])
+    frozen = max(r.clock_ns())
+    time.sleep(0.3)
+    assert max(r.clock_ns()) == frozen, "sim time stands while the drive is disarmed"
+    # a new controller: Clear_Errors + closed loop, braking again
+    ctrl2 = r.node("bike_controller", "controller_node")
+    k = len(r.states)
+    r.wait_for(lambda: len(r.states) > k + 20 and r.braking(), 30, "recovery with a new controller")
+    # the host dies: the drive's own watchdog stops the torque
+    t_plant = time.monotonic()
+    os.killpg(r.plant.pid, signal.SIGKILL)
+    r.wait_for(lambda: any(err & int(ODriveError.WATCHDOG_TIMER_EXPIRED) and state == 1
+                           for err, state in r.listener.heartbeats_after(t_plant)), 3,
+               "the drive disarmed by its watchdog after the plant died")
+    first = next(t for t, m in r.listener.frames if t >= t_plant and m.arbitration_id == 0x01
+                 and struct.unpack("<I", bytes(m.data[:4]))[0] & int(ODriveError.WATCHDOG_TIMER_EXPIRED))
+    print(f"drive disarmed {1e3 * (first - t_plant):.0f} ms after the plant was killed (watchdog 500 ms)")
+    assert ctrl2.proc.poll() is None
+
+
+def test_drive_command_to_can_frame_latency_is_measured(ros_domain):
+    """bike_plant.can.latency.can_latency (for ./bike bench): every command timed, numbers sane."""
+    from bike_plant.can.latency import can_latency
+
+    result = can_latency(n=100, rate_hz=200.0, domain=ros_domain, config=CAN_CONFIG)
+    print("DriveCommand -> CAN frame:", {k: round(v, 3) if isinstance(v, float) else v for k, v in result.items()
+                                         if k != "what"})
+    assert result["received"] >= 95
+    assert 0.0 < result["p50_ms"] <= result["p99_ms"] <= result["max_ms"] < 1000.0
