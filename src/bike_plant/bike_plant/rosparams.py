@@ -49,7 +49,7 @@ DESCRIPTIONS = {
     "control_period_s": "one control period [s] (50 us for the BLDC bike)",
     "command_timeout_s": "realtime: no DriveCommand for this long [wall s] -> safe state + FAULT_COMMAND_TIMEOUT",
     "duration_s": "simulated seconds of a run; 0 = run until stopped",
-    "backend": "plant backend: sim (numba model) | can (real drive, not implemented yet)",
+    "backend": "plant backend: sim (numba model) | can (a drive over CAN: ODrive CANSimple 0.6, realtime only)",
     "seed": "random seed of the simulated plant",
     "command_wait_s": "lockstep: wall seconds to wait for the Command of a batch before proceeding without it",
     "session.period_s": "Command publishing period of the session [sim s]",

@@ -150,6 +150,16 @@ def main(json_path: str | None = None, quick: bool = False) -> int:
         show(f"node graph lockstep, N={n}: {graph['real_time']:.2f}x real time; DDS ping-pong of the same "
              f"messages {ping['round_trips_per_s']:.0f} round trips/s (p50 {ping['p50_us']:.0f} us) = "
              f"{limit_real_time:.2f}x limit; graph reaches {ratio * 100:.0f} % of it")
+    try:
+        from bike_plant.can.latency import can_latency
+        lat = can_latency(n=200 if quick else 500)
+    except Exception as exc:  # noqa: BLE001 - reported, not hidden
+        show(f"CAN latency: unavailable ({exc})")
+    else:
+        for key in ("p50_ms", "p99_ms", "max_ms"):
+            figures[f"can_drive_command_to_frame_{key}"] = float(lat[key])
+        show(f"DriveCommand -> CAN frame (plant node, backend can, udp_multicast): p50 {lat['p50_ms']:.2f} ms, "
+             f"p99 {lat['p99_ms']:.2f} ms, max {lat['max_ms']:.2f} ms ({lat.get('received', '?')}/{lat.get('n', '?')})")
     if json_path:
         pathlib.Path(json_path).write_text(json.dumps(figures, indent=2, sort_keys=True))
         show(f"figures written to {json_path}")
