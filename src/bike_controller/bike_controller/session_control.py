@@ -109,7 +109,25 @@ def drive_status(base: dict, brake_nm: float, out: ModeOutput, speed_rpm: float,
     return status
 
 
-class ModedController:
+class SessionCommand:
+    """The session's Command in force (validated), shared by the machines' moded laws."""
+
+    command: float = 0.0
+    mode: int = MODE_RESISTANCE
+    command_rejected: bool = False
+
+    def set_command(self, command: float, mode: int = MODE_RESISTANCE) -> None:
+        try:
+            validate_session_command(command, mode)
+        except ValueError:
+            self.command_rejected = True
+            raise
+        self.command_rejected = False
+        self.command = float(command)
+        self.mode = int(mode)
+
+
+class ModedController(SessionCommand):
     """BatchController + session modes (same decide/status interface)."""
 
     def __init__(self, cfg: dict, nominal_params=None, batch_periods: int | None = None):
@@ -142,15 +160,6 @@ class ModedController:
     def cs(self):
         return self.inner.cs
 
-    def set_command(self, command: float, mode: int = MODE_RESISTANCE) -> None:
-        try:
-            validate_session_command(command, mode)
-        except ValueError:
-            self.command_rejected = True
-            raise
-        self.command_rejected = False
-        self.command = float(command)
-        self.mode = int(mode)
 
     def _apply_mode(self, dt_s: float, snapshot: dict) -> None:
         inner = self.inner

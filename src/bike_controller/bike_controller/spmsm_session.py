@@ -31,7 +31,7 @@ from bike_plant import spmsm as M
 from bike_plant.params import RPM_PER_RAD_S
 
 from .modes import MODE_ISOKINETIC, machine_figures, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim, mode_params_from_config
-from .session_control import DriveTorqueLaw, drive_status, validate_session_command
+from .session_control import DriveTorqueLaw, SessionCommand, drive_status
 from .spmsm_control import SpmsmController, controller_params_from_config
 
 
@@ -62,7 +62,7 @@ def model_state_from_snapshot(p_nom: np.ndarray, snap: dict) -> np.ndarray:
     return s
 
 
-class ModedSpmsmController:
+class ModedSpmsmController(SessionCommand):
     """SpmsmController + session modes (same decide/status interface as ModedController)."""
 
     def __init__(self, cfg: dict, nominal_params=None, batch_periods: int | None = None):
@@ -95,16 +95,6 @@ class ModedSpmsmController:
     @property
     def batch_periods(self) -> int:
         return self.inner.batch_periods
-
-    def set_command(self, command: float, mode: int = MODE_RESISTANCE) -> None:
-        try:
-            validate_session_command(command, mode)
-        except ValueError:
-            self.command_rejected = True
-            raise
-        self.command_rejected = False
-        self.command = float(command)
-        self.mode = int(mode)
 
     def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm) -> None:
         inner = self.inner
