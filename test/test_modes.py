@@ -215,7 +215,7 @@ def test_bad_commands_and_config_are_refused():
 
 
 # ------------------------------------------------------------------ closed loop with the plant
-def _ride_plant(command_fn, seconds, modes=None):
+def _ride_plant(command_fn, seconds, modes=None, preset=None):
     """The BLDC plant (rider load, default config) + ModedController, batched loop, no ROS."""
     import copy
 
@@ -225,6 +225,8 @@ def _ride_plant(command_fn, seconds, modes=None):
     cfg = copy.deepcopy(load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml"))
     if modes:
         cfg["modes"] = dict(cfg.get("modes") or {}, **modes)
+    if preset:
+        cfg["load"] = dict(cfg["load"], rider_preset=preset)
     ctrl = ModedController(cfg)
     r = run_offline(cfg, seconds, command_fn, controller=ctrl)
     return r, ctrl
@@ -270,3 +272,28 @@ def test_plant_mode_switch_is_a_ramp():
     steps = np.abs(np.diff(tc[around]))
     assert steps.max() <= 20.0 * 1e-3 + 0.01, steps.max()
     assert tc[(t > 2.4) & (t < 2.5)].mean() > tc[(t > 1.8) & (t < 1.9)].mean() + 1.0
+
+
+def test_rider_presets_recreational_and_trained():
+    """load.rider_preset: a trained rider holds 90 rpm against the same resistance where a
+    recreational one holds 80; an unknown preset is one clear config error."""
+    import copy
+
+    from bike_plant.config import ConfigError, load_config
+    from bike_plant.params import plant_params_from_config
+    base = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml")
+    assert plant_params_from_config(base).load.rider_t0_nm == 120.0
+    trained = copy.deepcopy(base)
+    trained["load"]["rider_preset"] = "trained"
+    assert plant_params_from_config(trained).load.rider_t0_nm == 200.0
+    bad = copy.deepcopy(base)
+    bad["load"]["rider_preset"] = "pro"
+    with pytest.raises(ConfigError, match="load.rider_preset"):
+        plant_params_from_config(bad)
+    r, _ = _ride_plant(lambda t: (0.4, MODE_RESISTANCE), 6.0, preset="trained")
+    cad_trained = np.mean(r["speed_rpm"][r["time_s"] >= 4.0]) / GEAR
+    r, _ = _ride_plant(lambda t: (0.4, MODE_RESISTANCE), 6.0)
+    cad_recreational = np.mean(r["speed_rpm"][r["time_s"] >= 4.0]) / GEAR
+    # each near its target cadence (the effort PI still settles after 4 s)
+    assert cad_trained == pytest.approx(90.0, abs=4.0) and cad_recreational == pytest.approx(80.0, abs=4.5)
+    assert cad_trained > cad_recreational + 4.0

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Mapping
 
 import numpy as np
 
@@ -143,6 +144,31 @@ class LoadParams:
             raise ValueError("rider_effort0 must be in [0, 1]")
 
 
+# Rider presets (research notes trainers.md section 4: linear torque-cadence model,
+# T(c) = T0 (1 - c / Cmax), Pmax = T0 wmax / 4 at c = Cmax / 2). ``load.rider_preset``
+# sets these keys (they win over the same keys in the section); ``custom`` (default) uses
+# the section's own values.
+RIDER_PRESETS = {
+    # about 500 W peak (T0 120 N m, Cmax 160 rpm), holds 80 rpm: a recreational rider
+    "recreational": {"rider_t0_nm": 120.0, "rider_cadence_max_rpm": 160.0, "rider_target_cadence_rpm": 80.0},
+    # about 1200 W peak (T0 200 N m, Cmax 220 rpm; sprinters reach 1600 W), holds 90 rpm
+    "trained": {"rider_t0_nm": 200.0, "rider_cadence_max_rpm": 220.0, "rider_target_cadence_rpm": 90.0},
+}
+
+
+def load_section_with_preset(load: Mapping, path=None) -> dict:
+    """The ``load`` section with ``rider_preset`` (recreational | trained | custom) applied."""
+    load = dict(load or {})
+    preset = load.pop("rider_preset", "custom")
+    if preset == "custom":
+        return load
+    if preset not in RIDER_PRESETS:
+        raise ConfigError(f"unknown rider_preset {preset!r} (custom | {' | '.join(RIDER_PRESETS)})", path,
+                          "load.rider_preset")
+    load.update(RIDER_PRESETS[preset])
+    return load
+
+
 @dataclass
 class HallParams:
     """Hall sensors + capture timer (paper 000, Eq. 1, Fig. 8).
@@ -189,7 +215,7 @@ def plant_params_from_config(cfg: dict) -> PlantParams:
         bldc=build_dataclass(BldcParams, section(cfg, "bldc", path), "bldc", path),
         battery=build_dataclass(BatteryParams, _battery_values(cfg, path), "battery", path),
         mech=build_dataclass(MechParams, section(cfg, "mechanics", path), "mechanics", path),
-        load=build_dataclass(LoadParams, section(cfg, "load", path), "load", path),
+        load=build_dataclass(LoadParams, load_section_with_preset(section(cfg, "load", path), path), "load", path),
         hall=build_dataclass(HallParams, section(cfg, "hall", path), "hall", path),
         control_period_s=float(period),
     )

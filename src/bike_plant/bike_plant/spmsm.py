@@ -113,7 +113,7 @@ from numba import njit
 
 from . import mechanics
 from .config import ConfigError, build_dataclass, require_positive, section
-from .params import RPM_PER_RAD_S, TWO_PI, LoadParams, MechParams
+from .params import RPM_PER_RAD_S, TWO_PI, LoadParams, MechParams, load_section_with_preset
 
 # numba options of every kernel: FMA contraction and reciprocal division (latency-bound
 # serial chains: ~30 % faster); NaN / Inf semantics stay IEEE (no 'fast' flag set).
@@ -347,7 +347,8 @@ def plant_params_from_config(cfg: dict) -> SpmsmPlantParams:
         regen=build_dataclass(RegenParams, section(cfg, "regen", path), "regen", path),
         battery=build_dataclass(SpmsmBatteryParams, section(cfg, "battery", path), "battery", path),
         mech=build_dataclass(MechParams, mech_values, "mechanics", path),
-        load=build_dataclass(SpmsmLoadParams, section(cfg, "load", path), "load", path),
+        load=build_dataclass(SpmsmLoadParams, load_section_with_preset(section(cfg, "load", path), path), "load",
+                             path),
         encoder=build_dataclass(EncoderParams, section(cfg, "encoder", path), "encoder", path),
         control_period_s=float(period),
     )
