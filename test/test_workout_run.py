@@ -66,3 +66,20 @@ def test_every_mode_in_the_node_graph(tmp_path, ros_domain):
     assert np.mean([m.speed_rpm for m in iso]) / 35.0 == pytest.approx(70.0, abs=1.5)
     assert not any(s.mode_saturated for w in modes for s in w)
     assert all(m.faults == 0 for m in states)
+
+
+@pytest.mark.slow
+def test_ride_a_zwift_file_in_the_node_graph(tmp_path, ros_domain):
+    """A .zwo (Zwift) workout: imported, ridden in ERG mode by the rider model, recorded."""
+    result = bike_command("run", "--workout", str(DATA / "over_unders.zwo"), "--ftp", "250", "--duration", "2",
+                          "--record", str(tmp_path))
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    bag = next(p for p in tmp_path.iterdir() if p.is_dir())
+    info = json.loads(read_topic(bag, "session_info")[0].data)
+    assert info["workout"]["workout_format"] == "zwo"
+    commands = read_topic(bag, "command")
+    assert commands and all(c.mode == 2 for c in commands[:-1])
+    status = [s for s in read_topic(bag, "controller_status") if s.header.stamp.sec >= 1]
+    target = np.mean([s.mode_target for s in status])
+    states = [m for m in read_topic(bag, "plant_state") if m.header.stamp.sec >= 1]
+    assert np.mean([-m.torque_em_nm * m.speed_rad_s for m in states]) == pytest.approx(target, rel=0.1)
