@@ -25,10 +25,26 @@ def ros_domain(monkeypatch):
     return int(domain)
 
 
-def bike_command(*args: str, timeout: float = 600, env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run `python -m bike_session.cli ARGS` (what ./bike does inside the environment)."""
-    return subprocess.run([sys.executable, "-m", "bike_session.cli", *args], cwd=ROOT, env=env or os.environ.copy(),
-                          capture_output=True, text=True, timeout=timeout)
+def bike_command(*args: str, timeout: float = 240, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run `python -m bike_session.cli ARGS` (what ./bike does inside the environment).
+
+    On timeout the CLI gets SIGINT (its launcher then stops every node it started, which
+    run in their own sessions and would outlive a SIGKILL of the CLI), and the test fails
+    with what the run printed so far."""
+    proc = subprocess.Popen([sys.executable, "-m", "bike_session.cli", *args], cwd=ROOT,
+                            env=env or os.environ.copy(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGINT)
+        try:
+            out, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+        raise AssertionError(f"`bike {' '.join(args)}` did not finish within {timeout} s\n"
+                             f"--- stdout (tail):\n{out[-6000:]}\n--- stderr (tail):\n{err[-3000:]}") from None
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
 class NodeProcess:

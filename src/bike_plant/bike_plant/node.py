@@ -77,6 +77,7 @@ PLANT_DEFAULTS = {
     "diagnostics_period_s": 1.0,
     "recorder_window_batches": 0,
     "recorder_timeout_s": 10.0,
+    "start_timeout_s": 120.0,
     "can_log_file": "",
 }
 PLANT_DESCRIPTIONS = {
@@ -87,6 +88,8 @@ PLANT_DESCRIPTIONS = {
     "recorder_window_batches": "lockstep: wait for the recorder and stay at most this many batches ahead of it "
                                "(0 = do not wait for a recorder)",
     "recorder_timeout_s": "lockstep: give up waiting for a silent recorder after this many wall seconds",
+    "start_timeout_s": "lockstep: exit with an error when no controller appears within this many wall seconds "
+                       "(0 = wait forever)",
     "can_log_file": "backend can: log every CAN frame to this .asc / .blf file (overrides can.log_file; "
                     "./bike run --record puts it beside the bag)",
 }
@@ -107,6 +110,13 @@ ERROR_FAULTS = (PlantState.FAULT_COMMAND_TIMEOUT | PlantState.FAULT_OVERVOLTAGE 
 
 def fault_text(bits: int) -> str:
     return "|".join(name for bit, name in FAULT_NAMES.items() if bits & bit) or "none"
+
+
+class StartupTimeout(ConfigError):
+    """Lockstep: the graph never came together (reported as one error, exit code 2)."""
+
+    def __init__(self, message: str):
+        Exception.__init__(self, message)
 
 
 # ---------------------------------------------------------------- backends
@@ -251,6 +261,7 @@ class PlantNode(Node):
             raise ConfigError(f"must be at most {LOOP_QOS.depth // 2} (half the loop topics' DDS history), "
                               f"got {self.recorder_window}", path, "recorder_window_batches")
         self.recorder_timeout_s = _number(cfg, "recorder_timeout_s", float, 0.1, path)
+        self.start_timeout_s = _number(cfg, "start_timeout_s", float, 0.0, path)
         self.backend = make_backend(str(cfg.get("backend")), cfg, _number(cfg, "seed", int, 0, path))
         # The plant is the clock source: it does not follow /clock itself (that would also
         # cost one extra callback per batch). Its stamps are the model's time.
@@ -490,6 +501,9 @@ class PlantNode(Node):
         start = time.monotonic()
         while not self.stop_requested and waiting():
             self._spin(0.05)
+            if self.start_timeout_s > 0 and time.monotonic() - start > self.start_timeout_s:
+                raise StartupTimeout(f"no controller after start_timeout_s={self.start_timeout_s:g}s (no plant_state "
+                                     "subscriber / drive_command publisher on this ROS_DOMAIN_ID and namespace)")
             if time.monotonic() > next_log:
                 log.info("waiting for the controller (plant_state subscriber and drive_command publisher)"
                          + (" and the recorder" if self.recorder_window > 0 else ""))
@@ -627,6 +641,9 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
         node = node_factory()
         install_signal_handlers(node)
         code = node.run()
+    except StartupTimeout as exc:
+        print(f"{label}: error: {exc}", file=sys.stderr)
+        code = 2
     except ConfigError as exc:
         print(f"{label}: configuration error: {exc}", file=sys.stderr)
         code = 2
