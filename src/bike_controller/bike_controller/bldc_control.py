@@ -129,7 +129,7 @@ def pack_controller(cp: ControllerParams, plant: P.PlantParams) -> np.ndarray:
     return q
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def update_command(cs, q):
     """Speed estimate -> Tcmd (Eq. 3-4) -> k, ktg (Eq. 7-9) -> I*."""
     speed = cs[C_SPEED_EST]
@@ -155,7 +155,7 @@ def update_command(cs, q):
     cs[C_ICMD] = icmd
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def process_edge(cs, q, count):
     """A captured Hall edge: Eq. 1 with nc = counts since the previous edge."""
     if cs[C_HAVE_EDGE] != 0.0 and count > cs[C_LAST_EDGE]:
@@ -166,7 +166,7 @@ def process_edge(cs, q, count):
     cs[C_HAVE_EDGE] = 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def _bound_speed(cs, q, model, p):
     """No edge for longer than the last interval: Eq. 1 of the elapsed count bounds the speed."""
     if cs[C_HAVE_EDGE] != 0.0:
@@ -179,7 +179,7 @@ def _bound_speed(cs, q, model, p):
                 update_command(cs, q)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def patterns(sector, mode):
     """(on, off) gate patterns of the sector: generating modulates low p; motoring upper p + low n."""
     pp_ = K.SECTOR_P[sector]
@@ -189,12 +189,13 @@ def patterns(sector, mode):
     return 1 << (2 * pp_ + 1), 0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def control_period(cs, q, model, p, ws, wi):
     """Hysteresis current control for one period from the (measured or predicted) state
     `model`; returns (gates_a, gates_b, split). Uses ws/wi as scratch and leaves the
     period's back-EMF / inductances in ws (K.period_setup), so the step that follows
-    can skip recomputing them."""
+    can skip recomputing them. General form (any machine); control_period_sym is its
+    fast specialisation for the symmetric machine."""
     K.period_setup(model, p, ws)
     _bound_speed(cs, q, model, p)
     hall = int(model[K.S_HALL])
@@ -205,60 +206,131 @@ def control_period(cs, q, model, p, ws, wi):
         return 0, 0, 1.0
     on_pat, off_pat = patterns(sector, int(cs[C_MODE]))
     i_fb = 0.5 * (abs(model[0]) + abs(model[1]) + abs(model[2]))
-    h = q[Q_H]
-    upper = icmd + h
-    lower = icmd - h
-    on = cs[C_ON] != 0.0
-    # comparator with memory at the period start
-    if on and i_fb >= upper:
-        on = False
-    elif (not on) and i_fb <= lower:
-        on = True
+    on = _comparator(cs, q, icmd, i_fb)
     pat = on_pat if on else off_pat
     # predict the period with the active pattern; toggle where the opposite band edge is crossed
     i_end = K.trial_currents(model, p, pat, ws, wi)
-    if on and i_end > upper and i_end > i_fb:
-        s = (upper - i_fb) / (i_end - i_fb)
-        # one edge per period: never so early that the rest of the period (off) carries the
-        # current below the lower band edge (the off slope is steeper than the on slope)
-        i_off = K.trial_currents(model, p, off_pat, ws, wi)
-        if i_off < lower:
-            s_keep = (lower - i_off) / (i_end - i_off)
-            if s_keep > s:
-                s = s_keep
-        cs[C_ON] = 0.0
-        return on_pat, off_pat, min(max(s, 0.0), 1.0)
-    if (not on) and i_end < lower and i_end < i_fb:
-        s = (i_fb - lower) / (i_fb - i_end)
-        i_on = K.trial_currents(model, p, on_pat, ws, wi)
-        if i_on > upper:
-            s_keep = (i_on - upper) / (i_on - i_end)
-            if s_keep > s:
-                s = s_keep
-        cs[C_ON] = 1.0
-        return off_pat, on_pat, min(max(s, 0.0), 1.0)
+    if _edge_needed(q, icmd, on, i_fb, i_end):
+        i_other = K.trial_currents(model, p, off_pat if on else on_pat, ws, wi)
+        return _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other)
     cs[C_ON] = 1.0 if on else 0.0
     return pat, pat, 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def _comparator(cs, q, icmd, i_fb):
+    """Hysteresis comparator with memory at the period start: on below I* - h, off above I* + h."""
+    h = q[Q_H]
+    on = cs[C_ON] != 0.0
+    if on and i_fb >= icmd + h:
+        on = False
+    elif (not on) and i_fb <= icmd - h:
+        on = True
+    return on
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def _edge_needed(q, icmd, on, i_fb, i_end):
+    """Does the prediction i_end of the active pattern cross the opposite band edge?"""
+    h = q[Q_H]
+    if on:
+        return i_end > icmd + h and i_end > i_fb
+    return i_end < icmd - h and i_end < i_fb
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other):
+    """The period's one switching edge where the prediction i_end (active pattern) crosses the
+    band edge; i_other: the prediction with the other pattern for the whole period. Returns
+    (gates_a, gates_b, split) and flips the comparator memory."""
+    h = q[Q_H]
+    upper = icmd + h
+    lower = icmd - h
+    if on:
+        s = (upper - i_fb) / (i_end - i_fb)
+        # one edge per period: never so early that the rest of the period (off) carries the
+        # current below the lower band edge (the off slope is steeper than the on slope)
+        if i_other < lower:
+            s_keep = (lower - i_other) / (i_end - i_other)
+            if s_keep > s:
+                s = s_keep
+        cs[C_ON] = 0.0
+        return on_pat, off_pat, min(max(s, 0.0), 1.0)
+    s = (i_fb - lower) / (i_fb - i_end)
+    if i_other > upper:
+        s_keep = (i_other - upper) / (i_other - i_end)
+        if s_keep > s:
+            s = s_keep
+    cs[C_ON] = 1.0
+    return off_pat, on_pat, min(max(s, 0.0), 1.0)
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def control_period_sym(cs, q, model, p, c, ws, wi):
+    """control_period for the symmetric machine (c[K.KC_SYM] != 0), the currents in
+    registers. Returns (gates_a, gates_b, split, emf, legs_a): emf the period's back-EMF
+    (K.emf_sym) and legs_a the trial's K.legs_of for gates_a (the pattern the period starts
+    with), which K.step_period_sym reuses: with a matched model the controller's prediction
+    IS the plant's first step."""
+    emf = K.emf_sym(model, p)
+    _bound_speed(cs, q, model, p)
+    hall = int(model[K.S_HALL])
+    sector = K.HALL_TO_SECTOR[hall & 7]
+    icmd = cs[C_ICMD]
+    if sector < 0 or icmd <= 0.0:
+        cs[C_ON] = 0.0
+        return 0, 0, 1.0, emf, K.NO_LEGS
+    on_pat, off_pat = patterns(sector, int(cs[C_MODE]))
+    i0 = model[K.S_IA]
+    i1 = model[K.S_IB]
+    i2 = model[K.S_IC]
+    i_fb = 0.5 * (abs(i0) + abs(i1) + abs(i2))
+    on = _comparator(cs, q, icmd, i_fb)
+    pat = on_pat if on else off_pat
+    vdc = model[K.S_VDC]
+    legs = K.legs_of(i0, i1, i2, pat, vdc, emf, c)
+    i_end = K.trial_sym(model, pat, emf, legs, c, ws, wi)
+    if _edge_needed(q, icmd, on, i_fb, i_end):
+        i_other = K.trial_sym(model, off_pat if on else on_pat, emf, K.NO_LEGS, c, ws, wi)
+        a, b, s = _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other)
+        return a, b, s, emf, legs
+    cs[C_ON] = 1.0 if on else 0.0
+    return pat, pat, 1.0, emf, legs
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def closed_loop_period(cs, q, model, p, c, ws, wi, edge_counts, edge_states):
+    """One period of control law + step of `model` (the controller's prediction, or in
+    run_fused the plant itself), Hall edges fed back to Eq. 1. Returns (gates_a, gates_b,
+    split) as sent to the plant."""
+    if c[K.KC_SYM] != 0.0:
+        a, b, s, emf, legs = control_period_sym(cs, q, model, p, c, ws, wi)
+        s = np.float64(np.float32(s))    # DriveCommand carries split as float32: predict what the plant gets
+        ne = K.step_period_sym(model, p, c, a, b, s, emf, legs, edge_counts, edge_states, 0, ws, wi)
+    else:
+        a, b, s = control_period(cs, q, model, p, ws, wi)
+        s = np.float64(np.float32(s))
+        ne = K.step_period(model, p, c, a, b, s, edge_counts, edge_states, 0, ws, wi, True)
+    for j in range(ne):
+        process_edge(cs, q, float(edge_counts[j]))
+    return a, b, s
+
+
+@njit(cache=True, error_model="numpy", forceinline=False)
 def control_batch(cs, q, model, p, ga, gb, sp, edge_counts, edge_states):
     """N periods of control law + prediction with the controller's own plant kernel."""
     ws = np.empty(K.WS_SIZE)
     wi = np.empty(6, np.int64)
+    c = K.plant_constants(p)
     n = ga.shape[0]
     for k in range(n):
-        a, b, s = control_period(cs, q, model, p, ws, wi)
-        s = np.float64(np.float32(s))    # DriveCommand carries split as float32: predict what the plant gets
+        a, b, s = closed_loop_period(cs, q, model, p, c, ws, wi, edge_counts, edge_states)
         ga[k] = a
         gb[k] = b
         sp[k] = s
-        ne = K.step_period(model, p, a, b, s, edge_counts, edge_states, 0, ws, wi, True)
-        for j in range(ne):
-            process_edge(cs, q, float(edge_counts[j]))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def run_fused(plant, p, cs, q, n, samples, rec_every, tem_out):
     """Per-period closed loop (N = 1, perfect measurement): the controller reads the plant
     state directly. The fastest form of the inner loop (benchmark); equal to the batched
@@ -267,12 +339,9 @@ def run_fused(plant, p, cs, q, n, samples, rec_every, tem_out):
     wi = np.empty(6, np.int64)
     ec = np.empty(4, np.uint64)
     es = np.empty(4, np.uint8)
+    c = K.plant_constants(p)
     for k in range(n):
-        a, b, s = control_period(cs, q, plant, p, ws, wi)
-        s = np.float64(np.float32(s))
-        ne = K.step_period(plant, p, a, b, s, ec, es, 0, ws, wi, True)
-        for j in range(ne):
-            process_edge(cs, q, float(ec[j]))
+        closed_loop_period(cs, q, plant, p, c, ws, wi, ec, es)
         if rec_every > 0 and k % rec_every == 0:
             r = k // rec_every
             if r < samples.shape[0]:

@@ -99,7 +99,10 @@ SECTOR_N = np.array([1, 2, 2, 0, 0, 1], dtype=np.int64)
 
 TWO_PI = 2.0 * math.pi
 SIXTH = math.pi / 3.0
+INV_SIXTH = 3.0 / math.pi
 TWELFTH = math.pi / 6.0
+THIRD_TURN = 1 * (TWO_PI / 3.0)           # x * (2 pi / 3) of phase x = 1, 2, bit for bit
+TWO_THIRDS_TURN = 2 * (TWO_PI / 3.0)
 MAX_SUBSTEPS = 12
 # scratch vector layout (per-period values, kept out of the heap)
 W_ACC = 0       # 5 accumulators of the plant step
@@ -116,7 +119,7 @@ W_SYM = 34      # 1: all phases have the same L and R (fast path)
 WS_SIZE = 36
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def trapezoid(theta):
     """Unit 120-degree flat-top back-EMF shape of phase a: +1 on [30, 150] deg, -1 on [210, 330]."""
     ph = theta % TWO_PI
@@ -131,7 +134,7 @@ def trapezoid(theta):
     return -1.0 + (ph - 11.0 * TWELFTH) / TWELFTH
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def _trap_near(theta):
     """trapezoid() for theta within one turn of [0, 2 pi) (no float modulo)."""
     if theta < 0.0:
@@ -151,7 +154,7 @@ def _trap_near(theta):
     return -1.0 + (theta - 11.0 * TWELFTH) / TWELFTH
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def interp_table(x, xs, ys, n):
     if x <= xs[0]:
         return ys[0]
@@ -161,45 +164,55 @@ def interp_table(x, xs, ys, n):
     return ys[n - 1]
 
 
-@njit(cache=True, error_model="numpy")
-def emf_shape(theta_e, omega, p, f, off):
-    """f[off + x] for the 3 phases at angle theta_e (non-ideal blend if enabled)."""
-    for x in range(3):
-        f[off + x] = _trap_near(theta_e - x * (TWO_PI / 3.0))
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def emf_f3(theta_e, omega, p):
+    """Back-EMF shapes (f_a, f_b, f_c) at angle theta_e (non-ideal blend if enabled)."""
+    th_b = theta_e - THIRD_TURN
+    th_c = theta_e - TWO_THIRDS_TURN
+    fa = _trap_near(theta_e)
+    fb = _trap_near(th_b)
+    fc = _trap_near(th_c)
     if p[P.P_EMF_NONIDEAL] != 0.0:
         n = int(p[P.P_NTAB])
         w = interp_table(abs(omega), p[P.P_TAB_X:P.P_TAB_X + 8], p[P.P_TAB_Y:P.P_TAB_Y + 8], n)
         a = (1.0 - w) * p[P.P_SINE_AMP]
-        for x in range(3):
-            f[off + x] = w * f[off + x] + a * math.sin(theta_e - x * (TWO_PI / 3.0))
+        fa = w * fa + a * math.sin(theta_e)
+        fb = w * fb + a * math.sin(th_b)
+        fc = w * fc + a * math.sin(th_c)
+    return fa, fb, fc
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
+def emf_shape(theta_e, omega, p, f, off):
+    """f[off + x] for the 3 phases at angle theta_e (non-ideal blend if enabled)."""
+    fa, fb, fc = emf_f3(theta_e, omega, p)
+    f[off] = fa
+    f[off + 1] = fb
+    f[off + 2] = fc
+
+
+@njit(cache=True, error_model="numpy", forceinline=False)
 def sector_of(theta_e):
     return int(((theta_e - TWELFTH) % TWO_PI) // SIXTH) % 6
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def hall_of(theta_e):
     return SECTOR_TO_HALL[sector_of(theta_e)]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def blank_interlock(gates):
     """Hardware interlock (GAL of paper 000, Fig. 10): a leg with both switches on is blanked.
 
     Returns (applied gates, number of blanked legs)."""
-    g = gates & 63
-    nb = 0
-    for x in range(3):
-        m = 3 << (2 * x)
-        if (g & m) == m:
-            g &= ~m
-            nb += 1
-    return g, nb
+    g = int(gates) & 63
+    both = g & (g >> 1) & 0b010101          # bit 2x: leg x has both switches on
+    g &= ~(both | (both << 1))
+    return g, (both & 1) + ((both >> 2) & 1) + ((both >> 4) & 1)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def _solve(cur, co, wi, vdc, ws, t):
     """Crank-Nicolson step of the conducting legs (wi[x] > 0) from cur[co:co+3] into
     ws[W_I1:W_I1+3]; open legs get 0. Returns v_n."""
@@ -243,7 +256,7 @@ def _solve(cur, co, wi, vdc, ws, t):
     return vn
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def _topology(cur, co, gates, vdc, ws, wi, t):
     """Leg states wi[0:3] (0 open, 1 at 0 V, 2 at v_dc) for pattern `gates` and the
     currents; wi[3:6] = 1 for diode-only legs. Returns True if the conducting legs were
@@ -327,67 +340,102 @@ def _topology(cur, co, gates, vdc, ws, wi, t):
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
+    """_topology + _solve for the symmetric machine (equal L, R in all phases) with >= 2
+    conducting legs, as scalars. Returns (ok, w0, w1, w2, d0, d1, d2): leg states as in
+    _topology (0 open, 1 at 0 V, 2 at v_dc) and the Crank-Nicolson direction
+    d_x = v_x - e_x - R i_x - v_n, so a step of t seconds is i_x + g(t) d_x with
+    g(t) = t / (L + R t / 2) (cn_gain); open legs d = 0. ok False (fewer than 2 legs
+    conduct): the general iteration is needed.
+
+    _topology's iteration resolved in closed form: with one leg open (zero current), its
+    terminal v_n + e_z either stays inside [0, v_dc] (2-leg solution), or it clamps to a
+    rail and the 3-leg solution is kept if the clamping diode then carries current in its
+    conducting direction, else the leg stays open (2-leg solution; _topology reaches it
+    after re-opening the leg). The diode test uses the sign of d_z, which is that of
+    j_z = 0 + g d_z (g > 0) barring underflow below 1e-300 A. Same floating-point operations
+    as _solve otherwise, and none of it depends on t: one call serves every step length
+    from these currents (the controller's trial and the plant's first segment).
+
+    Selects, not branches: the pattern and the open leg's clamp change from period to
+    period, and a mispredicted branch costs more than the arithmetic it skips."""
+    # first guess (as _topology's first pass): a leg is at v_dc through its upper switch or,
+    # with no switch on, its upper diode (current < 0); at 0 V through the lower switch or
+    # diode (current > 0); open with no switch on and zero current
+    up0 = (gates & 1) != 0
+    up1 = (gates & 4) != 0
+    up2 = (gates & 16) != 0
+    sw0 = (gates & 3) != 0
+    sw1 = (gates & 12) != 0
+    sw2 = (gates & 48) != 0
+    h0 = up0 | ((not sw0) & (i0 < 0.0))
+    h1 = up1 | ((not sw1) & (i1 < 0.0))
+    h2 = up2 | ((not sw2) & (i2 < 0.0))
+    c0 = sw0 | (i0 > 0.0) | (i0 < 0.0)
+    c1 = sw1 | (i1 > 0.0) | (i1 < 0.0)
+    c2 = sw2 | (i2 > 0.0) | (i2 < 0.0)
+    w0 = 2 if h0 else (1 if c0 else 0)
+    w1 = 2 if h1 else (1 if c1 else 0)
+    w2 = 2 if h2 else (1 if c2 else 0)
+    n = int(c0) + int(c1) + int(c2)
+    u0 = (vdc if h0 else 0.0) - e0 - r * i0
+    u1 = (vdc if h1 else 0.0) - e1 - r * i1
+    u2 = (vdc if h2 else 0.0) - e2 - r * i2
+    # 2 legs: v_n = mean over the conducting ones (+ 0.0 for the open one changes nothing)
+    vn2 = (0.0 + (u0 if c0 else 0.0) + (u1 if c1 else 0.0) + (u2 if c2 else 0.0)) * 0.5   # == / 2
+    # the open leg's terminal; clamped to a rail by its diode?
+    vt = vn2 + (e0 if not c0 else (e1 if not c1 else e2))
+    hi = vt > vdc
+    clamp = hi | (vt < 0.0)
+    vz = vdc if hi else 0.0
+    u0 = u0 if c0 else vz - e0 - r * i0
+    u1 = u1 if c1 else vz - e1 - r * i1
+    u2 = u2 if c2 else vz - e2 - r * i2
+    vn3 = (0.0 + u0 + u1 + u2) / 3.0
+    dz = (u0 if not c0 else (u1 if not c1 else u2)) - vn3
+    # keep the 3-leg solution if the clamping diode conducts forward (upper: i <= 0, lower: i >= 0)
+    three = (n == 3) | ((n == 2) & clamp & ((not (dz > 0.0)) if hi else (not (dz < 0.0))))
+    wz = (2 if hi else 1) if three else 0
+    vn = vn3 if three else vn2
+    w0 = w0 if c0 else wz
+    w1 = w1 if c1 else wz
+    w2 = w2 if c2 else wz
+    return (n >= 2, w0, w1, w2, u0 - vn if w0 > 0 else 0.0, u1 - vn if w1 > 0 else 0.0,
+            u2 - vn if w2 > 0 else 0.0)
+
+
+NO_LEGS = (-1, False, 0, 0, 0, 0.0, 0.0, 0.0)   # legs argument of sym_segment: none computed yet
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def cn_gain(t, L, r):
+    """g(t) = t / (L + R t / 2) of the Crank-Nicolson step (the expression of _solve)."""
+    return t / (L + 0.5 * r * t)
+
+
+@njit(cache=True, error_model="numpy", forceinline=False)
 def _fast_sym(cur, co, gates, vdc, ws, wi, t):
-    """Scalar fast path of _topology + _solve for the symmetric machine when the first
-    topology guess holds (>= 2 conducting legs, no floating terminal clamps): the same
-    floating-point operations in the same order, so bit-identical. Returns False (nothing
-    written but wi) when the general iteration is needed."""
-    i0 = cur[co]
-    i1 = cur[co + 1]
-    i2 = cur[co + 2]
-    # leg states (as _topology's first pass); d = diode-only leg
-    w0 = 2 if (gates & 1) else (1 if (gates & 2) else (1 if i0 > 0.0 else (2 if i0 < 0.0 else 0)))
-    w1 = 2 if (gates & 4) else (1 if (gates & 8) else (1 if i1 > 0.0 else (2 if i1 < 0.0 else 0)))
-    w2 = 2 if (gates & 16) else (1 if (gates & 32) else (1 if i2 > 0.0 else (2 if i2 < 0.0 else 0)))
-    d0 = 0 if (gates & 3) else 1
-    d1 = 0 if (gates & 12) else 1
-    d2 = 0 if (gates & 48) else 1
-    ncl = (w0 > 0) + (w1 > 0) + (w2 > 0)
-    if ncl < 2:
+    """sym_legs + the step of t seconds into ws[W_I1:] / wi, the array form electrical_segment
+    uses. Returns False (nothing written) when the general iteration is needed."""
+    ok, w0, w1, w2, d0, d1, d2 = sym_legs(cur[co], cur[co + 1], cur[co + 2], gates, vdc, ws[W_E], ws[W_E + 1],
+                                          ws[W_E + 2], ws[W_R])
+    if not ok:
         return False
-    e0 = ws[W_E]
-    e1 = ws[W_E + 1]
-    e2 = ws[W_E + 2]
-    r = ws[W_R]
-    g = t / (ws[W_L] + 0.5 * r * t)
-    v0 = vdc if w0 == 2 else 0.0
-    v1 = vdc if w1 == 2 else 0.0
-    v2 = vdc if w2 == 2 else 0.0
-    sw = 0.0
-    if w0 > 0:
-        sw += v0 - e0 - r * i0
-    if w1 > 0:
-        sw += v1 - e1 - r * i1
-    if w2 > 0:
-        sw += v2 - e2 - r * i2
-    vn = sw * 0.5 if ncl == 2 else sw / 3.0     # x * 0.5 == x / 2 exactly
-    # a floating terminal that would clamp needs the general iteration
-    if w0 == 0:
-        vt = vn + e0
-        if vt > vdc or vt < 0.0:
-            return False
-    if w1 == 0:
-        vt = vn + e1
-        if vt > vdc or vt < 0.0:
-            return False
-    if w2 == 0:
-        vt = vn + e2
-        if vt > vdc or vt < 0.0:
-            return False
-    ws[W_I1] = i0 + g * (v0 - e0 - r * i0 - vn) if w0 > 0 else 0.0
-    ws[W_I1 + 1] = i1 + g * (v1 - e1 - r * i1 - vn) if w1 > 0 else 0.0
-    ws[W_I1 + 2] = i2 + g * (v2 - e2 - r * i2 - vn) if w2 > 0 else 0.0
+    g = cn_gain(t, ws[W_L], ws[W_R])
+    ws[W_I1] = cur[co] + g * d0 if w0 > 0 else 0.0
+    ws[W_I1 + 1] = cur[co + 1] + g * d1 if w1 > 0 else 0.0
+    ws[W_I1 + 2] = cur[co + 2] + g * d2 if w2 > 0 else 0.0
     wi[0] = w0
     wi[1] = w1
     wi[2] = w2
-    wi[3] = d0
-    wi[4] = d1
-    wi[5] = d2
+    wi[3] = 0 if (gates & 3) else 1
+    wi[4] = 0 if (gates & 12) else 1
+    wi[5] = 0 if (gates & 48) else 1
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def electrical_segment(cur, co, gates, t_seg, vdc, ws, wi, kph, acc):
     """Advance the currents cur[co:co+3] (in place) through t_seg seconds of pattern `gates`.
 
@@ -465,7 +513,7 @@ def electrical_segment(cur, co, gates, t_seg, vdc, ws, wi, kph, acc):
         remaining -= t
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def phase_inductance(theta_e, omega, p, ws):
     """ws[W_L+x] = L_x(theta_e); ws[W_R+x] = R + dL_x/dt (i dL/dt acts like a signed
     resistance); ws[W_RP+x] = R; ws[W_DL+x] = dL_x/dtheta_m."""
@@ -488,7 +536,7 @@ def phase_inductance(theta_e, omega, p, ws):
     ws[W_SYM] = 1.0 if eps == 0.0 else 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def stored_energy(state, p):
     ws = np.zeros(WS_SIZE)
     phase_inductance(state[S_THETA_E], 0.0, p, ws)
@@ -498,12 +546,12 @@ def stored_energy(state, p):
     return w
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def battery_voc(soc, p):
     return p[P.P_V_EMPTY] + (p[P.P_V_FULL] - p[P.P_V_EMPTY]) * soc
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def init_state(state, p, speed_rad_s, soc0):
     state[:] = 0.0
     state[S_OMEGA] = speed_rad_s
@@ -516,7 +564,7 @@ def init_state(state, p, speed_rad_s, soc0):
     state[S_E_STORED0] = stored_energy(state, p)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def period_setup(state, p, ws):
     """Back-EMF and inductances of the coming period, evaluated at its mid angle and held."""
     omega = state[S_OMEGA]
@@ -528,7 +576,7 @@ def period_setup(state, p, ws):
     phase_inductance(th_mid, omega, p, ws)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
 def trial_currents(state, p, gates, ws, wi):
     """Currents at the end of the coming period if `gates` were held for all of it, into
     ws[W_TRIAL:W_TRIAL+3]; returns the feedback (|ia| + |ib| + |ic|) / 2. No state change.
@@ -542,23 +590,220 @@ def trial_currents(state, p, gates, ws, wi):
     return 0.5 * (abs(ws[W_TRIAL]) + abs(ws[W_TRIAL + 1]) + abs(ws[W_TRIAL + 2]))
 
 
-@njit(cache=True, error_model="numpy")
-def step_period(state, p, gates_a, gates_b, split, edge_counts, edge_states, n_edges, ws, wi, setup_done):
-    """One control period: electrical (2 segments), Hall edges, DC bus, shaft. Returns n_edges.
+# ---- per-parameter-set constants -------------------------------------------------------
+# plant_constants(p) is evaluated once per kernel call, so the period loop multiplies by
+# reciprocals instead of dividing by parameters (round-off level differences only).
+KC_DT = 0
+KC_L0 = 1
+KC_R = 2
+KC_KPH = 3
+KC_PP = 4              # pole pairs
+KC_INV_DT = 5          # 1 / dt
+KC_INV_RB = 6          # 1 / R_batt
+KC_INV_RR = 7          # 1 / R_brake
+KC_INV_DEN_S0_OFF = 8  # 1 / (1 / R_batt): DC node with S0 off
+KC_INV_DEN_S0_ON = 9   # 1 / (1 / R_batt + 1 / R_brake)
+KC_DT_PER_CAP = 10     # dt / capacity [s / (A s)]: state-of-charge step per ampere
+KC_SYM = 11            # 1: no position-dependent L, the scalar fast path (sym_segment) applies
 
-    ws (float64[WS_SIZE]) and wi (int64[6]) are scratch, so nothing is allocated. Hall
-    edges found in the period are appended to edge_counts / edge_states (capacity
-    permitting) and the updated n_edges is returned. setup_done: ws already holds
-    period_setup(state) (the controller computed it for its prediction).
-    """
+
+@njit(cache=True, error_model="numpy", forceinline=False)
+def plant_constants(p):
+    """Per-parameter-set constants (KC_* layout), a tuple the period loop keeps in registers."""
     dt = p[P.P_DT]
-    pp = p[P.P_POLE_PAIRS]
-    kph = p[P.P_KPH]
+    rb = p[P.P_R_BATT]
+    rr = p[P.P_R_BRAKE]
+    return (dt, p[P.P_L0], p[P.P_R], p[P.P_KPH], p[P.P_POLE_PAIRS], 1.0 / dt, 1.0 / rb, 1.0 / rr,
+            1.0 / (1.0 / rb), 1.0 / (1.0 / rb + 1.0 / rr), dt / p[P.P_CAP_AS],
+            1.0 if p[P.P_EPS] == 0.0 else 0.0)
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def emf_sym(state, p):
+    """period_setup's back-EMF as scalars (f_a, f_b, f_c, e_a, e_b, e_c): shape and
+    e_x = kph w f_x at the mid-period angle, held for the period."""
     omega = state[S_OMEGA]
-    th0 = state[S_THETA_E]
-    we = pp * omega
-    if not setup_done:
-        period_setup(state, p, ws)
+    th_mid = state[S_THETA_E] + 0.5 * p[P.P_POLE_PAIRS] * omega * p[P.P_DT]
+    f0, f1, f2 = emf_f3(th_mid, omega, p)
+    kw = p[P.P_KPH] * omega
+    return f0, f1, f2, kw * f0, kw * f1, kw * f2
+
+
+@njit(cache=True, error_model="numpy", forceinline=False)
+def _ws_setup_sym(ws, emf, c):
+    """What period_setup leaves in ws for the symmetric machine (for the general path)."""
+    for x in range(3):
+        ws[W_F + x] = emf[x]
+        ws[W_E + x] = emf[3 + x]
+        ws[W_L + x] = c[KC_L0]
+        ws[W_R + x] = c[KC_R]
+        ws[W_RP + x] = c[KC_R]
+        ws[W_DL + x] = 0.0
+    ws[W_SYM] = 1.0
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def legs_of(i0, i1, i2, gates, vdc, emf, c):
+    """sym_legs tagged with the (interlock-applied) pattern: (gates, ok, w0, w1, w2, d0, d1, d2).
+    The controller's trial computes this for the pattern the plant starts the period with;
+    sym_segment reuses it when the pattern matches (same currents, v_dc and EMF)."""
+    ok, w0, w1, w2, d0, d1, d2 = sym_legs(i0, i1, i2, gates, vdc, emf[3], emf[4], emf[5], c[KC_R])
+    return (gates, ok, w0, w1, w2, d0, d1, d2)
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, a4):
+    """electrical_segment's sums for one step of t seconds (i -> j) of the symmetric machine,
+    where dL/dt = dL/dtheta = 0 (exact zeros there). An open leg has i = j = 0 and adds
+    exact zeros, so there is no branch on the leg state."""
+    f0, f1, f2, e0, e1, e2 = emf
+    ia0 = 0.5 * (i0 + j0)
+    ia1 = 0.5 * (i1 + j1)
+    ia2 = 0.5 * (i2 + j2)
+    a1 = a1 - (ia0 * t if w0 == 2 else 0.0) - (ia1 * t if w1 == 2 else 0.0) - (ia2 * t if w2 == 2 else 0.0)
+    a2 = a2 + r * ia0 * ia0 * t + r * ia1 * ia1 * t + r * ia2 * ia2 * t
+    a3 = a3 + e0 * ia0 * t + e1 * ia1 * t + e2 * ia2 * t
+    a4 = a4 + kph * f0 * ia0 * t + kph * f1 * ia1 * t + kph * f2 * ia2 * t
+    return a1, a2, a3, a4
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def _crossing(gates, i0, i1, i2, j0, j1, j2):
+    """Diode-only legs (no switch on) whose current reaches zero within the step i -> j."""
+    return ((((gates & 3) == 0) & (i0 != 0.0) & (i0 * j0 <= 0.0)),
+            (((gates & 12) == 0) & (i1 != 0.0) & (i1 * j1 <= 0.0)),
+            (((gates & 48) == 0) & (i2 != 0.0) & (i2 * j2 <= 0.0)))
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2, a3, a4, ws, wi):
+    """electrical_segment for the symmetric machine with the currents in registers.
+
+    One Crank-Nicolson step of the whole segment; or, when a diode-only leg's current
+    reaches zero inside it, a step to the crossing, the exact zero (residue to the largest
+    other current, as electrical_segment) and a step of the rest. With equal L and R the
+    step is i + g(t) d with d independent of t (sym_legs), so the crossing of leg z is
+    g* = -i_z / d_z exactly, at t* = g* L / (1 - R g* / 2) (g inverted); electrical_segment
+    gets there by regula falsi to 1e-9 A. Anything else (fewer than 2 conducting legs, a
+    second crossing, t <= 0) continues in electrical_segment on cur[co:co+3] with ws set up
+    as period_setup would. legs: legs_of(i0, i1, i2, ...) if already known, else NO_LEGS.
+    ledger: accumulate (a1 -= charge to the DC node, a2 += copper loss, a3 += conversion,
+    a4 += T dt) as electrical_segment's ws[acc + 1:acc + 5]; False for the controller's
+    trial. Returns (i0, i1, i2, a1, a2, a3, a4) at the end of the segment."""
+    e0 = emf[3]
+    e1 = emf[4]
+    e2 = emf[5]
+    r = c[KC_R]
+    L0 = c[KC_L0]
+    kph = c[KC_KPH]
+    if legs[0] == gates:
+        ok, w0, w1, w2, d0, d1, d2 = legs[1], legs[2], legs[3], legs[4], legs[5], legs[6], legs[7]
+    else:
+        ok, w0, w1, w2, d0, d1, d2 = sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r)
+    rest = t
+    if ok and t > 0.0:
+        g = cn_gain(t, L0, r)
+        # an open leg has i = d = 0: i + g d is its exact 0
+        j0 = i0 + g * d0
+        j1 = i1 + g * d1
+        j2 = i2 + g * d2
+        x0, x1, x2 = _crossing(gates, i0, i1, i2, j0, j1, j2)
+        if not (x0 | x1 | x2):
+            if ledger:
+                a1, a2, a3, a4 = _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, a4)
+            return j0, j1, j2, a1, a2, a3, a4
+        # the earliest crossing: smallest g* = -i / d (g grows with t)
+        gz = 2.0 * g
+        xz = -1
+        if x0 and -i0 / d0 < gz:
+            gz = -i0 / d0
+            xz = 0
+        if x1 and -i1 / d1 < gz:
+            gz = -i1 / d1
+            xz = 1
+        if x2 and -i2 / d2 < gz:
+            gz = -i2 / d2
+            xz = 2
+        tz = gz * L0 / (1.0 - 0.5 * r * gz)
+        j0 = i0 + gz * d0
+        j1 = i1 + gz * d1
+        j2 = i2 + gz * d2
+        if ledger:
+            a1, a2, a3, a4 = _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, tz, emf, r, kph, a1, a2, a3, a4)
+        # exact zero at the crossing; keep sum(i) = 0 by moving the residue to the largest
+        # other conducting current
+        res = j0 if xz == 0 else (j1 if xz == 1 else j2)
+        j0 = 0.0 if xz == 0 else j0
+        j1 = 0.0 if xz == 1 else j1
+        j2 = 0.0 if xz == 2 else j2
+        xm = -1
+        am = 0.0
+        if xz != 0 and w0 > 0:
+            xm = 0
+            am = abs(j0)
+        if xz != 1 and w1 > 0 and (xm < 0 or abs(j1) > am):
+            xm = 1
+            am = abs(j1)
+        if xz != 2 and w2 > 0 and (xm < 0 or abs(j2) > am):
+            xm = 2
+        j0 = j0 + res if xm == 0 else j0
+        j1 = j1 + res if xm == 1 else j1
+        j2 = j2 + res if xm == 2 else j2
+        rest = t - tz
+        if not (rest > 0.0):
+            return j0, j1, j2, a1, a2, a3, a4
+        # the rest of the segment from the new currents
+        i0 = j0
+        i1 = j1
+        i2 = j2
+        ok, w0, w1, w2, d0, d1, d2 = sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r)
+        if ok:
+            g = cn_gain(rest, L0, r)
+            j0 = i0 + g * d0
+            j1 = i1 + g * d1
+            j2 = i2 + g * d2
+            x0, x1, x2 = _crossing(gates, i0, i1, i2, j0, j1, j2)
+            if not (x0 | x1 | x2):
+                if ledger:
+                    a1, a2, a3, a4 = _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, rest, emf, r, kph,
+                                                 a1, a2, a3, a4)
+                return j0, j1, j2, a1, a2, a3, a4
+    if not (rest > 0.0):
+        return i0, i1, i2, a1, a2, a3, a4
+    return _segment_general(cur, co, i0, i1, i2, gates, rest, vdc, emf, c, ledger, a1, a2, a3, a4, ws, wi)
+
+
+@njit(cache=True, error_model="numpy", forceinline=False, _nrt=False)
+def _segment_general(cur, co, i0, i1, i2, gates, t, vdc, emf, c, ledger, a1, a2, a3, a4, ws, wi):
+    """electrical_segment (topology iteration, sub-steps) for what sym_segment does not do,
+    on cur[co:co+3] with ws set up as period_setup would for the symmetric machine."""
+    _ws_setup_sym(ws, emf, c)
+    cur[co] = i0
+    cur[co + 1] = i1
+    cur[co + 2] = i2
+    ws[W_ACC] = 0.0
+    ws[W_ACC + 1] = a1
+    ws[W_ACC + 2] = a2
+    ws[W_ACC + 3] = a3
+    ws[W_ACC + 4] = a4
+    electrical_segment(cur, co, gates, t, vdc, ws, wi, c[KC_KPH], W_ACC if ledger else -1)
+    return cur[co], cur[co + 1], cur[co + 2], ws[W_ACC + 1], ws[W_ACC + 2], ws[W_ACC + 3], ws[W_ACC + 4]
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def trial_sym(state, gates, emf, legs, c, ws, wi):
+    """trial_currents for the symmetric machine: (|ia| + |ib| + |ic|) / 2 at the end of the
+    coming period if `gates` (interlock-safe) were held for all of it. No state change;
+    legs as sym_segment's (legs_of the same currents and pattern, or NO_LEGS)."""
+    j0, j1, j2, _a1, _a2, _a3, _a4 = sym_segment(ws, W_TRIAL, state[S_IA], state[S_IB], state[S_IC], gates,
+                                                 c[KC_DT], state[S_VDC], emf, legs, c, False,
+                                                 0.0, 0.0, 0.0, 0.0, ws, wi)
+    return 0.5 * (abs(j0) + abs(j1) + abs(j2))
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def _interlock_and_split(state, gates_a, gates_b, split):
+    """Interlock (blank shorted legs, count, fault) and the clamped split of one period."""
     ga, nba = blank_interlock(gates_a)
     gb, nbb = blank_interlock(gates_b)
     if nba + nbb > 0:
@@ -569,6 +814,52 @@ def step_period(state, p, gates_a, gates_b, split, edge_counts, edge_states, n_e
         s = 0.0
     if s > 1.0:
         s = 1.0
+    return int(ga), int(gb), s
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, edge_counts, edge_states, n_edges, ws, wi):
+    """step_period for the symmetric machine (c[KC_SYM] != 0): the currents stay in
+    registers through both segments (sym_segment). emf: emf_sym(state, p); legs_a:
+    legs_of(state currents, interlock-applied gates_a, ...) if the controller already
+    computed it, else NO_LEGS. Returns n_edges."""
+    ga, gb, s = _interlock_and_split(state, gates_a, gates_b, split)
+    dt = c[KC_DT]
+    vdc = state[S_VDC]
+    i0 = state[S_IA]
+    i1 = state[S_IB]
+    i2 = state[S_IC]
+    a1 = 0.0
+    a2 = 0.0
+    a3 = 0.0
+    a4 = 0.0
+    if s > 0.0:
+        i0, i1, i2, a1, a2, a3, a4 = sym_segment(state, 0, i0, i1, i2, ga, s * dt, vdc, emf, legs_a, c, True,
+                                                 a1, a2, a3, a4, ws, wi)
+    if s < 1.0:
+        i0, i1, i2, a1, a2, a3, a4 = sym_segment(state, 0, i0, i1, i2, gb, (1.0 - s) * dt, vdc, emf, NO_LEGS, c,
+                                                 True, a1, a2, a3, a4, ws, wi)
+    state[S_IA] = i0
+    state[S_IB] = i1
+    state[S_IC] = i2
+    return period_tail(state, p, c, a1, a2, a3, a4, edge_counts, edge_states, n_edges)
+
+
+@njit(cache=True, error_model="numpy", forceinline=False)
+def step_period(state, p, c, gates_a, gates_b, split, edge_counts, edge_states, n_edges, ws, wi, setup_done):
+    """One control period: electrical (2 segments), Hall edges, DC bus, shaft. Returns n_edges.
+
+    General form (any machine; step_period_sym is its fast specialisation). ws
+    (float64[WS_SIZE]) and wi (int64[6]) are scratch, so nothing is allocated. Hall
+    edges found in the period are appended to edge_counts / edge_states (capacity
+    permitting) and the updated n_edges is returned. setup_done: ws already holds
+    period_setup(state) (the controller computed it for its prediction).
+    """
+    dt = c[KC_DT]
+    kph = c[KC_KPH]
+    if not setup_done:
+        period_setup(state, p, ws)
+    ga, gb, s = _interlock_and_split(state, gates_a, gates_b, split)
     for k in range(5):
         ws[W_ACC + k] = 0.0
     vdc = state[S_VDC]
@@ -576,68 +867,70 @@ def step_period(state, p, gates_a, gates_b, split, edge_counts, edge_states, n_e
         electrical_segment(state, 0, ga, s * dt, vdc, ws, wi, kph, W_ACC)
     if s < 1.0:
         electrical_segment(state, 0, gb, (1.0 - s) * dt, vdc, ws, wi, kph, W_ACC)
-    t_em = ws[W_ACC + 4] / dt
+    return period_tail(state, p, c, ws[W_ACC + 1], ws[W_ACC + 2], ws[W_ACC + 3], ws[W_ACC + 4],
+                       edge_counts, edge_states, n_edges)
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_states, n_edges):
+    """The rest of a period after the electrical segments: Hall edges, DC bus, shaft.
+
+    a_charge: charge DC node -> bridge [C] (negated bridge current integral), a_cu: copper
+    loss [J], a_conv: electromechanical conversion [J], a_tdt: torque integral [N m s];
+    state still holds the period's start angle, speed and v_dc. Returns n_edges."""
+    dt = c[KC_DT]
+    omega = state[S_OMEGA]
+    th0 = state[S_THETA_E]
+    we = c[KC_PP] * omega
+    vdc = state[S_VDC]
+    t_em = a_tdt * c[KC_INV_DT]
 
     # ---- Hall edges (sector boundaries at 30 + 60 k deg), capture-timer quantised
-    u0 = (th0 - TWELFTH) / SIXTH
-    du = we * dt / SIXTH
+    u0 = (th0 - TWELFTH) * INV_SIXTH
+    du = we * dt * INV_SIXTH
     u1 = u0 + du
-    fc_dt = p[P.P_TIMER_HZ] * dt
     periods = state[S_PERIODS]
     if du > 0.0:
         k = math.floor(u0) + 1.0
-        while k <= u1:
-            frac = (k - u0) / du
-            if n_edges < edge_counts.shape[0]:
-                edge_counts[n_edges] = np.uint64(math.floor((periods + frac) * fc_dt))
-                edge_states[n_edges] = SECTOR_TO_HALL[int(k) % 6]
-                n_edges += 1
-            state[S_HALL] = SECTOR_TO_HALL[int(k) % 6]
-            k += 1.0
+        if k <= u1:
+            n_edges = _hall_edges(state, p, k, u0, u1, du, periods, 1.0, edge_counts, edge_states, n_edges)
     elif du < 0.0:
         k = math.ceil(u0) - 1.0
-        while k >= u1:
-            frac = (k - u0) / du
-            if n_edges < edge_counts.shape[0]:
-                edge_counts[n_edges] = np.uint64(math.floor((periods + frac) * fc_dt))
-                edge_states[n_edges] = SECTOR_TO_HALL[(int(k) - 1) % 6]
-                n_edges += 1
-            state[S_HALL] = SECTOR_TO_HALL[(int(k) - 1) % 6]
-            k -= 1.0
+        if k >= u1:
+            n_edges = _hall_edges(state, p, k, u0, u1, du, periods, -1.0, edge_counts, edge_states, n_edges)
 
     # ---- DC node: battery (Voc, Rb) || S0 * brake resistor; the bridge injected i_dc
-    i_dc = ws[W_ACC + 1] / dt
+    i_dc = a_charge * c[KC_INV_DT]
     s0 = state[S_S0]
-    rr = p[P.P_R_BRAKE]
-    i_res = s0 * vdc / rr
+    i_res = vdc * c[KC_INV_RR] if s0 != 0.0 else 0.0
     i_batt = i_dc - i_res                     # KCL with this period's bridge current
     state[S_E_BATT] += vdc * i_batt * dt
     state[S_E_RES] += vdc * i_res * dt
-    state[S_E_CU] += ws[W_ACC + 2]
-    state[S_E_CONV] += ws[W_ACC + 3]
-    state[S_SOC] += i_batt * dt / p[P.P_CAP_AS]
+    state[S_E_CU] += a_cu
+    state[S_E_CONV] += a_conv
+    soc = state[S_SOC] + i_batt * c[KC_DT_PER_CAP]
+    state[S_SOC] = soc
     state[S_IBATT] = i_batt
     state[S_IDC] = i_dc
-    state[S_VFILT] += p[P.P_S0_ALPHA] * (vdc - state[S_VFILT])
-    if s0 == 0.0 and state[S_VFILT] > p[P.P_S0_ON]:
+    vfilt = state[S_VFILT] + p[P.P_S0_ALPHA] * (vdc - state[S_VFILT])
+    state[S_VFILT] = vfilt
+    if s0 == 0.0 and vfilt > p[P.P_S0_ON]:
         s0 = 1.0
-    elif s0 != 0.0 and state[S_VFILT] < p[P.P_S0_OFF]:
+    elif s0 != 0.0 and vfilt < p[P.P_S0_OFF]:
         s0 = 0.0
     state[S_S0] = s0
-    rb = p[P.P_R_BATT]
-    voc = battery_voc(state[S_SOC], p)
-    vdc_next = (voc / rb + i_dc) / (1.0 / rb + s0 / rr)
+    voc = battery_voc(soc, p)
+    vdc_next = (voc * c[KC_INV_RB] + i_dc) * (c[KC_INV_DEN_S0_ON] if s0 != 0.0 else c[KC_INV_DEN_S0_OFF])
     state[S_VDC] = vdc_next
     if vdc_next > p[P.P_OVERVOLTAGE]:
         state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_OVERVOLTAGE
-    else:
+    elif state[S_FAULTS] != 0.0:
         state[S_FAULTS] = int(state[S_FAULTS]) & ~FAULT_OVERVOLTAGE
 
     # ---- shaft
     J = p[P.P_J]
     B = p[P.P_B]
     kind = int(p[P.P_LOAD_KIND])
-    gear = p[P.P_GEAR]
     if kind == 0:
         # prime mover: speed held exactly; it supplies whatever torque that takes
         t_load = B * omega - t_em
@@ -649,20 +942,7 @@ def step_period(state, p, gates_a, gates_b, split, edge_counts, edge_states, n_e
     else:
         t_load = 0.0
         if kind == 1:
-            cad = omega / gear
-            err = p[P.P_RIDER_TARGET] - cad
-            integ = state[S_RIDER_INT] + p[P.P_RIDER_KI] * err * dt
-            integ = min(max(integ, -1.0), 1.0)
-            state[S_RIDER_INT] = integ
-            effort = p[P.P_RIDER_KP] * err + integ
-            effort = min(max(effort, 0.0), 1.0)
-            state[S_EFFORT] = effort
-            line = 1.0 - cad / p[P.P_RIDER_CADMAX]
-            if line < 0.0:
-                line = 0.0
-            t_crank = effort * p[P.P_RIDER_T0] * line * (1.0 + 0.5 * math.cos(2.0 * state[S_CRANK]))
-            t_load = t_crank / gear
-            state[S_CRANK] = (state[S_CRANK] + cad * dt) % TWO_PI
+            t_load = _rider(state, p, omega, dt)
         w_new = omega + dt * (t_em + t_load - B * omega) / J
         w_avg = 0.5 * (omega + w_new)
         state[S_E_MECH] += t_load * w_avg * dt
@@ -682,20 +962,73 @@ def step_period(state, p, gates_a, gates_b, split, edge_counts, edge_states, n_e
     return n_edges
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", forceinline=False)
+def _hall_edges(state, p, k, u0, u1, du, periods, direction, edge_counts, edge_states, n_edges):
+    """Hall edges k, k +- 1, ... of a period that crosses sector boundaries (u in sixths of
+    a turn from 30 deg; direction +1 forward, -1 backward). Returns n_edges."""
+    fc_dt = p[P.P_TIMER_HZ] * p[P.P_DT]
+    if direction > 0.0:
+        while k <= u1:
+            frac = (k - u0) / du
+            if n_edges < edge_counts.shape[0]:
+                edge_counts[n_edges] = np.uint64(math.floor((periods + frac) * fc_dt))
+                edge_states[n_edges] = SECTOR_TO_HALL[int(k) % 6]
+                n_edges += 1
+            state[S_HALL] = SECTOR_TO_HALL[int(k) % 6]
+            k += 1.0
+    else:
+        while k >= u1:
+            frac = (k - u0) / du
+            if n_edges < edge_counts.shape[0]:
+                edge_counts[n_edges] = np.uint64(math.floor((periods + frac) * fc_dt))
+                edge_states[n_edges] = SECTOR_TO_HALL[(int(k) - 1) % 6]
+                n_edges += 1
+            state[S_HALL] = SECTOR_TO_HALL[(int(k) - 1) % 6]
+            k -= 1.0
+    return n_edges
+
+
+@njit(cache=True, error_model="numpy", forceinline=False)
+def _rider(state, p, omega, dt):
+    """Rider load (LoadParams): PI effort on cadence, crank torque with two peaks per turn.
+    Returns the load torque at the motor shaft."""
+    gear = p[P.P_GEAR]
+    cad = omega / gear
+    err = p[P.P_RIDER_TARGET] - cad
+    integ = state[S_RIDER_INT] + p[P.P_RIDER_KI] * err * dt
+    integ = min(max(integ, -1.0), 1.0)
+    state[S_RIDER_INT] = integ
+    effort = p[P.P_RIDER_KP] * err + integ
+    effort = min(max(effort, 0.0), 1.0)
+    state[S_EFFORT] = effort
+    line = 1.0 - cad / p[P.P_RIDER_CADMAX]
+    if line < 0.0:
+        line = 0.0
+    t_crank = effort * p[P.P_RIDER_T0] * line * (1.0 + 0.5 * math.cos(2.0 * state[S_CRANK]))
+    state[S_CRANK] = (state[S_CRANK] + cad * dt) % TWO_PI
+    return t_crank / gear
+
+
+@njit(cache=True, error_model="numpy", forceinline=False)
 def step_batch(state, p, gates_a, gates_b, split, edge_counts, edge_states, samples, sums):
     """N periods. samples[k] = phase currents at the end of period k; sums = [sum T_em,
     sum T_load, sum i_batt] over the periods. Returns the number of Hall edges captured."""
     n = gates_a.shape[0]
     ws = np.empty(WS_SIZE)
     wi = np.empty(6, np.int64)
+    c = plant_constants(p)
+    sym = c[KC_SYM] != 0.0
     n_edges = 0
     sums[0] = 0.0
     sums[1] = 0.0
     sums[2] = 0.0
     for k in range(n):
-        n_edges = step_period(state, p, gates_a[k], gates_b[k], split[k], edge_counts, edge_states, n_edges, ws, wi,
-                              False)
+        if sym:
+            n_edges = step_period_sym(state, p, c, gates_a[k], gates_b[k], split[k], emf_sym(state, p), NO_LEGS,
+                                      edge_counts, edge_states, n_edges, ws, wi)
+        else:
+            n_edges = step_period(state, p, c, gates_a[k], gates_b[k], split[k], edge_counts, edge_states, n_edges,
+                                  ws, wi, False)
         samples[k, 0] = state[S_IA]
         samples[k, 1] = state[S_IB]
         samples[k, 2] = state[S_IC]
