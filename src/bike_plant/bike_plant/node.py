@@ -88,8 +88,8 @@ PLANT_DESCRIPTIONS = {
     "recorder_window_batches": "lockstep: wait for the recorder and stay at most this many batches ahead of it "
                                "(0 = do not wait for a recorder)",
     "recorder_timeout_s": "lockstep: give up waiting for a silent recorder after this many wall seconds",
-    "start_timeout_s": "lockstep: exit with an error when no controller appears within this many wall seconds "
-                       "(0 = wait forever)",
+    "start_timeout_s": "lockstep: exit with an error when no controller appears, or none answers a PlantState, "
+                       "within this many wall seconds (0 = wait forever)",
     "can_log_file": "backend can: log every CAN frame to this .asc / .blf file (overrides can.log_file; "
                     "./bike run --record puts it beside the bag)",
 }
@@ -528,12 +528,16 @@ class PlantNode(Node):
             self.pending_seq = self.k
             self.answer = None
             self._publish_state()
-            sent = time.monotonic()
+            sent = first = time.monotonic()
             while self.answer is None and not self.stop_requested:
                 self._spin(0.1)
                 if self.answer is None and time.monotonic() - sent > self.republish_s:
                     self._republish()
                     sent = time.monotonic()
+                    if self.start_timeout_s > 0 and sent - first > self.start_timeout_s:
+                        # never hang: a controller that does not answer is an error of the run
+                        raise StartupTimeout(f"no DriveCommand for seq {self.k} within start_timeout_s="
+                                             f"{self.start_timeout_s:g}s (controller stuck or not matched)")
             if self.answer is None:
                 return
             msg, self.answer = self.answer, None
