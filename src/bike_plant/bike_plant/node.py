@@ -59,6 +59,7 @@ from sensor_msgs.msg import BatteryState
 from . import msgconv
 from .config import ConfigError
 
+PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
 LOOP_QOS = QoSProfile(depth=200, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
 AUX_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
@@ -514,9 +515,17 @@ class PlantNode(Node):
                 self.node_faults |= PlantState.FAULT_RECORDER_LOST
                 self.recorder_window = 0
         t1 = None                    # wall time of the first answer (rate excludes start-up waits)
+        next_progress = time.monotonic() + PROGRESS_EVERY_S
         while not self.stop_requested:
             if self.k == 1:
                 t1 = time.monotonic()
+            if time.monotonic() >= next_progress:
+                # long runs show progress (sim time, share of the run, speed)
+                next_progress = time.monotonic() + PROGRESS_EVERY_S
+                done = f" of {self.duration_s:g} s ({100.0 * self.backend.time_s / self.duration_s:.0f} %)" \
+                    if self.duration_s > 0 else ""
+                rate = (self.k - 1) / max(time.monotonic() - t1, 1e-9) * self.batch_s if t1 and self.k > 1 else 0.0
+                log.info(f"t = {self.backend.time_s:.1f} s{done}, {rate:.2f} x real time")
             if self._finished():
                 if t1 is not None and self.k > 1:
                     rate = (self.k - 1) / max(time.monotonic() - t1, 1e-9)
