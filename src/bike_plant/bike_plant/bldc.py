@@ -341,6 +341,35 @@ def _topology(cur, co, gates, vdc, ws, wi, t):
 
 
 @njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def _open_leg(ua, ub, uz0, ez, vdc, r, iz, pos):
+    """sym_legs with one leg z open (zero current): u_a, u_b of the conducting legs, z at
+    phase position pos (0, 1, 2; sums run in phase order, as _solve's). Returns (w_z, v_n,
+    u_z): the 2-leg solution (w_z = 0) if z's terminal v_n + e_z stays inside [0, v_dc], or
+    if it clamps to a rail but the clamping diode would then carry current against its
+    conducting direction (_topology re-opens the leg); else the 3-leg solution. The diode
+    test uses the sign of d_z, which is that of j_z = 0 + g d_z (g > 0) barring underflow."""
+    vn2 = (0.0 + ua + ub) * 0.5                   # == / 2
+    vt = vn2 + ez
+    hi = vt > vdc
+    if not (hi or vt < 0.0):
+        return 0, vn2, uz0
+    uz = (vdc if hi else 0.0) - ez - r * iz
+    if pos == 0:
+        vn3 = (0.0 + uz + ua + ub) / 3.0
+    elif pos == 1:
+        vn3 = (0.0 + ua + uz + ub) / 3.0
+    else:
+        vn3 = (0.0 + ua + ub + uz) / 3.0
+    dz = uz - vn3
+    if hi:
+        if not (dz > 0.0):       # upper diode: current <= 0
+            return 2, vn3, uz
+    elif not (dz < 0.0):         # lower diode: current >= 0
+        return 1, vn3, uz
+    return 0, vn2, uz0
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     """_topology + _solve for the symmetric machine (equal L, R in all phases) with >= 2
     conducting legs, as scalars. Returns (ok, w0, w1, w2, d0, d1, d2): leg states as in
@@ -349,59 +378,38 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     g(t) = t / (L + R t / 2) (cn_gain); open legs d = 0. ok False (fewer than 2 legs
     conduct): the general iteration is needed.
 
-    _topology's iteration resolved in closed form: with one leg open (zero current), its
-    terminal v_n + e_z either stays inside [0, v_dc] (2-leg solution), or it clamps to a
-    rail and the 3-leg solution is kept if the clamping diode then carries current in its
-    conducting direction, else the leg stays open (2-leg solution; _topology reaches it
-    after re-opening the leg). The diode test uses the sign of d_z, which is that of
-    j_z = 0 + g d_z (g > 0) barring underflow below 1e-300 A. Same floating-point operations
-    as _solve otherwise, and none of it depends on t: one call serves every step length
-    from these currents (the controller's trial and the plant's first segment).
-
-    Selects, not branches: the pattern and the open leg's clamp change from period to
-    period, and a mispredicted branch costs more than the arithmetic it skips."""
+    _topology's iteration is resolved in closed form (_open_leg), with the same
+    floating-point operations as _solve, and none of it depends on t: one call serves every
+    step length from these currents (the controller's trial and the plant's first segment)."""
     # first guess (as _topology's first pass): a leg is at v_dc through its upper switch or,
     # with no switch on, its upper diode (current < 0); at 0 V through the lower switch or
     # diode (current > 0); open with no switch on and zero current
-    up0 = (gates & 1) != 0
-    up1 = (gates & 4) != 0
-    up2 = (gates & 16) != 0
     sw0 = (gates & 3) != 0
     sw1 = (gates & 12) != 0
     sw2 = (gates & 48) != 0
-    h0 = up0 | ((not sw0) & (i0 < 0.0))
-    h1 = up1 | ((not sw1) & (i1 < 0.0))
-    h2 = up2 | ((not sw2) & (i2 < 0.0))
+    h0 = ((gates & 1) != 0) | ((not sw0) & (i0 < 0.0))
+    h1 = ((gates & 4) != 0) | ((not sw1) & (i1 < 0.0))
+    h2 = ((gates & 16) != 0) | ((not sw2) & (i2 < 0.0))
     c0 = sw0 | (i0 > 0.0) | (i0 < 0.0)
     c1 = sw1 | (i1 > 0.0) | (i1 < 0.0)
     c2 = sw2 | (i2 > 0.0) | (i2 < 0.0)
     w0 = 2 if h0 else (1 if c0 else 0)
     w1 = 2 if h1 else (1 if c1 else 0)
     w2 = 2 if h2 else (1 if c2 else 0)
-    n = int(c0) + int(c1) + int(c2)
     u0 = (vdc if h0 else 0.0) - e0 - r * i0
     u1 = (vdc if h1 else 0.0) - e1 - r * i1
     u2 = (vdc if h2 else 0.0) - e2 - r * i2
-    # 2 legs: v_n = mean over the conducting ones (+ 0.0 for the open one changes nothing)
-    vn2 = (0.0 + (u0 if c0 else 0.0) + (u1 if c1 else 0.0) + (u2 if c2 else 0.0)) * 0.5   # == / 2
-    # the open leg's terminal; clamped to a rail by its diode?
-    vt = vn2 + (e0 if not c0 else (e1 if not c1 else e2))
-    hi = vt > vdc
-    clamp = hi | (vt < 0.0)
-    vz = vdc if hi else 0.0
-    u0 = u0 if c0 else vz - e0 - r * i0
-    u1 = u1 if c1 else vz - e1 - r * i1
-    u2 = u2 if c2 else vz - e2 - r * i2
-    vn3 = (0.0 + u0 + u1 + u2) / 3.0
-    dz = (u0 if not c0 else (u1 if not c1 else u2)) - vn3
-    # keep the 3-leg solution if the clamping diode conducts forward (upper: i <= 0, lower: i >= 0)
-    three = (n == 3) | ((n == 2) & clamp & ((not (dz > 0.0)) if hi else (not (dz < 0.0))))
-    wz = (2 if hi else 1) if three else 0
-    vn = vn3 if three else vn2
-    w0 = w0 if c0 else wz
-    w1 = w1 if c1 else wz
-    w2 = w2 if c2 else wz
-    return (n >= 2, w0, w1, w2, u0 - vn if w0 > 0 else 0.0, u1 - vn if w1 > 0 else 0.0,
+    if c0 & c1 & c2:
+        vn = (0.0 + u0 + u1 + u2) / 3.0
+    elif c1 & c2:
+        w0, vn, u0 = _open_leg(u1, u2, u0, e0, vdc, r, i0, 0)
+    elif c0 & c2:
+        w1, vn, u1 = _open_leg(u0, u2, u1, e1, vdc, r, i1, 1)
+    elif c0 & c1:
+        w2, vn, u2 = _open_leg(u0, u1, u2, e2, vdc, r, i2, 2)
+    else:
+        return False, w0, w1, w2, 0.0, 0.0, 0.0
+    return (True, w0, w1, w2, u0 - vn if w0 > 0 else 0.0, u1 - vn if w1 > 0 else 0.0,
             u2 - vn if w2 > 0 else 0.0)
 
 
@@ -670,9 +678,10 @@ def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, 
 @njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def _crossing(gates, i0, i1, i2, j0, j1, j2):
     """Diode-only legs (no switch on) whose current reaches zero within the step i -> j."""
-    return ((((gates & 3) == 0) & (i0 != 0.0) & (i0 * j0 <= 0.0)),
-            (((gates & 12) == 0) & (i1 != 0.0) & (i1 * j1 <= 0.0)),
-            (((gates & 48) == 0) & (i2 != 0.0) & (i2 * j2 <= 0.0)))
+    # short-circuit in the order of rarity: a sign change is the exception
+    return ((i0 * j0 <= 0.0 and i0 != 0.0 and (gates & 3) == 0),
+            (i1 * j1 <= 0.0 and i1 != 0.0 and (gates & 12) == 0),
+            (i2 * j2 <= 0.0 and i2 != 0.0 and (gates & 48) == 0))
 
 
 @njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
@@ -708,7 +717,7 @@ def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2
         j1 = i1 + g * d1
         j2 = i2 + g * d2
         x0, x1, x2 = _crossing(gates, i0, i1, i2, j0, j1, j2)
-        if not (x0 | x1 | x2):
+        if not (x0 or x1 or x2):
             if ledger:
                 a1, a2, a3, a4 = _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, a4)
             return j0, j1, j2, a1, a2, a3, a4
@@ -763,7 +772,7 @@ def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2
             j1 = i1 + g * d1
             j2 = i2 + g * d2
             x0, x1, x2 = _crossing(gates, i0, i1, i2, j0, j1, j2)
-            if not (x0 | x1 | x2):
+            if not (x0 or x1 or x2):
                 if ledger:
                     a1, a2, a3, a4 = _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, rest, emf, r, kph,
                                                  a1, a2, a3, a4)
