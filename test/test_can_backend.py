@@ -14,7 +14,7 @@ import can
 import pytest
 
 from bike_plant.can import HOST_TO_DRIVE, AxisState, ODriveError, OdriveCanSimpleCodec
-from bike_plant.can.backend import (FAULT_DRIVE_LOST, CanBackend, can_params_from_config,
+from bike_plant.can.backend import (FAULT_DRIVE_DISARMED, FAULT_DRIVE_LOST, CanBackend, can_params_from_config,
                                     emulator_args_from_config)
 from bike_plant.can.emulator import AverageTorqueDrive, DriveEmulator, DriveFirmware, DriveModelParams
 from bike_plant.config import ConfigError, load_config
@@ -47,6 +47,7 @@ class Rig:
     def __init__(self, clock=None, **can_changes):
         self.cfg = load_config(CAN_CONFIG)
         self.channel = uuid.uuid4().hex
+        can_changes.setdefault("arm_ramp_nm_per_s", 0.0)   # exact setpoints; the ramp has its own test
         self.cfg["can"].update(interface="virtual", channel=self.channel, **can_changes)
         self.drive_bus = can.Bus(interface="virtual", channel=self.channel)
         self.codec = OdriveCanSimpleCodec(0)
@@ -170,8 +171,9 @@ def test_arming_clear_errors_closed_loop_then_the_setpoint(rig):
     b.service()
     frames = r.host_frames()
     names = [n for n, _ in frames]
-    assert names[:3] == ["Clear_Errors", "Set_Controller_Mode", "Set_Axis_State"]
-    assert frames[1][1] == {"Control_Mode": 1, "Input_Mode": 1} and frames[2][1] == {"Axis_Requested_State": 8}
+    assert names[:4] == ["Clear_Errors", "Set_Limits", "Set_Controller_Mode", "Set_Axis_State"]
+    assert frames[1][1] == {"Velocity_Limit": 100.0, "Current_Limit": 120.0}, "the config's limits"
+    assert frames[2][1] == {"Control_Mode": 1, "Input_Mode": 1} and frames[3][1] == {"Axis_Requested_State": 8}
     assert ("Heartbeat", "RTR") in frames
     b.apply(Cmd(-0.5))
     assert b.time_s == 0.0, "sim time stands still until the drive reports closed loop"
@@ -241,14 +243,158 @@ def test_silent_drive_is_lost_after_three_heartbeat_periods_then_recovers(rig):
     # the drive is back, its watchdog tripped meanwhile
     r.heartbeat(AxisState.IDLE, error=WATCHDOG)
     b.service()
-    assert not b.lost and b.faults == 0
+    assert not b.lost and b.faults == FAULT_DRIVE_DISARMED, "alive, but disarmed with an error"
     names = [n for n, _ in r.host_frames()]
-    assert names[:3] == ["Clear_Errors", "Set_Controller_Mode", "Set_Axis_State"]
+    assert names[:4] == ["Clear_Errors", "Set_Limits", "Set_Controller_Mode", "Set_Axis_State"]
     r.heartbeat()
     b.service()
+    assert b.faults == 0
     b.apply(Cmd(-0.4))
     assert r.torques() == [0.0, pytest.approx(-0.4)] and not b.time_frozen
     assert b.stats()["drive_lost"] == 1 and b.stats()["drive_back"] == 1
+
+
+def _ride(r, clock, seconds: float, state=AxisState.IDLE, error: int = 0, step_s: float = 0.05,
+          cmd: float = -0.5) -> list[tuple[float, str, object]]:
+    """Advance the fake clock with heartbeats of (state, error) and DriveCommands; the host's
+    frames as (time, name, signals) -- RTR requests left out."""
+    out = []
+    end = clock.t + seconds
+    while clock.t < end - 1e-9:
+        clock.t += step_s
+        r.heartbeat(state, error=error)
+        r.backend.submit(Cmd(cmd))
+        r.backend.service()
+        r.backend.apply(Cmd(cmd))
+        out += [(clock.t, n, v) for n, v in r.host_frames() if v != "RTR"]
+    return out
+
+
+def _arm_times(frames) -> list[float]:
+    return [t for t, n, v in frames if n == "Set_Axis_State" and v["Axis_Requested_State"] == 8]
+
+
+DRV_FAULT = int(ODriveError.DRV_FAULT)
+
+
+def test_a_disarmed_drive_is_a_fault_and_re_arming_is_bounded(rig):
+    """Alive but not in closed loop (tripped with an error): FAULT_DRIVE_DISARMED, ERROR
+    diagnostic, time stands; re-arm at once, then after 0.2, 0.4 s (doubling), give up after
+    3 attempts; start over when the drive's errors change; armed again -> no fault."""
+    clock = Clock()
+    r = armed(rig, clock, enable_retry_s=0.2, enable_max_attempts=3, current_limit_a=40.0,
+              velocity_limit_rev_s=90.0)
+    b = r.backend
+    _ride(r, clock, 0.5, AxisState.CLOSED_LOOP_CONTROL)
+    assert b.faults == 0 and b.time_s > 0
+    b.pop_events()
+    t_frozen = b.time_s
+    frames = _ride(r, clock, 0.05, AxisState.IDLE, DRV_FAULT)          # the drive trips
+    assert b.faults == FAULT_DRIVE_DISARMED and b.snapshot()["faults"] == FAULT_DRIVE_DISARMED
+    assert not b.lost and b.time_frozen
+    events = b.pop_events()
+    assert any(level == "error" and "FAULT_DRIVE_DISARMED" in text and "DRV_FAULT" in text for level, text in events)
+    level, reasons, values = b.diagnostic()
+    assert level == 2 and any("disarmed" in x and "attempt 1 of 3" in x for x in reasons), reasons
+    assert values["can_arming"] == "attempt 1" and values["can_axis_error"] == "DRV_FAULT"
+    names = [n for _, n, _ in frames]
+    names = names[names.index("Clear_Errors"):]
+    assert names[:5] == ["Clear_Errors", "Set_Limits", "Set_Controller_Mode", "Set_Axis_State", "Set_Input_Torque"]
+    limits = next(v for _, n, v in frames if n == "Set_Limits")
+    assert limits == {"Velocity_Limit": 90.0, "Current_Limit": 40.0}, "Set_Limits sent when arming"
+    frames += _ride(r, clock, 3.0, AxisState.IDLE, DRV_FAULT)         # the error stays: refused every time
+    arms = _arm_times(frames)
+    assert len(arms) == 3, arms
+    assert [b - a for a, b in zip(arms, arms[1:])] == [pytest.approx(0.2, abs=0.051), pytest.approx(0.4, abs=0.051)]
+    assert b.gave_up and b.stats()["arm_gave_up"] == 1 and b.faults == FAULT_DRIVE_DISARMED
+    level, reasons, values = b.diagnostic()
+    assert level == 2 and any("gave up" in x for x in reasons) and values["can_arming"] == "gave_up"
+    assert any("gave up arming the drive after 3 attempts" in text for _, text in b.pop_events())
+    assert b.time_s == t_frozen, "sim time stands the whole time"
+    # someone fixes the drive (errors cleared on the drive): a new episode, armed at once
+    frames = _ride(r, clock, 0.05, AxisState.IDLE, 0)
+    assert len(_arm_times(frames)) == 1 and not b.gave_up
+    _ride(r, clock, 0.1, AxisState.CLOSED_LOOP_CONTROL)
+    assert b.faults == 0 and b.time_s > t_frozen and b.diagnostic()[0] == 0
+
+
+def _flaky_drive(r, clock, seconds: float, hold_s: float, step_s: float = 0.05) -> list[float]:
+    """A scripted drive that arms when the host asks (Clear_Errors + Set_Axis_State 8) and
+    trips with DRV_FAULT after ``hold_s`` in closed loop. Returns the host's arm times."""
+    state, error, armed_at, arms = AxisState.IDLE, DRV_FAULT, None, []
+    end = clock.t + seconds
+    while clock.t < end - 1e-9:
+        clock.t += step_s
+        if state == AxisState.CLOSED_LOOP_CONTROL and clock.t - armed_at >= hold_s - 1e-9:
+            state, error = AxisState.IDLE, DRV_FAULT
+        r.heartbeat(state, error=error)
+        r.backend.submit(Cmd(-0.5))
+        r.backend.service()
+        r.backend.apply(Cmd(-0.5))
+        for name, v in r.host_frames():
+            if name == "Clear_Errors":
+                error = 0
+            elif name == "Set_Axis_State" and v["Axis_Requested_State"] == 8 and not error:
+                state, armed_at = AxisState.CLOSED_LOOP_CONTROL, clock.t
+                arms.append(clock.t)
+    return arms
+
+
+def test_a_re_armed_drive_gets_a_torque_ramp_from_zero(rig):
+    """After (re-)arming, |setpoint| <= arm_ramp_nm_per_s x time in closed loop: the held
+    DriveCommand is not stepped onto the rider."""
+    clock = Clock()
+    r = armed(rig, clock, arm_ramp_nm_per_s=20.0)
+    frames = _ride(r, clock, 0.3, AxisState.CLOSED_LOOP_CONTROL, step_s=0.005, cmd=-2.0)
+    torques = [v["Input_Torque"] for _, n, v in frames if n == "Set_Input_Torque"]
+    assert torques[0] == pytest.approx(-0.1) and torques[-1] == pytest.approx(-2.0)
+    assert all(-0.1 - 1e-6 <= b - a <= 0 for a, b in zip(torques, torques[1:])), "0.1 N m per 5 ms at most"
+    assert len(torques) >= 20 and r.backend.stats()["ramped_setpoints"] >= 19
+    frames = _ride(r, clock, 0.05, AxisState.IDLE, DRV_FAULT, step_s=0.005, cmd=-2.0)   # trips, re-armed
+    after = _ride(r, clock, 0.1, AxisState.CLOSED_LOOP_CONTROL, step_s=0.005, cmd=-2.0)
+    torques = [v["Input_Torque"] for _, n, v in frames + after if n == "Set_Input_Torque"]
+    first = torques.index(0.0)
+    assert max(abs(x) for x in torques[first:]) <= 20.0 * 0.1 + 1e-6 and abs(torques[-1]) > 1.0
+
+
+def test_arm_and_trip_cycles_are_bounded_too(rig):
+    """A drive that arms but trips again before armed_stable_s counts as a failed attempt;
+    one that holds for armed_stable_s resets the count."""
+    clock = Clock()
+    r = armed(rig, clock, enable_retry_s=0.2, enable_max_attempts=3, armed_stable_s=1.0)
+    r.heartbeat(AxisState.IDLE, error=DRV_FAULT)
+    arms = _flaky_drive(r, clock, 10.0, hold_s=0.3)
+    assert len(arms) == 3 and r.backend.gave_up, arms
+    assert r.backend.faults == FAULT_DRIVE_DISARMED
+    r2 = armed(rig, clock, enable_retry_s=0.2, enable_max_attempts=3, armed_stable_s=1.0)
+    arms = _flaky_drive(r2, clock, 10.0, hold_s=1.2)
+    assert len(arms) >= 6 and not r2.backend.gave_up, arms
+
+
+def test_an_idle_drive_is_only_a_fault_when_it_should_be_armed(rig):
+    clock = Clock()
+    r = rig(clock)
+    b = r.backend
+    r.heartbeat(AxisState.IDLE)                           # a fresh drive, no DriveCommand yet
+    b.service()
+    assert b.faults == 0 and b.diagnostic()[0] == 1
+    assert [n for n, v in r.host_frames() if v != "RTR"] == [], "not armed before DriveCommands flow"
+    frames = _ride(r, clock, 0.4, AxisState.IDLE, 0)     # commanded: arming, within disarm_grace_s
+    assert _arm_times(frames) and b.faults == 0
+    _ride(r, clock, 0.2, AxisState.IDLE, 0)               # 0.6 s > grace 0.5 s and still not armed
+    assert b.faults == FAULT_DRIVE_DISARMED
+    _ride(r, clock, 0.1, AxisState.CLOSED_LOOP_CONTROL)
+    assert b.faults == 0
+    frames = _ride(r, clock, 0.05, AxisState.IDLE, 0)    # someone set it IDLE (no error)
+    assert b.faults == FAULT_DRIVE_DISARMED
+    frames += _ride(r, clock, 2.0, AxisState.IDLE, 0)
+    assert _arm_times(frames) and b.faults == FAULT_DRIVE_DISARMED
+    b.set_safe(True)                                      # no DriveCommands: nothing is sent to arm it
+    assert r.torques() == [0.0]
+    clock.t += 1.0
+    r.heartbeat(AxisState.IDLE)
+    b.service()
+    assert [n for n, v in r.host_frames() if v != "RTR"] == [] and b.faults == FAULT_DRIVE_DISARMED
 
 
 def test_safe_state_zero_torque_and_no_more_watchdog_feeding(rig):
@@ -344,7 +490,8 @@ def test_config_section_and_emulator_arguments(tmp_path):
     assert args[args.index("--port") + 1] == str(p.port) and args[args.index("--heartbeat-ms") + 1] == "100"
     for key, value, text in (("node_id", 64, "node_id"), ("log_file", "x.txt", ".asc or .blf"),
                              ("request", ["torque", "nope"], "unknown kind"), ("bogus", 1, "unknown parameter"),
-                             ("heartbeat_timeout_s", 0.0, "> 0")):
+                             ("heartbeat_timeout_s", 0.0, "> 0"), ("protocol", "vesc", "unknown 'vesc'"),
+                             ("enable_max_attempts", -1, ">= 0"), ("arm_ramp_nm_per_s", -5.0, ">= 0")):
         bad = load_config(CAN_CONFIG)
         bad["can"][key] = value
         with pytest.raises(ConfigError, match=text):

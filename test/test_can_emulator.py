@@ -95,6 +95,34 @@ def test_firmware_watchdog_refusal_and_recovery(params):
     assert fw.armed and fw.active_errors == 0 and fw.procedure_result == ProcedureResult.BUSY
 
 
+def test_injected_faults_disarm_and_persist_through_clear_errors(params):
+    from bike_plant.can.emulator import parse_fault
+
+    drv = int(ODriveError.DRV_FAULT)
+    assert parse_fault("drv_fault") == drv and parse_fault("IDLE") == 0 and parse_fault("0x40") == 0x40
+    with pytest.raises(ValueError, match="unknown 'NOPE'"):
+        parse_fault("NOPE")
+    fw = DriveFirmware(model_with(params, load_kind="prime_mover"), watchdog_timeout_s=0.0)
+    fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.0)
+    fw.set_input_torque(1.0, 0.0)
+    fw.inject_fault(0)                                   # IDLE without an error
+    assert fw.axis_state == AxisState.IDLE and fw.active_errors == 0 and fw.input_torque_nm == 0.0
+    fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.1)
+    fw.inject_fault(drv, persist=2)                      # a fault whose cause stays for 2 Clear_Errors
+    assert fw.axis_state == AxisState.IDLE and fw.active_errors == drv and fw.disarm_reason == drv
+    for _ in range(2):
+        fw.clear_errors()
+        fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.2)
+        assert not fw.armed and fw.active_errors == drv
+    fw.clear_errors()
+    fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.3)
+    assert fw.armed and fw.active_errors == 0
+    fw.inject_fault(drv, persist=-1)                     # never clears
+    for _ in range(5):
+        fw.clear_errors()
+    assert fw.active_errors == drv
+
+
 def test_emulator_answers_requests_in_process(params):
     channel = uuid.uuid4().hex
     drive_bus = can.Bus(interface="virtual", channel=channel)
@@ -245,6 +273,28 @@ def test_torque_command_is_followed(emulator_factory, params):
     assert emu.wait_for(lambda h: h.axis_state == AxisState.IDLE, 5.0)
     rc, _ = emu.stop()
     assert rc == 0
+
+
+def test_velocity_control_over_the_bus_and_an_injected_fault(emulator_factory):
+    """Set_Controller_Mode(velocity) + Set_Input_Vel across processes; SIGUSR1 injects --fault:
+    the axis drops to IDLE with the error latched, Clear_Errors + closed loop re-arm it."""
+    emu = emulator_factory("--load", "none", "--fault", "MOTOR_OVER_TEMP")
+    host = emu.host
+    host.clear_errors()
+    host.enable("velocity")
+    host.set_velocity(15.0)
+    assert emu.wait_for(lambda h: h.enabled and abs(h.values().get("speed_rev_s", 0.0) - 15.0) < 0.3, 10.0,
+                        feed=True), host.values()
+    os.kill(emu.proc.pid, signal.SIGUSR1)
+    over_temp = int(ODriveError.MOTOR_OVER_TEMP)
+    assert emu.wait_for(lambda h: h.axis_state == AxisState.IDLE and h.active_errors == over_temp, 3.0, feed=True)
+    host.clear_errors()
+    host.enable("velocity")
+    host.set_velocity(10.0)
+    assert emu.wait_for(lambda h: h.enabled and abs(h.values().get("speed_rev_s", 0.0) - 10.0) < 0.3, 10.0,
+                        feed=True), host.values()
+    rc, summary = emu.stop()
+    assert rc == 0 and summary["faults_injected"] == 1 and summary["rx:Set_Input_Vel"] >= 2
 
 
 def test_watchdog_trips_and_clear_errors_recovers(emulator_factory):

@@ -34,6 +34,8 @@ pytestmark = pytest.mark.timeout(120)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CAN_CONFIG = ROOT / "config" / "bldc_can.yaml"
+SPMSM_CAN_CONFIG = ROOT / "config" / "spmsm_can.yaml"
+DISARMED = PlantState.FAULT_DRIVE_DISARMED
 GROUP = "239.74.163.2"
 LOST = PlantState.FAULT_DRIVE_LOST
 HEARTBEAT_TIMEOUT_S = 0.3                 # 3 x 100 ms (config/bldc_can.yaml)
@@ -46,8 +48,8 @@ def _port() -> int:
 
 
 def write_config(tmp_path: pathlib.Path, port: int, emulator: bool = False, profile: dict | None = None,
-                 **can_changes) -> pathlib.Path:
-    doc = yaml.safe_load(CAN_CONFIG.read_text())
+                 base: pathlib.Path = CAN_CONFIG, **can_changes) -> pathlib.Path:
+    doc = yaml.safe_load(base.read_text())
     p = doc["/**"]["ros__parameters"]
     p["can"].update(port=port, channel=GROUP, emulator=emulator, **can_changes)
     if profile is not None:
@@ -401,3 +403,138 @@ def test_drive_command_to_can_frame_latency_is_measured(ros_domain):
                                          if k != "what"})
     assert result["received"] >= 95
     assert 0.0 < result["p50_ms"] <= result["p99_ms"] <= result["max_ms"] < 1000.0
+
+
+# =======================================================================================
+# the SPMSM bike over CAN, the CAN configs, a drive that is alive but disarmed
+def test_can_configs_keep_the_physics_of_their_sim_configs():
+    """config/<machine>_can.yaml = config/<machine>_default.yaml except timing, backend and can:
+    (the CAN bikes are the simulated bikes with their drive on a bus; a drift is a bug)."""
+    allowed = {"backend", "sync_mode", "batch_periods", "command_timeout_s", "can"}
+    for machine in ("bldc", "spmsm"):
+        sim = yaml.safe_load((ROOT / "config" / f"{machine}_default.yaml").read_text())["/**"]["ros__parameters"]
+        bus = yaml.safe_load((ROOT / "config" / f"{machine}_can.yaml").read_text())["/**"]["ros__parameters"]
+        drift = sorted(f"{key}.{sub}" if isinstance(sim.get(key), dict) and isinstance(bus.get(key), dict) else key
+                       for key in (set(sim) | set(bus)) - allowed
+                       for sub in ((set(sim[key]) | set(bus[key])) if isinstance(sim.get(key), dict)
+                                   and isinstance(bus.get(key), dict) else [None])
+                       if (sim[key].get(sub) != bus[key].get(sub) if sub is not None else sim.get(key) != bus.get(key)))
+        assert not drift, f"config/{machine}_can.yaml drifted from config/{machine}_default.yaml: {drift}"
+        assert bus["backend"] == "can" and bus["sync_mode"] == "realtime" and bus["machine"] == machine
+    from bike_plant.can.backend import can_params_from_config
+    from bike_plant.config import load_config
+    ports = {can_params_from_config(load_config(ROOT / "config" / f"{m}_can.yaml")).port for m in ("bldc", "spmsm")}
+    assert len(ports) == 2, "one udp_multicast port per bike: both can run on one host"
+
+
+def test_the_spmsm_bike_rides_a_workout_through_the_can_path(tmp_path, ros_domain):
+    """`./bike run --config config/spmsm_can.yaml --workout W.zwo --record`: the emulator runs the
+    SPMSM physics, the SPMSM controller answers with torque setpoints, the ride is recorded."""
+    port = _port()
+    config = write_config(tmp_path, port, emulator=True, base=SPMSM_CAN_CONFIG)
+    zwo = tmp_path / "spmsm_can.zwo"
+    zwo.write_text('<workout_file><name>CAN SPMSM</name><sportType>bike</sportType><workout>'
+                   '<SteadyState Duration="3" Power="0.5"/><SteadyState Duration="3" Power="0.75"/>'
+                   '</workout></workout_file>')
+    result = bike_command("run", "--config", str(config), "--workout", str(zwo), "--ftp", "200",
+                          "--record", str(tmp_path / "runs"), timeout=100)
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out[-6000:]
+    assert "machine=spmsm" in out, "the emulator runs the SPMSM physics of the config"
+    assert "drive in closed-loop torque control" in out
+    bag = next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
+    from bike_session.bags import read_topic
+    from bike_session.report import summarise
+
+    states = read_topic(bag, "plant_state")
+    drive = read_topic(bag, "drive_command")
+    t = lambda m: stamp_ns(m.header.stamp) * 1e-9  # noqa: E731
+    assert states[-1].end_of_run and t(states[-1]) == pytest.approx(6.0, abs=1e-3)
+    assert all(m.measured_by_drive and m.backend == "can" and m.machine == "spmsm" for m in states)
+    assert all(len(d.duty_abc) == len(d.relay_request) == len(d.buck_duty) == 0 for d in drive), "torque only"
+    motoring = [(round(t(d), 3), d.torque_cmd_nm) for d in drive if t(d) > 1.0 and d.torque_cmd_nm > 0]
+    if motoring:
+        print(f"motoring setpoints during ERG: {len(motoring)} {motoring[:10]}")
+    n_erg = sum(1 for d in drive if t(d) > 1.0)
+    assert len(motoring) <= 0.02 * n_erg, f"ERG brakes: negative torque (motoring +), got {motoring[:10]}"
+    for lo, hi, watts in ((1.5, 2.95, 100.0), (4.5, 5.95, 150.0)):
+        seg = [m for m in states if lo < t(m) < hi and not m.faults]
+        power = sum(-m.torque_em_nm * m.speed_rad_s for m in seg) / len(seg)
+        cadence = sum(m.speed_rpm for m in seg) / len(seg) / 4.0
+        print(f"ERG {watts:.0f} W: drive brakes {power:.1f} W at {cadence:.1f} rpm cadence")
+        assert power == pytest.approx(watts, rel=0.1), (watts, power)
+        assert 60.0 < cadence < 100.0, "the rider of the SPMSM config pedals the emulated bike"
+    assert states[-1].energy_battery_j > 100 and 20.0 < states[-1].dc_bus_v < 30.0, "24 V SPMSM battery"
+    can_stats = summarise(bag)["can"]
+    assert can_stats["dropped"] == "0" and int(can_stats["setpoints"]) > 600
+    log_path = pathlib.Path(can_stats["log_file"])
+    assert log_path.suffix == ".asc"
+    sent = [m for m in can.LogReader(str(log_path)) if not m.is_rx]
+    limits = [struct.unpack("<ff", bytes(m.data)) for m in sent if m.arbitration_id == 0x0F]
+    assert limits and limits[0] == (10.0, 15.0), "Set_Limits of can.velocity_limit_rev_s / current_limit_a"
+    torques = [struct.unpack("<f", bytes(m.data[:4]))[0] for m in sent if m.arbitration_id == 0x0E]
+    assert max(abs(x) for x in torques) <= 16.47 + 1e-4, "clamped to can.torque_limit_nm"
+    assert "CAN:" in result.stdout
+
+
+def _frames_after(listener: BusListener, t0: float, cmd: int, data0: int | None = None) -> list[float]:
+    """Receive times of node 0's frames with command id ``cmd`` (first payload byte ``data0``)."""
+    return [t for t, m in list(listener.frames) if t >= t0 and m.arbitration_id == cmd and not m.is_remote_frame
+            and (data0 is None or (len(m.data) and m.data[0] == data0))]
+
+
+def test_a_disarmed_drive_pauses_the_session_is_re_armed_and_given_up_on(rig):
+    """The drive stays alive (heartbeats) but leaves closed loop with an error: FAULT_DRIVE_DISARMED
+    (not DRIVE_LOST), an ERROR diagnostic, sim time stops; Clear_Errors + closed loop again, a
+    failed attempt retried after enable_retry_s, braking resumes. A fault that does not clear:
+    3 attempts (0.2 s, 0.4 s apart), then the plant gives up, and re-arms a restarted drive."""
+    r = rig(enable_retry_s=0.2, enable_max_attempts=3, armed_stable_s=1.0)
+    emu = r.emulator("--fault", "DRV_FAULT", "--fault-persist", "1")      # survives the first Clear_Errors
+    r.wait_for(r.braking, 40, "braking through the drive")
+    r.wait_for(lambda: len(r.clock_ns()) > 100, 10, "/clock running")
+    n_diag = len(r.col.data["/diagnostics"])
+    k = len(r.states)
+    t0 = time.monotonic()
+    os.kill(emu.proc.pid, signal.SIGUSR1)
+    r.wait_for(lambda: any(m.faults & DISARMED for m in r.states[k:]), 5, "FAULT_DRIVE_DISARMED")
+    i = next(i for i in range(k, len(r.states)) if r.states[i].faults & DISARMED)
+    assert not r.states[i].faults & LOST, "alive: not a lost drive"
+    print(f"FAULT_DRIVE_DISARMED {1e3 * (r.col.stamps['plant_state'][i] - t0):.0f} ms after the fault")
+    r.wait_for(lambda: r.diagnostics(n_diag, DiagnosticStatus.ERROR), 3, "ERROR diagnostic")
+    err = r.diagnostics(n_diag, DiagnosticStatus.ERROR)[0]
+    assert "disarmed" in err.message and value(err, "can_link") == "alive"
+    assert "DRIVE_DISARMED" in value(err, "fault_names") and value(err, "can_axis_error") == "DRV_FAULT"
+    frozen = stamp_ns(r.states[i].header.stamp)
+    r.wait_for(lambda: len(r.states) > k + 40 and r.braking(), 20, "re-armed and braking again")
+    back = next(j for j in range(i, len(r.states)) if not r.states[j].faults)
+    assert all(stamp_ns(m.header.stamp) == frozen for m in r.states[i:back]), "sim time stood while disarmed"
+    clears = _frames_after(r.listener, t0, 0x18)
+    arms = _frames_after(r.listener, t0, 0x07, 8)
+    assert len(clears) >= 2 and len(arms) >= 2, (clears, arms)
+    assert arms[1] - arms[0] >= 0.15, "the failed attempt is retried after enable_retry_s"
+    assert "FAULT_DRIVE_DISARMED" in r.plant.output()
+    # a fault that never clears: bounded, then given up; a restarted drive is re-armed
+    emu.kill9()
+    r.wait_for(lambda: r.states[-1].faults & LOST, 5, "the killed drive lost")
+    emu2 = r.emulator("--fault", "MOTOR_OVER_TEMP", "--fault-persist", "-1")
+    r.wait_for(lambda: r.braking(), 30, "the second drive armed")
+    time.sleep(1.2)                                      # armed longer than armed_stable_s: the count starts over
+    n_diag = len(r.col.data["/diagnostics"])
+    t1 = time.monotonic()
+    os.kill(emu2.proc.pid, signal.SIGUSR1)
+    r.wait_for(lambda: any(value(s, "can_arming") == "gave_up" for s in r.diagnostics(n_diag)), 10, "give-up")
+    gave = next(s for s in r.diagnostics(n_diag) if value(s, "can_arming") == "gave_up")
+    assert gave.level == DiagnosticStatus.ERROR and "gave up" in gave.message
+    time.sleep(1.0)
+    arms = _frames_after(r.listener, t1, 0x07, 8)
+    assert len(arms) == 3, f"exactly enable_max_attempts attempts: {arms}"
+    assert [b - a for a, b in zip(arms, arms[1:])] == [pytest.approx(0.2, abs=0.12), pytest.approx(0.4, abs=0.15)]
+    assert r.states[-1].faults & DISARMED and not r.states[-1].faults & LOST
+    assert r.plant.proc.poll() is None and r.controller.proc.poll() is None
+    summary = emu2.stop()
+    assert summary["active_errors"] == int(ODriveError.MOTOR_OVER_TEMP) and summary["axis_state"] == 1
+    r3 = r.emulator()                                    # the drive restarted (power cycle): re-armed
+    assert r3.proc.poll() is None
+    r.wait_for(lambda: len(r.states) > 20 and r.braking(), 30, "a restarted drive re-armed after the give-up")
+    assert r.plant.stop() == 0, r.plant.output()
+

@@ -2,14 +2,15 @@
 
 The rows the simulation reproduces are checked against the paper within a factor of 2; the
 rows it misses are checked against the documented band of what it achieves now (no xfail),
-so a change that moves them shows up here. Misses, and why (see paper_spmsm / the report):
-- sine / triangle, predictive: 5-6 r/min vs 12 / 28 (ours better: the one-step law sees the
-  command one sample ahead; what is left is friction and cogging at the zero crossings);
-- THD, both: ~1 % / ~2 % vs 8.8 / 12.5 % (5 % / 3 % back-EMF harmonics and 1.5 us dead time
-  are rejected by current loops of ~2 kHz / 200 Hz; the order of the paper's figures would
-  need ~10x the harmonic voltage);
-- Fig. 14 linearity, predictive: the 15 A current limit turns steps >= 50 r/min into ramps,
-  cogging and Coulomb friction dominate 2-10 r/min.
+so a change that moves them shows up here. Speeds are the encoder's per 1 ms speed sample
+(the DSP's measured speed, 6 r/min resolution). Misses, and why (see paper_spmsm):
+- triangle, predictive: ~11 r/min vs 28 (the law sees the command one sample ahead and the
+  observer feeds the torque forward: the corners cost nothing; the paper's loop met them as
+  a disturbance);
+- THD, both: ~1 % / ~2 % vs 8.8 / 12.5 % (the current loops reject the EMF harmonics and the
+  dead time; the paper's level needs ~2-3 V of 5th / 7th voltage, i.e. overmodulation);
+- Fig. 14 linearity, predictive: the small (not current-limited) steps overshoot 15-60 %
+  and ride cogging and Coulomb friction; the large ones are current-limited.
 """
 from __future__ import annotations
 
@@ -76,31 +77,55 @@ def test_predictive_wins_every_row_the_paper_says_it_wins(table):
 
 @pytest.mark.slow
 def test_rows_within_a_factor_of_2_of_the_paper(table):
-    """Load step (drop and recovery, both families) and the PI's tracking errors."""
+    """Load step (drop and recovery, both families), the sine (both) and the PI's triangle."""
     _, rows, _ = table
-    for key in (("load_step", "speed_drop"), ("load_step", "recovery_time")):
+    for key in (("load_step", "speed_drop"), ("load_step", "recovery_time"), ("sine", "max_tracking_error")):
         assert 0.5 <= float(rows[key]["ratio_predictive"]) <= 2.0, key
         assert 0.5 <= float(rows[key]["ratio_pi"]) <= 2.0, key
         assert rows[key]["within_factor_2"] == "yes"
-    for key in (("sine", "max_tracking_error"), ("triangle", "max_tracking_error")):
-        assert 0.5 <= float(rows[key]["ratio_pi"]) <= 2.0, key
+    assert 0.5 <= float(rows[("triangle", "max_tracking_error")]["ratio_pi"]) <= 2.0
     # the two calibrated unknowns (observer pole, PI poles) put the load step here
     drop = rows[("load_step", "speed_drop")]
-    assert 20.0 < float(drop["predictive"]) < 32.0 and 45.0 < float(drop["pi"]) < 70.0
+    assert 20.0 < float(drop["predictive"]) < 34.0 and 45.0 < float(drop["pi"]) < 75.0
 
 
 @pytest.mark.slow
 def test_missed_rows_stay_in_their_documented_bands(table):
     """Rows outside the factor of 2, pinned to what the simulation achieves (ratios ours/paper)."""
     _, rows, _ = table
-    sine, tri = rows[("sine", "max_tracking_error")], rows[("triangle", "max_tracking_error")]
-    assert 0.3 <= float(sine["ratio_predictive"]) < 0.5 and sine["within_factor_2"] == "no"
-    assert 0.1 <= float(tri["ratio_predictive"]) < 0.4 and tri["within_factor_2"] == "no"
+    tri = rows[("triangle", "max_tracking_error")]
+    assert 0.3 <= float(tri["ratio_predictive"]) < 0.5 and tri["within_factor_2"] == "no"
     thd = rows[("thd", "phase_current_thd")]
     assert 0.05 <= float(thd["ratio_predictive"]) < 0.25 and 0.05 <= float(thd["ratio_pi"]) < 0.3
     assert thd["within_factor_2"] == "no"
     lin = rows[("steps", "linearity")]
-    assert float(lin["predictive"]) > P.LINEARITY_TOL_PERCENT and lin["winner_ok"] == "no"
+    assert 30.0 < float(lin["predictive"]) < 120.0 and lin["winner_ok"] == "no"
+    assert float(lin["predictive"]) < float(lin["pi"])
+
+
+def test_measured_speed_is_the_encoder_count_per_sample():
+    """M method on the recorded count: 6 r/min steps for 10000 counts/rev and 1 ms records."""
+    t = np.arange(6) * 1e-3
+    out = {"t": t, "encoder_count": np.array([0.0, 33.0, 67.0, 100.0, 133.0, 167.0]),
+           "speed_rpm": np.full(6, 200.0)}
+    m = P.measured_speed_rpm(out, {"encoder": {"pulses_per_rev": 2500, "quadrature": 4}})
+    assert m[0] == 200.0
+    assert np.allclose(m[1:], [198.0, 204.0, 198.0, 198.0, 204.0])
+
+
+def test_linearity_measure_compares_shapes_on_their_own_time_axis():
+    """Two first-order responses of different time constants are one shape (0 %); an
+    overshooting one deviates; one that never reaches 90 % has no shape."""
+    t = np.linspace(0.0, 2.0, 2001)
+    a = P.normalised_shape(t, 1.0 - np.exp(-t / 0.05))
+    b = P.normalised_shape(t, 1.0 - np.exp(-t / 0.2))
+    assert np.max(np.abs(a - b)) < 0.01
+    wn, z = 60.0, 0.2
+    wd = wn * math.sqrt(1 - z * z)
+    ring = 1.0 - np.exp(-z * wn * t) * (np.cos(wd * t) + z / math.sqrt(1 - z * z) * np.sin(wd * t))
+    c = P.normalised_shape(t, ring)
+    assert np.max(np.abs(c - a)) > 0.3
+    assert P.normalised_shape(t, 0.5 * (1.0 - np.exp(-t / 0.05))) is None
 
 
 def test_tracking_commands_and_helpers():

@@ -16,10 +16,11 @@ from bike_controller import spmsm_control as C
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CFG_PATH = ROOT / "config" / "spmsm_default.yaml"
 LOW_R = 0.684     # the Rs under which the paper's 200 r/min / 1 N m and 350 r/min are feasible at 24 V
-# the plant's non-idealities off (back-EMF harmonics, cogging, Coulomb friction, dead time):
-# for the tests of the control law's own properties (the defaults are ridden elsewhere)
+# the plant's non-idealities off (back-EMF harmonics, cogging, Coulomb friction, dead time)
+# and exact current sensing: for the tests of the control law's own properties (the
+# defaults are ridden elsewhere)
 IDEAL = {"spmsm": {"emf_harmonic_5": 0.0, "emf_harmonic_7": 0.0, "cogging_torque_nm": 0.0, "dry_friction_nm": 0.0},
-         "inverter": {"dead_time_s": 0.0}}
+         "inverter": {"dead_time_s": 0.0}, "controller": {"current_sensor_lsb_a": 0.0}}
 
 
 @pytest.fixture(scope="module")
@@ -283,9 +284,52 @@ def test_m_method_speed_is_counts_per_millisecond(cfg):
     assert q[C.Q_SPEED_KF] == pytest.approx(1.0 - math.exp(-2 * math.pi * 5.0 * 1e-3))
 
 
+def test_computation_delay_applies_the_previous_periods_duties(cfg):
+    """computation_delay_periods: 1 returns, from the second active period on, the duties
+    computed one period earlier (the DSP's shadow-loaded PWM); 0 returns the fresh ones. With
+    the paper's one-step current law the delay destabilises the current loop (config
+    comment): |poles| of z (z - 1)(z - a) + beta ((1 + a) z - a) > 1 at beta = 0.7."""
+    c = variant(cfg, load={"kind": "prime_mover", "speed_rpm": 100.0})
+    outs = {}
+    for delay in (0, 1):
+        plant = M.SpmsmPlant(M.plant_params_from_config(variant(c, controller={"computation_delay_periods": delay})))
+        ctrl = C.SpmsmController(variant(c, controller={"computation_delay_periods": delay}))
+        ctrl.reset_from(plant.state)
+        ctrl.set_speed_ref(100.0)
+        seq = []
+        for _ in range(3):
+            applied = C.control_period(ctrl.cs, ctrl.q, plant.state)[:3]
+            seq.append((applied, (ctrl.cs[C.C_DA], ctrl.cs[C.C_DB], ctrl.cs[C.C_DC])))
+        outs[delay] = seq
+    for applied, computed in outs[0]:
+        assert applied == computed
+    (a0, c0), (a1, c1), (a2, _) = outs[1]
+    assert a0 == c0 and a1 == c0 and a2 == c1 and c1 != c0
+    a = math.exp(-LOW_R * 1e-4 / 9.8e-3)
+    poly = np.polyadd(np.polymul(np.polymul([1, 0], [1, -1]), [1, -a]), [0, 0, 0.7 * (1 + a), -0.7 * a])
+    assert np.max(np.abs(np.roots(poly))) > 1.2
+
+
+def test_current_sensor_quantises_two_phases_and_derives_the_third(cfg):
+    """current_sensor_lsb_a: ia, ib rounded to the ADC step, ic = -ia - ib, then Clarke/Park."""
+    lsb = 0.05
+    plant = M.SpmsmPlant(M.plant_params_from_config(variant(cfg, load={"kind": "none"})))
+    plant.state[M.S_IA], plant.state[M.S_IB], plant.state[M.S_IC] = 1.234, -0.517, -0.717
+    for q_lsb, (ia, ib) in ((0.0, (1.234, -0.517)), (lsb, (1.25, -0.5))):
+        ctrl = C.SpmsmController(variant(cfg, controller={"current_sensor_lsb_a": q_lsb}))
+        C.control_period(ctrl.cs, ctrl.q, plant.state)
+        th = ctrl.cs[C.C_THETA_E]
+        ic = -ia - ib
+        al = (2 * ia - ib - ic) / 3.0
+        be = (ib - ic) / math.sqrt(3.0)
+        assert ctrl.cs[C.C_ID] == pytest.approx(al * math.cos(th) + be * math.sin(th), abs=1e-12)
+        assert ctrl.cs[C.C_IQ] == pytest.approx(-al * math.sin(th) + be * math.cos(th), abs=1e-12)
+
+
 @pytest.mark.parametrize("key,value", [("family", "mpc"), ("speed_weight_r", -1.0), ("voltage_margin", 1.5),
                                        ("speed_estimator", "hall"), ("current_limit_a", 0.0), ("typo", 1),
-                                       ("speed_filter_hz", -1.0)])
+                                       ("speed_filter_hz", -1.0), ("computation_delay_periods", 2),
+                                       ("current_sensor_lsb_a", -0.01)])
 def test_bad_controller_config_is_one_clear_error(cfg, key, value):
     with pytest.raises(ConfigError, match="controller"):
         C.SpmsmController(variant(cfg, controller={key: value}))

@@ -38,6 +38,7 @@ from .modes import (MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOut
                     TorqueTrim, mode_params_from_config)
 
 FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this module imports no ROS)
+FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
 
 
 def validate_session_command(command, mode) -> None:
@@ -76,7 +77,7 @@ class DriveTorqueLaw:
             dt = min(max((int(stamp) - self.last_stamp_ns) * 1e-9, 0.0), 10.0 * self.batch_s)
         if stamp is not None:
             self.last_stamp_ns = int(stamp)
-        if int(snapshot.get("faults", 0)) & FAULT_DRIVE_LOST:
+        if int(snapshot.get("faults", 0)) & (FAULT_DRIVE_LOST | FAULT_DRIVE_DISARMED):
             if not self.lost:
                 self.lost = True
                 self.law.reset(0.0)

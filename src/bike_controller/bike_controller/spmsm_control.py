@@ -58,7 +58,13 @@ current loops headroom; a slow voltage feedback lowers it while the current loop
 recover afterwards. ``flux_weakening: false`` keeps id = 0 (paper Fig. 19).
 
 Measurement: phase currents sampled at the period start (carrier valley), Clarke/Park with
-the encoder angle (count + 1/2 count, x4 decoding of 2500 lines). Speed (the paper does not
+the encoder angle (count + 1/2 count, x4 decoding of 2500 lines); optionally
+(``current_sensor_lsb_a``) ia and ib quantised to the ADC step and ic = -ia - ib, as a DSP
+with two current sensors measures them. ``computation_delay_periods: 1`` applies the duties
+computed from the samples of period k in period k + 1 (a DSP that needs the whole period);
+the paper's one-step current law is unstable with that delay (its closed loop becomes
+z (z - 1)(z - a) + beta ((1 + a) z - a), |z| > 1 for beta >= ~0.07), so the default is the
+same-period update the paper's ZOH model assumes. Speed (the paper does not
 say how it measured it): by default a speed observer run every 100 us, driven by the encoder
 angle error with the measured torque Kt iq fed forward through the nominal J and B (triple
 pole at ``observer_pole_hz``; bumpless when the relay switches the feed-forward off / on);
@@ -129,6 +135,8 @@ class SpmsmControllerParams:
     observer_pole_hz: float = 5.0         # triple pole of the speed observer (config comment)
     speed_delay_compensation: bool = False  # mt only: extrapolate the M/T estimate by half a sample
     speed_filter_hz: float = 0.0          # first-order low-pass on the speed the speed law sees (0: off)
+    computation_delay_periods: int = 0    # 1: duties computed in period k are applied in k + 1 (DSP)
+    current_sensor_lsb_a: float = 0.0     # ADC step of the phase-current measurement (0: exact)
     speed_ref0_rpm: float = 0.0
     brake_torque0_nm: float = 0.0
     model: str = "nominal"
@@ -146,6 +154,10 @@ class SpmsmControllerParams:
             raise ValueError(f"model must be 'nominal' or 'actual', got {self.model!r}")
         if self.speed_estimator not in ("observer", "mt", "m"):
             raise ValueError(f"speed_estimator must be 'observer', 'mt' or 'm', got {self.speed_estimator!r}")
+        if self.computation_delay_periods not in (0, 1):
+            raise ValueError(f"computation_delay_periods must be 0 or 1, got {self.computation_delay_periods!r}")
+        if not 0.0 <= self.current_sensor_lsb_a <= 1.0:
+            raise ValueError(f"current_sensor_lsb_a must be in [0, 1] A, got {self.current_sensor_lsb_a!r}")
         if not self.speed_filter_hz >= 0.0:
             raise ValueError(f"speed_filter_hz must be >= 0, got {self.speed_filter_hz!r}")
         require_positive(self, "observer_pole_hz")
@@ -175,16 +187,16 @@ def predictive_increment(x_ref_next, x, dx, a, b, r):
 (Q_FAMILY, Q_DT, Q_NS, Q_TS, Q_AC, Q_BC, Q_AS, Q_BS, Q_RC, Q_RS, Q_KPC, Q_KIC, Q_KPS, Q_KIS, Q_PP, Q_R, Q_L,
  Q_LAM, Q_KT, Q_IMAX, Q_VMARGIN, Q_VDC, Q_VMAX_FACTOR, Q_MODULATION, Q_FW, Q_CPR, Q_FCAP, Q_BUCK_V, Q_LINK_MAX,
  Q_RECT_DIODE_V, Q_ANGLE_COMP, Q_GC, Q_GS, Q_FAMILY_CURRENT, Q_DELAY_COMP, Q_OBSERVER, Q_OBS_L1, Q_OBS_L2, Q_OBS_L3,
- Q_JN, Q_BN, Q_SPEED_KF, Q_MMETHOD) = range(43)
-Q_SIZE = 44
+ Q_JN, Q_BN, Q_SPEED_KF, Q_MMETHOD, Q_DELAY, Q_ILSB) = range(45)
+Q_SIZE = 46
 
 (C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
  C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
  C_VQP_PREV, C_ED_PREV, C_EQ_PREV, C_VD, C_VQ, C_REGION, C_LIMITS, C_TORQUE_EST, C_ADVANCE, C_RELAY_REQ,
  C_BUCK_DUTY, C_BRAKE_T, C_DA, C_DB, C_DC, C_CUR_ACTIVE, C_SPEED_ACTIVE, C_THETA_E, C_COS, C_SIN, C_CNT,
  C_HAVE_ANGLE, C_VSAT, C_SPEED_RAW_PREV, C_OBS_TH, C_OBS_W, C_OBS_D, C_OBS_INIT, C_DV, C_SPEED_FILT,
- C_FILT_INIT, C_IQ_SUM, C_IQ_N, C_OBS_IQFF, C_OBS_INV, C_TORQUE_MODE, C_TORQUE_CMD) = range(55)
-C_SIZE = 56
+ C_FILT_INIT, C_IQ_SUM, C_IQ_N, C_OBS_IQFF, C_OBS_INV, C_TORQUE_MODE, C_TORQUE_CMD, C_PEND_OK) = range(56)
+C_SIZE = 57
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -232,6 +244,8 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_BN] = nominal.mech.friction_nms
     q[Q_SPEED_KF] = -math.expm1(-TWO_PI * cp.speed_filter_hz * ts) if cp.speed_filter_hz > 0 else 0.0
     q[Q_MMETHOD] = 1.0 if cp.speed_estimator == "m" else 0.0
+    q[Q_DELAY] = float(cp.computation_delay_periods)
+    q[Q_ILSB] = cp.current_sensor_lsb_a
     return q
 
 
@@ -585,8 +599,16 @@ def control_period(cs, q, meas):
     cs[C_COS] = c
     cs[C_SIN] = s
     cs[C_CNT] = cnt
-    ial = (2.0 * meas[M.S_IA] - meas[M.S_IB] - meas[M.S_IC]) * (1.0 / 3.0)
-    ibe = (meas[M.S_IB] - meas[M.S_IC]) * (1.0 / SQRT3)
+    if q[Q_ILSB] > 0.0:
+        # two phase currents through the ADC (quantised to one LSB), the third from their sum
+        lsb = q[Q_ILSB]
+        ia_m = math.floor(meas[M.S_IA] / lsb + 0.5) * lsb
+        ib_m = math.floor(meas[M.S_IB] / lsb + 0.5) * lsb
+        ial = ia_m
+        ibe = (ia_m + 2.0 * ib_m) * (1.0 / SQRT3)
+    else:
+        ial = (2.0 * meas[M.S_IA] - meas[M.S_IB] - meas[M.S_IC]) * (1.0 / 3.0)
+        ibe = (meas[M.S_IB] - meas[M.S_IC]) * (1.0 / SQRT3)
     idm = ial * c + ibe * s
     iqm = -ial * s + ibe * c
     cs[C_ID] = idm
@@ -636,6 +658,7 @@ def control_period(cs, q, meas):
         cs[C_DA] = 0.5
         cs[C_DB] = 0.5
         cs[C_DC] = 0.5
+        cs[C_PEND_OK] = 0.0
         return 0.5, 0.5, 0.5, cs[C_RELAY_REQ], cs[C_BUCK_DUTY]
     r = q[Q_R]
     lh = q[Q_L]
@@ -676,17 +699,30 @@ def control_period(cs, q, meas):
     cs[C_VD] = vd
     cs[C_VQ] = vq
     if q[Q_ANGLE_COMP] != 0.0:
-        rot = M._rot_small(complex(c, -s), -0.5 * we * q[Q_DT]).conjugate()   # exp(j (th + we T / 2))
+        # exp(j (th + we T (1/2 + delay))): the mid angle of the period the voltage is applied in
+        rot = M._rot_small(complex(c, -s), -(0.5 + q[Q_DELAY]) * we * q[Q_DT]).conjugate()
         ca = rot.real
         sa = rot.imag
     else:
         ca = c
         sa = s
     da, db, dc = modulate(vd * ca - vq * sa, vd * sa + vq * ca, q[Q_VDC], q[Q_MODULATION])
+    if q[Q_DELAY] != 0.0 and cs[C_PEND_OK] != 0.0:
+        # one-period computation delay (DSP): the duties computed from the samples of period
+        # k reach the PWM compare registers (shadow load) at the start of period k + 1; this
+        # period runs on the ones computed in the previous period
+        oa = cs[C_DA]
+        ob = cs[C_DB]
+        oc = cs[C_DC]
+    else:
+        oa = da
+        ob = db
+        oc = dc
+    cs[C_PEND_OK] = 1.0
     cs[C_DA] = da
     cs[C_DB] = db
     cs[C_DC] = dc
-    return da, db, dc, cs[C_RELAY_REQ], cs[C_BUCK_DUTY]
+    return oa, ob, oc, cs[C_RELAY_REQ], cs[C_BUCK_DUTY]
 
 
 def init_controller_state(q: np.ndarray, cp: SpmsmControllerParams, meas: np.ndarray | None = None) -> np.ndarray:
@@ -813,9 +849,10 @@ class SpmsmController:
 # =======================================================================================
 REC_FIELDS = ("t", "speed_rpm", "speed_est_rpm", "speed_ref_rpm", "id", "iq", "id_ref", "iq_ref", "iq_demand",
               "vd", "vq", "ia", "ib", "ic", "torque", "torque_est", "load_torque", "region", "limits", "relay",
-              "buck_duty", "battery_current", "advance_angle", "iterations")
+              "buck_duty", "battery_current", "advance_angle", "iterations", "encoder_count")
 (R_T, R_SPEED, R_SPEED_EST, R_SPEED_REF, R_ID, R_IQ, R_ID_REF, R_IQ_REF, R_IQ_DEM, R_VD, R_VQ, R_IA, R_IB, R_IC,
- R_TORQUE, R_TORQUE_EST, R_TLOAD, R_REGION, R_LIMITS, R_RELAY, R_BUCK, R_IBATT, R_ADV, R_ITER) = range(len(REC_FIELDS))
+ R_TORQUE, R_TORQUE_EST, R_TLOAD, R_REGION, R_LIMITS, R_RELAY, R_BUCK, R_IBATT, R_ADV, R_ITER,
+ R_COUNT) = range(len(REC_FIELDS))
 N_REC = len(REC_FIELDS)
 
 
@@ -871,6 +908,7 @@ def run_kernel(plant, p, cs, q, k0, k1, ref_w, tl, relay_req, brake_t, rec, rec_
                 rec[r, R_IBATT] = plant[M.S_IBATT]
                 rec[r, R_ADV] = cs[C_ADVANCE]
                 rec[r, R_ITER] = plant[M.S_ITER]
+                rec[r, R_COUNT] = plant[M.S_COUNT]
             r += 1
         if rec_every > 0:
             rsub += 1

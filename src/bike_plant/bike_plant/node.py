@@ -35,8 +35,10 @@ only). With ``can`` the drive's firmware owns the current loop: each DriveComman
 ``torque_cmd_nm`` goes out as a torque setpoint the moment it arrives, PlantState carries the
 drive's measurements (``measured_by_drive``), and sim time stands still (no /clock, PlantState
 keeps its stamp) while the drive is not armed or lost (FAULT_DRIVE_LOST after the
-heartbeat timeout, an ERROR diagnostic, zero torque), so the session pauses; it resumes when
-the drive is back and re-armed. CAN statistics are part of the plant's diagnostic (``can_*``).
+heartbeat timeout, an ERROR diagnostic, zero torque) or alive but disarmed
+(FAULT_DRIVE_DISARMED: tripped, errors, IDLE; re-armed with a bounded retry policy), so the
+session pauses; it resumes when the drive is back and re-armed. CAN statistics are part of
+the plant's diagnostic (``can_*``).
 """
 from __future__ import annotations
 
@@ -104,9 +106,10 @@ FAULT_NAMES = {
     PlantState.FAULT_RECORDER_LOST: "RECORDER_LOST",
     PlantState.FAULT_RELAY_FORCED: "RELAY_FORCED",
     PlantState.FAULT_UNCONTROLLED_GENERATION: "UNCONTROLLED_GENERATION",
+    PlantState.FAULT_DRIVE_DISARMED: "DRIVE_DISARMED",
 }
 ERROR_FAULTS = (PlantState.FAULT_COMMAND_TIMEOUT | PlantState.FAULT_OVERVOLTAGE | PlantState.FAULT_DRIVE_LOST
-                | PlantState.FAULT_RECORDER_LOST)
+                | PlantState.FAULT_RECORDER_LOST | PlantState.FAULT_DRIVE_DISARMED)
 
 
 def fault_text(bits: int) -> str:

@@ -64,6 +64,7 @@ FAULT_BITS = {
     "recorder_lost": 32,
     "relay_forced": 64,
     "uncontrolled_generation": 128,
+    "drive_disarmed": 256,
 }
 SESSION_STATES = {0: "WAITING", 1: "RUNNING", 2: "DONE"}
 MODE_NAMES = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinetic"}
@@ -1070,7 +1071,8 @@ def format_summary(summary: dict) -> str:
                      f"dropped {can.get('dropped', '?')}" + (f" ({dropped})" if dropped else ""))
         lines.append(f"                       heartbeats {can.get('heartbeats', '?')}, setpoints "
                      f"{can.get('setpoints', '?')}, RTR requests {can.get('requests', '?')}, drive lost "
-                     f"{can.get('drive_lost', '?')}x, armed {can.get('armed', '?')}x, ERROR diagnostics "
+                     f"{can.get('drive_lost', '?')}x, armed {can.get('armed', '?')}x, disarmed {can.get('disarmed', 0)}x, "
+                     f"gave up arming {can.get('arm_gave_up', 0)}x, ERROR diagnostics "
                      f"{can.get('error_diagnostics', 0)}, last axis error {can.get('axis_error', '?')}")
         if can.get("log_file"):
             lines.append(f"CAN log:               {can['log_file']} ({can.get('log_frames', '?')} frames)")

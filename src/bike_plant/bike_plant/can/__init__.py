@@ -16,7 +16,7 @@ import importlib
 _PROTOCOL_NAMES = (
     "DBC_PATH", "DRIVE_TO_HOST", "HOST_TO_DRIVE", "IGNORED_REASONS", "MALFORMED_REASONS", "MEASUREMENT_KINDS",
     "AxisState", "ControlMode", "DriveProtocol", "InputMode", "Measurement", "ODriveError", "OdriveCanSimple",
-    "OdriveCanSimpleCodec", "ProcedureResult", "error_names", "export_dbc", "load_database",
+    "OdriveCanSimpleCodec", "PROTOCOLS", "ProcedureResult", "error_names", "export_dbc", "load_database",
 )
 
 __all__ = list(_PROTOCOL_NAMES)

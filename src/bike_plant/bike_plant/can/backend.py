@@ -17,7 +17,8 @@ What it does
   the same sign as ODrive's torque) goes out as ``Set_Input_Torque``, clamped to
   ``torque_limit_nm``. It is sent the moment the DriveCommand arrives (:meth:`submit`,
   called from the node's subscription callback), not at the next batch tick, and repeated
-  every ``watchdog_feed_s`` so the drive's watchdog stays fed.
+  every ``watchdog_feed_s`` so the drive's watchdog stays fed. After the drive (re-)arms the
+  setpoint ramps up from zero at ``arm_ramp_nm_per_s`` (no torque step for the rider).
 * Measurements -> PlantState (``measured_by_drive`` true, no gate-level data):
   speed from Get_Encoder_Estimates (motor rev/s -> rad/s and rpm), rotor angle from the
   position (mechanical = 2 pi frac(pos), electrical = pole_pairs x that), torque_em_nm =
@@ -43,6 +44,14 @@ What it does
     periods by default) as lost: FAULT_DRIVE_LOST, zero torque commanded (in case only
     our receive path broke), the watchdog is no longer fed; once heartbeats return and
     DriveCommands flow, Clear_Errors + closed-loop torque control re-arm it;
+  - a drive that is alive (Heartbeats) but not in closed-loop control although it should be
+    (it tripped or reports errors, someone set it IDLE, arming fails): FAULT_DRIVE_DISARMED,
+    an ERROR diagnostic, sim time stops (the session pauses); the plant re-arms it
+    (Clear_Errors + Set_Controller_Mode + Set_Axis_State, Set_Limits if configured) with a
+    bounded policy: ``enable_retry_s`` doubling per failed attempt, at most
+    ``enable_max_attempts`` in a row (an arm that does not hold for ``armed_stable_s``
+    counts as failed), then it gives up until the drive's errors change, the drive was
+    lost and is back, or DriveCommands resume after the safe state;
   - :meth:`set_safe` (the node's DriveCommand timeout): zero torque, then the watchdog is
     no longer fed, so the drive disarms itself after its own watchdog timeout
     (WATCHDOG_TIMER_EXPIRED, reported in the diagnostic); re-armed when commands return;
@@ -66,7 +75,7 @@ from typing import Callable
 import can
 
 from ..config import ConfigError, build_dataclass, section
-from .protocol import (MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, ODriveError, OdriveCanSimple,
+from .protocol import (MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, PROTOCOLS, ODriveError,
                        error_names)
 
 TWO_PI = 2.0 * math.pi
@@ -75,6 +84,7 @@ RPM_PER_REV_S = 60.0
 # PlantState fault bits (bike_msgs/PlantState; numbers duplicated so this module stays ROS-free)
 FAULT_OVERVOLTAGE = 4
 FAULT_DRIVE_LOST = 16
+FAULT_DRIVE_DISARMED = 256
 
 # diagnostic levels (diagnostic_msgs/DiagnosticStatus)
 OK, WARN, ERROR = 0, 1, 2
@@ -91,12 +101,17 @@ class CanParams:
     port: int = 0                       # udp_multicast UDP port (0: python-can's default 43113)
     bitrate: int = 1000000              # interfaces that set it (pcan, kvaser, ...); socketcan: `ip link`
     node_id: int = 0                    # ODrive axis node id 0..63
+    protocol: str = "odrive_cansimple_0.6"   # bike_plant.can.protocol.PROTOCOLS
     heartbeat_period_s: float = 0.1     # the drive's heartbeat_msg_rate_ms (informative)
     heartbeat_timeout_s: float = 0.3    # no Heartbeat this long -> FAULT_DRIVE_LOST (3 periods)
     watchdog_feed_s: float = 0.1        # re-send the setpoint at least this often (drive watchdog)
     request_period_s: float = 0.01      # RTR period of the measurements in `request`
     request: list = dataclasses.field(default_factory=lambda: ["torque", "bus", "current"])
-    enable_retry_s: float = 0.5         # re-arm attempts (Clear_Errors + closed loop) at most this often
+    enable_retry_s: float = 0.5         # re-arm retry (Clear_Errors + closed loop) after this; doubles per attempt
+    enable_max_attempts: int = 5        # failed arming attempts in a row before giving up (0: never give up)
+    armed_stable_s: float = 2.0         # closed loop this long resets the attempt count (bounds arm/trip cycles)
+    disarm_grace_s: float = 0.5         # first arming: not yet a fault while it takes less than this
+    arm_ramp_nm_per_s: float = 20.0     # after (re-)arming, |setpoint| <= this x time in closed loop (0: no ramp)
     torque_limit_nm: float = 0.0        # clamp of the torque setpoint; 0: controller.tmax_nm (none if absent)
     current_limit_a: float = 0.0        # > 0: Set_Limits at arming (with velocity_limit_rev_s)
     velocity_limit_rev_s: float = 0.0   # > 0: Set_Limits at arming
@@ -110,6 +125,8 @@ class CanParams:
     def validate(self) -> None:
         if not self.interface:
             raise ValueError("interface must not be empty")
+        if self.protocol not in PROTOCOLS:
+            raise ValueError(f"protocol: unknown {self.protocol!r} (known: {', '.join(sorted(PROTOCOLS))})")
         if not 0 <= self.node_id <= 0x3F:
             raise ValueError(f"node_id must be in 0..63, got {self.node_id}")
         if not 0 <= self.port <= 65535:
@@ -118,7 +135,8 @@ class CanParams:
                      "enable_retry_s", "bitrate"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("torque_limit_nm", "current_limit_a", "velocity_limit_rev_s", "emulator_watchdog_s"):
+        for name in ("torque_limit_nm", "current_limit_a", "velocity_limit_rev_s", "emulator_watchdog_s",
+                     "enable_max_attempts", "armed_stable_s", "disarm_grace_s", "arm_ramp_nm_per_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         unknown = [k for k in self.request if k not in REQUEST_KINDS]
@@ -231,7 +249,7 @@ class CanBackend:
             except Exception as exc:  # noqa: BLE001
                 self._shutdown_bus()
                 raise ConfigError(f"cannot write the CAN log {self.log_path}: {exc}", path, "can.log_file") from None
-        self.drive = OdriveCanSimple(_BusTap(bus, self), p.node_id, heartbeat_timeout_s=p.heartbeat_timeout_s,
+        self.drive = PROTOCOLS[p.protocol](_BusTap(bus, self), p.node_id, heartbeat_timeout_s=p.heartbeat_timeout_s,
                                      watchdog_feed_interval_s=p.watchdog_feed_s, clock=clock)
         self.counters: collections.Counter = collections.Counter()
         self.events: list[tuple[str, str]] = []
@@ -242,6 +260,14 @@ class CanBackend:
         self.commanded = False         # valid DriveCommands are flowing: the drive should be armed
         self.was_enabled = False
         self.last_enable_s = -math.inf
+        # bounded re-arming (see _arming): failed attempts in a row, give-up latch
+        self.arm_attempts = 0
+        self.gave_up = False
+        self.gave_up_errors = 0        # drive errors when we gave up (a change starts a new episode)
+        self.ever_armed = False        # the drive was in closed loop at least once
+        self.armed_since_s = None
+        self.first_attempt_s = None
+        self.ramping = False           # the last setpoint was cut by the arming ramp
         self.last_request_s = {k: -math.inf for k in p.request}
         self.rx_at_request: dict[str, int] = {}
         self.clamp_msg = None          # DriveCommand whose torque was last converted
@@ -304,8 +330,22 @@ class CanBackend:
         return not self.drive_enabled
 
     @property
+    def disarmed(self) -> bool:
+        """The drive is alive but not in closed-loop control although it should be (or was):
+        it has errors, it was armed before (tripped, or set IDLE by someone else), arming
+        it failed for longer than ``disarm_grace_s``, or the plant gave up re-arming it.
+        A fresh drive that is simply idle before the first DriveCommand is not a fault."""
+        if not self.link_alive or self.drive.enabled or self._closed:
+            return False
+        if self.drive.active_errors or self.ever_armed or self.gave_up:
+            return True
+        return self.first_attempt_s is not None and self.clock() - self.first_attempt_s > self.params.disarm_grace_s
+
+    @property
     def faults(self) -> int:
         bits = FAULT_DRIVE_LOST if self.lost else 0
+        if self.disarmed:
+            bits |= FAULT_DRIVE_DISARMED
         if self.seen and self.drive.active_errors & ODriveError.DC_BUS_OVER_VOLTAGE:
             bits |= FAULT_OVERVOLTAGE
         return bits
@@ -331,23 +371,25 @@ class CanBackend:
                 gone = now - self.lost_since_s if self.lost_since_s is not None else math.nan
                 self._event("info", f"the drive is back after {gone:.2f}s (axis state {drive.axis_state}, errors "
                                     f"{error_names(drive.active_errors) or 'none'}): re-arming when DriveCommands flow")
+                self._new_arming_episode("the drive is back")
         if self.link_alive:
             enabled = drive.enabled
             if enabled and not self.was_enabled:
                 self.counters["armed"] += 1
+                self.ever_armed = True
+                self.armed_since_s = now
                 self._event("info", "drive in closed-loop torque control")
                 if self.commanded and not self.safe:
                     self._send_setpoint(self.setpoint_nm)
             elif not enabled and self.was_enabled:
                 self.counters["disarmed"] += 1
+                self.armed_since_s = None
                 errors = error_names(drive.active_errors)
-                self._event("error" if errors else "warning",
-                            f"drive left closed-loop control (axis state {drive.axis_state}"
-                            + (f", errors {', '.join(errors)}" if errors else "") + ")")
+                self._event("error", f"drive alive but left closed-loop control (axis state {drive.axis_state}"
+                                     + (f", errors {', '.join(errors)}" if errors else ", no error") +
+                                     "): FAULT_DRIVE_DISARMED, sim time paused")
             self.was_enabled = enabled
-            retry_due = now - self.last_enable_s >= self.params.enable_retry_s
-            if self.commanded and not self.safe and not enabled and retry_due:
-                self._arm(now)
+            self._arming(now, enabled)
             self._request(now)
             if not self.safe:
                 if drive.keepalive(now):
@@ -372,6 +414,7 @@ class CanBackend:
         self.lost = True
         self.lost_since_s = now
         self.was_enabled = False
+        self.armed_since_s = None
         self.counters["drive_lost"] += 1
         age = self.drive.heartbeat_age_s(now)
         self._event("error", f"drive silent: no Heartbeat for {age:.3f}s > heartbeat_timeout_s="
@@ -382,10 +425,69 @@ class CanBackend:
         self.drive.forget_setpoint()
         self.sent_msg = None
 
+    def _new_arming_episode(self, why: str) -> None:
+        """Forget failed attempts (and a give-up): the situation changed."""
+        if self.gave_up:
+            self._event("info", f"re-arming again: {why}")
+        self.arm_attempts = 0
+        self.gave_up = False
+        self.first_attempt_s = None
+        self.last_enable_s = -math.inf
+
+    def retry_interval_s(self) -> float:
+        """Wait after failed attempt number ``arm_attempts``: enable_retry_s, doubling each time."""
+        return self.params.enable_retry_s * 2.0 ** max(self.arm_attempts - 1, 0)
+
+    def _arming(self, now: float, enabled: bool) -> None:
+        """Bounded re-arming of a drive that is alive but not in closed-loop control.
+
+        While DriveCommands flow (and not in the safe state), an unarmed drive gets
+        Clear_Errors + Set_Controller_Mode + Set_Axis_State(CLOSED_LOOP_CONTROL) at once,
+        then again after enable_retry_s, 2x, 4x, ... as long as it does not arm. After
+        ``enable_max_attempts`` attempts in a row that did not hold (the drive refused, or
+        tripped again within ``armed_stable_s``) the plant gives up: FAULT_DRIVE_DISARMED
+        stays, an ERROR diagnostic says why, no more frames are sent to arm it. It starts
+        over when the drive's error bits change (cleared or changed by someone else), when
+        the drive was lost and is back (rebooted, replugged), or when DriveCommands resume
+        after the safe state (a new controller).
+        """
+        p = self.params
+        drive = self.drive
+        if enabled:
+            if self.gave_up:
+                self._new_arming_episode("the drive is in closed-loop control")
+            if self.arm_attempts and self.armed_since_s is not None and now - self.armed_since_s >= p.armed_stable_s:
+                self.arm_attempts = 0            # it held: a later trip starts a new count
+                self.first_attempt_s = None
+            return
+        if self.gave_up:
+            if drive.active_errors != self.gave_up_errors:
+                self._new_arming_episode(f"the drive's errors changed to {error_names(drive.active_errors) or 'none'}")
+            else:
+                return
+        if not self.commanded or self.safe:
+            return
+        if now - self.last_enable_s < self.retry_interval_s():
+            return
+        if p.enable_max_attempts and self.arm_attempts >= p.enable_max_attempts:
+            self.gave_up = True
+            self.gave_up_errors = drive.active_errors
+            self.counters["arm_gave_up"] += 1
+            errors = ", ".join(error_names(drive.active_errors)) or "none"
+            self._event("error", f"gave up arming the drive after {self.arm_attempts} attempts (axis state "
+                                 f"{drive.axis_state}, errors {errors}): "
+                                 "FAULT_DRIVE_DISARMED stays, sim time paused; fix the drive, then the plant re-arms "
+                                 "when its errors change, after it reboots or when DriveCommands resume")
+            return
+        self._arm(now)
+
     def _arm(self, now: float) -> None:
         drive = self.drive
         p = self.params
         self.last_enable_s = now
+        self.arm_attempts += 1
+        if self.first_attempt_s is None:
+            self.first_attempt_s = now
         self.counters["enable_attempts"] += 1
         if drive.active_errors and drive.active_errors != self.arm_errors_logged:
             self._event("info", f"Clear_Errors ({', '.join(error_names(drive.active_errors))})")
@@ -413,7 +515,19 @@ class CanBackend:
                 self.counters["requests"] += 1
 
     def _send_setpoint(self, torque_nm: float) -> bool:
-        ok = self.drive.set_input_torque(float(torque_nm))
+        """Set_Input_Torque; within ``arm_ramp_nm_per_s`` x the time since the drive armed, so a
+        (re-)armed drive never steps to the held setpoint (the rider feels a ramp from zero)."""
+        torque_nm = float(torque_nm)
+        rate = self.params.arm_ramp_nm_per_s
+        self.ramping = False
+        if rate > 0 and torque_nm != 0.0:
+            since = self.armed_since_s
+            allowed = rate * max(self.clock() - since, 0.0) if since is not None else 0.0
+            if abs(torque_nm) > allowed:
+                torque_nm = math.copysign(allowed, torque_nm)
+                self.ramping = True
+                self.counters["ramped_setpoints"] += 1
+        ok = self.drive.set_torque(torque_nm)
         if ok:
             self.counters["setpoints"] += 1
         return ok
@@ -450,7 +564,7 @@ class CanBackend:
             return False
         self.setpoint_nm = self._torque_of(msg)
         self.commanded = True
-        if not self.drive_enabled or msg is self.sent_msg:
+        if not self.drive_enabled or (msg is self.sent_msg and not self.ramping):
             return False
         self.sent_msg = msg
         ok = self._send_setpoint(self.setpoint_nm)
@@ -462,7 +576,7 @@ class CanBackend:
         """One batch with DriveCommand ``msg`` (validated by :meth:`problem`)."""
         self.setpoint_nm = self._torque_of(msg)
         self.commanded = True
-        if self.drive_enabled and msg is not self.sent_msg:
+        if self.drive_enabled and (msg is not self.sent_msg or self.ramping):
             self.sent_msg = msg
             self._send_setpoint(self.setpoint_nm)
         self._advance()
@@ -487,8 +601,9 @@ class CanBackend:
                 self._send_setpoint(0.0)
             self.drive.forget_setpoint()
             self.counters["safe_state"] += 1
-        elif not on:
+        elif not on and self.safe:
             self.safe = False
+            self._new_arming_episode("DriveCommands resumed")
 
     # ------------------------------------------------------------------ time and ledger
     def _advance(self) -> None:
@@ -567,6 +682,7 @@ class CanBackend:
             "drive_back": self.counters["drive_back"], "armed": self.counters["armed"],
             "disarmed": self.counters["disarmed"], "enable_attempts": self.counters["enable_attempts"],
             "safe_state": self.counters["safe_state"], "frozen_batches": self.counters["frozen_batches"],
+            "arm_gave_up": self.counters["arm_gave_up"], "ramped_setpoints": self.counters["ramped_setpoints"],
         }
         for reason in MALFORMED_REASONS:
             if c[reason]:
@@ -585,7 +701,7 @@ class CanBackend:
         """The level :meth:`diagnostic` would report (cheap: for change detection per batch)."""
         if not self.seen:
             return WARN
-        if self.lost or self.drive.active_errors:
+        if self.lost or self.drive.active_errors or self.disarmed:
             return ERROR
         return OK if self.drive.enabled else WARN
 
@@ -610,16 +726,26 @@ class CanBackend:
                 level = ERROR
                 reasons.append(f"drive errors: {', '.join(errors)}")
             if not drive.enabled:
-                level = max(level, WARN)
-                why = ("re-arming (Clear_Errors + closed loop)" if self.commanded and not self.safe
-                       else "waiting for DriveCommands")
-                reasons.append(f"drive not in closed-loop control (axis state {drive.axis_state}): {why}; "
-                               "sim time paused")
+                disarmed = self.disarmed
+                level = max(level, ERROR if disarmed else WARN)
+                max_attempts = p.enable_max_attempts or "unlimited"
+                if self.gave_up:
+                    why = (f"gave up re-arming after {self.arm_attempts} attempts; the plant tries again when the "
+                           "drive's errors change, after it reboots or when DriveCommands resume")
+                elif self.commanded and not self.safe:
+                    why = (f"re-arming (Clear_Errors + closed loop), attempt {self.arm_attempts} of {max_attempts}, "
+                           f"next in {max(0.0, self.last_enable_s + self.retry_interval_s() - now):.1f}s")
+                else:
+                    why = "waiting for DriveCommands"
+                reasons.append(f"drive {'disarmed' if disarmed else 'idle'}: alive but not in closed-loop control "
+                               f"(axis state {drive.axis_state}): {why}; sim time paused")
         values = {f"can_{k}": str(v) for k, v in self.stats().items()}
         v = drive.values(now)
         values.update({
             "can_interface": p.interface, "can_channel": p.channel, "can_node_id": str(p.node_id),
             "can_link": "lost" if self.lost else ("alive" if self.seen else "waiting"),
+            "can_arming": ("gave_up" if self.gave_up else "armed" if self.drive_enabled
+                           else f"attempt {self.arm_attempts}" if self.arm_attempts else "idle"),
             "can_axis_state": str(drive.axis_state),
             "can_axis_error": "|".join(error_names(drive.active_errors)) or "none",
             "can_heartbeat_age_ms": f"{drive.heartbeat_age_s(now) * 1e3:.0f}" if self.seen else "inf",

@@ -15,7 +15,9 @@ can talk CAN without hardware. Three layers, each usable alone (no ROS imports):
 * :class:`DriveEmulator` -- the CAN side: decodes host frames with the same codec as
   the host (:class:`bike_plant.can.protocol.OdriveCanSimpleCodec`), answers RTR
   requests, sends cyclic messages, and paces physics against time.monotonic in real
-  time (a 1 kHz tick with sub-steps). Fault injection: --silent-after-s, --garbage-rate.
+  time (a 1 kHz tick with sub-steps). Fault injection: --silent-after-s, --garbage-rate,
+  --fault-at-s / SIGUSR1 with --fault (an error that disarms the axis, or IDLE) and
+  --fault-persist (Clear_Errors that do not clear it).
 
 Modelling choices (what a host sees):
 * velocities and positions are at the MOTOR shaft (rev/s, rev); crank cadence =
@@ -302,6 +304,8 @@ class DriveFirmware:
         self.vel_integrator_nm = 0.0
         self.torque_setpoint_nm = 0.0
         self.last_feed_s = -math.inf
+        self.sticky_errors = 0          # injected fault that survives Clear_Errors ...
+        self.sticky_clears_left = 0     # ... this many more times (-1: forever)
 
     @property
     def armed(self) -> bool:
@@ -361,10 +365,30 @@ class DriveFirmware:
         self.current_limit_a = float(current_limit_a)
 
     def clear_errors(self) -> None:
+        if self.sticky_errors and self.sticky_clears_left != 0:
+            if self.sticky_clears_left > 0:
+                self.sticky_clears_left -= 1
+            self.active_errors = self.sticky_errors     # the cause is still there: it latches again
+            self.log(f"Clear_Errors: {error_names(self.sticky_errors)} persists")
+            return
+        self.sticky_errors = 0
         if self.active_errors:
             self.log(f"errors cleared: {error_names(self.active_errors)}")
         self.active_errors = 0
         self.disarm_reason = 0
+
+    def inject_fault(self, error: int, persist: int = 0) -> None:
+        """Test fault: ``error`` (ODriveError bits) disarms the axis like a real trip; 0 drops
+        to IDLE without an error (someone else set the axis IDLE). ``persist``: the next this
+        many Clear_Errors do not clear it (-1: none does; a fault whose cause stays)."""
+        if error:
+            self.sticky_errors = int(error) if persist else 0
+            self.sticky_clears_left = int(persist)
+            self.disarm(int(error))
+        else:
+            if self.armed:
+                self.log("axis state IDLE (injected, no error)")
+            self._to_idle()
 
     # ------------------------------------------------------------ supervision
     def disarm(self, error: int) -> None:
@@ -468,6 +492,8 @@ class DriveEmulator:
     def __init__(self, bus: can.BusABC, firmware: DriveFirmware, node_id: int = 0, *,
                  cyclic_s: dict[str, float] | None = None, tick_s: float = 1.0e-3, substeps: int = 4,
                  silent_after_s: float | None = None, garbage_rate_hz: float = 0.0, seed: int = 0,
+                 fault_at_s: list[float] | tuple[float, ...] = (), fault_error: int = int(ODriveError.DRV_FAULT),
+                 fault_persist: int = 0,
                  clock: Callable[[], float] = time.monotonic, log: Callable[[str], None] | None = None):
         if not tick_s > 0 or substeps < 1:
             raise ValueError("tick_s must be > 0 and substeps >= 1")
@@ -493,6 +519,10 @@ class DriveEmulator:
         self._due: dict[str, float] = {}
         self._next_garbage_s = math.inf
         self._silent_logged = False
+        self.fault_error = int(fault_error)
+        self.fault_persist = int(fault_persist)
+        self._fault_times = sorted(float(t) for t in fault_at_s)
+        self._fault_requested = threading.Event()     # inject_fault_soon(): from a signal handler
         self._signal_ranges = {m.name: {s.name: (s.minimum, s.maximum, s.is_float) for s in m.signals}
                                for m in self.codec.db.messages}
 
@@ -505,6 +535,23 @@ class DriveEmulator:
         self._due = {name: now_s for name in self.cyclic_s}
         if self.garbage_rate_hz > 0:
             self._next_garbage_s = now_s + self.rng.expovariate(self.garbage_rate_hz)
+
+    def inject_fault_soon(self) -> None:
+        """Inject the configured fault at the next tick (safe to call from a signal handler)."""
+        self._fault_requested.set()
+
+    def _faults_due(self, now_s: float) -> None:
+        elapsed = now_s - self._t0
+        due = self._fault_requested.is_set()
+        self._fault_requested.clear()
+        while self._fault_times and elapsed >= self._fault_times[0]:
+            self._fault_times.pop(0)
+            due = True
+        if due:
+            self._count("faults_injected")
+            self.log(f"fault injected: {error_names(self.fault_error) or ['IDLE (no error)']}"
+                     + (f", persists {self.fault_persist} Clear_Errors" if self.fault_persist else ""))
+            self.firmware.inject_fault(self.fault_error, self.fault_persist)
 
     def silent(self, now_s: float) -> bool:
         return self.silent_after_s is not None and self._t0 is not None and now_s - self._t0 >= self.silent_after_s
@@ -590,6 +637,7 @@ class DriveEmulator:
             n = max_steps
         for _ in range(max(n, 0)):
             fw.step(self.substep_s)
+        self._faults_due(now_s)
         fw.check_watchdog(now_s)
         for name, period in self.cyclic_s.items():
             due = self._due[name]
@@ -707,15 +755,47 @@ def build_arg_parser() -> argparse.ArgumentParser:
     drv.add_argument("--current-limit-a", type=float, default=None,
                      help="initial current limit (default: controller.current_limit_a of the config)")
     drv.add_argument("--velocity-limit-rev-s", type=float, default=100.0, help="initial velocity limit (motor)")
+    drv.add_argument("--vel-gain", type=float, default=0.5,
+                     help="velocity gain [N m/(rev/s)] of velocity control and of the torque-mode velocity limiter "
+                          "(ODrive controller.config.vel_gain; default 0.5): torque mode allows T in "
+                          "[(-v_lim - v) k, (v_lim - v) k], so a machine with large torques needs a larger one")
+    drv.add_argument("--vel-integrator-gain", type=float, default=2.0,
+                     help="velocity integrator gain [N m/rev] (controller.config.vel_integrator_gain; default 2)")
     fault = ap.add_argument_group("test faults")
     fault.add_argument("--silent-after-s", type=float, default=None,
                        help="stop transmitting after this many seconds but keep running")
     fault.add_argument("--garbage-rate", type=float, default=0.0,
                        help="inject this many random malformed/foreign frames per second")
     fault.add_argument("--seed", type=int, default=0, help="random seed of the garbage")
+    fault.add_argument("--fault-at-s", type=float, action="append", default=[], metavar="T",
+                       help="inject --fault T seconds after start (repeatable); SIGUSR1 injects it at once")
+    fault.add_argument("--fault", default="DRV_FAULT",
+                       help="the injected fault: an ODrive error name (DRV_FAULT, MOTOR_OVER_TEMP, ...; the axis "
+                            "disarms with it latched) or IDLE (drop to IDLE without an error). Default DRV_FAULT")
+    fault.add_argument("--fault-persist", type=int, default=0, metavar="N",
+                       help="the injected error survives the next N Clear_Errors (-1: all of them; default 0)")
     ap.add_argument("--duration-s", type=float, default=None, help="exit 0 after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="no event log on stderr")
     return ap
+
+
+def parse_fault(name: str) -> int:
+    """ODriveError bits of ``name`` ('DRV_FAULT', 'drv_fault', 'IDLE' = 0, or a number)."""
+    text = str(name).strip()
+    if text.upper() == "IDLE":
+        return 0
+    try:
+        return int(ODriveError[text.upper()])
+    except KeyError:
+        pass
+    try:
+        value = int(text, 0)
+    except ValueError:
+        known = ", ".join(f.name for f in ODriveError if f.value)
+        raise ValueError(f"--fault: unknown {name!r} (IDLE or one of {known})") from None
+    if not 0 <= value < 2 ** 32:
+        raise ValueError(f"--fault must fit in 32 bits, got {name!r}")
+    return value
 
 
 def _bus_kwargs(args) -> dict:
@@ -752,8 +832,16 @@ def main(argv: list[str] | None = None) -> int:
             value = getattr(args, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+        if not (args.vel_gain > 0 and args.vel_integrator_gain >= 0 and math.isfinite(args.vel_gain)
+                and math.isfinite(args.vel_integrator_gain)):
+            raise ValueError("--vel-gain must be > 0 and --vel-integrator-gain >= 0")
         if not (args.physics_hz > 0 and args.current_tau_s > 0 and args.substeps >= 1):
             raise ValueError("--physics-hz, --current-tau-s must be > 0 and --substeps >= 1")
+        fault_error = parse_fault(args.fault)
+        if args.fault_persist < -1:
+            raise ValueError(f"--fault-persist must be >= -1, got {args.fault_persist}")
+        if not all(math.isfinite(t) and t >= 0 for t in args.fault_at_s):
+            raise ValueError(f"--fault-at-s must be >= 0, got {args.fault_at_s}")
         cfg = load_config(args.config)
         params = DriveModelParams.from_config(cfg, current_tau_s=args.current_tau_s)
         if args.load != "config":
@@ -765,7 +853,8 @@ def main(argv: list[str] | None = None) -> int:
     model = AverageTorqueDrive(params)
     firmware = DriveFirmware(model, watchdog_timeout_s=args.watchdog_s,
                              velocity_limit_rev_s=args.velocity_limit_rev_s,
-                             current_limit_a=args.current_limit_a, log=log)
+                             current_limit_a=args.current_limit_a, vel_gain_nm_per_rev_s=args.vel_gain,
+                             vel_integrator_gain_nm_per_rev=args.vel_integrator_gain, log=log)
     cyclic = {"Heartbeat": args.heartbeat_ms, "Get_Encoder_Estimates": args.encoder_ms, "Get_Iq": args.iq_ms,
               "Get_Bus_Voltage_Current": args.bus_ms, "Get_Torques": args.torques_ms,
               "Get_Powers": args.powers_ms, "Get_Error": args.error_ms}
@@ -778,7 +867,9 @@ def main(argv: list[str] | None = None) -> int:
         emu = DriveEmulator(bus, firmware, args.node_id, cyclic_s={k: v / 1000.0 for k, v in cyclic.items()},
                             tick_s=1.0 / args.physics_hz, substeps=args.substeps,
                             silent_after_s=args.silent_after_s, garbage_rate_hz=args.garbage_rate,
-                            seed=args.seed, log=log)
+                            seed=args.seed, fault_at_s=args.fault_at_s, fault_error=fault_error,
+                            fault_persist=args.fault_persist, log=log)
+        signal.signal(signal.SIGUSR1, lambda signum, frame: emu.inject_fault_soon())
         channel = _bus_kwargs(args).get("channel", "default")
         print(f"bike-drive-emulator ready: node_id={args.node_id} interface={args.interface} channel={channel} "
               f"port={args.port} machine={params.machine} load={params.load_kind} "

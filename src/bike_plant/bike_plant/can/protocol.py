@@ -688,6 +688,11 @@ class OdriveCanSimple(DriveProtocol):
         return self.axis_state == AxisState.CLOSED_LOOP_CONTROL
 
 
+#: Host-side protocols by name (the ``can.protocol`` parameter of the plant's backend). A
+#: second protocol (VESC, CANopen CiA 402) is a DriveProtocol subclass registered here.
+PROTOCOLS: dict[str, type[DriveProtocol]] = {OdriveCanSimple.protocol_name: OdriveCanSimple}
+
+
 def main(argv: Iterable[str] | None = None) -> int:
     """``python -m bike_plant.can.protocol --export-dbc NODE_ID OUT.dbc``."""
     import argparse
