@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import os
 import pathlib
-import random
 import signal
 import subprocess
 import sys
@@ -18,11 +17,14 @@ LAUNCH_FILE = ROOT / "config" / "launch" / "bike.launch.yaml"
 
 @pytest.fixture
 def ros_domain(monkeypatch):
-    """A DDS domain of its own for this test, discovery limited to this host."""
-    domain = str(random.randint(1, 200))
-    monkeypatch.setenv("ROS_DOMAIN_ID", domain)
+    """A DDS domain of its own for this test (locked against other runs on this host, see
+    bike_session.domains), discovery limited to this host."""
+    from bike_session import domains
+    domain = domains.claim()
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    return int(domain)
+    yield domain
+    domains.release(domain)
 
 
 def bike_command(*args: str, timeout: float = 240, env: dict | None = None) -> subprocess.CompletedProcess:

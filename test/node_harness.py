@@ -1,6 +1,6 @@
 """Helpers for the tests that start real node processes (test_nodes_*.py).
 
-Each test gets its own ROS_DOMAIN_ID (random 1..200) and discovery limited to localhost;
+Each test gets its own ROS_DOMAIN_ID (locked by bike_session.domains) and discovery limited to localhost;
 nodes run as separate OS processes (the installed console scripts), the test talks to
 them through its own rclpy context on the same domain.
 """
@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import pathlib
-import random
 import signal
 import subprocess
 import tempfile
@@ -153,7 +152,11 @@ class Collector:
 
 @pytest.fixture
 def domain():
-    return random.randint(1, 200)
+    """A DDS domain locked against other runs on this host (bike_session.domains)."""
+    from bike_session import domains
+    d = domains.claim()
+    yield d
+    domains.release(d)
 
 
 def stamp_ns(stamp) -> int:

@@ -141,8 +141,8 @@ def test_kill_9_of_the_real_recorder_mid_session(tmp_path):
 
     from bike_msgs.msg import PlantState
 
-    import random
-    domain = random.randint(1, 200)
+    from bike_session import domains
+    domain = domains.claim()
     col = Collector(domain, {"plant_state": PlantState})
     procs = []
     try:

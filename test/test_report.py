@@ -3,13 +3,13 @@ import atexit
 import json
 import os
 import pathlib
-import random
 import shutil
 import tempfile
 
 import numpy as np
 import pytest
 
+from bike_session import domains
 from bike_session.bags import BagError, open_bag, plant_state_array, read_topic, read_topic_stamped
 from bike_session.recorder_node import TOPICS, BagSink, build_typestore
 from bike_session.report import format_summary, main, summarise
@@ -466,7 +466,7 @@ def real_session(kind: str) -> pathlib.Path:
     if kind not in REAL_RUNS:
         tmp = pathlib.Path(tempfile.mkdtemp(prefix=f"bike_report_{kind}_"))
         atexit.register(shutil.rmtree, tmp, True)
-        env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(1, 200)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domains.claim()), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         extra = [] if kind == "resistance" else ["--workout", str(ROOT / "test/data/workouts/erg_smoke.erg"),
                                                  "--ftp", "200"]
         result = bike_command("run", *extra, "--duration", "2", "--record", str(tmp), env=env)

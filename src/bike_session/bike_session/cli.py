@@ -82,13 +82,10 @@ def _cmd_run(opts) -> int:
         if can_params is not None and can_params.log_format != "none" and not can_params.log_file:
             # the CAN traffic beside the bag, in a format CAN tools read (python-can .asc / .blf)
             args["can_log"] = str(record_dir / f"{bag_path.name}.can.{can_params.log_format}")
-    if not os.environ.get("ROS_DOMAIN_ID"):
-        # a private DDS domain: two simulations on one host must not ride each other's
-        # /clock and commands (an explicit ROS_DOMAIN_ID is always respected)
-        import random
-        os.environ["ROS_DOMAIN_ID"] = str(random.SystemRandom().randint(1, 100))
-        print(f"[bike] ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} (a private domain for this run; "
-              "export ROS_DOMAIN_ID to choose one, e.g. to watch with ros2 topic echo)", flush=True)
+    # a private DDS domain: two simulations on one host must not ride each other's /clock and
+    # commands (an explicit ROS_DOMAIN_ID is always respected)
+    from bike_session import domains
+    domains.ensure_private_domain("run")
     print(f"[bike] config {config}, {duration_s:g} s simulated, namespace /{opts.namespace}"
           + (f", recording to {bag_path}" if bag_path else ""), flush=True)
     try:

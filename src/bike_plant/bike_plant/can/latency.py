@@ -81,7 +81,9 @@ def can_latency(n: int = 500, rate_hz: float = 200.0, config: str | os.PathLike 
 
     base = pathlib.Path(config) if config else default_config_path().with_name("bldc_can.yaml")
     port = port or random.SystemRandom().randint(41000, 48999)
-    domain = domain if domain is not None else random.SystemRandom().randint(101, 200)
+    if domain is None:
+        from bike_session import domains
+        domain = domains.claim()
     procs: list[subprocess.Popen] = []
     tmp = tempfile.TemporaryDirectory(prefix="can_latency_")
     context = None

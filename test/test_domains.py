@@ -1,0 +1,37 @@
+"""Private DDS domains (bike_session.domains): two runs on one host never share an id."""
+import os
+import subprocess
+import sys
+
+import pytest
+
+from bike_session import domains
+
+
+def test_claimed_ids_are_unique_across_processes_and_freed_on_exit(tmp_path, monkeypatch):
+    monkeypatch.setattr(domains, "LOCK_DIR", tmp_path)
+    held = [domains.claim(1, 6) for _ in range(3)]
+    assert len(set(held)) == 3
+    # another process gets only the other three ids, then nothing
+    code = ("import pathlib, sys; from bike_session import domains; domains.LOCK_DIR = pathlib.Path(sys.argv[1]); "
+            "got = [domains.claim(1, 6) for _ in range(3)]; print(*got)\n"
+            "try:\n    domains.claim(1, 6)\nexcept RuntimeError as e:\n    print('full:', e)")
+    out = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, check=True).stdout
+    others = {int(x) for x in out.splitlines()[0].split()}
+    assert others == set(range(1, 7)) - set(held)
+    assert "full: no free ROS_DOMAIN_ID in 1..6" in out
+    # the child ended: its locks are gone; releasing ours frees those too
+    domains.release(held[0])
+    again = {domains.claim(1, 6) for _ in range(4)}
+    assert held[0] in again and not (again & set(held[1:]))
+
+
+def test_an_explicit_domain_is_respected(monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    assert domains.ensure_private_domain() is None and os.environ["ROS_DOMAIN_ID"] == "42"
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    d = domains.ensure_private_domain()
+    assert os.environ["ROS_DOMAIN_ID"] == str(d)
+    domains.release(d)
+    with pytest.raises(RuntimeError):
+        domains.claim(5, 4)
