@@ -98,6 +98,7 @@ SECTOR_P = np.array([0, 0, 1, 1, 2, 2], dtype=np.int64)
 SECTOR_N = np.array([1, 2, 2, 0, 0, 1], dtype=np.int64)
 
 TWO_PI = 2.0 * math.pi
+THIRD = 1.0 / 3.0          # v_n of 3 legs: sum * THIRD (a multiply, not a division, on the current path)
 SIXTH = math.pi / 3.0
 INV_SIXTH = 3.0 / math.pi
 TWELFTH = math.pi / 6.0
@@ -348,18 +349,18 @@ def _open_leg(ua, ub, uz0, ez, vdc, r, iz, pos):
     if it clamps to a rail but the clamping diode would then carry current against its
     conducting direction (_topology re-opens the leg); else the 3-leg solution. The diode
     test uses the sign of d_z, which is that of j_z = 0 + g d_z (g > 0) barring underflow."""
-    vn2 = (0.0 + ua + ub) * 0.5                   # == / 2
+    vn2 = (ua + ub) * 0.5                   # == / 2
     vt = vn2 + ez
     hi = vt > vdc
     if not (hi or vt < 0.0):
         return 0, vn2, uz0
     uz = (vdc if hi else 0.0) - ez - r * iz
     if pos == 0:
-        vn3 = (0.0 + uz + ua + ub) / 3.0
+        vn3 = (uz + ua + ub) * THIRD
     elif pos == 1:
-        vn3 = (0.0 + ua + uz + ub) / 3.0
+        vn3 = (ua + uz + ub) * THIRD
     else:
-        vn3 = (0.0 + ua + ub + uz) / 3.0
+        vn3 = (ua + ub + uz) * THIRD
     dz = uz - vn3
     if hi:
         if not (dz > 0.0):       # upper diode: current <= 0
@@ -378,8 +379,8 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     g(t) = t / (L + R t / 2) (cn_gain); open legs d = 0. ok False (fewer than 2 legs
     conduct): the general iteration is needed.
 
-    _topology's iteration is resolved in closed form (_open_leg), with the same
-    floating-point operations as _solve, and none of it depends on t: one call serves every
+    _topology's iteration is resolved in closed form (_open_leg), with _solve's sums (v_n
+    as sum * 1/3 rather than sum / 3: round-off level), and none of it depends on t: one call serves every
     step length from these currents (the controller's trial and the plant's first segment)."""
     # first guess (as _topology's first pass): a leg is at v_dc through its upper switch or,
     # with no switch on, its upper diode (current < 0); at 0 V through the lower switch or
@@ -396,11 +397,17 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     w0 = 2 if h0 else (1 if c0 else 0)
     w1 = 2 if h1 else (1 if c1 else 0)
     w2 = 2 if h2 else (1 if c2 else 0)
-    u0 = (vdc if h0 else 0.0) - e0 - r * i0
-    u1 = (vdc if h1 else 0.0) - e1 - r * i1
-    u2 = (vdc if h2 else 0.0) - e2 - r * i2
+    v0 = (vdc if h0 else 0.0) - e0
+    v1 = (vdc if h1 else 0.0) - e1
+    v2 = (vdc if h2 else 0.0) - e2
+    u0 = v0 - r * i0
+    u1 = v1 - r * i1
+    u2 = v2 - r * i2
     if c0 & c1 & c2:
-        vn = (0.0 + u0 + u1 + u2) / 3.0
+        # v_n = mean(u) = mean(v_x - e_x) - R mean(i), and the phase currents sum to zero
+        # (star point): the R mean(i) term (round-off) is left out, which keeps v_n off the
+        # currents' dependency chain; sum(i) then contracts by (1 - g R) per step
+        vn = (v0 + v1 + v2) * THIRD
     elif c1 & c2:
         w0, vn, u0 = _open_leg(u1, u2, u0, e0, vdc, r, i0, 0)
     elif c0 & c2:
@@ -662,16 +669,20 @@ def legs_of(i0, i1, i2, gates, vdc, emf, c):
 @njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, a4):
     """electrical_segment's sums for one step of t seconds (i -> j) of the symmetric machine,
-    where dL/dt = dL/dtheta = 0 (exact zeros there). An open leg has i = j = 0 and adds
-    exact zeros, so there is no branch on the leg state."""
+    where dL/dt = dL/dtheta = 0 (exact zeros there), with the mean currents factored:
+    ia_x = (i_x + j_x) / 2, so charge = t/2 sum s_x (legs at v_dc), copper = R t/4 sum s_x^2,
+    conversion = t/2 sum e_x s_x, T dt = kph t/2 sum f_x s_x with s_x = i_x + j_x (the same
+    sums as electrical_segment, regrouped: round-off level). An open leg has i = j = 0 and
+    adds exact zeros, so there is no branch on the leg state."""
     f0, f1, f2, e0, e1, e2 = emf
-    ia0 = 0.5 * (i0 + j0)
-    ia1 = 0.5 * (i1 + j1)
-    ia2 = 0.5 * (i2 + j2)
-    a1 = a1 - (ia0 * t if w0 == 2 else 0.0) - (ia1 * t if w1 == 2 else 0.0) - (ia2 * t if w2 == 2 else 0.0)
-    a2 = a2 + r * ia0 * ia0 * t + r * ia1 * ia1 * t + r * ia2 * ia2 * t
-    a3 = a3 + e0 * ia0 * t + e1 * ia1 * t + e2 * ia2 * t
-    a4 = a4 + kph * f0 * ia0 * t + kph * f1 * ia1 * t + kph * f2 * ia2 * t
+    s0 = i0 + j0
+    s1 = i1 + j1
+    s2 = i2 + j2
+    ht = 0.5 * t
+    a1 = a1 - ht * ((s0 if w0 == 2 else 0.0) + (s1 if w1 == 2 else 0.0) + (s2 if w2 == 2 else 0.0))
+    a2 = a2 + (0.5 * r * ht) * (s0 * s0 + s1 * s1 + s2 * s2)
+    a3 = a3 + (e0 * s0 + e1 * s1 + e2 * s2) * ht
+    a4 = a4 + kph * (ht * (f0 * s0 + f1 * s1 + f2 * s2))
     return a1, a2, a3, a4
 
 
@@ -1014,7 +1025,15 @@ def _rider(state, p, omega, dt):
     if line < 0.0:
         line = 0.0
     t_crank = effort * p[P.P_RIDER_T0] * line * (1.0 + 0.5 * math.cos(2.0 * state[S_CRANK]))
-    state[S_CRANK] = (state[S_CRANK] + cad * dt) % TWO_PI
+    crank = state[S_CRANK] + cad * dt
+    # wrap to [0, 2 pi): one add/subtract is exact here (Sterbenz) and equals Python's %
+    if crank >= TWO_PI:
+        crank -= TWO_PI
+    elif crank < 0.0:
+        crank += TWO_PI
+    if not (0.0 <= crank < TWO_PI):
+        crank = crank % TWO_PI
+    state[S_CRANK] = crank
     return t_crank / gear
 
 
