@@ -1,6 +1,6 @@
 # The two commands of the README: `make demo` and `make test`.
 SHELL := /bin/bash
-.PHONY: setup demo test test-fast bench clean
+.PHONY: setup demo test test-fast bench peers clean
 
 setup:
 	@./tools/setup.sh
@@ -13,6 +13,11 @@ test: setup
 
 bench: setup
 	./bike bench
+
+# optional benchmark peers (motulator 0.18 on Python 3.12, gym-electric-motor 3.0), each in its
+# own venv under $(BIKE_PEERS_DIR) (default ~/.cache/bike-peers), never in the project's venv
+peers:
+	@./tools/peers/setup.sh
 
 clean:
 	rm -rf build install log .venv

@@ -7,7 +7,8 @@
     ./bike replay BAG [--config OTHER] [--record DIR]          ride a recorded session again
     ./bike bag recover BAG [--out DIR]                         rescue a crashed recording
     ./bike paper NAME --out DIR                                reproduce a figure of a paper
-    ./bike bench [--json FILE]                                 speed figures and ratios
+    ./bike bench [--json FILE] [--only SECTION] [--memory-s S] speed / memory figures and ratios, peers
+    ./bike fleet [--bikes N] [--seconds S] [--graph K [--netns bikeK=NS]]  many bikes: batched kernel or DDS graph
 """
 from __future__ import annotations
 
@@ -211,7 +212,70 @@ def _cmd_paper(opts) -> int:
 def _cmd_bench(opts) -> int:
     from bike_session import bench
 
-    return bench.main(json_path=opts.json, quick=opts.quick)
+    return bench.main(json_path=opts.json, quick=opts.quick, only=opts.only, memory_s=opts.memory_s)
+
+
+FLEET_TARGET_BIKES = 1000      # issue 6: the offline batched kernel runs >= 1000 bikes in real time
+
+
+def _cmd_fleet(opts) -> int:
+    """Offline: N bikes in the batched numba kernel (bike_controller.fleet). --graph K: K
+    namespaced bikes in one DDS graph (bike_session.fleet_graph)."""
+    import json
+
+    from bike_plant.config import ConfigError
+
+    config = str(pathlib.Path(opts.config or repo_root() / "config" / "bldc_default.yaml").resolve())
+    if opts.graph is not None:
+        from bike_session import fleet_graph as FG
+        seconds = 1.0 if opts.seconds is None else opts.seconds
+        from bike_session import domains
+        domains.ensure_private_domain("fleet")
+        try:
+            placement = FG.parse_placement(opts.netns)
+            result = FG.run_graph(opts.graph, config, seconds, placement, launch_file=opts.launch,
+                                  timeout_s=opts.timeout, quiet_nodes=not opts.verbose)
+        except (FG.FleetError, FG.L.LaunchError, ConfigError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        print(FG.format_graph(result), flush=True)
+        if opts.json:
+            FG.dump_json(result, opts.json)
+        return 0 if result["ok"] else 1
+    if opts.netns:
+        print("error: --netns places the nodes of a --graph fleet", file=sys.stderr)
+        return 2
+    from bike_controller import fleet as F
+    seconds = 2.0 if opts.seconds is None else opts.seconds
+    try:
+        r = F.fleet_real_time(opts.bikes, seconds, threads=opts.threads, cfg_path=config, seed=opts.seed,
+                              summaries=True)
+    except (ValueError, ConfigError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"fleet: {r['bikes']} bikes x {r['sim_s']:g} s simulated on {r['threads']} threads in {r['wall_s']:.2f} s wall "
+          f"(JIT/cache load {r['jit_compile_s']:.1f} s, apart)")
+    print(f"  real-time factor of the whole fleet: {r['real_time']:.3f}x "
+          f"({r['ns_per_bike_period']:.0f} ns per bike-period)")
+    print(f"  bikes in real time: {r['bikes_in_real_time']:.0f} "
+          f"(target {FLEET_TARGET_BIKES}: ratio {r['bikes_in_real_time'] / FLEET_TARGET_BIKES:.2f})")
+    agg = r["aggregate"]
+    print("  per bike (mean / min / max over the fleet):")
+    for key, label in (("mean_rider_power_w", "rider power [W]"), ("mean_battery_power_w", "battery charging [W]"),
+                       ("mean_resistor_power_w", "brake resistor [W]"), ("mean_cadence_rpm", "cadence [rpm]"),
+                       ("final_soc", "final SOC"), ("ledger_residual_j", "ledger residual [J]")):
+        a = agg[key]
+        print(f"    {label:<22}{a['mean']:>11.4g}{a['min']:>11.4g}{a['max']:>11.4g}")
+    print(f"    bikes with faults: {agg['bikes_with_faults']}")
+    shown = r["per_bike"][:max(opts.show, 0)]
+    if shown:
+        print(f"  first {len(shown)} bikes: command, rider T0 [N m], target cadence, mean cadence [rpm], rider W, battery W")
+        for b in shown:
+            print(f"    bike{b['bike']:<5}{b['command']:>6.2f}{b['rider_t0_nm']:>8.0f}{b['target_cadence_rpm']:>7.0f}"
+                  f"{b['mean_cadence_rpm']:>8.1f}{b['mean_rider_power_w']:>9.1f}{b['mean_battery_power_w']:>9.1f}")
+    if opts.json:
+        pathlib.Path(opts.json).write_text(json.dumps(r, indent=2))
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -273,7 +337,29 @@ def build_parser() -> argparse.ArgumentParser:
     ben = sub.add_parser("bench", help="print speed figures and ratios (inner loop, node graph, DDS ping-pong)")
     ben.add_argument("--json", help="also write the figures to this JSON file")
     ben.add_argument("--quick", action="store_true", help="shorter runs (noisier figures)")
+    ben.add_argument("--only", action="append", metavar="SECTION",
+                     help="run only this section (repeatable): inner, fleet, graph, can, peers, memory")
+    ben.add_argument("--memory-s", type=float, metavar="S",
+                     help="simulated seconds of the memory run (default 600; 3600 for the full hour)")
     ben.set_defaults(func=_cmd_bench)
+
+    flt = sub.add_parser("fleet", help="many bikes: the offline batched kernel (bikes in real time, per-bike "
+                                       "summaries) or, with --graph K, K namespaced bikes in one DDS graph")
+    flt.add_argument("--bikes", type=int, default=1000, help="offline: number of bikes (default 1000)")
+    flt.add_argument("--seconds", type=float, help="simulated seconds (default 2 offline, 1 with --graph)")
+    flt.add_argument("--threads", type=int, default=2, help="offline: numba threads (default 2)")
+    flt.add_argument("--seed", type=int, default=0, help="offline: seed of the per-bike spread of riders and commands")
+    flt.add_argument("--show", type=int, default=5, help="offline: print the first N bikes (default 5)")
+    flt.add_argument("--graph", type=int, metavar="K", help="start K namespaced bikes (/bike1..) in one DDS graph")
+    flt.add_argument("--netns", action="append", metavar="BIKE[/NODE]=NETNS",
+                     help="--graph: run a bike's nodes (or one node) in an existing network namespace; repeatable; "
+                          "needs ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET")
+    flt.add_argument("--timeout", type=float, default=300.0, help="--graph: wall-clock limit in seconds (default 300)")
+    flt.add_argument("--verbose", action="store_true", help="--graph: show the nodes' output")
+    flt.add_argument("--launch", help="--graph: launch description of one bike (default config/launch/bike.launch.yaml)")
+    flt.add_argument("--config", help="bike config (default config/bldc_default.yaml)")
+    flt.add_argument("--json", help="also write the figures to this JSON file")
+    flt.set_defaults(func=_cmd_fleet)
     return parser
 
 

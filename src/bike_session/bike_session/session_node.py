@@ -199,6 +199,7 @@ def _make_node_class():
             self.state = SessionStatus.STATE_WAITING
             self.done = False
             self.commands_published = 0
+            self.readers_at_publish = 0      # matched Command readers when the last Command went out
 
             info = build_session_info(self.profile, profile_path, config_path, period_s=self.period_s,
                                       duration_s=self.duration_s, namespace=self.get_namespace())
@@ -243,6 +244,7 @@ def _make_node_class():
             msg.mode = int(mode)
             self.pub_command.publish(msg)
             self.commands_published += 1
+            self.readers_at_publish = self.pub_command.get_subscription_count()
 
         def _publish_status(self, t_ns: int, state: int) -> None:
             SessionStatus = self._SessionStatus
@@ -291,6 +293,17 @@ def _make_node_class():
                 return
             previous_ns = self.last_t_ns
             self.last_t_ns = t_ns
+            if previous_ns == t_ns:
+                # The plant re-published an unanswered state. A volatile reader (the controller)
+                # matched after our Commands went out gets no history from this transient-local
+                # writer and would wait for them forever; the reader count does not always show
+                # it (the writer may see the reader before the reader sees the writer: the
+                # intermittent seq-0 stall). Send the ones in force again: same stamps and
+                # values, so the controller's timeline does not change.
+                for j in range(t_ns // self.period_ns, self.next_j):
+                    self._publish_command(j)
+                self.get_logger().info(f"Command reader matched late: Commands from t = {t_ns * 1e-9:g} s sent again")
+                return
             events_between = getattr(self.profile, "events_between", None)
             if events_between is not None:
                 t0 = -1e-9 if previous_ns is None else previous_ns * 1e-9

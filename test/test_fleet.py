@@ -1,0 +1,71 @@
+"""Offline fleet kernel (bike_controller.fleet): the same physics as run_fused, bike by bike."""
+import numpy as np
+import pytest
+
+from bike_controller import bldc_control as BC
+from bike_controller import fleet
+from bike_plant import bldc as K
+from bike_plant import params as P
+from bike_plant.config import load_config
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def test_fleet_of_three_is_bit_identical_to_three_single_runs(cfg):
+    fleet.set_threads(2)
+    f = fleet.make_fleet(cfg, 3, seed=7)
+    # three different bikes: different commands, riders and start speeds
+    assert len(set(f.command)) == 3 and len(set(f.ps[:, P.P_RIDER_T0])) == 3 and len(set(f.speed0_rpm)) == 3
+    singles = [(f.states[b].copy(), f.ps[b].copy(), f.css[b].copy(), f.qs[b].copy()) for b in range(3)]
+    n = 2345                                    # not a multiple of the chunk: the tail chunk is covered
+    res = fleet.run(f, n * f.control_period_s, chunk_periods=500)
+    assert res["periods"] == n
+    for b, (st, p, cs, q) in enumerate(singles):
+        BC.run_fused(st, p, cs, q, n, np.zeros((1, 3)), 0, np.zeros(1))
+        assert np.array_equal(f.states[b], st), f"bike {b}: plant state differs from run_fused"
+        assert np.array_equal(f.css[b], cs), f"bike {b}: controller state differs from run_fused"
+        assert st[K.S_PERIODS] == n
+    # the bikes really differ (not one bike copied three times)
+    assert len({f.states[b, K.S_OMEGA] for b in range(3)}) == 3
+    # the cadence trace: one sample per chunk, the last one the final speed
+    assert res["speed_trace_rad_s"].shape == (3, 5)
+    assert np.array_equal(res["speed_trace_rad_s"][:, -1], f.states[:, K.S_OMEGA])
+
+
+def test_fleet_summaries_are_physical(cfg):
+    f = fleet.make_fleet(cfg, 6, seed=1)
+    res = fleet.run(f, 0.2)
+    per_bike = fleet.bike_summaries(f, res["sim_s"], res["speed_trace_rad_s"])
+    assert [b["bike"] for b in per_bike] == list(range(1, 7))
+    for b in per_bike:
+        assert b["mean_rider_power_w"] > 0.0                 # the rider pedals
+        assert b["mean_battery_power_w"] > 0.0               # resistance mode charges the battery
+        assert abs(b["ledger_residual_j"]) < 0.05            # energy balance of each bike
+        assert 20.0 < b["mean_cadence_rpm"] < 120.0
+        assert b["faults"] == 0
+    # a higher Command brakes harder: more charging power for the same rider, other things equal
+    same = fleet.make_fleet(cfg, 2, spread=False)
+    same.css[0, BC.C_COMMAND] = 0.3
+    BC.update_command(same.css[0], same.qs[0])
+    r2 = fleet.run(same, 0.2)
+    s2 = fleet.bike_summaries(same, r2["sim_s"], r2["speed_trace_rad_s"])
+    assert s2[1]["mean_battery_power_w"] > s2[0]["mean_battery_power_w"] + 20.0
+    agg = fleet.aggregate(per_bike)
+    assert agg["mean_rider_power_w"]["min"] <= agg["mean_rider_power_w"]["mean"] <= agg["mean_rider_power_w"]["max"]
+
+
+def test_fleet_figures_keys(cfg):
+    r = fleet.fleet_real_time(4, 0.01, threads=2)
+    assert r["bikes"] == 4 and r["threads"] >= 1
+    assert r["bikes_in_real_time"] == pytest.approx(4 * r["real_time"])
+    assert r["wall_s"] > 0 and r["jit_compile_s"] >= 0
+
+
+@pytest.mark.parametrize("bikes, seconds", [(0, 1.0), (-3, 1.0), (2.5, 1.0), (True, 1.0), (2, 0.0), (2, float("nan")),
+                                            (2, -1.0), (2, "1")])
+def test_fleet_bad_input_is_one_clear_error(cfg, bikes, seconds):
+    with pytest.raises(ValueError, match="bikes|seconds"):
+        fleet.fleet_real_time(bikes, seconds)
