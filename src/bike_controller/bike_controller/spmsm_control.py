@@ -100,6 +100,8 @@ _bldc.invalidate_stale_numba_cache(__file__, [M.__file__])
 
 FAMILIES = ("predictive", "pi")
 JIT = M.JIT
+JIT_HOT = M.JIT_HOT      # per-period kernels: no array reference counting
+JIT_INLINE = M.JIT_INLINE  # ... and inlined into the fused loops
 SQRT3 = math.sqrt(3.0)
 
 REGION_CONSTANT_TORQUE = 0
@@ -195,8 +197,9 @@ Q_SIZE = 46
  C_VQP_PREV, C_ED_PREV, C_EQ_PREV, C_VD, C_VQ, C_REGION, C_LIMITS, C_TORQUE_EST, C_ADVANCE, C_RELAY_REQ,
  C_BUCK_DUTY, C_BRAKE_T, C_DA, C_DB, C_DC, C_CUR_ACTIVE, C_SPEED_ACTIVE, C_THETA_E, C_COS, C_SIN, C_CNT,
  C_HAVE_ANGLE, C_VSAT, C_SPEED_RAW_PREV, C_OBS_TH, C_OBS_W, C_OBS_D, C_OBS_INIT, C_DV, C_SPEED_FILT,
- C_FILT_INIT, C_IQ_SUM, C_IQ_N, C_OBS_IQFF, C_OBS_INV, C_TORQUE_MODE, C_TORQUE_CMD, C_PEND_OK) = range(56)
-C_SIZE = 57
+ C_FILT_INIT, C_IQ_SUM, C_IQ_N, C_OBS_IQFF, C_OBS_INV, C_TORQUE_MODE, C_TORQUE_CMD, C_PEND_OK,
+ C_ROT_DTH0, C_ROT_C0, C_ROT_S0, C_ROT_DTH1, C_ROT_C1, C_ROT_S1) = range(62)
+C_SIZE = 63
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -379,7 +382,7 @@ def steady_state_max_speed_rpm(q: np.ndarray, load_torque_nm: float = 0.0, flux_
     return lo
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def brake_torque_nm(vlink, we, q):
     """Braking torque (>= 0 opposes the rotation) of the machine on the rectifier at link vlink."""
     vr = M.rectifier_voltage(vlink, q[Q_RECT_DIODE_V])
@@ -388,7 +391,7 @@ def brake_torque_nm(vlink, we, q):
     return -te if we >= 0.0 else te
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def buck_duty_for_brake_torque(t_brake, we, q):
     """Buck duty D = Vbus / Vlink that makes the rectifier brake with t_brake (steady state);
     clipped to the range the hardware has (D = 1: strongest braking)."""
@@ -428,7 +431,7 @@ def modulate(valpha, vbeta, vdc, modulation):
     return da, db, dc
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def limit_voltage(vd, vq, id_a, iq_a, we, vmax, q):
     """Keep the voltage command inside the modulator's circle |v| <= vmax by shortening it
     along the segment from the steady-state voltage of the present currents,
@@ -453,7 +456,7 @@ def limit_voltage(vd, vq, id_a, iq_a, we, vmax, q):
     return vs.real + alpha * dx, vs.imag + alpha * dy
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def speed_sample(cs, q, meas):
     """M/T speed estimate from the encoder count and the last edge's capture time."""
     cpr = q[Q_CPR]
@@ -483,7 +486,7 @@ def speed_sample(cs, q, meas):
                 cs[C_SPEED_EST] = bound if cs[C_SPEED_EST] > 0.0 else -bound
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def observer_update(cs, q, meas, iq_a):
     """Speed observer, once per current period: correct with the encoder angle (count + 1/2
     count), then predict one period with the measured torque Kt iq (nominal Kt, J, B; pass
@@ -506,7 +509,7 @@ def observer_update(cs, q, meas, iq_a):
     cs[C_OBS_D] = d
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def speed_loop(cs, q):
     """Speed controller (1 ms) + region logic -> (id*, iq*)."""
     w = cs[C_SPEED_EST]
@@ -573,7 +576,32 @@ def speed_loop(cs, q):
     cs[C_E_SPEED_PREV] = e
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
+def _rot_counts(cs, e1, dth):
+    """e1 * exp(-j dth) for the angle step of a few encoder counts: bike_plant.spmsm._rot_small
+    with the last two steps' (cos, sin) kept in cs (the step takes few distinct values, e.g.
+    3 or 4 counts per period at constant speed): the same numbers without a sincos per period."""
+    if abs(dth) < 1e-3:
+        return M._rot_small(e1, dth)
+    if dth == cs[C_ROT_DTH0]:
+        c = cs[C_ROT_C0]
+        s = cs[C_ROT_S0]
+    elif dth == cs[C_ROT_DTH1]:
+        c = cs[C_ROT_C1]
+        s = cs[C_ROT_S1]
+    else:
+        c = math.cos(dth)
+        s = math.sin(dth)
+        cs[C_ROT_DTH1] = cs[C_ROT_DTH0]
+        cs[C_ROT_C1] = cs[C_ROT_C0]
+        cs[C_ROT_S1] = cs[C_ROT_S0]
+        cs[C_ROT_DTH0] = dth
+        cs[C_ROT_C0] = c
+        cs[C_ROT_S0] = s
+    return e1 * complex(c, -s)
+
+
+@njit(**JIT_INLINE)
 def control_period(cs, q, meas):
     """One 100 us period of the control law from the measurable part of a plant state vector
     (phase currents, encoder count / edge time, period counter, relay state). Returns
@@ -590,7 +618,7 @@ def control_period(cs, q, meas):
         s = math.sin(th)
         cs[C_HAVE_ANGLE] = 1.0
     elif dth != 0.0:
-        e = M._rot_small(complex(cs[C_COS], -cs[C_SIN]), dth)      # exp(-j th)
+        e = _rot_counts(cs, complex(cs[C_COS], -cs[C_SIN]), dth)    # exp(-j th)
         c = e.real
         s = -e.imag
     else:

@@ -118,6 +118,13 @@ from .params import RPM_PER_RAD_S, TWO_PI, LoadParams, MechParams, load_section_
 # numba options of every kernel: FMA contraction and reciprocal division (latency-bound
 # serial chains: ~30 % faster); NaN / Inf semantics stay IEEE (no 'fast' flag set).
 JIT = dict(cache=True, error_model="numpy", fastmath={"contract", "arcp"})
+# per-period kernels that allocate nothing: no reference counting of their array arguments
+# (numba's NRT would otherwise incref / decref each array argument with an atomic
+# instruction at every call, several per 100 us period)
+JIT_HOT = dict(JIT, _nrt=False)
+# ... and inlined into the fused loops (no call overhead: numba passes each array as 7
+# scalars, and the per-period chain plant -> controller -> plant is otherwise call bound)
+JIT_INLINE = dict(JIT_HOT, forceinline=True)
 SQRT3 = math.sqrt(3.0)
 MAX_DYNO_POINTS = 16
 
@@ -427,7 +434,10 @@ P_DRY_WS = P_DRY_T + 1                  # its smoothing speed [rad/s]
 P_COG_SIX = P_DRY_WS + 1                # 1: N = 6 pp, exp(j N theta_m) = exp(j 6 theta_e) (no sincos)
 P_COG_C = P_COG_SIX + 1                 # cos / sin of the cogging phase
 P_COG_S = P_COG_C + 1
-P_SIZE = P_COG_S + 1
+P_IBATT_PER_J = P_COG_S + 1              # 1 / (battery V * T): battery energy of a period -> mean current
+P_SOC_PER_J = P_IBATT_PER_J + 1         # 1 / battery capacity [1/J]
+P_RAD_PER_COUNT = P_SOC_PER_J + 1       # 2 pi / counts per turn (encoder edge estimate)
+P_SIZE = P_RAD_PER_COUNT + 1
 
 LOAD_DYNO, LOAD_PRIME_MOVER, LOAD_HOOK, LOAD_NONE = 0, 1, 2, 3
 
@@ -482,11 +492,14 @@ def pack_params(p: SpmsmPlantParams) -> np.ndarray:
     bt = p.battery
     v[P_BATT_V] = bt.nominal_v
     v[P_BATT_CAP_J] = bt.nominal_v * bt.capacity_ah * 3600.0
+    v[P_IBATT_PER_J] = 1.0 / (bt.nominal_v * p.control_period_s)
+    v[P_SOC_PER_J] = 1.0 / v[P_BATT_CAP_J]
     v[P_DUMP_SOC] = bt.dump_above_soc
     kind = p.load.kind
     v[P_LOAD_KIND] = {"dynamometer": LOAD_DYNO, "prime_mover": LOAD_PRIME_MOVER, "rider": LOAD_HOOK,
                       "none": LOAD_NONE}[kind]
     v[P_CPR] = p.encoder.counts_per_rev
+    v[P_RAD_PER_COUNT] = TWO_PI / p.encoder.counts_per_rev
     v[P_FCAP] = p.encoder.capture_timer_hz
     v[P_DYNO_N] = len(p.load.dyno_time_s)
     for k, (t, tq) in enumerate(zip(p.load.dyno_time_s, p.load.dyno_torque_nm)):
@@ -549,7 +562,8 @@ W_NSEG = 0
 W_T = 1                      # 8 * carrier segment durations
 W_VA = W_T + 64
 W_VB = W_VA + 64
-WS_SIZE = W_VB + 64
+W_PTS = W_VB + 64            # switching_segments: sorted switching instants (<= 8)
+WS_SIZE = W_PTS + 8
 
 
 # =======================================================================================
@@ -620,24 +634,54 @@ def _one_minus_exp_over(y, t):
     return t * (1.0 - cmath.exp(-y)) / y
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
+def _cis_neg(x):
+    """exp(-j x); Taylor series for |x| < 0.1 (truncation < 1e-24, no libm sincos)."""
+    if abs(x) < 0.1:
+        x2 = x * x
+        c = 1.0 - x2 / 2.0 * (1.0 - x2 / 12.0 * (1.0 - x2 / 30.0 * (1.0 - x2 / 56.0 * (
+            1.0 - x2 / 90.0 * (1.0 - x2 / 132.0)))))
+        sn = x * (1.0 - x2 / 6.0 * (1.0 - x2 / 20.0 * (1.0 - x2 / 42.0 * (1.0 - x2 / 72.0 * (
+            1.0 - x2 / 110.0 * (1.0 - x2 / 156.0))))))
+        return complex(c, -sn)
+    return complex(math.cos(x), -math.sin(x))
+
+
+@njit(**JIT_INLINE)
+def _int_exp_neg(y, t):
+    """t (1 - exp(-y)) / y = integral of exp(-y tau / t) over [0, t] (real y = a t >= 0);
+    series for y < 0.05 (no cancellation, truncation < 1e-22)."""
+    if y < 0.05:
+        return t * (1.0 - y / 2.0 * (1.0 - y / 3.0 * (1.0 - y / 4.0 * (1.0 - y / 5.0 * (1.0 - y / 6.0 * (
+            1.0 - y / 7.0 * (1.0 - y / 8.0 * (1.0 - y / 9.0 * (1.0 - y / 10.0)))))))))
+    return t * (-math.expm1(-y)) / y
+
+
+@njit(**JIT_HOT)
 def segment(i0, v0, v1, we, t, e1, eat, a, l_h, lam):
     """Exact solution of L di/dt = v0 + v1 exp(-j we tau) - (R + j we L) i - j we lambda over
     [0, t] (speed frozen). e1 = exp(-j we t), eat = exp(-a t) are passed in (callers reuse
     them). Returns (i(t), integral of i, integral of |i|^2, integral of Re(v conj(i)))."""
+    p0 = (v0 - complex(0.0, we * lam)) / (l_h * complex(a, we))
+    return _segment_p0(i0, v0, p0, v1, we, t, e1, eat, a, l_h)
+
+
+@njit(**JIT_INLINE)
+def _segment_p0(i0, v0, p0, v1, we, t, e1, eat, a, l_h):
+    """:func:`segment` with its particular solution p0 = (v0 - j we lambda) / (L s) given
+    (constant over a period: the switching model computes it once for all segments)."""
     s = complex(a, we)
-    p0 = (v0 - complex(0.0, we * lam)) / (l_h * s)
-    p1 = v1 / (l_h * a)
+    p1 = v1 * (1.0 / (l_h * a))
     d = i0 - p0 - p1
     es = eat * e1
     i1 = p0 + p1 * e1 + d * es
-    ie1 = _one_minus_exp_over(complex(0.0, we * t), t)      # int exp(-j we tau)
+    ie1 = _ie1(we * t, t)                                    # int exp(-j we tau)
     ies = _one_minus_exp_over(s * t, t)                      # int exp(-s tau)
-    iea = t * (-math.expm1(-a * t)) / (a * t) if a * t > 0.0 else t
-    ie2a = t * (-math.expm1(-2.0 * a * t)) / (2.0 * a * t) if a * t > 0.0 else t
+    iea = _int_exp_neg(a * t, t) if a * t > 0.0 else t
+    ie2a = _int_exp_neg(2.0 * a * t, t) if a * t > 0.0 else t
     int_i = p0 * t + p1 * ie1 + d * ies
     cp0 = p0.conjugate()
-    cp1 = v1.conjugate() / (l_h * a)
+    cp1 = p1.conjugate()
     cd = d.conjugate()
     int_i2 = ((p0.real * p0.real + p0.imag * p0.imag + p1.real * p1.real + p1.imag * p1.imag) * t
               + (d.real * d.real + d.imag * d.imag) * ie2a
@@ -646,7 +690,7 @@ def segment(i0, v0, v1, we, t, e1, eat, a, l_h, lam):
     return i1, int_i, int_i2, e_term
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def _rot_small(e1, dx):
     """e1 * exp(-j dx) for |dx| << 1 (series to round-off below 1e-3)."""
     if abs(dx) < 1e-3:
@@ -657,6 +701,14 @@ def _rot_small(e1, dx):
         c = math.cos(dx)
         s = math.sin(dx)
     return e1 * complex(c, -s)
+
+
+@njit(**JIT_INLINE)
+def _rot_poly(e1, dx):
+    """e1 * exp(-j dx) by :func:`_cis_neg` (Taylor below 0.1, no libm sincos). Telemetry
+    only: the closed loop's trajectory keeps libm's sincos (a last-bit difference grows in
+    the lightly damped predictive loop and would move the paper-table metrics)."""
+    return e1 * _cis_neg(dx)
 
 
 # =======================================================================================
@@ -680,72 +732,91 @@ def _clip01(x):
     return x
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
+def _leg_edges(d, cur, hc, td):
+    """Turn-on / turn-off instants (r, f) of one leg within a carrier period of hc, the
+    turn-on edge delayed by the dead time td through the diode the current sign picks."""
+    r = 0.5 * (1.0 - d) * hc
+    f = 0.5 * (1.0 + d) * hc
+    if td > 0.0:
+        # both switches off for td after each turn-off: the diode picked by the current
+        # sign holds the leg (i > 0 out of the leg: low; i < 0: high)
+        if cur > 0.0:
+            r += td
+        elif cur < 0.0:
+            f += td
+        else:
+            r += 0.5 * td
+            f += 0.5 * td
+    return min(max(r, 0.0), hc), min(max(f, 0.0), hc)
+
+
+@njit(**JIT_HOT)
 def switching_segments(da, db, dc, ia, ib, ic, p, ws):
     """Constant-switch-state segments of one control period (centre-aligned carrier, dead
-    time by current sign) into ws: count, durations, (alpha, beta) voltages."""
+    time by current sign) into ws: count, durations, (alpha, beta) voltages. No allocation
+    (edges in registers, the <= 8 sorted instants in ws[W_PTS:])."""
     m = int(p[P_CARRIER])
     hc = p[P_DT] / m
     td = p[P_DEAD_TIME]
     vdc = p[P_VDC]
-    tr = np.empty(3)
-    tf = np.empty(3)
-    duty = (da, db, dc)
-    cur = (ia, ib, ic)
-    for x in range(3):
-        d = duty[x]
-        r = 0.5 * (1.0 - d) * hc
-        f = 0.5 * (1.0 + d) * hc
-        if td > 0.0:
-            # both switches off for td after each turn-off: the diode picked by the current
-            # sign holds the leg (i > 0 out of the leg: low; i < 0: high)
-            if cur[x] > 0.0:
-                r += td
-            elif cur[x] < 0.0:
-                f += td
-            else:
-                r += 0.5 * td
-                f += 0.5 * td
-        tr[x] = min(max(r, 0.0), hc)
-        tf[x] = min(max(f, 0.0), hc)
-    pts = np.empty(8)
+    tr0, tf0 = _leg_edges(da, ia, hc, td)
+    tr1, tf1 = _leg_edges(db, ib, hc, td)
+    tr2, tf2 = _leg_edges(dc, ic, hc, td)
+    on0 = tf0 > tr0
+    on1 = tf1 > tr1
+    on2 = tf2 > tr2
     n = 0
-    pts[n] = 0.0
+    ws[W_PTS] = 0.0
     n += 1
-    for x in range(3):
-        if tf[x] > tr[x]:
-            pts[n] = tr[x]
-            pts[n + 1] = tf[x]
-            n += 2
-    pts[n] = hc
+    if on0:
+        ws[W_PTS + n] = tr0
+        ws[W_PTS + n + 1] = tf0
+        n += 2
+    if on1:
+        ws[W_PTS + n] = tr1
+        ws[W_PTS + n + 1] = tf1
+        n += 2
+    if on2:
+        ws[W_PTS + n] = tr2
+        ws[W_PTS + n + 1] = tf2
+        n += 2
+    ws[W_PTS + n] = hc
     n += 1
     # insertion sort (<= 8 values)
     for i in range(1, n):
-        v = pts[i]
+        v = ws[W_PTS + i]
         j = i - 1
-        while j >= 0 and pts[j] > v:
-            pts[j + 1] = pts[j]
+        while j >= 0 and ws[W_PTS + j] > v:
+            ws[W_PTS + j + 1] = ws[W_PTS + j]
             j -= 1
-        pts[j + 1] = v
+        ws[W_PTS + j + 1] = v
     ns = 0
-    for c in range(m):
-        for k in range(n - 1):
-            t = pts[k + 1] - pts[k]
-            if t <= 0.0:
-                continue
-            mid = 0.5 * (pts[k] + pts[k + 1])
-            sa = 1.0 if (tf[0] > tr[0] and tr[0] <= mid < tf[0]) else 0.0
-            sb = 1.0 if (tf[1] > tr[1] and tr[1] <= mid < tf[1]) else 0.0
-            sc = 1.0 if (tf[2] > tr[2] and tr[2] <= mid < tf[2]) else 0.0
-            ws[W_T + ns] = t
-            ws[W_VA + ns] = vdc * (2.0 * sa - sb - sc) / 3.0
-            ws[W_VB + ns] = vdc * (sb - sc) / SQRT3
+    for k in range(n - 1):
+        t = ws[W_PTS + k + 1] - ws[W_PTS + k]
+        if t <= 0.0:
+            continue
+        mid = 0.5 * (ws[W_PTS + k] + ws[W_PTS + k + 1])
+        sa = 1.0 if (on0 and tr0 <= mid < tf0) else 0.0
+        sb = 1.0 if (on1 and tr1 <= mid < tf1) else 0.0
+        sc = 1.0 if (on2 and tr2 <= mid < tf2) else 0.0
+        ws[W_T + ns] = t
+        ws[W_VA + ns] = vdc * (2.0 * sa - sb - sc) / 3.0
+        ws[W_VB + ns] = vdc * (sb - sc) / SQRT3
+        ns += 1
+    # the carrier periods of one control period are identical (equal duties)
+    n1 = ns
+    for c in range(1, m):
+        for k in range(n1):
+            ws[W_T + ns] = ws[W_T + k]
+            ws[W_VA + ns] = ws[W_VA + k]
+            ws[W_VB + ns] = ws[W_VB + k]
             ns += 1
     ws[W_NSEG] = ns
     return ns
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def _solve_switching(i0, ej0, we, p, ws, v0):
     """Exact solution through the switching segments in ws (rotor angle exp(j theta0) = ej0);
     v0: a rotor-frame voltage held over the period (minus the back-EMF harmonics)."""
@@ -758,14 +829,17 @@ def _solve_switching(i0, ej0, we, p, ws, v0):
     int_i = complex(0.0, 0.0)
     int_i2 = 0.0
     e_term = 0.0
+    p0 = (v0 - complex(0.0, we * lam)) / (lh * complex(a, we))      # same for every segment
     for k in range(ns):
         t = ws[W_T + k]
         v1 = complex(ws[W_VA + k], ws[W_VB + k]) * rot
         x = we * t
+        # libm sincos / exp here (not the Taylor forms): the closed loop amplifies a last-bit
+        # change of the current trajectory until the paper-table metrics move
         e1 = complex(math.cos(x), -math.sin(x))
         eat = math.exp(-a * t)
         # the rotor-frame integrals are accumulated as is (frame-independent quantities)
-        i, ii, ii2, et = segment(i, v0, v1, we, t, e1, eat, a, lh, lam)
+        i, ii, ii2, et = _segment_p0(i, v0, p0, v1, we, t, e1, eat, a, lh)
         int_i += ii
         int_i2 += ii2
         e_term += et
@@ -784,7 +858,7 @@ def _ie1(x, t):
     return complex(t * math.sin(x) / x, t * (math.cos(x) - 1.0) / x)
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def _avg_eval(i0, v0, v1, we, e1, p):
     """Fast form of :func:`segment` for one full period (average inverter; v0: minus the
     back-EMF harmonics, 0 for a sinusoidal machine):
@@ -805,7 +879,7 @@ def _avg_eval(i0, v0, v1, we, e1, p):
     return i1, int_i, p0, p1, d, ie1, ies
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def _avg_energy(p0, p1, d, ie1, ies, v1, p):
     """Integral of |i|^2 and of Re(v conj(i)) for the :func:`_avg_eval` solution."""
     t = p[P_DT]
@@ -822,7 +896,7 @@ def _avg_energy(p0, p1, d, ie1, ies, v1, p):
 # =======================================================================================
 # diode bridge (rectifier path, or the inverter's freewheel diodes with the gates off)
 # =======================================================================================
-@njit(**JIT)
+@njit(**JIT_HOT)
 def _solve_diode_bridge(i0, we, vr, t, p, vh):
     """Machine on a diode bridge of fundamental voltage vr over t (average model, see module
     docstring). The voltage vector -vr u is held over the period with u the current's
@@ -879,7 +953,7 @@ def _solve_diode_bridge(i0, we, vr, t, p, vh):
 # =======================================================================================
 # one control period
 # =======================================================================================
-@njit(**JIT)
+@njit(**JIT_HOT)
 def dyno_torque_nm(t_s, p):
     """TL(t) of the dynamometer profile (piecewise constant; 0 before the first point)."""
     n = int(p[P_DYNO_N])
@@ -890,7 +964,7 @@ def dyno_torque_nm(t_s, p):
     return tl
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def stored_energy(state, p):
     """Kinetic + magnetic energy: 0.5 J w^2 + 0.75 L |i|^2 (amplitude-invariant dq), plus the
     cogging co-energy W(theta) = -(Tc / N) cos(N theta + phi) (the cogging torque is -dW/dtheta)."""
@@ -900,7 +974,7 @@ def stored_energy(state, p):
     return e
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def emf_harmonic_shape(ej, x, p):
     """g with back-EMF harmonics E_h = we g (rotor frame) at the electrical angle th + x,
     exp(j th) = ej: g = j lambda (k7 exp(j (6 th + phi7)) - k5 exp(j (phi5 - 6 th)))."""
@@ -918,7 +992,7 @@ def _sixth(ej0, e1h):
     return e2 * e2 * e2 * (c * c * c)
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def _harmonic_g(h6, p):
     """:func:`emf_harmonic_shape` from exp(j 6 th) = h6."""
     return complex(p[P_K7_RE], p[P_K7_IM]) * h6 - complex(p[P_K5_RE], p[P_K5_IM]) * h6.conjugate()
@@ -932,7 +1006,7 @@ def _sinc(x):
     return math.sin(x) / x
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def _cogging_mean(th_m0, dtheta, h6, p):
     """:func:`cogging_mean_torque`, without sincos when N = 6 pp (h6 = exp(j 6 th_e,mid))."""
     if p[P_COG_SIX] != 0.0:
@@ -941,7 +1015,7 @@ def _cogging_mean(th_m0, dtheta, h6, p):
     return cogging_mean_torque(th_m0, dtheta, p)
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def cogging_mean_torque(theta_m0, dtheta, p):
     """Mean cogging torque over the rotation theta_m0 -> theta_m0 + dtheta (exact: the change of
     W over dtheta), T(theta) = -Tc sin(N theta + phi)."""
@@ -954,7 +1028,7 @@ def cogging_mean_torque(theta_m0, dtheta, p):
     return -p[P_COG_T] * math.sin(n * (theta_m0 + 0.5 * dtheta) + p[P_COG_PHI]) * sinc
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def friction_torque(w, p):
     """Friction opposing the rotation [N m]: viscous B w (paper 001, Eq. 3) + Coulomb
     Tc tanh(w / w_s) (smoothed through standstill)."""
@@ -979,14 +1053,14 @@ def _sgn(x):
     return 0.0
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def _set_angle_outputs(state, p):
     """cos/sin of the electrical angle and the phase currents from (id, iq)."""
     th = p[P_PP] * state[S_THETA_M]
     _set_phase_currents(state, math.cos(th), math.sin(th))
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def _set_phase_currents(state, c, s):
     state[S_COS_E] = c
     state[S_SIN_E] = s
@@ -1012,7 +1086,7 @@ def init_state(state, p, speed_rad_s, soc0, theta_m):
     state[S_E_STORED0] = stored_energy(state, p)
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def _relay_update(state, p, relay_request):
     """Break-before-make relay sequencing at the period start. Returns the active path:
     0 inverter, 1 rectifier, 2 inverter freewheel (gates off), 3 rectifier draining, 4 open."""
@@ -1061,7 +1135,7 @@ def _relay_update(state, p, relay_request):
     return 4
 
 
-@njit(**JIT)
+@njit(**JIT_HOT)
 def _electrical(path, i0, ej0, v0, v1, we, e1h, p, ws, vr):
     """Electrical solution of the period on the active path at frozen speed we; v0: minus
     the back-EMF harmonics (rotor frame, held). Returns (i1, int_i, int_i2, e_term, loss_j),
@@ -1079,7 +1153,7 @@ def _electrical(path, i0, ej0, v0, v1, we, e1h, p, ws, vr):
     return _solve_diode_bridge(i0, we, vr, dt, p, v0)
 
 
-@njit(**JIT)
+@njit(**JIT_INLINE)
 def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     """One control period of the plant: relay sequencing, electrical (exact at frozen speed),
     shaft (implicit midpoint), DC side, encoder, ledger. ws: float64[WS_SIZE] scratch."""
@@ -1156,8 +1230,11 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     th_m0 = state[S_THETA_M]
     if kind == LOAD_PRIME_MOVER:
         wg = w0
-        x = pp * wg * dt
-        e1h = complex(math.cos(x), -math.sin(x))
+        if pp * wg == state[S_WE_LAST] and (state[S_E1H_RE] != 0.0 or state[S_E1H_IM] != 0.0):
+            e1h = complex(state[S_E1H_RE], state[S_E1H_IM])     # same speed: same exp(-j we T)
+        else:
+            x = pp * wg * dt
+            e1h = complex(math.cos(x), -math.sin(x))
         h6 = _sixth(ej0, e1h) if (emf_on or cog_on) else z0
         if emf_on:
             gh = _harmonic_g(h6, p)
@@ -1243,13 +1320,13 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     ibatt = 0.0
     if path == 0:
         state[S_E_BATT] -= e_term                          # ideal inverter on the battery
-        ibatt = -e_term / (p[P_BATT_V] * dt)
+        ibatt = -e_term * p[P_IBATT_PER_J]
     elif path == 2:
         e_out = -e_term                                    # freewheel diodes into the battery
         e_d = e_out * 2.0 * p[P_INV_DIODE_V] / (vlink + 2.0 * p[P_INV_DIODE_V])
         state[S_E_CONV] += e_d
         state[S_E_BATT] += e_out - e_d
-        ibatt = (e_out - e_d) / (p[P_BATT_V] * dt)
+        ibatt = (e_out - e_d) * p[P_IBATT_PER_J]
         if e_out > 0.0:
             state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_OVERSPEED_DIODES
     elif path == 1 or path == 3:
@@ -1262,10 +1339,10 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             e_b = p[P_ETA_CHG] * e_bus
             state[S_E_CONV] += e_bus - e_b
             state[S_E_BATT] += e_b
-            ibatt = e_b / (p[P_BATT_V] * dt)
+            ibatt = e_b * p[P_IBATT_PER_J]
         else:
             state[S_E_RES] += e_bus
-    state[S_SOC] += ibatt * dt * p[P_BATT_V] / p[P_BATT_CAP_J]
+    state[S_SOC] += ibatt * dt * p[P_BATT_V] * p[P_SOC_PER_J]    # (reciprocals: no division per period)
     state[S_IBATT] = ibatt
     state[S_VLINK] = vlink
     # mean applied dq voltage (telemetry): terminal power / current is not unique; report the
@@ -1278,7 +1355,7 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             for k in range(int(ws[W_NSEG])):
                 vm += complex(ws[W_VA + k], ws[W_VB + k]) * ws[W_T + k]
             vm = vm * ej0.conjugate() / dt
-        vm = _rot_small(vm, 0.5 * pp * wg * dt)
+        vm = _rot_poly(vm, 0.5 * pp * wg * dt)              # telemetry only
     elif path == 4:
         vm = complex(0.0, 0.0)
     else:
@@ -1311,14 +1388,31 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     cpr = p[P_CPR]
     rev = state[S_REV]
     c0 = state[S_COUNT]
-    c1 = rev * cpr + math.floor(th1 * cpr / TWO_PI)
+    # np.floor: the float directly (math.floor goes through int64 and back: two conversions
+    # on the period's longest latency chain)
+    c1 = rev * cpr + np.floor(th1 * cpr / TWO_PI)
     if c1 != c0:
         # last edge crossed: position c1 (forward) or c1 + 1 (backward), time by linear motion
         edge = c1 if c1 > c0 else c1 + 1.0
-        th_edge = (edge - rev * cpr) * TWO_PI / cpr
-        frac = (th_edge - th0) / (wg * dt) if wg != 0.0 else 1.0
-        frac = min(max(frac, 0.0), 1.0)
-        state[S_EDGE_TICKS] = math.floor((state[S_PERIODS] + frac) * (dt * p[P_FCAP]))
+        kf = dt * p[P_FCAP]
+        ticks = -1.0
+        if wg != 0.0:
+            # the tick count is an integer: an estimate of its argument with one division
+            # less (2 pi / cpr precomputed) decides unless it lies within a generous bound of
+            # its rounding error (~1e-14 / |we T| ticks) from an integer; then the exact form
+            wdt = wg * dt
+            ff = min(max(((edge - rev * cpr) * p[P_RAD_PER_COUNT] - th0) / wdt, 0.0), 1.0)
+            y = (state[S_PERIODS] + ff) * kf
+            fl = np.floor(y)
+            tol = kf * (1e-13 / abs(wdt) + 1e-15 * (2.0 + state[S_PERIODS])) + 1e-15 * abs(y)
+            if y - fl > tol and fl + 1.0 - y > tol:
+                ticks = fl
+        if ticks < 0.0:
+            th_edge = (edge - rev * cpr) * TWO_PI / cpr
+            frac = (th_edge - th0) / (wg * dt) if wg != 0.0 else 1.0
+            frac = min(max(frac, 0.0), 1.0)
+            ticks = np.floor((state[S_PERIODS] + frac) * kf)
+        state[S_EDGE_TICKS] = ticks
         state[S_COUNT] = c1
     if th1 >= TWO_PI:
         th1 -= TWO_PI
