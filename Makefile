@@ -1,6 +1,6 @@
 # The two commands of the README: `make demo` and `make test`.
 SHELL := /bin/bash
-.PHONY: setup demo test test-fast bench peers clean
+.PHONY: setup demo test test-faults test-fast bench peers clean
 
 setup:
 	@./tools/setup.sh
@@ -9,7 +9,12 @@ demo: setup
 	./bike run --record runs
 
 test: setup
-	source tools/env.sh && python -m pytest -q
+	source tools/env.sh && python -m pytest -q -m "not faults"
+
+# the reliability suite's process-level fault tests (kill -9, message loss / delay): a few
+# minutes of node graphs; CI runs it after `make test`
+test-faults: setup
+	source tools/env.sh && python -m pytest -q -m faults
 
 bench: setup
 	./bike bench

@@ -23,11 +23,13 @@ import can
 import pytest
 
 from bike_plant.can import AxisState, ODriveError, OdriveCanSimple, ProcedureResult
-from bike_plant.can.emulator import AverageTorqueDrive, DriveEmulator, DriveFirmware, DriveModelParams
+from bike_plant.can.emulator import (AverageTorqueDrive, BldcPlantDrive, DriveEmulator, DriveFirmware, DriveModelParams,
+                                     SpmsmPlantDrive, benchmark_physics, make_drive_model)
 from bike_plant.config import load_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "bldc_default.yaml"
+SPMSM_CONFIG = ROOT / "config" / "spmsm_can.yaml"
 GROUP = "239.74.163.2"          # IPv4 multicast group (measured reliable on this machine)
 WATCHDOG = int(ODriveError.WATCHDOG_TIMER_EXPIRED)
 
@@ -123,6 +125,136 @@ def test_injected_faults_disarm_and_persist_through_clear_errors(params):
     assert fw.active_errors == drv
 
 
+# ---- plant physics: the bike_plant kernels behind the drive's own current loop
+def spmsm_drive(speed_rpm: float, load: str = "prime_mover", **kwargs) -> tuple[SpmsmPlantDrive, DriveFirmware]:
+    """The SPMSM bike's drive (plant physics), armed in torque control."""
+    cfg = load_config(SPMSM_CONFIG)
+    cfg["load"]["speed_rpm"] = speed_rpm
+    cfg["mechanics"]["speed0_rpm"] = speed_rpm
+    model = make_drive_model(cfg, "plant", load_kind=load, **kwargs)
+    assert isinstance(model, SpmsmPlantDrive)
+    fw = DriveFirmware(model, watchdog_timeout_s=0.0, vel_gain_nm_per_rev_s=6.0, velocity_limit_rev_s=10.0,
+                       current_limit_a=15.0)
+    fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.0)
+    return model, fw
+
+
+def run_ms(fw: DriveFirmware, ms: int, dt_s: float = 1e-3) -> list[tuple[float, float, float]]:
+    """Advance ms batches of dt_s; (Torque_Estimate, plant torque, Iq_Measured) after each."""
+    out = []
+    for _ in range(ms):
+        fw.step(dt_s)
+        out.append((fw.model.torque_estimate_nm, fw.model.torque_em_nm, fw.model.iq_a))
+    return out
+
+
+def test_spmsm_torque_step_goes_through_the_drives_current_loop():
+    """A torque step reaches the SPMSM plant through the drive's dq current loop: not at once
+    (the plant's L = 9.8 mH against a PI at controller.pi_current_pole_hz), within a few ms,
+    and then the plant's iq and torque hold the setpoint; the answers are the plant's."""
+    model, fw = spmsm_drive(100.0)
+    run_ms(fw, 100)
+    assert abs(model.torque_em_nm) < 0.05 and abs(model.iq_a) < 0.05
+    fw.set_input_torque(-3.0, 0.0)
+    first = run_ms(fw, 1, dt_s=1e-4)[0]                  # one 100 us period after the step
+    assert -1.5 < first[0] < -0.1, "the current rises through the loop, it does not jump"
+    trace = run_ms(fw, 10)
+    kt = model.params.torque_constant_nm_per_a
+    t90 = next(k for k, (est, _, _) in enumerate(trace) if est < -2.7) + 1
+    assert 1 <= t90 <= 6, trace
+    settled = run_ms(fw, 100)[20:]
+    iq = sum(x[2] for x in settled) / len(settled)
+    torque = sum(x[1] for x in settled) / len(settled)
+    assert iq == pytest.approx(-3.0 / kt, rel=0.01) and model.iq_setpoint_a == pytest.approx(-3.0 / kt, rel=1e-6)
+    assert torque == pytest.approx(-3.0, rel=0.03), "the plant's own torque (harmonics, cogging, dead time)"
+    assert model.torque_estimate_nm == pytest.approx(kt * model.iq_a)
+    assert model.bus_current_a < 0 and model.bus_voltage_v == pytest.approx(24.0), "braking charges the battery"
+    assert model.speed_rad_s * 60 / (2 * math.pi) == pytest.approx(100.0), "prime mover"
+
+
+def test_spmsm_voltage_limit_shows_at_high_speed():
+    """3 N m is reachable at 100 r/min; at 450 r/min the 24 V inverter's voltage limit (back-
+    EMF 34 V peak) leaves the drive flux weakening (id << 0) with a fraction of the torque,
+    which the average-torque model does not know."""
+    res = {}
+    for rpm in (100.0, 450.0):
+        model, fw = spmsm_drive(rpm)
+        fw.set_input_torque(3.0, 0.0)
+        settled = run_ms(fw, 300)[100:]
+        res[rpm] = (sum(x[1] for x in settled) / len(settled), model.id_a, model.iq_setpoint_a)
+    kt = model.params.torque_constant_nm_per_a
+    assert res[100.0][0] == pytest.approx(3.0, rel=0.03) and abs(res[100.0][1]) < 0.5
+    assert res[450.0][0] < 1.5 and res[450.0][1] < -8.0, res
+    assert res[450.0][2] < 0.5 * 3.0 / kt, "the region logic cut the iq reference (MTPV)"
+    cfg = load_config(SPMSM_CONFIG)
+    cfg["load"]["speed_rpm"] = 450.0
+    avg = make_drive_model(cfg, "average", load_kind="prime_mover")
+    fw = DriveFirmware(avg, watchdog_timeout_s=0.0, vel_gain_nm_per_rev_s=6.0, current_limit_a=15.0)
+    fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.0)
+    fw.set_input_torque(3.0, 0.0)
+    run_ms(fw, 50)
+    assert avg.speed_rad_s * 60 / (2 * math.pi) == pytest.approx(450.0)
+    assert avg.torque_estimate_nm == pytest.approx(3.0, rel=1e-3), "the average model: no voltage limit"
+
+
+def test_spmsm_idle_is_gates_off_and_re_arming_is_bumpless():
+    """IDLE = bridge off: above ~190 r/min this machine's back-EMF drives current through the
+    diodes into the 24 V battery (braking); below, no current. Re-armed at zero torque, the
+    current loop takes the current back to zero torque."""
+    model, fw = spmsm_drive(320.0)
+    fw.request_state(AxisState.IDLE, 0.0)
+    run_ms(fw, 50)
+    assert model.torque_em_nm < -2.0 and model.bus_current_a < -1.0, "diode rectifier braking"
+    slow, fw_slow = spmsm_drive(150.0)
+    fw_slow.request_state(AxisState.IDLE, 0.0)
+    run_ms(fw_slow, 50)
+    assert slow.torque_em_nm == 0.0 and slow.iq_a == 0.0
+    fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.0)
+    settled = run_ms(fw, 400)[-100:]
+    assert abs(sum(x[1] for x in settled) / len(settled)) < 0.1 and model.id_a < -4.0, "flux weakening at 0 N m"
+
+
+def test_bldc_plant_drive_motoring_and_generating():
+    """The BLDC bike's drive: the paper's hysteresis law on bike_plant.bldc with I* = |T| / kt.
+    Motoring draws from the 48 V pack, generating (T < 0) charges it; kt I follows within
+    the hysteresis band (its mean a few % short), the plant's torque a few % below kt I (commutation dips)."""
+    cfg = load_config(CONFIG)
+    cfg["load"]["speed_rpm"] = 2000.0
+    for torque_nm in (1.0, -1.0):
+        model = make_drive_model(cfg, "plant", load_kind="prime_mover")
+        assert isinstance(model, BldcPlantDrive) and model.period_s == pytest.approx(50e-6)
+        fw = DriveFirmware(model, watchdog_timeout_s=0.0)
+        fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.0)
+        fw.set_input_torque(torque_nm, 0.0)
+        trace = run_ms(fw, 300)[50:]
+        est = sum(x[0] for x in trace) / len(trace)
+        plant = sum(x[1] for x in trace) / len(trace)
+        kt = model.params.torque_constant_nm_per_a
+        assert est == pytest.approx(torque_nm, rel=0.05), (torque_nm, est)
+        assert plant == pytest.approx(torque_nm, rel=0.06) and abs(plant) < abs(est) * 1.01, (torque_nm, plant, est)
+        assert model.iq_setpoint_a == pytest.approx(torque_nm / kt, rel=1e-9)
+        assert math.copysign(1.0, model.bus_current_a) == math.copysign(1.0, torque_nm)
+        assert 40.0 < model.bus_voltage_v < 56.0
+        fw.request_state(AxisState.IDLE, 0.0)
+        run_ms(fw, 20)
+        assert model.iq_a == 0.0 and model.torque_em_nm == 0.0, "IDLE: gates off, the back-EMF is below the pack"
+
+
+def test_plant_physics_bad_input_and_benchmark():
+    cfg = load_config(CONFIG)
+    with pytest.raises(ValueError, match="physics must be one of"):
+        make_drive_model(cfg, "exact")
+    with pytest.raises(ValueError, match="needs an SPMSM config"):
+        make_drive_model(cfg, "plant", load_kind="dynamometer")
+    with pytest.raises(ValueError, match="current loop"):
+        make_drive_model(load_config(SPMSM_CONFIG), "plant", current_loop="bang-bang")
+    model = make_drive_model(cfg, "plant")
+    model.step(1e-3, float("nan"))                       # a NaN setpoint is zero current, not a crash
+    assert math.isfinite(model.speed_rad_s) and model.iq_a == 0.0
+    result = benchmark_physics(make_drive_model(load_config(SPMSM_CONFIG), "plant"), 0.05)
+    assert result["physics"] == "plant" and result["sim_s"] == pytest.approx(0.05) and result["realtime_factor"] > 0
+
+
 def test_emulator_answers_requests_in_process(params):
     channel = uuid.uuid4().hex
     drive_bus = can.Bus(interface="virtual", channel=channel)
@@ -158,7 +290,7 @@ def _port() -> int:
 class Emulator:
     """bike-drive-emulator in its own process (python -m; the console entry is the same main)."""
 
-    def __init__(self, tmp_path: pathlib.Path, *args: str, node_id: int = 0):
+    def __init__(self, tmp_path: pathlib.Path, *args: str, node_id: int = 0, config: pathlib.Path = CONFIG):
         self.port = _port()
         self.out_path = tmp_path / f"emulator_{self.port}.out"
         self.err_path = tmp_path / f"emulator_{self.port}.err"
@@ -166,16 +298,22 @@ class Emulator:
         self._err = open(self.err_path, "w")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "bike_plant.can.emulator", "--interface", "udp_multicast", "--channel", GROUP,
-             "--port", str(self.port), "--node-id", str(node_id), "--config", str(CONFIG), *args],
+             "--port", str(self.port), "--node-id", str(node_id), "--config", str(config), *args],
             stdout=self._out, stderr=self._err, stdin=subprocess.DEVNULL, start_new_session=True)
         self.bus = can.Bus(interface="udp_multicast", channel=GROUP, port=self.port)
         self.host = OdriveCanSimple(self.bus, node_id)
-        end = time.monotonic() + 30.0
-        while "ready" not in self.out_path.read_text():
-            assert self.proc.poll() is None, self.err_path.read_text()
-            assert time.monotonic() < end, "emulator did not start"
-            time.sleep(0.05)
-        assert self.wait_for(lambda h: "status" in h.last, 10.0), "no heartbeat"
+        # "ready" follows the compile of the plant kernels: seconds from numba's cache, more
+        # when a kernel module changed (cache invalidated) and both cores are busy
+        end = time.monotonic() + 60.0
+        try:
+            while "ready" not in self.out_path.read_text():
+                assert self.proc.poll() is None, self.err_path.read_text()
+                assert time.monotonic() < end, "emulator did not start"
+                time.sleep(0.05)
+            assert self.wait_for(lambda h: "status" in h.last, 10.0), "no heartbeat"
+        except BaseException:
+            self.stop(signal.SIGKILL, 5.0)        # never leave the process behind a failed start
+            raise
 
     def wait_for(self, predicate, timeout_s: float, requests: tuple[str, ...] = (), feed: bool = False) -> bool:
         """Poll (and optionally request / keep the watchdog fed) until predicate(host)."""
@@ -213,8 +351,8 @@ class Emulator:
 def emulator_factory(tmp_path):
     started: list[Emulator] = []
 
-    def start(*args: str, node_id: int = 0) -> Emulator:
-        emu = Emulator(tmp_path, *args, node_id=node_id)
+    def start(*args: str, node_id: int = 0, config: pathlib.Path = CONFIG) -> Emulator:
+        emu = Emulator(tmp_path, *args, node_id=node_id, config=config)
         started.append(emu)
         return emu
 
@@ -259,10 +397,12 @@ def test_torque_command_is_followed(emulator_factory, params):
         host.set_input_torque(torque_nm)
 
         def follows(h):
+            # plant physics: hysteresis current control (band +-1.5 A = +-0.08 N m), the 1 ms
+            # means stay within ~3 %
             t, i = h.last.get("torque"), h.last.get("current")
             return (t is not None and i is not None and t.values["torque_target_nm"] == pytest.approx(torque_nm)
-                    and abs(t.values["torque_estimate_nm"] - torque_nm) < 0.01
-                    and abs(i.values["iq_measured_a"] - torque_nm / kt) < 0.01 / kt)
+                    and abs(t.values["torque_estimate_nm"] - torque_nm) < 0.03 * abs(torque_nm)
+                    and abs(i.values["iq_measured_a"] - torque_nm / kt) < 0.03 * abs(torque_nm) / kt)
 
         assert emu.wait_for(follows, 5.0, requests=("torque",), feed=True), host.values()
     assert host.enabled and host.active_errors == 0
@@ -397,3 +537,35 @@ def test_silent_after_s_loses_the_link_but_keeps_running_and_sigint_exits_zero(e
     assert not host.link_alive()
     rc, summary = emu.stop(signal.SIGINT)
     assert rc == 0 and summary["tx_suppressed"] > 0
+
+
+def test_spmsm_plant_physics_over_the_bus_with_its_realtime_margin(emulator_factory):
+    """The SPMSM config's drive as a process (default --physics plant): braking torque through
+    its current loop with the config's rider, the 24 V bus, and the exit summary's real-time
+    figures; --physics average still runs."""
+    emu = emulator_factory("--vel-gain", "6", config=SPMSM_CONFIG)
+    assert "machine=spmsm physics=plant" in emu.out_path.read_text()
+    host = emu.host
+    host.clear_errors()
+    host.enable("torque")
+    assert emu.wait_for(lambda h: h.enabled, 5.0, feed=True)
+    host.set_input_torque(-2.0)
+
+    def brakes(h):
+        t = h.last.get("torque")
+        return t is not None and abs(t.values["torque_estimate_nm"] + 2.0) < 0.1
+
+    assert emu.wait_for(brakes, 5.0, requests=("torque",), feed=True), host.values()
+    host.request("bus")
+    assert emu.wait_for(lambda h: "bus" in h.last, 5.0, feed=True)
+    values = host.values()
+    # (whether 2 N m of braking charges the battery depends on the rider's speed: flux
+    # weakening costs copper loss; the prime-mover tests above check the sign)
+    assert values["bus_voltage_v"] == pytest.approx(24.0) and abs(values["bus_current_a"]) < 15.0
+    rc, summary = emu.stop()
+    print("SPMSM plant physics real time:", {k: v for k, v in summary.items() if k.startswith("physics")})
+    assert rc == 0 and summary["physics_sim_s"] > 0.05 and summary["physics_realtime_factor"] > 1.0
+    avg = emulator_factory("--physics", "average", config=SPMSM_CONFIG)
+    assert "machine=spmsm physics=average" in avg.out_path.read_text()
+    rc, summary = avg.stop()
+    assert rc == 0 and summary["tx:Heartbeat"] >= 1

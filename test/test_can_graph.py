@@ -73,11 +73,19 @@ class Emulator:
             [sys.executable, "-m", "bike_plant.can.emulator", "--interface", "udp_multicast", "--channel", GROUP,
              "--port", str(port), "--config", str(config), *args],
             stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
-        end = time.monotonic() + 30.0
-        while "ready" not in self.out.read_text():
-            assert self.proc.poll() is None, self.out.read_text()
-            assert time.monotonic() < end, "emulator did not start"
-            time.sleep(0.05)
+        # the first start on a fresh clone compiles the plant kernels (cold numba cache)
+        end = time.monotonic() + 120.0
+        try:
+            while "ready" not in self.out.read_text():
+                assert self.proc.poll() is None, self.out.read_text()
+                assert time.monotonic() < end, "emulator did not start:\n" + self.out.read_text()[-2000:]
+                time.sleep(0.05)
+        except AssertionError:
+            try:
+                self.kill9()      # never leave an emulator running behind a failed test
+            except ProcessLookupError:
+                pass
+            raise
 
     def kill9(self) -> None:
         os.killpg(self.proc.pid, signal.SIGKILL)

@@ -55,6 +55,7 @@ CONTROLLER_DEFAULTS = {
 CONTROLLER_DESCRIPTIONS = {
     "diagnostics_period_s": "publish an OK diagnostic at least this often [wall s]",
 }
+PLANT_SILENT_S = 3.0         # wall seconds without a PlantState mid-run before saying so (> republish_s)
 STAMP_TOL_NS = 1000          # 1 us: stamps are sim times computed in floating point
 
 
@@ -113,6 +114,8 @@ class ControllerNode(Node):
         self.last_seq = -1
         self.cached = None                 # (seq, DriveCommand, ControllerStatus)
         self.last_diag_wall = 0.0
+        self.state_rx = None               # wall time of the last PlantState (plant-silence diagnostic)
+        self.plant_silent = False
         self.stats = {"answered": 0, "rejected_commands": 0, "duplicates": 0, "waits": 0}
         self.get_logger().info(
             f"controller: sync_mode={self.sync_mode} N={self.n} session.period_s={self.period_s:g} "
@@ -150,6 +153,10 @@ class ControllerNode(Node):
 
     def _on_state(self, msg: PlantState) -> None:
         seq = int(msg.seq)
+        self.state_rx = None if msg.end_of_run else time.monotonic()
+        if self.plant_silent:
+            self.plant_silent = False
+            self.get_logger().info(f"PlantState seq {seq} received: the plant is back")
         if msg.end_of_run:
             self.get_logger().info(f"end of run at seq {msg.seq}; ready for a new run")
             self._new_run()
@@ -164,7 +171,13 @@ class ControllerNode(Node):
             return
         if seq <= self.last_seq and self.last_seq - seq < 1000:
             return                                        # stale copy of an older state
-        self.pending = (msg, time.monotonic())
+        # once the session has been heard from, a re-published copy of the state already waiting
+        # keeps its first arrival time: the plant re-publishes every republish_s, which must not
+        # restart command_wait_s (a dead session would stall the run for ever). Before the first
+        # Command it does restart it: a session node still starting up is waited for.
+        received = (self.pending[1] if self.pending is not None and int(self.pending[0].seq) == seq
+                    and self.max_stamp is not None else None)
+        self.pending = (msg, received if received is not None else time.monotonic())
         self._try_answer()
 
     def _new_run(self) -> None:
@@ -192,9 +205,10 @@ class ControllerNode(Node):
                 return                                    # wait for the session
             self.no_session = True
             j = math.floor(t_ns * 1e-9 / self.period_s + 1e-9)
-            self.get_logger().warning(
-                f"no Command for t={j * self.period_s:g}s within command_wait_s={self.command_wait_s:g}s: "
-                "proceeding with the last command (the run is no longer a pure function of the config)")
+            text = (f"no Command for t={j * self.period_s:g}s within command_wait_s={self.command_wait_s:g}s: "
+                    "proceeding with the last command (the run is no longer a pure function of the config)")
+            self.get_logger().warning(text)
+            self._publish_diag(DiagnosticStatus.WARN, f"session silent: {text}", t_ns)
             self.stats["waits"] += 1
         self._apply_timeline(t_ns)
         snap = msgconv.snapshot_from_msg(msg)
@@ -258,6 +272,14 @@ class ControllerNode(Node):
             self.executor_.spin_once(timeout_sec=0.1)
             if self.pending is not None:
                 self._try_answer()                         # command_wait_s expiry
+            if (self.state_rx is not None and not self.plant_silent
+                    and time.monotonic() - self.state_rx > PLANT_SILENT_S):
+                # mid-run and no PlantState: the plant stopped or died (nothing to answer)
+                self.plant_silent = True
+                text = (f"no PlantState for {PLANT_SILENT_S:g}s after seq {self.last_seq}: the plant stopped "
+                        "or paused mid-run (no batch to answer; a restarted plant starts a new run)")
+                self.get_logger().warning(text)
+                self._publish_diag(DiagnosticStatus.WARN, text)
         return 0
 
 

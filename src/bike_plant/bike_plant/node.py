@@ -294,6 +294,9 @@ class PlantNode(Node):
         self.answer = None           # lockstep: DriveCommand(seq=pending_seq)
         self.latest = None           # realtime: newest DriveCommand received
         self.latest_rx = None        # realtime: wall time it arrived
+        self.latest_rx_sim_s = math.nan  # realtime: sim time of the batch during which it arrived
+        self.wait_reason = ""        # lockstep: why the run is held (no answer), for the diagnostic
+        self.wait_level = _level(DiagnosticStatus.WARN)
         self.node_faults = 0
         self.last_faults = -1
         self.last_drive_level = 0
@@ -315,6 +318,7 @@ class PlantNode(Node):
         else:
             self.latest = msg
             self.latest_rx = time.monotonic()
+            self.latest_rx_sim_s = self.backend.time_s
             submit = getattr(self.backend, "submit", None)
             if submit is not None:               # CAN: the setpoint goes out now, not at the next tick
                 submit(msg, self.n)
@@ -414,6 +418,9 @@ class PlantNode(Node):
         if faults & PlantState.FAULT_RECORDER_LOST:
             reasons.append(f"the recorder went silent for recorder_timeout_s={self.recorder_timeout_s:g}s: "
                            "the rest of the run is not recorded")
+        if self.wait_reason:                        # lockstep: the controller stopped answering
+            status.level = bytes([max(_level(status.level), self.wait_level)])
+            reasons.append(self.wait_reason)
         if self.sync_mode == "realtime" and self.latest_rx is None and not faults:
             status.level = DiagnosticStatus.WARN
             reasons.append("waiting for the first DriveCommand ("
@@ -432,6 +439,9 @@ class PlantNode(Node):
             "speed_rpm": f"{float(snap.get('speed_rpm', 0.0)):.1f}",
             "dc_bus_v": f"{float(snap.get('dc_bus_v', 0.0)):.2f}",
         }
+        if self.sync_mode == "realtime":
+            # the safe-state latency in sim time: the batch that went safe vs the last command
+            values["last_drive_command_sim_s"] = f"{self.latest_rx_sim_s:.6f}"
         values.update({k: str(v) for k, v in self.stats.items()})
         values.update(drive_values)
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
@@ -546,10 +556,25 @@ class PlantNode(Node):
                 if self.answer is None and time.monotonic() - sent > self.republish_s:
                     self._republish()
                     sent = time.monotonic()
+                    # say why the run does not advance (no batch is applied without an answer:
+                    # sim time stands still, the machine state is held as it was)
+                    self.wait_reason = (f"no DriveCommand for seq {self.k} for {sent - first:.1f}s: run held "
+                                        "(sim time stopped, no batch applied)")
                     if self.start_timeout_s > 0 and sent - first > self.start_timeout_s:
                         # never hang: a controller that does not answer is an error of the run
+                        self.wait_reason = (f"no DriveCommand for seq {self.k} within start_timeout_s="
+                                            f"{self.start_timeout_s:g}s: the run ends (controller gone or stuck)")
+                        self.wait_level = _level(DiagnosticStatus.ERROR)
+                        self._publish_diag(self._last_snap, self._last_stamp, max(self.last_faults, 0))
+                        linger = time.monotonic() + min(self.end_linger_s, 0.5)     # let it reach subscribers
+                        while time.monotonic() < linger and not self.stop_requested:
+                            self._spin(0.05)
                         raise StartupTimeout(f"no DriveCommand for seq {self.k} within start_timeout_s="
                                              f"{self.start_timeout_s:g}s (controller stuck or not matched)")
+                    self._publish_diag(self._last_snap, self._last_stamp, max(self.last_faults, 0))
+            if self.wait_reason and self.answer is not None:
+                self.wait_reason = ""
+                self.last_faults = -1        # the next state's diagnostic says it runs again
             if self.answer is None:
                 return
             msg, self.answer = self.answer, None
@@ -624,6 +649,11 @@ class PlantNode(Node):
                 self._end_of_run()
                 return
             self._publish_state()
+
+
+def _level(level) -> int:
+    """diagnostic_msgs' level is a byte in rclpy: as an int."""
+    return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
 
 
 def _number(cfg: dict, key: str, kind, minimum, path):

@@ -94,7 +94,12 @@ def _cmd_run(opts) -> int:
     except launcher.LaunchError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if bag_path is not None and bag_path.exists():
+    if bag_path is not None and bag_path.exists() and not (bag_path / "metadata.yaml").exists():
+        # the recorder did not close the bag (killed): what it flushed is rescued by recover
+        print(f"error: the recording at {bag_path} was not closed (recorder killed?); rescue what it "
+              f"flushed with: ./bike bag recover {bag_path}", file=sys.stderr)
+        code = code or 1
+    elif bag_path is not None and bag_path.exists():
         from bike_session import report
 
         print(f"[bike] bag written: {bag_path}")

@@ -320,5 +320,13 @@ def run(launch_file: str, args: dict[str, str] | None = None, timeout_s: float |
             signal.signal(sig, handler)
     bad = {name: code for name, code in codes.items() if code not in (0, -signal.SIGINT, 130)}
     for name, code in bad.items():
-        print(f"[launcher] node '{name}' exited with code {code}", file=sys.stderr)
+        if code < 0:
+            try:
+                how = f"was killed by {signal.Signals(-code).name}"
+            except ValueError:
+                how = f"was killed by signal {-code}"
+            print(f"[launcher] node '{name}' {how}: the run was stopped",
+                  file=sys.stderr)
+        else:
+            print(f"[launcher] node '{name}' exited with code {code}", file=sys.stderr)
     return 1 if bad else 0

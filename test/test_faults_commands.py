@@ -1,0 +1,79 @@
+"""Reliability suite: fuzzed Command values published to a running controller process.
+
+Every invalid Command (NaN, +-inf, negative, > 1, an unknown mode) gets exactly one WARN
+diagnostic naming the problem; valid ones in between get none; the node stays alive and
+ends cleanly on SIGINT."""
+from __future__ import annotations
+
+import math
+import random
+import signal
+import time
+
+import pytest
+from node_harness import Collector, NodeProcess, domain  # noqa: F401
+
+from bike_msgs.msg import Command  # noqa: E402
+from bike_plant import msgconv  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def _fuzzed_commands(seed: int, count: int):
+    """[(value, mode, expected problem word or None)], about one in four valid."""
+    rng = random.Random(seed)
+    out = []
+    for _ in range(count):
+        kind = rng.randrange(8)
+        if kind == 0:
+            out.append((rng.random(), rng.randrange(5), None))
+        elif kind == 1:
+            out.append((math.nan, rng.randrange(5), "not finite"))
+        elif kind == 2:
+            out.append((rng.choice([math.inf, -math.inf]), rng.randrange(5), "not finite"))
+        elif kind == 3:
+            out.append((-rng.uniform(1e-6, 1e6), rng.randrange(5), "outside [0, 1]"))
+        elif kind == 4:
+            out.append((1.0 + rng.uniform(1e-6, 1e6), rng.randrange(5), "outside [0, 1]"))
+        elif kind == 5:
+            out.append((rng.random(), rng.randrange(5, 256), "unknown mode"))
+        elif kind == 6:
+            out.append((rng.choice([0.0, 1.0]), rng.randrange(5), None))
+        else:
+            out.append((-rng.random(), rng.randrange(5, 256), None))      # two problems: still one diagnostic
+    return out
+
+
+def test_fuzzed_commands_one_diagnostic_each(domain):
+    col = Collector(domain, {"/diagnostics": DiagnosticArray})
+    ctrl = NodeProcess("bike_controller", "controller_node", domain, {"diagnostics_period_s": 1000.0})
+    try:
+        pub = col.publisher(Command, "command")
+        col.wait_for(lambda: pub.get_subscription_count() >= 1, 30, "controller's command subscription", [ctrl])
+        time.sleep(0.3)                       # the controller's side of the match (volatile QoS)
+        commands = _fuzzed_commands(seed=6, count=60)
+        for j, (value, mode, _) in enumerate(commands):
+            pub.publish(msgconv.command_msg(value, mode, msgconv.seconds_to_ns(0.1 * j)))
+            time.sleep(0.005)
+        bad = [c for c in commands if c[2] is not None or c[0] < 0]
+        assert 20 < len(bad) < 60
+
+        def rejections():
+            return [s.message for a in col.data["/diagnostics"] for s in a.status
+                    if s.name.endswith("controller") and "Command rejected" in s.message]
+        col.wait_for(lambda: len(rejections()) >= len(bad), 20, f"{len(bad)} rejections", [ctrl])
+        time.sleep(0.5)
+        msgs = rejections()
+        assert len(msgs) == len(bad), "exactly one diagnostic per invalid Command"
+        assert all(s.level == DiagnosticStatus.WARN for a in col.data["/diagnostics"] for s in a.status
+                   if "Command rejected" in s.message)
+        for (value, mode, word), text in zip(bad, msgs):
+            assert word is None or word in text, (value, mode, text)
+        assert ctrl.alive()
+        ctrl.signal(signal.SIGINT)
+        assert ctrl.wait(10) == 0, ctrl.output()
+        assert "Traceback" not in ctrl.output()
+    finally:
+        ctrl.stop()
+        col.close()

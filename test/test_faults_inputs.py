@@ -1,0 +1,341 @@
+"""Reliability suite: hostile files and security defaults.
+
+Malformed configs, workout files and bags (seeded random truncations, byte flips, random
+bytes) give one clear error of the documented class each, never another exception; the
+front door (`./bike`) prints one error line and no traceback. No config value is evaluated
+as code (YAML python tags refused, no eval / exec / unsafe yaml.load in the sources); the
+bag and workout readers stay bounded in memory on hostile sizes and nesting; DDS discovery
+is limited to localhost unless configured."""
+from __future__ import annotations
+
+import os
+import pathlib
+import random
+import re
+import struct
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from bike_plant.config import ConfigError, load_config
+from bike_session.bags import BagError, open_bag
+from bike_session.profiles import ProfileError
+from bike_session.recover import recover
+from bike_session.workouts import load_workout
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "config" / "bldc_default.yaml"
+WORKOUTS = ROOT / "test" / "data" / "workouts"
+
+
+def _mutations(data: bytes, seed: int, count: int):
+    """Seeded hostile variants of ``data``: truncations, byte flips, inserted junk, random bytes."""
+    rng = random.Random(seed)
+    out = []
+    for i in range(count):
+        kind = i % 4
+        if kind == 0:
+            out.append(data[:rng.randrange(0, len(data))])
+        elif kind == 1:
+            b = bytearray(data)
+            for _ in range(rng.randint(1, 20)):
+                b[rng.randrange(len(b))] = rng.randrange(256)
+            out.append(bytes(b))
+        elif kind == 2:
+            pos = rng.randrange(len(data))
+            out.append(data[:pos] + bytes(rng.randrange(256) for _ in range(rng.randint(1, 64))) + data[pos:])
+        else:
+            out.append(bytes(rng.randrange(256) for _ in range(rng.randint(0, 2048))))
+    return out
+
+
+def _build_everything(cfg: dict) -> None:
+    """What the nodes build from a config: plant model, controller law (both machines)."""
+    from bike_controller.session_control import ModedController
+    from bike_plant import params as P
+    from bike_plant.node import make_backend
+
+    make_backend("sim", cfg, 0)
+    if str(cfg.get("machine", "bldc")) == "bldc":
+        ModedController(cfg, P.nominal_params_from_config(cfg))
+    else:
+        from bike_controller.spmsm_session import ModedSpmsmController
+        ModedSpmsmController(cfg)
+
+
+# ------------------------------------------------------------------ configs
+def test_fuzzed_configs_give_one_clear_error_each(tmp_path):
+    """60 seeded variants of the default config: load_config and everything the nodes build
+    from it either work or raise ConfigError / ValueError with a message; nothing else."""
+    data = CONFIG.read_bytes()
+    outcomes = {"ok": 0, "error": 0}
+    for i, variant in enumerate(_mutations(data, seed=6, count=60)):
+        path = tmp_path / f"c{i}.yaml"
+        path.write_bytes(variant)
+        try:
+            cfg = load_config(path)
+            _build_everything(cfg)
+            outcomes["ok"] += 1
+        except (ConfigError, ValueError) as exc:
+            assert str(exc).strip(), f"variant {i}: empty error message"
+            outcomes["error"] += 1
+        except Exception as exc:  # noqa: BLE001 - the point of the test
+            pytest.fail(f"variant {i} of the config raised {type(exc).__name__}: {exc}")
+    assert outcomes["error"] >= 30, outcomes
+
+
+BAD_VALUES = [("bldc", "inductance_h", -1.0), ("bldc", "inductance_h", "abc"), ("battery", "soc0", float("nan")),
+              ("battery", "r_brake_ohm", 0.0), ("controller", "current_limit_a", float("inf")),
+              ("mechanics", "inertia_kgm2", [1, 2]), ("controller", "k_factor", []), ("load", "kind", "dragon")]
+
+
+@pytest.mark.parametrize("section,key,value", BAD_VALUES)
+def test_bad_config_values_are_named(tmp_path, section, key, value):
+    import yaml
+    doc = yaml.safe_load(CONFIG.read_text())
+    doc["/**"]["ros__parameters"][section][key] = value
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises((ConfigError, ValueError), match=key.split("_")[0]):
+        _build_everything(load_config(path))
+
+
+def _cli(*args, timeout=120):
+    return subprocess.run([str(ROOT / "bike"), *args], capture_output=True, text=True, timeout=timeout,
+                          env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
+
+
+def _one_error(run) -> str:
+    assert run.returncode == 2, (run.returncode, run.stdout[-2000:], run.stderr[-2000:])
+    assert "Traceback" not in run.stderr + run.stdout, run.stderr
+    lines = [line for line in run.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "error" in lines[0], run.stderr
+    return lines[0]
+
+
+def test_yaml_python_tags_are_refused_not_run(tmp_path):
+    """A config with !!python tags is refused (safe_load) and nothing is executed."""
+    marker = tmp_path / "pwned"
+    evil = CONFIG.read_text().replace(
+        "duration_s: 60.0", f"duration_s: !!python/object/apply:os.system ['touch {marker}']")
+    assert evil != CONFIG.read_text()
+    path = tmp_path / "evil.yaml"
+    path.write_text(evil)
+    with pytest.raises(ConfigError):
+        load_config(path)
+    line = _one_error(_cli("run", "--config", str(path), "--duration", "0.1"))
+    assert "evil.yaml" in line
+    assert not marker.exists()
+    # the launch file is read the same way
+    from bike_session.launcher import LaunchError, parse_launch
+    launch = tmp_path / "evil.launch.yaml"
+    launch.write_text(f"launch:\n- arg: {{name: x, default: !!python/object/apply:os.system ['touch {marker}']}}\n")
+    with pytest.raises(LaunchError):
+        parse_launch(str(launch))
+    assert not marker.exists()
+
+
+def test_no_config_value_is_evaluated_as_code():
+    """No eval / exec / pickle / unsafe yaml.load in the sources. The one exec (the report's
+    fast CDR decoder) compiles source built from fixed templates: only integers and struct
+    format letters from a fixed table are interpolated, never a string from the bag."""
+    pattern = re.compile(r"\b(eval|exec)\s*\(|yaml\.load\s*\(|yaml\.unsafe_load|yaml\.full_load|"
+                         r"Loader\s*=\s*yaml\.(Full|Unsafe)?Loader|pickle\.loads?\s*\(|marshal\.loads")
+    hits = []
+    for path in list((ROOT / "src").rglob("*.py")) + list((ROOT / "tools").rglob("*.py")):
+        for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if pattern.search(line) and not line.lstrip().startswith("#"):
+                hits.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")
+    allowed = [h for h in hits if h.startswith("src/bike_session/bike_session/report.py")
+               and 'exec("\\n".join(src), ns)' in h]
+    assert sorted(set(hits) - set(allowed)) == [], hits
+    assert len(allowed) <= 1
+
+
+# ------------------------------------------------------------------ workouts
+def test_fuzzed_workouts_give_one_clear_error_each(tmp_path):
+    """40 seeded variants of each real workout file (.zwo, .erg, .mrc): a workout or one
+    ProfileError; never another exception."""
+    originals = sorted(p for p in WORKOUTS.iterdir() if p.is_file())
+    assert {p.suffix for p in originals} >= {".zwo", ".erg", ".mrc"}
+    errors = 0
+    for src in originals:
+        for i, variant in enumerate(_mutations(src.read_bytes(), seed=hash(src.name) & 0xFFFF, count=40)):
+            path = tmp_path / f"w{i}{src.suffix}"
+            path.write_bytes(variant)
+            try:
+                load_workout(path, ftp_w=250.0)
+            except ProfileError as exc:
+                assert str(exc).strip()
+                errors += 1
+            except Exception as exc:  # noqa: BLE001
+                pytest.fail(f"{src.name} variant {i} raised {type(exc).__name__}: {exc}")
+    assert errors >= 40
+
+
+def test_hostile_workouts_are_bounded(tmp_path):
+    """Deep nesting, many elements, a huge repeat count, a sparse file claiming 2 GB: one
+    ProfileError each, quickly, without reading the file into memory."""
+    cases = {
+        "deep.zwo": "<workout_file><workout>" + "<a>" * 100_000 + "</a>" * 100_000 + "</workout></workout_file>",
+        "wide.zwo": "<workout_file><workout>" + '<SteadyState Duration="1" Power="0.5"/>' * 60_000
+                    + "</workout></workout_file>",
+        "repeat.zwo": '<workout_file><workout><IntervalsT Repeat="1000000000" OnDuration="60" OffDuration="60" '
+                      'OnPower="1" OffPower="0.5"/></workout></workout_file>',
+        "bomb.zwo": '<?xml version="1.0"?><!DOCTYPE l [<!ENTITY a "aaaaaaaaaa"><!ENTITY b "&a;&a;&a;&a;&a;&a;">]>'
+                    "<workout_file><name>&b;</name></workout_file>",
+        "long.erg": "[COURSE HEADER]\nMINUTES WATTS\n[END COURSE HEADER]\n[COURSE DATA]\n0 100\n1e12 100\n"
+                    "[END COURSE DATA]\n",
+    }
+    for name, text in cases.items():
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(ProfileError):
+            load_workout(path, ftp_w=250.0)
+    huge = tmp_path / "huge.zwo"
+    with open(huge, "wb") as fh:
+        fh.truncate(2 << 30)           # sparse: claims 2 GB, occupies nothing
+    with pytest.raises(ProfileError, match="too large"):
+        load_workout(huge, ftp_w=250.0)
+
+
+# ------------------------------------------------------------------ bags
+def _small_bag(path: pathlib.Path, storage: str) -> None:
+    from bike_session.recorder_node import BagSink, build_typestore
+    ts = build_typestore()
+    sink = BagSink(path, storage, ts, [("/bike/command", "bike_msgs/msg/Command", True, False)])
+    Command = ts.types["bike_msgs/msg/Command"]
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    for k in range(200):
+        msg = Command(header=Header(stamp=Time(sec=0, nanosec=k * 1000), frame_id=""), command=0.5, mode=0)
+        sink.write("/bike/command", k * 1000, ts.serialize_cdr(msg, "bike_msgs/msg/Command"))
+    sink.close()
+
+
+def _read_all(path: pathlib.Path) -> int:
+    with open_bag(path) as bag:
+        return sum(1 for _ in bag.messages())
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_fuzzed_bags_give_one_clear_error_each(tmp_path, storage):
+    """30 seeded corruptions of a real bag's data file and of its metadata.yaml: reading and
+    recovering give data or one BagError, never another exception."""
+    good = tmp_path / "good"
+    _small_bag(good, storage)
+    data_file = next(p for p in good.iterdir() if p.suffix in (".mcap", ".db3"))
+    assert _read_all(good) == 200
+    errors = 0
+    for i, variant in enumerate(_mutations(data_file.read_bytes(), seed=60 + len(storage), count=30)
+                                + _mutations((good / "metadata.yaml").read_bytes(), seed=61, count=10)):
+        bag = tmp_path / f"b{i}"
+        bag.mkdir()
+        meta = (good / "metadata.yaml").read_bytes()
+        body = data_file.read_bytes()
+        if i < 30:
+            body = variant
+        else:
+            meta = variant
+        (bag / data_file.name.replace("good", bag.name)).write_bytes(body)
+        (bag / "metadata.yaml").write_bytes(meta.replace(b"good", bag.name.encode()))
+        for action in (_read_all, lambda p: (p / "metadata.yaml").unlink() or recover(p)):
+            try:
+                action(bag)
+            except BagError as exc:
+                assert str(exc).strip()
+                errors += 1
+            except Exception as exc:  # noqa: BLE001
+                pytest.fail(f"bag variant {i} ({action}): {type(exc).__name__}: {exc}")
+    assert errors >= 20
+
+
+def test_cli_on_a_corrupt_bag_prints_one_error(tmp_path):
+    bag = tmp_path / "b"
+    _small_bag(bag, "mcap")
+    data = next(bag.glob("*.mcap"))
+    data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])
+    for args in (["report", str(bag), "--out", str(tmp_path / "r")], ["bag", "recover", str(tmp_path / "nope")]):
+        _one_error(_cli(*args))
+
+
+HOSTILE_READER = textwrap.dedent("""
+    import resource, sys, pathlib
+    # at most 400 MB more address space than the interpreter with its imports already has
+    from bike_session.bags import BagError, open_bag
+    from bike_session.recover import recover
+    import bike_session.report
+    with open("/proc/self/status") as fh:
+        vm = next(int(l.split()[1]) * 1024 for l in fh if l.startswith("VmSize"))
+    resource.setrlimit(resource.RLIMIT_AS, (vm + 400 * 2**20, vm + 400 * 2**20))
+    path = pathlib.Path(sys.argv[1])
+    for action in ("read", "recover"):
+        try:
+            if action == "read":
+                with open_bag(path) as bag:
+                    for _ in bag.messages():
+                        pass
+            else:
+                (path / "metadata.yaml").unlink(missing_ok=True)
+                recover(path)
+            print(action, "ok")
+        except BagError as exc:
+            print(action, "BagError", str(exc)[:200])
+""")
+
+
+def _mcap_record(opcode: int, body: bytes, declared: int | None = None) -> bytes:
+    return struct.pack("<BQ", opcode, len(body) if declared is None else declared) + body
+
+
+@pytest.mark.parametrize("declared", [2**31, 2**40, 2**63 - 1])
+def test_bag_reader_bounded_on_huge_declared_sizes(tmp_path, declared):
+    """An MCAP whose records claim gigabytes (header, then a chunk of `declared` bytes):
+    reading and recovery end with one BagError inside a 400 MB address-space limit."""
+    good = tmp_path / "good"
+    _small_bag(good, "mcap")
+    magic = b"\x89MCAP0\r\n"
+    data = next(good.glob("*.mcap")).read_bytes()
+    # keep the header record, then a chunk record with a hostile length and a little payload
+    header_len = struct.unpack_from("<Q", data, len(magic) + 1)[0]
+    head = data[: len(magic) + 9 + header_len]
+    for name, tail in {"chunk": _mcap_record(0x06, b"\x00" * 64, declared),
+                       "string": _mcap_record(0x03, struct.pack("<H", 1) + struct.pack("<I", 0xFFFFFFF0) + b"x" * 32),
+                       "schema": _mcap_record(0x03, struct.pack("<HI", 1, 8) + b"x" * 8
+                                              + struct.pack("<I", 4) + b"ros2" + struct.pack("<I", 2**31))}.items():
+        bag = tmp_path / f"{name}"
+        bag.mkdir()
+        (bag / f"{name}.mcap").write_bytes(head + tail)
+        (bag / "metadata.yaml").write_text((good / "metadata.yaml").read_text().replace("good", name))
+        run = subprocess.run([sys.executable, "-c", HOSTILE_READER, str(bag)], capture_output=True, text=True,
+                             timeout=120)
+        assert run.returncode == 0, (name, run.stdout, run.stderr[-3000:])
+        assert "Traceback" not in run.stderr
+        lines = run.stdout.splitlines()
+        assert [line.split()[0] for line in lines] == ["read", "recover"], run.stdout
+        assert all(line.split()[1] == "BagError" for line in lines), run.stdout
+
+
+# ------------------------------------------------------------------ DDS discovery
+def test_discovery_is_limited_to_localhost_unless_configured():
+    """tools/env.sh sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the user chose a
+    range; ./bike run passes it through to every node unchanged (the launcher adds no env)."""
+    probe = "echo RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE"
+    env = {k: v for k, v in os.environ.items() if k != "ROS_AUTOMATIC_DISCOVERY_RANGE"}
+    out = subprocess.run(["bash", "-c", f"source {ROOT}/tools/env.sh && {probe}"], env=env, capture_output=True,
+                         text=True, timeout=60).stdout
+    assert "RANGE=LOCALHOST" in out
+    out = subprocess.run(["bash", "-c", f"source {ROOT}/tools/env.sh && {probe}"],
+                         env=dict(env, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET"), capture_output=True, text=True,
+                         timeout=60).stdout
+    assert "RANGE=SUBNET" in out, "a configured range is respected"
+    bike = (ROOT / "bike").read_text()
+    assert "tools/env.sh" in bike, "./bike must enter the environment through tools/env.sh"
+    # the launcher starts nodes with the caller's environment (nothing overrides the range)
+    from bike_session.launcher import parse_launch
+    for spec in parse_launch(str(ROOT / "config" / "launch" / "bike.launch.yaml"), {"emulator": "true"}):
+        assert "ROS_AUTOMATIC_DISCOVERY_RANGE" not in (getattr(spec, "env", {}) or {})
+    cli = (ROOT / "src" / "bike_session" / "bike_session" / "cli.py").read_text()
+    assert not re.search(r"environ\[[\"']ROS_AUTOMATIC_DISCOVERY_RANGE", cli)

@@ -1,0 +1,148 @@
+"""Reliability suite, kernel level: the real controller law driving the real plant kernel
+over long random sessions (no shoot-through ever) and long regeneration into a full and an
+empty battery (S0 + brake resistor hold the DC bus; paper 000, Fig. 2)."""
+from __future__ import annotations
+
+import copy
+import pathlib
+import random
+
+import numpy as np
+import pytest
+
+from bike_controller.session_control import ModedController
+from bike_plant import bldc as K
+from bike_plant import params as P
+from bike_plant.config import load_config
+from bike_plant.sim import BldcPlant
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CFG = load_config(ROOT / "config" / "bldc_default.yaml")
+BATCH_S = CFG["batch_periods"] * CFG["control_period_s"]
+
+
+def _bike(soc0=None, kind=None, speed_rpm=None, preset=None, schedule=None):
+    c = copy.deepcopy(CFG)
+    if schedule is not None:                  # prime mover speed steps: (times_s, speeds_rpm)
+        c["load"] = dict(c["load"], schedule_time_s=schedule[0], schedule_speed_rpm=schedule[1])
+    if soc0 is not None:
+        c["battery"] = dict(c["battery"], soc0=soc0)
+    if kind is not None:
+        c["load"] = dict(c["load"], kind=kind)
+    if speed_rpm is not None:
+        c["load"] = dict(c["load"], speed_rpm=speed_rpm)
+        c["mechanics"] = dict(c["mechanics"], speed0_rpm=speed_rpm)
+    if preset is not None:
+        c["load"] = dict(c["load"], rider_preset=preset)
+    return c, BldcPlant(P.plant_params_from_config(c)), ModedController(c, P.nominal_params_from_config(c))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_no_shoot_through_over_long_random_sessions(seed):
+    """6 s of simulated riding per seed: a random Command (value, any of the five modes)
+    every 0.05-0.5 s, random rider preset or prime-mover speed steps. Every gate word the
+    controller emits has no leg with both switches on, and the plant's interlock never had
+    to blank one (counter 0, FAULT_INTERLOCK never set)."""
+    rng = random.Random(seed)
+    kind = rng.choice(["rider", "prime_mover"])
+    steps = [float(t) for t in range(8)]
+    c, plant, ctrl = _bike(kind=kind, speed_rpm=rng.uniform(800, 5000),
+                           preset=rng.choice(["recreational", "trained"]),
+                           schedule=(steps, [rng.uniform(300, 6000) for _ in steps]))
+    n_batches = int(round(6.0 / BATCH_S))
+    next_change = 0
+    modes_seen, words = set(), 0
+    bad_words = [g for g in range(64) if K.blank_interlock(g)[1] != 0]     # patterns that short a leg
+    assert bad_words, "the interlock table must know the shorting patterns"
+    for b in range(n_batches):
+        if b >= next_change:
+            mode = rng.randrange(5)
+            ctrl.set_command(rng.choice([0.0, 1.0, rng.random()]), mode)
+            modes_seen.add(mode)
+            next_change = b + rng.randint(50, 500)
+        a, g, split, _status = ctrl.decide(plant.snapshot())
+        gates = np.concatenate([a, g])
+        assert not np.isin(gates, bad_words).any(), f"batch {b}: a gate word shorts a leg: {gates}"
+        words += gates.size
+        plant.step_batch(a, g, split)
+        snap_faults = int(plant.state[K.S_FAULTS])
+        assert not snap_faults & K.FAULT_INTERLOCK, f"batch {b}: interlock fault"
+    snap = plant.snapshot()
+    assert snap["interlock_blanked_count"] == 0
+    assert len(modes_seen) >= 3 and words == 2 * n_batches * c["batch_periods"]
+    assert np.isfinite(snap["speed_rpm"]) and np.all(np.isfinite(snap["phase_current_a"]))
+    # bounded: the phase current never runs away (limit 120 A in the config)
+    assert np.max(np.abs(snap["current_samples_a"])) <= 1.2 * c["controller"]["current_limit_a"]
+
+
+def _regen(soc0, seconds, speed_rpm=3000.0):
+    c, plant, ctrl = _bike(soc0=soc0, kind="prime_mover", speed_rpm=speed_rpm)
+    ctrl.set_command(1.0, 0)                  # full resistance: maximum regeneration
+    v = np.empty(int(round(seconds / BATCH_S)))
+    s0 = np.empty(v.size, bool)
+    faults = 0
+    for b in range(v.size):
+        a, g, split, _ = ctrl.decide(plant.snapshot())
+        plant.step_batch(a, g, split)
+        snap = plant.snapshot()
+        v[b], s0[b] = snap["dc_bus_v"], snap["brake_resistor_on"]
+        faults |= int(snap["faults"])
+    return c, plant, v, s0, faults
+
+
+def test_long_regeneration_into_a_full_battery_engages_s0_and_holds_the_bus():
+    """6 s of full braking (about 0.9 kW) into a full pack: S0 switches the brake resistor
+    in, the DC bus stays below s0_on_v + 4 V (far from overvoltage_v), the resistor takes
+    most of the energy and the pack is not pushed past full."""
+    c, plant, v, s0, faults = _regen(1.0, 6.0)
+    bat = c["battery"]
+    led = plant.ledger()
+    assert s0[-int(1.0 / BATCH_S):].all(), "S0 must stay on while regeneration continues"
+    assert v.max() < bat["s0_on_v"] + 4.0, v.max()
+    assert v.max() < c["bldc"]["overvoltage_v"]
+    assert not faults & K.FAULT_OVERVOLTAGE
+    assert led["energy_resistor_j"] > 0.8 * led["energy_mech_in_j"] > 0
+    assert plant.snapshot()["battery_soc"] < 1.001
+    assert abs(led["residual_j"]) < 1e-6 * led["energy_mech_in_j"]
+
+
+def test_long_regeneration_into_an_empty_battery_charges_it_without_s0():
+    """The same braking into an empty pack: the bus sits between v_empty_v and s0_on_v, S0
+    never engages, the energy goes into the pack (SOC rises), no fault."""
+    c, plant, v, s0, faults = _regen(0.0, 6.0)
+    bat = c["battery"]
+    led = plant.ledger()
+    assert not s0.any()
+    assert bat["v_empty_v"] - 0.5 < v.min() and v.max() < bat["s0_on_v"]
+    assert faults == 0
+    assert led["energy_resistor_j"] == 0.0
+    assert plant.snapshot()["battery_soc"] > 0.0
+    assert led["energy_battery_j"] > 0.8 * led["energy_mech_in_j"] > 0
+
+
+@pytest.mark.faults
+@pytest.mark.timeout(180)
+def test_full_battery_in_the_node_graph(tmp_path, ros_domain):
+    """The same in the node graph (`./bike run --record`, separate processes): a full pack
+    under the demo profile's braking; the recorded PlantStates show S0 on and the bus held."""
+    from conftest import bike_command
+
+    from bike_session.bags import read_topic
+
+    text = (ROOT / "config" / "bldc_default.yaml").read_text()
+    text = text.replace("soc0: 0.7", "soc0: 1.0")
+    text = text.replace("profile: profiles/demo_intervals.yaml",
+                        f"profile: {ROOT / 'config' / 'profiles' / 'demo_intervals.yaml'}")
+    assert "soc0: 1.0" in text and str(ROOT) in text
+    cfg = tmp_path / "full.yaml"
+    cfg.write_text(text)
+    run = bike_command("run", "--config", str(cfg), "--duration", "3", "--record", str(tmp_path / "rec"))
+    assert run.returncode == 0, run.stderr[-3000:]
+    bag = next(p for p in (tmp_path / "rec").iterdir() if p.is_dir())
+    states = read_topic(bag, "plant_state")
+    assert len(states) >= 3000
+    assert any(m.brake_resistor_on for m in states), "S0 must engage while braking into a full pack"
+    v_max = max(m.dc_bus_v for m in states)
+    assert v_max < CFG["battery"]["s0_on_v"] + 4.0, v_max
+    from bike_msgs.msg import PlantState
+    assert not any(m.faults & PlantState.FAULT_OVERVOLTAGE for m in states)

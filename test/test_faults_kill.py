@@ -1,0 +1,289 @@
+"""Reliability suite: kill -9 of each node at a seeded random moment, real processes over DDS.
+
+Semantics (lockstep, the default):
+- under `./bike run --record` any node killed ends the run: the launcher stops the others
+  (SIGINT), says which node was killed, and the bag holds every batch up to the kill
+  (closed normally; a killed recorder's bag is rescued with `./bike bag recover`);
+- controller killed: the plant applies no batch without an answer (sim time stops, the
+  machine state is held), says so in a WARN diagnostic, and a restarted controller resumes
+  the run; never restarted, the plant ends the run with one error after start_timeout_s;
+- session killed: the controller proceeds with the last Command after command_wait_s (WARN
+  diagnostic); a restarted session resumes the profile and finishes it;
+- recorder killed: the plant gives it up after recorder_timeout_s (ERROR diagnostic) and runs
+  on; a restarted recorder (new bag name) records the rest; the killed bag is recovered;
+- plant killed: the controller says the plant went silent; the graph stays up, idle.
+(Realtime: a killed controller is in test_faults_relay.py and test_nodes_realtime.py.)
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from node_harness import CONFIG, Collector, NodeProcess, stamp_ns  # noqa: F401
+
+from bike_msgs.msg import PlantState, SessionStatus  # noqa: E402
+from bike_session.bags import open_bag, read_topic  # noqa: E402
+from bike_session.recover import recover  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+
+pytestmark = [pytest.mark.timeout(120), pytest.mark.faults]
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+BATCH_S = 20 * 5e-5
+EXE = {"plant": "plant_node", "controller": "controller_node", "session": "session_node",
+       "recorder": "recorder_node"}
+
+
+def _dedupe_seqs(states) -> list[int]:
+    seqs = [int(m.seq) for m in states]
+    return [k for i, k in enumerate(seqs) if i == 0 or k != seqs[i - 1]]
+
+
+def _diag_texts(col, level=None, name=None) -> list[str]:
+    return [s.message for a in col.data["/diagnostics"] for s in a.status
+            if (level is None or s.level == level) and (name is None or s.name.endswith(name))]
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as fh:
+            return [int(x) for x in fh.read().split()]
+    except OSError:
+        return []
+
+
+def _node_pid(cli_pid: int, exe: str) -> int | None:
+    for child in _children(cli_pid):
+        try:
+            with open(f"/proc/{child}/cmdline", "rb") as fh:
+                if exe.encode() in fh.read():
+                    return child
+        except OSError:
+            pass
+    return None
+
+
+# ---------------------------------------------------------------- under ./bike run
+@pytest.mark.parametrize("victim", ["plant", "controller", "session", "recorder"])
+def test_kill_9_under_bike_run_ends_the_run_cleanly(tmp_path, victim):
+    rng = random.Random(f"kill-{victim}")
+    kill_at_seq = rng.randint(500, 1500)             # 0.5-1.5 s of sim time
+    domain = rng.randint(1, 200)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    col = Collector(domain, {"plant_state": PlantState})
+    out, err = open(tmp_path / "out.txt", "w+"), open(tmp_path / "err.txt", "w+")
+    cli = subprocess.Popen([sys.executable, "-m", "bike_session.cli", "run", "--record", str(tmp_path / "rec"),
+                            "--duration", "20"], cwd=ROOT, env=env, stdout=out, stderr=err)
+    try:
+        states = col.data["plant_state"]
+        end = time.monotonic() + 90
+        while not (states and states[-1].seq >= kill_at_seq):
+            assert cli.poll() is None and time.monotonic() < end, (tmp_path / "out.txt").read_text()[-3000:]
+            time.sleep(0.01)
+        pid = _node_pid(cli.pid, EXE[victim])
+        assert pid is not None, f"no {EXE[victim]} child of the launcher"
+        os.kill(pid, signal.SIGKILL)
+        seq_at_kill = int(states[-1].seq)
+        code = cli.wait(60)
+    finally:
+        if cli.poll() is None:
+            cli.send_signal(signal.SIGINT)
+            cli.wait(30)
+        col.close()
+    stdout, stderr = (tmp_path / "out.txt").read_text(), (tmp_path / "err.txt").read_text()
+    assert code == 1, (code, stdout[-3000:], stderr[-3000:])
+    assert "Traceback" not in stdout + stderr, stdout[-5000:]
+    assert f"[launcher] node '{victim}' was killed by SIGKILL: the run was stopped" in stderr, stderr
+    bags = list((tmp_path / "rec").iterdir())
+    bags = [b for b in bags if b.is_dir()]
+    assert len(bags) == 1, bags
+    bag = bags[0]
+    if victim == "recorder":
+        assert "./bike bag recover" in stderr
+        bag = pathlib.Path(recover(bag)["out"])
+    else:
+        assert (bag / "metadata.yaml").exists(), "the surviving recorder closes the bag"
+    with open_bag(bag) as b:
+        assert b.topics
+    seqs = _dedupe_seqs(read_topic(bag, "plant_state"))
+    assert seqs == list(range(len(seqs))), "every batch from the start, none missing"
+    # the recorded data reaches the last second before the kill
+    assert seqs[-1] >= seq_at_kill - round(1.0 / BATCH_S), (seqs[-1], seq_at_kill)
+    if victim != "recorder":
+        assert seqs[-1] >= seq_at_kill - 60, "a live recorder keeps everything up to the stop"
+
+
+# ---------------------------------------------------------------- restarts (bare processes)
+def _graph(col, domain, tmp_path, duration, plant_extra=None, ctrl_extra=None, record=True, plant_last=False):
+    """recorder, plant, controller, session; ``plant_last``: the plant after the others (its
+    start_timeout_s then only covers the run, not the other nodes' start-up; seq 0 may be
+    missed by the test)."""
+    procs = {}
+    if plant_last:
+        procs["controller"] = NodeProcess("bike_controller", "controller_node", domain,
+                                          dict({"command_wait_s": 0.5}, **(ctrl_extra or {})))
+        procs["session"] = NodeProcess("bike_session", "session_node", domain,
+                                       {"duration_s": duration, "config_path": str(CONFIG)})
+        col.wait_for(lambda: col.subs["/diagnostics"].get_publisher_count() >= 2, 30, "controller and session",
+                     list(procs.values()))
+    if record:
+        procs["recorder"] = NodeProcess("bike_session", "recorder_node", domain,
+                                        {"record_dir": str(tmp_path), "bag_name": "run", "flush_period_s": 0.5})
+    procs["plant"] = NodeProcess("bike_plant", "plant_node", domain,
+                                 dict({"duration_s": duration, "republish_s": 0.3, "start_timeout_s": 30.0,
+                                       "recorder_window_batches": 50 if record else 0, "recorder_timeout_s": 1.5},
+                                      **(plant_extra or {})))
+    if plant_last:
+        return procs
+    # the plant starts once a controller is there: the test's subscription first, so that it
+    # sees every batch from seq 0
+    col.wait_for(lambda: col.subs["plant_state"].get_publisher_count() >= 1, 30, "plant publisher",
+                 list(procs.values()))
+    procs["controller"] = NodeProcess("bike_controller", "controller_node", domain,
+                                      dict({"command_wait_s": 0.5}, **(ctrl_extra or {})))
+    procs["session"] = NodeProcess("bike_session", "session_node", domain,
+                                   {"duration_s": duration, "config_path": str(CONFIG)})
+    return procs
+
+
+def _restart(victim, domain, tmp_path, duration):
+    if victim == "controller":
+        return NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 0.5})
+    if victim == "session":
+        return NodeProcess("bike_session", "session_node", domain, {"duration_s": duration, "config_path": str(CONFIG)})
+    return NodeProcess("bike_session", "recorder_node", domain,
+                       {"record_dir": str(tmp_path), "bag_name": "run2", "flush_period_s": 0.5})
+
+
+@pytest.mark.parametrize("victim", ["controller", "session", "recorder"])
+def test_kill_9_and_restart_resumes_the_session(tmp_path, victim):
+    duration = 2.0 if victim == "controller" else 5.0    # the rest must outlast a new node's start-up
+    rng = random.Random(f"restart-{victim}")
+    kill_at_seq = rng.randint(300, 1200)
+    domain = rng.randint(1, 200)
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
+                             "session_status": SessionStatus})
+    procs = _graph(col, domain, tmp_path, duration)
+    everyone = list(procs.values())
+    try:
+        states = col.data["plant_state"]
+        col.wait_for(lambda: states and states[-1].seq >= kill_at_seq, 60, f"seq {kill_at_seq}", everyone)
+        procs[victim].signal(signal.SIGKILL)
+        procs[victim].wait(5.0)
+        seq_at_kill = int(states[-1].seq)
+        others = [p for name, p in procs.items() if name != victim]
+        if victim == "controller":
+            # no answer, no batch: the run is held where it was, and the plant says why
+            col.wait_for(lambda: any("run held" in t for t in _diag_texts(col, DiagnosticStatus.WARN, "plant")),
+                         10, "the plant's 'run held' diagnostic", others)
+            held = int(states[-1].seq)
+            time.sleep(0.5)
+            assert int(states[-1].seq) == held <= seq_at_kill + 1, "no batch may run without the controller"
+        elif victim == "session":
+            # restarted at once: until it is up the controller goes on without it, saying so
+            restarted = _restart(victim, domain, tmp_path, duration)
+            everyone.append(restarted)
+            col.wait_for(lambda: any("session silent" in t for t in _diag_texts(col, DiagnosticStatus.WARN,
+                                                                                 "controller")),
+                         10, "the controller's 'session silent' diagnostic", [procs["controller"]])
+        else:
+            # restarted at once (under a new bag name; the same name again is refused) while the
+            # plant waits recorder_timeout_s for the dead one, then gives it up and runs on
+            again = NodeProcess("bike_session", "recorder_node", domain,
+                                {"record_dir": str(tmp_path), "bag_name": "run"})
+            everyone.append(again)
+            restarted = _restart(victim, domain, tmp_path, duration)
+            everyone.append(restarted)
+            col.wait_for(lambda: states[-1].faults & PlantState.FAULT_RECORDER_LOST, 15, "FAULT_RECORDER_LOST",
+                         others)
+            col.wait_for(lambda: any("recorder went silent" in t
+                                     for t in _diag_texts(col, DiagnosticStatus.ERROR, "plant")),
+                         5, "the plant's ERROR diagnostic", others)
+            assert again.wait(30) == 2 and "already exists" in again.output()
+        if victim == "controller":
+            restarted = _restart(victim, domain, tmp_path, duration)
+            everyone.append(restarted)
+        col.wait_for(lambda: any(m.end_of_run for m in states), 60, "end_of_run after the restart",
+                     others + [restarted])
+        assert procs["plant"].wait(10) == 0, procs["plant"].output()
+        if victim == "session":
+            col.wait_for(lambda: any(s.state == SessionStatus.STATE_DONE for s in col.data["session_status"]),
+                         10, "the restarted session's DONE", [restarted])
+            assert restarted.wait(10) == 0, restarted.output()
+        seqs = _dedupe_seqs(states)
+        assert seqs == list(range(len(seqs))) and states[-1].end_of_run
+        assert abs(stamp_ns(states[-1].header.stamp) * 1e-9 - duration) < 1e-6
+        assert not any(m.faults & PlantState.FAULT_BAD_COMMAND for m in states)
+    finally:
+        for p in everyone:
+            p.stop()
+        col.close()
+    if victim == "recorder":
+        first = pathlib.Path(recover(tmp_path / "run")["out"])
+        s1 = _dedupe_seqs(read_topic(first, "plant_state"))
+        assert s1 == list(range(len(s1))) and s1[-1] >= seq_at_kill - round(1.0 / BATCH_S)
+        s2 = _dedupe_seqs(read_topic(tmp_path / "run2", "plant_state"))
+        assert s2 and s2 == list(range(s2[0], s2[0] + len(s2))) and s2[-1] == seqs[-1]
+    else:
+        recorded = _dedupe_seqs(read_topic(tmp_path / "run", "plant_state"))
+        assert recorded == seqs, "the recorder kept every batch across the restart"
+
+
+def test_lockstep_controller_killed_for_good_ends_the_run_with_one_error(tmp_path):
+    """Without a restart the plant ends the run after start_timeout_s (short here): exit
+    code 2, one error line, an ERROR diagnostic naming the missing DriveCommand."""
+    rng = random.Random("for-good")
+    kill_at_seq = rng.randint(300, 900)
+    domain = rng.randint(1, 200)
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
+    procs = _graph(col, domain, tmp_path, 30.0, plant_extra={"start_timeout_s": 4.0}, record=False,
+                   plant_last=True)
+    try:
+        states = col.data["plant_state"]
+        col.wait_for(lambda: states and states[-1].seq >= kill_at_seq, 60, f"seq {kill_at_seq}", procs.values())
+        procs["controller"].signal(signal.SIGKILL)
+        t_kill = time.monotonic()
+        code = procs["plant"].wait(20)
+        waited = time.monotonic() - t_kill
+        out = procs["plant"].output()
+        assert code == 2, out[-3000:]
+        assert 4.0 <= waited < 12.0, waited
+        assert "Traceback" not in out
+        errors = [line for line in out.splitlines() if "error:" in line]
+        assert len(errors) == 1 and "no DriveCommand for seq" in errors[0], out[-3000:]
+        time.sleep(0.3)
+        assert any("start_timeout_s" in t and "run ends" in t for t in _diag_texts(col, DiagnosticStatus.ERROR,
+                                                                                   "plant"))
+        assert procs["session"].alive(), "the session waits (its clock stopped); it is not crashed"
+    finally:
+        for p in procs.values():
+            p.stop()
+        col.close()
+
+
+def test_plant_killed_the_controller_says_so_and_stays_up(tmp_path):
+    rng = random.Random("plant")
+    kill_at_seq = rng.randint(300, 900)
+    domain = rng.randint(1, 200)
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
+    procs = _graph(col, domain, tmp_path, 30.0, record=False)
+    try:
+        states = col.data["plant_state"]
+        col.wait_for(lambda: states and states[-1].seq >= kill_at_seq, 60, f"seq {kill_at_seq}", procs.values())
+        procs["plant"].signal(signal.SIGKILL)
+        others = [procs["controller"], procs["session"]]
+        col.wait_for(lambda: any("no PlantState" in t and "plant stopped" in t
+                                 for t in _diag_texts(col, DiagnosticStatus.WARN, "controller")),
+                     10, "the controller's 'plant stopped' diagnostic", others)
+        assert all(p.alive() for p in others)
+    finally:
+        codes = {name: p.stop() for name, p in procs.items() if name != "plant"}
+        col.close()
+    assert codes == {"controller": 0, "session": 0}, codes

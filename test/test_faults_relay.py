@@ -1,0 +1,175 @@
+"""Reliability suite: message loss and delay between controller and plant (realtime mode).
+
+A test-only relay node in its own process (test/fault_relay.py) sits between the controller
+(its drive_command remapped to drive_command_raw) and the plant, and follows a seeded
+schedule: clean, 30 % loss, 10 ms delay, 20 % loss + 25 ms delay, blackout, clean again.
+Then the controller is killed with SIGKILL. Expected: lost commands are held (the last one
+re-used), delays below command_timeout_s cause no fault, the phase current stays bounded
+(no runaway), a blackout or a dead controller puts the plant in its safe state within 2
+batches of the timeout (in sim time, measured by the plant), the ERROR diagnostic says
+why, and commands coming back clear the fault."""
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from node_harness import CONFIG, ROOT, Collector, NodeProcess, domain, executable, stamp_ns  # noqa: F401
+
+from bike_msgs.msg import Command, DriveCommand, PlantState  # noqa: E402
+from bike_plant import msgconv  # noqa: E402
+from bike_plant.config import load_config  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+
+pytestmark = [pytest.mark.timeout(90), pytest.mark.faults]
+
+CFG = load_config(CONFIG)
+BATCH_S = CFG["batch_periods"] * CFG["control_period_s"]
+TIMEOUT_S = 0.4          # command_timeout_s for this test: a loaded 2-core machine stalls processes > 0.1 s
+FAULT = PlantState.FAULT_COMMAND_TIMEOUT
+# [t_start_s, drop probability, delay_s] from the first DriveCommand
+SCHEDULE = [[0.0, 0.0, 0.0], [1.0, 0.3, 0.0], [2.0, 0.0, 0.010], [3.0, 0.2, 0.025], [4.0, 1.0, 0.0],
+            [5.0, 0.0, 0.0]]
+LIMIT_A = CFG["controller"]["current_limit_a"]
+
+
+class RemappedController(NodeProcess):
+    """controller_node publishing on drive_command_raw (the relay forwards it)."""
+
+    def __init__(self, domain: int, params: dict):
+        args = [executable("bike_controller", "controller_node"), "--ros-args", "-r", "__ns:=/bike",
+                "-r", "drive_command:=drive_command_raw", "--params-file", str(CONFIG)]
+        for key, value in params.items():
+            args += ["-p", f"{key}:={value}"]
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   PYTHONUNBUFFERED="1")
+        import tempfile
+        self.log = tempfile.NamedTemporaryFile("w+", prefix="controller-", suffix=".log", delete=False)
+        self.name = "controller_node"
+        self.proc = subprocess.Popen(args, stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT),
+                                     start_new_session=True)
+
+
+class Relay(NodeProcess):
+    def __init__(self, domain: int, schedule, seed: int):
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   PYTHONUNBUFFERED="1")
+        import tempfile
+        self.log = tempfile.NamedTemporaryFile("w+", prefix="relay-", suffix=".log", delete=False)
+        self.name = "fault_relay"
+        self.proc = subprocess.Popen([sys.executable, str(pathlib.Path(__file__).with_name("fault_relay.py")),
+                                      json.dumps(schedule), str(seed)], stdout=self.log, stderr=subprocess.STDOUT,
+                                     env=env, cwd=str(ROOT), start_new_session=True)
+
+
+def _peak(m) -> float:
+    return float(np.max(np.abs(np.asarray(m.current_samples_a)))) if len(m.current_samples_a) else \
+        float(np.max(np.abs(np.asarray(m.phase_current_a))))
+
+
+def _safe_state_latency(col, states, stamps, after_wall: float):
+    """(sim seconds from the last DriveCommand received to the start of the first safe batch,
+    index of the first faulted state) for the first timeout after ``after_wall``."""
+    i = next(i for i in range(len(states)) if stamps[i] > after_wall and states[i].faults & FAULT)
+    t_batch_start = stamp_ns(states[i].header.stamp) * 1e-9 - BATCH_S
+    t_fault_ns = stamp_ns(states[i].header.stamp)
+    for arr in col.data["/diagnostics"]:
+        for s in arr.status:
+            if (s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR
+                    and stamp_ns(arr.header.stamp) == t_fault_ns):
+                values = {kv.key: kv.value for kv in s.values}
+                assert "no DriveCommand" in s.message and "safe state" in s.message, s.message
+                return t_batch_start - float(values["last_drive_command_sim_s"]), i
+    raise AssertionError("no ERROR diagnostic with the faulted state's stamp")
+
+
+def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
+                             "drive_command_raw": DriveCommand})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        rt = {"sync_mode": "realtime"}
+        procs.append(NodeProcess("bike_plant", "plant_node", domain,
+                                 dict(rt, duration_s=0.0, command_timeout_s=TIMEOUT_S)))
+        relay = Relay(domain, SCHEDULE, seed=6)
+        procs.append(relay)
+        ctrl = RemappedController(domain, rt)
+        procs.append(ctrl)
+        col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 30, "controller's command subscription", procs)
+        states, stamps = col.data["plant_state"], col.stamps["plant_state"]
+        raw = col.stamps["drive_command_raw"]
+
+        def commanding(pred):
+            def check():
+                cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
+                return pred()
+            return check
+        col.wait_for(commanding(lambda: bool(raw)), 30, "the first DriveCommand", procs)
+        t0 = raw[0]
+        col.wait_for(commanding(lambda: time.monotonic() > t0 + SCHEDULE[-1][0] + 1.0), 15, "the schedule", procs)
+        # the controller dies: the plant times out again, by itself
+        t_kill = time.monotonic()
+        ctrl.signal(signal.SIGKILL)
+        n_kill = len(states)
+        col.wait_for(lambda: sum(1 for m in states[n_kill:] if m.faults & FAULT) > 100, 15,
+                     "100 safe batches after the controller died", procs[:2])
+        assert procs[0].alive() and relay.alive()
+        states, stamps = list(states), list(stamps)
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+    print(relay.output())
+
+    def window(a, b):
+        """states received in [t0 + a + 0.15, t0 + b] (the phase, its first 0.15 s trimmed)"""
+        return [m for m, t in zip(states, stamps) if t0 + a + 0.15 <= t <= t0 + b]
+
+    clean = window(0.5, 1.0)
+    assert clean and all(m.faults == 0 for m in clean)
+    assert max(_peak(m) for m in clean) > 3.0, "the loop brakes at half command (about 34 A)"
+    # No runaway = no divergence: the peak stays within 3x the controller's current limit and
+    # finite. Not within the limit itself: in realtime a BLDC gate sequence is applied batches
+    # after the state it was computed for (late or held; round trips are several batches on a
+    # loaded machine) and overshoots; measured 100-210 A peaks (limit 120 A) on a loaded
+    # 2-core machine, with and without loss. Only a cycle-by-cycle current limit in the plant
+    # kernel would bound it to the limit (README: faults survived).
+    bound = 3.0 * LIMIT_A
+    for (a, drop, delay), (b, _, _) in zip(SCHEDULE[1:4], SCHEDULE[2:5]):
+        ph = window(a, b)
+        assert len(ph) > 30, (a, len(ph))
+        timeouts = [round(t - t0, 3) for m, t in zip(states, stamps)
+                    if m.faults & FAULT and t0 + a + 0.15 <= t <= t0 + b]
+        assert not timeouts, f"no timeout with {drop:.0%} loss and {delay * 1e3:g} ms delay: {timeouts[:5]}"
+        assert not any(m.faults & PlantState.FAULT_INTERLOCK for m in ph)
+        print(f"phase {drop:.0%} loss, {delay * 1e3:g} ms: peak {max(_peak(m) for m in ph):.1f} A, "
+              f"mean {np.mean([_peak(m) for m in ph]):.1f} A, {len(ph)} states")
+        assert all(np.all(np.isfinite(m.current_samples_a)) for m in ph)
+        assert max(_peak(m) for m in ph) <= bound, f"current runaway with {drop:.0%} loss / {delay * 1e3:g} ms"
+    # the plant counted held batches (lost / late commands re-used)
+    held = [int(kv.value) for a in col.data["/diagnostics"] for s in a.status if s.name.endswith("plant")
+            for kv in s.values if kv.key == "held_batches"]
+    assert held and max(held) > 10, held[-3:]
+    # blackout: safe state within 2 batches of the timeout (sim time, measured by the plant)
+    latency, i = _safe_state_latency(col, states, stamps, t0 + SCHEDULE[4][0])
+    assert 0 < latency <= TIMEOUT_S + 2 * BATCH_S + 1e-9, latency
+    j = next((j for j in range(i, len(states)) if not states[j].faults & FAULT), len(states))
+    safe = states[i:j]                  # the safe-state stretch, until commands are back
+    assert len(safe) >= 30, len(safe)
+    assert max(_peak(m) for m in safe[20:]) < 1e-3, "all gates off: the current decays to 0"
+    # commands back: fault cleared, braking again
+    back = window(SCHEDULE[5][0] + 0.3, SCHEDULE[5][0] + 1.0)
+    assert back and not any(m.faults & FAULT for m in back[len(back) // 2:])
+    assert max(_peak(m) for m in back) > 3.0
+    # the controller killed: the same again
+    latency, i = _safe_state_latency(col, states, stamps, t_kill)
+    assert 0 < latency <= TIMEOUT_S + 2 * BATCH_S + 1e-9, latency
+    assert states[i + 50:] and max(_peak(m) for m in states[i + 50:]) < 1e-3
+    assert max(_peak(m) for m in states) <= bound
