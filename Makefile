@@ -9,10 +9,10 @@ demo: setup
 	./bike run --record runs
 
 test: setup
-	source tools/env.sh && python -m pytest -q -m "not faults"
+	source tools/env.sh && python -m pytest -q
 
-# the reliability suite's process-level fault tests (kill -9, message loss / delay): a few
-# minutes of node graphs; CI runs it after `make test`
+# only the reliability suite's process-level fault tests (kill -9, message loss / delay; part
+# of `make test` too)
 test-faults: setup
 	source tools/env.sh && python -m pytest -q -m faults
 
