@@ -114,6 +114,26 @@ def test_launcher_escalates_to_sigkill_for_a_node_that_ignores_signals():
     assert codes["stubborn"] == -signal.SIGKILL
 
 
+def test_a_node_stuck_after_a_normal_end_is_a_warning_but_a_killed_node_fails_the_run(capsys):
+    stubborn = "import signal, time\nfor s in (signal.SIGINT, signal.SIGTERM): signal.signal(s, signal.SIG_IGN)\n" \
+               "time.sleep(60)"
+    # the run ends by itself (the shutdown node exits 0); the stubborn node is then SIGKILLed
+    launch = Launcher([_Script("plant", "import time; time.sleep(0.5)", shutdown=True), _Script("stubborn", stubborn)],
+                      grace_s=0.5, stdout=open("/dev/null", "w"))
+    launch.start()
+    codes = launch.wait(timeout_s=30)
+    assert codes["stubborn"] == -signal.SIGKILL and launch.ended_normally
+    assert launcher.failed_nodes(launch, codes) == {}
+    assert "node 'stubborn' did not stop within 0.5 s of SIGINT after the run ended" in capsys.readouterr().err
+    # a node killed from outside mid-run stops the graph and fails it
+    launch = Launcher([_Script("plant", "import time; time.sleep(60)", shutdown=True),
+                       _Script("victim", "import os, signal, time; time.sleep(0.3); os.kill(os.getpid(), 9)")],
+                      grace_s=2.0, stdout=open("/dev/null", "w"))
+    launch.start()
+    codes = launch.wait(timeout_s=30)
+    assert not launch.ended_normally and launcher.failed_nodes(launch, codes) == {"victim": -signal.SIGKILL}
+
+
 def test_missing_package_is_a_clear_error():
     with pytest.raises(LaunchError, match="package 'no_such_pkg' not found"):
         launcher.executable_path("no_such_pkg", "x")

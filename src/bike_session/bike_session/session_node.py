@@ -335,10 +335,17 @@ def _make_node_class():
                 self._publish_status(t_ns, SessionStatus.STATE_RUNNING)
 
         def flush(self, timeout_s: float = 2.0) -> None:
+            """Wait (at most timeout_s in all) until the readers acknowledged what was sent."""
+            import time as _time
+
             from rclpy.duration import Duration
+            end = _time.monotonic() + timeout_s
             for pub in (self.pub_command, self.pub_status, self.pub_diag):
+                left = end - _time.monotonic()
+                if left <= 0.0:
+                    break
                 try:
-                    pub.wait_for_all_acked(Duration(seconds=timeout_s))
+                    pub.wait_for_all_acked(Duration(seconds=left))
                 except Exception:  # noqa: BLE001 - best effort on the way out
                     pass
 
