@@ -62,6 +62,7 @@ def test_table1_constants(cfg):
     (("load", "kind"), "bicycle", "load"),
     (("hall", "timer_hz"), "fast", "hall.timer_hz"),
     (("bldc", "emf_trap_weight"), [0.5], "bldc"),
+    (("bldc", "overcurrent_trip_a"), 0.0, "bldc"),
 ])
 def test_bad_config_values_name_the_key(cfg, key, value, needle):
     bad = copy.deepcopy(cfg)
@@ -168,6 +169,54 @@ def test_safe_state_currents_decay_to_exact_zero(cfg):
     plant.set_safe_state()
     res = plant.step_batch(np.full(40, 0b10, np.uint8), np.full(40, 0b10, np.uint8), np.ones(40))
     assert np.all(res.current_samples_a[-1] == 0.0)
+
+
+@pytest.mark.parametrize("eps", [0.0, 0.1])       # the symmetric fast path and the general step_period
+def test_overcurrent_trip_blanks_the_period_and_bounds_the_current(cfg, eps):
+    """Gates held on far too long (Q1 + Q4 for 70 periods, sector 0 at 1000 rpm): the
+    current rises 5-10 A per period and stops at the trip + at most one period of rise
+    (checked at period starts: cycle-by-cycle, it chops just above the trip), the fault bit
+    is set in the batches that trip and cleared in the next one, the ledger still closes.
+    One period of rise is taken at the highest bus voltage the trip can cause: the model has
+    no DC-link capacitor, so a blanked period's freewheeling current lifts v_dc to
+    Voc + R_batt i for the next period (54.6 + 0.15 * 150 = 77 V)."""
+    pp = P.plant_params_from_config(cfg)
+    trip = pp.bldc.overcurrent_trip_a
+    assert trip > cfg["controller"]["current_limit_a"] + cfg["controller"]["hysteresis_a"]
+    plant = plant_at(cfg, 1000, inductance_variation=eps)
+    plant.state[K.S_THETA_E] = math.radians(32)       # sector 0: U at +E, V at -E, for ~115 periods
+    vdc_max = pp.battery.v_full_v + pp.battery.r_internal_ohm * trip
+    rise_a = pp.control_period_s * vdc_max / (2 * (1 - eps) * pp.bldc.inductance_h)   # one period, 2 legs
+    peaks = []
+    for n in (10, 30, 30):
+        on = np.full(n, 0b1001, np.uint8)
+        res = plant.step_batch(on, on, np.ones(n))
+        peaks.append(np.max(np.abs(res.current_samples_a)))
+    assert peaks[0] < trip < peaks[1] <= trip + rise_a and peaks[2] <= trip + rise_a, (peaks, trip + rise_a)
+    snap = plant.snapshot()
+    assert snap["faults"] & K.FAULT_OVERCURRENT == 512
+    trips = snap["overcurrent_trip_count"]
+    assert 10 < trips < 60                              # chopping: some periods blanked, not all
+    # gates off: the diodes return the current to the DC link (the first period may still
+    # start above the trip and count); the next batch starts below it: bit cleared
+    off = np.zeros(20, np.uint8)
+    res = plant.step_batch(off, off, np.ones(20))
+    assert np.max(np.abs(res.current_samples_a)) < trip
+    trips = plant.snapshot()["overcurrent_trip_count"]
+    plant.step_batch(off, off, np.ones(20))
+    snap = plant.snapshot()
+    assert (snap["faults"] & K.FAULT_OVERCURRENT) == 0 and snap["overcurrent_trip_count"] == trips
+    led = plant.ledger()
+    # position-dependent L (eps > 0): the general path's own discretisation (5e-5 J here without a trip)
+    tol = 1e-9 if eps == 0.0 else 1e-4
+    assert abs(led["residual_j"]) < tol * max(1.0, abs(led["energy_battery_j"]))
+    # a lower trip level from the config key
+    low = plant_at(cfg, 1000, inductance_variation=eps, overcurrent_trip_a=60.0)
+    low.state[K.S_THETA_E] = math.radians(32)
+    res = low.step_batch(np.full(40, 0b1001, np.uint8), np.full(40, 0b1001, np.uint8), np.ones(40))
+    rise_low = pp.control_period_s * (pp.battery.v_full_v + pp.battery.r_internal_ohm * 60.0) / (
+        2 * (1 - eps) * pp.bldc.inductance_h)
+    assert 60.0 < np.max(np.abs(res.current_samples_a)) <= 60.0 + rise_low and res.faults & 512
 
 
 def test_crank_nicolson_matches_rl_solution(cfg):

@@ -14,7 +14,8 @@ import can
 import pytest
 
 from bike_plant.can import HOST_TO_DRIVE, AxisState, ODriveError, OdriveCanSimpleCodec
-from bike_plant.can.backend import (FAULT_DRIVE_DISARMED, FAULT_DRIVE_LOST, CanBackend, can_params_from_config,
+from bike_plant.can.backend import (FAULT_DRIVE_DISARMED, FAULT_DRIVE_LOST, FAULT_DRIVE_STALE, CanBackend,
+                                    can_params_from_config,
                                     emulator_args_from_config)
 from bike_plant.can.emulator import AverageTorqueDrive, DriveEmulator, DriveFirmware, DriveModelParams
 from bike_plant.config import ConfigError, load_config
@@ -254,6 +255,74 @@ def test_silent_drive_is_lost_after_three_heartbeat_periods_then_recovers(rig):
     assert b.stats()["drive_lost"] == 1 and b.stats()["drive_back"] == 1
 
 
+def test_a_heartbeat_gap_seen_late_by_a_delayed_loop_is_still_a_lost_drive(rig):
+    """The host loop itself stalls across a gap in the drive's heartbeats (a loaded machine):
+    when it looks again the heartbeats are back, yet the gap between their receipt times
+    exceeded heartbeat_timeout_s: FAULT_DRIVE_LOST for one batch (zero torque), counted,
+    then back. Fake clock: the loop's own time; then the wall-clock receipt stamps of the frames."""
+    clock = Clock()
+    r = armed(rig, clock)
+    b = r.backend
+    b.apply(Cmd(-0.8))
+    r.host_frames()
+    clock.t += 0.39                                        # no service() for 390 ms, then one heartbeat
+    r.heartbeat()
+    b.service()
+    assert b.lost and b.faults & FAULT_DRIVE_LOST, "a 390 ms gap > 300 ms: lost although the drive is back"
+    assert r.torques() == [0.0], "zero torque commanded"
+    events = b.pop_events()
+    assert any(level == "error" and "seen late" in text and "0.390s" in text for level, text in events), events
+    assert b.stats()["heartbeat_gaps"] == 1 and b.stats()["heartbeat_gap_max_ms"] == pytest.approx(390.0)
+    clock.t += 0.005
+    b.service()
+    assert not b.lost and b.faults == 0 and b.stats()["drive_back"] == 1
+    # the same with real time: both heartbeats wait in the queue, their receive stamps tell the gap
+    r2 = armed(rig)
+    b2 = r2.backend
+    time.sleep(0.05)
+    r2.heartbeat()
+    time.sleep(0.35)
+    r2.heartbeat()
+    b2.service()
+    assert b2.lost and b2.faults & FAULT_DRIVE_LOST and b2.stats()["heartbeat_gaps"] == 1
+    # a gap within the timeout is not a loss
+    r2.heartbeat()
+    b2.service()
+    time.sleep(0.2)
+    r2.heartbeat()
+    b2.service()
+    assert not b2.lost and b2.stats()["heartbeat_gaps"] == 1
+
+
+def test_old_speed_and_torque_estimates_flag_the_state_stale(rig):
+    """Encoder / torque estimates older than measurement_timeout_s (heartbeats still flowing):
+    FAULT_DRIVE_STALE (a WARN diagnostic, counted); fresh frames clear it."""
+    clock = Clock()
+    r = armed(rig, clock, measurement_timeout_s=0.05)
+    b = r.backend
+    for _ in range(4):
+        clock.t += 0.01
+        r.send("Get_Encoder_Estimates", Pos_Estimate=1.0, Vel_Estimate=40.0)
+        r.send("Get_Torques", Torque_Target=-1.0, Torque_Estimate=-0.9)
+        b.service()
+        b.apply(Cmd(-1.0))
+    assert b.faults == 0 and b.diagnostic()[0] == 0
+    for _ in range(6):                                     # 60 ms: heartbeats, no estimates
+        clock.t += 0.01
+        r.heartbeat()
+        b.service()
+        b.apply(Cmd(-1.0))
+    assert b.faults == FAULT_DRIVE_STALE and b.snapshot()["faults"] == FAULT_DRIVE_STALE and not b.time_frozen
+    level, reasons, values = b.diagnostic()
+    assert level == 1 and "stale" in reasons[0] and values["can_stale_episodes"] == "1"
+    assert int(values["can_stale_batches"]) >= 1
+    assert any("FAULT_DRIVE_STALE" in text for _, text in b.pop_events())
+    r.send("Get_Encoder_Estimates", Pos_Estimate=1.1, Vel_Estimate=40.0)
+    r.send("Get_Torques", Torque_Target=-1.0, Torque_Estimate=-0.95)
+    b.service()
+    assert b.faults == 0
+
+
 def _ride(r, clock, seconds: float, state=AxisState.IDLE, error: int = 0, step_s: float = 0.05,
           cmd: float = -0.5) -> list[tuple[float, str, object]]:
     """Advance the fake clock with heartbeats of (state, error) and DriveCommands; the host's
@@ -391,9 +460,10 @@ def test_an_idle_drive_is_only_a_fault_when_it_should_be_armed(rig):
     assert _arm_times(frames) and b.faults == FAULT_DRIVE_DISARMED
     b.set_safe(True)                                      # no DriveCommands: nothing is sent to arm it
     assert r.torques() == [0.0]
-    clock.t += 1.0
-    r.heartbeat(AxisState.IDLE)
-    b.service()
+    for _ in range(10):                                   # 1 s of an alive, idle drive
+        clock.t += 0.1
+        r.heartbeat(AxisState.IDLE)
+        b.service()
     assert [n for n, v in r.host_frames() if v != "RTR"] == [] and b.faults == FAULT_DRIVE_DISARMED
 
 
@@ -544,6 +614,40 @@ def test_controller_answers_a_drive_with_a_torque_only(tmp_path):
         em = st["torque_cmd_nm"] * (-1 if st["quadrant"] == 2 else 1)   # the drive delivers what it is asked
         _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, em, stamp_ns=t_ns + k * batch_ns), 100)
     assert st["quadrant"] == 1 and st["torque_cmd_nm"] == pytest.approx(0.5 * TMAX, rel=0.05)
+
+
+def test_the_controller_holds_its_trim_on_stale_measurements_and_erg_never_motors():
+    """A drive whose estimates froze (the emulator stalled for ~350 ms): the ERG trim must not
+    wind up on the frozen torque, and whatever the trim did, ERG never asks for motoring torque."""
+    from bike_controller.session_control import ModedController
+    from bike_plant.params import nominal_params_from_config
+
+    cfg = load_config(CAN_CONFIG)
+    batch_ns = 5_000_000
+    ctrl = ModedController(cfg, nominal_params_from_config(cfg))
+    ctrl.set_command(0.2, 2)                                   # ERG 203 W
+    _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, stamp_ns=0), 100)
+    for k in range(1, 20):                                      # the drive follows
+        _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, -st["torque_cmd_nm"] - 1e-3 * k, stamp_ns=k * batch_ns), 100)
+    trim0 = st["torque_trim_nm"]
+    frozen = -3.0                                               # a frozen (huge) braking estimate, flagged stale
+    for k in range(20, 90):                                     # 350 ms of stale frames
+        _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, frozen, faults=FAULT_DRIVE_STALE, stamp_ns=k * batch_ns), 100)
+    assert st["torque_trim_nm"] == pytest.approx(trim0), "held on stale measurements"
+    assert ctrl.drive_law.stale_steps == 70
+    for k in range(90, 160):                                    # repeated bit for bit, not flagged: held too
+        _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, frozen, stamp_ns=k * batch_ns), 100)
+    assert abs(st["torque_trim_nm"] - trim0) < 0.05 and st["quadrant"] == 2
+    # a trim that wound up anyway (e.g. a plant that does not flag): ERG stays a brake, counted
+    ctrl.trim.trim_nm = -0.3 * TMAX
+    _, _, _, st = ctrl.decide(_drive_snapshot(2800.0, -0.5, stamp_ns=161 * batch_ns), 100)
+    assert st["quadrant"] == 2 and st["torque_cmd_nm"] == 0.0 and st["mode_saturated"]
+    assert ctrl.trim.sign_clamps == 1
+    for k in range(162, 400):                                   # the drive delivers what it is asked: trim recovers
+        em = -st["torque_cmd_nm"] if st["quadrant"] == 2 else st["torque_cmd_nm"]
+        _, _, _, st = ctrl.decide(_drive_snapshot(2800.0 + k % 3, em, stamp_ns=k * batch_ns), 100)
+        assert st["quadrant"] == 2, "ERG never motors"
+    assert st["torque_cmd_nm"] == pytest.approx(0.2 * 1016.68 / (2800.0 / 9.549296585513721), rel=0.05)
 
 
 def test_spmsm_controller_answers_a_drive_with_a_torque_only():

@@ -297,3 +297,47 @@ def test_rider_presets_recreational_and_trained():
     # each near its target cadence (the effort PI still settles after 4 s)
     assert cad_trained == pytest.approx(90.0, abs=4.0) and cad_recreational == pytest.approx(80.0, abs=4.5)
     assert cad_trained > cad_recreational + 4.0
+
+
+def test_torque_trim_holds_on_stale_measurements_and_keeps_a_brake_a_brake(caplog):
+    """TorqueTrim integrates over fresh measurements only, and in a brake-only mode (ERG,
+    resistance) it never turns the brake into motoring: clamped, counted, logged."""
+    from bike_controller.modes import BRAKE_ONLY_MODES, TorqueTrim
+
+    assert set(BRAKE_ONLY_MODES) == {MODE_ERG, MODE_RESISTANCE}
+    trim = TorqueTrim(TMAX, tau_s=0.3)
+    trim.correct(1.0, -1.0, DT)
+    for _ in range(500):                                    # a frozen estimate of 3 N m braking, flagged stale
+        trim.correct(1.0, -3.0, DT, fresh=False)
+    assert trim.trim_nm == 0.0 and trim.held_steps == 500
+    for _ in range(500):                                    # the same, fresh: the trim winds down
+        out = trim.correct(0.5, -3.0, DT)
+    assert trim.trim_nm == pytest.approx(-0.3 * TMAX) and out == pytest.approx(0.5 - 0.3 * TMAX)
+    assert out < 0.0, "without brake_only the trim may reverse the torque (slope, isokinetic)"
+    with caplog.at_level("WARNING", logger="bike_controller.modes"):
+        out = trim.correct(0.5, -3.0, DT, brake_only=True)
+    assert out == 0.0 and trim.clamped and trim.saturated and trim.sign_clamps == 1
+    assert "torque trim clamped" in caplog.text
+    assert trim.trim_nm == pytest.approx(-0.5), "anti-windup: the trim gives way"
+    out = trim.correct(0.5, -0.5, DT, brake_only=True)
+    assert out >= 0.0 and not trim.clamped
+
+
+def test_an_erg_ramp_from_zero_never_motors_when_the_target_falls():
+    """After a lost drive the ERG law restarts from zero through the switch ramp; when the
+    cadence jumps up meanwhile (P*/w falls faster than the ramp rises) the ramp's offset
+    must not carry the torque into motoring: held at zero, counted."""
+    m = law()
+    m.reset(0.0)
+    m.last_mode = -1                                        # as DriveTorqueLaw does on FAULT_DRIVE_LOST
+    out = m.step(0.3, MODE_ERG, 2000.0, 0.0)               # stale step: no time, the ramp does not move
+    assert out.brake_torque_nm == 0.0 and out.ramping
+    outs = [m.step(0.3, MODE_ERG, 2000.0 + 1500.0 * k, DT) for k in range(1, 4)]
+    assert all(o.brake_torque_nm >= 0.0 for o in outs), [o.brake_torque_nm for o in outs]
+    assert m.brake_only_holds >= 1
+    outs = [m.step(0.3, MODE_ERG, 6500.0, DT) for _ in range(1000)]
+    assert outs[-1].brake_torque_nm == pytest.approx(0.3 * PMAX / (6500.0 / RPM_PER_RAD_S)) and not outs[-1].ramping
+    m.step(1.0, MODE_MOTORING, 2000.0, DT)                  # from an assist, the ramp into ERG crosses zero
+    m.step(1.0, MODE_MOTORING, 2000.0, 1.0)
+    outs = [m.step(0.3, MODE_ERG, 2000.0, DT) for _ in range(400)]
+    assert outs[0].brake_torque_nm < 0.0 < outs[-1].brake_torque_nm

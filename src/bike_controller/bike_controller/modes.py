@@ -39,12 +39,16 @@ Modes (``bike_msgs/Command``):
 
 Mode switches are smooth: at a switch the difference between the old torque and the new
 mode's torque becomes an offset that decays at ``torque_rate_nm_per_s`` (a ramp, never a
-step). Only the switch is ramped: a mode's own dynamics (the speed loops, the virtual bike
+step). ERG and resistance are brake-only: a ramp that starts from a brake (or from zero)
+never crosses into motoring, even when the target falls faster than the ramp rises (it
+holds at zero, counted in ``brake_only_holds``). Only the switch is ramped: a mode's own
+dynamics (the speed loops, the virtual bike
 answering the pedal stroke) pass unthrottled, and the resistance mode of the paper is
 passed straight through once the ramp is over, so the paper's curves are unchanged.
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -58,6 +62,8 @@ MODE_ISOKINETIC = 4
 MODE_NAMES = {MODE_RESISTANCE: "resistance", MODE_MOTORING: "motoring", MODE_ERG: "erg",
               MODE_SLOPE: "slope", MODE_ISOKINETIC: "isokinetic"}
 G_MPS2 = 9.80665
+BRAKE_ONLY_MODES = (MODE_RESISTANCE, MODE_ERG)   # laws whose torque is a brake by design (>= 0)
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -135,6 +141,7 @@ class ModeLaw:
         wn = mp.isokinetic_bandwidth_rad_s
         self.kp = 2.0 * self.inertia_kgm2 * wn
         self.ki = self.inertia_kgm2 * wn * wn
+        self.brake_only_holds = 0             # ramp steps of ERG / resistance held at 0 instead of motoring
         self.reset()
 
     def reset(self, torque_nm: float = 0.0) -> None:
@@ -255,7 +262,14 @@ class ModeLaw:
         max_step = self.mp.torque_rate_nm_per_s * dt_s
         self.offset_nm = math.copysign(max(abs(self.offset_nm) - max_step, 0.0), self.offset_nm)
         ramping = self.offset_nm != 0.0
-        self.torque_nm = wanted + self.offset_nm
+        torque = wanted + self.offset_nm
+        if mode in BRAKE_ONLY_MODES and torque < 0.0 <= self.torque_nm and wanted >= 0.0:
+            # a brake-only law ramping up from a brake (e.g. from zero after a lost drive) whose
+            # target fell faster than the ramp: the offset would make it motor. Hold at zero.
+            self.offset_nm = -wanted
+            torque = 0.0
+            self.brake_only_holds += 1
+        self.torque_nm = torque
         return ModeOutput(self.torque_nm, wanted, target, v, sat, ramping)
 
 
@@ -323,29 +337,68 @@ class TorqueTrim:
     CAN). The mode laws promise a power or a torque; the machine's torque-per-current is
     not exact (paper 000: k(w) depends on speed only; the SPMSM's rectifier path is
     controlled through a buck duty), so the requested torque is corrected by
-    ``trim``, clamped to +-``max_fraction`` * Tmax. Time constant ``tau_s``."""
+    ``trim``, clamped to +-``max_fraction`` * Tmax. Time constant ``tau_s``.
+
+    Robustness (a drive on CAN whose estimates stop arriving for a while):
+
+    * the trim integrates over fresh measurement time only: with ``fresh`` False (the
+      plant flags the measurement stale, or it repeats a held value) it holds, so it does
+      not wind up on a frozen torque estimate (``held_steps`` counts those steps);
+    * ``brake_only`` (ERG and the resistance mode: the laws' torque is a brake, >= 0 by
+      design, Eq. 2-5 of paper 000 and P*/w): the trimmed torque never becomes motoring.
+      The trim is clamped so that brake + trim >= 0 and the clamp is counted
+      (``sign_clamps``), reported as a saturation (:attr:`clamped`) and logged (the first
+      one, then every 1000th), never silent."""
+
+    LOG_EVERY = 1000
 
     def __init__(self, tmax_nm: float, tau_s: float = 0.3, max_fraction: float = 0.3):
         self.limit_nm = max_fraction * tmax_nm
         self.tau_s = tau_s
         self.trim_nm = 0.0
         self.asked_nm: float | None = None
+        self.sign_clamps = 0         # steps whose brake torque the trim would have turned into motoring
+        self.held_steps = 0          # steps on a stale measurement: no integration
+        self.clamped = False         # the last step was clamped
 
     def reset(self) -> None:
         self.trim_nm = 0.0
         self.asked_nm = None
+        self.clamped = False
 
-    def correct(self, brake_torque_nm: float, measured_em_torque_nm, dt_s: float) -> float:
+    def correct(self, brake_torque_nm: float, measured_em_torque_nm, dt_s: float, *, fresh: bool = True,
+                brake_only: bool = False) -> float:
         """The torque to request for ``brake_torque_nm``, given the measured mean
-        electromagnetic torque of the last batch (motoring positive; None: unknown)."""
+        electromagnetic torque of the last batch (motoring positive; None: unknown).
+        ``fresh`` False: the measurement is stale (held), the trim holds. ``brake_only``:
+        the result stays a brake (>= 0), see the class doc."""
         if (self.asked_nm is not None and measured_em_torque_nm is not None
                 and math.isfinite(measured_em_torque_nm)):
-            err = self.asked_nm - (-float(measured_em_torque_nm))
-            self.trim_nm = min(max(self.trim_nm + err * dt_s / self.tau_s, -self.limit_nm), self.limit_nm)
+            if fresh:
+                err = self.asked_nm - (-float(measured_em_torque_nm))
+                self.trim_nm = min(max(self.trim_nm + err * dt_s / self.tau_s, -self.limit_nm), self.limit_nm)
+            else:
+                self.held_steps += 1
         self.asked_nm = brake_torque_nm
-        return brake_torque_nm + self.trim_nm if brake_torque_nm != 0.0 else 0.0
+        self.clamped = False
+        if brake_torque_nm == 0.0:
+            return 0.0
+        torque = brake_torque_nm + self.trim_nm
+        if brake_only and brake_torque_nm > 0.0 and torque < 0.0:
+            # a brake-only law (ERG, resistance) never motors: the trim (wound up on a
+            # measurement artefact) gives way, counted and logged
+            self.trim_nm = -brake_torque_nm
+            self.clamped = True
+            self.sign_clamps += 1
+            if self.sign_clamps % self.LOG_EVERY == 1:
+                _log.warning("torque trim clamped: it would have turned the brake torque %.3f N m of a brake-only "
+                             "mode into motoring (%.3f N m); held at 0 N m (%d clamps so far)",
+                             brake_torque_nm, torque, self.sign_clamps)
+            torque = 0.0
+        return torque
 
     @property
     def saturated(self) -> bool:
-        """The trim is at its limit: the machine cannot deliver the asked torque here."""
-        return abs(self.trim_nm) >= 0.999 * self.limit_nm
+        """The trim is at its limit (or clamped to keep a brake a brake): the machine cannot
+        deliver the asked torque here."""
+        return self.clamped or abs(self.trim_nm) >= 0.999 * self.limit_nm

@@ -29,16 +29,19 @@ zero torque and restarts with a ramp from zero when the drive is back.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
-from .modes import (MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
+from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
                     TorqueTrim, mode_params_from_config)
 
 FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this module imports no ROS)
 FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
+FAULT_DRIVE_STALE = 1024     # bike_msgs/PlantState.FAULT_DRIVE_STALE: the drive's estimates are old, hold
+HELD_MEASUREMENT_S = 0.05    # speed and torque bit-identical this long (stamp time): a held value, not fresh
 
 
 def validate_session_command(command, mode) -> None:
@@ -60,7 +63,14 @@ class DriveTorqueLaw:
     measured speed (:class:`.modes.ModeLaw`), trimmed on the measured torque
     (:class:`.modes.TorqueTrim`). Returns the braking torque (> 0 brakes) and the law's
     output. With FAULT_DRIVE_LOST: zero, and the next step ramps up from zero like a mode
-    switch (no torque step for the rider when the drive comes back)."""
+    switch (no torque step for the rider when the drive comes back).
+
+    Stale measurements (FAULT_DRIVE_STALE, or speed and torque repeated bit for bit for
+    ``HELD_MEASUREMENT_S`` of stamp time, i.e. a plant that holds its last frame without
+    saying so): the trim holds (no integration on a frozen value); with the flag the law's
+    own integrators hold too (dt = 0). ERG and the resistance mode are brake-only: the trim
+    never turns their brake into motoring (:class:`.modes.TorqueTrim`, counted and
+    reported as a saturation)."""
 
     def __init__(self, law: ModeLaw, trim: TorqueTrim, batch_s: float):
         self.law = law
@@ -68,6 +78,9 @@ class DriveTorqueLaw:
         self.batch_s = float(batch_s)
         self.last_stamp_ns: int | None = None
         self.lost = False
+        self.stale_steps = 0                     # steps held on a stale / repeated measurement
+        self._last_meas = None                   # (speed_rpm, torque_em_nm) of the last step
+        self._meas_since_ns: int | None = None   # stamp when that pair last changed
 
     def step(self, command: float, mode: int, snapshot: dict) -> tuple[float, ModeOutput]:
         stamp = snapshot.get("stamp_ns")
@@ -86,9 +99,27 @@ class DriveTorqueLaw:
             return 0.0, ModeOutput(0.0, 0.0, command, 0.0, False, True)
         self.lost = False
         speed_rpm = float(snapshot.get("speed_rpm", 0.0))
-        out = self.law.step(command, mode, speed_rpm, dt, speed_valid=math.isfinite(speed_rpm))
-        brake = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt)
+        flagged = bool(int(snapshot.get("faults", 0)) & FAULT_DRIVE_STALE)
+        held = self._held(snapshot, speed_rpm, stamp)    # tracked while flagged too
+        fresh = not (flagged or held)
+        if not fresh:
+            self.stale_steps += 1
+        # a flagged stale speed: the law's own integrators (speed loops, virtual bike) hold too
+        out = self.law.step(command, mode, speed_rpm, 0.0 if flagged else dt, speed_valid=math.isfinite(speed_rpm))
+        brake = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt, fresh=fresh,
+                                  brake_only=mode in BRAKE_ONLY_MODES)
+        if self.trim.clamped and not out.saturated:
+            out = dataclasses.replace(out, saturated=True)
         return brake, out
+
+    def _held(self, snapshot: dict, speed_rpm: float, stamp) -> bool:
+        """Speed and torque estimate have not changed for HELD_MEASUREMENT_S of stamp time."""
+        meas = (speed_rpm, snapshot.get("torque_em_nm"))
+        if stamp is not None and (meas != self._last_meas or self._meas_since_ns is None):
+            self._last_meas, self._meas_since_ns = meas, int(stamp)
+        held = (stamp is not None and self._meas_since_ns is not None
+                and (int(stamp) - self._meas_since_ns) * 1e-9 > HELD_MEASUREMENT_S)
+        return held
 
 
 def drive_status(base: dict, brake_nm: float, out: ModeOutput, speed_rpm: float, kt: float,
@@ -172,7 +203,8 @@ class ModedController(SessionCommand):
             inner.cs[C_IOVERRIDE] = -1.0                         # no override: Eq. 2-9 inside the batch
             inner.set_command(self.command, MODE_RESISTANCE)
             return
-        torque = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt_s)
+        torque = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt_s,
+                                   brake_only=self.mode in BRAKE_ONLY_MODES)
         if torque >= 0.0:
             inner.set_command(self.command if self.mode == MODE_RESISTANCE else 0.0, MODE_RESISTANCE)
             current = torque / inner.ktg(speed_rpm)

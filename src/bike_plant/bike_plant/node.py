@@ -107,6 +107,8 @@ FAULT_NAMES = {
     PlantState.FAULT_RELAY_FORCED: "RELAY_FORCED",
     PlantState.FAULT_UNCONTROLLED_GENERATION: "UNCONTROLLED_GENERATION",
     PlantState.FAULT_DRIVE_DISARMED: "DRIVE_DISARMED",
+    PlantState.FAULT_OVERCURRENT: "OVERCURRENT",      # WARN: the trip already blanked the gates
+    PlantState.FAULT_DRIVE_STALE: "DRIVE_STALE",      # WARN: the controller holds its trim meanwhile
 }
 ERROR_FAULTS = (PlantState.FAULT_COMMAND_TIMEOUT | PlantState.FAULT_OVERVOLTAGE | PlantState.FAULT_DRIVE_LOST
                 | PlantState.FAULT_RECORDER_LOST | PlantState.FAULT_DRIVE_DISARMED)
@@ -411,6 +413,9 @@ class PlantNode(Node):
             reasons.append("gate pattern with both switches of a leg on was blanked")
         if faults & PlantState.FAULT_OVERVOLTAGE:
             reasons.append("DC bus over the configured limit")
+        if faults & PlantState.FAULT_OVERCURRENT:
+            reasons.append(f"overcurrent trip: a phase current above bldc.overcurrent_trip_a, gates blanked for "
+                           f"{int(snap.get('overcurrent_trip_count', 0))} periods in total (stale gate decisions?)")
         if faults & PlantState.FAULT_RELAY_FORCED:
             reasons.append("relay opened under current after its drain timeout (energy booked as loss)")
         if faults & PlantState.FAULT_UNCONTROLLED_GENERATION:

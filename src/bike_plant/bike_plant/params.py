@@ -49,9 +49,15 @@ class BldcParams:
     emf_shape_speed_rpm: list = field(default_factory=lambda: [0.0, 4500.0])
     emf_trap_weight: list = field(default_factory=lambda: [1.0, 1.0])
     overvoltage_v: float = 80.0   # FAULT_OVERVOLTAGE threshold of the DC bus
+    # cycle-by-cycle overcurrent trip of the bridge (not in the paper; a real inverter's
+    # comparator): a period starting with any |phase current| above it has all gates off
+    # (FAULT_OVERCURRENT). 150 A = 1.25 x the controller's current_limit_a (120 A), well above
+    # its largest command + hysteresis band (121.5 A), so closed-loop operation never trips.
+    overcurrent_trip_a: float = 150.0
 
     def validate(self) -> None:
-        require_positive(self, "pole_pairs", "ke_v_per_rpm", "inductance_h", "r_phase_ohm", "overvoltage_v")
+        require_positive(self, "pole_pairs", "ke_v_per_rpm", "inductance_h", "r_phase_ohm", "overvoltage_v",
+                         "overcurrent_trip_a")
         if not 0.0 <= self.inductance_variation < 0.9:
             raise ValueError(f"inductance_variation must be in [0, 0.9), got {self.inductance_variation!r}")
         if not 0.0 < self.emf_sine_amplitude <= 2.0:
@@ -278,7 +284,8 @@ P_OVERVOLTAGE = 26
 P_NTAB = 27              # number of EMF shape table points (max 8)
 P_TAB_X = 28             # 8 speeds [rad/s]
 P_TAB_Y = 36             # 8 weights
-P_SIZE = 44
+P_OC_TRIP = 44           # overcurrent trip level [A]
+P_SIZE = 45
 MAX_TABLE = 8
 
 
@@ -314,6 +321,7 @@ def pack_params(p: PlantParams) -> np.ndarray:
     v[P_RIDER_KI] = p.load.rider_ki
     v[P_TIMER_HZ] = p.hall.timer_hz
     v[P_OVERVOLTAGE] = b.overvoltage_v
+    v[P_OC_TRIP] = b.overcurrent_trip_a
     xs, ys = list(b.emf_shape_speed_rpm), list(b.emf_trap_weight)
     if len(xs) > MAX_TABLE:
         raise ConfigError(f"at most {MAX_TABLE} points", None, "bldc.emf_shape_speed_rpm")

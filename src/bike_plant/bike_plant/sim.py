@@ -116,7 +116,8 @@ class BldcPlant:
         samples = np.zeros((n, 3))
         sums = np.zeros(3)
         blanked0 = int(self.state[K.S_INTERLOCK])
-        self.state[K.S_FAULTS] = float(int(self.state[K.S_FAULTS]) & ~K.FAULT_INTERLOCK)
+        # per-batch fault bits: set again by the kernel if it happens in this batch
+        self.state[K.S_FAULTS] = float(int(self.state[K.S_FAULTS]) & ~(K.FAULT_INTERLOCK | K.FAULT_OVERCURRENT))
         ne = K.step_batch(self.state, self.p, ga, gb, sp, edge_counts, edge_states, samples, sums)
         self.seq += 1
         self.batch_periods = n
@@ -181,4 +182,5 @@ class BldcPlant:
             "energy_stored_j": led["energy_stored_j"],
             "faults": int(s[K.S_FAULTS]),
             "interlock_blanked_count": int(s[K.S_INTERLOCK]),
+            "overcurrent_trip_count": int(s[K.S_OC_TRIPS]),
         }

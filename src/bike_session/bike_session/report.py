@@ -65,6 +65,8 @@ FAULT_BITS = {
     "relay_forced": 64,
     "uncontrolled_generation": 128,
     "drive_disarmed": 256,
+    "overcurrent": 512,
+    "drive_stale": 1024,
 }
 SESSION_STATES = {0: "WAITING", 1: "RUNNING", 2: "DONE"}
 MODE_NAMES = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinetic"}

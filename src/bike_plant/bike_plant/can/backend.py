@@ -43,7 +43,18 @@ What it does
   - the host treats a drive without Heartbeat for ``heartbeat_timeout_s`` (3 heartbeat
     periods by default) as lost: FAULT_DRIVE_LOST, zero torque commanded (in case only
     our receive path broke), the watchdog is no longer fed; once heartbeats return and
-    DriveCommands flow, Clear_Errors + closed-loop torque control re-arm it;
+    DriveCommands flow, Clear_Errors + closed-loop torque control re-arm it. Supervision runs
+    on receipt times: a frame's own wall-clock receive stamp (the kernel's on socketcan /
+    udp_multicast) dates it when it waited in the queue, so a gap between two Heartbeats
+    longer than the timeout is a lost drive even when this loop, delayed itself (a loaded
+    machine), only drains both afterwards: FAULT_DRIVE_LOST for that batch (zero torque, the
+    controller drops its trim), back at the next, counted (``heartbeat_gaps``,
+    ``heartbeat_gap_max_ms``) and logged;
+  - stale measurements: while the drive is armed and its newest speed (Get_Encoder_Estimates)
+    or torque estimate (Get_Torques, if it arrives at all) is older than
+    ``measurement_timeout_s`` (heartbeats may still be on time: a stalled drive or emulator),
+    FAULT_DRIVE_STALE (WARN diagnostic, ``stale_episodes`` / ``stale_batches``): the
+    controller holds its torque trim rather than integrate on a frozen value;
   - a drive that is alive (Heartbeats) but not in closed-loop control although it should be
     (it tripped or reports errors, someone set it IDLE, arming fails): FAULT_DRIVE_DISARMED,
     an ERROR diagnostic, sim time stops (the session pauses); the plant re-arms it
@@ -85,6 +96,13 @@ RPM_PER_REV_S = 60.0
 FAULT_OVERVOLTAGE = 4
 FAULT_DRIVE_LOST = 16
 FAULT_DRIVE_DISARMED = 256
+FAULT_DRIVE_STALE = 1024
+
+# measurement kinds whose age makes a PlantState stale (speed and torque: what the controller closes loops on)
+STALE_KINDS = ("motion", "torque")
+# a frame's own receive timestamp (wall clock, e.g. the kernel's on socketcan / udp_multicast) is
+# trusted for the receipt time when it is at most this old and not in the future
+RX_STAMP_MAX_AGE_S = 5.0
 
 # diagnostic levels (diagnostic_msgs/DiagnosticStatus)
 OK, WARN, ERROR = 0, 1, 2
@@ -104,6 +122,7 @@ class CanParams:
     protocol: str = "odrive_cansimple_0.6"   # bike_plant.can.protocol.PROTOCOLS
     heartbeat_period_s: float = 0.1     # the drive's heartbeat_msg_rate_ms (informative)
     heartbeat_timeout_s: float = 0.3    # no Heartbeat this long -> FAULT_DRIVE_LOST (3 periods)
+    measurement_timeout_s: float = 0.05  # speed / torque estimate older than this -> FAULT_DRIVE_STALE (5 x 10 ms)
     watchdog_feed_s: float = 0.1        # re-send the setpoint at least this often (drive watchdog)
     request_period_s: float = 0.01      # RTR period of the measurements in `request`
     request: list = dataclasses.field(default_factory=lambda: ["torque", "bus", "current"])
@@ -131,7 +150,8 @@ class CanParams:
             raise ValueError(f"node_id must be in 0..63, got {self.node_id}")
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
-        for name in ("heartbeat_period_s", "heartbeat_timeout_s", "watchdog_feed_s", "request_period_s",
+        for name in ("heartbeat_period_s", "heartbeat_timeout_s", "measurement_timeout_s", "watchdog_feed_s",
+                     "request_period_s",
                      "enable_retry_s", "bitrate"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
@@ -277,6 +297,14 @@ class CanBackend:
         self.started_s = clock()
         self.lost_since_s = None
         self.arm_errors_logged = None
+        # supervision on receipt times (a frame's own wall-clock timestamp when the loop was late)
+        self.last_heartbeat_rx_s = None    # receipt time of the newest Heartbeat (host clock)
+        self.heartbeat_gap_max_s = 0.0     # longest gap between two Heartbeats seen while the link was up
+        self.late_gap_s = None             # a gap > heartbeat_timeout_s found only when its frames were drained
+        self.lost_gap_s = None             # that gap, while the loss it caused is reported
+        self.stale = False                 # speed / torque estimates older than measurement_timeout_s
+        self.stale_age_s = 0.0
+        self.last_stale_event_s = -math.inf
         self._closed = False
         # sim time and ledger
         self.time_s = 0.0
@@ -346,6 +374,8 @@ class CanBackend:
         bits = FAULT_DRIVE_LOST if self.lost else 0
         if self.disarmed:
             bits |= FAULT_DRIVE_DISARMED
+        if self.stale and not self.lost:
+            bits |= FAULT_DRIVE_STALE
         if self.seen and self.drive.active_errors & ODriveError.DC_BUS_OVER_VOLTAGE:
             bits |= FAULT_OVERVOLTAGE
         return bits
@@ -358,6 +388,14 @@ class CanBackend:
         self._receive(now, max_frames)
         drive = self.drive
         alive = drive.link_alive(now)
+        late_gap, self.late_gap_s = self.late_gap_s, None
+        if late_gap is not None and self.seen and not self.lost:
+            # the heartbeats came back before this loop looked (it was delayed itself): the drive
+            # was silent longer than the timeout all the same. FAULT_DRIVE_LOST for this batch
+            # (zero torque, the controller drops its trim and ramps up again), back at the next.
+            self._on_lost(now, late_gap, late=True)
+            self._update_stale(now)
+            return
         if not self.seen and alive:
             self.seen = True
             self._event("info", f"drive found: {self.params.describe()}, axis state {drive.axis_state}, "
@@ -391,9 +429,24 @@ class CanBackend:
             self.was_enabled = enabled
             self._arming(now, enabled)
             self._request(now)
+        self._update_stale(now)
+        if self.link_alive:
             if not self.safe:
                 if drive.keepalive(now):
                     self.counters["keepalive"] += 1
+
+    @staticmethod
+    def _receipt_s(msg: can.Message, now: float) -> float:
+        """When ``msg`` arrived, on the host clock: ``now`` unless the frame's own timestamp
+        (wall clock: the kernel's receive time on socketcan / udp_multicast, python-can's on
+        virtual) says it waited in the queue for more than a millisecond (this loop was
+        delayed); timestamps in the future or older than RX_STAMP_MAX_AGE_S (hardware clocks
+        of other interfaces) are not trusted."""
+        stamp = getattr(msg, "timestamp", 0.0) or 0.0
+        waited = time.time() - stamp
+        if 1e-3 < waited <= RX_STAMP_MAX_AGE_S:
+            return now - waited
+        return now
 
     def _receive(self, now: float, max_frames: int) -> None:
         drive = self.drive
@@ -406,19 +459,57 @@ class CanBackend:
             if msg is None:
                 return
             echoes = drive.counters["echo"]
-            drive.receive(msg, now)
+            rx_s = self._receipt_s(msg, now)
+            for m in drive.receive(msg, rx_s):
+                if m.kind == "status":
+                    self._heartbeat_at(rx_s)
             if drive.counters["echo"] == echoes:
                 self._log(msg, rx=True)
 
-    def _on_lost(self, now: float) -> None:
+    def _heartbeat_at(self, rx_s: float) -> None:
+        """Link supervision on receipt times: a gap between two Heartbeats longer than
+        heartbeat_timeout_s is a lost drive even when this loop, delayed itself, only sees
+        both after the fact (then :meth:`service` raises FAULT_DRIVE_LOST for one batch)."""
+        prev, self.last_heartbeat_rx_s = self.last_heartbeat_rx_s, rx_s
+        if prev is None or not self.seen or self.lost:
+            return
+        gap = rx_s - prev
+        self.heartbeat_gap_max_s = max(self.heartbeat_gap_max_s, gap)
+        if gap > self.params.heartbeat_timeout_s:
+            self.counters["heartbeat_gaps"] += 1
+            self.late_gap_s = max(gap, self.late_gap_s or 0.0)
+
+    def _update_stale(self, now: float) -> None:
+        """FAULT_DRIVE_STALE while the drive is armed and its newest speed or torque estimate
+        (of the kinds that arrive at all) is older than measurement_timeout_s: the controller
+        must not integrate on a held value. Counted; logged at most once per second."""
+        last = self.drive.last
+        ages = [now - last[k].received_s for k in STALE_KINDS if k in last]
+        self.stale_age_s = max(ages) if ages else 0.0
+        stale = self.drive_enabled and self.stale_age_s > self.params.measurement_timeout_s
+        if stale and not self.stale:
+            self.counters["stale_episodes"] += 1
+            if now - self.last_stale_event_s >= 1.0:
+                self.last_stale_event_s = now
+                self._event("warning", f"drive measurements stale: speed / torque estimate "
+                                       f"{self.stale_age_s * 1e3:.0f} ms "
+                                       f"old > measurement_timeout_s={self.params.measurement_timeout_s:g}s: "
+                                       f"FAULT_DRIVE_STALE, the controller holds its trim "
+                                       f"({self.counters['stale_episodes']} episodes so far)")
+        self.stale = stale
+
+    def _on_lost(self, now: float, gap_s: float | None = None, late: bool = False) -> None:
         self.lost = True
         self.lost_since_s = now
         self.was_enabled = False
         self.armed_since_s = None
         self.counters["drive_lost"] += 1
-        age = self.drive.heartbeat_age_s(now)
+        age = gap_s if gap_s is not None else self.drive.heartbeat_age_s(now)
+        self.lost_gap_s = gap_s
+        seen_late = (" (seen late: the heartbeats had resumed before this loop, itself delayed, looked; "
+                     "back at the next batch)") if late else ""
         self._event("error", f"drive silent: no Heartbeat for {age:.3f}s > heartbeat_timeout_s="
-                             f"{self.params.heartbeat_timeout_s:g}s ({self.params.describe()}): "
+                             f"{self.params.heartbeat_timeout_s:g}s ({self.params.describe()}){seen_late}: "
                              "FAULT_DRIVE_LOST, zero torque, sim time paused")
         # zero torque in case only our receive path broke, then stop feeding the watchdog
         self._send_setpoint(0.0)
@@ -610,6 +701,8 @@ class CanBackend:
         if self.time_frozen:
             self.counters["frozen_batches"] += 1
             return
+        if self.stale:
+            self.counters["stale_batches"] += 1
         dt = self.batch_periods * self.control_period_s
         v = self.drive.values()
         w = float(v.get("speed_rev_s", 0.0)) * TWO_PI
@@ -683,6 +776,9 @@ class CanBackend:
             "disarmed": self.counters["disarmed"], "enable_attempts": self.counters["enable_attempts"],
             "safe_state": self.counters["safe_state"], "frozen_batches": self.counters["frozen_batches"],
             "arm_gave_up": self.counters["arm_gave_up"], "ramped_setpoints": self.counters["ramped_setpoints"],
+            "heartbeat_gaps": self.counters["heartbeat_gaps"],
+            "heartbeat_gap_max_ms": round(self.heartbeat_gap_max_s * 1e3, 1),
+            "stale_episodes": self.counters["stale_episodes"], "stale_batches": self.counters["stale_batches"],
         }
         for reason in MALFORMED_REASONS:
             if c[reason]:
@@ -703,7 +799,7 @@ class CanBackend:
             return WARN
         if self.lost or self.drive.active_errors or self.disarmed:
             return ERROR
-        return OK if self.drive.enabled else WARN
+        return OK if self.drive.enabled and not self.stale else WARN
 
     def diagnostic(self, now_s: float | None = None) -> tuple[int, list[str], dict[str, str]]:
         """(level, reasons, key/values) for the plant's DiagnosticStatus."""
@@ -718,7 +814,8 @@ class CanBackend:
                            f"{now - self.started_s:.0f}s): sim time paused")
         elif self.lost:
             level = ERROR
-            reasons.append(f"drive silent for {drive.heartbeat_age_s(now):.2f}s (heartbeat_timeout_s="
+            silent = max(drive.heartbeat_age_s(now), self.lost_gap_s or 0.0)
+            reasons.append(f"drive silent for {silent:.2f}s (heartbeat_timeout_s="
                            f"{p.heartbeat_timeout_s:g}s): zero torque commanded, sim time paused")
         else:
             errors = error_names(drive.active_errors)
@@ -739,6 +836,10 @@ class CanBackend:
                     why = "waiting for DriveCommands"
                 reasons.append(f"drive {'disarmed' if disarmed else 'idle'}: alive but not in closed-loop control "
                                f"(axis state {drive.axis_state}): {why}; sim time paused")
+            if self.stale:
+                level = max(level, WARN)
+                reasons.append(f"drive measurements stale ({self.stale_age_s * 1e3:.0f} ms > measurement_timeout_s="
+                               f"{p.measurement_timeout_s:g}s): the controller holds its trim")
         values = {f"can_{k}": str(v) for k, v in self.stats().items()}
         v = drive.values(now)
         values.update({

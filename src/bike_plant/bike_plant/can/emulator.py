@@ -86,6 +86,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import json
 import math
 import random
@@ -1290,6 +1291,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bike-drive-emulator ready: node_id={args.node_id} interface={args.interface} channel={channel} "
               f"port={args.port} machine={params.machine} physics={args.physics} load={params.load_kind} "
               f"kt={params.torque_constant_nm_per_a:.5f}Nm/A watchdog_s={args.watchdog_s}", flush=True)
+        # a full collection of the ~120 000 objects numba, python-can and cantools leave behind
+        # takes ~40 ms here (several times that on a loaded laptop): a stall of the heartbeats
+        # and encoder frames. Collect once now and freeze them out of every later collection.
+        gc.collect()
+        gc.freeze()
         emu.run(stop, duration_s=args.duration_s)
     finally:
         try:
