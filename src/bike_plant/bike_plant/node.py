@@ -630,7 +630,10 @@ class PlantNode(Node):
             # choose this batch's command
             msg = None
             if self.latest_rx is not None:
-                if now - self.latest_rx > self.command_timeout_s:
+                # wall time as a drive's watchdog, or sim time (= wall time when the loop keeps
+                # up): a descheduled loop must not add batches to the promised safe-state latency
+                if (now - self.latest_rx > self.command_timeout_s
+                        or self.backend.time_s - self.latest_rx_sim_s > self.command_timeout_s + 1e-9):
                     if not timed_out:
                         log.error(f"no DriveCommand for {now - self.latest_rx:.3f}s > command_timeout_s="
                                   f"{self.command_timeout_s:g}s: safe state (all gates off)")
