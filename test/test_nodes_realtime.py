@@ -72,8 +72,13 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         col.wait_for(lambda: any(m.faults & PlantState.FAULT_COMMAND_TIMEOUT for m in states[k_kill:]),
                      5, "FAULT_COMMAND_TIMEOUT", [plant])
         i_fault = next(i for i in range(k_kill, len(states)) if states[i].faults & PlantState.FAULT_COMMAND_TIMEOUT)
-        t_fault = col.stamps["plant_state"][i_fault]
-        assert t_fault - t_kill < TIMEOUT + 0.25, f"fault after {t_fault - t_kill:.3f}s"
+        # latency in sim time, which follows wall time in realtime except when the machine
+        # deschedules the plant (then it drops time instead of running ahead); wall time of
+        # receipt in this process jitters by up to a second on a loaded 2-core machine
+        sim_kill = stamp_ns(states[k_kill - 1].header.stamp) * 1e-9
+        sim_fault = stamp_ns(states[i_fault].header.stamp) * 1e-9
+        assert 0 < sim_fault - sim_kill < TIMEOUT + 0.25, f"fault {sim_fault - sim_kill:.3f} s (sim) after the kill"
+        assert col.stamps["plant_state"][i_fault] - t_kill < 5.0
         # currents decay to zero in the safe state (all gates off; back-EMF below the bus voltage)
         col.wait_for(lambda: len(states) > i_fault + 200, 5, "states after the fault", [plant])
         after = states[i_fault + 100:i_fault + 200]
@@ -82,9 +87,9 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         errors = [s for a in col.data["/diagnostics"] for s in a.status
                   if s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR]
         assert errors and "no DriveCommand" in errors[0].message and "safe state" in errors[0].message
-        t_diag = next(t for a, t in zip(col.data["/diagnostics"], col.stamps["/diagnostics"])
-                      if any(s.level == DiagnosticStatus.ERROR for s in a.status))
-        assert t_diag - t_fault < 0.1
+        # the ERROR diagnostic is published with the faulted batch (same sim stamp)
+        diag = next(a for a in col.data["/diagnostics"] if any(s.level == DiagnosticStatus.ERROR for s in a.status))
+        assert stamp_ns(diag.header.stamp) == stamp_ns(states[i_fault].header.stamp)
         assert plant.alive()
 
         # a new controller: commands return, the fault clears, braking resumes
