@@ -40,6 +40,19 @@ MEMORY_SIM_S_QUICK = 60.0
 TARGET_FLEET_BIKES = 1000           # offline batched kernel, bikes in real time on this 2-core machine
 
 
+def spin_in_background(executor):
+    """Spin `executor` in a daemon thread; returns the function that stops it (joins <= 2 s)."""
+    stop = threading.Event()
+    spinner = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.1) for _ in iter(stop.is_set, True)],
+                               daemon=True)
+    spinner.start()
+
+    def stop_spinning() -> None:
+        stop.set()
+        spinner.join(2)
+    return stop_spinning
+
+
 def _config_with(batch_periods: int, duration_s: float, base: pathlib.Path, out_dir: pathlib.Path) -> pathlib.Path:
     """A copy of the base config with another batch size (profile path made absolute)."""
     doc = yaml.safe_load(base.read_text())
@@ -74,18 +87,14 @@ def graph_real_time(batch_periods: int, duration_s: float, base_config: pathlib.
             (m.clock.sec + m.clock.nanosec * 1e-9, time.perf_counter())), 100)
         executor = rclpy.executors.SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        stop = threading.Event()
-        spinner = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.1) for _ in iter(stop.is_set, True)],
-                                   daemon=True)
-        spinner.start()
+        stop_spinning = spin_in_background(executor)
         with open(os.devnull, "w") as sink:
             graph = launcher.Launcher(nodes, stdout=sink)
             started = time.perf_counter()
             graph.start()
             codes = graph.wait(timeout_s=duration_s * 50 + 120)
         wall_total = time.perf_counter() - started
-        stop.set()
-        spinner.join(2)
+        stop_spinning()
         rclpy.try_shutdown(context=context)
     # Steady state: skip the first 20 % of simulated time (start-up, JIT, discovery).
     steady = [s for s in samples if s[0] >= 0.2 * duration_s]

@@ -105,7 +105,7 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
     from bike_plant.config import default_config_path
 
     from bike_session import launcher
-    from bike_session.bench import _config_with
+    from bike_session.bench import _config_with, spin_in_background
     from bike_session.cli import RECORDER_WINDOW_BATCHES, default_launch_file
 
     base = pathlib.Path(config or default_config_path())
@@ -133,10 +133,7 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
         node.create_subscription(Clock, "/clock", on_clock, 10)
         executor = rclpy.executors.SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        stop = threading.Event()
-        spinner = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.1) for _ in iter(stop.is_set, True)],
-                                   daemon=True)
-        spinner.start()
+        stop_spinning = spin_in_background(executor)
         series: dict[str, list[tuple[float, float]]] = {}
         walls: list[tuple[float, float]] = []
         codes = {}
@@ -166,8 +163,7 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
                     progress(f"  memory run: {sim:.0f} / {sim_s:.0f} s simulated, {now - started:.0f} s wall")
             codes = result.get("codes", {})
         wall_total = time.perf_counter() - started
-        stop.set()
-        spinner.join(2)
+        stop_spinning()
         rclpy.try_shutdown(context=context)
         log_tail = log_path.read_text(errors="replace").splitlines()[-8:]
         bag = tmp_path / "memory"

@@ -205,7 +205,20 @@ class DriveModelParams:
         raise ConfigError(f"the drive emulator supports machine 'bldc' or 'spmsm', got {machine!r}", path, "machine")
 
 
-class AverageTorqueDrive:
+class _DriveReadouts:
+    """Readouts every drive model derives the same way from its state (speed_rad_s, iq_a)."""
+
+    @property
+    def speed_rev_s(self) -> float:
+        return self.speed_rad_s / TWO_PI
+
+    @property
+    def torque_estimate_nm(self) -> float:
+        """kt x Iq_Measured, as an ODrive estimates its torque."""
+        return self.params.torque_constant_nm_per_a * self.iq_a
+
+
+class AverageTorqueDrive(_DriveReadouts):
     """Motor (average torque, first-order current loop) + shaft + load + battery.
 
     :meth:`step` advances ``dt_s`` with a current setpoint; everything else is state
@@ -241,14 +254,6 @@ class AverageTorqueDrive:
     def ocv_v(self) -> float:
         p = self.params
         return p.v_empty_v + (p.v_full_v - p.v_empty_v) * min(max(self.soc, 0.0), 1.0)
-
-    @property
-    def speed_rev_s(self) -> float:
-        return self.speed_rad_s / TWO_PI
-
-    @property
-    def torque_estimate_nm(self) -> float:
-        return self.params.torque_constant_nm_per_a * self.iq_a
 
     def _scheduled_speed_rpm(self, t_s: float) -> float:
         load = self.params.load
@@ -390,7 +395,7 @@ def bldc_drive_batch(state, p, cs, q, n, acc):
         acc[A_VDC] += state[K.S_VDC]
 
 
-class _PlantDrive:
+class _PlantDrive(_DriveReadouts):
     """What the firmware and the CAN side read of a drive model (the names of
     :class:`AverageTorqueDrive`), for the plant-kernel drives. :meth:`step` advances the
     control periods that fit in the time given (fractions carried to the next call), in
@@ -418,15 +423,6 @@ class _PlantDrive:
     @property
     def time_s(self) -> float:
         return self.periods * self.period_s
-
-    @property
-    def speed_rev_s(self) -> float:
-        return self.speed_rad_s / TWO_PI
-
-    @property
-    def torque_estimate_nm(self) -> float:
-        """kt x Iq_Measured, as an ODrive estimates its torque."""
-        return self.params.torque_constant_nm_per_a * self.iq_a
 
     def step(self, dt_s: float, iq_setpoint_a: float, enabled: bool = True, current_limit_a: float | None = None) -> None:
         """Advance ``dt_s`` (whole control periods; the remainder is carried) with the
