@@ -341,3 +341,28 @@ def test_an_erg_ramp_from_zero_never_motors_when_the_target_falls():
     m.step(1.0, MODE_MOTORING, 2000.0, 1.0)
     outs = [m.step(0.3, MODE_ERG, 2000.0, DT) for _ in range(400)]
     assert outs[0].brake_torque_nm < 0.0 < outs[-1].brake_torque_nm
+
+
+def test_spmsm_erg_trim_never_turns_the_brake_into_assist(monkeypatch):
+    """The SPMSM session law shares the brake-only rule: a torque reading that says the drive
+    brakes far harder than asked winds the trim down, but ERG never switches the relay to
+    the inverter (assist); the clamp is counted and the output flagged saturated."""
+    import pathlib
+
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant.config import load_config
+
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+    ctrl = ModedSpmsmController(cfg)
+    relays = []
+    real_set_relay = ctrl.inner.set_relay
+    monkeypatch.setattr(ctrl.inner, "set_relay", lambda on: (relays.append(on), real_set_relay(on)))
+    ctrl.set_command(0.2, MODE_ERG)
+    for _ in range(3000):                                   # 3 s of a reading 5 N m harder than any ERG brake
+        ctrl._apply_mode(200.0, 1e-3, -5.0)
+    assert relays and all(relays), "ERG switched to the inverter (assist)"
+    assert ctrl.trim.sign_clamps >= 1 and ctrl.last_out.saturated
+    ctrl.set_command(0.2, MODE_MOTORING)                    # a motoring mode may still assist
+    for _ in range(3000):
+        ctrl._apply_mode(200.0, 1e-3, 0.0)
+    assert relays[-1] is False

@@ -23,6 +23,7 @@ from it (:func:`model_state_from_snapshot`): currents, encoder, angle, speed, re
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -30,7 +31,8 @@ import numpy as np
 from bike_plant import spmsm as M
 from bike_plant.params import RPM_PER_RAD_S
 
-from .modes import MODE_ISOKINETIC, machine_figures, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim, mode_params_from_config
+from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim,
+                    machine_figures, mode_params_from_config)
 from .session_control import DriveTorqueLaw, SessionCommand, drive_status
 from .spmsm_control import SpmsmController, controller_params_from_config
 
@@ -107,7 +109,12 @@ class ModedSpmsmController(SessionCommand):
             inner.set_speed_ref(target, target)
             self._torque_command(None)
             return
-        torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s)
+        # ERG and resistance are brake-only: a trim wound up on a bad torque reading must not
+        # turn their brake into assist (clamped, counted and logged by the trim)
+        torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s,
+                                   brake_only=self.mode in BRAKE_ONLY_MODES)
+        if self.trim.clamped and not out.saturated:
+            self.last_out = out = dataclasses.replace(out, saturated=True)
         if torque >= 0.0:
             inner.set_relay(True)
             inner.set_brake_torque(torque)
