@@ -342,3 +342,30 @@ def test_runner_rejects_bad_arguments(cfg):
         C.run_spmsm_offline(cfg, 0.01, controller="lqr")
     with pytest.raises(ValueError):
         C.run_spmsm_offline(cfg, 0.01, lambda t: np.full_like(t, np.nan))
+
+
+def test_overmodulation_clamp_raises_the_voltage_limit_and_clips_the_phase_duties(cfg):
+    """inverter.overmodulation: none keeps |v| <= Vdc/sqrt(3) (SVPWM linear range); clamp lets
+    the controller ask for up to the six-step fundamental 2 Vdc/pi, and the per-phase duty
+    clamp of modulate() turns the part beyond the hexagon into 5th / 7th voltage harmonics."""
+    lin = M.plant_params_from_config(cfg).inverter
+    om = M.plant_params_from_config(variant(cfg, inverter={"overmodulation": "clamp"})).inverter
+    assert C.voltage_limit_factor(lin) == pytest.approx(1.0 / math.sqrt(3.0))
+    assert C.voltage_limit_factor(om) == pytest.approx(2.0 / math.pi)
+    q = C.SpmsmController(variant(cfg, inverter={"overmodulation": "clamp"})).q
+    assert q[C.Q_VMAX_FACTOR] == pytest.approx(2.0 / math.pi)
+    vdc = 24.0
+    th = np.linspace(0.0, 2.0 * math.pi, 720, endpoint=False)
+
+    def phase_a_harmonics(amplitude_v):
+        d = np.array([C.modulate(amplitude_v * math.cos(x), amplitude_v * math.sin(x), vdc, 0.0) for x in th])
+        assert d.min() >= 0.0 and d.max() <= 1.0
+        va = (d[:, 0] - d.mean(axis=1)) * vdc          # phase-to-neutral: the common mode removed
+        return [2.0 * abs(np.mean(va * np.exp(-1j * h * th))) for h in (1, 5, 7)]
+
+    h1, h5, h7 = phase_a_harmonics(0.95 * vdc / math.sqrt(3.0))       # linear: a clean sine (+ common mode)
+    assert h1 == pytest.approx(0.95 * vdc / math.sqrt(3.0), rel=1e-3) and h5 < 1e-3 * h1 and h7 < 1e-3 * h1
+    h1, h5, h7 = phase_a_harmonics(0.95 * 2.0 * vdc / math.pi)         # overmodulated: clipped
+    assert h1 < 0.95 * 2.0 * vdc / math.pi and h5 > 0.01 * h1 and h7 > 0.002 * h1
+    with pytest.raises(ConfigError, match="overmodulation"):
+        C.SpmsmController(variant(cfg, inverter={"overmodulation": "hexagon"}))

@@ -52,7 +52,8 @@ the current disc (region 0, constant torque at Imax), the intersection of the tw
 (region 2, MTPV: id fixed by the voltage disc, iq reduced, Fig. 7c). The reference is a
 continuous function of (iq*, speed, Vdc) - the extreme point of a strictly convex set moves
 continuously - so region boundaries cause no torque step or current spike.
-Vlim = voltage_margin * (Vdc/sqrt(3) for SVPWM, Vdc/2 for sine-triangle) leaves the
+Vlim = voltage_margin * (Vdc/sqrt(3) for SVPWM, Vdc/2 for sine-triangle; 2 Vdc/pi with
+``inverter.overmodulation: clamp``, :func:`voltage_limit_factor`) leaves the
 current loops headroom; a slow voltage feedback lowers it while the current loop saturates
 (dead time and parameter errors cost voltage the model does not know about) and lets it
 recover afterwards. ``flux_weakening: false`` keeps id = 0 (paper Fig. 19).
@@ -229,7 +230,7 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_VMARGIN] = cp.voltage_margin
     q[Q_VDC] = nominal.inverter.dc_link_v
     q[Q_MODULATION] = M.MODULATIONS.index(nominal.inverter.modulation)
-    q[Q_VMAX_FACTOR] = 1.0 / SQRT3 if nominal.inverter.modulation == "svpwm" else 0.5
+    q[Q_VMAX_FACTOR] = voltage_limit_factor(nominal.inverter)
     q[Q_FW] = 1.0 if cp.flux_weakening else 0.0
     q[Q_CPR] = nominal.encoder.counts_per_rev
     q[Q_FCAP] = nominal.encoder.capture_timer_hz
@@ -250,6 +251,16 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_DELAY] = float(cp.computation_delay_periods)
     q[Q_ILSB] = cp.current_sensor_lsb_a
     return q
+
+
+def voltage_limit_factor(inverter: M.InverterParams) -> float:
+    """Largest voltage-vector amplitude the controller commands, per volt of DC link: the
+    modulator's linear range (1/sqrt(3) SVPWM, 1/2 sine-triangle), or with
+    ``inverter.overmodulation: clamp`` the six-step fundamental 2/pi; beyond the linear range
+    :func:`modulate` clips the phase duties to [0, 1] (5th / 7th voltage harmonics)."""
+    if inverter.overmodulation == "clamp":
+        return 2.0 / math.pi
+    return 1.0 / SQRT3 if inverter.modulation == "svpwm" else 0.5
 
 
 def observer_gains(pole_hz: float, dt_s: float) -> tuple[float, float, float]:
@@ -417,7 +428,9 @@ def buck_duty_for_brake_torque(t_brake, we, q):
 # =======================================================================================
 @njit(**JIT)
 def modulate(valpha, vbeta, vdc, modulation):
-    """(alpha, beta) voltage -> duty cycles: SVPWM (min-max common mode) or sine-triangle."""
+    """(alpha, beta) voltage -> duty cycles: SVPWM (min-max common mode) or sine-triangle.
+    Each duty is clamped to [0, 1]: a vector beyond the linear range (overmodulation) is
+    clipped per phase, as a DSP's PWM compare register saturates."""
     va = valpha
     vb = -0.5 * valpha + 0.5 * SQRT3 * vbeta
     vc = -0.5 * valpha - 0.5 * SQRT3 * vbeta

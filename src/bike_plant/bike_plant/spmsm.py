@@ -182,6 +182,13 @@ class SpmsmParams:
 
 INVERTER_MODELS = ("average", "switching")
 MODULATIONS = ("svpwm", "sine_triangle")
+# none: the controller keeps the voltage vector in the modulator's linear range (Vdc/sqrt(3)
+# SVPWM, Vdc/2 sine-triangle). clamp: the voltage limit is the six-step fundamental 2 Vdc/pi
+# (the most a bridge can make); a vector beyond the linear range is clipped per phase by the
+# duty clamp (0 <= d <= 1), which adds 5th / 7th (6k +- 1) voltage harmonics. Used by the
+# flux-weakening drives that trade waveform quality for voltage (Holtz, "Pulsewidth
+# modulation - a survey", overmodulation; Kwon & Sul, flux weakening into overmodulation).
+OVERMODULATIONS = ("none", "clamp")
 
 
 @dataclass
@@ -190,6 +197,7 @@ class InverterParams:
     dc_link_v: float = 24.0
     model: str = "average"             # average | switching
     modulation: str = "svpwm"          # svpwm (|v| <= Vdc/sqrt(3)) | sine_triangle (|v| <= Vdc/2)
+    overmodulation: str = "none"       # none (linear range only) | clamp (up to 2 Vdc/pi, per-phase duty clamp)
     carrier_multiple: int = 1          # carrier periods per control period (1: 10 kHz carrier)
     dead_time_s: float = 0.0           # switching model only
     diode_drop_v: float = 0.7          # freewheel diodes (gates off)
@@ -202,6 +210,9 @@ class InverterParams:
             raise ValueError(f"model must be one of {', '.join(INVERTER_MODELS)}, got {self.model!r}")
         if self.modulation not in MODULATIONS:
             raise ValueError(f"modulation must be one of {', '.join(MODULATIONS)}, got {self.modulation!r}")
+        if self.overmodulation not in OVERMODULATIONS:
+            raise ValueError(f"overmodulation must be one of {', '.join(OVERMODULATIONS)}, "
+                             f"got {self.overmodulation!r}")
         if not 0.0 <= self.dead_time_s < 1e-5:
             raise ValueError(f"dead_time_s must be in [0, 10 us), got {self.dead_time_s!r}")
         if self.diode_drop_v < 0:
