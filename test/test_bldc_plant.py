@@ -312,3 +312,27 @@ def test_rider_torque_two_peaks_per_crank_turn():
     w = 80.0 * 35.0 / P.RPM_PER_RAD_S
     assert rider_motor_torque_nm(0.5, w, 0.0, load) == pytest.approx(
         0.5 * 120.0 * (1 - 80.0 / 160.0) * 1.5 / 35.0)
+
+
+def test_kernel_trapezoid_table_and_rider_cos_match_their_references():
+    """The period kernel's shortcuts (tabulated trapezoid trap3, polynomial cos of the rider,
+    reciprocal constants) agree with the plain formulas to round-off, at every angle."""
+    for th in np.concatenate([np.linspace(-0.3, 2 * math.pi + 0.3, 4001), [0.0, math.pi, 2 * math.pi, 50.0, -50.0]]):
+        fa, fb, fc = K.trap3(th)
+        ref = (K.trapezoid(th), K.trapezoid(th - 2 * math.pi / 3), K.trapezoid(th - 4 * math.pi / 3))
+        assert max(abs(fa - ref[0]), abs(fb - ref[1]), abs(fc - ref[2])) < 1e-12, th
+    for x in np.concatenate([np.linspace(0.0, 4 * math.pi, 4001), [5 * math.pi, -1.0]]):
+        assert abs(K.cos_poly(x) - math.cos(x)) < 1e-13, x
+    # the kernel's rider torque = bike_plant.mechanics' rider (the same LoadParams)
+    from bike_plant.mechanics import rider_motor_torque_nm
+    load = P.LoadParams(kind="rider")
+    pp = P.PlantParams()
+    pp = dataclasses.replace(pp, load=load)
+    p = P.pack_params(pp)
+    c = K.plant_constants(p)
+    for w, crank in ((100.0, 0.3), (250.0, 2.0), (400.0, 5.9), (800.0, 1.0)):
+        st = np.zeros(K.S_SIZE)
+        st[K.S_CRANK] = crank
+        st[K.S_RIDER_INT] = 0.4
+        t_kernel = K._rider(st, p, c, w, 0.0)          # dt = 0: the effort is kp err + 0.4
+        assert t_kernel == pytest.approx(rider_motor_torque_nm(st[K.S_EFFORT], w, crank, load), rel=1e-12)

@@ -137,26 +137,6 @@ def trapezoid(theta):
     return -1.0 + (ph - 11.0 * TWELFTH) / TWELFTH
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
-def _trap_near(theta):
-    """trapezoid() for theta within one turn of [0, 2 pi) (no float modulo)."""
-    if theta < 0.0:
-        theta += TWO_PI
-    elif theta >= TWO_PI:
-        theta -= TWO_PI
-    if theta < 0.0 or theta >= TWO_PI:
-        return trapezoid(theta)
-    if theta < TWELFTH:
-        return theta / TWELFTH
-    if theta < 5.0 * TWELFTH:
-        return 1.0
-    if theta < 7.0 * TWELFTH:
-        return 1.0 - (theta - 5.0 * TWELFTH) / TWELFTH
-    if theta < 11.0 * TWELFTH:
-        return -1.0
-    return -1.0 + (theta - 11.0 * TWELFTH) / TWELFTH
-
-
 @njit(cache=True, error_model="numpy", forceinline=False)
 def interp_table(x, xs, ys, n):
     if x <= xs[0]:
@@ -167,15 +147,64 @@ def interp_table(x, xs, ys, n):
     return ys[n - 1]
 
 
+def _trap_table():
+    """EMF_TAB[m] = (a_a, b_a, a_b, b_b, a_c, b_c): on the m-th twelfth of a turn
+    (u = theta_e / 30 deg in [m, m + 1)) the trapezoid of phase x is a_x + b_x u, b_x in
+    {0, +1, -1}: 1 on [30, 150] deg, -1 on [210, 330], ramps in between (paper 000, Fig. 4)."""
+    def piece(m):           # phase a on twelfth m (0..11): (a, b)
+        if m == 0:
+            return 0.0, 1.0
+        if m <= 4:
+            return 1.0, 0.0
+        if m <= 6:
+            return 6.0, -1.0
+        if m <= 10:
+            return -1.0, 0.0
+        return -12.0, 1.0
+    tab = np.zeros((12, 6))
+    for m in range(12):
+        for x in range(3):
+            mm = m - 4 * x            # phase x lags a by 120 deg = 4 twelfths: u_x = u - 4x
+            a, b = piece(mm % 12)
+            # a_x + b_x u with u_x = u - 4x + 12 (if wrapped): a + b (u - 4x + 12 w)
+            tab[m, 2 * x] = a + b * (-4.0 * x + (12.0 if mm < 0 else 0.0))
+            tab[m, 2 * x + 1] = b
+    return tab
+
+
+EMF_TAB = _trap_table()
+INV_TWELFTH = 6.0 / math.pi      # twelfths of a turn per radian
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def trap3(theta_e):
+    """The three phases' unit trapezoids (f_a, f_b, f_c) at theta_e (f_b, f_c lag by 120,
+    240 deg), tabulated per twelfth of a turn: exactly one phase is on a ramp there, the
+    other two at +-1 (exact). Equals trapezoid(theta_e - x 2 pi / 3) up to round-off on
+    the ramp (u - k instead of (theta - k 30 deg) / 30 deg)."""
+    u = theta_e * INV_TWELFTH
+    if u >= 12.0:
+        u -= 12.0
+    elif u < 0.0:
+        u += 12.0
+    if not (0.0 <= u < 12.0):       # more than one turn off, or NaN
+        u = (theta_e % TWO_PI) * INV_TWELFTH
+        if not (0.0 <= u < 12.0):
+            u = 0.0
+    m = int(u)
+    if m > 11:                       # u rounded up to 12 on the multiply
+        m = 11
+    return (EMF_TAB[m, 0] + EMF_TAB[m, 1] * u, EMF_TAB[m, 2] + EMF_TAB[m, 3] * u,
+            EMF_TAB[m, 4] + EMF_TAB[m, 5] * u)
+
+
 @njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def emf_f3(theta_e, omega, p):
     """Back-EMF shapes (f_a, f_b, f_c) at angle theta_e (non-ideal blend if enabled)."""
-    th_b = theta_e - THIRD_TURN
-    th_c = theta_e - TWO_THIRDS_TURN
-    fa = _trap_near(theta_e)
-    fb = _trap_near(th_b)
-    fc = _trap_near(th_c)
+    fa, fb, fc = trap3(theta_e)
     if p[P.P_EMF_NONIDEAL] != 0.0:
+        th_b = theta_e - THIRD_TURN
+        th_c = theta_e - TWO_THIRDS_TURN
         n = int(p[P.P_NTAB])
         w = interp_table(abs(omega), p[P.P_TAB_X:P.P_TAB_X + 8], p[P.P_TAB_Y:P.P_TAB_Y + 8], n)
         a = (1.0 - w) * p[P.P_SINE_AMP]
@@ -372,6 +401,13 @@ def _open_leg(ua, ub, uz0, ez, vdc, r, iz, pos):
     return 0, vn2, uz0
 
 
+# first guess of a leg's state (0 open, 1 at 0 V, 2 at v_dc) by its switch code
+# (gates >> 2x) & 3 (0 none, 1 upper, 2 lower, 3 both: treated as upper, as the bit logic did)
+# and its current's sign s (0 zero or NaN, 1 positive, 2 negative), at index 3 code + s: with
+# no switch on the lower diode carries a positive current, the upper diode a negative one
+LEG_GUESS = np.array([0, 1, 2,   2, 2, 2,   1, 1, 1,   2, 2, 2], dtype=np.int64)
+
+
 @njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
 def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     """_topology + _solve for the symmetric machine (equal L, R in all phases) with >= 2
@@ -387,21 +423,16 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     # first guess (as _topology's first pass): a leg is at v_dc through its upper switch or,
     # with no switch on, its upper diode (current < 0); at 0 V through the lower switch or
     # diode (current > 0); open with no switch on and zero current
-    sw0 = (gates & 3) != 0
-    sw1 = (gates & 12) != 0
-    sw2 = (gates & 48) != 0
-    h0 = ((gates & 1) != 0) | ((not sw0) & (i0 < 0.0))
-    h1 = ((gates & 4) != 0) | ((not sw1) & (i1 < 0.0))
-    h2 = ((gates & 16) != 0) | ((not sw2) & (i2 < 0.0))
-    c0 = sw0 | (i0 > 0.0) | (i0 < 0.0)
-    c1 = sw1 | (i1 > 0.0) | (i1 < 0.0)
-    c2 = sw2 | (i2 > 0.0) | (i2 < 0.0)
-    w0 = 2 if h0 else (1 if c0 else 0)
-    w1 = 2 if h1 else (1 if c1 else 0)
-    w2 = 2 if h2 else (1 if c2 else 0)
-    v0 = (vdc if h0 else 0.0) - e0
-    v1 = (vdc if h1 else 0.0) - e1
-    v2 = (vdc if h2 else 0.0) - e2
+    # (LEG_GUESS: leg switch code x current sign -> state, one table look-up per leg)
+    w0 = LEG_GUESS[(gates & 3) * 3 + (i0 > 0.0) + 2 * (i0 < 0.0)]
+    w1 = LEG_GUESS[((gates >> 2) & 3) * 3 + (i1 > 0.0) + 2 * (i1 < 0.0)]
+    w2 = LEG_GUESS[((gates >> 4) & 3) * 3 + (i2 > 0.0) + 2 * (i2 < 0.0)]
+    c0 = w0 != 0
+    c1 = w1 != 0
+    c2 = w2 != 0
+    v0 = (vdc if w0 == 2 else 0.0) - e0
+    v1 = (vdc if w1 == 2 else 0.0) - e1
+    v2 = (vdc if w2 == 2 else 0.0) - e2
     u0 = v0 - r * i0
     u1 = v1 - r * i1
     u2 = v2 - r * i2
@@ -622,6 +653,10 @@ KC_INV_DEN_S0_OFF = 8  # 1 / (1 / R_batt): DC node with S0 off
 KC_INV_DEN_S0_ON = 9   # 1 / (1 / R_batt + 1 / R_brake)
 KC_DT_PER_CAP = 10     # dt / capacity [s / (A s)]: state-of-charge step per ampere
 KC_SYM = 11            # 1: no position-dependent L, the scalar fast path (sym_segment) applies
+KC_G_DT = 12           # cn_gain(dt, L0, R): the Crank-Nicolson gain of a whole period (no division per trial)
+KC_DT_PER_J = 13       # dt / J [s / (kg m^2)]: shaft speed step per N m
+KC_INV_GEAR = 14       # 1 / gear ratio (rider: cadence = w / gear, crank torque / gear at the motor)
+KC_INV_CADMAX = 15     # 1 / rider maximum cadence [s / rad]
 
 
 @njit(cache=True, error_model="numpy", forceinline=False)
@@ -632,7 +667,8 @@ def plant_constants(p):
     rr = p[P.P_R_BRAKE]
     return (dt, p[P.P_L0], p[P.P_R], p[P.P_KPH], p[P.P_POLE_PAIRS], 1.0 / dt, 1.0 / rb, 1.0 / rr,
             1.0 / (1.0 / rb), 1.0 / (1.0 / rb + 1.0 / rr), dt / p[P.P_CAP_AS],
-            1.0 if p[P.P_EPS] == 0.0 else 0.0)
+            1.0 if p[P.P_EPS] == 0.0 else 0.0, cn_gain(dt, p[P.P_L0], p[P.P_R]), dt / p[P.P_J],
+            1.0 / p[P.P_GEAR], 1.0 / p[P.P_RIDER_CADMAX])
 
 
 @njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
@@ -675,7 +711,9 @@ def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, 
     ia_x = (i_x + j_x) / 2, so charge = t/2 sum s_x (legs at v_dc), copper = R t/4 sum s_x^2,
     conversion = t/2 sum e_x s_x, T dt = kph t/2 sum f_x s_x with s_x = i_x + j_x (the same
     sums as electrical_segment, regrouped: round-off level). An open leg has i = j = 0 and
-    adds exact zeros, so there is no branch on the leg state."""
+    adds exact zeros, so there is no branch on the leg state. a3 (conversion) is passed
+    through: with e_x = kph w f_x it is w times the torque integral, which
+    step_period_sym forms once per period."""
     f0, f1, f2, e0, e1, e2 = emf
     s0 = i0 + j0
     s1 = i1 + j1
@@ -683,7 +721,6 @@ def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, 
     ht = 0.5 * t
     a1 = a1 - ht * ((s0 if w0 == 2 else 0.0) + (s1 if w1 == 2 else 0.0) + (s2 if w2 == 2 else 0.0))
     a2 = a2 + (0.5 * r * ht) * (s0 * s0 + s1 * s1 + s2 * s2)
-    a3 = a3 + (e0 * s0 + e1 * s1 + e2 * s2) * ht
     a4 = a4 + kph * (ht * (f0 * s0 + f1 * s1 + f2 * s2))
     return a1, a2, a3, a4
 
@@ -724,7 +761,7 @@ def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2
         ok, w0, w1, w2, d0, d1, d2 = sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r)
     rest = t
     if ok and t > 0.0:
-        g = cn_gain(t, L0, r)
+        g = c[KC_G_DT] if t == c[KC_DT] else cn_gain(t, L0, r)     # the same value, no division
         # an open leg has i = d = 0: i + g d is its exact 0
         j0 = i0 + g * d0
         j1 = i1 + g * d1
@@ -846,9 +883,11 @@ def _interlock_and_split(state, p, gates_a, gates_b, split):
     check runs once per period, so a current can pass the trip by at most one period of
     rise. The trip level sits above the controller's current_limit_a + hysteresis_a:
     closed-loop operation with fresh gate decisions never reaches it."""
-    ga, nba = blank_interlock(gates_a)
-    gb, nbb = blank_interlock(gates_b)
-    if nba + nbb > 0:
+    ga = int(gates_a) & 63
+    gb = int(gates_b) & 63
+    if ((ga & (ga >> 1)) | (gb & (gb >> 1))) & 0b010101:      # some leg has both switches on (rare)
+        ga, nba = blank_interlock(ga)
+        gb, nbb = blank_interlock(gb)
         state[S_INTERLOCK] += nba + nbb
         state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_INTERLOCK
     if max(abs(state[S_IA]), abs(state[S_IB]), abs(state[S_IC])) > p[P.P_OC_TRIP]:
@@ -887,7 +926,8 @@ def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, edge_coun
     state[S_IA] = i0
     state[S_IB] = i1
     state[S_IC] = i2
-    return period_tail(state, p, c, a1, a2, a3, a4, edge_counts, edge_states, n_edges)
+    # conversion sum(e_x i_x) dt = w sum(kph f_x i_x) dt = w T dt (e_x = kph w f_x, dL = 0)
+    return period_tail(state, p, c, a1, a2, state[S_OMEGA] * a4, a4, edge_counts, edge_states, n_edges)
 
 
 @njit(cache=True, error_model="numpy", forceinline=False)
@@ -987,8 +1027,8 @@ def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_st
     else:
         t_load = 0.0
         if kind == 1:
-            t_load = _rider(state, p, omega, dt)
-        w_new = omega + dt * (t_em + t_load - B * omega) / J
+            t_load = _rider(state, p, c, omega, dt)
+        w_new = omega + (t_em + t_load - B * omega) * c[KC_DT_PER_J]
         w_avg = 0.5 * (omega + w_new)
         state[S_E_MECH] += t_load * w_avg * dt
         state[S_E_FRIC] += B * omega * w_avg * dt
@@ -1033,12 +1073,45 @@ def _hall_edges(state, p, k, u0, u1, du, periods, direction, edge_counts, edge_s
     return n_edges
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
-def _rider(state, p, omega, dt):
-    """Rider load (LoadParams): PI effort on cadence, crank torque with two peaks per turn.
-    Returns the load torque at the motor shaft."""
-    gear = p[P.P_GEAR]
-    cad = omega / gear
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def cos_poly(x):
+    """cos(x) for x in [0, 4 pi] (wider x: math.cos) without a libm call: reduced to
+    y = |x - 2 pi k| in [0, pi], then cos(y) = -cos(pi - y) folds it onto [0, pi / 2], where
+    an even Taylor polynomial to y^18 is within 1e-14 of cos (deterministic: plain IEEE
+    multiplies and adds)."""
+    if not (0.0 <= x <= 2.0 * TWO_PI):
+        return math.cos(x)
+    if x > math.pi:
+        x = x - TWO_PI
+        if x > math.pi:
+            x = x - TWO_PI
+    y = abs(x)
+    sgn = 1.0
+    if y > 0.5 * math.pi:
+        y = math.pi - y
+        sgn = -1.0
+    z = y * y
+    # Horner form of sum_k (-1)^k z^k / (2k)!, k = 0..9
+    c = -1.0 / 6402373705728000.0
+    c = 1.0 / 20922789888000.0 + z * c
+    c = -1.0 / 87178291200.0 + z * c
+    c = 1.0 / 479001600.0 + z * c
+    c = -1.0 / 3628800.0 + z * c
+    c = 1.0 / 40320.0 + z * c
+    c = -1.0 / 720.0 + z * c
+    c = 1.0 / 24.0 + z * c
+    c = -0.5 + z * c
+    c = 1.0 + z * c
+    return sgn * c
+
+
+@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+def _rider(state, p, c, omega, dt):
+    """Rider load (LoadParams): PI effort on cadence, crank torque with two peaks per turn,
+    T_crank = effort T0 max(0, 1 - cad / cad_max) (1 + cos(2 crank) / 2) (bike_plant.mechanics).
+    Returns the load torque at the motor shaft (T_crank / gear)."""
+    inv_gear = c[KC_INV_GEAR]
+    cad = omega * inv_gear
     err = p[P.P_RIDER_TARGET] - cad
     integ = state[S_RIDER_INT] + p[P.P_RIDER_KI] * err * dt
     integ = min(max(integ, -1.0), 1.0)
@@ -1046,10 +1119,10 @@ def _rider(state, p, omega, dt):
     effort = p[P.P_RIDER_KP] * err + integ
     effort = min(max(effort, 0.0), 1.0)
     state[S_EFFORT] = effort
-    line = 1.0 - cad / p[P.P_RIDER_CADMAX]
+    line = 1.0 - cad * c[KC_INV_CADMAX]
     if line < 0.0:
         line = 0.0
-    t_crank = effort * p[P.P_RIDER_T0] * line * (1.0 + 0.5 * math.cos(2.0 * state[S_CRANK]))
+    t_crank = effort * p[P.P_RIDER_T0] * line * (1.0 + 0.5 * cos_poly(2.0 * state[S_CRANK]))
     crank = state[S_CRANK] + cad * dt
     # wrap to [0, 2 pi): one add/subtract is exact here (Sterbenz) and equals Python's %
     if crank >= TWO_PI:
@@ -1059,7 +1132,7 @@ def _rider(state, p, omega, dt):
     if not (0.0 <= crank < TWO_PI):
         crank = crank % TWO_PI
     state[S_CRANK] = crank
-    return t_crank / gear
+    return t_crank * inv_gear
 
 
 @njit(cache=True, error_model="numpy", forceinline=False)
