@@ -4,7 +4,7 @@ Topics (relative names, namespace /bike by default; docs/DESIGN.md):
   subscribes plant_state (bike_msgs/PlantState), command (bike_msgs/Command),
              session_status (bike_msgs/SessionStatus)
   publishes  drive_command (bike_msgs/DriveCommand, one per PlantState, same seq),
-             controller_status (bike_msgs/ControllerStatus, one per batch),
+             controller_status (bike_msgs/ControllerStatus, one per batch while a reader is matched),
              /diagnostics (WARN on a rejected Command, OK every ``diagnostics_period_s``)
 
 The law is bike_controller.session_control.ModedController: the session modes of
@@ -38,7 +38,7 @@ import time
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv
 from bike_plant.config import ConfigError
-from bike_plant.node import AUX_QOS, LOOP_QOS, run_loop_node
+from bike_plant.node import AUX_QOS, LOOP_QOS, HotWait, run_loop_node
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -94,11 +94,14 @@ class ControllerNode(Node):
         self.pub_drive = self.create_publisher(DriveCommand, "drive_command", LOOP_QOS)
         self.pub_status = self.create_publisher(ControllerStatus, "controller_status", LOOP_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
-        self.create_subscription(PlantState, "plant_state", self._on_state, LOOP_QOS)
-        self.create_subscription(Command, "command", self._on_command, LOOP_QOS)
-        self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS)
+        subs = [self.create_subscription(Command, "command", self._on_command, LOOP_QOS),
+                self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS),
+                self.create_subscription(PlantState, "plant_state", self._on_state, LOOP_QOS)]
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
+        # the loop waits on its three topics directly (bike_plant.node.HotWait); Commands are
+        # taken before the PlantState that may need them
+        self.hot = HotWait(self.executor_, subs, self.context)
 
         self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "controller"
         self.stop_requested = False
@@ -167,7 +170,8 @@ class ControllerNode(Node):
         if self.cached is not None and seq == self.cached[0]:
             self.stats["duplicates"] += 1                 # re-published state: same answer again
             self.pub_drive.publish(self.cached[1])
-            self.pub_status.publish(self.cached[2])
+            if self.cached[2] is not None:
+                self.pub_status.publish(self.cached[2])
             return
         if seq <= self.last_seq and self.last_seq - seq < 1000:
             return                                        # stale copy of an older state
@@ -222,9 +226,13 @@ class ControllerNode(Node):
             torque = -torque                              # motoring positive, like torque_em_nm
         build = msgconv.spmsm_drive_msg if self.machine == "spmsm" else msgconv.drive_command_msg
         drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)))
-        stat = msgconv.controller_status_msg(status, t_ns)
         self.pub_drive.publish(drive)
-        self.pub_status.publish(stat)
+        # ControllerStatus is volatile: with no reader matched (the bare graph, no recorder) it
+        # is neither built nor sent (about 20 us per batch)
+        stat = None
+        if self.pub_status.get_subscription_count():
+            stat = msgconv.controller_status_msg(status, t_ns)
+            self.pub_status.publish(stat)
         self.cached = (int(msg.seq), drive, stat)
         self.last_seq = int(msg.seq)
         self.pending = None
@@ -269,7 +277,7 @@ class ControllerNode(Node):
 
     def run(self) -> int:
         while not self.stop_requested:
-            self.executor_.spin_once(timeout_sec=0.1)
+            self.hot.spin(0.1)
             if self.pending is not None:
                 self._try_answer()                         # command_wait_s expiry
             if (self.state_rx is not None and not self.plant_silent

@@ -35,6 +35,11 @@ from bike_session.profiles import MODE_NAMES, Profile, ProfileError, load_profil
 
 NODE_NAME = "session"
 COMMAND_QOS_DEPTH = 100
+# /clock comes once per batch; the node takes it in bursts (see gather_pause_s): the reader
+# keeps this many samples so that none is lost meanwhile (every value is handled, in order)
+CLOCK_QOS_DEPTH = 1000
+GATHER_MAX_S = 0.02            # longest pause between bursts [wall s]
+GATHER_SHARE_OF_PERIOD = 0.25  # a burst lags sim time by at most this share of session.period_s
 
 
 class SetupError(Exception):
@@ -183,7 +188,7 @@ def _make_node_class():
             latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                                  reliability=ReliabilityPolicy.RELIABLE,
                                  durability=DurabilityPolicy.TRANSIENT_LOCAL)
-            clock_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+            clock_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=CLOCK_QOS_DEPTH,
                                    reliability=ReliabilityPolicy.RELIABLE)
             self._Command, self._SessionStatus = Command, SessionStatus
             self._DiagnosticArray, self._DiagnosticStatus, self._KeyValue = DiagnosticArray, DiagnosticStatus, KeyValue
@@ -200,6 +205,7 @@ def _make_node_class():
             self.done = False
             self.commands_published = 0
             self.readers_at_publish = 0      # matched Command readers when the last Command went out
+            self._rate_mark = None           # (sim ns, wall s) at the last burst (gather_pause_s)
 
             info = build_session_info(self.profile, profile_path, config_path, period_s=self.period_s,
                                       duration_s=self.duration_s, namespace=self.get_namespace())
@@ -334,6 +340,23 @@ def _make_node_class():
                 self.last_status_k = k
                 self._publish_status(t_ns, SessionStatus.STATE_RUNNING)
 
+        def gather_pause_s(self, wall_s: float) -> float:
+            """Wall seconds to let /clock samples gather before the next burst is taken.
+
+            Waking for every batch costs the session a wake-up, a wait and a take per batch
+            (a share of the 2 cores the plant and the controller need); taken in bursts each
+            value still goes through _on_clock, in order, so Commands, statuses and their
+            stamps are the same. The pause keeps the Commands ahead of the controller: at
+            the measured sim rate the burst lags sim time by at most
+            GATHER_SHARE_OF_PERIOD x session.period_s (they are published a period ahead)."""
+            t_ns = self.last_t_ns
+            prev = self._rate_mark
+            self._rate_mark = (t_ns, wall_s)
+            if t_ns is None or prev is None or prev[0] is None or wall_s <= prev[1] or t_ns <= prev[0]:
+                return 0.0
+            rate = (t_ns - prev[0]) * 1e-9 / (wall_s - prev[1])      # sim s per wall s
+            return min(GATHER_MAX_S, GATHER_SHARE_OF_PERIOD * self.period_s / rate)
+
         def flush(self, timeout_s: float = 2.0) -> None:
             """Wait (at most timeout_s in all) until the readers acknowledged what was sent."""
             import time as _time
@@ -353,16 +376,30 @@ def _make_node_class():
 
 
 def main(args=None) -> int:
+    import time
+
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
     rclpy.init(args=args)
     node = None
+    executor = None
     rc = 0
     try:
+        from bike_plant.node import HotWait
+        from rclpy.executors import SingleThreadedExecutor
+
         node = _make_node_class()()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        # /clock comes every batch: taken straight from a wait set (bike_plant.node.HotWait),
+        # the timer and parameter services through the executor
+        hot = HotWait(executor, [node.sub_clock], node.context)
         while rclpy.ok() and not node.done:
-            rclpy.spin_once(node, timeout_sec=0.1)
+            if hot.spin(0.1) and not node.done:
+                pause = node.gather_pause_s(time.monotonic())
+                if pause > 0.0:
+                    time.sleep(pause)
         if node.done:
             node.flush()
     except SetupError as exc:
@@ -371,6 +408,8 @@ def main(args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         rc = 0
     finally:
+        if executor is not None:
+            executor.remove_node(node)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
