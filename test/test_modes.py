@@ -215,7 +215,7 @@ def test_bad_commands_and_config_are_refused():
 
 
 # ------------------------------------------------------------------ closed loop with the plant
-def _ride_plant(command_fn, seconds, modes=None, preset=None):
+def _ride_plant(command_fn, seconds, modes=None, preset=None, battery=None):
     """The BLDC plant (rider load, default config) + ModedController, batched loop, no ROS."""
     import copy
 
@@ -223,6 +223,8 @@ def _ride_plant(command_fn, seconds, modes=None, preset=None):
     from bike_controller.session_control import ModedController
     from bike_plant.config import load_config
     cfg = copy.deepcopy(load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml"))
+    if battery:
+        cfg["battery"] = dict(cfg["battery"], **battery)
     if modes:
         cfg["modes"] = dict(cfg.get("modes") or {}, **modes)
     if preset:
@@ -366,3 +368,44 @@ def test_spmsm_erg_trim_never_turns_the_brake_into_assist(monkeypatch):
     for _ in range(3000):
         ctrl._apply_mode(200.0, 1e-3, 0.0)
     assert relays[-1] is False
+
+
+def test_no_assist_from_an_empty_pack_and_braking_still_charges_it(caplog):
+    """A tiny pack (0.5 mAh at 30 %) runs empty under assist within a fraction of a second:
+    the assist is held at zero from then on (a BMS opens its discharge path at the empty
+    mark), counted, logged once and flagged saturated; the state of charge never goes more
+    than a batch's worth below empty; an ERG brake afterwards charges the pack again and
+    releases the guard."""
+    with caplog.at_level("WARNING", logger="bike_controller.session_control"):
+        r, ctrl = _ride_plant(lambda t: (0.5, MODE_MOTORING) if t < 1.5 else (0.3, MODE_ERG), 3.0,
+                              battery={"capacity_ah": 0.0005, "soc0": 0.3})
+    motoring = r["time_s"] < 1.5
+    assert r["soc"][motoring].min() <= 1e-3, "the assist did not empty the pack: the test proves nothing"
+    assert r["soc"].min() > -0.01
+    late = motoring & (r["time_s"] > 1.0)
+    assert np.all(np.abs(r["torque_em_nm"][late]) < 0.5), "assist from an empty pack"
+    assert ctrl.pack.holds > 100 and caplog.text.count("battery empty") == 1
+    assert r["soc"][-1] > r["soc"][motoring].min() + 0.01, "the ERG brake charges the pack"
+    assert not ctrl.pack.active
+
+
+def test_spmsm_no_assist_from_an_empty_pack():
+    """The SPMSM session law holds its assist at zero while PlantState says the pack is
+    empty (the relay stays on the charging path) and assists again once it is not."""
+    import pathlib
+
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant.config import load_config
+
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+    ctrl = ModedSpmsmController(cfg)
+    ctrl.set_command(0.5, MODE_MOTORING)
+    ctrl.battery_soc = -0.001
+    for _ in range(2000):
+        ctrl._apply_mode(200.0, 1e-3, None)
+    from bike_controller.spmsm_control import C_RELAY_REQ
+    assert ctrl.inner.cs[C_RELAY_REQ] == 1.0, "assist through the inverter from an empty pack"
+    assert ctrl.pack.holds > 1000 and ctrl.pack.active and ctrl.last_out.saturated
+    ctrl.battery_soc = 0.2
+    ctrl._apply_mode(200.0, 1e-3, None)
+    assert not ctrl.pack.active and ctrl.inner.cs[C_RELAY_REQ] == 0.0

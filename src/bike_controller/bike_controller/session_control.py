@@ -30,6 +30,7 @@ zero torque and restarts with a ramp from zero when the drive is back.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 
 import numpy as np
@@ -42,6 +43,35 @@ FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this modul
 FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
 FAULT_DRIVE_STALE = 1024     # bike_msgs/PlantState.FAULT_DRIVE_STALE: the drive's estimates are old, hold
 HELD_MEASUREMENT_S = 0.05    # speed and torque bit-identical this long (stamp time): a held value, not fresh
+
+
+_log = logging.getLogger("bike_controller.session_control")
+EMPTY_PACK_SOC = 0.0         # the pack's empty mark: below it a BMS allows charging only
+
+
+class EmptyPackGuard:
+    """No assist from an empty pack. A real pack's BMS opens its discharge path at the empty
+    mark (undervoltage cut-off) and still takes charge, so motoring torque (brake < 0) is held
+    at zero while PlantState.battery_soc <= ``empty_soc``; braking, which charges the pack, is
+    untouched. Without it a motoring session drove the model's state of charge below zero.
+    Each held step is counted (``holds``); the first of an episode is logged."""
+
+    def __init__(self, empty_soc: float = EMPTY_PACK_SOC):
+        self.empty_soc = float(empty_soc)
+        self.holds = 0
+        self.active = False
+
+    def limit(self, brake_torque_nm: float, battery_soc) -> float:
+        empty = battery_soc is not None and math.isfinite(battery_soc) and battery_soc <= self.empty_soc
+        if empty and brake_torque_nm < 0.0:
+            self.holds += 1
+            if not self.active:
+                _log.warning("battery empty (state of charge %.4f <= %.4f): assist of %.3f N m held at 0 "
+                             "until the pack is charged", battery_soc, self.empty_soc, -brake_torque_nm)
+            self.active = True
+            return 0.0
+        self.active = self.active and empty
+        return brake_torque_nm
 
 
 def validate_session_command(command, mode) -> None:
@@ -75,6 +105,7 @@ class DriveTorqueLaw:
     def __init__(self, law: ModeLaw, trim: TorqueTrim, batch_s: float):
         self.law = law
         self.trim = trim
+        self.pack = EmptyPackGuard()
         self.batch_s = float(batch_s)
         self.last_stamp_ns: int | None = None
         self.lost = False
@@ -108,7 +139,8 @@ class DriveTorqueLaw:
         out = self.law.step(command, mode, speed_rpm, 0.0 if flagged else dt, speed_valid=math.isfinite(speed_rpm))
         brake = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt, fresh=fresh,
                                   brake_only=mode in BRAKE_ONLY_MODES)
-        if self.trim.clamped and not out.saturated:
+        brake = self.pack.limit(brake, snapshot.get("battery_soc"))
+        if (self.trim.clamped or self.pack.active) and not out.saturated:
             out = dataclasses.replace(out, saturated=True)
         return brake, out
 
@@ -180,6 +212,7 @@ class ModedController(SessionCommand):
         self.command_rejected = False
         self.last_out: ModeOutput | None = None
         self.trim = TorqueTrim(self.inner.cp.tmax_nm)
+        self.pack = EmptyPackGuard()
         self.law.reset()
         self.drive_law = DriveTorqueLaw(self.law, self.trim,
                                         self.inner.batch_periods * nominal.control_period_s)
@@ -205,6 +238,9 @@ class ModedController(SessionCommand):
             return
         torque = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt_s,
                                    brake_only=self.mode in BRAKE_ONLY_MODES)
+        torque = self.pack.limit(torque, snapshot.get("battery_soc"))
+        if self.pack.active and not out.saturated:
+            self.last_out = out = dataclasses.replace(out, saturated=True)
         if torque >= 0.0:
             inner.set_command(self.command if self.mode == MODE_RESISTANCE else 0.0, MODE_RESISTANCE)
             current = torque / inner.ktg(speed_rpm)

@@ -33,7 +33,7 @@ from bike_plant.params import RPM_PER_RAD_S
 
 from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim,
                     machine_figures, mode_params_from_config)
-from .session_control import DriveTorqueLaw, SessionCommand, drive_status
+from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status
 from .spmsm_control import SpmsmController, controller_params_from_config
 
 
@@ -90,6 +90,8 @@ class ModedSpmsmController(SessionCommand):
         self.last_out: ModeOutput | None = None
         self.started = False
         self.trim = TorqueTrim(tmax)
+        self.pack = EmptyPackGuard()
+        self.battery_soc = None          # of the last PlantState: no assist from an empty pack
         self.base_speed_rpm = base
         # a drive on CAN (measured_by_drive): torque setpoints only, see session_control
         self.drive_law = DriveTorqueLaw(self.law, self.trim, self.inner.batch_periods * nominal.control_period_s)
@@ -113,7 +115,8 @@ class ModedSpmsmController(SessionCommand):
         # turn their brake into assist (clamped, counted and logged by the trim)
         torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s,
                                    brake_only=self.mode in BRAKE_ONLY_MODES)
-        if self.trim.clamped and not out.saturated:
+        torque = self.pack.limit(torque, self.battery_soc)
+        if (self.trim.clamped or self.pack.active) and not out.saturated:
             self.last_out = out = dataclasses.replace(out, saturated=True)
         if torque >= 0.0:
             inner.set_relay(True)
@@ -143,6 +146,7 @@ class ModedSpmsmController(SessionCommand):
             inner.reset_from(model)            # bumpless: the drive starts at the measured speed
             self.started = True
         speed_rpm = float(inner.status()["speed_est_rpm"])
+        self.battery_soc = snapshot.get("battery_soc")
         self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"))
         duties, relay, buck, status = inner.decide(model, n_eff)
         return duties, relay, buck, self._status(status)
