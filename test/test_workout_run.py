@@ -83,3 +83,22 @@ def test_ride_a_zwift_file_in_the_node_graph(tmp_path, ros_domain):
     target = np.mean([s.mode_target for s in status])
     states = [m for m in read_topic(bag, "plant_state") if m.header.stamp.sec >= 1]
     assert np.mean([-m.torque_em_nm * m.speed_rad_s for m in states]) == pytest.approx(target, rel=0.1)
+
+
+def test_a_realtime_recording_starts_at_the_first_batch(tmp_path, ros_domain):
+    """Realtime (wall-clock batches) with --record: the plant waits for the recorder before its
+    first batch, so the bag holds the run from seq 0, not from whenever the recorder matched."""
+    import yaml
+
+    cfg = yaml.safe_load((DATA.parents[2] / "config" / "bldc_default.yaml").read_text())
+    params = next(iter(cfg.values()))["ros__parameters"]
+    params["sync_mode"] = "realtime"
+    params["session"]["profile"] = str(DATA.parents[2] / "config" / params["session"]["profile"])
+    path = tmp_path / "realtime.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    result = bike_command("run", "--config", str(path), "--duration", "1.5", "--record", str(tmp_path / "bags"))
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    bag = next(p for p in (tmp_path / "bags").iterdir() if p.is_dir())
+    seqs = [int(m.seq) for m in read_topic(bag, "plant_state")]
+    assert seqs[0] == 0, f"the recording starts at seq {seqs[0]}"
+    assert seqs == list(range(len(seqs))), "a realtime state is missing from the bag"

@@ -18,7 +18,8 @@ sync_mode lockstep: publish /clock = t_k and PlantState(seq=k), wait for DriveCo
   recorder reports on ``recorder_progress``: a slow recorder slows the run instead of losing
   messages. A recorder silent for ``recorder_timeout_s`` is given up on (ERROR diagnostic,
   the run goes on unrecorded rather than hanging).
-sync_mode realtime: one batch per wall-clock batch period. The newest valid DriveCommand is
+sync_mode realtime: one batch per wall-clock batch period (with ``recorder_window_batches`` > 0
+  the first waits for the recorder, at most ``recorder_timeout_s``). The newest valid DriveCommand is
   applied; without a new one the last one is held (re-used); with none for
   ``command_timeout_s`` the plant goes to its safe state (all gates off) with
   FAULT_COMMAND_TIMEOUT and an ERROR diagnostic, cleared when commands return. Sim time
@@ -88,9 +89,10 @@ PLANT_DESCRIPTIONS = {
     "end_linger_s": "wall seconds to keep running after the end_of_run PlantState so subscribers receive it",
     "battery_every": "publish sensor_msgs/BatteryState every this many batches",
     "diagnostics_period_s": "publish a diagnostic at least this often [wall s]",
-    "recorder_window_batches": "lockstep: wait for the recorder and stay at most this many batches ahead of it "
+    "recorder_window_batches": "lockstep: wait for the recorder and stay at most this many batches ahead of it; "
+                               "realtime: > 0 waits for the recorder before the first batch "
                                "(0 = do not wait for a recorder)",
-    "recorder_timeout_s": "lockstep: give up waiting for a silent recorder after this many wall seconds",
+    "recorder_timeout_s": "give up waiting for a silent or absent recorder after this many wall seconds",
     "start_timeout_s": "lockstep: exit with an error when no controller appears, or none answers a PlantState, "
                        "within this many wall seconds (0 = wait forever)",
     "can_log_file": "backend can: log every CAN frame to this .asc / .blf file (overrides can.log_file; "
@@ -664,10 +666,27 @@ class PlantNode(Node):
             else:
                 log.info(text)
 
+    def _wait_for_recorder_start(self) -> None:
+        """Realtime with a recorder: its first batch waits (at most ``recorder_timeout_s``) until
+        the recorder is matched, so that a bag holds the run from seq 0 on a slow start-up too.
+        Wall-clock batches then run free (no flow control; the recorder keeps up or says so)."""
+        if self.recorder_window <= 0:
+            return
+        start = time.monotonic()
+        while not self.stop_requested and self.sub_progress.get_publisher_count() < 1:
+            if time.monotonic() - start > self.recorder_timeout_s:
+                self.get_logger().error(f"no recorder after {self.recorder_timeout_s:g}s: running unrecorded")
+                self.node_faults |= PlantState.FAULT_RECORDER_LOST
+                break
+            self._service_backend()
+            self._spin(0.05)
+        self.recorder_window = 0
+
     def _run_realtime(self) -> None:
         log = self.get_logger()
         applied = None
         timed_out = False
+        self._wait_for_recorder_start()
         self._service_backend()
         self._publish_state()
         next_tick = time.monotonic() + self.batch_s
