@@ -191,7 +191,12 @@ def predictive_increment(x_ref_next, x, dx, a, b, r):
  Q_LAM, Q_KT, Q_IMAX, Q_VMARGIN, Q_VDC, Q_VMAX_FACTOR, Q_MODULATION, Q_FW, Q_CPR, Q_FCAP, Q_BUCK_V, Q_LINK_MAX,
  Q_RECT_DIODE_V, Q_ANGLE_COMP, Q_GC, Q_GS, Q_FAMILY_CURRENT, Q_DELAY_COMP, Q_OBSERVER, Q_OBS_L1, Q_OBS_L2, Q_OBS_L3,
  Q_JN, Q_BN, Q_SPEED_KF, Q_MMETHOD, Q_DELAY, Q_ILSB) = range(45)
-Q_SIZE = 46
+# precomputed for the per-period path (the same numbers the kernel computed each period)
+Q_INV_VDC = 45          # 1 / Vdc
+Q_VMAX = 46             # voltage_limit_factor * Vdc: the modulator's circle [V]
+Q_HALF_DT2 = 47         # T^2 / 2 (observer prediction)
+Q_TORQUE_K = 48         # 1.5 pp lambda (nominal Kt, torque estimate)
+Q_SIZE = 49
 
 (C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
  C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
@@ -200,7 +205,10 @@ Q_SIZE = 46
  C_HAVE_ANGLE, C_VSAT, C_SPEED_RAW_PREV, C_OBS_TH, C_OBS_W, C_OBS_D, C_OBS_INIT, C_DV, C_SPEED_FILT,
  C_FILT_INIT, C_IQ_SUM, C_IQ_N, C_OBS_IQFF, C_OBS_INV, C_TORQUE_MODE, C_TORQUE_CMD, C_PEND_OK,
  C_ROT_DTH0, C_ROT_C0, C_ROT_S0, C_ROT_DTH1, C_ROT_C1, C_ROT_S1) = range(62)
-C_SIZE = 63
+# the (id*, iq*) of the last speed-loop run: the advance angle (telemetry) is computed from
+# them when read (advance_angle_rad), not by an atan2 in the 1 ms loop (C_ADVANCE: unused)
+C_ADV_ID, C_ADV_IQ = 62, 63
+C_SIZE = 64
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -250,6 +258,10 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_MMETHOD] = 1.0 if cp.speed_estimator == "m" else 0.0
     q[Q_DELAY] = float(cp.computation_delay_periods)
     q[Q_ILSB] = cp.current_sensor_lsb_a
+    q[Q_INV_VDC] = 1.0 / q[Q_VDC]
+    q[Q_VMAX] = q[Q_VMAX_FACTOR] * q[Q_VDC]
+    q[Q_HALF_DT2] = 0.5 * dt * dt
+    q[Q_TORQUE_K] = 1.5 * q[Q_PP] * q[Q_LAM]
     return q
 
 
@@ -431,13 +443,18 @@ def modulate(valpha, vbeta, vdc, modulation):
     """(alpha, beta) voltage -> duty cycles: SVPWM (min-max common mode) or sine-triangle.
     Each duty is clamped to [0, 1]: a vector beyond the linear range (overmodulation) is
     clipped per phase, as a DSP's PWM compare register saturates."""
+    return _modulate_g(valpha, vbeta, 1.0 / vdc, modulation)
+
+
+@njit(**JIT_INLINE)
+def _modulate_g(valpha, vbeta, g, modulation):
+    """:func:`modulate` with g = 1 / Vdc given (precomputed: no division per period)."""
     va = valpha
     vb = -0.5 * valpha + 0.5 * SQRT3 * vbeta
     vc = -0.5 * valpha - 0.5 * SQRT3 * vbeta
     off = 0.0
     if modulation == 0.0:
         off = -0.5 * (max(va, vb, vc) + min(va, vb, vc))
-    g = 1.0 / vdc
     da = min(max(0.5 + (va + off) * g, 0.0), 1.0)
     db = min(max(0.5 + (vb + off) * g, 0.0), 1.0)
     dc = min(max(0.5 + (vc + off) * g, 0.0), 1.0)
@@ -517,7 +534,7 @@ def observer_update(cs, q, meas, iq_a):
     cs[C_SPEED_EST] = w
     h = q[Q_DT]
     acc = (q[Q_KT] * iq_a - q[Q_BN] * w) / q[Q_JN] + d
-    cs[C_OBS_TH] = th + h * w + 0.5 * h * h * acc
+    cs[C_OBS_TH] = th + h * w + q[Q_HALF_DT2] * acc
     cs[C_OBS_W] = w + h * acc
     cs[C_OBS_D] = d
 
@@ -584,7 +601,8 @@ def speed_loop(cs, q):
     cs[C_IQ_REF_PREV] = iqr         # anti-windup: integrate onto what was let through
     cs[C_REGION] = reg
     cs[C_LIMITS] = lim
-    cs[C_ADVANCE] = math.atan2(-idr, abs(iqr)) if (idr != 0.0 or iqr != 0.0) else 0.0
+    cs[C_ADV_ID] = idr              # advance angle: advance_angle_rad(cs) when read
+    cs[C_ADV_IQ] = iqr
     cs[C_SPEED_PREV] = w
     cs[C_E_SPEED_PREV] = e
 
@@ -683,7 +701,7 @@ def control_period(cs, q, meas):
                 cs[C_BUCK_DUTY] = buck_duty_for_brake_torque(cs[C_BRAKE_T], q[Q_PP] * cs[C_SPEED_EST], q)
     sub = cs[C_SUB] + 1.0
     cs[C_SUB] = 0.0 if sub >= ns else sub            # (no integer modulo in the hot path)
-    cs[C_TORQUE_EST] = 1.5 * pp * q[Q_LAM] * iqm
+    cs[C_TORQUE_EST] = q[Q_TORQUE_K] * iqm
     draining = relay == M.REL_DRAIN and meas[M.S_RELAY_FROM] == M.REL_INVERTER
     if draining:
         # relay switch-over pending: the inverter drives the current to zero first
@@ -727,7 +745,7 @@ def control_period(cs, q, meas):
     cpl_q = we * (lh * idm + q[Q_LAM])
     vd = cs[C_VDP_PREV] + dvd + cpl_d
     vq = cs[C_VQP_PREV] + dvq + cpl_q
-    vmax = q[Q_VMAX_FACTOR] * q[Q_VDC]
+    vmax = q[Q_VMAX]
     if vd * vd + vq * vq > vmax * vmax:
         vd, vq = limit_voltage(vd, vq, idm, iqm, we, vmax, q)
         cs[C_VSAT] += 1.0
@@ -741,13 +759,14 @@ def control_period(cs, q, meas):
     cs[C_VQ] = vq
     if q[Q_ANGLE_COMP] != 0.0:
         # exp(j (th + we T (1/2 + delay))): the mid angle of the period the voltage is applied in
-        rot = M._rot_small(complex(c, -s), -(0.5 + q[Q_DELAY]) * we * q[Q_DT]).conjugate()
+        # (Taylor series below 0.1 rad, i.e. below ~1900 r/min: no libm sincos per period)
+        rot = M._rot_poly(complex(c, -s), -(0.5 + q[Q_DELAY]) * we * q[Q_DT]).conjugate()
         ca = rot.real
         sa = rot.imag
     else:
         ca = c
         sa = s
-    da, db, dc = modulate(vd * ca - vq * sa, vd * sa + vq * ca, q[Q_VDC], q[Q_MODULATION])
+    da, db, dc = _modulate_g(vd * ca - vq * sa, vd * sa + vq * ca, q[Q_INV_VDC], q[Q_MODULATION])
     if q[Q_DELAY] != 0.0 and cs[C_PEND_OK] != 0.0:
         # one-period computation delay (DSP): the duties computed from the samples of period
         # k reach the PWM compare registers (shadow load) at the start of period k + 1; this
@@ -785,6 +804,15 @@ STATUS_FIELDS = ("speed_est_rpm", "speed_ref_rpm", "id_a", "iq_a", "id_ref_a", "
                  "vq_v", "region", "limits", "torque_est_nm", "advance_angle_rad", "relay_request", "buck_duty")
 
 
+@njit(**JIT_INLINE)
+def advance_angle_rad(cs):
+    """Current advance angle beta = atan2(-id*, |iq*|) of the last speed-loop references
+    (paper 001, Fig. 7b; 0 before the first run)."""
+    idr = cs[C_ADV_ID]
+    iqr = cs[C_ADV_IQ]
+    return math.atan2(-idr, abs(iqr)) if (idr != 0.0 or iqr != 0.0) else 0.0
+
+
 def status_of(cs: np.ndarray) -> dict:
     return {
         "speed_est_rpm": float(cs[C_SPEED_EST] * RPM_PER_RAD_S),
@@ -793,7 +821,7 @@ def status_of(cs: np.ndarray) -> dict:
         "id_ref_a": float(cs[C_ID_REF]), "iq_ref_a": float(cs[C_IQ_REF]), "iq_demand_a": float(cs[C_IQ_DEMAND]),
         "vd_v": float(cs[C_VD]), "vq_v": float(cs[C_VQ]),
         "region": int(cs[C_REGION]), "limits": int(cs[C_LIMITS]),
-        "torque_est_nm": float(cs[C_TORQUE_EST]), "advance_angle_rad": float(cs[C_ADVANCE]),
+        "torque_est_nm": float(cs[C_TORQUE_EST]), "advance_angle_rad": float(advance_angle_rad(cs)),
         "relay_request": int(cs[C_RELAY_REQ]), "buck_duty": float(cs[C_BUCK_DUTY]),
     }
 
@@ -947,7 +975,7 @@ def run_kernel(plant, p, cs, q, k0, k1, ref_w, tl, relay_req, brake_t, rec, rec_
                 rec[r, R_RELAY] = plant[M.S_RELAY]
                 rec[r, R_BUCK] = cs[C_BUCK_DUTY]
                 rec[r, R_IBATT] = plant[M.S_IBATT]
-                rec[r, R_ADV] = cs[C_ADVANCE]
+                rec[r, R_ADV] = advance_angle_rad(cs)
                 rec[r, R_ITER] = plant[M.S_ITER]
                 rec[r, R_COUNT] = plant[M.S_COUNT]
             r += 1

@@ -448,7 +448,13 @@ P_COG_S = P_COG_C + 1
 P_IBATT_PER_J = P_COG_S + 1              # 1 / (battery V * T): battery energy of a period -> mean current
 P_SOC_PER_J = P_IBATT_PER_J + 1         # 1 / battery capacity [1/J]
 P_RAD_PER_COUNT = P_SOC_PER_J + 1       # 2 pi / counts per turn (encoder edge estimate)
-P_SIZE = P_RAD_PER_COUNT + 1
+P_INV_L = P_RAD_PER_COUNT + 1           # 1 / L, 1 / R (the per-period path multiplies; the same
+                                        # numbers as before: fastmath arcp already did x * (1/L))
+P_INV_R = P_INV_L + 1
+P_TEM_K = P_INV_R + 1                   # 1.5 pp / T (prime mover: torque telemetry / ledger only)
+P_HALF_PP_DT = P_TEM_K + 1              # pp T / 2: half a period's electrical angle per rad/s (telemetry)
+P_SOC_PER_A = P_HALF_PP_DT + 1          # T Vbatt / battery capacity: SOC per A of a period
+P_SIZE = P_SOC_PER_A + 1
 
 LOAD_DYNO, LOAD_PRIME_MOVER, LOAD_HOOK, LOAD_NONE = 0, 1, 2, 3
 
@@ -505,12 +511,17 @@ def pack_params(p: SpmsmPlantParams) -> np.ndarray:
     v[P_BATT_CAP_J] = bt.nominal_v * bt.capacity_ah * 3600.0
     v[P_IBATT_PER_J] = 1.0 / (bt.nominal_v * p.control_period_s)
     v[P_SOC_PER_J] = 1.0 / v[P_BATT_CAP_J]
+    v[P_SOC_PER_A] = p.control_period_s * bt.nominal_v * v[P_SOC_PER_J]
     v[P_DUMP_SOC] = bt.dump_above_soc
     kind = p.load.kind
     v[P_LOAD_KIND] = {"dynamometer": LOAD_DYNO, "prime_mover": LOAD_PRIME_MOVER, "rider": LOAD_HOOK,
                       "none": LOAD_NONE}[kind]
     v[P_CPR] = p.encoder.counts_per_rev
     v[P_RAD_PER_COUNT] = TWO_PI / p.encoder.counts_per_rev
+    v[P_INV_L] = 1.0 / ind
+    v[P_INV_R] = 1.0 / r
+    v[P_TEM_K] = 1.5 * m.pole_pairs / p.control_period_s
+    v[P_HALF_PP_DT] = 0.5 * m.pole_pairs * p.control_period_s
     v[P_FCAP] = p.encoder.capture_timer_hz
     v[P_DYNO_N] = len(p.load.dyno_time_s)
     for k, (t, tq) in enumerate(zip(p.load.dyno_time_s, p.load.dyno_torque_nm)):
@@ -715,10 +726,25 @@ def _rot_small(e1, dx):
 
 
 @njit(**JIT_INLINE)
+def _rot_tel(e1, dx):
+    """e1 * exp(-j dx) for telemetry: a shorter series below 0.02 rad (truncation < 1e-18
+    relative), else :func:`_rot_poly`."""
+    if abs(dx) < 0.02:
+        x2 = dx * dx
+        c = 1.0 - x2 * (0.5 - x2 * (1.0 / 24.0 - x2 * (1.0 / 720.0)))
+        s = dx * (1.0 - x2 * (1.0 / 6.0 - x2 * (1.0 / 120.0 - x2 * (1.0 / 5040.0))))
+        return e1 * complex(c, -s)
+    return _rot_poly(e1, dx)
+
+
+@njit(**JIT_INLINE)
 def _rot_poly(e1, dx):
-    """e1 * exp(-j dx) by :func:`_cis_neg` (Taylor below 0.1, no libm sincos). Telemetry
-    only: the closed loop's trajectory keeps libm's sincos (a last-bit difference grows in
-    the lightly damped predictive loop and would move the paper-table metrics)."""
+    """e1 * exp(-j dx) by :func:`_cis_neg` (Taylor below 0.1, no libm sincos). Telemetry, and
+    the controller's angle compensation (bike_controller.spmsm_control.control_period: its
+    dx, half a period's electrical angle, is below 0.1 rad up to ~1900 r/min; there the
+    series agrees with libm's sincos to the last bit in all but rare cases, and Table 1 of
+    `./bike paper seed2-table1` is unchanged; elsewhere the trajectory keeps libm's sincos, a
+    last-bit difference grows in the lightly damped predictive loop)."""
     return e1 * _cis_neg(dx)
 
 
@@ -879,8 +905,9 @@ def _avg_eval(i0, v0, v1, we, e1, p):
     t = p[P_DT]
     den = a * a + we * we
     inv_s = complex(a / den, -we / den)
-    p0 = complex(v0.real / p[P_L], (v0.imag - we * p[P_LAMBDA]) / p[P_L]) * inv_s
-    p1 = v1 * (1.0 / p[P_R])                 # v1 / (L a)
+    inv_l = p[P_INV_L]
+    p0 = complex(v0.real * inv_l, (v0.imag - we * p[P_LAMBDA]) * inv_l) * inv_s
+    p1 = v1 * p[P_INV_R]                     # v1 / (L a)
     d = i0 - p0 - p1
     es = p[P_EAH] * e1
     i1 = p0 + p1 * e1 + d * es
@@ -1254,7 +1281,7 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             i1, ii, p0, p1, dd, ie1, ies = _avg_eval(i0, v0, v1, pp * wg, e1h, p)
         else:
             i1, ii, ii2, et, loss = _electrical(path, i0, ej0, v0, v1, pp * wg, e1h, p, ws, vr)
-        tem = 1.5 * pp * (p[P_LAMBDA] * ii.imag + gh.real * ii.real + gh.imag * ii.imag) / dt
+        tem = p[P_TEM_K] * (p[P_LAMBDA] * ii.imag + gh.real * ii.real + gh.imag * ii.imag)
         if cog_on:
             tcog = _cogging_mean(th_m0, wg * dt, h6, p)
         fr = friction_torque(wg, p)
@@ -1353,7 +1380,7 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             ibatt = e_b * p[P_IBATT_PER_J]
         else:
             state[S_E_RES] += e_bus
-    state[S_SOC] += ibatt * dt * p[P_BATT_V] * p[P_SOC_PER_J]    # (reciprocals: no division per period)
+    state[S_SOC] += ibatt * p[P_SOC_PER_A]                        # (precomputed: no division per period)
     state[S_IBATT] = ibatt
     state[S_VLINK] = vlink
     # mean applied dq voltage (telemetry): terminal power / current is not unique; report the
@@ -1366,7 +1393,7 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             for k in range(int(ws[W_NSEG])):
                 vm += complex(ws[W_VA + k], ws[W_VB + k]) * ws[W_T + k]
             vm = vm * ej0.conjugate() / dt
-        vm = _rot_poly(vm, 0.5 * pp * wg * dt)              # telemetry only
+        vm = _rot_tel(vm, p[P_HALF_PP_DT] * wg)             # telemetry only
     elif path == 4:
         vm = complex(0.0, 0.0)
     else:
@@ -1408,14 +1435,15 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
         kf = dt * p[P_FCAP]
         ticks = -1.0
         if wg != 0.0:
-            # the tick count is an integer: an estimate of its argument with one division
-            # less (2 pi / cpr precomputed) decides unless it lies within a generous bound of
-            # its rounding error (~1e-14 / |we T| ticks) from an integer; then the exact form
-            wdt = wg * dt
-            ff = min(max(((edge - rev * cpr) * p[P_RAD_PER_COUNT] - th0) / wdt, 0.0), 1.0)
+            # the tick count is an integer: an estimate of its argument (2 pi / cpr precomputed,
+            # one reciprocal of we T shared with the bound) decides unless it lies within a
+            # generous bound of its rounding error (~1e-14 / |we T| ticks) from an integer;
+            # then the exact form
+            inv_wdt = 1.0 / (wg * dt)
+            ff = min(max(((edge - rev * cpr) * p[P_RAD_PER_COUNT] - th0) * inv_wdt, 0.0), 1.0)
             y = (state[S_PERIODS] + ff) * kf
             fl = np.floor(y)
-            tol = kf * (1e-13 / abs(wdt) + 1e-15 * (2.0 + state[S_PERIODS])) + 1e-15 * abs(y)
+            tol = kf * (1e-13 * abs(inv_wdt) + 1e-15 * (2.0 + state[S_PERIODS])) + 1e-15 * abs(y)
             if y - fl > tol and fl + 1.0 - y > tol:
                 ticks = fl
         if ticks < 0.0:
