@@ -409,3 +409,13 @@ def test_spmsm_no_assist_from_an_empty_pack():
     ctrl.battery_soc = 0.2
     ctrl._apply_mode(200.0, 1e-3, None)
     assert not ctrl.pack.active and ctrl.inner.cs[C_RELAY_REQ] == 0.0
+    # the isokinetic speed loop: its motoring is held inside the 1 ms law (test_spmsm_control)
+    from bike_controller.spmsm_control import C_NO_ASSIST
+    ctrl.set_command(0.5, MODE_ISOKINETIC)
+    ctrl.battery_soc = -0.001
+    for _ in range(2000):
+        ctrl._apply_mode(200.0, 1e-3, None)
+    assert ctrl.inner.cs[C_NO_ASSIST] == 1.0 and ctrl.pack.active
+    ctrl.battery_soc = 0.2
+    ctrl._apply_mode(200.0, 1e-3, None)
+    assert ctrl.inner.cs[C_NO_ASSIST] == 0.0 and not ctrl.pack.active

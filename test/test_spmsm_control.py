@@ -369,3 +369,19 @@ def test_overmodulation_clamp_raises_the_voltage_limit_and_clips_the_phase_dutie
     assert h1 < 0.95 * 2.0 * vdc / math.pi and h5 > 0.01 * h1 and h7 > 0.002 * h1
     with pytest.raises(ConfigError, match="overmodulation"):
         C.SpmsmController(variant(cfg, inverter={"overmodulation": "hexagon"}))
+
+
+@pytest.mark.parametrize("family", ["predictive", "pi"])
+def test_no_assist_holds_motoring_and_keeps_braking(cfg, family):
+    """An empty pack (set_no_assist): the speed loop asked to accelerate from rest gives no
+    motoring torque; asked to slow a prime mover it still brakes."""
+    c = ideal(cfg, load={"kind": "none"})
+    out = C.run_spmsm_offline(c, 0.3, lambda t: np.where(t >= 0.01, 150.0, 0.0), None, controller=family,
+                              record_every=10, no_assist=True)
+    assert np.max(out["torque"]) < 0.02 and abs(out["speed_rpm"][-1]) < 1.0
+    free = C.run_spmsm_offline(c, 0.3, lambda t: np.where(t >= 0.01, 150.0, 0.0), None, controller=family,
+                               record_every=10)
+    assert free["speed_rpm"][-1] > 100.0, "without the hold the same command accelerates"
+    pm = variant(cfg, load={"kind": "prime_mover", "speed_rpm": 300.0})
+    out = C.run_spmsm_offline(pm, 0.3, 100.0, None, controller=family, record_every=10, no_assist=True)
+    assert np.mean(out["torque"][out["t"] > 0.2]) < -0.3, "braking is kept"

@@ -61,14 +61,21 @@ class EmptyPackGuard:
         self.holds = 0
         self.active = False
 
+    def empty(self, battery_soc) -> bool:
+        return battery_soc is not None and math.isfinite(battery_soc) and battery_soc <= self.empty_soc
+
+    def hold(self, battery_soc, what: str) -> None:
+        """Count one held step; log the first of an episode."""
+        self.holds += 1
+        if not self.active:
+            _log.warning("battery empty (state of charge %.4f <= %.4f): %s held at 0 until the pack is charged",
+                         battery_soc, self.empty_soc, what)
+        self.active = True
+
     def limit(self, brake_torque_nm: float, battery_soc) -> float:
-        empty = battery_soc is not None and math.isfinite(battery_soc) and battery_soc <= self.empty_soc
+        empty = self.empty(battery_soc)
         if empty and brake_torque_nm < 0.0:
-            self.holds += 1
-            if not self.active:
-                _log.warning("battery empty (state of charge %.4f <= %.4f): assist of %.3f N m held at 0 "
-                             "until the pack is charged", battery_soc, self.empty_soc, -brake_torque_nm)
-            self.active = True
+            self.hold(battery_soc, f"assist of {-brake_torque_nm:.3f} N m")
             return 0.0
         self.active = self.active and empty
         return brake_torque_nm

@@ -208,7 +208,9 @@ Q_SIZE = 49
 # the (id*, iq*) of the last speed-loop run: the advance angle (telemetry) is computed from
 # them when read (advance_angle_rad), not by an atan2 in the 1 ms loop (C_ADVANCE: unused)
 C_ADV_ID, C_ADV_IQ = 62, 63
-C_SIZE = 64
+# 1: no motoring from the speed loop (an empty pack: a BMS takes charge only), braking kept
+C_NO_ASSIST = 64
+C_SIZE = 65
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -592,6 +594,10 @@ def speed_loop(cs, q):
         # torque control (session modes: assist downhill): the demanded torque replaces the
         # speed controller's output, through the same region logic and limits
         iq_dem = cs[C_TORQUE_CMD] / q[Q_KT]
+    if cs[C_NO_ASSIST] != 0.0 and iq_dem * w >= 0.0:
+        # the pack is empty: a torque along the rotation (or from rest) would motor; hold it at zero (the
+        # reference then restarts from zero: no wind-up while held)
+        iq_dem = 0.0
     vlim = q[Q_VMARGIN] * vmax_mod - cs[C_DV]
     idr, iqr, reg, lim = current_reference(iq_dem, q[Q_PP] * w, vlim, q[Q_IMAX], q[Q_R], q[Q_L], q[Q_LAM],
                                            q[Q_FW])
@@ -877,6 +883,10 @@ class SpmsmController:
         self.cs[C_SPEED_REF] = speed_rpm / RPM_PER_RAD_S
         self.cs[C_SPEED_REF_NEXT] = (speed_rpm if next_speed_rpm is None else next_speed_rpm) / RPM_PER_RAD_S
 
+    def set_no_assist(self, hold: bool) -> None:
+        """Hold the speed loop's motoring torque at zero (an empty pack), braking kept."""
+        self.cs[C_NO_ASSIST] = 1.0 if hold else 0.0
+
     def set_relay(self, rectifier: bool) -> None:
         self.cs[C_RELAY_REQ] = 1.0 if rectifier else 0.0
 
@@ -1013,7 +1023,7 @@ def _relay_value(v) -> float:
 def run_spmsm_offline(cfg: dict, duration_s: float, speed_ref_fn=None, load_fn=None, controller: str = "predictive",
                       switching: bool = False, *, relay_fn=None, brake_torque_fn=None, load_hook=None,
                       record_every: int = 1, plant_params: M.SpmsmPlantParams | None = None,
-                      nominal_params: M.SpmsmPlantParams | None = None) -> dict:
+                      nominal_params: M.SpmsmPlantParams | None = None, no_assist: bool = False) -> dict:
     """Plant + controller closed loop without ROS (per-period loop, fused in numba).
 
     speed_ref_fn(t) -> speed command [r/min] (None: controller.speed_ref0_rpm);
@@ -1023,6 +1033,7 @@ def run_spmsm_offline(cfg: dict, duration_s: float, speed_ref_fn=None, load_fn=N
     -> braking torque demand [N m] on the rectifier path. load_hook(t, speed_rad_s, dt_s) ->
     torque on the shaft (accelerating positive), state dependent, called every 1 ms.
     controller: 'predictive' | 'pi'; switching: the switching inverter model (else average).
+    no_assist: the speed loop may brake but not motor (an empty pack, SpmsmController.set_no_assist).
 
     Returns a dict of numpy arrays named by REC_FIELDS (one row every `record_every`
     periods), plus 'ledger', 'plant', 'controller', 'wall_s'.
@@ -1043,6 +1054,7 @@ def run_spmsm_offline(cfg: dict, duration_s: float, speed_ref_fn=None, load_fn=N
         plant.p[M.P_LOAD_KIND] = M.LOAD_HOOK
     ctrl = SpmsmController(cfg, nominal_params, family=controller)
     ctrl.reset_from(plant.state)
+    ctrl.set_no_assist(no_assist)
     q = ctrl.q
     dt = params.control_period_s
     ns = int(q[Q_NS])
