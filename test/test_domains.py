@@ -10,6 +10,9 @@ from bike_session import domains
 
 def test_claimed_ids_are_unique_across_processes_and_freed_on_exit(tmp_path, monkeypatch):
     monkeypatch.setattr(domains, "LOCK_DIR", tmp_path)
+    # a lock directory of its own: ids this process holds in the real one (an earlier test's
+    # claim) must not count here
+    monkeypatch.setattr(domains, "_held", {})
     held = [domains.claim(1, 6) for _ in range(3)]
     assert len(set(held)) == 3
     # another process gets only the other three ids, then nothing
