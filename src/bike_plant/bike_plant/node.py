@@ -591,11 +591,7 @@ class PlantNode(Node):
                 log.info("waiting for the controller (plant_state subscriber and drive_command publisher)"
                          + (" and the recorder" if self.recorder_window > 0 else ""))
                 next_log = time.monotonic() + 5.0
-            if (self.recorder_window > 0 and self.sub_progress.get_publisher_count() < 1
-                    and time.monotonic() - start > self.recorder_timeout_s):
-                log.error(f"no recorder after {self.recorder_timeout_s:g}s: running unrecorded")
-                self.node_faults |= PlantState.FAULT_RECORDER_LOST
-                self.recorder_window = 0
+            self._recorder_absent(start)
         t1 = None                    # wall time of the first answer (rate excludes start-up waits)
         next_progress = time.monotonic() + PROGRESS_EVERY_S
         while not self.stop_requested:
@@ -670,17 +666,23 @@ class PlantNode(Node):
         """Realtime with a recorder: its first batch waits (at most ``recorder_timeout_s``) until
         the recorder is matched, so that a bag holds the run from seq 0 on a slow start-up too.
         Wall-clock batches then run free (no flow control; the recorder keeps up or says so)."""
-        if self.recorder_window <= 0:
-            return
         start = time.monotonic()
-        while not self.stop_requested and self.sub_progress.get_publisher_count() < 1:
-            if time.monotonic() - start > self.recorder_timeout_s:
-                self.get_logger().error(f"no recorder after {self.recorder_timeout_s:g}s: running unrecorded")
-                self.node_faults |= PlantState.FAULT_RECORDER_LOST
-                break
+        while (not self.stop_requested and self.recorder_window > 0
+               and self.sub_progress.get_publisher_count() < 1 and not self._recorder_absent(start)):
             self._service_backend()
             self._spin(0.05)
         self.recorder_window = 0
+
+    def _recorder_absent(self, since: float) -> bool:
+        """A recorder is expected but none matched within ``recorder_timeout_s`` of ``since``:
+        say so once (ERROR, FAULT_RECORDER_LOST) and run unrecorded rather than hang."""
+        if (self.recorder_window <= 0 or self.sub_progress.get_publisher_count() >= 1
+                or time.monotonic() - since <= self.recorder_timeout_s):
+            return False
+        self.get_logger().error(f"no recorder after {self.recorder_timeout_s:g}s: running unrecorded")
+        self.node_faults |= PlantState.FAULT_RECORDER_LOST
+        self.recorder_window = 0
+        return True
 
     def _run_realtime(self) -> None:
         log = self.get_logger()
