@@ -5,8 +5,14 @@
 Subscribes ``drive_command_raw`` (the controller's ``drive_command`` remapped) and publishes
 ``drive_command`` to the plant, namespace /bike. SCHEDULE_JSON is a list of phases
 ``[[t_start_s, drop_probability, delay_s], ...]``, t_start_s in wall seconds from the first
-DriveCommand; each message is dropped with the phase's probability (seeded) or forwarded
-after the phase's delay, order kept. The phase in force and counts go to stdout."""
+DriveCommand with a current command (the loop braking; earlier ones are forwarded); each
+message is dropped with the phase's probability (seeded) or forwarded after the phase's
+delay, order kept. The phase in force and counts go to stdout, and the schedule's origin as
+``relay t0 <time.monotonic()>`` (one clock for every process of the machine), so that the
+test need not follow the controller's 1 kHz stream itself.
+
+The relay waits on its input through bike_plant.node.HotWait (one wait set, no executor per
+message): on a 2-core machine every process of the test competes with the loop it observes."""
 from __future__ import annotations
 
 import collections
@@ -17,7 +23,7 @@ import time
 
 import rclpy
 from bike_msgs.msg import DriveCommand
-from bike_plant.node import LOOP_QOS
+from bike_plant.node import LOOP_QOS, HotWait
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
@@ -42,7 +48,11 @@ def main() -> int:
     def on_drive(msg):
         now = time.monotonic()
         if state["t0"] is None:
+            if msg.current_cmd_a <= 0.0:           # the session's Command not in force yet
+                pub.publish(msg)
+                return
             state["t0"] = now
+            print(f"relay t0 {now:.6f}", flush=True)
         _, drop, delay = phase_now(now)
         state["in"] += 1
         if rng.random() < drop:
@@ -50,13 +60,14 @@ def main() -> int:
             return
         queue.append((now + delay, msg))
 
-    node.create_subscription(DriveCommand, "drive_command_raw", on_drive, LOOP_QOS)
+    sub = node.create_subscription(DriveCommand, "drive_command_raw", on_drive, LOOP_QOS)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
+    hot = HotWait(executor, [sub], node.context)
     try:
         while rclpy.ok():
             wait = 0.005 if not queue else max(0.0, min(0.005, queue[0][0] - time.monotonic()))
-            executor.spin_once(timeout_sec=wait)
+            hot.spin(wait)
             now = time.monotonic()
             while queue and queue[0][0] <= now:
                 pub.publish(queue.popleft()[1])

@@ -22,20 +22,27 @@ import numpy as np
 import pytest
 from node_harness import CONFIG, ROOT, Collector, NodeProcess, domain, executable, stamp_ns  # noqa: F401
 
-from bike_msgs.msg import Command, DriveCommand, PlantState  # noqa: E402
+from bike_msgs.msg import Command, PlantState  # noqa: E402
 from bike_plant import msgconv  # noqa: E402
 from bike_plant.config import load_config  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 
-pytestmark = [pytest.mark.timeout(90), pytest.mark.faults]
+pytestmark = [pytest.mark.timeout(120), pytest.mark.faults]
 
 CFG = load_config(CONFIG)
 BATCH_S = CFG["batch_periods"] * CFG["control_period_s"]
-TIMEOUT_S = 0.4          # command_timeout_s for this test: a loaded 2-core machine stalls processes > 0.1 s
+# command_timeout_s for this test. On this 2-core machine the test's four busy processes
+# saturate both cores, and DDS then at times delivers nothing to one reader for ~1 s while the
+# writer goes on (the plant's DriveCommands: 0.92-0.98 s gaps measured, over shared memory and
+# over UDP alike, with the nodes of before the HotWait change too, while the test process got
+# the relay's output without a gap). The plant rightly times out on such a gap; what this test
+# checks is that injected loss and delay alone never make it do so.
+TIMEOUT_S = 1.5
 FAULT = PlantState.FAULT_COMMAND_TIMEOUT
-# [t_start_s, drop probability, delay_s] from the first DriveCommand
+# [t_start_s, drop probability, delay_s] from the relay's origin (first braking DriveCommand);
+# the blackout outlasts the timeout by 0.5 s
 SCHEDULE = [[0.0, 0.0, 0.0], [1.0, 0.3, 0.0], [2.0, 0.0, 0.010], [3.0, 0.2, 0.025], [4.0, 1.0, 0.0],
-            [5.0, 0.0, 0.0]]
+            [6.0, 0.0, 0.0]]
 LIMIT_A = CFG["controller"]["current_limit_a"]
 TRIP_A = CFG["bldc"]["overcurrent_trip_a"]
 OVERCURRENT = PlantState.FAULT_OVERCURRENT
@@ -97,9 +104,37 @@ def _safe_state_latency(col, states, stamps, after_wall: float):
     raise AssertionError("no ERROR diagnostic with the faulted state's stamp")
 
 
+def _relay_t0(relay) -> float | None:
+    """time.monotonic() of the first DriveCommand the relay received (its schedule's origin)."""
+    for line in relay.output().splitlines():
+        if line.startswith("relay t0 "):
+            return float(line.split()[2])
+    return None
+
+
+def _plant_wall_times(states, received) -> list[float]:
+    """Wall time (time.monotonic()) at which the plant published each state: its sim stamp plus
+    the smallest (receipt - stamp) over this and every later state. Late receipt only adds to
+    that difference; a realtime plant that resynchronises after an overrun adds to it for good,
+    hence the minimum over the states that follow, not over all."""
+    offsets = np.array([r - stamp_ns(m.header.stamp) * 1e-9 for m, r in zip(states, received)])
+    suffix_min = np.minimum.accumulate(offsets[::-1])[::-1]
+    return [stamp_ns(m.header.stamp) * 1e-9 + float(o) for m, o in zip(states, suffix_min)]
+
+
+def _largest_gap(stamps, a: float, b: float):
+    """(largest gap between consecutive stamps in [a, b], where it starts, relative to b) [s]"""
+    inside = [t for t in stamps if a <= t <= b]
+    if len(inside) < 2:
+        return (round(b - a, 3), None)
+    d = np.diff(inside)
+    k = int(np.argmax(d))
+    return (round(float(d[k]), 3), round(inside[k] - b, 3))
+
+
 def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
-    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
-                             "drive_command_raw": DriveCommand})
+    # the test follows the plant only: the relay reports when the controller's stream began
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
     procs = []
     try:
         cmd_pub = col.publisher(Command, "command")
@@ -112,15 +147,14 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 30, "controller's command subscription", procs)
         states, stamps = col.data["plant_state"], col.stamps["plant_state"]
-        raw = col.stamps["drive_command_raw"]
 
         def commanding(pred):
             def check():
                 cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
                 return pred()
             return check
-        col.wait_for(commanding(lambda: bool(raw)), 30, "the first DriveCommand", procs)
-        t0 = raw[0]
+        col.wait_for(commanding(lambda: _relay_t0(relay) is not None), 30, "the first DriveCommand", procs)
+        t0 = _relay_t0(relay)
         col.wait_for(commanding(lambda: time.monotonic() > t0 + SCHEDULE[-1][0] + 1.0), 15, "the schedule", procs)
         # the controller dies: the plant times out again, by itself
         t_kill = time.monotonic()
@@ -129,20 +163,24 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
         col.wait_for(lambda: sum(1 for m in states[n_kill:] if m.faults & FAULT) > 100, 15,
                      "100 safe batches after the controller died", procs[:2])
         assert procs[0].alive() and relay.alive()
-        states, stamps = list(states), list(stamps)
+        states, received = list(states), list(stamps)
     finally:
         for p in procs:
             p.stop()
         col.close()
     print(relay.output())
+    # when the plant made each state, on the wall clock, not when the test got it: the test
+    # process is one of the busy ones and at times gets nothing for ~1 s, then a burst
+    stamps = _plant_wall_times(states, received)
 
     def window(a, b):
         """states received in [t0 + a + 0.15, t0 + b] (the phase, its first 0.15 s trimmed)"""
         return [m for m, t in zip(states, stamps) if t0 + a + 0.15 <= t <= t0 + b]
 
     clean = window(0.5, 1.0)
-    assert clean and all(m.faults & ~OVERCURRENT == 0 for m in clean)
-    assert max(_peak(m) for m in clean) > 3.0, "the loop brakes at half command (about 34 A)"
+    seen = f"{len(clean)} states, plant log:\n{procs[0].output()[-1500:]}"
+    assert clean and all(m.faults & ~OVERCURRENT == 0 for m in clean), seen
+    assert max(_peak(m) for m in clean) > 3.0, f"the loop brakes at half command (about 34 A); {seen}"
     # No runaway: in realtime a BLDC gate sequence is applied batches after the state it was
     # computed for (late or held; round trips are several batches on a loaded machine) and the
     # hysteresis loop runs open meanwhile (100-210 A peaks were measured before the trip,
@@ -154,7 +192,12 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
         assert len(ph) > 30, (a, len(ph))
         timeouts = [round(t - t0, 3) for m, t in zip(states, stamps)
                     if m.faults & FAULT and t0 + a + 0.15 <= t <= t0 + b]
-        assert not timeouts, f"no timeout with {drop:.0%} loss and {delay * 1e3:g} ms delay: {timeouts[:5]}"
+        if timeouts:
+            t_f = t0 + timeouts[0]
+            raise AssertionError(f"no timeout with {drop:.0%} loss and {delay * 1e3:g} ms delay: {timeouts[:5]}; "
+                                 f"largest PlantState gap in the second before, as the test received them: "
+                                 f"{_largest_gap(received, t_f - 1.0, t_f)} s\n--- plant:\n{procs[0].output()[-2000:]}"
+                                 f"\n--- controller:\n{ctrl.output()[-2000:]}")
         assert not any(m.faults & PlantState.FAULT_INTERLOCK for m in ph)
         print(f"phase {drop:.0%} loss, {delay * 1e3:g} ms: peak {max(_peak(m) for m in ph):.1f} A, "
               f"mean {np.mean([_peak(m) for m in ph]):.1f} A, {len(ph)} states")

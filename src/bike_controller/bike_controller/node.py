@@ -38,7 +38,7 @@ import time
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv
 from bike_plant.config import ConfigError
-from bike_plant.node import AUX_QOS, LOOP_QOS, HotWait, run_loop_node
+from bike_plant.node import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, run_loop_node
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -96,7 +96,7 @@ class ControllerNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
         subs = [self.create_subscription(Command, "command", self._on_command, LOOP_QOS),
                 self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS),
-                self.create_subscription(PlantState, "plant_state", self._on_state, LOOP_QOS)]
+                self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode))]
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
         # the loop waits on its three topics directly (bike_plant.node.HotWait); Commands are
