@@ -1,7 +1,7 @@
 """Numba kernels of the BLDC machine + 6-switch bridge + battery + shaft (paper 000).
 
 Everything that runs once per 50 us control period lives here, compiled with
-``@njit(cache=True, error_model="numpy")``; a whole batch of N periods is one call (:func:`step_batch`), so
+``@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH)``; a whole batch of N periods is one call (:func:`step_batch`), so
 there is no Python per period. The controller's predictor calls the same
 :func:`step_period` on its own state vector (ARCHITECTURE.md, batched inner loop).
 
@@ -100,6 +100,10 @@ SECTOR_P = np.array([0, 0, 1, 1, 2, 2], dtype=np.int64)
 SECTOR_N = np.array([1, 2, 2, 0, 0, 1], dtype=np.int64)
 
 TWO_PI = 2.0 * math.pi
+# LLVM may fuse a * b + c into one FMA (one rounding instead of two) and turn x / y into
+# x * (1 / y): round-off level, the same compiled code for the plant and the controller's
+# predictor, so batched == per-period stays exact
+KERNEL_FASTMATH = {"contract", "arcp"}
 THIRD = 1.0 / 3.0          # v_n of 3 legs: sum * THIRD (a multiply, not a division, on the current path)
 SIXTH = math.pi / 3.0
 INV_SIXTH = 3.0 / math.pi
@@ -122,7 +126,7 @@ W_SYM = 34      # 1: all phases have the same L and R (fast path)
 WS_SIZE = 36
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def trapezoid(theta):
     """Unit 120-degree flat-top back-EMF shape of phase a: +1 on [30, 150] deg, -1 on [210, 330]."""
     ph = theta % TWO_PI
@@ -137,7 +141,7 @@ def trapezoid(theta):
     return -1.0 + (ph - 11.0 * TWELFTH) / TWELFTH
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def interp_table(x, xs, ys, n):
     if x <= xs[0]:
         return ys[0]
@@ -176,7 +180,7 @@ EMF_TAB = _trap_table()
 INV_TWELFTH = 6.0 / math.pi      # twelfths of a turn per radian
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def trap3(theta_e):
     """The three phases' unit trapezoids (f_a, f_b, f_c) at theta_e (f_b, f_c lag by 120,
     240 deg), tabulated per twelfth of a turn: exactly one phase is on a ramp there, the
@@ -198,7 +202,7 @@ def trap3(theta_e):
             EMF_TAB[m, 4] + EMF_TAB[m, 5] * u)
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def emf_f3(theta_e, omega, p):
     """Back-EMF shapes (f_a, f_b, f_c) at angle theta_e (non-ideal blend if enabled)."""
     fa, fb, fc = trap3(theta_e)
@@ -214,7 +218,7 @@ def emf_f3(theta_e, omega, p):
     return fa, fb, fc
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def emf_shape(theta_e, omega, p, f, off):
     """f[off + x] for the 3 phases at angle theta_e (non-ideal blend if enabled)."""
     fa, fb, fc = emf_f3(theta_e, omega, p)
@@ -223,17 +227,17 @@ def emf_shape(theta_e, omega, p, f, off):
     f[off + 2] = fc
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def sector_of(theta_e):
     return int(((theta_e - TWELFTH) % TWO_PI) // SIXTH) % 6
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def hall_of(theta_e):
     return SECTOR_TO_HALL[sector_of(theta_e)]
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def blank_interlock(gates):
     """Hardware interlock (GAL of paper 000, Fig. 10): a leg with both switches on is blanked.
 
@@ -244,7 +248,7 @@ def blank_interlock(gates):
     return g, (both & 1) + ((both >> 2) & 1) + ((both >> 4) & 1)
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def _solve(cur, co, wi, vdc, ws, t):
     """Crank-Nicolson step of the conducting legs (wi[x] > 0) from cur[co:co+3] into
     ws[W_I1:W_I1+3]; open legs get 0. Returns v_n."""
@@ -288,7 +292,7 @@ def _solve(cur, co, wi, vdc, ws, t):
     return vn
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def _topology(cur, co, gates, vdc, ws, wi, t):
     """Leg states wi[0:3] (0 open, 1 at 0 V, 2 at v_dc) for pattern `gates` and the
     currents; wi[3:6] = 1 for diode-only legs. Returns True if the conducting legs were
@@ -372,7 +376,7 @@ def _topology(cur, co, gates, vdc, ws, wi, t):
     return False
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def _open_leg(ua, ub, uz0, ez, vdc, r, iz, pos):
     """sym_legs with one leg z open (zero current): u_a, u_b of the conducting legs, z at
     phase position pos (0, 1, 2; sums run in phase order, as _solve's). Returns (w_z, v_n,
@@ -408,7 +412,7 @@ def _open_leg(ua, ub, uz0, ez, vdc, r, iz, pos):
 LEG_GUESS = np.array([0, 1, 2,   2, 2, 2,   1, 1, 1,   2, 2, 2], dtype=np.int64)
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     """_topology + _solve for the symmetric machine (equal L, R in all phases) with >= 2
     conducting legs, as scalars. Returns (ok, w0, w1, w2, d0, d1, d2): leg states as in
@@ -456,13 +460,13 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
 NO_LEGS = (-1, False, 0, 0, 0, 0.0, 0.0, 0.0)   # legs argument of sym_segment: none computed yet
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def cn_gain(t, L, r):
     """g(t) = t / (L + R t / 2) of the Crank-Nicolson step (the expression of _solve)."""
     return t / (L + 0.5 * r * t)
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def _fast_sym(cur, co, gates, vdc, ws, wi, t):
     """sym_legs + the step of t seconds into ws[W_I1:] / wi, the array form electrical_segment
     uses. Returns False (nothing written) when the general iteration is needed."""
@@ -483,7 +487,7 @@ def _fast_sym(cur, co, gates, vdc, ws, wi, t):
     return True
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def electrical_segment(cur, co, gates, t_seg, vdc, ws, wi, kph, acc):
     """Advance the currents cur[co:co+3] (in place) through t_seg seconds of pattern `gates`.
 
@@ -561,7 +565,7 @@ def electrical_segment(cur, co, gates, t_seg, vdc, ws, wi, kph, acc):
         remaining -= t
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def phase_inductance(theta_e, omega, p, ws):
     """ws[W_L+x] = L_x(theta_e); ws[W_R+x] = R + dL_x/dt (i dL/dt acts like a signed
     resistance); ws[W_RP+x] = R; ws[W_DL+x] = dL_x/dtheta_m."""
@@ -584,7 +588,7 @@ def phase_inductance(theta_e, omega, p, ws):
     ws[W_SYM] = 1.0 if eps == 0.0 else 0.0
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def stored_energy(state, p):
     ws = np.zeros(WS_SIZE)
     phase_inductance(state[S_THETA_E], 0.0, p, ws)
@@ -594,12 +598,12 @@ def stored_energy(state, p):
     return w
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def battery_voc(soc, p):
     return p[P.P_V_EMPTY] + (p[P.P_V_FULL] - p[P.P_V_EMPTY]) * soc
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def init_state(state, p, speed_rad_s, soc0):
     state[:] = 0.0
     state[S_OMEGA] = speed_rad_s
@@ -612,7 +616,7 @@ def init_state(state, p, speed_rad_s, soc0):
     state[S_E_STORED0] = stored_energy(state, p)
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def period_setup(state, p, ws):
     """Back-EMF and inductances of the coming period, evaluated at its mid angle and held."""
     omega = state[S_OMEGA]
@@ -624,7 +628,7 @@ def period_setup(state, p, ws):
     phase_inductance(th_mid, omega, p, ws)
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def trial_currents(state, p, gates, ws, wi):
     """Currents at the end of the coming period if `gates` were held for all of it, into
     ws[W_TRIAL:W_TRIAL+3]; returns the feedback (|ia| + |ib| + |ic|) / 2. No state change.
@@ -659,7 +663,7 @@ KC_INV_GEAR = 14       # 1 / gear ratio (rider: cadence = w / gear, crank torque
 KC_INV_CADMAX = 15     # 1 / rider maximum cadence [s / rad]
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def plant_constants(p):
     """Per-parameter-set constants (KC_* layout), a tuple the period loop keeps in registers."""
     dt = p[P.P_DT]
@@ -671,7 +675,7 @@ def plant_constants(p):
             1.0 / p[P.P_GEAR], 1.0 / p[P.P_RIDER_CADMAX])
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def emf_sym(state, p):
     """period_setup's back-EMF as scalars (f_a, f_b, f_c, e_a, e_b, e_c): shape and
     e_x = kph w f_x at the mid-period angle, held for the period."""
@@ -682,7 +686,7 @@ def emf_sym(state, p):
     return f0, f1, f2, kw * f0, kw * f1, kw * f2
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def _ws_setup_sym(ws, emf, c):
     """What period_setup leaves in ws for the symmetric machine (for the general path)."""
     for x in range(3):
@@ -695,7 +699,7 @@ def _ws_setup_sym(ws, emf, c):
     ws[W_SYM] = 1.0
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def legs_of(i0, i1, i2, gates, vdc, emf, c):
     """sym_legs tagged with the (interlock-applied) pattern: (gates, ok, w0, w1, w2, d0, d1, d2).
     The controller's trial computes this for the pattern the plant starts the period with;
@@ -704,7 +708,7 @@ def legs_of(i0, i1, i2, gates, vdc, emf, c):
     return (gates, ok, w0, w1, w2, d0, d1, d2)
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, a4):
     """electrical_segment's sums for one step of t seconds (i -> j) of the symmetric machine,
     where dL/dt = dL/dtheta = 0 (exact zeros there), with the mean currents factored:
@@ -725,7 +729,7 @@ def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, 
     return a1, a2, a3, a4
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def _crossing(gates, i0, i1, i2, j0, j1, j2):
     """Diode-only legs (no switch on) whose current reaches zero within the step i -> j."""
     # short-circuit in the order of rarity: a sign change is the exception
@@ -734,7 +738,7 @@ def _crossing(gates, i0, i1, i2, j0, j1, j2):
             (i2 * j2 <= 0.0 and i2 != 0.0 and (gates & 48) == 0))
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2, a3, a4, ws, wi):
     """electrical_segment for the symmetric machine with the currents in registers.
 
@@ -832,7 +836,7 @@ def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2
     return _segment_general(cur, co, i0, i1, i2, gates, rest, vdc, emf, c, ledger, a1, a2, a3, a4, ws, wi)
 
 
-@njit(cache=True, error_model="numpy", forceinline=False, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False, _nrt=False)
 def _segment_general(cur, co, i0, i1, i2, gates, t, vdc, emf, c, ledger, a1, a2, a3, a4, ws, wi):
     """electrical_segment (topology iteration, sub-steps) for what sym_segment does not do,
     on cur[co:co+3] with ws set up as period_setup would for the symmetric machine."""
@@ -849,7 +853,7 @@ def _segment_general(cur, co, i0, i1, i2, gates, t, vdc, emf, c, ledger, a1, a2,
     return cur[co], cur[co + 1], cur[co + 2], ws[W_ACC + 1], ws[W_ACC + 2], ws[W_ACC + 3], ws[W_ACC + 4]
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def trial_sym(state, gates, emf, legs, c, ws, wi):
     """trial_currents for the symmetric machine: (|ia| + |ib| + |ic|) / 2 at the end of the
     coming period if `gates` (interlock-safe) were held for all of it. No state change;
@@ -860,7 +864,7 @@ def trial_sym(state, gates, emf, legs, c, ws, wi):
     return 0.5 * (abs(j0) + abs(j1) + abs(j2))
 
 
-@njit(cache=True, error_model="numpy", forceinline=False, _nrt=False, inline="never")
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False, _nrt=False, inline="never")
 def _overcurrent_trip(state):
     """Count a tripped period and set FAULT_OVERCURRENT. Returns the gates of the period (0).
 
@@ -871,7 +875,7 @@ def _overcurrent_trip(state):
     return 0
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def _interlock_and_split(state, p, gates_a, gates_b, split):
     """Interlock (blank shorted legs, count, fault), the overcurrent trip and the clamped
     split of one period.
@@ -901,7 +905,7 @@ def _interlock_and_split(state, p, gates_a, gates_b, split):
     return int(ga), int(gb), s
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, edge_counts, edge_states, n_edges, ws, wi):
     """step_period for the symmetric machine (c[KC_SYM] != 0): the currents stay in
     registers through both segments (sym_segment). emf: emf_sym(state, p); legs_a:
@@ -930,7 +934,7 @@ def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, edge_coun
     return period_tail(state, p, c, a1, a2, state[S_OMEGA] * a4, a4, edge_counts, edge_states, n_edges)
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def step_period(state, p, c, gates_a, gates_b, split, edge_counts, edge_states, n_edges, ws, wi, setup_done):
     """One control period: electrical (2 segments), Hall edges, DC bus, shaft. Returns n_edges.
 
@@ -956,7 +960,7 @@ def step_period(state, p, c, gates_a, gates_b, split, edge_counts, edge_states, 
                        edge_counts, edge_states, n_edges)
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_states, n_edges):
     """The rest of a period after the electrical segments: Hall edges, DC bus, shaft.
 
@@ -1047,7 +1051,7 @@ def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_st
     return n_edges
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def _hall_edges(state, p, k, u0, u1, du, periods, direction, edge_counts, edge_states, n_edges):
     """Hall edges k, k +- 1, ... of a period that crosses sector boundaries (u in sixths of
     a turn from 30 deg; direction +1 forward, -1 backward). Returns n_edges."""
@@ -1073,7 +1077,7 @@ def _hall_edges(state, p, k, u0, u1, du, periods, direction, edge_counts, edge_s
     return n_edges
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def cos_poly(x):
     """cos(x) for x in [0, 4 pi] (wider x: math.cos) without a libm call: reduced to
     y = |x - 2 pi k| in [0, pi], then cos(y) = -cos(pi - y) folds it onto [0, pi / 2], where
@@ -1105,7 +1109,7 @@ def cos_poly(x):
     return sgn * c
 
 
-@njit(cache=True, error_model="numpy", forceinline=True, _nrt=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def _rider(state, p, c, omega, dt):
     """Rider load (LoadParams): PI effort on cadence, crank torque with two peaks per turn,
     T_crank = effort T0 max(0, 1 - cad / cad_max) (1 + cos(2 crank) / 2) (bike_plant.mechanics).
@@ -1135,7 +1139,7 @@ def _rider(state, p, c, omega, dt):
     return t_crank * inv_gear
 
 
-@njit(cache=True, error_model="numpy", forceinline=False)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
 def step_batch(state, p, gates_a, gates_b, split, edge_counts, edge_states, samples, sums):
     """N periods. samples[k] = phase currents at the end of period k; sums = [sum T_em,
     sum T_load, sum i_batt] over the periods. Returns the number of Hall edges captured."""
