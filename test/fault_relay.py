@@ -11,7 +11,7 @@ delay, order kept. The phase in force and counts go to stdout, and the schedule'
 ``relay t0 <time.monotonic()>`` (one clock for every process of the machine), so that the
 test need not follow the controller's 1 kHz stream itself.
 
-The relay waits on its input through bike_plant.node.HotWait (one wait set, no executor per
+The relay waits on its input through bike_plant.loop.HotWait (one wait set, no executor per
 message): on a 2-core machine every process of the test competes with the loop it observes."""
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ import time
 
 import rclpy
 from bike_msgs.msg import DriveCommand
-from bike_plant.node import LOOP_QOS, HotWait
+from bike_plant.loop import LOOP_QOS, HotWait
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 

@@ -87,7 +87,7 @@ class Collector:
     """The test's own node: records what the bike publishes, publishes what the test needs."""
 
     def __init__(self, domain: int, topics: dict, ns: str = "/bike"):
-        from bike_plant.node import AUX_QOS, LOOP_QOS
+        from bike_plant.loop import AUX_QOS, LOOP_QOS
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain)

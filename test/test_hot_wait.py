@@ -1,4 +1,4 @@
-"""bike_plant.node.HotWait: the loop nodes' wait on their hot topics (one reused rcl wait
+"""bike_plant.loop.HotWait: the loop nodes' wait on their hot topics (one reused rcl wait
 set, messages taken directly) must deliver every message once and in order, and keep the
 rest of the node (timers, parameter services) served through the executor."""
 from __future__ import annotations
@@ -27,7 +27,7 @@ def test_hot_wait_delivers_every_message_in_order_and_serves_the_rest(node):
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import UInt64
 
-    from bike_plant.node import HotWait
+    from bike_plant.loop import HotWait
 
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     got, ticks = [], []

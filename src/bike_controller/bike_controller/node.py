@@ -38,7 +38,8 @@ import time
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv
 from bike_plant.config import ConfigError
-from bike_plant.node import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, run_loop_node
+from bike_plant.loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos
+from bike_plant.node import run_loop_node
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -99,7 +100,7 @@ class ControllerNode(Node):
                 self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode))]
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
-        # the loop waits on its three topics directly (bike_plant.node.HotWait); Commands are
+        # the loop waits on its three topics directly (bike_plant.loop.HotWait); Commands are
         # taken before the PlantState that may need them
         self.hot = HotWait(self.executor_, subs, self.context)
 

@@ -386,13 +386,13 @@ def main(args=None) -> int:
     executor = None
     rc = 0
     try:
-        from bike_plant.node import HotWait
+        from bike_plant.loop import HotWait
         from rclpy.executors import SingleThreadedExecutor
 
         node = _make_node_class()()
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        # /clock comes every batch: taken straight from a wait set (bike_plant.node.HotWait),
+        # /clock comes every batch: taken straight from a wait set (bike_plant.loop.HotWait),
         # the timer and parameter services through the executor
         hot = HotWait(executor, [node.sub_clock], node.context)
         while rclpy.ok() and not node.done:

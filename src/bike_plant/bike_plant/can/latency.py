@@ -77,7 +77,7 @@ def can_latency(n: int = 500, rate_hz: float = 200.0, config: str | os.PathLike 
 
     from .. import msgconv
     from ..config import default_config_path
-    from ..node import AUX_QOS, LOOP_QOS
+    from ..loop import AUX_QOS, LOOP_QOS
 
     base = pathlib.Path(config) if config else default_config_path().with_name("bldc_can.yaml")
     port = port or random.SystemRandom().randint(41000, 48999)

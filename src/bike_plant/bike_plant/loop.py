@@ -1,0 +1,79 @@
+"""The loop nodes' shared transport pieces (plant, controller, session; no physics here):
+the loop topics' QoS and HotWait, the wait on a node's hot topics."""
+from __future__ import annotations
+
+import time
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+LOOP_QOS = QoSProfile(depth=200, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+AUX_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+# Realtime mode, the loop's readers (plant <- DriveCommand, controller <- PlantState): best
+# effort. A reliable reader delivers in order, so a sample lost in transport would hold back
+# every newer one until the writer repaired it. In real time a lost setpoint is held and the
+# next one supersedes it; a late one is worse than none. The writers stay reliable, so a
+# reliable reader (the recorder) still gets every sample.
+REALTIME_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT,
+                          durability=DurabilityPolicy.VOLATILE)
+
+
+def loop_reader_qos(sync_mode: str) -> QoSProfile:
+    """QoS of a loop subscription: every sample in lockstep, the newest in realtime."""
+    return REALTIME_QOS if sync_mode == "realtime" else LOOP_QOS
+
+
+class HotWait:
+    """The loop's wait: the few subscriptions a node waits on in its loop (the hot topics)
+    taken straight from one rcl wait set, the pattern of rclpy's own wait_for_message.
+
+    ``SingleThreadedExecutor.spin_once`` builds a new wait set over every entity of the node
+    (parameter services, QoS event handlers of each publisher, ...) and runs a generator and a
+    task per message: about 150 us of Python for each message, more than the message's DDS
+    round trip on this machine, paid by the plant, the controller and the session on every
+    batch. Here a message costs one wait and one take. The node's other entities (parameter
+    services, timers, subscriptions that are not hot) are still served by ``executor``, which
+    also sees the hot subscriptions (same callbacks): at most every ``aux_period_s`` wall
+    seconds and whenever a wait ends without a hot message."""
+
+    def __init__(self, executor, subscriptions, context, aux_period_s: float = 0.05):
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+        self.executor = executor
+        self.subs = list(subscriptions)
+        self.wait_set = _rclpy.WaitSet(len(self.subs), 0, 0, 0, 0, 0, context.handle)
+        self.aux_period_s = aux_period_s
+        self.next_aux = 0.0
+
+    def _take_all(self) -> int:
+        handled = 0
+        for sub in self.subs:
+            handle = sub.handle
+            with handle:
+                while True:
+                    taken = handle.take_message(sub.msg_type, sub.raw)
+                    if taken is None:
+                        break
+                    sub.callback(taken[0])
+                    handled += 1
+        return handled
+
+    def spin(self, timeout_s: float) -> int:
+        """Run the callback of every hot message waiting (waiting up to ``timeout_s`` for the
+        first one); serve the rest of the node when due. Returns the hot messages handled."""
+        now = time.monotonic()
+        if now >= self.next_aux:
+            self.next_aux = now + self.aux_period_s
+            self.executor.spin_once(timeout_sec=0.0)
+        handled = self._take_all()
+        if handled or timeout_s <= 0.0:
+            return handled
+        ws = self.wait_set
+        ws.clear_entities()
+        for sub in self.subs:
+            ws.add_subscription(sub.handle)
+        ws.wait(int(timeout_s * 1e9))
+        handled = self._take_all()
+        if not handled:
+            self.next_aux = 0.0      # idle: the rest of the node is served on the next call
+        return handled
