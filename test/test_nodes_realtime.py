@@ -87,9 +87,12 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         errors = [s for a in col.data["/diagnostics"] for s in a.status
                   if s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR]
         assert errors and "no DriveCommand" in errors[0].message and "safe state" in errors[0].message
-        # the ERROR diagnostic is published with the faulted batch (same sim stamp)
-        diag = next(a for a in col.data["/diagnostics"] if any(s.level == DiagnosticStatus.ERROR for s in a.status))
-        assert stamp_ns(diag.header.stamp) == stamp_ns(states[i_fault].header.stamp)
+        # an ERROR diagnostic is published with the faulted batch (same sim stamp); not
+        # necessarily the first one: a saturated machine can starve the loop of DDS delivery
+        # for ~1 s before the kill (README, DDS gaps in realtime mode), a timeout of its own
+        fault_ns = stamp_ns(states[i_fault].header.stamp)
+        assert any(stamp_ns(a.header.stamp) == fault_ns and any(s.level == DiagnosticStatus.ERROR for s in a.status)
+                   for a in col.data["/diagnostics"]), "no ERROR diagnostic with the faulted batch's stamp"
         assert plant.alive()
 
         # a new controller: commands return, the fault clears, braking resumes
