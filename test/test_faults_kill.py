@@ -11,7 +11,9 @@ Semantics (lockstep, the default):
   diagnostic); a restarted session resumes the profile and finishes it;
 - recorder killed: the plant gives it up after recorder_timeout_s (ERROR diagnostic) and runs
   on; a restarted recorder (new bag name) records the rest; the killed bag is recovered;
-- plant killed: the controller says the plant went silent; the graph stays up, idle.
+- plant killed: the controller says the plant went silent; the graph stays up, idle. A
+  restarted plant starts a new run (its machine state died with it): the controller starts a
+  new law, the session follows the clock back with one WARN diagnostic, and the run ends DONE.
 (Realtime: a killed controller is in test_faults_relay.py and test_nodes_realtime.py.)
 """
 from __future__ import annotations
@@ -234,6 +236,55 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim):
     else:
         recorded = _dedupe_seqs(read_topic(tmp_path / "run", "plant_state"))
         assert recorded == seqs, "the recorder kept every batch across the restart"
+
+
+def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_path):
+    """A restarted plant starts a new run from seq 0 (its machine state died with it). The
+    controller starts a new law, and the session follows the plant's clock back with one
+    WARN diagnostic (it used to log every /clock message until the new run caught up), so
+    the new run gets the profile from its start and ends with the session DONE."""
+    duration = 3.0
+    rng = random.Random("restart-plant")
+    kill_at_seq = rng.randint(800, 1600)
+    domain = rng.randint(1, 200)
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
+                             "session_status": SessionStatus})
+    procs = _graph(col, domain, tmp_path, duration, record=False)
+    everyone = list(procs.values())
+    try:
+        states = col.data["plant_state"]
+        col.wait_for(lambda: states and states[-1].seq >= kill_at_seq, 60, f"seq {kill_at_seq}", everyone)
+        procs["plant"].signal(signal.SIGKILL)
+        procs["plant"].wait(5.0)
+        n_kill = len(states)
+        seq_at_kill = int(states[-1].seq)
+        plant2 = NodeProcess("bike_plant", "plant_node", domain,
+                             {"duration_s": duration, "republish_s": 0.3, "start_timeout_s": 30.0,
+                              "recorder_window_batches": 0})
+        everyone.append(plant2)
+        others = [procs["controller"], procs["session"], plant2]
+        col.wait_for(lambda: any(m.end_of_run for m in states[n_kill:]), 60, "the new run's end", others)
+        col.wait_for(lambda: any(s.state == SessionStatus.STATE_DONE for s in col.data["session_status"]),
+                     10, "the session's DONE", others)
+        assert plant2.wait(10) == 0, plant2.output()
+        assert procs["session"].wait(10) == 0, procs["session"].output()
+    finally:
+        codes = {name: p.stop() for name, p in procs.items() if name != "plant"}
+        for p in everyone[len(procs):]:
+            p.stop()
+        col.close()
+    assert codes["controller"] == 0, codes
+    new_run = _dedupe_seqs(states[n_kill:])
+    assert new_run[0] < seq_at_kill and new_run == list(range(new_run[0], round(duration / BATCH_S) + 1))
+    # one warning from the session, not one per /clock message of the new run
+    restarts = [t for t in _diag_texts(col, DiagnosticStatus.WARN, "session") if "plant restarted" in t]
+    assert len(restarts) == 1, restarts
+    assert procs["session"].output().count("went back") == 1, procs["session"].output()[-2000:]
+    assert "the plant restarted, starting a new run" in procs["controller"].output()
+    # the session's progress restarted with the new run and ran to its end
+    elapsed = [s.elapsed_s for s in col.data["session_status"]]
+    k_back = next(i for i in range(1, len(elapsed)) if elapsed[i] < elapsed[i - 1])
+    assert elapsed[k_back] < seq_at_kill * BATCH_S and max(elapsed[k_back:]) >= duration - 1e-9
 
 
 def test_lockstep_controller_killed_for_good_ends_the_run_with_one_error(tmp_path):

@@ -295,8 +295,19 @@ def _make_node_class():
                 return
             t_ns = msg.clock.sec * 1_000_000_000 + msg.clock.nanosec
             if self.last_t_ns is not None and t_ns < self.last_t_ns:
-                self.get_logger().warning(f"/clock went backwards ({self.last_t_ns} -> {t_ns} ns); ignored")
-                return
+                # one writer delivers /clock in order: time going back is a new run of the plant
+                # (restarted after a crash). The profile is a function of sim time, so the
+                # session follows it: the Commands from the one in force at t again (same stamps
+                # and values as before, so the controller's timeline does not change)
+                self.get_logger().warning(
+                    f"/clock went back from {self.last_t_ns * 1e-9:g} s to {t_ns * 1e-9:g} s: the plant "
+                    f"restarted (a new run); the profile follows it from t = {t_ns * 1e-9:g} s")
+                self.last_t_ns = t_ns                          # the diagnostic's stamp
+                self._publish_diag(f"plant restarted: the profile follows it from t = {t_ns * 1e-9:g} s",
+                                   self._DiagnosticStatus.WARN)
+                self.last_t_ns = None
+                self.next_j = t_ns // self.period_ns
+                self.last_status_k = self.next_j - 1
             previous_ns = self.last_t_ns
             self.last_t_ns = t_ns
             if previous_ns == t_ns:
