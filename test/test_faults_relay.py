@@ -177,7 +177,9 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
         """states received in [t0 + a + 0.15, t0 + b] (the phase, its first 0.15 s trimmed)"""
         return [m for m, t in zip(states, stamps) if t0 + a + 0.15 <= t <= t0 + b]
 
-    clean = window(0.5, 1.0)
+    # the whole clean phase (a reliable reader can still lose states: the plant's writer keeps
+    # the last 200, and DDS at times delivers nothing to a reader for ~1 s, see TIMEOUT_S)
+    clean = window(0.0, 1.0)
     seen = f"{len(clean)} states, plant log:\n{procs[0].output()[-1500:]}"
     assert clean and all(m.faults & ~OVERCURRENT == 0 for m in clean), seen
     assert max(_peak(m) for m in clean) > 3.0, f"the loop brakes at half command (about 34 A); {seen}"
