@@ -186,11 +186,13 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim):
             # test's reader is not in the loop and lags the lockstep graph by hundreds of batches
             # on a loaded machine, so the held seq is the plant's own word (its diagnostic), and
             # the test then waits until it has caught up with it
-            col.wait_for(lambda: any("run held" in t for t in _diag_texts(col, DiagnosticStatus.WARN, "plant")),
-                         10, "the plant's 'run held' diagnostic", others)
-            # (the newest: a plant that started before the controller was held at seq 0 too)
-            held = max(int(t.split("for seq ")[1].split()[0])
-                       for t in _diag_texts(col, DiagnosticStatus.WARN, "plant") if "run held" in t)
+            def held_at() -> int:
+                """seq of the newest 'run held' diagnostic (-1: none); a plant that started
+                before its controller was held at seq 0 too"""
+                return max((int(t.split("for seq ")[1].split()[0])
+                            for t in _diag_texts(col, DiagnosticStatus.WARN, "plant") if "run held" in t), default=-1)
+            col.wait_for(lambda: held_at() >= seq_at_kill, 10, "the plant's 'run held' diagnostic", others)
+            held = held_at()
             col.wait_for(lambda: int(states[-1].seq) >= held, 10, f"the test's reader at seq {held}", others)
             time.sleep(0.5)
             assert seq_at_kill <= held and int(states[-1].seq) == held, \
