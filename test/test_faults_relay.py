@@ -174,7 +174,7 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
     stamps = _plant_wall_times(states, received)
 
     def window(a, b):
-        """states received in [t0 + a + 0.15, t0 + b] (the phase, its first 0.15 s trimmed)"""
+        """states the plant made in [t0 + a + 0.15, t0 + b] (the phase, its first 0.15 s trimmed)"""
         return [m for m, t in zip(states, stamps) if t0 + a + 0.15 <= t <= t0 + b]
 
     # the whole clean phase (a reliable reader can still lose states: the plant's writer keeps

@@ -72,6 +72,14 @@ class EmptyPackGuard:
                          battery_soc, self.empty_soc, what)
         self.active = True
 
+    def hold_while_empty(self, battery_soc, what: str) -> None:
+        """For a law that holds the assist itself (the SPMSM isokinetic speed loop): count a
+        held step while the pack is empty, end the episode once it is not."""
+        if self.empty(battery_soc):
+            self.hold(battery_soc, what)
+        else:
+            self.active = False
+
     def limit(self, brake_torque_nm: float, battery_soc) -> float:
         empty = self.empty(battery_soc)
         if empty and brake_torque_nm < 0.0:

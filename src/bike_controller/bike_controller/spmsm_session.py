@@ -104,15 +104,11 @@ class ModedSpmsmController(SessionCommand):
         inner = self.inner
         out = self.law.step(self.command, self.mode, speed_rpm, dt_s)
         self.last_out = out
-        empty = self.pack.empty(self.battery_soc)
-        inner.set_no_assist(empty)
+        inner.set_no_assist(self.pack.empty(self.battery_soc))
         if self.mode == MODE_ISOKINETIC and not out.ramping:
             self.trim.reset()
-            if empty:
-                # the speed loop may brake (charging) but not motor: held inside its 1 ms law
-                self.pack.hold(self.battery_soc, "the isokinetic speed loop's assist")
-            else:
-                self.pack.active = False
+            # the speed loop may brake (charging) but not motor: held inside its 1 ms law
+            self.pack.hold_while_empty(self.battery_soc, "the isokinetic speed loop's assist")
             inner.set_relay(False)
             target = out.target * self.gear
             inner.set_speed_ref(target, target)

@@ -2,8 +2,9 @@
 
 Everything that runs once per 50 us control period lives here, compiled with
 ``@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH)``; a whole batch of N
-periods is one call (:func:`step_batch`), so there is no Python per period. The controller's predictor calls the same
-:func:`step_period` on its own state vector (ARCHITECTURE.md, batched inner loop).
+periods is one call (:func:`step_batch`), so there is no Python per period. The
+controller's predictor calls the same :func:`step_period` on its own state vector
+(ARCHITECTURE.md, batched inner loop).
 
 Electrical model (per phase x = a, b, c; terminal voltage v_x w.r.t. DC minus):
     v_x = v_n + R i_x + L_x di_x/dt + i_x dL_x/dt + e_x,   e_x = kph * w_m * f_x(theta_e)

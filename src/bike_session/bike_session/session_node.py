@@ -273,7 +273,8 @@ def _make_node_class():
             msg.mode = int(mode)
             self.pub_status.publish(msg)
 
-        def _publish_diag(self, message: str, level: int | None = None) -> None:
+        def _publish_diag(self, message: str, level: int | None = None, t_ns: int | None = None) -> None:
+            """A diagnostic stamped with sim time ``t_ns`` (default: the last /clock)."""
             st = self._DiagnosticStatus()
             st.level = self._DiagnosticStatus.OK if level is None else level
             st.name = f"{self.get_fully_qualified_name()}"
@@ -282,7 +283,8 @@ def _make_node_class():
             st.values = [self._KeyValue(key="profile", value=self.profile.name),
                          self._KeyValue(key="commands_published", value=str(self.commands_published))]
             arr = self._DiagnosticArray()
-            arr.header.stamp.sec, arr.header.stamp.nanosec = divmod(max(self.last_t_ns or 0, 0), 1_000_000_000)
+            stamp = self.last_t_ns if t_ns is None else t_ns
+            arr.header.stamp.sec, arr.header.stamp.nanosec = divmod(max(stamp or 0, 0), 1_000_000_000)
             arr.status = [st]
             self.pub_diag.publish(arr)
 
@@ -302,9 +304,8 @@ def _make_node_class():
                 self.get_logger().warning(
                     f"/clock went back from {self.last_t_ns * 1e-9:g} s to {t_ns * 1e-9:g} s: the plant "
                     f"restarted (a new run); the profile follows it from t = {t_ns * 1e-9:g} s")
-                self.last_t_ns = t_ns                          # the diagnostic's stamp
                 self._publish_diag(f"plant restarted: the profile follows it from t = {t_ns * 1e-9:g} s",
-                                   self._DiagnosticStatus.WARN)
+                                   self._DiagnosticStatus.WARN, t_ns)
                 self.last_t_ns = None
                 self.next_j = t_ns // self.period_ns
                 self.last_status_k = self.next_j - 1
