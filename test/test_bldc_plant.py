@@ -336,3 +336,49 @@ def test_kernel_trapezoid_table_and_rider_cos_match_their_references():
         st[K.S_RIDER_INT] = 0.4
         t_kernel = K._rider(st, p, c, w, 0.0)          # dt = 0: the effort is kp err + 0.4
         assert t_kernel == pytest.approx(rider_motor_torque_nm(st[K.S_EFFORT], w, crank, load), rel=1e-12)
+
+
+def test_legs_moved_equals_a_fresh_topology_solution_at_the_new_currents(cfg):
+    """The second segment reuses the trial's bridge solution (legs_moved): with the diode
+    legs' sign classes unchanged it equals sym_legs at the new currents (round-off), and a
+    diode leg whose current changed sign is refused (tag -1: solve afresh)."""
+    p = P.pack_params(P.plant_params_from_config(cfg))
+    c = K.plant_constants(p)
+    r = c[K.KC_R]
+    rng = np.random.default_rng(3)
+    checked = refused = 0
+    for _ in range(3000):
+        gates = int(rng.integers(0, 64))
+        gates, _nb = K.blank_interlock(gates)
+        emf = tuple(float(x) for x in rng.uniform(-1, 1, 3)) + tuple(float(x) for x in rng.uniform(-30, 30, 3))
+        vdc = float(rng.uniform(40, 56))
+        i = rng.normal(0, 10, 3)
+        if rng.random() < 0.5:                     # one leg at exactly zero current
+            z = int(rng.integers(0, 3))
+            i[z] = 0.0
+            a, b = [x for x in range(3) if x != z]
+            i[b] = -i[a]
+        else:
+            i[2] = -i[0] - i[1]
+        dj = rng.normal(0, 3, 3)
+        dj -= dj.mean()
+        dj[i == 0.0] = 0.0
+        if (i == 0.0).any():                      # keep the two conducting currents opposite
+            a, b = [x for x in range(3) if i[x] != 0.0]
+            dj[b] = -dj[a]
+        j = i + dj
+        legs = K.legs_of(i[0], i[1], i[2], gates, vdc, emf, c)
+        moved = K.legs_moved(legs, i[0], i[1], i[2], j[0], j[1], j[2], r)
+        fresh = K.legs_of(j[0], j[1], j[2], gates, vdc, emf, c)
+        diode = [((gates >> (2 * x)) & 3) == 0 for x in range(3)]
+        flipped = any(diode[x] and np.sign(i[x]) != np.sign(j[x]) for x in range(3))
+        if not legs[1]:
+            continue
+        if flipped:
+            assert moved[0] == -1
+            refused += 1
+            continue
+        assert moved[0] == gates and moved[1:5] == fresh[1:5], (gates, i, j, moved, fresh)
+        assert np.allclose(moved[5:], fresh[5:], rtol=1e-12, atol=1e-9), (moved, fresh)
+        checked += 1
+    assert checked > 1000 and refused > 100

@@ -279,7 +279,7 @@ def control_period_sym(cs, q, model, p, c, ws, wi):
     icmd = cs[C_ICMD]
     if sector < 0 or icmd <= 0.0:
         cs[C_ON] = 0.0
-        return 0, 0, 1.0, emf, K.NO_LEGS
+        return 0, 0, 1.0, emf, K.NO_LEGS, K.NO_LEGS
     on_pat, off_pat = patterns(sector, int(cs[C_MODE]))
     i0 = model[K.S_IA]
     i1 = model[K.S_IB]
@@ -291,11 +291,12 @@ def control_period_sym(cs, q, model, p, c, ws, wi):
     legs = K.legs_of(i0, i1, i2, pat, vdc, emf, c)
     i_end = K.trial_sym(model, pat, emf, legs, c, ws, wi)
     if _edge_needed(q, icmd, on, i_fb, i_end):
-        i_other = K.trial_sym(model, off_pat if on else on_pat, emf, K.NO_LEGS, c, ws, wi)
+        legs_o = K.legs_of(i0, i1, i2, off_pat if on else on_pat, vdc, emf, c)
+        i_other = K.trial_sym(model, off_pat if on else on_pat, emf, legs_o, c, ws, wi)
         a, b, s = _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other)
-        return a, b, s, emf, legs
+        return a, b, s, emf, legs, legs_o
     cs[C_ON] = 1.0 if on else 0.0
-    return pat, pat, 1.0, emf, legs
+    return pat, pat, 1.0, emf, legs, K.NO_LEGS
 
 
 @njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=True, _nrt=False)
@@ -304,9 +305,9 @@ def closed_loop_period(cs, q, model, p, c, ws, wi, edge_counts, edge_states):
     run_fused the plant itself), Hall edges fed back to Eq. 1. Returns (gates_a, gates_b,
     split) as sent to the plant."""
     if c[K.KC_SYM] != 0.0:
-        a, b, s, emf, legs = control_period_sym(cs, q, model, p, c, ws, wi)
+        a, b, s, emf, legs_a, legs_b = control_period_sym(cs, q, model, p, c, ws, wi)
         s = np.float64(np.float32(s))    # DriveCommand carries split as float32: predict what the plant gets
-        ne = K.step_period_sym(model, p, c, a, b, s, emf, legs, edge_counts, edge_states, 0, ws, wi)
+        ne = K.step_period_sym(model, p, c, a, b, s, emf, legs_a, legs_b, edge_counts, edge_states, 0, ws, wi)
     else:
         a, b, s = control_period(cs, q, model, p, ws, wi)
         s = np.float64(np.float32(s))

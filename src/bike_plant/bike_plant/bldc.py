@@ -710,6 +710,29 @@ def legs_of(i0, i1, i2, gates, vdc, emf, c):
 
 
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+def legs_moved(legs, i0, i1, i2, j0, j1, j2, r):
+    """legs_of(i0, i1, i2, ...) carried to the currents j0, j1, j2 of the same pattern, v_dc
+    and EMF, without a second topology solution: sym_legs' leg states depend on the currents
+    only through the signs of the diode-only (no switch on) legs, and its directions are
+    d_x = v_x - e_x - R i_x - v_n with v_n free of the currents (3 legs: the mean of
+    v - e; 2 legs: the two conducting currents sum to zero), so d_x(j) = d_x(i) - R (j_x - i_x)
+    (round-off level apart). When a diode-only leg's current changed sign class (zero,
+    positive, negative) the states may differ: returns NO_LEGS' tag (-1), and sym_segment
+    solves afresh. Used for a period's second segment: the controller's trial of that
+    pattern from the period's start currents is the legs."""
+    gates = legs[0]
+    if legs[1]:
+        if (gates & 3) == 0 and ((i0 > 0.0) != (j0 > 0.0) or (i0 < 0.0) != (j0 < 0.0)):
+            gates = -1
+        if (gates & 12) == 0 and ((i1 > 0.0) != (j1 > 0.0) or (i1 < 0.0) != (j1 < 0.0)):
+            gates = -1
+        if (gates & 48) == 0 and ((i2 > 0.0) != (j2 > 0.0) or (i2 < 0.0) != (j2 < 0.0)):
+            gates = -1
+    return (gates, legs[1], legs[2], legs[3], legs[4], legs[5] - r * (j0 - i0) if legs[2] > 0 else 0.0,
+            legs[6] - r * (j1 - i1) if legs[3] > 0 else 0.0, legs[7] - r * (j2 - i2) if legs[4] > 0 else 0.0)
+
+
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, a4):
     """electrical_segment's sums for one step of t seconds (i -> j) of the symmetric machine,
     where dL/dt = dL/dtheta = 0 (exact zeros there), with the mean currents factored:
@@ -907,11 +930,13 @@ def _interlock_and_split(state, p, gates_a, gates_b, split):
 
 
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
-def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, edge_counts, edge_states, n_edges, ws, wi):
+def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, legs_b, edge_counts, edge_states, n_edges,
+                    ws, wi):
     """step_period for the symmetric machine (c[KC_SYM] != 0): the currents stay in
-    registers through both segments (sym_segment). emf: emf_sym(state, p); legs_a:
-    legs_of(state currents, interlock-applied gates_a, ...) if the controller already
-    computed it, else NO_LEGS. Returns n_edges."""
+    registers through both segments (sym_segment). emf: emf_sym(state, p); legs_a, legs_b:
+    legs_of(state currents, interlock-applied gates_a / gates_b, ...) if the controller
+    already computed them (its trials), else NO_LEGS. The second segment starts from the
+    first one's currents with legs_b carried there (legs_moved). Returns n_edges."""
     ga, gb, s = _interlock_and_split(state, p, gates_a, gates_b, split)
     dt = c[KC_DT]
     vdc = state[S_VDC]
@@ -923,10 +948,20 @@ def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, edge_coun
     a3 = 0.0
     a4 = 0.0
     if s > 0.0:
-        i0, i1, i2, a1, a2, a3, a4 = sym_segment(state, 0, i0, i1, i2, ga, s * dt, vdc, emf, legs_a, c, True,
-                                                 a1, a2, a3, a4, ws, wi)
+        if s < 1.0:
+            if legs_b[0] != gb:
+                legs_b = legs_of(i0, i1, i2, gb, vdc, emf, c)
+            j0, j1, j2, a1, a2, a3, a4 = sym_segment(state, 0, i0, i1, i2, ga, s * dt, vdc, emf, legs_a, c, True,
+                                                     a1, a2, a3, a4, ws, wi)
+            legs_b = legs_moved(legs_b, i0, i1, i2, j0, j1, j2, c[KC_R])
+            i0 = j0
+            i1 = j1
+            i2 = j2
+        else:
+            i0, i1, i2, a1, a2, a3, a4 = sym_segment(state, 0, i0, i1, i2, ga, dt, vdc, emf, legs_a, c, True,
+                                                     a1, a2, a3, a4, ws, wi)
     if s < 1.0:
-        i0, i1, i2, a1, a2, a3, a4 = sym_segment(state, 0, i0, i1, i2, gb, (1.0 - s) * dt, vdc, emf, NO_LEGS, c,
+        i0, i1, i2, a1, a2, a3, a4 = sym_segment(state, 0, i0, i1, i2, gb, (1.0 - s) * dt, vdc, emf, legs_b, c,
                                                  True, a1, a2, a3, a4, ws, wi)
     state[S_IA] = i0
     state[S_IB] = i1
@@ -1156,7 +1191,7 @@ def step_batch(state, p, gates_a, gates_b, split, edge_counts, edge_states, samp
     for k in range(n):
         if sym:
             n_edges = step_period_sym(state, p, c, gates_a[k], gates_b[k], split[k], emf_sym(state, p), NO_LEGS,
-                                      edge_counts, edge_states, n_edges, ws, wi)
+                                      NO_LEGS,                                      edge_counts, edge_states, n_edges, ws, wi)
         else:
             n_edges = step_period(state, p, c, gates_a[k], gates_b[k], split[k], edge_counts, edge_states, n_edges,
                                   ws, wi, False)
