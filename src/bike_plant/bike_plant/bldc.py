@@ -406,11 +406,23 @@ def _open_leg(ua, ub, uz0, ez, vdc, r, iz, pos):
     return 0, vn2, uz0
 
 
-# first guess of a leg's state (0 open, 1 at 0 V, 2 at v_dc) by its switch code
-# (gates >> 2x) & 3 (0 none, 1 upper, 2 lower, 3 both: treated as upper, as the bit logic did)
-# and its current's sign s (0 zero or NaN, 1 positive, 2 negative), at index 3 code + s: with
-# no switch on the lower diode carries a positive current, the upper diode a negative one
-LEG_GUESS = np.array([0, 1, 2,   2, 2, 2,   1, 1, 1,   2, 2, 2], dtype=np.int64)
+@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+def _leg_guess(code, i):
+    """First guess of a leg's state (0 open, 1 at 0 V, 2 at v_dc) from its switch code
+    (gates >> 2x) & 3 (0 none, 1 upper, 2 lower, 3 both: treated as upper, as the bit logic
+    did) and its current i: with no switch on, the lower diode carries a positive current
+    and the upper diode a negative one. Branches, not a table: the pattern and the current
+    signs change rarely from one call to the next, so they predict well (fewer
+    instructions per period than an indexed look-up)."""
+    if code & 1:
+        return 2
+    if code:
+        return 1
+    if i > 0.0:
+        return 1
+    if i < 0.0:
+        return 2
+    return 0
 
 
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
@@ -428,10 +440,9 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     # first guess (as _topology's first pass): a leg is at v_dc through its upper switch or,
     # with no switch on, its upper diode (current < 0); at 0 V through the lower switch or
     # diode (current > 0); open with no switch on and zero current
-    # (LEG_GUESS: leg switch code x current sign -> state, one table look-up per leg)
-    w0 = LEG_GUESS[(gates & 3) * 3 + (i0 > 0.0) + 2 * (i0 < 0.0)]
-    w1 = LEG_GUESS[((gates >> 2) & 3) * 3 + (i1 > 0.0) + 2 * (i1 < 0.0)]
-    w2 = LEG_GUESS[((gates >> 4) & 3) * 3 + (i2 > 0.0) + 2 * (i2 < 0.0)]
+    w0 = _leg_guess(gates & 3, i0)
+    w1 = _leg_guess((gates >> 2) & 3, i1)
+    w2 = _leg_guess((gates >> 4) & 3, i2)
     c0 = w0 != 0
     c1 = w1 != 0
     c2 = w2 != 0
@@ -458,7 +469,11 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
             u2 - vn if w2 > 0 else 0.0)
 
 
-NO_LEGS = (-1, False, 0, 0, 0, 0.0, 0.0, 0.0)   # legs argument of sym_segment: none computed yet
+# legs argument of sym_segment: (gates, ok, w0, w1, w2, d0, d1, d2, nx), nx True when a
+# whole-period step from these currents was seen to cross no diode leg's zero (then no
+# shorter step along the same line does: i + g d keeps its sign on [0, g], rounding being
+# monotone); NO_LEGS: none computed yet
+NO_LEGS = (-1, False, 0, 0, 0, 0.0, 0.0, 0.0, False)
 
 
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
@@ -702,11 +717,12 @@ def _ws_setup_sym(ws, emf, c):
 
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def legs_of(i0, i1, i2, gates, vdc, emf, c):
-    """sym_legs tagged with the (interlock-applied) pattern: (gates, ok, w0, w1, w2, d0, d1, d2).
-    The controller's trial computes this for the pattern the plant starts the period with;
-    sym_segment reuses it when the pattern matches (same currents, v_dc and EMF)."""
+    """sym_legs tagged with the (interlock-applied) pattern: (gates, ok, w0, w1, w2, d0, d1, d2,
+    nx) (nx False: see NO_LEGS). The controller's trial computes this for the pattern the
+    plant starts the period with; sym_segment reuses it when the pattern matches (same
+    currents, v_dc and EMF)."""
     ok, w0, w1, w2, d0, d1, d2 = sym_legs(i0, i1, i2, gates, vdc, emf[3], emf[4], emf[5], c[KC_R])
-    return (gates, ok, w0, w1, w2, d0, d1, d2)
+    return (gates, ok, w0, w1, w2, d0, d1, d2, False)
 
 
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
@@ -729,7 +745,8 @@ def legs_moved(legs, i0, i1, i2, j0, j1, j2, r):
         if (gates & 48) == 0 and ((i2 > 0.0) != (j2 > 0.0) or (i2 < 0.0) != (j2 < 0.0)):
             gates = -1
     return (gates, legs[1], legs[2], legs[3], legs[4], legs[5] - r * (j0 - i0) if legs[2] > 0 else 0.0,
-            legs[6] - r * (j1 - i1) if legs[3] > 0 else 0.0, legs[7] - r * (j2 - i2) if legs[4] > 0 else 0.0)
+            legs[6] - r * (j1 - i1) if legs[3] > 0 else 0.0, legs[7] - r * (j2 - i2) if legs[4] > 0 else 0.0,
+            False)
 
 
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
@@ -783,8 +800,9 @@ def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2
     r = c[KC_R]
     L0 = c[KC_L0]
     kph = c[KC_KPH]
+    nx = False
     if legs[0] == gates:
-        ok, w0, w1, w2, d0, d1, d2 = legs[1], legs[2], legs[3], legs[4], legs[5], legs[6], legs[7]
+        ok, w0, w1, w2, d0, d1, d2, nx = legs[1], legs[2], legs[3], legs[4], legs[5], legs[6], legs[7], legs[8]
     else:
         ok, w0, w1, w2, d0, d1, d2 = sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r)
     rest = t
@@ -794,7 +812,10 @@ def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2
         j0 = i0 + g * d0
         j1 = i1 + g * d1
         j2 = i2 + g * d2
-        x0, x1, x2 = _crossing(gates, i0, i1, i2, j0, j1, j2)
+        if nx:            # t <= dt: the whole-period step crossed nothing, neither does this one
+            x0 = x1 = x2 = False
+        else:
+            x0, x1, x2 = _crossing(gates, i0, i1, i2, j0, j1, j2)
         if not (x0 or x1 or x2):
             if ledger:
                 a1, a2, a3, a4 = _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, a4)
@@ -880,12 +901,25 @@ def _segment_general(cur, co, i0, i1, i2, gates, t, vdc, emf, c, ledger, a1, a2,
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
 def trial_sym(state, gates, emf, legs, c, ws, wi):
     """trial_currents for the symmetric machine: (|ia| + |ib| + |ic|) / 2 at the end of the
-    coming period if `gates` (interlock-safe) were held for all of it. No state change;
-    legs as sym_segment's (legs_of the same currents and pattern, or NO_LEGS)."""
-    j0, j1, j2, _a1, _a2, _a3, _a4 = sym_segment(ws, W_TRIAL, state[S_IA], state[S_IB], state[S_IC], gates,
-                                                 c[KC_DT], state[S_VDC], emf, legs, c, False,
-                                                 0.0, 0.0, 0.0, 0.0, ws, wi)
-    return 0.5 * (abs(j0) + abs(j1) + abs(j2))
+    coming period if `gates` (interlock-safe) were held for all of it. No state change.
+    legs: legs_of the same currents and pattern. Returns (feedback, legs), the legs marked
+    nx when the step crossed no diode leg's zero (a plant segment of this pattern from
+    these currents then skips its own crossing test)."""
+    i0 = state[S_IA]
+    i1 = state[S_IB]
+    i2 = state[S_IC]
+    if legs[1] and legs[0] == gates:
+        g = c[KC_G_DT]
+        j0 = i0 + g * legs[5]
+        j1 = i1 + g * legs[6]
+        j2 = i2 + g * legs[7]
+        x0, x1, x2 = _crossing(gates, i0, i1, i2, j0, j1, j2)
+        if not (x0 or x1 or x2):
+            return (0.5 * (abs(j0) + abs(j1) + abs(j2)),
+                    (legs[0], legs[1], legs[2], legs[3], legs[4], legs[5], legs[6], legs[7], True))
+    j0, j1, j2, _a1, _a2, _a3, _a4 = sym_segment(ws, W_TRIAL, i0, i1, i2, gates, c[KC_DT], state[S_VDC], emf,
+                                                 legs, c, False, 0.0, 0.0, 0.0, 0.0, ws, wi)
+    return 0.5 * (abs(j0) + abs(j1) + abs(j2)), legs
 
 
 @njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False, _nrt=False, inline="never")
