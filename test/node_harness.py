@@ -161,3 +161,15 @@ def domain():
 
 def stamp_ns(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def publish_wall_times(states, received) -> list[float]:
+    """Wall time (time.monotonic()) at which the plant published each state: its sim stamp plus
+    the smallest (receipt - stamp) over this and every later state. Late receipt (a test
+    process that lags and then gets a burst) only adds to that difference; a realtime plant
+    that resynchronises after an overrun adds to it for good, hence the minimum over the
+    states that follow, not over all."""
+    import numpy as np
+    offsets = np.array([r - stamp_ns(m.header.stamp) * 1e-9 for m, r in zip(states, received)])
+    suffix_min = np.minimum.accumulate(offsets[::-1])[::-1]
+    return [stamp_ns(m.header.stamp) * 1e-9 + float(o) for m, o in zip(states, suffix_min)]

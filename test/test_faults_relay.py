@@ -20,7 +20,8 @@ import time
 
 import numpy as np
 import pytest
-from node_harness import CONFIG, ROOT, Collector, NodeProcess, domain, executable, stamp_ns  # noqa: F401
+from node_harness import (CONFIG, ROOT, Collector, NodeProcess, domain, executable,  # noqa: F401
+                          publish_wall_times, stamp_ns)
 
 from bike_msgs.msg import Command, PlantState  # noqa: E402
 from bike_plant import msgconv  # noqa: E402
@@ -112,16 +113,6 @@ def _relay_t0(relay) -> float | None:
     return None
 
 
-def _plant_wall_times(states, received) -> list[float]:
-    """Wall time (time.monotonic()) at which the plant published each state: its sim stamp plus
-    the smallest (receipt - stamp) over this and every later state. Late receipt only adds to
-    that difference; a realtime plant that resynchronises after an overrun adds to it for good,
-    hence the minimum over the states that follow, not over all."""
-    offsets = np.array([r - stamp_ns(m.header.stamp) * 1e-9 for m, r in zip(states, received)])
-    suffix_min = np.minimum.accumulate(offsets[::-1])[::-1]
-    return [stamp_ns(m.header.stamp) * 1e-9 + float(o) for m, o in zip(states, suffix_min)]
-
-
 def _largest_gap(stamps, a: float, b: float):
     """(largest gap between consecutive stamps in [a, b], where it starts, relative to b) [s]"""
     inside = [t for t in stamps if a <= t <= b]
@@ -171,7 +162,7 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
     print(relay.output())
     # when the plant made each state, on the wall clock, not when the test got it: the test
     # process is one of the busy ones and at times gets nothing for ~1 s, then a burst
-    stamps = _plant_wall_times(states, received)
+    stamps = publish_wall_times(states, received)
 
     def window(a, b):
         """states the plant made in [t0 + a + 0.15, t0 + b] (the phase, its first 0.15 s trimmed)"""
