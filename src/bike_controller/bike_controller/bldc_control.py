@@ -27,8 +27,10 @@ import numpy as np
 from numba import njit
 
 from bike_plant import bldc as K
+from bike_plant import jit as _jit
 from bike_plant import params as P
 from bike_plant.config import ConfigError, build_dataclass, require_positive, section
+from bike_plant.jit import JIT, JIT_INLINE
 
 from . import speed_estimator as _se
 from . import torque_command as _tc
@@ -37,7 +39,7 @@ from .torque_command import (KGF_CM_TO_NM, MODE_MOTORING, MODE_RESISTANCE, k_fac
                              torque_command_nm)
 
 # the kernels below inline bike_plant.bldc / params code: drop our numba cache if they changed
-K.invalidate_stale_numba_cache(__file__, [K.__file__, P.__file__, _se.__file__, _tc.__file__])
+K.invalidate_stale_numba_cache(__file__, [K.__file__, _jit.__file__, P.__file__, _se.__file__, _tc.__file__])
 
 QUADRANT_MOTORING = 1
 QUADRANT_GENERATING = 2
@@ -129,7 +131,7 @@ def pack_controller(cp: ControllerParams, plant: P.PlantParams) -> np.ndarray:
     return q
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def update_command(cs, q):
     """Speed estimate -> Tcmd (Eq. 3-4) -> k, ktg (Eq. 7-9) -> I*."""
     speed = cs[C_SPEED_EST]
@@ -155,7 +157,7 @@ def update_command(cs, q):
     cs[C_ICMD] = icmd
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def process_edge(cs, q, count):
     """A captured Hall edge: Eq. 1 with nc = counts since the previous edge."""
     if cs[C_HAVE_EDGE] != 0.0 and count > cs[C_LAST_EDGE]:
@@ -166,7 +168,7 @@ def process_edge(cs, q, count):
     cs[C_HAVE_EDGE] = 1.0
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _bound_speed(cs, q, model, p):
     """No edge for longer than the last interval: Eq. 1 of the elapsed count bounds the speed."""
     if cs[C_HAVE_EDGE] != 0.0:
@@ -179,7 +181,7 @@ def _bound_speed(cs, q, model, p):
                 update_command(cs, q)
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def patterns(sector, mode):
     """(on, off) gate patterns of the sector: generating modulates low p; motoring upper p + low n."""
     pp_ = K.SECTOR_P[sector]
@@ -189,7 +191,7 @@ def patterns(sector, mode):
     return 1 << (2 * pp_ + 1), 0
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def control_period(cs, q, model, p, ws, wi):
     """Hysteresis current control for one period from the (measured or predicted) state
     `model`; returns (gates_a, gates_b, split). Uses ws/wi as scratch and leaves the
@@ -217,7 +219,7 @@ def control_period(cs, q, model, p, ws, wi):
     return pat, pat, 1.0
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _comparator(cs, q, icmd, i_fb):
     """Hysteresis comparator with memory at the period start: on below I* - h, off above I* + h."""
     h = q[Q_H]
@@ -229,7 +231,7 @@ def _comparator(cs, q, icmd, i_fb):
     return on
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _edge_needed(q, icmd, on, i_fb, i_end):
     """Does the prediction i_end of the active pattern cross the opposite band edge?"""
     h = q[Q_H]
@@ -238,7 +240,7 @@ def _edge_needed(q, icmd, on, i_fb, i_end):
     return i_end < icmd - h and i_end < i_fb
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other):
     """The period's one switching edge where the prediction i_end (active pattern) crosses the
     band edge; i_other: the prediction with the other pattern for the whole period. Returns
@@ -265,7 +267,7 @@ def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other):
     return off_pat, on_pat, min(max(s, 0.0), 1.0)
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def control_period_sym(cs, q, model, p, c, ws, wi):
     """control_period for the symmetric machine (c[K.KC_SYM] != 0), the currents in
     registers. Returns (gates_a, gates_b, split, emf, legs_a): emf the period's back-EMF
@@ -298,7 +300,7 @@ def control_period_sym(cs, q, model, p, c, ws, wi):
     return pat, pat, 1.0, emf, legs, K.NO_LEGS
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def closed_loop_period(cs, q, model, p, c, ws, wi, edge_counts, edge_states):
     """One period of control law + step of `model` (the controller's prediction, or in
     run_fused the plant itself), Hall edges fed back to Eq. 1. Returns (gates_a, gates_b,
@@ -316,7 +318,7 @@ def closed_loop_period(cs, q, model, p, c, ws, wi, edge_counts, edge_states):
     return a, b, s
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def control_batch(cs, q, model, p, ga, gb, sp, edge_counts, edge_states):
     """N periods of control law + prediction with the controller's own plant kernel."""
     ws = np.empty(K.WS_SIZE)
@@ -330,7 +332,7 @@ def control_batch(cs, q, model, p, ga, gb, sp, edge_counts, edge_states):
         sp[k] = s
 
 
-@njit(cache=True, error_model="numpy", fastmath=K.KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def run_fused(plant, p, cs, q, n, samples, rec_every, tem_out):
     """Per-period closed loop (N = 1, perfect measurement): the controller reads the plant
     state directly. The fastest form of the inner loop (benchmark); equal to the batched

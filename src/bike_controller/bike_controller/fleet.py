@@ -30,7 +30,8 @@ from . import speed_estimator as _se
 from . import torque_command as _tc
 
 # the fleet kernel compiles run_fused and everything it calls into its own cache entry
-K.invalidate_stale_numba_cache(__file__, [BC.__file__, K.__file__, P.__file__, _se.__file__, _tc.__file__])
+K.invalidate_stale_numba_cache(__file__, [BC.__file__, K.__file__, K._jit.__file__, P.__file__, _se.__file__,
+                                          _tc.__file__])
 
 CHUNK_PERIODS = 1000          # cadence sample every 1000 periods (50 ms at 20 kHz)
 BIKES_PER_TASK = 4            # prange work unit (numba parallel chunk size)

@@ -97,7 +97,7 @@ from bike_plant import spmsm as M
 from bike_plant.config import ConfigError, build_dataclass, require_positive, section
 from bike_plant.params import RPM_PER_RAD_S, TWO_PI
 
-_bldc.invalidate_stale_numba_cache(__file__, [M.__file__])
+_bldc.invalidate_stale_numba_cache(__file__, [M.__file__, M._jit.__file__])
 
 FAMILIES = ("predictive", "pi")
 JIT = M.JIT

@@ -1,7 +1,7 @@
 """Numba kernels of the BLDC machine + 6-switch bridge + battery + shaft (paper 000).
 
 Everything that runs once per 50 us control period lives here, compiled with
-``@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH)``; a whole batch of N
+the options of :mod:`bike_plant.jit` (``@njit(**JIT)``, inlined: ``JIT_INLINE``); a whole batch of N
 periods is one call (:func:`step_batch`), so there is no Python per period. The
 controller's predictor calls the same :func:`step_period` on its own state vector
 (ARCHITECTURE.md, batched inner loop).
@@ -27,37 +27,12 @@ import math
 import numpy as np
 from numba import njit
 
+from . import jit as _jit
 from . import params as P
+from .jit import JIT, JIT_HOT, JIT_INLINE, KERNEL_FASTMATH, invalidate_stale_numba_cache  # noqa: F401
 
 
-def invalidate_stale_numba_cache(module_file: str, dependencies) -> int:
-    """Delete this module's numba cache files if a module it calls into is newer.
-
-    numba's cache=True keys a compiled function on its own source file only; functions
-    here inline code and constants from other modules (params layout, plant kernels), so
-    an edit there would otherwise leave a stale, silently wrong cache. Returns the number
-    of files removed."""
-    import pathlib
-    src = pathlib.Path(module_file).resolve()
-    cache_dir = src.parent / "__pycache__"
-    if not cache_dir.is_dir():
-        return 0
-    try:
-        newest = max(pathlib.Path(d).resolve().stat().st_mtime for d in dependencies)
-    except OSError:
-        return 0
-    removed = 0
-    for f in list(cache_dir.glob(src.stem + ".*.nbi")) + list(cache_dir.glob(src.stem + ".*.nbc")):
-        try:
-            if f.stat().st_mtime < newest:
-                f.unlink()
-                removed += 1
-        except OSError:
-            pass
-    return removed
-
-
-invalidate_stale_numba_cache(__file__, [P.__file__])
+invalidate_stale_numba_cache(__file__, [P.__file__, _jit.__file__])
 
 # ---- state vector layout ---------------------------------------------------------------
 S_IA, S_IB, S_IC = 0, 1, 2
@@ -101,10 +76,6 @@ SECTOR_P = np.array([0, 0, 1, 1, 2, 2], dtype=np.int64)
 SECTOR_N = np.array([1, 2, 2, 0, 0, 1], dtype=np.int64)
 
 TWO_PI = 2.0 * math.pi
-# LLVM may fuse a * b + c into one FMA (one rounding instead of two) and turn x / y into
-# x * (1 / y): round-off level, the same compiled code for the plant and the controller's
-# predictor, so batched == per-period stays exact
-KERNEL_FASTMATH = {"contract", "arcp"}
 THIRD = 1.0 / 3.0          # v_n of 3 legs: sum * THIRD (a multiply, not a division, on the current path)
 SIXTH = math.pi / 3.0
 INV_SIXTH = 3.0 / math.pi
@@ -127,7 +98,7 @@ W_SYM = 34      # 1: all phases have the same L and R (fast path)
 WS_SIZE = 36
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def trapezoid(theta):
     """Unit 120-degree flat-top back-EMF shape of phase a: +1 on [30, 150] deg, -1 on [210, 330]."""
     ph = theta % TWO_PI
@@ -142,7 +113,7 @@ def trapezoid(theta):
     return -1.0 + (ph - 11.0 * TWELFTH) / TWELFTH
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def interp_table(x, xs, ys, n):
     if x <= xs[0]:
         return ys[0]
@@ -181,7 +152,7 @@ EMF_TAB = _trap_table()
 INV_TWELFTH = 6.0 / math.pi      # twelfths of a turn per radian
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def trap3(theta_e):
     """The three phases' unit trapezoids (f_a, f_b, f_c) at theta_e (f_b, f_c lag by 120,
     240 deg), tabulated per twelfth of a turn: exactly one phase is on a ramp there, the
@@ -203,7 +174,7 @@ def trap3(theta_e):
             EMF_TAB[m, 4] + EMF_TAB[m, 5] * u)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def emf_f3(theta_e, omega, p):
     """Back-EMF shapes (f_a, f_b, f_c) at angle theta_e (non-ideal blend if enabled)."""
     fa, fb, fc = trap3(theta_e)
@@ -219,7 +190,7 @@ def emf_f3(theta_e, omega, p):
     return fa, fb, fc
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def emf_shape(theta_e, omega, p, f, off):
     """f[off + x] for the 3 phases at angle theta_e (non-ideal blend if enabled)."""
     fa, fb, fc = emf_f3(theta_e, omega, p)
@@ -228,17 +199,17 @@ def emf_shape(theta_e, omega, p, f, off):
     f[off + 2] = fc
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def sector_of(theta_e):
     return int(((theta_e - TWELFTH) % TWO_PI) // SIXTH) % 6
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def hall_of(theta_e):
     return SECTOR_TO_HALL[sector_of(theta_e)]
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def blank_interlock(gates):
     """Hardware interlock (GAL of paper 000, Fig. 10): a leg with both switches on is blanked.
 
@@ -249,7 +220,7 @@ def blank_interlock(gates):
     return g, (both & 1) + ((both >> 2) & 1) + ((both >> 4) & 1)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def _solve(cur, co, wi, vdc, ws, t):
     """Crank-Nicolson step of the conducting legs (wi[x] > 0) from cur[co:co+3] into
     ws[W_I1:W_I1+3]; open legs get 0. Returns v_n."""
@@ -293,7 +264,7 @@ def _solve(cur, co, wi, vdc, ws, t):
     return vn
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def _topology(cur, co, gates, vdc, ws, wi, t):
     """Leg states wi[0:3] (0 open, 1 at 0 V, 2 at v_dc) for pattern `gates` and the
     currents; wi[3:6] = 1 for diode-only legs. Returns True if the conducting legs were
@@ -377,7 +348,7 @@ def _topology(cur, co, gates, vdc, ws, wi, t):
     return False
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _open_leg(ua, ub, uz0, ez, vdc, r, iz, pos):
     """sym_legs with one leg z open (zero current): u_a, u_b of the conducting legs, z at
     phase position pos (0, 1, 2; sums run in phase order, as _solve's). Returns (w_z, v_n,
@@ -406,7 +377,7 @@ def _open_leg(ua, ub, uz0, ez, vdc, r, iz, pos):
     return 0, vn2, uz0
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _leg_guess(code, i):
     """First guess of a leg's state (0 open, 1 at 0 V, 2 at v_dc) from its switch code
     (gates >> 2x) & 3 (0 none, 1 upper, 2 lower, 3 both: treated as upper, as the bit logic
@@ -425,7 +396,7 @@ def _leg_guess(code, i):
     return 0
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
     """_topology + _solve for the symmetric machine (equal L, R in all phases) with >= 2
     conducting legs, as scalars. Returns (ok, w0, w1, w2, d0, d1, d2): leg states as in
@@ -476,13 +447,13 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
 NO_LEGS = (-1, False, 0, 0, 0, 0.0, 0.0, 0.0, False)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def cn_gain(t, L, r):
     """g(t) = t / (L + R t / 2) of the Crank-Nicolson step (the expression of _solve)."""
     return t / (L + 0.5 * r * t)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def _fast_sym(cur, co, gates, vdc, ws, wi, t):
     """sym_legs + the step of t seconds into ws[W_I1:] / wi, the array form electrical_segment
     uses. Returns False (nothing written) when the general iteration is needed."""
@@ -503,7 +474,7 @@ def _fast_sym(cur, co, gates, vdc, ws, wi, t):
     return True
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def electrical_segment(cur, co, gates, t_seg, vdc, ws, wi, kph, acc):
     """Advance the currents cur[co:co+3] (in place) through t_seg seconds of pattern `gates`.
 
@@ -581,7 +552,7 @@ def electrical_segment(cur, co, gates, t_seg, vdc, ws, wi, kph, acc):
         remaining -= t
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def phase_inductance(theta_e, omega, p, ws):
     """ws[W_L+x] = L_x(theta_e); ws[W_R+x] = R + dL_x/dt (i dL/dt acts like a signed
     resistance); ws[W_RP+x] = R; ws[W_DL+x] = dL_x/dtheta_m."""
@@ -604,7 +575,7 @@ def phase_inductance(theta_e, omega, p, ws):
     ws[W_SYM] = 1.0 if eps == 0.0 else 0.0
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def stored_energy(state, p):
     ws = np.zeros(WS_SIZE)
     phase_inductance(state[S_THETA_E], 0.0, p, ws)
@@ -614,12 +585,12 @@ def stored_energy(state, p):
     return w
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def battery_voc(soc, p):
     return p[P.P_V_EMPTY] + (p[P.P_V_FULL] - p[P.P_V_EMPTY]) * soc
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def init_state(state, p, speed_rad_s, soc0):
     state[:] = 0.0
     state[S_OMEGA] = speed_rad_s
@@ -632,7 +603,7 @@ def init_state(state, p, speed_rad_s, soc0):
     state[S_E_STORED0] = stored_energy(state, p)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def period_setup(state, p, ws):
     """Back-EMF and inductances of the coming period, evaluated at its mid angle and held."""
     omega = state[S_OMEGA]
@@ -644,7 +615,7 @@ def period_setup(state, p, ws):
     phase_inductance(th_mid, omega, p, ws)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def trial_currents(state, p, gates, ws, wi):
     """Currents at the end of the coming period if `gates` were held for all of it, into
     ws[W_TRIAL:W_TRIAL+3]; returns the feedback (|ia| + |ib| + |ic|) / 2. No state change.
@@ -679,7 +650,7 @@ KC_INV_GEAR = 14       # 1 / gear ratio (rider: cadence = w / gear, crank torque
 KC_INV_CADMAX = 15     # 1 / rider maximum cadence [s / rad]
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def plant_constants(p):
     """Per-parameter-set constants (KC_* layout), a tuple the period loop keeps in registers."""
     dt = p[P.P_DT]
@@ -691,7 +662,7 @@ def plant_constants(p):
             1.0 / p[P.P_GEAR], 1.0 / p[P.P_RIDER_CADMAX])
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def emf_sym(state, p):
     """period_setup's back-EMF as scalars (f_a, f_b, f_c, e_a, e_b, e_c): shape and
     e_x = kph w f_x at the mid-period angle, held for the period."""
@@ -702,7 +673,7 @@ def emf_sym(state, p):
     return f0, f1, f2, kw * f0, kw * f1, kw * f2
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def _ws_setup_sym(ws, emf, c):
     """What period_setup leaves in ws for the symmetric machine (for the general path)."""
     for x in range(3):
@@ -715,7 +686,7 @@ def _ws_setup_sym(ws, emf, c):
     ws[W_SYM] = 1.0
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def legs_of(i0, i1, i2, gates, vdc, emf, c):
     """sym_legs tagged with the (interlock-applied) pattern: (gates, ok, w0, w1, w2, d0, d1, d2,
     nx) (nx False: see NO_LEGS). The controller's trial computes this for the pattern the
@@ -725,7 +696,7 @@ def legs_of(i0, i1, i2, gates, vdc, emf, c):
     return (gates, ok, w0, w1, w2, d0, d1, d2, False)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def legs_moved(legs, i0, i1, i2, j0, j1, j2, r):
     """legs_of(i0, i1, i2, ...) carried to the currents j0, j1, j2 of the same pattern, v_dc
     and EMF, without a second topology solution: sym_legs' leg states depend on the currents
@@ -749,7 +720,7 @@ def legs_moved(legs, i0, i1, i2, j0, j1, j2, r):
             False)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, a4):
     """electrical_segment's sums for one step of t seconds (i -> j) of the symmetric machine,
     where dL/dt = dL/dtheta = 0 (exact zeros there), with the mean currents factored:
@@ -770,7 +741,7 @@ def _sym_ledger(i0, i1, i2, j0, j1, j2, w0, w1, w2, t, emf, r, kph, a1, a2, a3, 
     return a1, a2, a3, a4
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _crossing(gates, i0, i1, i2, j0, j1, j2):
     """Diode-only legs (no switch on) whose current reaches zero within the step i -> j."""
     # short-circuit in the order of rarity: a sign change is the exception
@@ -779,7 +750,7 @@ def _crossing(gates, i0, i1, i2, j0, j1, j2):
             (i2 * j2 <= 0.0 and i2 != 0.0 and (gates & 48) == 0))
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2, a3, a4, ws, wi):
     """electrical_segment for the symmetric machine with the currents in registers.
 
@@ -881,7 +852,7 @@ def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2
     return _segment_general(cur, co, i0, i1, i2, gates, rest, vdc, emf, c, ledger, a1, a2, a3, a4, ws, wi)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False, _nrt=False)
+@njit(**JIT_HOT)
 def _segment_general(cur, co, i0, i1, i2, gates, t, vdc, emf, c, ledger, a1, a2, a3, a4, ws, wi):
     """electrical_segment (topology iteration, sub-steps) for what sym_segment does not do,
     on cur[co:co+3] with ws set up as period_setup would for the symmetric machine."""
@@ -898,7 +869,7 @@ def _segment_general(cur, co, i0, i1, i2, gates, t, vdc, emf, c, ledger, a1, a2,
     return cur[co], cur[co + 1], cur[co + 2], ws[W_ACC + 1], ws[W_ACC + 2], ws[W_ACC + 3], ws[W_ACC + 4]
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def trial_sym(state, gates, emf, legs, c, ws, wi):
     """trial_currents for the symmetric machine: (|ia| + |ib| + |ic|) / 2 at the end of the
     coming period if `gates` (interlock-safe) were held for all of it. No state change.
@@ -922,7 +893,7 @@ def trial_sym(state, gates, emf, legs, c, ws, wi):
     return 0.5 * (abs(j0) + abs(j1) + abs(j2)), legs
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False, _nrt=False, inline="never")
+@njit(**JIT_HOT, inline="never")
 def _overcurrent_trip(state):
     """Count a tripped period and set FAULT_OVERCURRENT. Returns the gates of the period (0).
 
@@ -933,7 +904,7 @@ def _overcurrent_trip(state):
     return 0
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _interlock_and_split(state, p, gates_a, gates_b, split):
     """Interlock (blank shorted legs, count, fault), the overcurrent trip and the clamped
     split of one period.
@@ -963,7 +934,7 @@ def _interlock_and_split(state, p, gates_a, gates_b, split):
     return int(ga), int(gb), s
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, legs_b, edge_counts, edge_states, n_edges,
                     ws, wi):
     """step_period for the symmetric machine (c[KC_SYM] != 0): the currents stay in
@@ -1004,7 +975,7 @@ def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, legs_b, e
     return period_tail(state, p, c, a1, a2, state[S_OMEGA] * a4, a4, edge_counts, edge_states, n_edges)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def step_period(state, p, c, gates_a, gates_b, split, edge_counts, edge_states, n_edges, ws, wi, setup_done):
     """One control period: electrical (2 segments), Hall edges, DC bus, shaft. Returns n_edges.
 
@@ -1030,7 +1001,7 @@ def step_period(state, p, c, gates_a, gates_b, split, edge_counts, edge_states, 
                        edge_counts, edge_states, n_edges)
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_states, n_edges):
     """The rest of a period after the electrical segments: Hall edges, DC bus, shaft.
 
@@ -1121,7 +1092,7 @@ def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_st
     return n_edges
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def _hall_edges(state, p, k, u0, u1, du, periods, direction, edge_counts, edge_states, n_edges):
     """Hall edges k, k +- 1, ... of a period that crosses sector boundaries (u in sixths of
     a turn from 30 deg; direction +1 forward, -1 backward). Returns n_edges."""
@@ -1147,7 +1118,7 @@ def _hall_edges(state, p, k, u0, u1, du, periods, direction, edge_counts, edge_s
     return n_edges
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def cos_poly(x):
     """cos(x) for x in [0, 4 pi] (wider x: math.cos) without a libm call: reduced to
     y = |x - 2 pi k| in [0, pi], then cos(y) = -cos(pi - y) folds it onto [0, pi / 2], where
@@ -1179,7 +1150,7 @@ def cos_poly(x):
     return sgn * c
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=True, _nrt=False)
+@njit(**JIT_INLINE)
 def _rider(state, p, c, omega, dt):
     """Rider load (LoadParams): PI effort on cadence, crank torque with two peaks per turn,
     T_crank = effort T0 max(0, 1 - cad / cad_max) (1 + cos(2 crank) / 2) (bike_plant.mechanics).
@@ -1209,7 +1180,7 @@ def _rider(state, p, c, omega, dt):
     return t_crank * inv_gear
 
 
-@njit(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH, forceinline=False)
+@njit(**JIT)
 def step_batch(state, p, gates_a, gates_b, split, edge_counts, edge_states, samples, sums):
     """N periods. samples[k] = phase currents at the end of period k; sums = [sum T_em,
     sum T_load, sum i_batt] over the periods. Returns the number of Hall edges captured."""
@@ -1225,7 +1196,7 @@ def step_batch(state, p, gates_a, gates_b, split, edge_counts, edge_states, samp
     for k in range(n):
         if sym:
             n_edges = step_period_sym(state, p, c, gates_a[k], gates_b[k], split[k], emf_sym(state, p), NO_LEGS,
-                                      NO_LEGS,                                      edge_counts, edge_states, n_edges, ws, wi)
+                                      NO_LEGS, edge_counts, edge_states, n_edges, ws, wi)
         else:
             n_edges = step_period(state, p, c, gates_a[k], gates_b[k], split[k], edge_counts, edge_states, n_edges,
                                   ws, wi, False)

@@ -111,20 +111,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from . import jit as _jit
 from . import mechanics
 from .config import ConfigError, build_dataclass, require_positive, section
+from .jit import JIT, JIT_HOT, JIT_INLINE, invalidate_stale_numba_cache  # noqa: F401
 from .params import RPM_PER_RAD_S, TWO_PI, LoadParams, MechParams, load_section_with_preset
 
-# numba options of every kernel: FMA contraction and reciprocal division (latency-bound
-# serial chains: ~30 % faster); NaN / Inf semantics stay IEEE (no 'fast' flag set).
-JIT = dict(cache=True, error_model="numpy", fastmath={"contract", "arcp"})
-# per-period kernels that allocate nothing: no reference counting of their array arguments
-# (numba's NRT would otherwise incref / decref each array argument with an atomic
-# instruction at every call, several per 100 us period)
-JIT_HOT = dict(JIT, _nrt=False)
-# ... and inlined into the fused loops (no call overhead: numba passes each array as 7
-# scalars, and the per-period chain plant -> controller -> plant is otherwise call bound)
-JIT_INLINE = dict(JIT_HOT, forceinline=True)
+# numba options of every kernel (bike_plant.jit: FMA contraction and reciprocal division,
+# ~30 % faster on the latency-bound serial chains; IEEE NaN / Inf)
+invalidate_stale_numba_cache(__file__, [_jit.__file__])
 SQRT3 = math.sqrt(3.0)
 MAX_DYNO_POINTS = 16
 

@@ -116,8 +116,8 @@ from .protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, AxisStat
 
 # the batch kernels below compile the plant and control-law kernels into this module's
 # numba cache: drop it when one of those modules changed (numba keys it on this file only)
-K.invalidate_stale_numba_cache(__file__, [K.__file__, P.__file__, M.__file__, SC.__file__, BC.__file__,
-                                          speed_estimator.__file__, torque_command.__file__])
+K.invalidate_stale_numba_cache(__file__, [K.__file__, K._jit.__file__, P.__file__, M.__file__, SC.__file__,
+                                          BC.__file__, speed_estimator.__file__, torque_command.__file__])
 
 CALIBRATION_STATES = frozenset({2, 3, 4, 6, 7, 10, 12, 13, 14})
 DEFAULT_CURRENT_TAU_S = 1.0e-3     # 1 / ODrive's default current_control_bandwidth (1000 rad/s)

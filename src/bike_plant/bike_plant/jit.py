@@ -1,0 +1,45 @@
+"""numba options shared by the compiled kernels (bldc, spmsm and their controllers), and the
+cache hygiene their modules need.
+
+JIT: every kernel. FMA contraction and reciprocal multiplies (LLVM may fuse a * b + c into one
+FMA, one rounding instead of two, and turn x / y into x * (1 / y)): round-off level, and the
+same compiled code serves the plant and the controller's predictor, so batched == per-period
+stays exact; NaN / Inf semantics stay IEEE (no 'fast' flag).
+JIT_HOT: per-period kernels that allocate nothing: no reference counting of their array
+arguments (numba's NRT would incref / decref each one with an atomic instruction per call).
+JIT_INLINE: ... and inlined into the fused loops (numba passes each array as 7 scalars; the
+per-period chain plant -> controller -> plant is otherwise call bound).
+"""
+from __future__ import annotations
+
+KERNEL_FASTMATH = {"contract", "arcp"}
+JIT = dict(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH)
+JIT_HOT = dict(JIT, _nrt=False)
+JIT_INLINE = dict(JIT_HOT, forceinline=True)
+
+
+def invalidate_stale_numba_cache(module_file: str, dependencies) -> int:
+    """Delete this module's numba cache files if a module it calls into is newer.
+
+    numba's cache=True keys a compiled function on its own source file only; functions
+    here inline code and constants from other modules (params layout, plant kernels), so
+    an edit there would otherwise leave a stale, silently wrong cache. Returns the number
+    of files removed."""
+    import pathlib
+    src = pathlib.Path(module_file).resolve()
+    cache_dir = src.parent / "__pycache__"
+    if not cache_dir.is_dir():
+        return 0
+    try:
+        newest = max(pathlib.Path(d).resolve().stat().st_mtime for d in dependencies)
+    except OSError:
+        return 0
+    removed = 0
+    for f in list(cache_dir.glob(src.stem + ".*.nbi")) + list(cache_dir.glob(src.stem + ".*.nbc")):
+        try:
+            if f.stat().st_mtime < newest:
+                f.unlink()
+                removed += 1
+        except OSError:
+            pass
+    return removed
