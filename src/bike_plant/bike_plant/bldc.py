@@ -152,13 +152,10 @@ EMF_TAB = _trap_table()
 INV_TWELFTH = 6.0 / math.pi      # twelfths of a turn per radian
 
 
-@njit(**JIT_INLINE)
-def trap3(theta_e):
-    """The three phases' unit trapezoids (f_a, f_b, f_c) at theta_e (f_b, f_c lag by 120,
-    240 deg), tabulated per twelfth of a turn: exactly one phase is on a ramp there, the
-    other two at +-1 (exact). Equals trapezoid(theta_e - x 2 pi / 3) up to round-off on
-    the ramp (u - k instead of (theta - k 30 deg) / 30 deg)."""
-    u = theta_e * INV_TWELFTH
+@njit(**JIT_HOT)
+def _wrap_twelfths(u, theta_e):
+    """u = theta_e * 12 / (2 pi) outside [0, 12): one turn back or on, else the remainder
+    (more than one turn off), else 0 (NaN)."""
     if u >= 12.0:
         u -= 12.0
     elif u < 0.0:
@@ -167,9 +164,19 @@ def trap3(theta_e):
         u = (theta_e % TWO_PI) * INV_TWELFTH
         if not (0.0 <= u < 12.0):
             u = 0.0
+    return u
+
+
+@njit(**JIT_INLINE)
+def trap3(theta_e):
+    """The three phases' unit trapezoids (f_a, f_b, f_c) at theta_e (f_b, f_c lag by 120,
+    240 deg), tabulated per twelfth of a turn: exactly one phase is on a ramp there, the
+    other two at +-1 (exact). Equals trapezoid(theta_e - x 2 pi / 3) up to round-off on
+    the ramp (u - k instead of (theta - k 30 deg) / 30 deg)."""
+    u = theta_e * INV_TWELFTH
+    if not (0.0 <= u < 12.0):        # one test on the common path; int(u) <= 11 below
+        u = _wrap_twelfths(u, theta_e)
     m = int(u)
-    if m > 11:                       # u rounded up to 12 on the multiply
-        m = 11
     return (EMF_TAB[m, 0] + EMF_TAB[m, 1] * u, EMF_TAB[m, 2] + EMF_TAB[m, 3] * u,
             EMF_TAB[m, 4] + EMF_TAB[m, 5] * u)
 
@@ -1001,6 +1008,18 @@ def step_period(state, p, c, gates_a, gates_b, split, edge_counts, edge_states, 
                        edge_counts, edge_states, n_edges)
 
 
+@njit(**JIT_HOT)
+def _wrap_angle(th):
+    """th outside [0, 2 pi): one turn back or on (exact here, Sterbenz), else th % 2 pi."""
+    if th >= TWO_PI:
+        th -= TWO_PI
+    elif th < 0.0:
+        th += TWO_PI
+    if not (0.0 <= th < TWO_PI):
+        th = th % TWO_PI
+    return th
+
+
 @njit(**JIT_INLINE)
 def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_states, n_edges):
     """The rest of a period after the electrical segments: Hall edges, DC bus, shaft.
@@ -1032,10 +1051,12 @@ def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_st
     # ---- DC node: battery (Voc, Rb) || S0 * brake resistor; the bridge injected i_dc
     i_dc = a_charge * c[KC_INV_DT]
     s0 = state[S_S0]
-    i_res = vdc * c[KC_INV_RR] if s0 != 0.0 else 0.0
+    i_res = 0.0
+    if s0 != 0.0:
+        i_res = vdc * c[KC_INV_RR]
+        state[S_E_RES] += vdc * i_res * dt
     i_batt = i_dc - i_res                     # KCL with this period's bridge current
     state[S_E_BATT] += vdc * i_batt * dt
-    state[S_E_RES] += vdc * i_res * dt
     state[S_E_CU] += a_cu
     state[S_E_CONV] += a_conv
     soc = state[S_SOC] + i_batt * c[KC_DT_PER_CAP]
@@ -1081,12 +1102,8 @@ def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_st
     state[S_TEM] = t_em
     state[S_TLOAD] = t_load
     th1 = th0 + we * dt
-    if th1 >= TWO_PI:
-        th1 -= TWO_PI
-    elif th1 < 0.0:
-        th1 += TWO_PI
-    if not (0.0 <= th1 < TWO_PI):
-        th1 = th1 % TWO_PI
+    if not (0.0 <= th1 < TWO_PI):    # one test on the common path
+        th1 = _wrap_angle(th1)
     state[S_THETA_E] = th1
     state[S_PERIODS] = periods + 1.0
     return n_edges
