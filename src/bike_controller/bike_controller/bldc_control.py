@@ -342,15 +342,19 @@ def run_fused(plant, p, cs, q, n, samples, rec_every, tem_out):
     ec = np.empty(4, np.uint64)
     es = np.empty(4, np.uint8)
     c = K.plant_constants(p)
+    # the next recorded period (k = r * rec_every): one compare per period, not a modulo
+    next_rec = 0 if rec_every > 0 else -1
+    r = 0
     for k in range(n):
         closed_loop_period(cs, q, plant, p, c, ws, wi, ec, es)
-        if rec_every > 0 and k % rec_every == 0:
-            r = k // rec_every
+        if k == next_rec:
             if r < samples.shape[0]:
                 samples[r, 0] = plant[0]
                 samples[r, 1] = plant[1]
                 samples[r, 2] = plant[2]
                 tem_out[r] = plant[K.S_TEM]
+            r += 1
+            next_rec += rec_every
 
 
 class BatchController:
