@@ -191,6 +191,21 @@ def patterns(sector, mode):
     return 1 << (2 * pp_ + 1), 0
 
 
+def _pattern_table() -> np.ndarray:
+    """patterns() by (motoring, Hall code): [motoring][hall] = (on, off); (-1, -1) for the
+    two codes that are no sector (0, 7). One look-up per period instead of three."""
+    tab = np.full((2, 8, 2), -1, dtype=np.int64)
+    for motoring, mode in ((0, MODE_RESISTANCE), (1, MODE_MOTORING)):
+        for hall in range(8):
+            sector = int(K.HALL_TO_SECTOR[hall])
+            if sector >= 0:
+                tab[motoring, hall] = patterns.py_func(sector, mode)
+    return tab
+
+
+PATTERN_TABLE = _pattern_table()
+
+
 @njit(**JIT)
 def control_period(cs, q, model, p, ws, wi):
     """Hysteresis current control for one period from the (measured or predicted) state
@@ -276,13 +291,14 @@ def control_period_sym(cs, q, model, p, c, ws, wi):
     IS the plant's first step."""
     emf = K.emf_sym(model, p)
     _bound_speed(cs, q, model, p)
-    hall = int(model[K.S_HALL])
-    sector = K.HALL_TO_SECTOR[hall & 7]
+    hall = int(model[K.S_HALL]) & 7
+    motoring = 1 if cs[C_MODE] == MODE_MOTORING else 0
+    on_pat = PATTERN_TABLE[motoring, hall, 0]
     icmd = cs[C_ICMD]
-    if sector < 0 or icmd <= 0.0:
+    if on_pat < 0 or icmd <= 0.0:
         cs[C_ON] = 0.0
         return 0, 0, 1.0, emf, K.NO_LEGS, K.NO_LEGS
-    on_pat, off_pat = patterns(sector, int(cs[C_MODE]))
+    off_pat = PATTERN_TABLE[motoring, hall, 1]
     i0 = model[K.S_IA]
     i1 = model[K.S_IB]
     i2 = model[K.S_IC]
