@@ -223,46 +223,51 @@ def control_period(cs, q, model, p, ws, wi):
         return 0, 0, 1.0
     on_pat, off_pat = patterns(sector, int(cs[C_MODE]))
     i_fb = 0.5 * (abs(model[0]) + abs(model[1]) + abs(model[2]))
-    on = _comparator(cs, q, icmd, i_fb)
+    on = _comparator(cs, q, icmd, i_fb, 1.0)
     pat = on_pat if on else off_pat
     # predict the period with the active pattern; toggle where the opposite band edge is crossed
     i_end = K.trial_currents(model, p, pat, ws, wi)
-    if _edge_needed(q, icmd, on, i_fb, i_end):
+    if _edge_needed(q, icmd, on, i_fb, i_end, 1.0):
         i_other = K.trial_currents(model, p, off_pat if on else on_pat, ws, wi)
-        return _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other)
+        return _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, 1.0)
     cs[C_ON] = 1.0 if on else 0.0
     return pat, pat, 1.0
 
 
 @njit(**JIT_INLINE)
-def _comparator(cs, q, icmd, i_fb):
-    """Hysteresis comparator with memory at the period start: on below I* - h, off above I* + h."""
+def _comparator(cs, q, icmd, i_fb, scale):
+    """Hysteresis comparator with memory at the period start: on below I* - h, off above I* + h.
+    scale: i_fb is scale x the feedback (|ia| + |ib| + |ic|) / 2 (1 or 2: the symmetric path
+    compares the plain sum, one multiply less on the period's serial chain; both scalings
+    are exact, so the decisions are the same)."""
     h = q[Q_H]
     on = cs[C_ON] != 0.0
-    if on and i_fb >= icmd + h:
+    if on and i_fb >= scale * (icmd + h):
         on = False
-    elif (not on) and i_fb <= icmd - h:
+    elif (not on) and i_fb <= scale * (icmd - h):
         on = True
     return on
 
 
 @njit(**JIT_INLINE)
-def _edge_needed(q, icmd, on, i_fb, i_end):
-    """Does the prediction i_end of the active pattern cross the opposite band edge?"""
+def _edge_needed(q, icmd, on, i_fb, i_end, scale):
+    """Does the prediction i_end of the active pattern cross the opposite band edge? (scale as
+    _comparator's)"""
     h = q[Q_H]
     if on:
-        return i_end > icmd + h and i_end > i_fb
-    return i_end < icmd - h and i_end < i_fb
+        return i_end > scale * (icmd + h) and i_end > i_fb
+    return i_end < scale * (icmd - h) and i_end < i_fb
 
 
 @njit(**JIT_INLINE)
-def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other):
+def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, scale):
     """The period's one switching edge where the prediction i_end (active pattern) crosses the
     band edge; i_other: the prediction with the other pattern for the whole period. Returns
-    (gates_a, gates_b, split) and flips the comparator memory."""
+    (gates_a, gates_b, split) and flips the comparator memory. scale as _comparator's: the
+    split is a ratio of differences, each exactly scale x the unscaled one, so it is the same."""
     h = q[Q_H]
-    upper = icmd + h
-    lower = icmd - h
+    upper = scale * (icmd + h)
+    lower = scale * (icmd - h)
     if on:
         s = (upper - i_fb) / (i_end - i_fb)
         # one edge per period: never so early that the rest of the period (off) carries the
@@ -302,15 +307,15 @@ def control_period_sym(cs, q, model, p, c, ws, wi):
     i0 = model[K.S_IA]
     i1 = model[K.S_IB]
     i2 = model[K.S_IC]
-    i_fb = 0.5 * (abs(i0) + abs(i1) + abs(i2))
-    on = _comparator(cs, q, icmd, i_fb)
+    i_fb = abs(i0) + abs(i1) + abs(i2)        # 2 x the feedback: scale 2 below
+    on = _comparator(cs, q, icmd, i_fb, 2.0)
     pat = on_pat if on else off_pat
     vdc = model[K.S_VDC]
     i_end, legs = K.trial_sym(model, pat, emf, K.legs_of(i0, i1, i2, pat, vdc, emf, c), c, ws, wi)
-    if _edge_needed(q, icmd, on, i_fb, i_end):
+    if _edge_needed(q, icmd, on, i_fb, i_end, 2.0):
         i_other, legs_o = K.trial_sym(model, off_pat if on else on_pat, emf,
                                       K.legs_of(i0, i1, i2, off_pat if on else on_pat, vdc, emf, c), c, ws, wi)
-        a, b, s = _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other)
+        a, b, s = _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, 2.0)
         return a, b, s, emf, legs, legs_o
     cs[C_ON] = 1.0 if on else 0.0
     return pat, pat, 1.0, emf, legs, K.NO_LEGS

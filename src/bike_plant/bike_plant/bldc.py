@@ -878,7 +878,7 @@ def _segment_general(cur, co, i0, i1, i2, gates, t, vdc, emf, c, ledger, a1, a2,
 
 @njit(**JIT_INLINE)
 def trial_sym(state, gates, emf, legs, c, ws, wi):
-    """trial_currents for the symmetric machine: (|ia| + |ib| + |ic|) / 2 at the end of the
+    """trial_currents for the symmetric machine, unhalved: |ia| + |ib| + |ic| at the end of the
     coming period if `gates` (interlock-safe) were held for all of it. No state change.
     legs: legs_of the same currents and pattern. Returns (feedback, legs), the legs marked
     nx when the step crossed no diode leg's zero (a plant segment of this pattern from
@@ -893,11 +893,11 @@ def trial_sym(state, gates, emf, legs, c, ws, wi):
         j2 = i2 + g * legs[7]
         x0, x1, x2 = _crossing(gates, i0, i1, i2, j0, j1, j2)
         if not (x0 or x1 or x2):
-            return (0.5 * (abs(j0) + abs(j1) + abs(j2)),
+            return (abs(j0) + abs(j1) + abs(j2),
                     (legs[0], legs[1], legs[2], legs[3], legs[4], legs[5], legs[6], legs[7], True))
     j0, j1, j2, _a1, _a2, _a3, _a4 = sym_segment(ws, W_TRIAL, i0, i1, i2, gates, c[KC_DT], state[S_VDC], emf,
                                                  legs, c, False, 0.0, 0.0, 0.0, 0.0, ws, wi)
-    return 0.5 * (abs(j0) + abs(j1) + abs(j2)), legs
+    return abs(j0) + abs(j1) + abs(j2), legs
 
 
 @njit(**JIT_HOT, inline="never")
