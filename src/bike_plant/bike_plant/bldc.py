@@ -437,10 +437,21 @@ def sym_legs(i0, i1, i2, gates, vdc, e0, e1, e2, r):
         vn = (v0 + v1 + v2) * THIRD
     elif c1 & c2:
         w0, vn, u0 = _open_leg(u1, u2, u0, e0, vdc, r, i0, 0)
+        if w0 == 0:
+            # two legs in series: d = +-(u_1 - u_2) / 2 (= u - v_n with v_n their mean), two
+            # operations after u on the currents' chain, and the two currents stay opposite
+            h = (u1 - u2) * 0.5
+            return True, w0, w1, w2, 0.0, h, -h
     elif c0 & c2:
         w1, vn, u1 = _open_leg(u0, u2, u1, e1, vdc, r, i1, 1)
+        if w1 == 0:
+            h = (u0 - u2) * 0.5
+            return True, w0, w1, w2, h, 0.0, -h
     elif c0 & c1:
         w2, vn, u2 = _open_leg(u0, u1, u2, e2, vdc, r, i2, 2)
+        if w2 == 0:
+            h = (u0 - u1) * 0.5
+            return True, w0, w1, w2, h, -h, 0.0
     else:
         return False, w0, w1, w2, 0.0, 0.0, 0.0
     return (True, w0, w1, w2, u0 - vn if w0 > 0 else 0.0, u1 - vn if w1 > 0 else 0.0,
