@@ -115,6 +115,48 @@ def test_commutation_patterns_fig5():
             assert K.blank_interlock(pat)[1] == 0
 
 
+def test_pattern_table_is_patterns_by_hall_code():
+    for motoring, mode in ((0, 0), (1, 1)):
+        for hall in range(8):
+            sector = int(K.HALL_TO_SECTOR[hall])
+            want = C.patterns(sector, mode) if sector >= 0 else (-1, -1)
+            assert tuple(C.PATTERN_TABLE[motoring, hall]) == want
+
+
+@pytest.mark.parametrize("speed_rpm", [300.0, 3000.0])
+def test_other_pattern_trial_held_at_zero_matches_the_exact_split(cfg, speed_rpm):
+    """The controller's trial of the other pattern holds a diode leg that would cross zero
+    at zero (trial_sym hold_at_zero) instead of splitting the step at the crossing: over a
+    generating run's crossing trials it agrees with the exact split (two diode legs in
+    series reach zero together and the bridge blocks)."""
+    from bike_plant import params as P
+    c = copy.deepcopy(cfg)
+    c["load"] = dict(c["load"], speed_rpm=speed_rpm)
+    pp = P.plant_params_from_config(c)
+    p = P.pack_params(pp)
+    state = K.new_state(p, speed_rpm, pp.battery.soc0)
+    ctrl = C.BatchController(c, pp, 1)
+    ctrl.set_command(1.0)
+    kc = K.plant_constants(p)
+    ws = np.empty(K.WS_SIZE)
+    wi = np.empty(6, np.int64)
+    crossings = 0
+    for _ in range(2000):
+        C.run_fused(state, p, ctrl.cs, ctrl.q, 1, np.zeros((1, 3)), 0, np.zeros(1))
+        emf = K.emf_sym(state, p)
+        for pat in C.PATTERN_TABLE[0, int(state[K.S_HALL]) & 7]:
+            if pat < 0:
+                continue
+            legs = K.legs_of(state[0], state[1], state[2], int(pat), state[K.S_VDC], emf, kc)
+            exact, _ = K.trial_sym(state, int(pat), emf, legs, kc, ws, wi, False)
+            held, _ = K.trial_sym(state, int(pat), emf, legs, kc, ws, wi, True)
+            j = [state[x] + kc[K.KC_G_DT] * legs[5 + x] for x in range(3)]
+            if any(K._crossing(int(pat), state[0], state[1], state[2], *j)):
+                crossings += 1
+                assert abs(held - exact) <= 1e-6 * max(1.0, exact), (speed_rpm, exact, held)
+    assert crossings > 100
+
+
 def test_status_fields_and_decide_shapes(cfg):
     from bike_plant import params as P
     from bike_plant.sim import BldcPlant

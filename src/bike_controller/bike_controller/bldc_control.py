@@ -311,10 +311,11 @@ def control_period_sym(cs, q, model, p, c, ws, wi):
     on = _comparator(cs, q, icmd, i_fb, 2.0)
     pat = on_pat if on else off_pat
     vdc = model[K.S_VDC]
-    i_end, legs = K.trial_sym(model, pat, emf, K.legs_of(i0, i1, i2, pat, vdc, emf, c), c, ws, wi)
+    i_end, legs = K.trial_sym(model, pat, emf, K.legs_of(i0, i1, i2, pat, vdc, emf, c), c, ws, wi, False)
     if _edge_needed(q, icmd, on, i_fb, i_end, 2.0):
         i_other, legs_o = K.trial_sym(model, off_pat if on else on_pat, emf,
-                                      K.legs_of(i0, i1, i2, off_pat if on else on_pat, vdc, emf, c), c, ws, wi)
+                                      K.legs_of(i0, i1, i2, off_pat if on else on_pat, vdc, emf, c), c, ws, wi,
+                                      True)
         a, b, s = _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, 2.0)
         return a, b, s, emf, legs, legs_o
     cs[C_ON] = 1.0 if on else 0.0
