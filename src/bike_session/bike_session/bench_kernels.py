@@ -9,6 +9,7 @@ JIT compile time (first call; with cache=True mostly a cache load) is reported a
 """
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -28,6 +29,9 @@ def _setup(cfg):
     ctrl.cs[C_MODE] = 0
     update_command(ctrl.cs, ctrl.q)
     return p, state, ctrl
+
+
+FUSED_REPEATS = 5
 
 
 def inner_loop_real_time(seconds: float = 1.0, cfg_path=None, speed_rpm: float = 3000.0,
@@ -50,12 +54,16 @@ def inner_loop_real_time(seconds: float = 1.0, cfg_path=None, speed_rpm: float =
     p, state, ctrl = _setup(cfg)
     run_fused(state, p, ctrl.cs, ctrl.q, 10, samples, 0, tem)
     compile_s = time.perf_counter() - t0
-    # fused
-    p, state, ctrl = _setup(cfg)
+    # fused: best of FUSED_REPEATS runs from the same start (a deterministic kernel of ~1 ms
+    # per simulated second: the minimum is the figure least disturbed by the shared
+    # machine; the SPMSM figure is taken the same way)
     n = int(round(seconds / dt))
-    t0 = time.perf_counter()
-    run_fused(state, p, ctrl.cs, ctrl.q, n, samples, 0, tem)
-    wall = time.perf_counter() - t0
+    wall = math.inf
+    for _ in range(FUSED_REPEATS):
+        p, state, ctrl = _setup(cfg)
+        t0 = time.perf_counter()
+        run_fused(state, p, ctrl.cs, ctrl.q, n, samples, 0, tem)
+        wall = min(wall, time.perf_counter() - t0)
     res = {
         "real_time": n * dt / wall,          # = fused_real_time_factor (key read by bench.py)
         "compile_s": compile_s,              # = jit_compile_s
