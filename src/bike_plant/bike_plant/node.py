@@ -51,6 +51,7 @@ import time
 import rclpy
 from bike_msgs.msg import DriveCommand, PlantState
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -81,6 +82,10 @@ PLANT_DEFAULTS = {
     "start_timeout_s": 120.0,
     "can_log_file": "",
 }
+# the end_of_run PlantState's acknowledgment by every reliable reader is awaited this long at
+# most (longer than Fast DDS's 3 s heartbeat period, which is when a lost last sample is repaired)
+END_ACK_TIMEOUT_S = 4.0
+
 PLANT_DESCRIPTIONS = {
     "republish_s": "lockstep: re-publish the pending PlantState after this many wall seconds without an answer",
     "end_linger_s": "wall seconds to keep running after the end_of_run PlantState so subscribers receive it",
@@ -513,6 +518,15 @@ class PlantNode(Node):
         if close is not None:                    # CAN: zero torque + IDLE now, not after the linger
             close()
         end = time.monotonic() + self.end_linger_s
+        # a reliable reader (recorder, fleet monitor) that lost a datagram of the last states
+        # learns of it only from the writer's next heartbeat (Fast DDS: every 3 s), after a
+        # 0.5 s linger would have closed the writer: wait for its acknowledgment, up to
+        # END_ACK_TIMEOUT_S, spinning in between (a Ctrl-C still ends it)
+        acked_by = time.monotonic() + max(self.end_linger_s, END_ACK_TIMEOUT_S)
+        while not self.stop_requested and time.monotonic() < acked_by:
+            if self.pub_state.wait_for_all_acked(Duration(seconds=0.05)):
+                break
+            self._spin(0.0)
         while not self.stop_requested and time.monotonic() < end:
             self._spin(min(0.05, end - time.monotonic()))
 
