@@ -206,6 +206,15 @@ def _pattern_table() -> np.ndarray:
 PATTERN_TABLE = _pattern_table()
 
 
+@njit(**JIT_INLINE)
+def _sector_patterns(cs, model):
+    """(on, off) gate patterns for the model's Hall code and the commanded mode, from
+    PATTERN_TABLE; (-1, -1) when the code is no sector."""
+    hall = int(model[K.S_HALL]) & 7
+    motoring = 1 if cs[C_MODE] == MODE_MOTORING else 0
+    return PATTERN_TABLE[motoring, hall, 0], PATTERN_TABLE[motoring, hall, 1]
+
+
 @njit(**JIT)
 def control_period(cs, q, model, p, ws, wi):
     """Hysteresis current control for one period from the (measured or predicted) state
@@ -215,13 +224,11 @@ def control_period(cs, q, model, p, ws, wi):
     fast specialisation for the symmetric machine."""
     K.period_setup(model, p, ws)
     _bound_speed(cs, q, model, p)
-    hall = int(model[K.S_HALL])
-    sector = K.HALL_TO_SECTOR[hall & 7]
+    on_pat, off_pat = _sector_patterns(cs, model)
     icmd = cs[C_ICMD]
-    if sector < 0 or icmd <= 0.0:
+    if on_pat < 0 or icmd <= 0.0:
         cs[C_ON] = 0.0
         return 0, 0, 1.0
-    on_pat, off_pat = patterns(sector, int(cs[C_MODE]))
     i_fb = 0.5 * (abs(model[0]) + abs(model[1]) + abs(model[2]))
     on = _comparator(cs, q, icmd, i_fb, 1.0)
     pat = on_pat if on else off_pat
@@ -290,20 +297,18 @@ def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, scale):
 @njit(**JIT_INLINE)
 def control_period_sym(cs, q, model, p, c, ws, wi):
     """control_period for the symmetric machine (c[K.KC_SYM] != 0), the currents in
-    registers. Returns (gates_a, gates_b, split, emf, legs_a): emf the period's back-EMF
-    (K.emf_sym) and legs_a the trial's K.legs_of for gates_a (the pattern the period starts
-    with), which K.step_period_sym reuses: with a matched model the controller's prediction
-    IS the plant's first step."""
+    registers. Returns (gates_a, gates_b, split, emf, legs_a, legs_b): emf the period's
+    back-EMF (K.emf_sym), legs_a / legs_b the trials' K.legs_of for gates_a / gates_b (legs_b
+    K.NO_LEGS without an edge), which K.step_period_sym reuses: with a matched model the
+    controller's prediction IS the plant's first step, and its second starts on the trial's
+    line."""
     emf = K.emf_sym(model, p)
     _bound_speed(cs, q, model, p)
-    hall = int(model[K.S_HALL]) & 7
-    motoring = 1 if cs[C_MODE] == MODE_MOTORING else 0
-    on_pat = PATTERN_TABLE[motoring, hall, 0]
+    on_pat, off_pat = _sector_patterns(cs, model)
     icmd = cs[C_ICMD]
     if on_pat < 0 or icmd <= 0.0:
         cs[C_ON] = 0.0
         return 0, 0, 1.0, emf, K.NO_LEGS, K.NO_LEGS
-    off_pat = PATTERN_TABLE[motoring, hall, 1]
     i0 = model[K.S_IA]
     i1 = model[K.S_IB]
     i2 = model[K.S_IC]
@@ -313,8 +318,8 @@ def control_period_sym(cs, q, model, p, c, ws, wi):
     vdc = model[K.S_VDC]
     i_end, legs = K.trial_sym(model, pat, emf, K.legs_of(i0, i1, i2, pat, vdc, emf, c), c, ws, wi, False)
     if _edge_needed(q, icmd, on, i_fb, i_end, 2.0):
-        i_other, legs_o = K.trial_sym(model, off_pat if on else on_pat, emf,
-                                      K.legs_of(i0, i1, i2, off_pat if on else on_pat, vdc, emf, c), c, ws, wi,
+        other = off_pat if on else on_pat
+        i_other, legs_o = K.trial_sym(model, other, emf, K.legs_of(i0, i1, i2, other, vdc, emf, c), c, ws, wi,
                                       True)
         a, b, s = _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, 2.0)
         return a, b, s, emf, legs, legs_o

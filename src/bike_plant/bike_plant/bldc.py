@@ -1226,13 +1226,8 @@ def _rider(state, p, c, omega, dt):
         line = 0.0
     t_crank = effort * p[P.P_RIDER_T0] * line * (1.0 + 0.5 * cos_poly(2.0 * state[S_CRANK]))
     crank = state[S_CRANK] + cad * dt
-    # wrap to [0, 2 pi): one add/subtract is exact here (Sterbenz) and equals Python's %
-    if crank >= TWO_PI:
-        crank -= TWO_PI
-    elif crank < 0.0:
-        crank += TWO_PI
-    if not (0.0 <= crank < TWO_PI):
-        crank = crank % TWO_PI
+    if not (0.0 <= crank < TWO_PI):     # wrap to [0, 2 pi) (one add/subtract: exact, = Python's %)
+        crank = _wrap_angle(crank)
     state[S_CRANK] = crank
     return t_crank * inv_gear
 
