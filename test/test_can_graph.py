@@ -12,6 +12,7 @@ import os
 import pathlib
 import random
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -108,10 +109,17 @@ class Emulator:
 
 
 class BusListener:
-    """Everything on the test's CAN bus, with receive times (a thread of the test process)."""
+    """Everything on the test's CAN bus, with receive times (a thread of the test process).
+
+    Times are the kernel's receive stamps (SO_TIMESTAMPNS, wall clock) moved onto
+    time.monotonic(): a thread that waits for the GIL or a GC pause does not shift them.
+    The socket's receive buffer is raised so that such a pause loses no frame."""
 
     def __init__(self, port: int):
         self.bus = can.Bus(interface="udp_multicast", channel=GROUP, port=port)
+        sock = getattr(getattr(self.bus, "_multicast", None), "_socket", None)   # python-can internals
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         self.frames: list[tuple[float, can.Message]] = []
         self._stop = False
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -124,7 +132,7 @@ class BusListener:
             except Exception:  # noqa: BLE001 -- garbage the bus cannot unpack
                 continue
             if msg is not None:
-                self.frames.append((time.monotonic(), msg))
+                self.frames.append((msg.timestamp + time.monotonic() - time.time(), msg))
 
     def torques_after(self, t0: float) -> list[float]:
         return [struct.unpack("<f", bytes(m.data[:4]))[0] for t, m in list(self.frames)
@@ -588,6 +596,7 @@ def test_a_disarmed_drive_pauses_the_session_is_re_armed_and_given_up_on(rig):
     r.wait_for(lambda: r.braking(), 30, "the second drive armed")
     time.sleep(1.2)                                      # armed longer than armed_stable_s: the count starts over
     n_diag = len(r.col.data["/diagnostics"])
+    attempts_before = int(value(r.diagnostics()[-1], "can_enable_attempts"))
     t1 = time.monotonic()
     os.kill(emu2.proc.pid, signal.SIGUSR1)
     r.wait_for(lambda: any(value(s, "can_arming") == "gave_up" for s in r.diagnostics(n_diag)), 10, "give-up")
@@ -595,7 +604,9 @@ def test_a_disarmed_drive_pauses_the_session_is_re_armed_and_given_up_on(rig):
     assert gave.level == DiagnosticStatus.ERROR and "gave up" in gave.message
     time.sleep(1.0)
     arms = _frames_after(r.listener, t1, 0x07, 8)
-    assert len(arms) == 3, f"exactly enable_max_attempts attempts: {arms}"
+    attempts = int(value(r.diagnostics()[-1], "can_enable_attempts")) - attempts_before
+    assert attempts == 3, f"the plant's own count: exactly enable_max_attempts attempts, {attempts} (frames {arms})"
+    assert len(arms) == 3, f"exactly enable_max_attempts attempts on the bus: {arms}"
     assert [b - a for a, b in zip(arms, arms[1:])] == [pytest.approx(0.2, abs=0.12), pytest.approx(0.4, abs=0.15)]
     assert r.states[-1].faults & DISARMED and not r.states[-1].faults & LOST
     assert r.plant.proc.poll() is None and r.controller.proc.poll() is None

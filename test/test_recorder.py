@@ -317,3 +317,48 @@ def test_recorder_adapts_to_volatile_command_publisher(tmp_path, ros_domain, pro
 
     assert [round(m.command, 6) for m in read_topic(tmp_path / "vol", "command")] == [0.0, 0.1, 0.2]
     assert "volatile publisher appeared" in rec.err()
+
+
+def test_recorder_writes_a_republished_plant_state_once(tmp_path, ros_domain, procs):
+    """The lockstep plant re-publishes an unanswered PlantState and /clock (republish_s):
+    a byte-identical copy is counted, not written; a state that differs in anything is kept."""
+    import rclpy
+    from bike_msgs.msg import PlantState
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rosgraph_msgs.msg import Clock
+
+    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=rep"], tmp_path)
+    procs.append(rec)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    node = rclpy.create_node("plant", namespace=NS, context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
+        pub_clock = node.create_publisher(Clock, "/clock", _qos())
+        assert wait_for(lambda: pub_ps.get_subscription_count() >= 1 and pub_clock.get_subscription_count() >= 1,
+                        15.0), rec.err()[-2000:]
+        sent = [(0, 0, 0.0), (0, 0, 0.0), (1, 1, 0.0), (1, 1, 0.0), (1, 1, 5.0), (2, 2, 5.0)]
+        for seq, t_ms, speed in sent:
+            clock = Clock()
+            clock.clock.sec, clock.clock.nanosec = divmod(t_ms * 1_000_000, 1_000_000_000)
+            pub_clock.publish(clock)
+            pub_ps.publish(_stamp(PlantState(seq=seq, speed_rad_s=speed), t_ms * 1_000_000))
+            time.sleep(0.02)
+        pub_ps.publish(_stamp(PlantState(seq=3, end_of_run=True), 3_000_000))
+        executor.spin_once(timeout_sec=0.3)
+        rec.signal(signal.SIGINT)
+        assert rec.wait(10.0) == 0, rec.err()[-2000:]
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+    from bike_session.bags import read_topic
+
+    states = [(m.seq, m.speed_rad_s) for m in read_topic(tmp_path / "rep", "plant_state")]
+    assert states == [(0, 0.0), (1, 0.0), (1, 5.0), (2, 5.0), (3, 0.0)]
+    clocks = [m.clock.nanosec for m in read_topic(tmp_path / "rep", "/clock")]
+    assert clocks == [0, 1_000_000, 2_000_000]
+    assert "5 re-published PlantState / clock copies not written" in rec.err()

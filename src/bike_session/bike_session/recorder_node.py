@@ -22,6 +22,8 @@ bag is written with rosbags (format version 9, rosbag2 Jazzy) and embeds the mes
 definitions (bike_msgs from the installed .msg files), so ROS 2 tools, MCAP viewers and
 :mod:`bike_session.bags` read it without the workspace. Log time = sim time: the header
 stamp of messages that have one, the clock value for /clock, the latest clock otherwise.
+A PlantState or /clock byte-identical to the one before it on its topic is the lockstep
+plant re-publishing an unanswered batch; it is counted, not written (bags stay identical).
 
 On SIGINT / SIGTERM the node keeps spinning until the PlantState with ``end_of_run``
 has been recorded or 3 s pass without any message, then closes the bag and exits 0.
@@ -290,6 +292,10 @@ def _make_node_class():
             self.last_msg_wall = time.monotonic()
             self.end_of_run_seen = False
             self.bad_stamps = 0
+            # lockstep: a plant that waits for an answer re-publishes its pending PlantState and
+            # /clock (republish_s); the copy carries nothing new and would break bag identity
+            self.republished_dropped = 0
+            self._last_raw: dict[str, bytes] = {}
             self.plant_state_topic = self.resolve_topic_name("plant_state")
             self.clock_topic = "/clock"
             self.subs = {}
@@ -346,6 +352,12 @@ def _make_node_class():
                     except ValueError:
                         self.bad_stamps += 1
                         t_ns = self.latest_clock_ns
+                if is_clock or is_plant:
+                    raw = bytes(raw)
+                    if self._last_raw.get(topic) == raw:        # byte-identical: a re-publication
+                        self.republished_dropped += 1
+                        return
+                    self._last_raw[topic] = raw
                 if is_clock:
                     self.latest_clock_ns = max(self.latest_clock_ns, t_ns)
                 sink.write(topic, t_ns, raw)
@@ -411,7 +423,9 @@ def main(args=None) -> int:
                 quiet_until = time.monotonic() + 0.2
         counts = {k: v for k, v in node.sink.counts.items() if v}
         node.close()
-        node.get_logger().info(f"bag closed: {node.bag_path} {counts}")
+        dropped = (f", {node.republished_dropped} re-published PlantState / clock copies not written"
+                   if node.republished_dropped else "")
+        node.get_logger().info(f"bag closed: {node.bag_path} {counts}{dropped}")
     except SetupError as exc:
         print(f"recorder_node: error: {exc}", file=sys.stderr, flush=True)
         rc = 2
