@@ -363,6 +363,10 @@ class PlantNode(Node):
         snap["faults"] = faults
         stamp = msgconv.seconds_to_ns(self.backend.time_s)
         state = msgconv.plant_state_msg(snap, stamp)
+        # the state first: lockstep waits for its answer, and the controller computes it on
+        # the other core while this process publishes /clock, the battery and diagnostics
+        # (measured: 7 % more batches per second than the state last)
+        self.pub_state.publish(state)
         if not getattr(self.backend, "time_frozen", False):      # CAN: no /clock while the drive is not armed
             self.pub_clock.publish(Clock(clock=msgconv.time_msg(stamp)))
         self._last_snap, self._last_stamp = snap, stamp
@@ -377,10 +381,6 @@ class PlantNode(Node):
             self.last_faults = faults
             self.last_drive_level = drive_level
             self.last_diag_wall = now
-        # the state last: lockstep, its answer is what the loop waits for; published when the
-        # rest of the batch's work is done, the controller it wakes does not wait for the
-        # plant to give up the CPU
-        self.pub_state.publish(state)
 
     def _republish(self) -> None:
         self.pub_clock.publish(Clock(clock=msgconv.time_msg(self._last_stamp)))
