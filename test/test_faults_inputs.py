@@ -138,9 +138,11 @@ def test_yaml_python_tags_are_refused_not_run(tmp_path):
 
 
 def test_no_config_value_is_evaluated_as_code():
-    """No eval / exec / pickle / unsafe yaml.load in the sources. The one exec (the report's
-    fast CDR decoder) compiles source built from fixed templates: only integers and struct
-    format letters from a fixed table are interpolated, never a string from the bag."""
+    """No eval / exec / pickle / unsafe yaml.load in the sources. The two execs (the report's
+    fast CDR decoder, the loop's CDR codec) compile source built from fixed templates: only
+    integers, struct format letters from a fixed table and the installed message classes'
+    field names (rosidl identifiers, quoted with repr) are interpolated, never a string from
+    a bag, a config or the wire."""
     pattern = re.compile(r"\b(eval|exec)\s*\(|yaml\.load\s*\(|yaml\.unsafe_load|yaml\.full_load|"
                          r"Loader\s*=\s*yaml\.(Full|Unsafe)?Loader|pickle\.loads?\s*\(|marshal\.loads")
     hits = []
@@ -148,10 +150,11 @@ def test_no_config_value_is_evaluated_as_code():
         for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
             if pattern.search(line) and not line.lstrip().startswith("#"):
                 hits.append(f"{path.relative_to(ROOT)}:{n}: {line.strip()}")
-    allowed = [h for h in hits if h.startswith("src/bike_session/bike_session/report.py")
-               and 'exec("\\n".join(src), ns)' in h]
+    allowed = [h for h in hits if (h.startswith("src/bike_session/bike_session/report.py")
+                                   and 'exec("\\n".join(src), ns)' in h)
+               or (h.startswith("src/bike_plant/bike_plant/cdr.py") and 'exec("\\n".join(src), env)' in h)]
     assert sorted(set(hits) - set(allowed)) == [], hits
-    assert len(allowed) <= 1
+    assert len(allowed) <= 2
 
 
 # ------------------------------------------------------------------ workouts

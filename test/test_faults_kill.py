@@ -206,14 +206,15 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim):
                          10, "the controller's 'session silent' diagnostic", [procs["controller"]])
         else:
             # restarted at once (under a new bag name; the same name again is refused) while the
-            # plant waits recorder_timeout_s for the dead one, then gives it up and runs on
+            # plant waits recorder_timeout_s for the dead one, then gives it up and runs on; once
+            # the new one reports, the plant waits for it again (its bag must have no holes)
             again = NodeProcess("bike_session", "recorder_node", domain,
                                 {"record_dir": str(tmp_path), "bag_name": "run"})
             everyone.append(again)
             restarted = _restart(victim, domain, tmp_path, duration)
             everyone.append(restarted)
-            col.wait_for(lambda: states[-1].faults & PlantState.FAULT_RECORDER_LOST, 15, "FAULT_RECORDER_LOST",
-                         others)
+            col.wait_for(lambda: any(m.faults & PlantState.FAULT_RECORDER_LOST for m in states), 15,
+                         "FAULT_RECORDER_LOST", others)
             col.wait_for(lambda: any("recorder went silent" in t
                                      for t in _diag_texts(col, DiagnosticStatus.ERROR, "plant")),
                          5, "the plant's ERROR diagnostic", others)
@@ -224,6 +225,9 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim):
         col.wait_for(lambda: any(m.end_of_run for m in states), 60, "end_of_run after the restart",
                      others + [restarted])
         assert procs["plant"].wait(10) == 0, procs["plant"].output()
+        if victim == "recorder":
+            assert "a recorder reports again" in procs["plant"].output()
+            assert not states[-1].faults & PlantState.FAULT_RECORDER_LOST, "cleared once the new recorder reports"
         if victim == "session":
             col.wait_for(lambda: any(s.state == SessionStatus.STATE_DONE for s in col.data["session_status"]),
                          10, "the restarted session's DONE", [restarted])

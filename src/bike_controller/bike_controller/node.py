@@ -97,7 +97,9 @@ class ControllerNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
         subs = [self.create_subscription(Command, "command", self._on_command, LOOP_QOS),
                 self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS),
-                self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode))]
+                # taken serialized, decoded by msgconv.PlantStateView (bike_plant.cdr: the hot path)
+                self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode),
+                                         raw=True)]
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
         # the loop waits on its three topics directly (bike_plant.loop.HotWait); Commands are
@@ -120,7 +122,7 @@ class ControllerNode(Node):
         self.last_diag_wall = 0.0
         self.state_rx = None               # wall time of the last PlantState (plant-silence diagnostic)
         self.plant_silent = False
-        self.stats = {"answered": 0, "rejected_commands": 0, "duplicates": 0, "waits": 0}
+        self.stats = {"answered": 0, "rejected_commands": 0, "duplicates": 0, "waits": 0, "undecodable_states": 0}
         self.get_logger().info(
             f"controller: sync_mode={self.sync_mode} N={self.n} session.period_s={self.period_s:g} "
             f"command_wait_s={self.command_wait_s:g} config={path}")
@@ -155,7 +157,15 @@ class ControllerNode(Node):
         self.session_done = msg.state == SessionStatus.STATE_DONE
         self._try_answer()
 
-    def _on_state(self, msg: PlantState) -> None:
+    def _on_state(self, raw: bytes) -> None:
+        try:
+            msg = msgconv.PlantStateView(raw)
+        except msgconv.CdrError as exc:
+            self.stats["undecodable_states"] += 1
+            if self.stats["undecodable_states"] == 1 or self.stats["undecodable_states"] % 1000 == 0:
+                self.get_logger().warning(f"undecodable PlantState ({len(raw)} bytes) dropped "
+                                          f"({self.stats['undecodable_states']} so far): {exc}")
+            return
         seq = int(msg.seq)
         self.state_rx = None if msg.end_of_run else time.monotonic()
         if self.plant_silent:
@@ -203,7 +213,7 @@ class ControllerNode(Node):
         if self.pending is None:
             return
         msg, received = self.pending
-        t_ns = msgconv.stamp_ns(msg.header.stamp)
+        t_ns = msg.stamp_ns
         if (self.sync_mode == "lockstep" and not self.session_done and not self.no_session
                 and not self._holds_command_for(t_ns)):
             if time.monotonic() - received < self.command_wait_s:
@@ -216,7 +226,7 @@ class ControllerNode(Node):
             self._publish_diag(DiagnosticStatus.WARN, f"session silent: {text}", t_ns)
             self.stats["waits"] += 1
         self._apply_timeline(t_ns)
-        snap = msgconv.snapshot_from_msg(msg)
+        snap = msg.snap
         snap["stamp_ns"] = t_ns                            # a drive on CAN: the law's time base
         n = int(msg.batch_periods) or self.n               # answer the batch length the plant asks for
         a, b, c, status = self.ctrl.decide(snap, n)
@@ -225,7 +235,7 @@ class ControllerNode(Node):
         torque = float(status.get("torque_cmd_nm", 0.0))
         if int(status.get("quadrant", 0)) == ControllerStatus.QUADRANT_GENERATING:
             torque = -torque                              # motoring positive, like torque_em_nm
-        build = msgconv.spmsm_drive_msg if self.machine == "spmsm" else msgconv.drive_command_msg
+        build = msgconv.spmsm_drive_cdr if self.machine == "spmsm" else msgconv.drive_command_cdr
         drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)))
         self.pub_drive.publish(drive)
         # ControllerStatus is volatile: with no reader matched (the bare graph, no recorder) it

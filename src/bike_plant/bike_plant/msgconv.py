@@ -15,6 +15,9 @@ import numpy as np
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState
 from builtin_interfaces.msg import Time
 
+from .cdr import CdrError as CdrError  # re-exported: the nodes catch it
+from .cdr import Codec
+
 GATE_LIMIT = 64          # 6 gate bits: values 0..63
 
 _SEQ_CODES = {
@@ -129,6 +132,62 @@ def snapshot_from_msg(msg: PlantState) -> dict:
     return _PLANT.to_dict(msg)
 
 
+# ---------------------------------------------------------------- the loop's hot path: bytes
+# The plant and the controller publish and take PlantState / DriveCommand serialized
+# (bike_plant.cdr): dict -> bytes and bytes -> dict without building message objects.
+_PLANT_CDR = Codec(PlantState)
+_DRIVE_CDR = Codec(DriveCommand)
+
+
+class PlantStateView:
+    """A PlantState taken as bytes: the fields the loop reads, and the snapshot dict."""
+
+    __slots__ = ("seq", "end_of_run", "batch_periods", "stamp_ns", "snap")
+
+    def __init__(self, raw) -> None:
+        sec, nanosec, _, snap = _PLANT_CDR.decode(raw)
+        self.seq = snap["seq"]
+        self.end_of_run = snap["end_of_run"]
+        self.batch_periods = snap["batch_periods"]
+        self.stamp_ns = sec * 1_000_000_000 + nanosec
+        self.snap = snap
+
+
+class DriveCommandView:
+    """A DriveCommand taken as bytes: every field as an attribute (arrays as numpy views),
+    so the plant's checks and backends read it like the message; ``stamp_ns`` for the header."""
+
+    def __init__(self, raw) -> None:
+        sec, nanosec, _, fields = _DRIVE_CDR.decode(raw)
+        self.__dict__.update(fields)
+        self.stamp_ns = sec * 1_000_000_000 + nanosec
+
+
+def plant_state_cdr(snapshot: dict, stamp: int, frame_id: str = "") -> bytes:
+    """plant_state_msg(), serialized, without the message object (CdrError: a value that does
+    not fit its field)."""
+    sec, nanosec = divmod(int(stamp), 1_000_000_000)
+    return _PLANT_CDR.encode(snapshot, sec, nanosec, frame_id)
+
+
+def drive_command_cdr(seq: int, gates_a, gates_b, split, stamp: int, torque_cmd_nm: float = 0.0,
+                      current_cmd_a: float = 0.0) -> bytes:
+    """drive_command_msg(), serialized."""
+    sec, nanosec = divmod(int(stamp), 1_000_000_000)
+    return _DRIVE_CDR.encode({"seq": int(seq), "gates_a": gates_a, "gates_b": gates_b, "split": split,
+                              "torque_cmd_nm": float(torque_cmd_nm), "current_cmd_a": float(current_cmd_a)},
+                             sec, nanosec)
+
+
+def spmsm_drive_cdr(seq: int, duties, relay, buck, stamp: int, torque_cmd_nm: float = 0.0,
+                    current_cmd_a: float = 0.0) -> bytes:
+    """spmsm_drive_msg(), serialized."""
+    sec, nanosec = divmod(int(stamp), 1_000_000_000)
+    return _DRIVE_CDR.encode({"seq": int(seq), "duty_abc": duties, "relay_request": relay, "buck_duty": buck,
+                              "torque_cmd_nm": float(torque_cmd_nm), "current_cmd_a": float(current_cmd_a)},
+                             sec, nanosec)
+
+
 def controller_status_msg(status: dict, stamp: int) -> ControllerStatus:
     return _STATUS.to_msg(status, stamp)
 
@@ -152,7 +211,8 @@ def drive_command_msg(seq: int, gates_a, gates_b, split, stamp: int,
 
 
 def drive_arrays(msg: DriveCommand):
-    """(gates_a uint8[N], gates_b uint8[N], split float64[N]) views of a DriveCommand."""
+    """(gates_a uint8[N], gates_b uint8[N], split float64[N]) views of a DriveCommand (or a
+    DriveCommandView)."""
     ga = np.frombuffer(msg.gates_a, dtype=np.uint8) if len(msg.gates_a) else np.zeros(0, np.uint8)
     gb = np.frombuffer(msg.gates_b, dtype=np.uint8) if len(msg.gates_b) else np.zeros(0, np.uint8)
     sp = np.frombuffer(msg.split, dtype=np.float32).astype(np.float64) if len(msg.split) else np.zeros(0)

@@ -171,7 +171,8 @@ class BldcPlant:
             "hall_edge_states": [int(c) for c in last.hall_edge_states],
             "torque_em_nm": last.torque_em_nm,
             "load_torque_nm": last.load_torque_nm,
-            "current_samples_a": [float(v) for v in last.current_samples_a.reshape(-1)],
+            # float32 as the message carries them: one array conversion, not 3 N Python floats
+            "current_samples_a": last.current_samples_a.reshape(-1).astype(np.float32),
             "battery_ocv_v": float(K.battery_voc(soc, self.p)),
             "battery_soc": soc,
             "battery_current_a": last.battery_current_a,
