@@ -131,6 +131,14 @@ def test_drive_commands_encode_like_the_message_path():
     assert "non-finite" in msgconv.drive_command_problem(bad, n)
 
 
+def test_controller_status_encodes_like_the_message_path():
+    status = {"seq": 9, "command": 0.5, "mode": 2, "command_rejected": False, "speed_est_rpm": np.float64(812.5),
+              "region": np.float64(1.0), "quadrant": 1, "family": "predictive", "not_a_field": object(),
+              "iq_a": np.float32(3.25)}
+    raw = msgconv.controller_status_cdr(status, 3_500_000_000)
+    assert deserialize_message(raw, ControllerStatus) == msgconv.controller_status_msg(status, 3_500_000_000)
+
+
 def test_malformed_bytes_give_cdr_error_only():
     codec = Codec(PlantState)
     msg = _random_msg(PlantState, random.Random(1))

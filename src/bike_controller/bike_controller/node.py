@@ -242,7 +242,7 @@ class ControllerNode(Node):
         # is neither built nor sent (about 20 us per batch)
         stat = None
         if self.pub_status.get_subscription_count():
-            stat = msgconv.controller_status_msg(status, t_ns)
+            stat = msgconv.controller_status_cdr(status, t_ns)
             self.pub_status.publish(stat)
         self.cached = (int(msg.seq), drive, stat)
         self.last_seq = int(msg.seq)

@@ -188,6 +188,18 @@ def spmsm_drive_cdr(seq: int, duties, relay, buck, stamp: int, torque_cmd_nm: fl
                              sec, nanosec)
 
 
+_STATUS_CDR = Codec(ControllerStatus)
+
+
+def controller_status_cdr(status: dict, stamp: int) -> bytes:
+    """controller_status_msg(), serialized; the values pass the same per-field conversions
+    (int(), float(), str(), ...), keys that are not fields are ignored."""
+    setters = _STATUS.set
+    values = {key: setters[key](value) for key, value in status.items() if key in setters}
+    sec, nanosec = divmod(int(stamp), 1_000_000_000)
+    return _STATUS_CDR.encode(values, sec, nanosec)
+
+
 def controller_status_msg(status: dict, stamp: int) -> ControllerStatus:
     return _STATUS.to_msg(status, stamp)
 
