@@ -8,6 +8,8 @@ timeline must match the profile.
 """
 from __future__ import annotations
 
+import contextlib
+
 import json
 import os
 import pathlib
@@ -284,21 +286,33 @@ def test_recorder_sqlite3_stops_after_silence(tmp_path, ros_domain, procs):
     assert "already exists" in again.err() and "Traceback" not in again.err()
 
 
-def test_recorder_adapts_to_volatile_command_publisher(tmp_path, ros_domain, procs):
-    """A replayer-like volatile Command publisher is still recorded (QoS downgrade)."""
+@contextlib.contextmanager
+def _publisher_node(name: str, domain: int):
+    """A node of the test process (its own context) standing in for one of the graph's publishers."""
     import rclpy
-    from bike_msgs.msg import Command, PlantState
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
 
-    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=vol"], tmp_path)
-    procs.append(rec)
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    node = rclpy.create_node("replayer", namespace=NS, context=ctx)
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node(name, namespace=NS, context=ctx)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     try:
+        yield node, executor
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+
+
+def test_recorder_adapts_to_volatile_command_publisher(tmp_path, ros_domain, procs):
+    """A replayer-like volatile Command publisher is still recorded (QoS downgrade)."""
+    from bike_msgs.msg import Command, PlantState
+
+    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=vol"], tmp_path)
+    procs.append(rec)
+    with _publisher_node("replayer", ros_domain) as (node, executor):
         pub = node.create_publisher(Command, "command", _qos())          # volatile
         pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
         assert wait_for(lambda: pub.get_subscription_count() >= 1 and pub_ps.get_subscription_count() >= 1, 15.0), \
@@ -309,10 +323,6 @@ def test_recorder_adapts_to_volatile_command_publisher(tmp_path, ros_domain, pro
         executor.spin_once(timeout_sec=0.3)
         rec.signal(signal.SIGINT)
         assert rec.wait(10.0) == 0, rec.err()[-2000:]
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=ctx)
     from bike_session.bags import read_topic
 
     assert [round(m.command, 6) for m in read_topic(tmp_path / "vol", "command")] == [0.0, 0.1, 0.2]
@@ -322,20 +332,12 @@ def test_recorder_adapts_to_volatile_command_publisher(tmp_path, ros_domain, pro
 def test_recorder_writes_a_republished_plant_state_once(tmp_path, ros_domain, procs):
     """The lockstep plant re-publishes an unanswered PlantState and /clock (republish_s):
     a byte-identical copy is counted, not written; a state that differs in anything is kept."""
-    import rclpy
     from bike_msgs.msg import PlantState
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
     from rosgraph_msgs.msg import Clock
 
     rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=rep"], tmp_path)
     procs.append(rec)
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain)
-    node = rclpy.create_node("plant", namespace=NS, context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
-    try:
+    with _publisher_node("plant", ros_domain) as (node, executor):
         pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
         pub_clock = node.create_publisher(Clock, "/clock", _qos())
         assert wait_for(lambda: pub_ps.get_subscription_count() >= 1 and pub_clock.get_subscription_count() >= 1,
@@ -351,10 +353,6 @@ def test_recorder_writes_a_republished_plant_state_once(tmp_path, ros_domain, pr
         executor.spin_once(timeout_sec=0.3)
         rec.signal(signal.SIGINT)
         assert rec.wait(10.0) == 0, rec.err()[-2000:]
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=ctx)
     from bike_session.bags import read_topic
 
     states = [(m.seq, m.speed_rad_s) for m in read_topic(tmp_path / "rep", "plant_state")]

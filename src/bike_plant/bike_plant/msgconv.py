@@ -170,22 +170,24 @@ def plant_state_cdr(snapshot: dict, stamp: int, frame_id: str = "") -> bytes:
     return _PLANT_CDR.encode(snapshot, sec, nanosec, frame_id)
 
 
+def _drive_cdr(seq: int, arrays: dict, stamp: int, torque_cmd_nm: float, current_cmd_a: float) -> bytes:
+    sec, nanosec = divmod(int(stamp), 1_000_000_000)
+    return _DRIVE_CDR.encode({"seq": int(seq), **arrays, "torque_cmd_nm": float(torque_cmd_nm),
+                              "current_cmd_a": float(current_cmd_a)}, sec, nanosec)
+
+
 def drive_command_cdr(seq: int, gates_a, gates_b, split, stamp: int, torque_cmd_nm: float = 0.0,
                       current_cmd_a: float = 0.0) -> bytes:
     """drive_command_msg(), serialized."""
-    sec, nanosec = divmod(int(stamp), 1_000_000_000)
-    return _DRIVE_CDR.encode({"seq": int(seq), "gates_a": gates_a, "gates_b": gates_b, "split": split,
-                              "torque_cmd_nm": float(torque_cmd_nm), "current_cmd_a": float(current_cmd_a)},
-                             sec, nanosec)
+    return _drive_cdr(seq, {"gates_a": gates_a, "gates_b": gates_b, "split": split}, stamp, torque_cmd_nm,
+                      current_cmd_a)
 
 
 def spmsm_drive_cdr(seq: int, duties, relay, buck, stamp: int, torque_cmd_nm: float = 0.0,
                     current_cmd_a: float = 0.0) -> bytes:
     """spmsm_drive_msg(), serialized."""
-    sec, nanosec = divmod(int(stamp), 1_000_000_000)
-    return _DRIVE_CDR.encode({"seq": int(seq), "duty_abc": duties, "relay_request": relay, "buck_duty": buck,
-                              "torque_cmd_nm": float(torque_cmd_nm), "current_cmd_a": float(current_cmd_a)},
-                             sec, nanosec)
+    return _drive_cdr(seq, {"duty_abc": duties, "relay_request": relay, "buck_duty": buck}, stamp, torque_cmd_nm,
+                      current_cmd_a)
 
 
 _STATUS_CDR = Codec(ControllerStatus)
