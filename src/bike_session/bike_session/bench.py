@@ -216,8 +216,10 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
         # the ping-pong before AND after the graph, averaged: the machine's load drifts, and
         # the share compares two measurements that should see the same load
         pings = [pingpong.measure(n, round_trips=500 if quick else 2000)]
-        # long enough for ~2.5 s of wall time in steady state (shorter runs read +-20 %)
-        graph = graph_real_time(n, duration_s=(6.0 if n == 20 else 40.0) * (0.25 if quick else 1.0), base_config=base)
+        # ~7 s of wall time: the watch's discovery of the plant can take ~3 s (Fast DDS
+        # announcement period), and shorter steady spans read +-20 %
+        graph = graph_real_time(n, duration_s=(16.0 if n == 20 else 120.0) * (0.5 if quick else 1.0),
+                                base_config=base)
         pings.append(pingpong.measure(n, round_trips=500 if quick else 2000))
         ping = {key: sum(p[key] for p in pings) / len(pings) for key in ("round_trips_per_s", "p50_us")}
         figures[f"dds_pingpong_n{n}_round_trips_per_s"] = ping["round_trips_per_s"]
