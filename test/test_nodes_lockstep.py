@@ -178,6 +178,8 @@ def test_lockstep_rejects_malformed_drive_command(domain):
         def answer(state):
             if not state.end_of_run:
                 k = int(state.seq)
+                if k == 12:                                 # bytes that are no DriveCommand at all
+                    pub.publish(b"\x00\x01\x00\x00" + b"\xff" * 9)
                 pub.publish(bad.get(k) or good(k))
         col.callbacks["plant_state"] = answer
         plant = NodeProcess("bike_plant", "plant_node", domain, {"duration_s": duration})
@@ -193,6 +195,7 @@ def test_lockstep_rejects_malformed_drive_command(domain):
         texts = " ".join(s.message for s in diag)
         assert "entries, batch_periods is" in texts and "non-finite" in texts and "< 64" in texts
         assert "split outside [0, 1]" in texts
+        assert plant.output().count("undecodable DriveCommand (") == 1, plant.output()   # DDS pads to 16 bytes
         assert any(s.level == DiagnosticStatus.OK for a in col.data["/diagnostics"] for s in a.status
                    if s.name.endswith("plant") and stamp_ns(a.header.stamp) > 12 * n * DT * 1e9 - 1000)
     finally:

@@ -52,10 +52,14 @@ CONTROLLER_DEFAULTS = {
     "command_wait_s": 2.0,
     "diagnostics_period_s": 1.0,
     "session": {"period_s": 0.1},
+    "recorder_window_batches": 0,
 }
 CONTROLLER_DESCRIPTIONS = {
     "diagnostics_period_s": "publish an OK diagnostic at least this often [wall s]",
+    "recorder_window_batches": "lockstep, > 0 while recording (./bike run --record): the first answer waits until the "
+                               "recorder's readers of drive_command and controller_status are matched",
 }
+RECORDER_MATCH_WAIT_S = 5.0  # then the run goes on, saying the bag may miss the first answers
 PLANT_SILENT_S = 3.0         # wall seconds without a PlantState mid-run before saying so (> republish_s)
 STAMP_TOL_NS = 1000          # 1 us: stamps are sim times computed in floating point
 
@@ -122,6 +126,11 @@ class ControllerNode(Node):
         self.last_diag_wall = 0.0
         self.state_rx = None               # wall time of the last PlantState (plant-silence diagnostic)
         self.plant_silent = False
+        # the plant waits for the recorder's progress topic, not for the recorder's readers of
+        # this node's topics; a graph that runs at 2x would otherwise finish a short recorded
+        # run before discovery matched them (a bag without ControllerStatus)
+        self.await_recorder = (self.sync_mode == "lockstep"
+                               and int(cfg.get("recorder_window_batches") or 0) > 0)
         self.stats = {"answered": 0, "rejected_commands": 0, "duplicates": 0, "waits": 0, "undecodable_states": 0}
         self.get_logger().info(
             f"controller: sync_mode={self.sync_mode} N={self.n} session.period_s={self.period_s:g} "
@@ -213,6 +222,16 @@ class ControllerNode(Node):
         if self.pending is None:
             return
         msg, received = self.pending
+        if self.await_recorder:
+            if self.pub_drive.get_subscription_count() >= 2 and self.pub_status.get_subscription_count() >= 1:
+                self.await_recorder = False
+            elif time.monotonic() - received < RECORDER_MATCH_WAIT_S:
+                return                                    # run() calls again within 0.1 s
+            else:
+                self.await_recorder = False
+                self.get_logger().warning(
+                    f"recording, but no recorder matched drive_command / controller_status within "
+                    f"{RECORDER_MATCH_WAIT_S:g}s: answering anyway (the bag may miss the first batches)")
         t_ns = msg.stamp_ns
         if (self.sync_mode == "lockstep" and not self.session_done and not self.no_session
                 and not self._holds_command_for(t_ns)):
