@@ -127,6 +127,15 @@ class Collector:
             except Exception:  # context shut down under us
                 break
 
+    def reads_from(self, topic: str, node_name: str) -> bool:
+        """This reader of ``topic`` has matched the writer of node ``node_name`` (and every
+        writer the graph lists: the graph can list one before DDS matched it). On a starved
+        machine discovery takes seconds, and a volatile writer's samples sent before the match
+        never arrive."""
+        infos = self.node.get_publishers_info_by_topic(self.node.resolve_topic_name(topic))
+        return (any(i.node_name == node_name for i in infos)
+                and self.subs[topic].get_publisher_count() >= len(infos))
+
     def publisher(self, msg_type, topic):
         return self.node.create_publisher(msg_type, topic, self.loop_qos)
 

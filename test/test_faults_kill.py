@@ -148,8 +148,10 @@ def _graph(col, domain, tmp_path, duration, plant_extra=None, ctrl_extra=None, r
     # sees every batch from seq 0
     col.wait_for(lambda: col.subs["plant_state"].get_publisher_count() >= 1, 30, "plant publisher",
                  list(procs.values()))
+    # as `./bike run --record` starts it: its first answer waits until the recorder reads it
     procs["controller"] = NodeProcess("bike_controller", "controller_node", domain,
-                                      dict({"command_wait_s": 0.5}, **(ctrl_extra or {})))
+                                      dict({"command_wait_s": 0.5, "recorder_window_batches": 50 if record else 0},
+                                           **(ctrl_extra or {})))
     procs["session"] = NodeProcess("bike_session", "session_node", domain,
                                    {"duration_s": duration, "config_path": str(CONFIG)})
     return procs
@@ -177,6 +179,9 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim):
     try:
         states = col.data["plant_state"]
         col.wait_for(lambda: states and states[-1].seq >= kill_at_seq, 60, f"seq {kill_at_seq}", everyone)
+        # the diagnostics the test waits for below must reach it
+        col.wait_for(lambda: col.reads_from("/diagnostics", "plant") and col.reads_from("/diagnostics", "controller"),
+                     10, "the test's /diagnostics reader matched to plant and controller", everyone)
         procs[victim].signal(signal.SIGKILL)
         procs[victim].wait(5.0)
         seq_at_kill = int(states[-1].seq)

@@ -331,8 +331,11 @@ def test_recorder_adapts_to_volatile_command_publisher(tmp_path, ros_domain, pro
 
 def test_recorder_writes_a_republished_plant_state_once(tmp_path, ros_domain, procs):
     """The lockstep plant re-publishes an unanswered PlantState and /clock (republish_s):
-    a byte-identical copy is counted, not written; a state that differs in anything is kept."""
-    from bike_msgs.msg import PlantState
+    a byte-identical copy is counted, not written; a state that differs in anything is kept.
+    The session then sends the Commands in force again (same stamps and values): written once
+    too, so whether a late match happened leaves no trace in the bag; so is the controller's
+    answer to a re-published state, sent again."""
+    from bike_msgs.msg import Command, DriveCommand, PlantState
     from rosgraph_msgs.msg import Clock
 
     rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=rep"], tmp_path)
@@ -340,14 +343,22 @@ def test_recorder_writes_a_republished_plant_state_once(tmp_path, ros_domain, pr
     with _publisher_node("plant", ros_domain) as (node, executor):
         pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
         pub_clock = node.create_publisher(Clock, "/clock", _qos())
-        assert wait_for(lambda: pub_ps.get_subscription_count() >= 1 and pub_clock.get_subscription_count() >= 1,
+        pub_cmd = node.create_publisher(Command, "command", _qos(latched=True))
+        pub_drive = node.create_publisher(DriveCommand, "drive_command", _qos())
+        assert wait_for(lambda: min(p.get_subscription_count() for p in (pub_ps, pub_clock, pub_cmd, pub_drive)) >= 1,
                         15.0), rec.err()[-2000:]
         sent = [(0, 0, 0.0), (0, 0, 0.0), (1, 1, 0.0), (1, 1, 0.0), (1, 1, 5.0), (2, 2, 5.0)]
-        for seq, t_ms, speed in sent:
+        # (stamp ms, command): the two in force sent again after the plant's re-publication,
+        # then a new value at an old stamp (kept: it is not a copy)
+        commands = [(0, 0.2), (1, 0.3), (0, 0.2), (1, 0.3), (2, 0.4), (1, 0.5)]
+        for (seq, t_ms, speed), (cmd_ms, cmd) in zip(sent, commands):
             clock = Clock()
             clock.clock.sec, clock.clock.nanosec = divmod(t_ms * 1_000_000, 1_000_000_000)
             pub_clock.publish(clock)
             pub_ps.publish(_stamp(PlantState(seq=seq, speed_rad_s=speed), t_ms * 1_000_000))
+            pub_cmd.publish(_stamp(Command(command=cmd), cmd_ms * 1_000_000))
+            if speed == 0.0:                                  # the answer to each state, sent again with it
+                pub_drive.publish(_stamp(DriveCommand(seq=seq), t_ms * 1_000_000))
             time.sleep(0.02)
         pub_ps.publish(_stamp(PlantState(seq=3, end_of_run=True), 3_000_000))
         executor.spin_once(timeout_sec=0.3)
@@ -359,4 +370,8 @@ def test_recorder_writes_a_republished_plant_state_once(tmp_path, ros_domain, pr
     assert states == [(0, 0.0), (1, 0.0), (1, 5.0), (2, 5.0), (3, 0.0)]
     clocks = [m.clock.nanosec for m in read_topic(tmp_path / "rep", "/clock")]
     assert clocks == [0, 1_000_000, 2_000_000]
-    assert "5 re-published PlantState / clock copies not written" in rec.err()
+    assert [m.seq for m in read_topic(tmp_path / "rep", "drive_command")] == [0, 1]
+    assert "7 re-published loop message copies not written" in rec.err()
+    cmds = [(m.header.stamp.nanosec // 1_000_000, round(m.command, 6)) for m in read_topic(tmp_path / "rep", "command")]
+    assert sorted(cmds) == [(0, 0.2), (1, 0.3), (1, 0.5), (2, 0.4)]     # the bag reads in log-time order
+    assert "2 re-sent Command copies not written" in rec.err()

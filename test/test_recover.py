@@ -151,7 +151,9 @@ def test_kill_9_of_the_real_recorder_mid_session(tmp_path):
         procs.append(rec)
         procs.append(NodeProcess("bike_plant", "plant_node", domain,
                                  {"duration_s": 60.0, "recorder_window_batches": 50, "recorder_timeout_s": 2.0}))
-        procs.append(NodeProcess("bike_controller", "controller_node", domain))
+        # as `./bike run --record` starts it: its first answer waits until the recorder reads
+        # its topics (a graph at 2x real time outruns the discovery of a starved machine)
+        procs.append(NodeProcess("bike_controller", "controller_node", domain, {"recorder_window_batches": 50}))
         procs.append(NodeProcess("bike_session", "session_node", domain,
                                  {"duration_s": 60.0, "config_path": str(CONFIG)}))
         states = col.data["plant_state"]

@@ -38,7 +38,7 @@ import time
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv
 from bike_plant.config import ConfigError
-from bike_plant.loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos
+from bike_plant.loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, recorder_reads
 from bike_plant.node import run_loop_node
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
@@ -223,7 +223,7 @@ class ControllerNode(Node):
             return
         msg, received = self.pending
         if self.await_recorder:
-            if self.pub_drive.get_subscription_count() >= 2 and self.pub_status.get_subscription_count() >= 1:
+            if recorder_reads(self, self.pub_drive) and recorder_reads(self, self.pub_status):
                 self.await_recorder = False
             elif time.monotonic() - received < RECORDER_MATCH_WAIT_S:
                 return                                    # run() calls again within 0.1 s

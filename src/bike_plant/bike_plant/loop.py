@@ -23,6 +23,24 @@ def loop_reader_qos(sync_mode: str) -> QoSProfile:
     return REALTIME_QOS if sync_mode == "realtime" else LOOP_QOS
 
 
+def recorder_reads(node, publisher, progress_topic: str = "recorder_progress") -> bool:
+    """True once the recorder reads ``publisher``'s topic and the writer has matched it.
+
+    The recorder is the node that publishes ``progress_topic``. The ROS graph (discovery
+    info) can list a reader before this DDS writer has matched it, and samples sent meanwhile
+    never reach it; ``get_subscription_count()`` is the writer's own matched count. So: a
+    reader of the recorder's node is listed, and the writer has matched as many readers as
+    the graph lists. Called while waiting to start, never per batch (graph queries are slow)."""
+    progress = node.resolve_topic_name(progress_topic)
+    recorders = {(i.node_name, i.node_namespace) for i in node.get_publishers_info_by_topic(progress)}
+    if not recorders:
+        return False
+    readers = node.get_subscriptions_info_by_topic(publisher.topic_name)
+    if not any((i.node_name, i.node_namespace) in recorders for i in readers):
+        return False
+    return publisher.get_subscription_count() >= len(readers)
+
+
 class HotWait:
     """The loop's wait: the few subscriptions a node waits on in its loop (the hot topics)
     taken straight from one rcl wait set, the pattern of rclpy's own wait_for_message.

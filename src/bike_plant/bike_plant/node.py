@@ -62,7 +62,7 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv
 from .config import ConfigError
-from .loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos
+from .loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, recorder_reads
 
 PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
 PLANT_DEFAULTS = {
@@ -556,7 +556,7 @@ class PlantNode(Node):
         next_log = time.monotonic() + 5.0
         def waiting() -> bool:
             controller = self.pub_state.get_subscription_count() >= 1 and self.sub_drive.get_publisher_count() >= 1
-            recorder = self.recorder_window <= 0 or self.sub_progress.get_publisher_count() >= 1
+            recorder = self.recorder_window <= 0 or self._recorder_ready()
             return not (controller and recorder)
         start = time.monotonic()
         while not self.stop_requested and waiting():
@@ -645,16 +645,21 @@ class PlantNode(Node):
         Wall-clock batches then run free (no flow control; the recorder keeps up or says so)."""
         start = time.monotonic()
         while (not self.stop_requested and self.recorder_window > 0
-               and self.sub_progress.get_publisher_count() < 1 and not self._recorder_absent(start)):
+               and not self._recorder_ready() and not self._recorder_absent(start)):
             self._service_backend()
             self._spin(0.05)
         self.recorder_window = 0
 
+    def _recorder_ready(self) -> bool:
+        """The recorder is up and this plant's PlantState writer has matched its reader (seq 0
+        sent before that match would be missing from the bag)."""
+        return self.sub_progress.get_publisher_count() >= 1 and recorder_reads(self, self.pub_state)
+
     def _recorder_absent(self, since: float) -> bool:
         """A recorder is expected but none matched within ``recorder_timeout_s`` of ``since``:
         say so once (ERROR, FAULT_RECORDER_LOST) and run unrecorded rather than hang."""
-        if (self.recorder_window <= 0 or self.sub_progress.get_publisher_count() >= 1
-                or time.monotonic() - since <= self.recorder_timeout_s):
+        if (self.recorder_window <= 0 or time.monotonic() - since <= self.recorder_timeout_s
+                or self._recorder_ready()):
             return False
         self.get_logger().error(f"no recorder after {self.recorder_timeout_s:g}s: running unrecorded")
         self.node_faults |= PlantState.FAULT_RECORDER_LOST

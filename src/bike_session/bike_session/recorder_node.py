@@ -23,7 +23,10 @@ definitions (bike_msgs from the installed .msg files), so ROS 2 tools, MCAP view
 :mod:`bike_session.bags` read it without the workspace. Log time = sim time: the header
 stamp of messages that have one, the clock value for /clock, the latest clock otherwise.
 A PlantState or /clock byte-identical to the one before it on its topic is the lockstep
-plant re-publishing an unanswered batch; it is counted, not written (bags stay identical).
+plant re-publishing an unanswered batch (and a DriveCommand or ControllerStatus likewise the
+controller's answer to it, sent again), and a Command byte-identical to one of the last
+``RESENT_COMMAND_WINDOW`` is the session sending the Commands in force again for a reader
+that matched late; both are counted, not written (two runs' bags stay identical).
 
 On SIGINT / SIGTERM the node keeps spinning until the PlantState with ``end_of_run``
 has been recorded or 3 s pass without any message, then closes the bag and exits 0.
@@ -31,6 +34,7 @@ The first line on stdout is ``bag: PATH``.
 """
 from __future__ import annotations
 
+import collections
 import datetime as _dt
 import glob
 import importlib
@@ -60,6 +64,7 @@ LATCHED_TOPICS = {"session_info"}
 PREFER_LATCHED = {"command", "session_status"}
 QOS_DEPTH = 1000
 PROGRESS_EVERY = 10
+RESENT_COMMAND_WINDOW = 16          # the session re-sends at most the 2 Commands in force
 SILENCE_S = 3.0
 STORAGES = ("mcap", "sqlite3")
 
@@ -296,8 +301,17 @@ def _make_node_class():
             # /clock (republish_s); the copy carries nothing new and would break bag identity
             self.republished_dropped = 0
             self._last_raw: dict[str, bytes] = {}
+            # the session re-sends the Commands in force (same stamps and values) when the plant
+            # re-publishes: whether it does depends on discovery timing, not on the run
+            self.resent_commands_dropped = 0
+            self._recent_commands: collections.deque[bytes] = collections.deque(maxlen=RESENT_COMMAND_WINDOW)
+            self.command_topic = self.resolve_topic_name("command")
             self.plant_state_topic = self.resolve_topic_name("plant_state")
             self.clock_topic = "/clock"
+            # topics whose copies arrive right after the original (one seq per batch)
+            self._copied_topics = {self.clock_topic, self.plant_state_topic,
+                                   self.resolve_topic_name("drive_command"),
+                                   self.resolve_topic_name("controller_status")}
             self.subs = {}
             self._to_volatile: set[str] = set()
             prefer = {self.resolve_topic_name(t) for t in PREFER_LATCHED}
@@ -340,6 +354,9 @@ def _make_node_class():
             sink = self.sink
             is_clock = topic == self.clock_topic
             is_plant = topic == self.plant_state_topic
+            copied = topic in self._copied_topics
+            is_command = topic == self.command_topic
+            recent_commands = self._recent_commands
 
             def callback(raw: bytes) -> None:
                 self.last_msg_wall = time.monotonic()
@@ -352,12 +369,18 @@ def _make_node_class():
                     except ValueError:
                         self.bad_stamps += 1
                         t_ns = self.latest_clock_ns
-                if is_clock or is_plant:
+                if copied:
                     raw = bytes(raw)
                     if self._last_raw.get(topic) == raw:        # byte-identical: a re-publication
                         self.republished_dropped += 1
                         return
                     self._last_raw[topic] = raw
+                elif is_command:
+                    raw = bytes(raw)
+                    if raw in recent_commands:                 # byte-identical: sent again
+                        self.resent_commands_dropped += 1
+                        return
+                    recent_commands.append(raw)
                 if is_clock:
                     self.latest_clock_ns = max(self.latest_clock_ns, t_ns)
                 sink.write(topic, t_ns, raw)
@@ -423,8 +446,11 @@ def main(args=None) -> int:
                 quiet_until = time.monotonic() + 0.2
         counts = {k: v for k, v in node.sink.counts.items() if v}
         node.close()
-        dropped = (f", {node.republished_dropped} re-published PlantState / clock copies not written"
+        dropped = (f", {node.republished_dropped} re-published loop message copies not written"
                    if node.republished_dropped else "")
+        if node.resent_commands_dropped:
+            dropped += f", {node.resent_commands_dropped} re-sent Command copies not written"
+
         node.get_logger().info(f"bag closed: {node.bag_path} {counts}{dropped}")
     except SetupError as exc:
         print(f"recorder_node: error: {exc}", file=sys.stderr, flush=True)
