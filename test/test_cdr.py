@@ -131,6 +131,40 @@ def test_drive_commands_encode_like_the_message_path():
     assert "non-finite" in msgconv.drive_command_problem(bad, n)
 
 
+def test_clock_encodes_like_the_message_path():
+    from rosgraph_msgs.msg import Clock
+
+    for stamp in (0, 1, 999_999_999, 1_000_000_000, 3_600_123_456_789, 2**31 * 1_000_000_000 - 1):
+        raw = msgconv.clock_cdr(stamp)
+        assert raw == serialize_message(Clock(clock=msgconv.time_msg(stamp)))
+        assert msgconv.stamp_ns(deserialize_message(raw, Clock).clock) == stamp
+
+
+def test_the_plant_applies_checked_read_only_arrays_like_validated_ones():
+    """The node's path hands the kernel read-only views of the DriveCommand's bytes (after
+    drive_command_problem); the result is the validated path's, in the safe state too."""
+    from bike_plant.config import load_config
+    from bike_plant.params import plant_params_from_config
+    from bike_plant.sim import BldcPlant
+
+    rng = np.random.default_rng(5)
+    n = 40
+    plants = [BldcPlant(plant_params_from_config(load_config(None)), seed=1) for _ in range(2)]
+    for batch in range(6):
+        ga, gb = rng.integers(0, 64, n).astype(np.uint8), rng.integers(0, 64, n).astype(np.uint8)
+        view = msgconv.DriveCommandView(msgconv.drive_command_cdr(batch, ga, gb, rng.random(n), 0))
+        assert msgconv.drive_command_problem(view, n) is None
+        arrays = msgconv.drive_arrays(view)
+        assert not arrays[0].flags.writeable
+        for plant in plants:
+            if batch == 3:
+                plant.set_safe_state()
+        plants[0].step_batch(*arrays)
+        plants[1].step_batch(*arrays, checked=True)
+        assert np.array_equal(plants[0].state, plants[1].state)
+    assert np.array_equal(np.frombuffer(view.gates_a, np.uint8), ga), "the message's bytes stay as sent"
+
+
 def test_controller_status_encodes_like_the_message_path():
     status = {"seq": 9, "command": 0.5, "mode": 2, "command_rejected": False, "speed_est_rpm": np.float64(812.5),
               "region": np.float64(1.0), "quadrant": 1, "family": "predictive", "not_a_field": object(),

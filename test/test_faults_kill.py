@@ -73,10 +73,10 @@ def _node_pid(cli_pid: int, exe: str) -> int | None:
 
 # ---------------------------------------------------------------- under ./bike run
 @pytest.mark.parametrize("victim", ["plant", "controller", "session", "recorder"])
-def test_kill_9_under_bike_run_ends_the_run_cleanly(tmp_path, victim):
+def test_kill_9_under_bike_run_ends_the_run_cleanly(tmp_path, victim, ros_domain):
     rng = random.Random(f"kill-{victim}")
     kill_at_seq = rng.randint(500, 1500)             # 0.5-1.5 s of sim time
-    domain = rng.randint(1, 200)
+    domain = ros_domain                              # claimed: no other run on this host has it
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
     col = Collector(domain, {"plant_state": PlantState})
@@ -167,11 +167,11 @@ def _restart(victim, domain, tmp_path, duration):
 
 
 @pytest.mark.parametrize("victim", ["controller", "session", "recorder"])
-def test_kill_9_and_restart_resumes_the_session(tmp_path, victim):
+def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
     duration = 2.0 if victim == "controller" else 5.0    # the rest must outlast a new node's start-up
     rng = random.Random(f"restart-{victim}")
     kill_at_seq = rng.randint(300, 1200)
-    domain = rng.randint(1, 200)
+    domain = ros_domain                              # claimed: no other run on this host has it
     col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
                              "session_status": SessionStatus})
     procs = _graph(col, domain, tmp_path, duration)
@@ -256,7 +256,7 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim):
         assert recorded == seqs, "the recorder kept every batch across the restart"
 
 
-def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_path):
+def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_path, ros_domain):
     """A restarted plant starts a new run from seq 0 (its machine state died with it). The
     controller starts a new law, and the session follows the plant's clock back with one
     WARN diagnostic (it used to log every /clock message until the new run caught up), so
@@ -264,7 +264,7 @@ def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_pat
     duration = 3.0
     rng = random.Random("restart-plant")
     kill_at_seq = rng.randint(800, 1600)
-    domain = rng.randint(1, 200)
+    domain = ros_domain                              # claimed: no other run on this host has it
     col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
                              "session_status": SessionStatus})
     procs = _graph(col, domain, tmp_path, duration, record=False)
@@ -309,12 +309,12 @@ def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_pat
     assert elapsed[k_back] < seq_at_kill * BATCH_S and max(elapsed[k_back:]) >= duration - 1e-9
 
 
-def test_lockstep_controller_killed_for_good_ends_the_run_with_one_error(tmp_path):
+def test_lockstep_controller_killed_for_good_ends_the_run_with_one_error(tmp_path, ros_domain):
     """Without a restart the plant ends the run after start_timeout_s (short here): exit
     code 2, one error line, an ERROR diagnostic naming the missing DriveCommand."""
     rng = random.Random("for-good")
     kill_at_seq = rng.randint(300, 900)
-    domain = rng.randint(1, 200)
+    domain = ros_domain                              # claimed: no other run on this host has it
     col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
     procs = _graph(col, domain, tmp_path, 30.0, plant_extra={"start_timeout_s": 4.0}, record=False,
                    plant_last=True)
@@ -341,10 +341,10 @@ def test_lockstep_controller_killed_for_good_ends_the_run_with_one_error(tmp_pat
         col.close()
 
 
-def test_plant_killed_the_controller_says_so_and_stays_up(tmp_path):
+def test_plant_killed_the_controller_says_so_and_stays_up(tmp_path, ros_domain):
     rng = random.Random("plant")
     kill_at_seq = rng.randint(300, 900)
-    domain = rng.randint(1, 200)
+    domain = ros_domain                              # claimed: no other run on this host has it
     col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
     procs = _graph(col, domain, tmp_path, 30.0, record=False)
     try:

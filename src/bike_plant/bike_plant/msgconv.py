@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import array
 import math
+import struct
 
 import numpy as np
 from numba import njit
@@ -170,6 +171,17 @@ def plant_state_cdr(snapshot: dict, stamp: int, frame_id: str = "") -> bytes:
     not fit its field)."""
     sec, nanosec = divmod(int(stamp), 1_000_000_000)
     return _PLANT_CDR.encode(snapshot, sec, nanosec, frame_id)
+
+
+_CLOCK_CDR = struct.Struct("<4siI")        # encapsulation (CDR little endian), sec, nanosec
+
+
+def clock_cdr(stamp: int) -> bytes:
+    """rosgraph_msgs/Clock at ``stamp`` [ns], serialized: the plant publishes one per batch,
+    and the message object with rclpy's conversion cost half of that publish (~50 of ~100 us
+    per batch measured in the N = 200 graph)."""
+    sec, nanosec = divmod(int(stamp), 1_000_000_000)
+    return _CLOCK_CDR.pack(b"\x00\x01\x00\x00", sec, nanosec)
 
 
 def _drive_cdr(seq: int, arrays: dict, stamp: int, torque_cmd_nm: float, current_cmd_a: float) -> bytes:

@@ -141,7 +141,8 @@ class SimBackend:
         return msgconv.drive_command_problem(msg, n)
 
     def apply(self, msg) -> None:
-        self.step(*msgconv.drive_arrays(msg))
+        """A DriveCommand that passed problem(): its arrays go to the kernel as they are."""
+        self.plant.step_batch(*msgconv.drive_arrays(msg), checked=True)
 
     def __init__(self, cfg: dict, seed: int):
         from .params import plant_params_from_config
@@ -389,7 +390,7 @@ class PlantNode(Node):
         # (measured: 7 % more batches per second than the state last)
         self.pub_state.publish(state)
         if not getattr(self.backend, "time_frozen", False):      # CAN: no /clock while the drive is not armed
-            self.pub_clock.publish(Clock(clock=msgconv.time_msg(stamp)))
+            self.pub_clock.publish(msgconv.clock_cdr(stamp))
         self._last_snap, self._last_stamp, self._last_state = snap, stamp, state
         if self.k % self.battery_every == 0 or end_of_run:
             self._publish_battery(snap, stamp)
@@ -404,7 +405,7 @@ class PlantNode(Node):
             self.last_diag_wall = now
 
     def _republish(self) -> None:
-        self.pub_clock.publish(Clock(clock=msgconv.time_msg(self._last_stamp)))
+        self.pub_clock.publish(msgconv.clock_cdr(self._last_stamp))
         self.pub_state.publish(self._last_state)
         self.stats["republished"] += 1
 

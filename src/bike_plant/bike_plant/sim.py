@@ -100,13 +100,15 @@ class BldcPlant:
         return speed
 
     # ------------------------------------------------------------------ stepping
-    def step_batch(self, gates_a, gates_b, split) -> BatchResult:
-        """Apply N control periods (period k: gates_a[k] for split[k]*T, then gates_b[k])."""
-        ga, gb, sp = as_gate_arrays(gates_a, gates_b, split)
+    def step_batch(self, gates_a, gates_b, split, checked: bool = False) -> BatchResult:
+        """Apply N control periods (period k: gates_a[k] for split[k]*T, then gates_b[k]).
+        ``checked``: the arrays are uint8, uint8, float64 of one length and already passed
+        msgconv.drive_command_problem (the node's path: no second validation per batch)."""
+        ga, gb, sp = (gates_a, gates_b, split) if checked else as_gate_arrays(gates_a, gates_b, split)
         n = ga.shape[0]
         if self.safe:
-            ga[:] = 0
-            gb[:] = 0
+            ga = np.zeros(n, np.uint8)                    # the caller's arrays may be read-only views
+            gb = np.zeros(n, np.uint8)
         load = self.params.load
         if load.kind == "prime_mover" and load.schedule_time_s:
             # schedule resolution is one batch: the prime mover's speed steps at batch starts
