@@ -298,6 +298,16 @@ def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_pat
     assert reset >= n_kill - 1 and states[reset - 1].seq >= seq_at_kill
     new_run = _dedupe_seqs(states[reset:])
     assert new_run[0] < seq_at_kill and new_run == list(range(new_run[0], round(duration / BATCH_S) + 1))
+    # the new run rides the profile from t = 0 exactly as the first did (same seed, a fresh
+    # law, the Commands of the same stamps): every batch the test saw in both runs is identical
+    def key(m):
+        return (stamp_ns(m.header.stamp), tuple(m.phase_current_a), m.speed_rad_s, m.dc_bus_v, m.energy_battery_j,
+                m.energy_mech_in_j)
+    first = {int(m.seq): key(m) for m in states[:reset]}
+    both = [m for m in states[reset:] if int(m.seq) in first and not m.end_of_run]
+    assert len(both) > 100, "too few batches seen in both runs to compare"
+    differ = [int(m.seq) for m in both if key(m) != first[int(m.seq)]]
+    assert not differ, f"the new run differs from the first from seq {differ[0]} on ({len(differ)} batches)"
     # one warning from the session, not one per /clock message of the new run
     restarts = [t for t in _diag_texts(col, DiagnosticStatus.WARN, "session") if "plant restarted" in t]
     assert len(restarts) == 1, restarts
