@@ -280,8 +280,8 @@ def test_lockstep_controller_waits_for_the_session(domain):
 
 def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
     """With recorder_window_batches the plant stays within the window of the recorder's
-    reported progress (nothing can overflow a DDS history), and gives a silent recorder up
-    with FAULT_RECORDER_LOST instead of hanging."""
+    reported progress (nothing can overflow a DDS history), not fooled by a previous run's
+    report, and gives a silent recorder up with FAULT_RECORDER_LOST instead of hanging."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import UInt64
 
@@ -294,6 +294,9 @@ def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
             UInt64, "recorder_progress",
             QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        # the latched last report of a previous run (a plant restarted under a running
+        # recorder): ahead of this run, so not taken as this run's progress
+        progress.publish(UInt64(data=5000))
         col.publisher(Command, "command")
         _start_plant_and_wait(col, domain, {"duration_s": 0.5, "recorder_window_batches": window,
                                             "recorder_timeout_s": 3.0}, procs)
@@ -303,10 +306,11 @@ def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
         col.wait_for(lambda: states and states[-1].seq >= window - 1, 20, "the first batches", procs)
         time.sleep(0.5)
         assert max(int(m.seq) for m in states) == window - 1, "the plant must wait for the recorder's report"
-        progress.publish(UInt64(data=30))
-        col.wait_for(lambda: states[-1].seq >= 30 + window, 10, "batches after the report", procs)
+        # the recorder wrote everything sent so far: another window may go out
+        progress.publish(UInt64(data=window - 1))
+        col.wait_for(lambda: states[-1].seq >= 2 * window - 1, 10, "batches after the report", procs)
         time.sleep(0.5)
-        assert max(int(m.seq) for m in states) == 30 + window
+        assert max(int(m.seq) for m in states) == 2 * window - 1
         assert not any(m.faults & PlantState.FAULT_RECORDER_LOST for m in states)
         # silence: after recorder_timeout_s the plant goes on, saying why
         col.wait_for(lambda: any(m.end_of_run for m in states), 15, "end_of_run without the recorder", procs)

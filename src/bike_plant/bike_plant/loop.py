@@ -23,6 +23,16 @@ def loop_reader_qos(sync_mode: str) -> QoSProfile:
     return REALTIME_QOS if sync_mode == "realtime" else LOOP_QOS
 
 
+def recorder_progress(recorder_seq: int, reported: int, plant_k: int) -> int:
+    """The recorder's written seq that lockstep flow control goes by, after a report.
+
+    A report ahead of the plant's own batch ``plant_k`` is not this run's: the progress topic
+    is latched (transient local), so a plant restarted mid-run first hears the last seq the
+    recorder wrote of the previous run, and taking it would leave the new run unthrottled for
+    that many batches (a slow recorder would then lose states)."""
+    return recorder_seq if reported > plant_k else max(recorder_seq, reported)
+
+
 def recorder_reads(node, publisher, progress_topic: str = "recorder_progress") -> bool:
     """True once the recorder reads ``publisher``'s topic and the writer has matched it.
 

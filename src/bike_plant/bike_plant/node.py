@@ -62,7 +62,7 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv
 from .config import ConfigError
-from .loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, recorder_reads
+from .loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, recorder_progress, recorder_reads
 
 PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
 PLANT_DEFAULTS = {
@@ -346,7 +346,7 @@ class PlantNode(Node):
                 submit(msg, self.n)
 
     def _on_progress(self, msg) -> None:
-        self.recorder_seq = max(self.recorder_seq, int(msg.data))
+        self.recorder_seq = recorder_progress(self.recorder_seq, int(msg.data), self.k)
         self.recorder_rx = time.monotonic()
         if (self.sync_mode == "lockstep" and self.recorder_window <= 0 < self.recorder_window_cfg
                 and self.node_faults & PlantState.FAULT_RECORDER_LOST):
