@@ -302,15 +302,19 @@ def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
                                             "recorder_timeout_s": 3.0}, procs)
         procs.append(NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 0.1}))
         states = col.data["plant_state"]
-        # nothing reported yet (seq -1): seq 0 .. window - 1 may go out
-        col.wait_for(lambda: states and states[-1].seq >= window - 1, 20, "the first batches", procs)
+        # nothing reported yet: seq 0 goes out, again and again, and seq 1 waits for the
+        # recorder to have it (a reader matched late would miss it)
+        col.wait_for(lambda: sum(int(m.seq) == 0 for m in states) >= 3, 20, "seq 0 re-published", procs)
+        assert max(int(m.seq) for m in states) == 0, "seq 1 must wait until the recorder reports seq 0"
+        progress.publish(UInt64(data=0))
+        col.wait_for(lambda: states[-1].seq >= window, 20, "the first window", procs)
         time.sleep(0.5)
-        assert max(int(m.seq) for m in states) == window - 1, "the plant must wait for the recorder's report"
+        assert max(int(m.seq) for m in states) == window, "the plant must wait for the recorder's report"
         # the recorder wrote everything sent so far: another window may go out
-        progress.publish(UInt64(data=window - 1))
-        col.wait_for(lambda: states[-1].seq >= 2 * window - 1, 10, "batches after the report", procs)
+        progress.publish(UInt64(data=window))
+        col.wait_for(lambda: states[-1].seq >= 2 * window, 10, "batches after the report", procs)
         time.sleep(0.5)
-        assert max(int(m.seq) for m in states) == 2 * window - 1
+        assert max(int(m.seq) for m in states) == 2 * window
         assert not any(m.faults & PlantState.FAULT_RECORDER_LOST for m in states)
         # silence: after recorder_timeout_s the plant goes on, saying why
         col.wait_for(lambda: any(m.end_of_run for m in states), 15, "end_of_run without the recorder", procs)

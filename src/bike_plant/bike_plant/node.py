@@ -64,6 +64,10 @@ from . import msgconv
 from .config import ConfigError
 from .loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, recorder_progress, recorder_reads
 
+# the start-up wait for a recorder: matching its reader took ~3 s on a loaded 2-core machine,
+# longer than a recorder_timeout_s chosen to notice a lost recorder quickly
+RECORDER_START_MIN_S = 10.0
+FIRST_STATE_REPUBLISH_S = 0.1    # recording: seq 0 again this often until the recorder reports it [wall s]
 PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
 PLANT_DEFAULTS = {
     "backend": "sim",
@@ -358,13 +362,24 @@ class PlantNode(Node):
             self.get_logger().info(f"a recorder reports again (written up to seq {int(msg.data)}, plant at "
                                    f"{self.k}): waiting for it again, at most {self.recorder_window} batches ahead")
 
+    def _recorder_behind(self) -> bool:
+        """More than the window behind, or seq 0 not yet confirmed before seq 1 goes out."""
+        return self.k - self.recorder_seq > self.recorder_window or (self.k >= 1 and self.recorder_seq < 0)
+
     def _wait_for_recorder(self) -> None:
-        """Lockstep flow control: block while the recorder is more than the window behind."""
-        if self.recorder_window <= 0 or self.k - self.recorder_seq <= self.recorder_window:
+        """Lockstep flow control: block while the recorder is more than the window behind.
+
+        Seq 1 also waits until the recorder has reported seq 0, which is re-published
+        meanwhile (the recorder writes a copy once): on a starved machine a reader can match
+        after the writer saw the graph list it, and seq 0 would be missing from the bag."""
+        if self.recorder_window <= 0 or not self._recorder_behind():
             return
-        since = time.monotonic()
-        while not self.stop_requested and self.k - self.recorder_seq > self.recorder_window:
+        since = sent = time.monotonic()
+        while not self.stop_requested and self._recorder_behind():
             self._spin(0.05)
+            if self.recorder_seq < 0 and time.monotonic() - sent > FIRST_STATE_REPUBLISH_S:
+                self._republish()
+                sent = time.monotonic()
             if time.monotonic() - max(self.recorder_rx, since) > self.recorder_timeout_s:
                 self.get_logger().error(
                     f"the recorder reported nothing for {self.recorder_timeout_s:g}s (last seq "
@@ -657,12 +672,13 @@ class PlantNode(Node):
         return self.sub_progress.get_publisher_count() >= 1 and recorder_reads(self, self.pub_state)
 
     def _recorder_absent(self, since: float) -> bool:
-        """A recorder is expected but none matched within ``recorder_timeout_s`` of ``since``:
-        say so once (ERROR, FAULT_RECORDER_LOST) and run unrecorded rather than hang."""
-        if (self.recorder_window <= 0 or time.monotonic() - since <= self.recorder_timeout_s
-                or self._recorder_ready()):
+        """A recorder is expected but none matched within ``recorder_timeout_s`` (at least
+        RECORDER_START_MIN_S) of ``since``: say so once (ERROR, FAULT_RECORDER_LOST) and run
+        unrecorded rather than hang."""
+        timeout_s = max(self.recorder_timeout_s, RECORDER_START_MIN_S)
+        if self.recorder_window <= 0 or time.monotonic() - since <= timeout_s or self._recorder_ready():
             return False
-        self.get_logger().error(f"no recorder after {self.recorder_timeout_s:g}s: running unrecorded")
+        self.get_logger().error(f"no recorder after {timeout_s:g}s: running unrecorded")
         self.node_faults |= PlantState.FAULT_RECORDER_LOST
         self.recorder_window = 0
         return True

@@ -392,7 +392,8 @@ def _make_node_class():
                     self.plant_states_written += 1
                     if end:
                         self.end_of_run_seen = True
-                    if end or self.plant_states_written % PROGRESS_EVERY == 0:
+                    # a run's seq 0 at once: a lockstep plant holds seq 1 until it hears it
+                    if end or seq == 0 or self.plant_states_written % PROGRESS_EVERY == 0:
                         self._progress_msg.data = seq
                         self.pub_progress.publish(self._progress_msg)
 
