@@ -378,7 +378,10 @@ class PlantNode(Node):
         while not self.stop_requested and self._recorder_behind():
             self._spin(0.05)
             if self.recorder_seq < 0 and time.monotonic() - sent > FIRST_STATE_REPUBLISH_S:
-                self._republish()
+                # the state only: /clock again would make the session send its Commands again
+                # (and say so) ten times a second; the controller answers with its cached reply
+                self.pub_state.publish(self._last_state)
+                self.stats["republished"] += 1
                 sent = time.monotonic()
             if time.monotonic() - max(self.recorder_rx, since) > self.recorder_timeout_s:
                 self.get_logger().error(
