@@ -161,9 +161,6 @@ class SimBackend:
     def snapshot(self) -> dict:
         return self.plant.snapshot()
 
-    def step(self, gates_a, gates_b, split) -> None:
-        self.plant.step_batch(gates_a, gates_b, split)
-
     def safe_batch(self, n: int) -> None:
         self.plant.step_batch(*self.plant.safe_gates(n))
 
@@ -380,8 +377,7 @@ class PlantNode(Node):
             if self.recorder_seq < 0 and time.monotonic() - sent > FIRST_STATE_REPUBLISH_S:
                 # the state only: /clock again would make the session send its Commands again
                 # (and say so) ten times a second; the controller answers with its cached reply
-                self.pub_state.publish(self._last_state)
-                self.stats["republished"] += 1
+                self._republish(clock=False)
                 sent = time.monotonic()
             if time.monotonic() - max(self.recorder_rx, since) > self.recorder_timeout_s:
                 self.get_logger().error(
@@ -422,8 +418,9 @@ class PlantNode(Node):
             self.last_drive_level = drive_level
             self.last_diag_wall = now
 
-    def _republish(self) -> None:
-        self.pub_clock.publish(msgconv.clock_cdr(self._last_stamp))
+    def _republish(self, clock: bool = True) -> None:
+        if clock:
+            self.pub_clock.publish(msgconv.clock_cdr(self._last_stamp))
         self.pub_state.publish(self._last_state)
         self.stats["republished"] += 1
 

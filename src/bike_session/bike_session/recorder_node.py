@@ -451,7 +451,6 @@ def main(args=None) -> int:
                    if node.republished_dropped else "")
         if node.resent_commands_dropped:
             dropped += f", {node.resent_commands_dropped} re-sent Command copies not written"
-
         node.get_logger().info(f"bag closed: {node.bag_path} {counts}{dropped}")
     except SetupError as exc:
         print(f"recorder_node: error: {exc}", file=sys.stderr, flush=True)
