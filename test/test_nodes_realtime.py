@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from node_harness import CONFIG, Collector, NodeProcess, domain, publish_wall_times, stamp_ns  # noqa: F401
 
-from bike_msgs.msg import Command, PlantState  # noqa: E402
+from bike_msgs.msg import Command, ControllerStatus, PlantState  # noqa: E402
 from bike_plant import msgconv  # noqa: E402
 from bike_plant.config import load_config  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
@@ -119,12 +119,13 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
 
 
 def test_realtime_without_controller_stays_safe_and_ends(domain):
-    """No controller at all: gates off, a WARN diagnostic, end_of_run at duration_s."""
+    """No controller at all: t = 0 held for start_timeout_s, then gates off, a WARN diagnostic,
+    end_of_run at duration_s."""
     duration = 2.0           # longer than the test reader's discovery on a starved machine (>1 s)
     col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
     procs = []
     try:
-        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=duration))
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=duration, start_timeout_s=2.0))
         procs.append(plant)
         col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 20, "end_of_run", procs)
         assert plant.wait(5.0) == 0, plant.output()
@@ -133,6 +134,41 @@ def test_realtime_without_controller_stays_safe_and_ends(domain):
         assert all(_peak_current(m) == 0.0 for m in states)
         warns = [s for a in col.data["/diagnostics"] for s in a.status if s.level == DiagnosticStatus.WARN]
         assert any("waiting for the first DriveCommand" in s.message for s in warns)
+        assert any("sim time held at 0" in s.message for s in warns), "the start hold says so"
+        assert "sim time starts without a controller" in plant.output()
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+def test_realtime_start_holds_t0_until_a_late_session_is_heard(domain):
+    """A session that joins late still rides its profile from t = 0: the plant holds sim time
+    at 0 (seq 0 re-published) until the controller's first answer, and the controller's first
+    answer waits for the session's Command for t = 0. Before, sim time ran from the plant's
+    start and the first seconds were ridden on the config's command0."""
+    duration = 1.0
+    col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus})
+    procs = []
+    try:
+        procs.append(NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=duration)))
+        procs.append(NodeProcess("bike_controller", "controller_node", domain, dict(RT, command_wait_s=30.0)))
+        states = col.data["plant_state"]
+        col.wait_for(lambda: len(states) > 0, 20, "the held PlantState", procs)
+        time.sleep(1.5)                       # the session is late: nothing may run meanwhile
+        early = list(states)
+        assert {int(m.seq) for m in early} == {0} and {stamp_ns(m.header.stamp) for m in early} == {0}, \
+            "sim time held at 0 without a session"
+        assert not col.data["controller_status"], "the controller waits for the session's first Command"
+        procs.append(NodeProcess("bike_session", "session_node", domain,
+                                 {"duration_s": duration, "config_path": str(CONFIG)}))
+        col.wait_for(lambda: any(m.end_of_run for m in states), 30, "end_of_run", procs)
+        status = col.data["controller_status"]
+        first = min(status, key=lambda s: s.seq)
+        assert first.seq == 0 and first.command == pytest.approx(0.2), "the profile from t = 0 (warm-up at 0.2)"
+        assert all(s.command > 0.0 for s in status), "never the config's command0 = 0"
+        t_end = stamp_ns(states[-1].header.stamp) * 1e-9
+        assert t_end == pytest.approx(duration, abs=1e-6)
     finally:
         for p in procs:
             p.stop()

@@ -28,7 +28,12 @@ topic, so everything up to tau_j is then in), unless a SessionStatus DONE was se
 nothing arrived for ``command_wait_s`` wall seconds (then it proceeds with the last / zero
 command, logs once, and stops waiting until a new Command arrives). A re-published
 PlantState that was already answered gets the cached answer again (decide() is never run
-twice for one seq). realtime: no waiting, same timeline rule.
+twice for one seq). realtime: the same timeline rule; only the first answer of a run, to the
+plant's held t = 0 (plant_node holds sim time until that answer), waits for the Command for
+t = 0, at most ``command_wait_s`` after the first PlantState or after the Command reader's last
+new match (the session then sends its Commands again on the next /clock 0 copy); with
+``recorder_window_batches`` > 0 it also waits for the recorder's readers. Later batches never
+wait.
 """
 from __future__ import annotations
 
@@ -102,7 +107,8 @@ class ControllerNode(Node):
         self.pub_drive = self.create_publisher(DriveCommand, "drive_command", LOOP_QOS)
         self.pub_status = self.create_publisher(ControllerStatus, "controller_status", LOOP_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
-        subs = [self.create_subscription(Command, "command", self._on_command, LOOP_QOS),
+        self.sub_command = self.create_subscription(Command, "command", self._on_command, LOOP_QOS)
+        subs = [self.sub_command,
                 self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS),
                 # taken serialized, decoded by msgconv.PlantStateView (bike_plant.cdr: the hot path)
                 self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode),
@@ -130,11 +136,13 @@ class ControllerNode(Node):
         self.last_diag_wall = 0.0
         self.state_rx = None               # wall time of the last PlantState (plant-silence diagnostic)
         self.plant_silent = False
-        # the plant waits for the recorder's progress topic, not for the recorder's readers of
-        # this node's topics; a graph that runs at 2x would otherwise finish a short recorded
-        # run before discovery matched them (a bag without ControllerStatus)
-        self.await_recorder = (self.sync_mode == "lockstep"
-                               and int(cfg.get("recorder_window_batches") or 0) > 0)
+        self.start_wait = None             # realtime: (wall time, matched Command writers) of the start wait
+        # the plant waits for the recorder's reader of plant_state, not for its readers of this
+        # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
+        # first seconds before discovery matched them (a bag without ControllerStatus). Both
+        # modes hold the first answer; the plant holds its first batch until it comes.
+        self.await_recorder = int(cfg.get("recorder_window_batches") or 0) > 0
+        self.recorder_wait_since = None
         self.stats = {"answered": 0, "rejected_commands": 0, "duplicates": 0, "waits": 0, "undecodable_states": 0}
         self.get_logger().info(
             f"controller: sync_mode={self.sync_mode} N={self.n} session.period_s={self.period_s:g} "
@@ -217,6 +225,7 @@ class ControllerNode(Node):
         self.pending = None
         self.cached = None
         self.last_seq = -1
+        self.start_wait = None
 
     # ------------------------------------------------------------ the batch
     def _holds_command_for(self, t_ns: int) -> bool:
@@ -228,10 +237,12 @@ class ControllerNode(Node):
         if self.pending is None:
             return
         msg, received = self.pending
-        if self.await_recorder:
+        if self.await_recorder and (self.sync_mode == "lockstep" or msg.stamp_ns == 0):
+            if self.recorder_wait_since is None:
+                self.recorder_wait_since = time.monotonic()
             if recorder_reads(self, self.pub_drive) and recorder_reads(self, self.pub_status):
                 self.await_recorder = False
-            elif time.monotonic() - received < RECORDER_MATCH_WAIT_S:
+            elif time.monotonic() - self.recorder_wait_since < RECORDER_MATCH_WAIT_S:
                 return                                    # run() calls again within 0.1 s
             else:
                 self.await_recorder = False
@@ -239,9 +250,15 @@ class ControllerNode(Node):
                     f"recording, but no recorder matched drive_command / controller_status within "
                     f"{RECORDER_MATCH_WAIT_S:g}s: answering anyway (the bag may miss the first batches)")
         t_ns = msg.stamp_ns
-        if (self.sync_mode == "lockstep" and not self.session_done and not self.no_session
+        if self.sync_mode == "lockstep":
+            waited_s = time.monotonic() - received
+        elif self.cached is None and t_ns == 0:
+            waited_s = self._start_waited_s()             # realtime: the plant holds t = 0 for us
+        else:
+            waited_s = None                               # realtime mid-run: never wait
+        if (waited_s is not None and not self.session_done and not self.no_session
                 and not self._holds_command_for(t_ns)):
-            if time.monotonic() - received < self.command_wait_s:
+            if waited_s < self.command_wait_s:
                 return                                    # wait for the session
             self.no_session = True
             j = math.floor(t_ns * 1e-9 / self.period_s + 1e-9)
@@ -278,6 +295,16 @@ class ControllerNode(Node):
             level = DiagnosticStatus.WARN if self.rejected else DiagnosticStatus.OK
             text = f"last Command rejected: {self.reject_reason}" if self.rejected else "running"
             self._publish_diag(level, text, t_ns)
+
+    def _start_waited_s(self) -> float:
+        """Realtime start: wall seconds waited for the t = 0 Command, counted from the first
+        PlantState of the run or from the last time the Command reader matched one more writer
+        (a session discovered late: its Commands come with the next /clock 0 the plant sends)."""
+        now = time.monotonic()
+        matched = self.sub_command.get_publisher_count()
+        if self.start_wait is None or matched > self.start_wait[1]:
+            self.start_wait = (now, matched)
+        return now - self.start_wait[0]
 
     def _apply_timeline(self, t_ns: int) -> None:
         """Put the newest Command with stamp <= t_k in force (set_command only on change)."""

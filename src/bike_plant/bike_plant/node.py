@@ -19,7 +19,10 @@ sync_mode lockstep: publish /clock = t_k and PlantState(seq=k), wait for DriveCo
   messages. A recorder silent for ``recorder_timeout_s`` is given up on (ERROR diagnostic,
   the run goes on unrecorded rather than hanging).
 sync_mode realtime: one batch per wall-clock batch period (with ``recorder_window_batches`` > 0
-  the first waits for the recorder, at most ``recorder_timeout_s``). The newest valid DriveCommand is
+  the first waits for the recorder, at most ``recorder_timeout_s``). Sim time starts when the loop
+  is closed: t = 0 is held (seq 0 and /clock 0 re-published every 0.1 s, no batch applied) until
+  the controller's first DriveCommand, at most ``start_timeout_s``, then runs without one (safe
+  state) and says so. The newest valid DriveCommand is
   applied; without a new one the last one is held (re-used); with none for
   ``command_timeout_s`` the plant goes to its safe state (all gates off) with
   FAULT_COMMAND_TIMEOUT and an ERROR diagnostic, cleared when commands return. Sim time
@@ -100,7 +103,8 @@ PLANT_DESCRIPTIONS = {
                                "(0 = do not wait for a recorder)",
     "recorder_timeout_s": "give up waiting for a silent or absent recorder after this many wall seconds",
     "start_timeout_s": "lockstep: exit with an error when no controller appears, or none answers a PlantState, "
-                       "within this many wall seconds (0 = wait forever)",
+                       "within this many wall seconds; realtime: hold t = 0 at most this long for the controller's "
+                       "first DriveCommand, then run in the safe state (0 = wait forever)",
     "can_log_file": "backend can: log every CAN frame to this .asc / .blf file (overrides can.log_file; "
                     "./bike run --record puts it beside the bag)",
 }
@@ -308,6 +312,7 @@ class PlantNode(Node):
         self.latest = None           # realtime: newest DriveCommand received
         self.latest_rx = None        # realtime: wall time it arrived
         self.latest_rx_sim_s = math.nan  # realtime: sim time of the batch during which it arrived
+        self.holding_start = False       # realtime: t = 0 held for the first DriveCommand (_hold_start)
         self.wait_reason = ""        # lockstep: why the run is held (no answer), for the diagnostic
         self.wait_level = _level(DiagnosticStatus.WARN)
         self.node_faults = 0
@@ -477,7 +482,8 @@ class PlantNode(Node):
         if self.sync_mode == "realtime" and self.latest_rx is None and not faults:
             status.level = DiagnosticStatus.WARN
             reasons.append("waiting for the first DriveCommand ("
-                           + ("drive idle" if self.backend.measured_by_drive else "gates off") + ")")
+                           + ("drive idle" if self.backend.measured_by_drive else "gates off")
+                           + (", sim time held at 0" if self.holding_start else "") + ")")
         drive_values = {}
         drive_diag = getattr(self.backend, "diagnostic", None)
         if drive_diag is not None:                  # CAN: link, drive errors, statistics
@@ -666,6 +672,33 @@ class PlantNode(Node):
             self._spin(0.05)
         self.recorder_window = 0
 
+    def _hold_start(self) -> None:
+        """Realtime: hold t = 0 (no batch applied) until the controller's first DriveCommand,
+        at most ``start_timeout_s``. Sim time that ran before the loop was closed would be ridden
+        without the session: its first Commands can reach a controller whose reader matched late
+        only when the session sees /clock 0 again (it then sends the Commands in force again).
+        So seq 0 and /clock 0 go out again every FIRST_STATE_REPUBLISH_S; /clock 0 also while a
+        CAN drive is not armed yet (arming waits for DriveCommands)."""
+        start = time.monotonic()
+        again = start + FIRST_STATE_REPUBLISH_S
+        while not self.stop_requested and self.latest_rx is None:
+            self._service_backend()
+            self._spin(0.02)
+            now = time.monotonic()
+            if self.start_timeout_s > 0 and now - start > self.start_timeout_s:
+                self.get_logger().warning(f"no DriveCommand within start_timeout_s={self.start_timeout_s:g}s: "
+                                          "sim time starts without a controller (safe state)")
+                break
+            if now >= again and self.latest_rx is None:
+                again = now + FIRST_STATE_REPUBLISH_S
+                self._republish()
+                if now - self.last_diag_wall >= self.diag_period_s:
+                    self._publish_diag(self._last_snap, self._last_stamp, max(self.last_faults, 0))
+                    self.last_diag_wall = now
+        self.holding_start = False
+        if self.latest_rx is not None and time.monotonic() - start > 1.0:
+            self.get_logger().info(f"first DriveCommand after {time.monotonic() - start:.1f}s: sim time starts")
+
     def _recorder_ready(self) -> bool:
         """The recorder is up and this plant's PlantState writer has matched its reader (seq 0
         sent before that match would be missing from the bag)."""
@@ -689,7 +722,9 @@ class PlantNode(Node):
         timed_out = False
         self._wait_for_recorder_start()
         self._service_backend()
+        self.holding_start = True
         self._publish_state()
+        self._hold_start()
         next_tick = time.monotonic() + self.batch_s
         while not self.stop_requested:
             now = time.monotonic()

@@ -201,6 +201,7 @@ def _make_node_class():
             self.next_j = 0              # next tau index to publish
             self.last_status_k = -1      # last period index a status was published for
             self.last_t_ns = None
+            self.resent_at_ns = None     # /clock value whose Commands were last sent again
             self.state = SessionStatus.STATE_WAITING
             self.done = False
             self.commands_published = 0
@@ -320,7 +321,10 @@ def _make_node_class():
                 # values, so the controller's timeline does not change.
                 for j in range(t_ns // self.period_ns, self.next_j):
                     self._publish_command(j)
-                self.get_logger().info(f"Command reader matched late: Commands from t = {t_ns * 1e-9:g} s sent again")
+                if self.resent_at_ns != t_ns:             # a held realtime start repeats t = 0 often
+                    self.resent_at_ns = t_ns
+                    self.get_logger().info(f"/clock {t_ns * 1e-9:g} s again (plant waiting for an answer): "
+                                           "the Commands in force sent again")
                 return
             events_between = getattr(self.profile, "events_between", None)
             if events_between is not None:
