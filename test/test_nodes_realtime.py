@@ -81,7 +81,9 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         # receipt in this process jitters by up to a second on a loaded 2-core machine
         sim_kill = stamp_ns(states[k_kill - 1].header.stamp) * 1e-9
         sim_fault = stamp_ns(states[i_fault].header.stamp) * 1e-9
-        assert 0 < sim_fault - sim_kill < TIMEOUT + 0.25, f"fault {sim_fault - sim_kill:.3f} s (sim) after the kill"
+        # the last state this process had at the kill lags the plant by its own receipt delay
+        # (0.3 s seen on a loaded machine): a loose bound here, the tight one from the plant below
+        assert 0 < sim_fault - sim_kill < TIMEOUT + 1.0, f"fault {sim_fault - sim_kill:.3f} s (sim) after the kill"
         assert col.stamps["plant_state"][i_fault] - t_kill < 5.0
         # currents decay to zero in the safe state (all gates off; back-EMF below the bus voltage)
         col.wait_for(lambda: len(states) > i_fault + 200, 5, "states after the fault", [plant])
@@ -95,8 +97,14 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         # necessarily the first one: a saturated machine can starve the loop of DDS delivery
         # for ~1 s before the kill (README, DDS gaps in realtime mode), a timeout of its own
         fault_ns = stamp_ns(states[i_fault].header.stamp)
-        assert any(stamp_ns(a.header.stamp) == fault_ns and any(s.level == DiagnosticStatus.ERROR for s in a.status)
-                   for a in col.data["/diagnostics"]), "no ERROR diagnostic with the faulted batch's stamp"
+        faulted = [s for a in col.data["/diagnostics"] if stamp_ns(a.header.stamp) == fault_ns
+                   for s in a.status if s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR]
+        assert faulted, "no ERROR diagnostic with the faulted batch's stamp"
+        # safe within 2 batches of command_timeout_s, in sim time measured by the plant: from the
+        # batch in which the last DriveCommand arrived to the start of the first safe batch
+        last_cmd_s = float({kv.key: kv.value for kv in faulted[0].values}["last_drive_command_sim_s"])
+        latency_s = sim_fault - N * DT - last_cmd_s
+        assert 0 < latency_s <= TIMEOUT + 2 * N * DT + 1e-9, f"safe state {latency_s:.4f} s after the last command"
         assert plant.alive()
 
         # a new controller: commands return, the fault clears, braking resumes

@@ -323,8 +323,8 @@ def _make_node_class():
                     self._publish_command(j)
                 if self.resent_at_ns != t_ns:             # a held realtime start repeats t = 0 often
                     self.resent_at_ns = t_ns
-                    self.get_logger().info(f"/clock {t_ns * 1e-9:g} s again (plant waiting for an answer): "
-                                           "the Commands in force sent again")
+                    self.get_logger().info(f"/clock {t_ns * 1e-9:g} s again (the plant waits for an answer): "
+                                           f"Commands from t = {t_ns * 1e-9:g} s sent again")
                 return
             events_between = getattr(self.profile, "events_between", None)
             if events_between is not None:
