@@ -260,14 +260,15 @@ def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_pat
     """A restarted plant starts a new run from seq 0 (its machine state died with it). The
     controller starts a new law, and the session follows the plant's clock back with one
     WARN diagnostic (it used to log every /clock message until the new run caught up), so
-    the new run gets the profile from its start and ends with the session DONE."""
+    the new run gets the profile from its start and ends with the session DONE. The recorder
+    puts the new run into a bag of its own (<bag>_run2), from seq 0 to its end_of_run."""
     duration = 3.0
     rng = random.Random("restart-plant")
     kill_at_seq = rng.randint(800, 1600)
     domain = ros_domain                              # claimed: no other run on this host has it
     col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
                              "session_status": SessionStatus})
-    procs = _graph(col, domain, tmp_path, duration, record=False)
+    procs = _graph(col, domain, tmp_path, duration)
     everyone = list(procs.values())
     try:
         states = col.data["plant_state"]
@@ -278,14 +279,16 @@ def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_pat
         seq_at_kill = int(states[-1].seq)
         plant2 = NodeProcess("bike_plant", "plant_node", domain,
                              {"duration_s": duration, "republish_s": 0.3, "start_timeout_s": 30.0,
-                              "recorder_window_batches": 0})
+                              "recorder_window_batches": 50, "recorder_timeout_s": 1.5})
         everyone.append(plant2)
-        others = [procs["controller"], procs["session"], plant2]
+        others = [procs["controller"], procs["session"], procs["recorder"], plant2]
         col.wait_for(lambda: any(m.end_of_run for m in states[n_kill:]), 60, "the new run's end", others)
         col.wait_for(lambda: any(s.state == SessionStatus.STATE_DONE for s in col.data["session_status"]),
                      10, "the session's DONE", others)
         assert plant2.wait(10) == 0, plant2.output()
         assert procs["session"].wait(10) == 0, procs["session"].output()
+        procs["recorder"].signal(signal.SIGINT)
+        assert procs["recorder"].wait(15) == 0, procs["recorder"].output()
     finally:
         codes = {name: p.stop() for name, p in procs.items() if name != "plant"}
         for p in everyone[len(procs):]:
@@ -317,6 +320,16 @@ def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_pat
     elapsed = [s.elapsed_s for s in col.data["session_status"]]
     k_back = next(i for i in range(1, len(elapsed)) if elapsed[i] < elapsed[i - 1])
     assert elapsed[k_back] < seq_at_kill * BATCH_S and max(elapsed[k_back:]) >= duration - 1e-9
+    # two bags: the first run up to the kill (no end_of_run: the plant died), the new run whole
+    run1 = read_topic(tmp_path / "run", "plant_state")
+    run2 = read_topic(tmp_path / "run_run2", "plant_state")
+    assert run1[0].seq == 0 and not any(m.end_of_run for m in run1) and len(run1) > 100
+    assert [m.seq for m in run2] == list(range(round(duration / BATCH_S) + 1)) and run2[-1].end_of_run
+    assert [key(m) for m in run2[:len(run1)]] == [key(m) for m in run1], "the new run repeats the first"
+    commands = read_topic(tmp_path / "run_run2", "command")
+    assert commands and stamp_ns(commands[0].header.stamp) == 0, "the new run's Commands from t = 0"
+    assert read_topic(tmp_path / "run_run2", "session_info"), "session_info in the new run's bag too"
+    assert "the new run goes to" in procs["recorder"].output()
 
 
 def test_lockstep_controller_killed_for_good_ends_the_run_with_one_error(tmp_path, ros_domain):

@@ -375,3 +375,42 @@ def test_recorder_writes_a_republished_plant_state_once(tmp_path, ros_domain, pr
     cmds = [(m.header.stamp.nanosec // 1_000_000, round(m.command, 6)) for m in read_topic(tmp_path / "rep", "command")]
     assert sorted(cmds) == [(0, 0.2), (1, 0.3), (1, 0.5), (2, 0.4)]     # the bag reads in log-time order
     assert "2 re-sent Command copies not written" in rec.err()
+
+
+def test_recorder_puts_a_restarted_plants_run_into_a_new_bag(tmp_path, ros_domain, procs):
+    """A plant restarted mid-run starts again at seq 0: the recorder closes the bag and
+    writes the new run to <bag>_run2, with session_info again and the session's Commands
+    from t = 0 (byte-identical to the first run's: not copies to drop)."""
+    from bike_msgs.msg import Command, PlantState
+    from std_msgs.msg import String
+
+    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=two"], tmp_path)
+    procs.append(rec)
+    with _publisher_node("plant", ros_domain) as (node, executor):
+        pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
+        pub_cmd = node.create_publisher(Command, "command", _qos(latched=True))
+        pub_info = node.create_publisher(String, "session_info", _qos(depth=1, latched=True))
+        assert wait_for(lambda: min(p.get_subscription_count() for p in (pub_ps, pub_cmd, pub_info)) >= 1, 15.0), \
+            rec.err()[-2000:]
+        pub_info.publish(String(data='{"profile": "unit"}'))
+        for run in (1, 2):
+            pub_cmd.publish(_stamp(Command(command=0.3), 0))
+            for seq in range(3):
+                last = run == 2 and seq == 2
+                pub_ps.publish(_stamp(PlantState(seq=seq, speed_rad_s=float(run), end_of_run=last), seq * STEP_NS))
+                time.sleep(0.02)
+            time.sleep(0.2)
+        executor.spin_once(timeout_sec=0.3)
+        rec.signal(signal.SIGINT)
+        assert rec.wait(10.0) == 0, rec.err()[-2000:]
+    from bike_session.bags import read_topic
+
+    first, second = tmp_path / "two", tmp_path / "two_run2"
+    assert [(m.seq, m.speed_rad_s, m.end_of_run) for m in read_topic(first, "plant_state")] == \
+        [(0, 1.0, False), (1, 1.0, False), (2, 1.0, False)]
+    assert [(m.seq, m.speed_rad_s, m.end_of_run) for m in read_topic(second, "plant_state")] == \
+        [(0, 2.0, False), (1, 2.0, False), (2, 2.0, True)]
+    for bag in (first, second):
+        assert [m.data for m in read_topic(bag, "session_info")] == ['{"profile": "unit"}']
+        assert [round(m.command, 6) for m in read_topic(bag, "command")] == [0.3]
+    assert "the plant restarted" in rec.err() and f"bag: {second}" in rec.out()

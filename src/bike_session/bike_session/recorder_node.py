@@ -28,6 +28,12 @@ controller's answer to it, sent again), and a Command byte-identical to one of t
 ``RESENT_COMMAND_WINDOW`` is the session sending the Commands in force again for a reader
 that matched late; both are counted, not written (two runs' bags stay identical).
 
+A plant restarted mid-run starts a new run at seq 0 (its machine state died with it): at a
+PlantState seq 0 after a later seq of the same run, the bag is closed and the new run goes
+to a new one beside it, ``<bag_name>_run2`` (then ``_run3``, ...), which gets the latched
+session_info again. Each bag then holds one run from t = 0; the first ends without an
+end_of_run state (the plant died). A ``bag: PATH`` line on stdout names each new bag.
+
 On SIGINT / SIGTERM the node keeps spinning until the PlantState with ``end_of_run``
 has been recorded or 3 s pass without any message, then closes the bag and exits 0.
 The first line on stdout is ``bag: PATH``.
@@ -290,6 +296,13 @@ def _make_node_class():
             if not isinstance(flush_period_s, (int, float)) or isinstance(flush_period_s, bool):
                 raise SetupError(f"flush_period_s must be a number, got {flush_period_s!r}")
             self.sink = BagSink(path, storage, typestore, topics, float(flush_period_s))
+            # what a new run's bag is made with (a restarted plant: _next_run_bag)
+            self._bag_args = (storage, typestore, topics, float(flush_period_s))
+            self.bag_paths = [path]
+            self.run_seq_max = -1             # highest PlantState seq of the run being written
+            self._latched_raw: dict[str, bytes] = {}
+            # Command copies dropped since the last PlantState (bounded like the window itself)
+            self._dropped_since_state: collections.deque = collections.deque(maxlen=RESENT_COMMAND_WINDOW)
             # also flush while nothing arrives (a paused or stalled run)
             self._flush_timer = self.create_timer(float(flush_period_s), self._flush_idle)
             self.bag_path = path
@@ -350,17 +363,44 @@ def _make_node_class():
                 self.destroy_subscription(self.subs.pop(full))
                 self._subscribe(full, transient_local=False)
 
+        def _next_run_bag(self) -> None:
+            """A restarted plant's new run: close this bag, open ``<first bag>_runN`` beside it
+            and write the latched messages into it again (they are not re-sent)."""
+            old = self.sink
+            old.close()
+            first = self.bag_paths[0]
+            path = first.with_name(f"{first.name}_run{len(self.bag_paths) + 1}")
+            self.sink = BagSink(path, *self._bag_args)
+            self.bag_paths.append(path)
+            self.get_logger().warning(
+                f"PlantState seq 0 after seq {self.run_seq_max}: the plant restarted; bag {old.path} closed "
+                f"({sum(old.counts.values())} messages), the new run goes to {path}")
+            print(f"bag: {path}", flush=True)
+            self._last_raw.clear()
+            self._recent_commands.clear()       # the session sends the new run's Commands from t = 0
+            self.latest_clock_ns = 0
+            self.run_seq_max = -1
+            self.end_of_run_seen = False
+            for topic, raw in self._latched_raw.items():
+                self.sink.write(topic, 0, raw)
+            # Command copies taken since the old run's last state were the new run's Commands
+            for t_ns, raw in self._dropped_since_state:
+                self.sink.write(self.command_topic, t_ns, raw)
+                self._recent_commands.append(raw)
+                self.resent_commands_dropped -= 1
+            self._dropped_since_state.clear()
+
         def _make_callback(self, topic: str, has_header: bool):
-            sink = self.sink
             is_clock = topic == self.clock_topic
             is_plant = topic == self.plant_state_topic
             copied = topic in self._copied_topics
             is_command = topic == self.command_topic
             recent_commands = self._recent_commands
+            latched = self._specs[topic][2]
 
             def callback(raw: bytes) -> None:
                 self.last_msg_wall = time.monotonic()
-                if sink.closed:
+                if self.sink.closed:
                     return
                 t_ns = self.latest_clock_ns
                 if has_header:
@@ -369,6 +409,14 @@ def _make_node_class():
                     except ValueError:
                         self.bad_stamps += 1
                         t_ns = self.latest_clock_ns
+                seq = end = None
+                if is_plant:
+                    try:
+                        seq, end = plant_state_seq_end(raw)
+                    except (ValueError, struct.error):
+                        pass
+                    if seq == 0 and not end and self.run_seq_max > 0:
+                        self._next_run_bag()
                 if copied:
                     raw = bytes(raw)
                     if self._last_raw.get(topic) == raw:        # byte-identical: a re-publication
@@ -379,16 +427,21 @@ def _make_node_class():
                     raw = bytes(raw)
                     if raw in recent_commands:                 # byte-identical: sent again
                         self.resent_commands_dropped += 1
+                        # a restarted plant's new run may be taken after its Commands (other
+                        # writers, no order between topics): held for _next_run_bag
+                        self._dropped_since_state.append((t_ns, raw))
                         return
                     recent_commands.append(raw)
                 if is_clock:
                     self.latest_clock_ns = max(self.latest_clock_ns, t_ns)
-                sink.write(topic, t_ns, raw)
+                if latched:
+                    self._latched_raw[topic] = bytes(raw)
+                self.sink.write(topic, t_ns, raw)
                 if is_plant:
-                    try:
-                        seq, end = plant_state_seq_end(raw)
-                    except (ValueError, struct.error):
+                    if seq is None:
                         return
+                    self.run_seq_max = max(self.run_seq_max, seq)
+                    self._dropped_since_state.clear()
                     self.plant_states_written += 1
                     if end:
                         self.end_of_run_seen = True
@@ -451,7 +504,7 @@ def main(args=None) -> int:
                    if node.republished_dropped else "")
         if node.resent_commands_dropped:
             dropped += f", {node.resent_commands_dropped} re-sent Command copies not written"
-        node.get_logger().info(f"bag closed: {node.bag_path} {counts}{dropped}")
+        node.get_logger().info(f"bag closed: {node.sink.path} {counts}{dropped}")
     except SetupError as exc:
         print(f"recorder_node: error: {exc}", file=sys.stderr, flush=True)
         rc = 2
