@@ -30,8 +30,9 @@ command, logs once, and stops waiting until a new Command arrives). A re-publish
 PlantState that was already answered gets the cached answer again (decide() is never run
 twice for one seq). realtime: the same timeline rule; only the first answer of a run, to the
 plant's held t = 0 (plant_node holds sim time until that answer), waits for the Command for
-t = 0, at most ``command_wait_s`` after the first PlantState or after the Command reader's last
-new match (the session then sends its Commands again on the next /clock 0 copy); with
+t = 0 as lockstep does (the held state is re-published every 0.1 s, and with it the session
+sends its first Commands again, so a Command reader matched late still gets them; a
+session-less graph runs once the plant's start_timeout_s ends the hold); with
 ``recorder_window_batches`` > 0 it also waits for the recorder's readers. Later batches never
 wait.
 """
@@ -107,8 +108,7 @@ class ControllerNode(Node):
         self.pub_drive = self.create_publisher(DriveCommand, "drive_command", LOOP_QOS)
         self.pub_status = self.create_publisher(ControllerStatus, "controller_status", LOOP_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
-        self.sub_command = self.create_subscription(Command, "command", self._on_command, LOOP_QOS)
-        subs = [self.sub_command,
+        subs = [self.create_subscription(Command, "command", self._on_command, LOOP_QOS),
                 self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS),
                 # taken serialized, decoded by msgconv.PlantStateView (bike_plant.cdr: the hot path)
                 self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode),
@@ -136,7 +136,6 @@ class ControllerNode(Node):
         self.last_diag_wall = 0.0
         self.state_rx = None               # wall time of the last PlantState (plant-silence diagnostic)
         self.plant_silent = False
-        self.start_wait = None             # realtime: (wall time, matched Command writers) of the start wait
         # the plant waits for the recorder's reader of plant_state, not for its readers of this
         # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
         # first seconds before discovery matched them (a bag without ControllerStatus). Both
@@ -225,7 +224,6 @@ class ControllerNode(Node):
         self.pending = None
         self.cached = None
         self.last_seq = -1
-        self.start_wait = None
 
     # ------------------------------------------------------------ the batch
     def _holds_command_for(self, t_ns: int) -> bool:
@@ -253,7 +251,7 @@ class ControllerNode(Node):
         if self.sync_mode == "lockstep":
             waited_s = time.monotonic() - received
         elif self.cached is None and t_ns == 0:
-            waited_s = self._start_waited_s()             # realtime: the plant holds t = 0 for us
+            waited_s = time.monotonic() - received        # realtime: the plant holds t = 0 for us
         else:
             waited_s = None                               # realtime mid-run: never wait
         if (waited_s is not None and not self.session_done and not self.no_session
@@ -295,16 +293,6 @@ class ControllerNode(Node):
             level = DiagnosticStatus.WARN if self.rejected else DiagnosticStatus.OK
             text = f"last Command rejected: {self.reject_reason}" if self.rejected else "running"
             self._publish_diag(level, text, t_ns)
-
-    def _start_waited_s(self) -> float:
-        """Realtime start: wall seconds waited for the t = 0 Command, counted from the first
-        PlantState of the run or from the last time the Command reader matched one more writer
-        (a session discovered late: its Commands come with the next /clock 0 the plant sends)."""
-        now = time.monotonic()
-        matched = self.sub_command.get_publisher_count()
-        if self.start_wait is None or matched > self.start_wait[1]:
-            self.start_wait = (now, matched)
-        return now - self.start_wait[0]
 
     def _apply_timeline(self, t_ns: int) -> None:
         """Put the newest Command with stamp <= t_k in force (set_command only on change)."""
