@@ -138,6 +138,10 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 30, "controller's command subscription", procs)
         states, stamps = col.data["plant_state"], col.stamps["plant_state"]
+        # the realtime plant holds t = 0 until the first answer, and the controller answers only
+        # once a Command came: this reader sees the run from its start if it matched first
+        # (matching took ~3 s at times: the clean phase went unseen)
+        col.wait_for(lambda: len(states) > 0, 30, "the plant's held first state", procs)
 
         def commanding(pred):
             def check():
