@@ -22,7 +22,7 @@ CONFIG = ROOT / "config" / "bldc_default.yaml"
 rclpy = pytest.importorskip("rclpy")
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
-from rclpy.qos import QoSProfile  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile  # noqa: E402
 
 
 def executable(pkg: str, exe: str) -> str:
@@ -103,6 +103,10 @@ class Collector:
             # the test is not in the loop (no flow control): a deep reader queue so that a
             # busy test process never loses a message the plant sent
             qos = QoSProfile(history=qos.history, depth=10000, reliability=qos.reliability, durability=qos.durability)
+            if topic == "session_status":
+                # the session keeps its last 100 statuses (transient local): a reader matched
+                # seconds late (seen: after a plant restart) still gets the run's first ones
+                qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
             self.subs[topic] = self.node.create_subscription(msg_type, topic, self._cb(topic), qos)
         self.loop_qos = LOOP_QOS
         self.executor = SingleThreadedExecutor(context=self.context)
