@@ -369,7 +369,10 @@ def _make_node_class():
             old = self.sink
             old.close()
             first = self.bag_paths[0]
-            path = first.with_name(f"{first.name}_run{len(self.bag_paths) + 1}")
+            n = len(self.bag_paths) + 1
+            while first.with_name(f"{first.name}_run{n}").exists():   # never overwrite: the next free name
+                n += 1
+            path = first.with_name(f"{first.name}_run{n}")
             self.sink = BagSink(path, *self._bag_args)
             self.bag_paths.append(path)
             self.get_logger().warning(
