@@ -235,7 +235,10 @@ class ControllerNode(Node):
         if self.pending is None:
             return
         msg, received = self.pending
-        if self.await_recorder and (self.sync_mode == "lockstep" or msg.stamp_ns == 0):
+        t_ns = msg.stamp_ns
+        # lockstep waits at every batch; realtime only for the run's first answer, to the held t = 0
+        may_wait = self.sync_mode == "lockstep" or (self.cached is None and t_ns == 0)
+        if self.await_recorder and may_wait:
             if self.recorder_wait_since is None:
                 self.recorder_wait_since = time.monotonic()
             if recorder_reads(self, self.pub_drive) and recorder_reads(self, self.pub_status):
@@ -247,16 +250,9 @@ class ControllerNode(Node):
                 self.get_logger().warning(
                     f"recording, but no recorder matched drive_command / controller_status within "
                     f"{RECORDER_MATCH_WAIT_S:g}s: answering anyway (the bag may miss the first batches)")
-        t_ns = msg.stamp_ns
-        if self.sync_mode == "lockstep":
-            waited_s = time.monotonic() - received
-        elif self.cached is None and t_ns == 0:
-            waited_s = time.monotonic() - received        # realtime: the plant holds t = 0 for us
-        else:
-            waited_s = None                               # realtime mid-run: never wait
-        if (waited_s is not None and not self.session_done and not self.no_session
+        if (may_wait and not self.session_done and not self.no_session
                 and not self._holds_command_for(t_ns)):
-            if waited_s < self.command_wait_s:
+            if time.monotonic() - received < self.command_wait_s:
                 return                                    # wait for the session
             self.no_session = True
             j = math.floor(t_ns * 1e-9 / self.period_s + 1e-9)

@@ -679,6 +679,8 @@ class PlantNode(Node):
         only when the session sees /clock 0 again (it then sends the Commands in force again).
         So seq 0 and /clock 0 go out again every FIRST_STATE_REPUBLISH_S; /clock 0 also while a
         CAN drive is not armed yet (arming waits for DriveCommands)."""
+        self.holding_start = True                # the first state's diagnostic says so
+        self._publish_state()
         start = time.monotonic()
         again = start + FIRST_STATE_REPUBLISH_S
         while not self.stop_requested and self.latest_rx is None:
@@ -722,8 +724,6 @@ class PlantNode(Node):
         timed_out = False
         self._wait_for_recorder_start()
         self._service_backend()
-        self.holding_start = True
-        self._publish_state()
         self._hold_start()
         next_tick = time.monotonic() + self.batch_s
         while not self.stop_requested:

@@ -298,14 +298,13 @@ def _make_node_class():
             self.sink = BagSink(path, storage, typestore, topics, float(flush_period_s))
             # what a new run's bag is made with (a restarted plant: _next_run_bag)
             self._bag_args = (storage, typestore, topics, float(flush_period_s))
-            self.bag_paths = [path]
+            self.bag_paths = [path]           # the first, then one per restarted plant's run
             self.run_seq_max = -1             # highest PlantState seq of the run being written
             self._latched_raw: dict[str, bytes] = {}
             # Command copies dropped since the last PlantState (bounded like the window itself)
             self._dropped_since_state: collections.deque = collections.deque(maxlen=RESENT_COMMAND_WINDOW)
             # also flush while nothing arrives (a paused or stalled run)
             self._flush_timer = self.create_timer(float(flush_period_s), self._flush_idle)
-            self.bag_path = path
             self.latest_clock_ns = 0
             self.last_msg_wall = time.monotonic()
             self.end_of_run_seen = False
@@ -483,8 +482,8 @@ def main(args=None) -> int:
     rc = 0
     try:
         node = _make_node_class()()
-        print(f"bag: {node.bag_path}", flush=True)
-        node.get_logger().info(f"recording {len(node.subs)} topics to {node.bag_path}")
+        print(f"bag: {node.bag_paths[0]}", flush=True)
+        node.get_logger().info(f"recording {len(node.subs)} topics to {node.bag_paths[0]}")
         while rclpy.ok() and _signals["count"] == 0:
             rclpy.spin_once(node, timeout_sec=0.1)
             if node.stop_on_end_of_run and node.end_of_run_seen:
