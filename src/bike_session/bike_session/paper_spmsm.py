@@ -66,7 +66,10 @@ What it reproduces and what it does not (the test pins both):
   +-2 % and the predictive THD, 5.7 %, exceeds the PI's 2.1 %). A lagging display of the speed does not explain it either: a TI-style
   5 Hz low-pass (SPEED_FR, the F2803x examples' default) on the plotted speed gives the
   triangle 30 r/min but the sine 43 r/min (paper 12): with equal periods a display lag always
-  costs the sine more than the triangle (max slope 2 pi A / T vs 4 A / T);
+  costs the sine more than the triangle (max slope 2 pi A / T vs 4 A / T). A rate limit on iq*
+  (an input constraint, clipped closed form) makes the corners cost 15-44 r/min at 100-30 A/s,
+  but the one-step law cannot plan the torque's descent under it: the 100 r/min step
+  overshoots to 188 r/min and rings for 1 s at 80 A/s, so it is not used;
 - THD (Fig. 15 / 16): predictive < PI as in the paper, but ~1 % / ~2 % instead of 8.8 /
   12.5 %. At 200 r/min and 1 N m the drive is in flux weakening (id ~ -3.4 A: the
   fundamental is ~3.6 A), so 8.8 % is ~0.3 A of 5th / 7th current: ~2-3 V of 100-140 Hz
