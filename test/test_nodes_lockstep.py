@@ -98,6 +98,12 @@ def test_lockstep_closed_loop(domain):
         statuses = {int(m.seq): m for m in col.data["controller_status"]}
         assert set(statuses) == set(seqs[:-1])
         assert stamp_ns(col.data["/clock"][-1].clock) == stamp_ns(states[-1].header.stamp)
+        # /clock every clock_period_s (10 ms) of sim time, not with every 1 ms batch: each value
+        # on the 10 ms grid (a multiple of the batch here), every grid point up to the end once
+        clock_ns = sorted({stamp_ns(c.clock) for c in col.data["/clock"]})
+        grid_ns = 10_000_000
+        assert all(t % grid_ns == 0 for t in clock_ns), clock_ns[:20]
+        assert clock_ns == list(range(clock_ns[0], stamp_ns(states[-1].header.stamp) + 1, grid_ns))
         # the torque command follows the Command timeline (stamp <= t_k)
         t_of = {int(m.seq): stamp_ns(m.header.stamp) * 1e-9 for m in states}
         before = [s for k, s in statuses.items() if t_of[k] < 0.2 - 1e-9]
@@ -154,6 +160,18 @@ def test_lockstep_rate(domain, n, duration):
         for p in procs:
             p.stop()
         col.close()
+
+
+def test_plant_refuses_a_clock_slower_than_half_the_session_period(domain):
+    """The session sends its Commands one period ahead of the last /clock: a coarser clock
+    would stall the controller, so the plant names the parameter and exits 2."""
+    plant = NodeProcess("bike_plant", "plant_node", domain, {"clock_period_s": 0.06})
+    try:
+        assert plant.wait(30.0) == 2, plant.output()
+        assert "clock_period_s" in plant.output() and "half of session.period_s" in plant.output()
+        assert "Traceback" not in plant.output()
+    finally:
+        plant.stop()
 
 
 def test_lockstep_rejects_malformed_drive_command(domain):
