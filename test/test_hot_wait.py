@@ -93,3 +93,41 @@ def test_a_hot_message_the_executor_took_ends_the_wait(node):
         assert time.monotonic() - t0 < 5.0, "waited with the message already handled"
     assert got == list(range(20))
     executor.shutdown()
+
+
+def test_busy_wait_takes_a_message_that_comes_while_polling_then_blocks(node):
+    """The lockstep busy wait (busy_s): a message published while the call polls is handled by
+    that call; with nothing coming, the call polls busy_s and then blocks for the rest of its
+    timeout (it does not return early, and does not poll the whole timeout)."""
+    import threading
+
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import UInt64
+
+    from bike_plant.loop import HotWait
+
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    got = []
+    pub = node.create_publisher(UInt64, "hot", qos)
+    sub = node.create_subscription(UInt64, "hot", lambda m: got.append(m.data), qos)
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    hot = HotWait(executor, [sub], node.context, aux_period_s=10.0)
+    deadline = time.monotonic() + 5.0
+    while sub.handle.get_publisher_count() < 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    hot.spin(0.0)                                     # the executor's first turn, out of the way
+    for k in range(10):
+        timer = threading.Timer(0.005, lambda k=k: pub.publish(UInt64(data=k)))
+        timer.start()
+        assert hot.spin(5.0, busy_s=1.0) == 1, f"message {k} not handled by the polling call"
+        timer.join()
+    assert got == list(range(10))
+    cpu0, t0 = time.process_time(), time.monotonic()
+    assert hot.spin(0.3, busy_s=0.05) == 0
+    wall, cpu = time.monotonic() - t0, time.process_time() - cpu0
+    assert wall >= 0.25, f"returned after {wall:.3f} s of a 0.3 s timeout"
+    assert cpu < 0.2, f"{cpu:.3f} s of CPU in 0.3 s: polled past busy_s instead of blocking"
+    assert cpu >= 0.01, f"{cpu:.3f} s of CPU: no polling at all (each poll yields, so a loaded core gives less)"
+    executor.shutdown()

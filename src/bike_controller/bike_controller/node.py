@@ -47,7 +47,7 @@ import time
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv
 from bike_plant.config import ConfigError
-from bike_plant.loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, recorder_reads
+from bike_plant.loop import AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, HotWait, loop_reader_qos, recorder_reads
 from bike_plant.node import run_loop_node
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
@@ -62,8 +62,10 @@ CONTROLLER_DEFAULTS = {
     "diagnostics_period_s": 1.0,
     "session": {"period_s": 0.1},
     "recorder_window_batches": 0,
+    "busy_wait_s": LOCKSTEP_BUSY_WAIT_S,
 }
 CONTROLLER_DESCRIPTIONS = {
+    "busy_wait_s": "lockstep: poll for the next PlantState this many wall seconds before blocking (0 = block at once)",
     "diagnostics_period_s": "publish an OK diagnostic at least this often [wall s]",
     "recorder_window_batches": "lockstep, > 0 while recording (./bike run --record): the first answer waits until the "
                                "recorder's readers of drive_command and controller_status are matched",
@@ -89,6 +91,10 @@ class ControllerNode(Node):
         self.command_wait_s = _positive(cfg.get("command_wait_s"), "command_wait_s", path)
         self.period_s = _positive((cfg.get("session") or {}).get("period_s"), "session.period_s", path)
         self.diag_period_s = _positive(cfg.get("diagnostics_period_s"), "diagnostics_period_s", path)
+        busy = cfg.get("busy_wait_s")
+        if isinstance(busy, bool) or not isinstance(busy, (int, float)) or not 0.0 <= busy < math.inf:
+            raise ConfigError(f"must be a number >= 0, got {busy!r}", path, "busy_wait_s")
+        self.busy_wait_s = float(busy) if self.sync_mode == "lockstep" else 0.0     # realtime never polls
         self.machine = str(cfg.get("machine", "bldc"))
         if self.machine == "spmsm":
             from .spmsm_session import ModedSpmsmController
@@ -321,7 +327,7 @@ class ControllerNode(Node):
 
     def run(self) -> int:
         while not self.stop_requested:
-            self.hot.spin(0.1)
+            self.hot.spin(0.1, self.busy_wait_s)
             if self.pending is not None:
                 self._try_answer()                         # command_wait_s expiry
             if (self.state_rx is not None and not self.plant_silent

@@ -66,7 +66,8 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv
 from .config import ConfigError
-from .loop import AUX_QOS, LOOP_QOS, HotWait, loop_reader_qos, recorder_progress, recorder_reads
+from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, HotWait, loop_reader_qos, recorder_progress,
+                   recorder_reads)
 
 # the start-up wait for a recorder: matching its reader took ~3 s on a loaded 2-core machine,
 # longer than a recorder_timeout_s chosen to notice a lost recorder quickly
@@ -85,6 +86,7 @@ PLANT_DEFAULTS = {
     "end_linger_s": 0.5,
     "battery_every": 10,
     "clock_period_s": 0.01,
+    "busy_wait_s": LOCKSTEP_BUSY_WAIT_S,
     "diagnostics_period_s": 1.0,
     "recorder_window_batches": 0,
     "recorder_timeout_s": 10.0,
@@ -99,6 +101,7 @@ PLANT_DESCRIPTIONS = {
     "republish_s": "lockstep: re-publish the pending PlantState after this many wall seconds without an answer",
     "end_linger_s": "wall seconds to keep running after the end_of_run PlantState so subscribers receive it",
     "battery_every": "publish sensor_msgs/BatteryState every this many batches",
+    "busy_wait_s": "lockstep: poll for the DriveCommand this many wall seconds before blocking (0 = block at once)",
     "clock_period_s": "publish /clock when sim time reaches the next multiple of this many sim seconds "
                       "(0 = with every PlantState); the first and the last state always carry one",
     "diagnostics_period_s": "publish a diagnostic at least this often [wall s]",
@@ -272,6 +275,7 @@ class PlantNode(Node):
         self.republish_s = _number(cfg, "republish_s", float, 1e-3, path)
         self.end_linger_s = _number(cfg, "end_linger_s", float, 0.0, path)
         self.battery_every = _number(cfg, "battery_every", int, 1, path)
+        self.busy_wait_s = _number(cfg, "busy_wait_s", float, 0.0, path) if self.sync_mode == "lockstep" else 0.0
         # /clock at a sim-time rate, not per batch: at 1 ms batches a /clock per batch woke the
         # session's process 1000 times per sim second, about 5 % of a core taken from the loop
         # (measured: lockstep 2.2x -> 2.4x real time at N = 20). The session publishes its
@@ -646,7 +650,7 @@ class PlantNode(Node):
             self._publish_state()
             sent = first = time.monotonic()
             while self.answer is None and not self.stop_requested:
-                self._spin(0.1)
+                self.hot.spin(0.1, self.busy_wait_s)
                 if self.answer is None and time.monotonic() - sent > self.republish_s:
                     self._republish()
                     sent = time.monotonic()

@@ -15,7 +15,9 @@ Figures (keys of the JSON; real-time factors end in `_real_time`):
   message types and sizes, and the graph's share of that limit
   (graph_lockstep_n*_share_of_pingpong, target >= 80 %: ..._share_ratio_to_target): the
   median of GRAPH_ROUNDS rounds, each graph run against the ping-pongs just before and after
-  it (..._share_min / _max: the spread of the rounds);
+  it (..._share_min / _max: the spread of the rounds); for comparison only,
+  dds_pingpong_tuned_n*_round_trips_per_s and graph_lockstep_n*_share_of_tuned_pingpong: the
+  same round trip over the graph's own transport pieces (bytes, HotWait, busy wait);
 - peers_*: the same PMSM scenario on our SPMSM and on motulator / gym-electric-motor when
   installed (`make peers`): real-time factors, speed-ups vs the targets, result differences
   (bike_session.bench_peers);
@@ -250,6 +252,16 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
              f"messages {ping['round_trips_per_s']:.0f} round trips/s (p50 {ping['p50_us']:.0f} us) = "
              f"{limit_real_time:.2f}x limit; graph reaches {ratio * 100:.0f} % of it (target >= "
              f"{TARGET_GRAPH_SHARE_OF_PINGPONG * 100:.0f} %: ratio {ratio / TARGET_GRAPH_SHARE_OF_PINGPONG:.2f}){spread}")
+        # not the target's reference (that is the plain rclpy ping-pong above): the same round
+        # trip over the graph's own transport pieces, i.e. what is left for the nodes' work
+        tuned = pingpong.measure(n, round_trips=500 if quick else 2000, tuned=True)
+        tuned_limit = tuned["round_trips_per_s"] * n * period_s
+        figures[f"dds_pingpong_tuned_n{n}_round_trips_per_s"] = tuned["round_trips_per_s"]
+        figures[f"graph_lockstep_n{n}_share_of_tuned_pingpong"] = real_time / tuned_limit
+        show(f"  for comparison, the same ping-pong over the graph's own transport (bytes, HotWait, lockstep "
+             f"busy wait): {tuned['round_trips_per_s']:.0f} round trips/s (p50 {tuned['p50_us']:.0f} us) = "
+             f"{tuned_limit:.2f}x; the graph's batch adds its work to that round trip: "
+             f"{real_time / tuned_limit * 100:.0f} % of it")
     lat = None
     if want("can"):
         try:

@@ -5,6 +5,11 @@ batch, so the benchmark compares the graph with this bare round trip of the same
 message types and array sizes (batch_periods N).
 
     python -m bike_session.pingpong echo --n 20      # the echo side (a separate process)
+
+``tuned=True`` (echo role ``echo-tuned``): the same exchange over the graph's own transport
+pieces, as a floor for comparison: serialized bytes (``raw=True``), the loop nodes' wait set
+(bike_plant.loop.HotWait) and their lockstep busy wait on both ends. The echo answers each
+ping with the same pre-serialized pong; replies are counted (reliable, in order).
 """
 from __future__ import annotations
 
@@ -57,18 +62,85 @@ def echo(n: int) -> int:
     return 0
 
 
-def measure(n: int, round_trips: int = 2000, warmup: int = 100) -> dict:
+def echo_tuned(n: int) -> int:
+    """The echo of a tuned ping-pong (see the module docstring)."""
+    import rclpy
+    from bike_msgs.msg import DriveCommand, PlantState
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.serialization import serialize_message
+
+    from bike_plant.loop import LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, HotWait
+
+    rclpy.init()
+    node = rclpy.create_node("pingpong_echo")
+    _, pong = _make_messages(n)
+    raw_pong = serialize_message(pong)
+    pub = node.create_publisher(DriveCommand, "pong", LOOP_QOS)
+    sub = node.create_subscription(PlantState, "ping", lambda _raw: pub.publish(raw_pong), LOOP_QOS, raw=True)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    hot = HotWait(executor, [sub], node.context)
+    try:
+        while True:
+            hot.spin(0.1, LOCKSTEP_BUSY_WAIT_S)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        rclpy.try_shutdown()
+    return 0
+
+
+def _measure_tuned(node, context, n: int, round_trips: int, warmup: int) -> list[float]:
+    from bike_msgs.msg import DriveCommand, PlantState
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.serialization import serialize_message
+
+    from bike_plant.loop import LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, HotWait
+
+    ping, _ = _make_messages(n)
+    raw_ping = serialize_message(ping)
+    pub = node.create_publisher(PlantState, "ping", LOOP_QOS)
+    got = [0]
+    sub = node.create_subscription(DriveCommand, "pong", lambda _raw: got.__setitem__(0, got[0] + 1), LOOP_QOS,
+                                   raw=True)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    hot = HotWait(executor, [sub], context)
+    deadline = time.monotonic() + 30
+    while (pub.get_subscription_count() == 0 or node.count_publishers("pong") == 0) and time.monotonic() < deadline:
+        hot.spin(0.05)
+    latencies = []
+    for i in range(warmup + round_trips):
+        want = got[0] + 1
+        start = time.perf_counter()
+        pub.publish(raw_ping)
+        while got[0] < want:
+            hot.spin(1.0, LOCKSTEP_BUSY_WAIT_S)
+            if time.perf_counter() - start > 5.0:
+                raise RuntimeError("ping-pong echo stopped answering")
+        if i >= warmup:
+            latencies.append(time.perf_counter() - start)
+    return latencies
+
+
+def measure(n: int, round_trips: int = 2000, warmup: int = 100, tuned: bool = False) -> dict:
     """Round trips per second and latency percentiles against an echo process."""
     import rclpy
     from bike_msgs.msg import DriveCommand, PlantState
 
-    proc = subprocess.Popen([sys.executable, "-m", "bike_session.pingpong", "echo", "--n", str(n)],
+    role = "echo-tuned" if tuned else "echo"
+    proc = subprocess.Popen([sys.executable, "-m", "bike_session.pingpong", role, "--n", str(n)],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     context = rclpy.Context()
     rclpy.init(context=context)
     try:
         node = rclpy.create_node("pingpong_measure", context=context)
+        if tuned:
+            latencies = sorted(_measure_tuned(node, context, n, round_trips, warmup))
+            return {"round_trips_per_s": len(latencies) / sum(latencies),
+                    "p50_us": latencies[len(latencies) // 2] * 1e6,
+                    "p99_us": latencies[int(len(latencies) * 0.99)] * 1e6}
         executor = rclpy.executors.SingleThreadedExecutor(context=context)
         executor.add_node(node)
         ping, _ = _make_messages(n)
@@ -111,12 +183,14 @@ def measure(n: int, round_trips: int = 2000, warmup: int = 100) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("role", choices=["echo", "measure"])
+    parser.add_argument("role", choices=["echo", "echo-tuned", "measure", "measure-tuned"])
     parser.add_argument("--n", type=int, default=20)
     opts = parser.parse_args(argv)
     if opts.role == "echo":
         return echo(opts.n)
-    print(measure(opts.n))
+    if opts.role == "echo-tuned":
+        return echo_tuned(opts.n)
+    print(measure(opts.n, tuned=opts.role == "measure-tuned"))
     return 0
 
 
