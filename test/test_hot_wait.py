@@ -65,10 +65,8 @@ def test_hot_wait_delivers_every_message_in_order_and_serves_the_rest(node):
     executor.shutdown()
 
 
-def test_a_hot_message_the_executor_took_ends_the_wait(node):
-    """The executor's turn (aux_period_s) may take the hot message the caller waits for: the
-    call must return it as handled instead of waiting out its timeout with the answer in hand
-    (that cost the lockstep graph a 100 ms stall every few dozen batches)."""
+def _matched_hot_topic(node, aux_period_s):
+    """A reliable UInt64 topic published and taken by ``node`` through a HotWait, matched."""
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import UInt64
@@ -81,10 +79,20 @@ def test_a_hot_message_the_executor_took_ends_the_wait(node):
     sub = node.create_subscription(UInt64, "hot", lambda m: got.append(m.data), qos)
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
-    hot = HotWait(executor, [sub], node.context, aux_period_s=0.0)     # the executor's turn every call
+    hot = HotWait(executor, [sub], node.context, aux_period_s=aux_period_s)
     deadline = time.monotonic() + 5.0
     while sub.handle.get_publisher_count() < 1 and time.monotonic() < deadline:
         time.sleep(0.01)
+    return pub, got, executor, hot
+
+
+def test_a_hot_message_the_executor_took_ends_the_wait(node):
+    """The executor's turn (aux_period_s) may take the hot message the caller waits for: the
+    call must return it as handled instead of waiting out its timeout with the answer in hand
+    (that cost the lockstep graph a 100 ms stall every few dozen batches)."""
+    from std_msgs.msg import UInt64
+
+    pub, got, executor, hot = _matched_hot_topic(node, aux_period_s=0.0)   # the executor's turn every call
     for k in range(20):
         pub.publish(UInt64(data=k))
         time.sleep(0.02)                    # delivered before the call: the executor's turn takes it
@@ -101,22 +109,9 @@ def test_busy_wait_takes_a_message_that_comes_while_polling_then_blocks(node):
     timeout (it does not return early, and does not poll the whole timeout)."""
     import threading
 
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import UInt64
 
-    from bike_plant.loop import HotWait
-
-    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    got = []
-    pub = node.create_publisher(UInt64, "hot", qos)
-    sub = node.create_subscription(UInt64, "hot", lambda m: got.append(m.data), qos)
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
-    hot = HotWait(executor, [sub], node.context, aux_period_s=10.0)
-    deadline = time.monotonic() + 5.0
-    while sub.handle.get_publisher_count() < 1 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    pub, got, executor, hot = _matched_hot_topic(node, aux_period_s=10.0)
     hot.spin(0.0)                                     # the executor's first turn, out of the way
     for k in range(10):
         timer = threading.Timer(0.005, lambda k=k: pub.publish(UInt64(data=k)))
