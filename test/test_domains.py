@@ -38,3 +38,13 @@ def test_an_explicit_domain_is_respected(monkeypatch):
     domains.release(d)
     with pytest.raises(RuntimeError):
         domains.claim(5, 4)
+
+
+def test_a_claiming_process_exits_without_resource_warnings(tmp_path):
+    """The held lock files are closed at exit (the CI log had one ResourceWarning per id)."""
+    code = ("import pathlib, sys; from bike_session import domains; domains.LOCK_DIR = pathlib.Path(sys.argv[1]); "
+            "print(domains.claim(1, 6), domains.claim(1, 6))")
+    run = subprocess.run([sys.executable, "-X", "dev", "-c", code, str(tmp_path)], capture_output=True, text=True,
+                         check=True)
+    assert len(run.stdout.split()) == 2
+    assert "ResourceWarning" not in run.stderr, run.stderr

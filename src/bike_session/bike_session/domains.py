@@ -8,6 +8,7 @@ kill -9). An explicit ROS_DOMAIN_ID is always respected and never locked.
 """
 from __future__ import annotations
 
+import atexit
 import fcntl
 import os
 import pathlib
@@ -47,6 +48,14 @@ def release(domain: int) -> None:
     f = _held.pop(domain, None)
     if f is not None:
         f.close()
+
+
+@atexit.register
+def _release_all() -> None:
+    """Close the lock files still held at exit (the locks would go with the process anyway;
+    closing them here spares the interpreter's ResourceWarning for each open file)."""
+    for domain in list(_held):
+        release(domain)
 
 
 def ensure_private_domain(what: str = "run") -> int | None:
