@@ -249,7 +249,8 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
         spread = (f"; {rounds} rounds: {', '.join(f'{r[0] * 100:.0f}' for r in results)} %, median shown"
                   if rounds > 1 else "")
         show(f"node graph lockstep, N={n}: {real_time:.2f}x real time; DDS ping-pong of the same "
-             f"messages {ping['round_trips_per_s']:.0f} round trips/s (p50 {ping['p50_us']:.0f} us) = "
+             f"messages between plain rclpy processes (executor, message objects) "
+             f"{ping['round_trips_per_s']:.0f} round trips/s (p50 {ping['p50_us']:.0f} us) = "
              f"{limit_real_time:.2f}x limit; graph reaches {ratio * 100:.0f} % of it (target >= "
              f"{TARGET_GRAPH_SHARE_OF_PINGPONG * 100:.0f} %: ratio {ratio / TARGET_GRAPH_SHARE_OF_PINGPONG:.2f}){spread}")
         # not the target's reference (that is the plain rclpy ping-pong above): the same round
