@@ -47,8 +47,17 @@ def _check_lockstep_states(states, n, duration_s):
     return seqs, states
 
 
+# This module checks the loop's bookkeeping through the test's own reader of plant_state /
+# drive_command. Lockstep holds the plant to its controller (and a recorder), not to other
+# readers: one that falls more than the writer's history (200) behind loses samples. With the
+# nodes' lockstep busy wait both cores stay busy, and in one CI run the test process's reader
+# fell 30 batches short at N = 200. So the nodes here block instead (busy_wait_s: 0); the
+# graph tests with the recorder (test_graph, test_faults_kill) keep the default busy wait.
+OBSERVED = {"busy_wait_s": 0.0}
+
+
 def _start_plant_and_wait(col, domain, params, procs):
-    plant = NodeProcess("bike_plant", "plant_node", domain, params)
+    plant = NodeProcess("bike_plant", "plant_node", domain, dict(OBSERVED, **params))
     procs.append(plant)
     # the plant starts publishing only when a controller is there; make sure the test's
     # own subscriptions are matched first so no message is missed
@@ -75,7 +84,7 @@ def test_lockstep_closed_loop(domain):
     try:
         cmd_pub = col.publisher(Command, "command")
         plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 10.0})
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, {**OBSERVED, "command_wait_s": 10.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
         time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
@@ -144,7 +153,8 @@ def test_lockstep_rate(domain, n, duration):
     try:
         cmd_pub = col.publisher(Command, "command")
         plant = _start_plant_and_wait(col, domain, {"duration_s": duration, "batch_periods": n}, procs)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, {"batch_periods": n, "command_wait_s": 10.0})
+        ctrl = NodeProcess("bike_controller", "controller_node", domain,
+                           {**OBSERVED, "batch_periods": n, "command_wait_s": 10.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
         time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
@@ -200,7 +210,7 @@ def test_lockstep_rejects_malformed_drive_command(domain):
                     pub.publish(b"\x00\x01\x00\x00" + b"\xff" * 9)
                 pub.publish(bad.get(k) or good(k))
         col.callbacks["plant_state"] = answer
-        plant = NodeProcess("bike_plant", "plant_node", domain, {"duration_s": duration})
+        plant = NodeProcess("bike_plant", "plant_node", domain, {**OBSERVED, "duration_s": duration})
         procs.append(plant)
         col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 25, "end_of_run", procs)
         assert plant.wait(5.0) == 0, plant.output()
@@ -228,7 +238,7 @@ def _run_once(domain, duration, commands):
     try:
         cmd_pub = col.publisher(Command, "command")
         plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 10.0})
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, {**OBSERVED, "command_wait_s": 10.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
         time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
@@ -266,7 +276,7 @@ def test_lockstep_controller_waits_for_the_session(domain):
         cmd_pub = col.publisher(Command, "command")
         status_pub = col.node.create_publisher(SessionStatus, "session_status", 10)
         plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 20.0})
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, {**OBSERVED, "command_wait_s": 20.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1 and status_pub.get_subscription_count() >= 1,
                      20, "controller's subscriptions", procs)
@@ -318,7 +328,7 @@ def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
         col.publisher(Command, "command")
         _start_plant_and_wait(col, domain, {"duration_s": 0.5, "recorder_window_batches": window,
                                             "recorder_timeout_s": 3.0}, procs)
-        procs.append(NodeProcess("bike_controller", "controller_node", domain, {"command_wait_s": 0.1}))
+        procs.append(NodeProcess("bike_controller", "controller_node", domain, {**OBSERVED, "command_wait_s": 0.1}))
         states = col.data["plant_state"]
         # nothing reported yet: seq 0 goes out, again and again, and seq 1 waits for the
         # recorder to have it (a reader matched late would miss it)
