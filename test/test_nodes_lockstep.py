@@ -56,6 +56,10 @@ def _check_lockstep_states(states, n, duration_s):
 OBSERVED = {"busy_wait_s": 0.0}
 
 
+def _controller(domain, params):
+    return NodeProcess("bike_controller", "controller_node", domain, dict(OBSERVED, **params))
+
+
 def _start_plant_and_wait(col, domain, params, procs):
     plant = NodeProcess("bike_plant", "plant_node", domain, dict(OBSERVED, **params))
     procs.append(plant)
@@ -84,7 +88,7 @@ def test_lockstep_closed_loop(domain):
     try:
         cmd_pub = col.publisher(Command, "command")
         plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, {**OBSERVED, "command_wait_s": 10.0})
+        ctrl = _controller(domain, {"command_wait_s": 10.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
         time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
@@ -153,8 +157,7 @@ def test_lockstep_rate(domain, n, duration):
     try:
         cmd_pub = col.publisher(Command, "command")
         plant = _start_plant_and_wait(col, domain, {"duration_s": duration, "batch_periods": n}, procs)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain,
-                           {**OBSERVED, "batch_periods": n, "command_wait_s": 10.0})
+        ctrl = _controller(domain, {"batch_periods": n, "command_wait_s": 10.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
         time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
@@ -238,7 +241,7 @@ def _run_once(domain, duration, commands):
     try:
         cmd_pub = col.publisher(Command, "command")
         plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, {**OBSERVED, "command_wait_s": 10.0})
+        ctrl = _controller(domain, {"command_wait_s": 10.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
         time.sleep(0.2)    # let the controller's side of the match complete (volatile QoS)
@@ -276,7 +279,7 @@ def test_lockstep_controller_waits_for_the_session(domain):
         cmd_pub = col.publisher(Command, "command")
         status_pub = col.node.create_publisher(SessionStatus, "session_status", 10)
         plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, {**OBSERVED, "command_wait_s": 20.0})
+        ctrl = _controller(domain, {"command_wait_s": 20.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1 and status_pub.get_subscription_count() >= 1,
                      20, "controller's subscriptions", procs)
@@ -328,7 +331,7 @@ def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
         col.publisher(Command, "command")
         _start_plant_and_wait(col, domain, {"duration_s": 0.5, "recorder_window_batches": window,
                                             "recorder_timeout_s": 3.0}, procs)
-        procs.append(NodeProcess("bike_controller", "controller_node", domain, {**OBSERVED, "command_wait_s": 0.1}))
+        procs.append(_controller(domain, {"command_wait_s": 0.1}))
         states = col.data["plant_state"]
         # nothing reported yet: seq 0 goes out, again and again, and seq 1 waits for the
         # recorder to have it (a reader matched late would miss it)

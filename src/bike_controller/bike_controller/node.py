@@ -46,7 +46,7 @@ import time
 
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv
-from bike_plant.config import ConfigError
+from bike_plant.config import ConfigError, number_param
 from bike_plant.loop import AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, HotWait, loop_reader_qos, recorder_reads
 from bike_plant.node import run_loop_node
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -91,10 +91,8 @@ class ControllerNode(Node):
         self.command_wait_s = _positive(cfg.get("command_wait_s"), "command_wait_s", path)
         self.period_s = _positive((cfg.get("session") or {}).get("period_s"), "session.period_s", path)
         self.diag_period_s = _positive(cfg.get("diagnostics_period_s"), "diagnostics_period_s", path)
-        busy = cfg.get("busy_wait_s")
-        if isinstance(busy, bool) or not isinstance(busy, (int, float)) or not 0.0 <= busy < math.inf:
-            raise ConfigError(f"must be a number >= 0, got {busy!r}", path, "busy_wait_s")
-        self.busy_wait_s = float(busy) if self.sync_mode == "lockstep" else 0.0     # realtime never polls
+        busy = number_param(cfg, "busy_wait_s", float, 0.0, path)
+        self.busy_wait_s = busy if self.sync_mode == "lockstep" else 0.0     # realtime never polls
         self.machine = str(cfg.get("machine", "bldc"))
         if self.machine == "spmsm":
             from .spmsm_session import ModedSpmsmController

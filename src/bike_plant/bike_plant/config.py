@@ -201,3 +201,18 @@ def require_positive(obj, *names: str) -> None:
         value = getattr(obj, name)
         if not value > 0:
             raise ValueError(f"{name} must be > 0, got {value!r}")
+
+
+def number_param(cfg: dict, key: str, kind, minimum, path):
+    """A node parameter ``cfg[key]`` that must be a finite number >= ``minimum`` (``kind`` int:
+    also a whole number); one ConfigError naming the key otherwise."""
+    value = cfg.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"expected a number, got {value!r}", path, key)
+    if not math.isfinite(value) or value < minimum:
+        raise ConfigError(f"must be finite and >= {minimum}, got {value!r}", path, key)
+    if kind is int:
+        if float(value) != int(value):
+            raise ConfigError(f"expected an integer, got {value!r}", path, key)
+        return int(value)
+    return float(value)

@@ -66,6 +66,7 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv
 from .config import ConfigError
+from .config import number_param as _number
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, HotWait, loop_reader_qos, recorder_progress,
                    recorder_reads)
 
@@ -816,19 +817,6 @@ class PlantNode(Node):
 def _level(level) -> int:
     """diagnostic_msgs' level is a byte in rclpy: as an int."""
     return level[0] if isinstance(level, (bytes, bytearray)) else int(level)
-
-
-def _number(cfg: dict, key: str, kind, minimum, path):
-    value = cfg.get(key)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"expected a number, got {value!r}", path, key)
-    if not math.isfinite(value) or value < minimum:
-        raise ConfigError(f"must be finite and >= {minimum}, got {value!r}", path, key)
-    if kind is int:
-        if float(value) != int(value):
-            raise ConfigError(f"expected an integer, got {value!r}", path, key)
-        return int(value)
-    return float(value)
 
 
 def install_signal_handlers(node) -> None:

@@ -123,6 +123,13 @@ def _measure_tuned(node, context, n: int, round_trips: int, warmup: int) -> list
     return latencies
 
 
+def _summary(latencies: list[float]) -> dict:
+    latencies = sorted(latencies)
+    return {"round_trips_per_s": len(latencies) / sum(latencies),
+            "p50_us": latencies[len(latencies) // 2] * 1e6,
+            "p99_us": latencies[int(len(latencies) * 0.99)] * 1e6}
+
+
 def measure(n: int, round_trips: int = 2000, warmup: int = 100, tuned: bool = False) -> dict:
     """Round trips per second and latency percentiles against an echo process."""
     import rclpy
@@ -137,10 +144,7 @@ def measure(n: int, round_trips: int = 2000, warmup: int = 100, tuned: bool = Fa
     try:
         node = rclpy.create_node("pingpong_measure", context=context)
         if tuned:
-            latencies = sorted(_measure_tuned(node, context, n, round_trips, warmup))
-            return {"round_trips_per_s": len(latencies) / sum(latencies),
-                    "p50_us": latencies[len(latencies) // 2] * 1e6,
-                    "p99_us": latencies[int(len(latencies) * 0.99)] * 1e6}
+            return _summary(_measure_tuned(node, context, n, round_trips, warmup))
         executor = rclpy.executors.SingleThreadedExecutor(context=context)
         executor.add_node(node)
         ping, _ = _make_messages(n)
@@ -167,11 +171,7 @@ def measure(n: int, round_trips: int = 2000, warmup: int = 100, tuned: bool = Fa
                     raise RuntimeError("ping-pong echo stopped answering")
             if seq >= warmup:
                 latencies.append(time.perf_counter() - start)
-        latencies.sort()
-        total = sum(latencies)
-        return {"round_trips_per_s": len(latencies) / total,
-                "p50_us": latencies[len(latencies) // 2] * 1e6,
-                "p99_us": latencies[int(len(latencies) * 0.99)] * 1e6}
+        return _summary(latencies)
     finally:
         rclpy.try_shutdown(context=context)
         try:
