@@ -172,6 +172,40 @@ def test_plant_periods_match_continuous_dq_and_shaft_equations(cfg):
     assert abs(led["residual_j"]) < 1e-12
 
 
+@pytest.mark.parametrize("rs_ohm", [0.684, 6.84])
+def test_switching_solution_equals_the_exact_segments_in_sequence(rs_ohm):
+    """The switching model's stationary-frame solver (real decay around the rotating
+    particular solution, series integrals) against the rotor-frame closed form of
+    :func:`segment` (checked against RK4 above) chained segment by segment: end current and
+    the three integrals agree to round-off, at standstill, at bike speeds (series path) and
+    at speeds where |we| T > 0.05 (closed-form path)."""
+    p = M.pack_params(M.SpmsmPlantParams(spmsm=M.SpmsmParams(rs_ohm=rs_ohm),
+                                         inverter=M.InverterParams(dead_time_s=1.5e-6, model="switching")))
+    a, lh, lam, dt = p[M.P_A], p[M.P_L], p[M.P_LAMBDA], p[M.P_DT]
+    ws = np.zeros(M.WS_SIZE)
+    rng = np.random.default_rng(11)
+    for trial in range(300):
+        M.switching_segments(*rng.uniform(0.0, 1.0, 3), *rng.normal(size=3), p, ws)
+        i0 = complex(*rng.normal(size=2)) * 4.0
+        ej0 = cmath.exp(1j * rng.uniform(0.0, 2.0 * math.pi))
+        we = (0.0, 125.7, -310.0, 2500.0)[trial % 4]          # 2500 rad/s: we T = 0.25
+        v0 = complex(*rng.normal(size=2)) * (0.5 if trial % 3 else 0.0)
+        rot, i, ii, ii2, et = ej0.conjugate(), i0, 0j, 0.0, 0.0
+        for k in range(int(ws[M.W_NSEG])):
+            t = ws[M.W_T + k]
+            e1 = complex(math.cos(we * t), -math.sin(we * t))
+            v1 = complex(ws[M.W_VA + k], ws[M.W_VB + k]) * rot
+            i, s1, s2, s3 = M.segment(i, v0, v1, we, t, e1, math.exp(-a * t), a, lh, lam)
+            ii, ii2, et, rot = ii + s1, ii2 + s2, et + s3, rot * e1
+        got = M._solve_switching(i0, ej0, we, p, ws, v0)
+        scale = abs(i0) + 24.0 / max(rs_ohm, abs(we) * lh)
+        assert abs(got[0] - i) < 1e-13 * scale
+        assert abs(got[1] - ii) < 1e-13 * scale * dt
+        assert abs(got[2] - ii2) < 1e-12 * scale ** 2 * dt
+        assert abs(got[3] - et) < 1e-13 * 24.0 * scale * dt
+        assert abs(i - i0) > 1e-3 * abs(i0)                   # the period did move the current
+
+
 def test_switching_model_follows_the_average_model(cfg):
     """Same duties, prime mover at 150 r/min: the switching model's carrier-valley samples
     follow the average model (the difference is the ripple's effect on the mean)."""

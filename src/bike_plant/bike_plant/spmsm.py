@@ -32,8 +32,10 @@ electromechanical energy are evaluated exactly, not by quadrature (:func:`segmen
 Shaft: implicit midpoint. The electrical part is solved at the period's mean speed
 w_mid = (w0 + w1) / 2, w1 = w0 + T (mean Te + T_ext - B w_mid) / J, by fixed-point
 iteration (contraction ~1e-4 per pass: the electrical coupling over 100 us is weak; the
-first guess takes a Taylor step of iq; the iteration stops when w_mid moves by less than
-1e-11 (1 + |w|) rad/s, typically after 2 solves). Electromechanical energy T Te w_mid then
+first guess takes a Taylor step of iq with the period's mean voltage, for the switching model
+plus the last period's error of that guess, i.e. the ripple's nearly constant share of the
+mean torque; the iteration stops when w_mid moves by less than 1e-11 (1 + |w|) rad/s,
+typically after 2 solves, where the switching model took 3 from last period's acceleration). Electromechanical energy T Te w_mid then
 equals the kinetic-energy change minus load and friction work up to T Te * 1e-11 per
 period, so the ledger closes to ~1e-12 relative (round-off level).
 Between exact evaluations every 64 periods the rotating phasors exp(j theta_e) and
@@ -46,8 +48,11 @@ HEXAGON (the controller's modulator keeps to the inscribed circle Vdc/sqrt(3), i
 range). (b) switching model: centre-aligned triangular carrier, one carrier period per
 control period (``carrier_multiple`` carrier periods of equal duty per control period),
 sampled at the carrier valley (zero vector) so the sampled current is ripple free; each
-constant-switch-state segment is integrated exactly; optional dead time (edge delay by the
-sign of the phase current at the period start).
+constant-switch-state segment is integrated exactly, in the stationary frame where its
+voltage is constant and, around the rotating particular solution p0 exp(j theta), the decay
+is real (:func:`_solve_switching`: two short series per segment, no libm call, the same
+result as the rotor-frame :func:`segment` per segment to ~1e-14); optional dead time (edge
+delay by the sign of the phase current at the period start).
 
 Non-idealities of the real machine and bridge (``spmsm.*`` / ``inverter.dead_time_s``; the
 paper gives none of them, config/spmsm_default.yaml documents the chosen values; 0 = the
@@ -568,6 +573,7 @@ S_MID_RESID = 41           # accumulated midpoint residual (diagnostic, ~1e-16 J
 S_E1H_RE, S_E1H_IM = 42, 43  # exp(-j we T) of the last period (start of the next guess)
 S_WE_LAST = 44             # the we it belongs to
 S_TCOG = 45                # mean cogging torque of the last period (accelerating positive)
+S_TG_CORR = 46             # switching model: last period's mean torque minus its Taylor guess
 S_SIZE = 48
 
 REL_INVERTER, REL_RECTIFIER, REL_DRAIN, REL_DEAD = 0, 1, 2, 3
@@ -850,33 +856,67 @@ def switching_segments(da, db, dc, ia, ib, ic, p, ws):
 
 @njit(**JIT_HOT)
 def _solve_switching(i0, ej0, we, p, ws, v0):
-    """Exact solution through the switching segments in ws (rotor angle exp(j theta0) = ej0);
-    v0: a rotor-frame voltage held over the period (minus the back-EMF harmonics)."""
+    """Exact solution of Eq. 1 through the switching segments in ws (rotor angle exp(j theta0)
+    = ej0, speed frozen at we); v0: a rotor-frame voltage held over the period (minus the
+    back-EMF harmonics). Returns (i1, integral of i, integral of |i|^2, integral of
+    Re(v conj(i))), all in the rotor (dq) frame, like :func:`segment`.
+
+    Solved in the stationary frame, where each segment's inverter voltage v_k is constant:
+    with x = i exp(j theta), L dx/dt = v_k - R x + L s P exp(j theta), s = R/L + j we and
+    P = (v0 - j we lambda) / (L s) the rotor-frame particular solution. The deviation
+    z = x - P exp(j theta) then obeys L dz/dt = v_k - R z: a REAL decay exp(-a tau) per
+    segment, so a segment costs two short series (int exp(-a tau), int exp(-j we tau)) and
+    no libm call; the rotor-frame integrals follow in closed form from the same two."""
     a = p[P_A]
-    lh = p[P_L]
-    lam = p[P_LAMBDA]
+    inv_l = p[P_INV_L]
+    inv_r = p[P_INV_R]
     ns = int(ws[W_NSEG])
-    rot = ej0.conjugate()            # exp(-j theta(t)) at the segment start
-    i = i0
-    int_i = complex(0.0, 0.0)
-    int_i2 = 0.0
-    e_term = 0.0
-    p0 = (v0 - complex(0.0, we * lam)) / (lh * complex(a, we))      # same for every segment
+    den = a * a + we * we
+    inv_s = complex(a / den, -we / den)
+    pp0 = complex(v0.real * inv_l, (v0.imag - we * p[P_LAMBDA]) * inv_l) * inv_s
+    rot = ej0.conjugate()              # exp(-j theta) at the segment start
+    z = (i0 - pp0) * ej0               # stationary deviation from the particular solution
+    zi = complex(0.0, 0.0)             # integral of z exp(-j theta)
+    z2 = 0.0                           # integral of |z|^2
+    et = 0.0                           # integral of Re(v_k conj(x))
+    cp = pp0.conjugate()
+    t = p[P_DT]
+    series = a * t < 0.05 and abs(we) * t < 0.05        # every segment is shorter than t
     for k in range(ns):
-        t = ws[W_T + k]
-        v1 = complex(ws[W_VA + k], ws[W_VB + k]) * rot
-        x = we * t
-        # libm sincos / exp here (not the Taylor forms): the closed loop amplifies a last-bit
-        # change of the current trajectory until the paper-table metrics move
-        e1 = complex(math.cos(x), -math.sin(x))
-        eat = math.exp(-a * t)
-        # the rotor-frame integrals are accumulated as is (frame-independent quantities)
-        i, ii, ii2, et = _segment_p0(i, v0, p0, v1, we, t, e1, eat, a, lh)
-        int_i += ii
-        int_i2 += ii2
-        e_term += et
-        rot = rot * e1
-    return i, int_i, int_i2, e_term
+        d = ws[W_T + k]
+        v = complex(ws[W_VA + k], ws[W_VB + k])
+        if series:
+            # the two integrals' Taylor series (truncation < 1e-18 relative at 0.05),
+            # no per-segment branch
+            y = a * d
+            f1 = d * (1.0 - y * (1.0 / 2 - y * (1.0 / 6 - y * (1.0 / 24 - y * (1.0 / 120 - y * (
+                1.0 / 720 - y * (1.0 / 5040 - y * (1.0 / 40320 - y * (1.0 / 362880)))))))))
+            x = we * d
+            x2 = x * x
+            gw = complex(d * (1.0 - x2 * (1.0 / 6 - x2 * (1.0 / 120 - x2 * (1.0 / 5040 - x2 * (1.0 / 362880))))),
+                         -d * x * (0.5 - x2 * (1.0 / 24 - x2 * (1.0 / 720 - x2 * (1.0 / 40320)))))
+        else:
+            f1 = _int_exp_neg(a * d, d)                    # int exp(-a tau)
+            gw = _ie1(we * d, d)                           # int exp(-j we tau)
+        ea = 1.0 - a * f1                                  # exp(-a d), no cancellation in f1
+        jwg = complex(-we * gw.imag, we * gw.real)          # j we gw = 1 - exp(-j we d)
+        # int exp(-s tau) = (1 - exp(-a d) exp(-j we d)) / s, the numerator as a f1 + exp(-a d) j we gw
+        gs = (a * f1 + ea * jwg) * inv_s
+        q = v * inv_r                                      # the segment's equilibrium v_k / R
+        w = z - q
+        rg = rot * gw
+        zi += q * rg + w * (rot * gs)
+        ix = (cp * rg).conjugate() + q * d + w * f1         # integral of x over the segment
+        et += v.real * ix.real + v.imag * ix.imag
+        z2 += ((q.real * q.real + q.imag * q.imag) * d + 2.0 * (q.real * w.real + q.imag * w.imag) * f1
+               + (w.real * w.real + w.imag * w.imag) * (0.5 * f1 * (1.0 + ea)))
+        z = z * ea + v * (inv_l * f1)
+        rot = rot * (1.0 - jwg)
+    i1 = pp0 + z * rot
+    int_i = pp0 * t + zi
+    int_i2 = (pp0.real * pp0.real + pp0.imag * pp0.imag) * t + 2.0 * (cp * zi).real + z2
+    e_term = et + v0.real * int_i.real + v0.imag * int_i.imag
+    return i1, int_i, int_i2, e_term
 
 
 @njit(**JIT)
@@ -1221,6 +1261,11 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             v1 = vab * ej0.conjugate()
         else:
             switching_segments(_clip01(da), _clip01(db), _clip01(dc), state[S_IA], state[S_IB], state[S_IC], p, ws)
+            # the period's mean voltage vector (shaft guess, telemetry; the solution uses the segments)
+            vsum = complex(0.0, 0.0)
+            for k in range(int(ws[W_NSEG])):
+                vsum += complex(ws[W_VA + k], ws[W_VB + k]) * ws[W_T + k]
+            v1 = vsum * ej0.conjugate() * (1.0 / dt)
     elif path == 2:
         vlink = p[P_VDC]
         vr = rectifier_voltage(vlink, p[P_INV_DIODE_V])
@@ -1261,6 +1306,7 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     tcog = 0.0
     fr = 0.0
     th_m0 = state[S_THETA_M]
+    tem_g_raw = 0.0
     if kind == LOAD_PRIME_MOVER:
         wg = w0
         if pp * wg == state[S_WE_LAST] and (state[S_E1H_RE] != 0.0 or state[S_E1H_IM] != 0.0):
@@ -1285,7 +1331,7 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
         w1 = state[S_SPEED_TARGET]
         n_it = 1
     else:
-        if fast:
+        if path == 0:
             # first guess of the mean torque from a Taylor step of iq with the period's mean
             # voltage (the previous period's acceleration lags the control by a period)
             we0 = pp * w0
@@ -1304,6 +1350,11 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             diq = (vq_m - p[P_R] * i0.imag - we0 * (p[P_L] * i0.real + p[P_LAMBDA])) / p[P_L]
             iq_m = i0.imag + 0.5 * dt * diq
             tem_g = 1.5 * pp * (p[P_LAMBDA] * iq_m + g0.real * i0.real + g0.imag * iq_m) + tg
+            tem_g_raw = tem_g
+            if not fast:
+                # the current ripple's share of the mean torque changes little from period to
+                # period: last period's error of this guess (2 solves instead of 3)
+                tem_g += state[S_TG_CORR]
             wg = (w0 + 0.5 * dt * (tem_g + t_ext - friction_torque(w0, p) + B * w0) / J) / (1.0 + 0.5 * dt * B / J)
         else:
             wg = w0 + 0.5 * dt * state[S_ACCEL]
@@ -1338,6 +1389,8 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             e1h = _rot_small(e1h, pp * (wn - wg) * dt)
             wg = wn
         w1 = w0 + dt * (tem + tcog + t_ext - fr) / J
+        if path == 0 and not fast:
+            state[S_TG_CORR] = tem + tcog - tem_g_raw
     if fast:
         ii2, et = _avg_energy(p0, p1, dd, ie1, ies, v1, p)    # terminal share only
     elif emf_on:
@@ -1381,14 +1434,7 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     # mean applied dq voltage (telemetry): terminal power / current is not unique; report the
     # period-mean voltage vector at the mid angle
     if path == 0:
-        if p[P_MODEL] == 0.0:
-            vm = v1
-        else:
-            vm = complex(0.0, 0.0)
-            for k in range(int(ws[W_NSEG])):
-                vm += complex(ws[W_VA + k], ws[W_VB + k]) * ws[W_T + k]
-            vm = vm * ej0.conjugate() / dt
-        vm = _rot_tel(vm, p[P_HALF_PP_DT] * wg)             # telemetry only
+        vm = _rot_tel(v1, p[P_HALF_PP_DT] * wg)             # telemetry only
     elif path == 4:
         vm = complex(0.0, 0.0)
     else:
