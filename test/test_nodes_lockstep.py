@@ -51,8 +51,10 @@ def _check_lockstep_states(states, n, duration_s):
 # drive_command. Lockstep holds the plant to its controller (and a recorder), not to other
 # readers: one that falls more than the writer's history (200) behind loses samples. With the
 # nodes' lockstep busy wait both cores stay busy, and in one CI run the test process's reader
-# fell 30 batches short at N = 200. So the nodes here block instead (busy_wait_s: 0); the
-# graph tests with the recorder (test_graph, test_faults_kill) keep the default busy wait.
+# fell 30 batches short at N = 200. The nodes now stop polling by themselves once they see an
+# observer (bike_plant.loop.BusyWaitGuard, test_lockstep_stops_polling_while_observed), but
+# only at their first graph check that lists it (discovery can take seconds). So the nodes
+# here block from the start (busy_wait_s: 0).
 OBSERVED = {"busy_wait_s": 0.0}
 
 
@@ -172,6 +174,51 @@ def test_lockstep_rate(domain, n, duration):
     finally:
         for p in procs:
             p.stop()
+        col.close()
+
+
+def test_lockstep_stops_polling_while_observed(domain):
+    """With the default busy wait, a reader of plant_state / drive_command in a third node
+    (here a node that never even takes its samples) makes the plant and the controller block
+    instead of polling, each saying so; once that node is gone they poll again."""
+    import rclpy
+
+    col = Collector(domain, {})
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    observer = rclpy.create_node("loop_observer", namespace="/bike", context=ctx)
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        busy = {"busy_wait_s": 0.001}
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(busy, duration_s=600.0))
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, dict(busy, command_wait_s=10.0))
+        procs += [plant, ctrl]
+        col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
+        time.sleep(0.2)
+        for tau in (0.0, 600.0):
+            cmd_pub.publish(msgconv.command_msg(0.5, 0, msgconv.seconds_to_ns(tau)))
+        subs = [observer.create_subscription(PlantState, "plant_state", lambda m: None, 10),
+                observer.create_subscription(DriveCommand, "drive_command", lambda m: None, 10)]
+        for p in (plant, ctrl):
+            col.wait_for(lambda p=p: "/bike/loop_observer read(s)" in p.output()
+                         and "blocks instead of polling" in p.output(), 20, f"{p.name} to see the observer", procs)
+        assert "polls again" not in plant.output() + ctrl.output()
+        for sub in subs:
+            observer.destroy_subscription(sub)
+        for p in (plant, ctrl):
+            col.wait_for(lambda p=p: "no observer left: lockstep polls again" in p.output(), 20,
+                         f"{p.name} to poll again", procs)
+        # the loop went on throughout
+        assert plant.alive() and ctrl.alive()
+        for p in (ctrl, plant):
+            p.signal(signal.SIGINT)
+            assert p.wait(10.0) == 0, p.output()
+    finally:
+        for p in procs:
+            p.stop()
+        observer.destroy_node()
+        rclpy.try_shutdown(context=ctx)
         col.close()
 
 

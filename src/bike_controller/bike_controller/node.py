@@ -47,7 +47,8 @@ import time
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv
 from bike_plant.config import ConfigError, number_param
-from bike_plant.loop import AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, HotWait, loop_reader_qos, recorder_reads
+from bike_plant.loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
+                             recorder_reads)
 from bike_plant.node import run_loop_node
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
@@ -65,7 +66,8 @@ CONTROLLER_DEFAULTS = {
     "busy_wait_s": LOCKSTEP_BUSY_WAIT_S,
 }
 CONTROLLER_DESCRIPTIONS = {
-    "busy_wait_s": "lockstep: poll for the next PlantState this many wall seconds before blocking (0 = block at once)",
+    "busy_wait_s": ("lockstep: poll for the next PlantState this many wall seconds before blocking (0 = block at once; "
+                    "held at 0 while a third node reads drive_command or controller_status)"),
     "diagnostics_period_s": "publish an OK diagnostic at least this often [wall s]",
     "recorder_window_batches": "lockstep, > 0 while recording (./bike run --record): the first answer waits until the "
                                "recorder's readers of drive_command and controller_status are matched",
@@ -122,6 +124,7 @@ class ControllerNode(Node):
         # the loop waits on its three topics directly (bike_plant.loop.HotWait); Commands are
         # taken before the PlantState that may need them
         self.hot = HotWait(self.executor_, subs, self.context)
+        self.busy = BusyWaitGuard(self, [self.pub_drive, self.pub_status], "plant_state", self.busy_wait_s)
 
         self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "controller"
         self.stop_requested = False
@@ -325,7 +328,7 @@ class ControllerNode(Node):
 
     def run(self) -> int:
         while not self.stop_requested:
-            self.hot.spin(0.1, self.busy_wait_s)
+            self.hot.spin(0.1, self.busy.busy_s())
             if self.pending is not None:
                 self._try_answer()                         # command_wait_s expiry
             if (self.state_rx is not None and not self.plant_silent

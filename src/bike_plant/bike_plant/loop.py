@@ -141,3 +141,60 @@ class HotWait:
         if not handled:
             self.next_aux = 0.0      # idle: the rest of the node is served on the next call
         return handled
+
+
+class BusyWaitGuard:
+    """The lockstep busy wait of one loop node, held while an observer reads its loop topics.
+
+    Lockstep waits for the partner and the recorder only. While both loop nodes poll, both
+    cores stay busy, and any other reader of a loop topic (``ros2 topic echo``, a monitor
+    node, a test's reader) gets less CPU; one that falls more than the writer's history
+    (LOOP_QOS depth) behind loses samples. So every ``check_s`` wall seconds the guard lists
+    the readers of ``publishers``' topics: a reader in a node other than the partner (a
+    publisher of ``partner_topic``, the topic this node waits on) and the recorder (the
+    publisher of ``recorder_progress``) is an observer, and while one is there :meth:`busy_s`
+    is 0 (the node blocks at once). A line is logged when polling stops and when it resumes.
+    A graph query costs ~0.1 ms, once per ``check_s``, never per batch."""
+
+    def __init__(self, node, publishers, partner_topic: str, busy_s: float, check_s: float = 1.0):
+        self.node = node
+        self.publishers = list(publishers)
+        self.partner_topic = node.resolve_topic_name(partner_topic)
+        self.progress_topic = node.resolve_topic_name("recorder_progress")
+        self.configured_s = busy_s
+        self.check_s = check_s
+        self.next_check = 0.0
+        self.observers: list[str] = []
+
+    def _find_observers(self) -> list[str]:
+        expected = {(i.node_name, i.node_namespace)
+                    for topic in (self.partner_topic, self.progress_topic)
+                    for i in self.node.get_publishers_info_by_topic(topic)}
+        found = set()
+        for pub in self.publishers:
+            for i in self.node.get_subscriptions_info_by_topic(pub.topic_name):
+                if (i.node_name, i.node_namespace) not in expected:
+                    found.add(f"{i.node_namespace.rstrip('/')}/{i.node_name}")
+        return sorted(found)
+
+    def busy_s(self) -> float:
+        """The busy wait for this wait: the configured one, or 0 while observed."""
+        if self.configured_s <= 0.0:
+            return 0.0
+        now = time.monotonic()
+        if now >= self.next_check:
+            self.next_check = now + self.check_s
+            try:
+                observers = self._find_observers()
+            except Exception:        # the context is shutting down: keep the last answer
+                observers = self.observers
+            if observers and not self.observers:
+                topics = ", ".join(p.topic_name for p in self.publishers)
+                self.node.get_logger().info(
+                    f"{', '.join(observers)} read(s) {topics}: lockstep blocks instead of polling while "
+                    "observed (a busy loop would starve an observer until it loses samples)")
+            elif self.observers and not observers:
+                self.node.get_logger().info(
+                    f"no observer left: lockstep polls again (busy_wait_s = {self.configured_s:g})")
+            self.observers = observers
+        return 0.0 if self.observers else self.configured_s

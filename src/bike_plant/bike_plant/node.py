@@ -67,8 +67,8 @@ from sensor_msgs.msg import BatteryState
 from . import msgconv
 from .config import ConfigError
 from .config import number_param as _number
-from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, HotWait, loop_reader_qos, recorder_progress,
-                   recorder_reads)
+from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
+                   recorder_progress, recorder_reads)
 
 # the start-up wait for a recorder: matching its reader took ~3 s on a loaded 2-core machine,
 # longer than a recorder_timeout_s chosen to notice a lost recorder quickly
@@ -102,7 +102,8 @@ PLANT_DESCRIPTIONS = {
     "republish_s": "lockstep: re-publish the pending PlantState after this many wall seconds without an answer",
     "end_linger_s": "wall seconds to keep running after the end_of_run PlantState so subscribers receive it",
     "battery_every": "publish sensor_msgs/BatteryState every this many batches",
-    "busy_wait_s": "lockstep: poll for the DriveCommand this many wall seconds before blocking (0 = block at once)",
+    "busy_wait_s": ("lockstep: poll for the DriveCommand this many wall seconds before blocking (0 = block at once; "
+                    "held at 0 while a third node reads plant_state)"),
     "clock_period_s": "publish /clock when sim time reaches the next multiple of this many sim seconds "
                       "(0 = with every PlantState); the first and the last state always carry one",
     "diagnostics_period_s": "publish a diagnostic at least this often [wall s]",
@@ -326,6 +327,7 @@ class PlantNode(Node):
         self.executor_.add_node(self)
         self.hot = HotWait(self.executor_, [self.sub_drive] + ([self.sub_progress] if self.recorder_window > 0 else []),
                            self.context)
+        self.busy = BusyWaitGuard(self, [self.pub_state], "drive_command", self.busy_wait_s)
 
         self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "plant"
         self.stop_requested = False
@@ -651,7 +653,7 @@ class PlantNode(Node):
             self._publish_state()
             sent = first = time.monotonic()
             while self.answer is None and not self.stop_requested:
-                self.hot.spin(0.1, self.busy_wait_s)
+                self.hot.spin(0.1, self.busy.busy_s())
                 if self.answer is None and time.monotonic() - sent > self.republish_s:
                     self._republish()
                     sent = time.monotonic()
