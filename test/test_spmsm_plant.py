@@ -206,6 +206,32 @@ def test_switching_solution_equals_the_exact_segments_in_sequence(rs_ohm):
         assert abs(i - i0) > 1e-3 * abs(i0)                   # the period did move the current
 
 
+@pytest.mark.parametrize("dead_time_s, carrier_multiple", [(0.0, 1), (1.5e-6, 1), (3e-6, 2)])
+def test_switching_segments_fast_path_equals_the_general_merge(dead_time_s, carrier_multiple):
+    """The sorting-network path (every leg switching, turn-ons before turn-offs) and the
+    general merge give the same segments bit for bit; duties at 0 / 1, equal duties and small
+    duties whose dead-time-shifted edges interleave take both paths."""
+    p = M.pack_params(M.SpmsmPlantParams(inverter=M.InverterParams(
+        dead_time_s=dead_time_s, model="switching", carrier_multiple=carrier_multiple)))
+    hc = p[M.P_DT] / carrier_multiple
+    fast, general = np.zeros(M.WS_SIZE), np.zeros(M.WS_SIZE)
+    rng = np.random.default_rng(5)
+    paths = set()
+    for trial in range(3000):
+        d = rng.choice([rng.uniform(0.0, 1.0), 0.0, 1.0, rng.uniform(0.0, 0.04), rng.uniform(0.96, 1.0), 0.5], size=3)
+        if trial % 7 == 0:
+            d[1] = d[0]
+        cur = rng.normal(size=3) * rng.choice([1.0, 0.0], size=3)
+        n = M.switching_segments(*d, *cur, p, fast)
+        edges = [e for x, c in zip(d, cur) for e in M._leg_edges(x, c, hc, dead_time_s)]
+        assert M._switching_segments_sorted(*edges, hc, carrier_multiple, p[M.P_VDC], general) == n
+        for base in (M.W_T, M.W_VA, M.W_VB):
+            assert np.array_equal(fast[base:base + n], general[base:base + n])
+        assert sum(fast[M.W_T:M.W_T + n]) == pytest.approx(p[M.P_DT], rel=1e-12)
+        paths.add(all(f > r for r, f in zip(edges[::2], edges[1::2])) and max(edges[::2]) <= min(edges[1::2]))
+    assert paths == {True, False}
+
+
 def test_switching_model_follows_the_average_model(cfg):
     """Same duties, prime mover at 150 r/min: the switching model's carrier-valley samples
     follow the average model (the difference is the ripple's effect on the mean)."""

@@ -789,11 +789,38 @@ def _leg_edges(d, cur, hc, td):
     return min(max(r, 0.0), hc), min(max(f, 0.0), hc)
 
 
+@njit(**JIT_INLINE)
+def _sort3(t0, l0, t1, l1, t2, l2):
+    """Three (instant, leg) pairs in ascending order of the instant (sorting network)."""
+    if t1 < t0:
+        t0, l0, t1, l1 = t1, l1, t0, l0
+    if t2 < t1:
+        t1, l1, t2, l2 = t2, l2, t1, l1
+    if t1 < t0:
+        t0, l0, t1, l1 = t1, l1, t0, l0
+    return t0, l0, t1, l1, t2, l2
+
+
+@njit(**JIT_INLINE)
+def _emit_segment(ws, ns, t, sa, sb, sc, vdc):
+    """Append a segment of duration t with leg states (sa, sb, sc) unless it is empty."""
+    if t <= 0.0:
+        return ns
+    ws[W_T + ns] = t
+    ws[W_VA + ns] = vdc * (2.0 * sa - sb - sc) / 3.0
+    ws[W_VB + ns] = vdc * (sb - sc) / SQRT3
+    return ns + 1
+
+
 @njit(**JIT_HOT)
 def switching_segments(da, db, dc, ia, ib, ic, p, ws):
     """Constant-switch-state segments of one control period (centre-aligned carrier, dead
-    time by current sign) into ws: count, durations, (alpha, beta) voltages. No allocation
-    (edges in registers, the <= 8 sorted instants in ws[W_PTS:])."""
+    time by current sign) into ws: count, durations, (alpha, beta) voltages. No allocation.
+
+    The common case, every leg switching and every turn-on before every turn-off, takes the
+    turn-on and the turn-off instants each through a 3-element sorting network; the rest
+    (a leg that stays off, dead time that interleaves the edges of small duties) the general
+    merge (:func:`_switching_segments_sorted`). Both give the same segments bit for bit."""
     m = int(p[P_CARRIER])
     hc = p[P_DT] / m
     td = p[P_DEAD_TIME]
@@ -801,6 +828,51 @@ def switching_segments(da, db, dc, ia, ib, ic, p, ws):
     tr0, tf0 = _leg_edges(da, ia, hc, td)
     tr1, tf1 = _leg_edges(db, ib, hc, td)
     tr2, tf2 = _leg_edges(dc, ic, hc, td)
+    if not (tf0 > tr0 and tf1 > tr1 and tf2 > tr2 and max(tr0, max(tr1, tr2)) <= min(tf0, min(tf1, tf2))):
+        return _switching_segments_sorted(tr0, tf0, tr1, tf1, tr2, tf2, hc, m, vdc, ws)
+    r0, k0, r1, k1, r2, k2 = _sort3(tr0, 0, tr1, 1, tr2, 2)
+    f0, j0, f1, j1, f2, j2 = _sort3(tf0, 0, tf1, 1, tf2, 2)
+    ns = _emit_segment(ws, 0, r0, 0.0, 0.0, 0.0, vdc)
+    sa = 1.0 if k0 == 0 else 0.0
+    sb = 1.0 if k0 == 1 else 0.0
+    sc = 1.0 if k0 == 2 else 0.0
+    ns = _emit_segment(ws, ns, r1 - r0, sa, sb, sc, vdc)
+    sa = 1.0 if k2 != 0 else 0.0                           # two legs on: all but the last
+    sb = 1.0 if k2 != 1 else 0.0
+    sc = 1.0 if k2 != 2 else 0.0
+    ns = _emit_segment(ws, ns, r2 - r1, sa, sb, sc, vdc)
+    ns = _emit_segment(ws, ns, f0 - r2, 1.0, 1.0, 1.0, vdc)
+    sa = 1.0 if j0 != 0 else 0.0                           # the first leg off
+    sb = 1.0 if j0 != 1 else 0.0
+    sc = 1.0 if j0 != 2 else 0.0
+    ns = _emit_segment(ws, ns, f1 - f0, sa, sb, sc, vdc)
+    sa = 1.0 if j2 == 0 else 0.0                           # only the last leg still on
+    sb = 1.0 if j2 == 1 else 0.0
+    sc = 1.0 if j2 == 2 else 0.0
+    ns = _emit_segment(ws, ns, f2 - f1, sa, sb, sc, vdc)
+    ns = _emit_segment(ws, ns, hc - f2, 0.0, 0.0, 0.0, vdc)
+    return _repeat_carrier(ws, ns, m)
+
+
+@njit(**JIT_HOT)
+def _repeat_carrier(ws, ns, m):
+    """The carrier periods of one control period are identical (equal duties): copy the
+    first one's ns segments m - 1 times; store and return the count."""
+    n1 = ns
+    for c in range(1, m):
+        for k in range(n1):
+            ws[W_T + ns] = ws[W_T + k]
+            ws[W_VA + ns] = ws[W_VA + k]
+            ws[W_VB + ns] = ws[W_VB + k]
+            ns += 1
+    ws[W_NSEG] = ns
+    return ns
+
+
+@njit(**JIT_HOT)
+def _switching_segments_sorted(tr0, tf0, tr1, tf1, tr2, tf2, hc, m, vdc, ws):
+    """:func:`switching_segments` for any edge order: the <= 8 instants sorted in ws[W_PTS:],
+    each segment's switch state from its midpoint."""
     on0 = tf0 > tr0
     on1 = tf1 > tr1
     on2 = tf2 > tr2
@@ -842,16 +914,7 @@ def switching_segments(da, db, dc, ia, ib, ic, p, ws):
         ws[W_VA + ns] = vdc * (2.0 * sa - sb - sc) / 3.0
         ws[W_VB + ns] = vdc * (sb - sc) / SQRT3
         ns += 1
-    # the carrier periods of one control period are identical (equal duties)
-    n1 = ns
-    for c in range(1, m):
-        for k in range(n1):
-            ws[W_T + ns] = ws[W_T + k]
-            ws[W_VA + ns] = ws[W_VA + k]
-            ws[W_VB + ns] = ws[W_VB + k]
-            ns += 1
-    ws[W_NSEG] = ns
-    return ns
+    return _repeat_carrier(ws, ns, m)
 
 
 @njit(**JIT_HOT)
