@@ -35,9 +35,10 @@ iteration (contraction ~1e-4 per pass: the electrical coupling over 100 us is we
 first guess takes a Taylor step of iq with the period's mean voltage, for the switching model
 plus the last period's error of that guess, i.e. the ripple's nearly constant share of the
 mean torque; the iteration stops when w_mid moves by less than 1e-11 (1 + |w|) rad/s,
-typically after 2 solves, where the switching model took 3 from last period's acceleration). Electromechanical energy T Te w_mid then
-equals the kinetic-energy change minus load and friction work up to T Te * 1e-11 per
-period, so the ledger closes to ~1e-12 relative (round-off level).
+typically after 2 solves; the switching model took 3 from last period's acceleration).
+Electromechanical energy T Te w_mid then equals the kinetic-energy change minus load and
+friction work up to T Te * 1e-11 per period, so the ledger closes to ~1e-12 relative
+(round-off level).
 Between exact evaluations every 64 periods the rotating phasors exp(j theta_e) and
 exp(-j we T) are advanced by small-angle rotations (error ~1e-16 per period): sin/cos are
 the expensive part of a period, which is otherwise a short chain of complex arithmetic.
