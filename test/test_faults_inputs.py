@@ -14,6 +14,7 @@ import random
 import re
 import struct
 import subprocess
+import time
 import sys
 import textwrap
 
@@ -262,6 +263,27 @@ def test_cli_on_a_corrupt_bag_prints_one_error(tmp_path):
     data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])
     for args in (["report", str(bag), "--out", str(tmp_path / "r")], ["bag", "recover", str(tmp_path / "nope")]):
         _one_error(_cli(*args))
+
+
+def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
+    """An output path that cannot be made (under a regular file) or is a directory where a
+    file goes: one error naming the option, exit 2, before the command runs (a bench or a
+    fleet run must not end in a traceback after minutes of work)."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    bad_dir = str(blocker / "sub")
+    cases = [(["paper", "seed2-table1", "--out", bad_dir], "--out"),
+             (["run", "--duration", "1", "--record", bad_dir], "--record"),
+             (["replay", str(tmp_path / "no_bag"), "--record", bad_dir], "--record"),
+             (["bench", "--only", "can", "--json", str(blocker / "b.json")], "--json"),
+             (["bench", "--only", "can", "--json", str(tmp_path)], "--json"),
+             (["fleet", "--bikes", "2", "--seconds", "0.01", "--json", str(blocker / "f.json")], "--json")]
+    for args, flag in cases:
+        started = time.monotonic()
+        line = _one_error(_cli(*args, timeout=60))
+        assert flag in line and str(tmp_path) in line, line
+        assert time.monotonic() - started < 30, args         # refused up front, not after the work
+    assert blocker.read_text() == "" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
 
 
 HOSTILE_READER = textwrap.dedent("""

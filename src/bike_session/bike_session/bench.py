@@ -283,7 +283,9 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
                  f"here: `./bike bench --only memory --memory-s 3600` takes the hour)")
         bench_memory(show, figures, sim_s)
     if json_path:
-        pathlib.Path(json_path).write_text(json.dumps(figures, indent=2, sort_keys=True))
+        from bike_session.cli import write_output
+        if not write_output(json_path, json.dumps(figures, indent=2, sort_keys=True), "--json"):
+            return 2
         show(f"figures written to {json_path}")
     return 0
 

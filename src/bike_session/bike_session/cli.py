@@ -39,6 +39,54 @@ def default_launch_file() -> pathlib.Path:
     return repo_root() / "config" / "launch" / "bike.launch.yaml"
 
 
+def output_dir(path, flag: str) -> pathlib.Path | None:
+    """Create an output directory before any work; on failure print one error naming the
+    option and return None (a run must not end in a traceback, nor work be lost, because
+    its output path was bad)."""
+    out = pathlib.Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"error: {flag} {out}: cannot create the directory ({exc.strerror or exc})", file=sys.stderr)
+        return None
+    if not os.access(out, os.W_OK):
+        print(f"error: {flag} {out}: directory not writable", file=sys.stderr)
+        return None
+    return out
+
+
+def output_file_ok(path, flag: str) -> bool:
+    """Before any work: a result file can be written at ``path`` (its directory is created;
+    the file is opened for appending, and removed again if that created it), else one error
+    naming the option."""
+    target = pathlib.Path(path)
+    if target.is_dir():
+        print(f"error: {flag} {target}: is a directory", file=sys.stderr)
+        return False
+    if output_dir(target.parent, flag) is None:
+        return False
+    existed = target.exists()
+    try:
+        with open(target, "a"):
+            pass
+    except OSError as exc:
+        print(f"error: {flag} {target}: cannot write ({exc.strerror or exc})", file=sys.stderr)
+        return False
+    if not existed:
+        target.unlink()
+    return True
+
+
+def write_output(path, text: str, flag: str) -> bool:
+    """Write a result file; a failure (disk full, removed meanwhile) is one error line."""
+    try:
+        pathlib.Path(path).write_text(text)
+    except OSError as exc:
+        print(f"error: {flag} {path}: cannot write ({exc.strerror or exc})", file=sys.stderr)
+        return False
+    return True
+
+
 def _cmd_run(opts) -> int:
     from bike_plant.config import ConfigError, load_config
 
@@ -70,8 +118,9 @@ def _cmd_run(opts) -> int:
         args.update(workout=str(pathlib.Path(opts.workout).resolve()), ftp=repr(float(opts.ftp or 0.0)))
     bag_path = None
     if opts.record:
-        record_dir = pathlib.Path(opts.record).resolve()
-        record_dir.mkdir(parents=True, exist_ok=True)
+        record_dir = output_dir(pathlib.Path(opts.record).resolve(), "--record")
+        if record_dir is None:
+            return 2
         bag_name = "session_" + datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
         bag_path = record_dir / bag_name
         suffix = 1
@@ -185,8 +234,9 @@ def _cmd_paper(opts) -> int:
 
     from bike_session import paper
 
-    out = pathlib.Path(opts.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(opts.out, "--out")
+    if out is None:
+        return 2
     if opts.name == "seed2-table1":
         from bike_session import paper_spmsm
         config = opts.config or str(repo_root() / "config" / "spmsm_default.yaml")
@@ -217,6 +267,8 @@ def _cmd_paper(opts) -> int:
 def _cmd_bench(opts) -> int:
     from bike_session import bench
 
+    if opts.json and not output_file_ok(opts.json, "--json"):
+        return 2
     return bench.main(json_path=opts.json, quick=opts.quick, only=opts.only, memory_s=opts.memory_s)
 
 
@@ -231,6 +283,8 @@ def _cmd_fleet(opts) -> int:
     from bike_plant.config import ConfigError
 
     config = str(pathlib.Path(opts.config or repo_root() / "config" / "bldc_default.yaml").resolve())
+    if opts.json and not output_file_ok(opts.json, "--json"):
+        return 2
     if opts.graph is not None:
         from bike_session import fleet_graph as FG
         seconds = 1.0 if opts.seconds is None else opts.seconds
@@ -244,8 +298,8 @@ def _cmd_fleet(opts) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         print(FG.format_graph(result), flush=True)
-        if opts.json:
-            FG.dump_json(result, opts.json)
+        if opts.json and not write_output(opts.json, json.dumps(result, indent=2, sort_keys=True), "--json"):
+            return 2
         return 0 if result["ok"] else 1
     if opts.netns:
         print("error: --netns places the nodes of a --graph fleet", file=sys.stderr)
@@ -278,8 +332,8 @@ def _cmd_fleet(opts) -> int:
         for b in shown:
             print(f"    bike{b['bike']:<5}{b['command']:>6.2f}{b['rider_t0_nm']:>8.0f}{b['target_cadence_rpm']:>7.0f}"
                   f"{b['mean_cadence_rpm']:>8.1f}{b['mean_rider_power_w']:>9.1f}{b['mean_battery_power_w']:>9.1f}")
-    if opts.json:
-        pathlib.Path(opts.json).write_text(json.dumps(r, indent=2))
+    if opts.json and not write_output(opts.json, json.dumps(r, indent=2), "--json"):
+        return 2
     return 0
 
 

@@ -324,10 +324,6 @@ def format_graph(result: dict) -> str:
     return "\n".join(lines)
 
 
-def dump_json(result: dict, path: str) -> None:
-    pathlib.Path(path).write_text(json.dumps(result, indent=2, sort_keys=True))
-
-
 def _gate(argv: list[str]) -> int:
     """`python -m bike_session.fleet_graph gate FILE -- CMD...`: wait for FILE, then exec CMD
     (same process, so the launcher's signals reach the node)."""

@@ -157,6 +157,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--record", default="runs", metavar="DIR", help="where the new bag goes (default runs/)")
     ap.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     opts = ap.parse_args(argv)
+    from bike_session import cli
+    if cli.output_dir(opts.record, "--record") is None:
+        return 2
     try:
         prep = prepare(opts.bag, opts.record, opts.config, opts.load)
     except (BagError, ConfigError, ValueError) as exc:
@@ -164,6 +167,5 @@ def main(argv: list[str]) -> int:
         return 2
     print(f"[bike] replaying {prep['commands']} Commands ({prep['segments']} steps, {prep['duration_s']:g} s) "
           f"of {opts.bag} with {prep['config']}", flush=True)
-    from bike_session import cli
     return cli.main(["run", "--config", str(prep["config"]), "--duration", repr(prep["duration_s"]),
                      "--record", opts.record, "--storage", opts.storage])
