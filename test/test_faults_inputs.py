@@ -265,6 +265,13 @@ def test_cli_on_a_corrupt_bag_prints_one_error(tmp_path):
         _one_error(_cli(*args))
 
 
+@pytest.mark.parametrize("duration", ["inf", "nan", "-1", "0"])
+def test_run_refuses_a_duration_that_is_not_a_finite_positive_number(duration):
+    """`--duration inf` passed the CLI's > 0 check; the session node then refused it while the
+    plant and the controller had started (a traceback when they were stopped mid-import)."""
+    assert "--duration" in _one_error(_cli("run", "--duration", duration, timeout=60))
+
+
 def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
     """An output path that cannot be made (under a regular file) or is a directory where a
     file goes: one error naming the option, exit 2, before the command runs (a bench or a

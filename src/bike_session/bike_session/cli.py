@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import math
 import os
 import pathlib
 import sys
@@ -105,8 +106,8 @@ def _cmd_run(opts) -> int:
             return 2
     default_s = workout.duration_s if workout is not None else float(cfg.get("duration_s", 60.0))
     duration_s = opts.duration if opts.duration is not None else default_s
-    if not duration_s > 0:
-        print(f"error: --duration must be > 0, got {duration_s}", file=sys.stderr)
+    if not (duration_s > 0 and math.isfinite(duration_s)):
+        print(f"error: --duration must be a finite number > 0, got {duration_s}", file=sys.stderr)
         return 2
     args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": opts.namespace}
     can_params = None
