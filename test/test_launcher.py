@@ -150,3 +150,26 @@ def test_launcher_stops_the_graph_when_any_node_fails():
     codes = launch.wait(timeout_s=30)
     assert time.monotonic() - start < 10
     assert codes["broken"] == 2 and codes["plant"] != 0
+
+
+@pytest.mark.parametrize("delay_s", [0.3, 1.5])
+def test_ctrl_c_during_start_up_stops_every_node_without_a_traceback(delay_s, tmp_path):
+    """Ctrl-C on `./bike run` while the nodes are still importing (rclpy, numba, kernels:
+    1-3 s) or just started: each node ends quietly (bike_plant.entry: exit 130 instead of a
+    KeyboardInterrupt traceback from the import machinery) and the run ends at once."""
+    import os
+    import pathlib
+    import random
+    import subprocess
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    out = tmp_path / "run.log"
+    with open(out, "w") as fh:
+        proc = subprocess.Popen([str(root / "bike"), "run", "--duration", "30"], stdout=fh, stderr=subprocess.STDOUT,
+                                env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
+        time.sleep(delay_s)
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(30)
+    text = out.read_text()
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]
+    assert code == 0, text[-3000:]
