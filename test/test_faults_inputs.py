@@ -272,6 +272,13 @@ def test_run_refuses_a_duration_that_is_not_a_finite_positive_number(duration):
     assert "--duration" in _one_error(_cli("run", "--duration", duration, timeout=60))
 
 
+@pytest.mark.parametrize("namespace", ["a-b", "9bike", "bike//x", "bike x"])
+def test_run_refuses_an_invalid_namespace(namespace):
+    """Every node died in rclpy.init with a traceback (an invalid remap rule)."""
+    line = _one_error(_cli("run", "--duration", "1", "--namespace", namespace, timeout=60))
+    assert "--namespace" in line and "Invalid namespace" in line, line
+
+
 def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
     """An output path that cannot be made (under a regular file) or is a directory where a
     file goes: one error naming the option, exit 2, before the command runs (a bench or a

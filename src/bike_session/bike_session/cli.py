@@ -109,7 +109,15 @@ def _cmd_run(opts) -> int:
     if not (duration_s > 0 and math.isfinite(duration_s)):
         print(f"error: --duration must be a finite number > 0, got {duration_s}", file=sys.stderr)
         return 2
-    args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": opts.namespace}
+    namespace = opts.namespace.strip("/")
+    from rclpy.validate_namespace import InvalidNamespaceException, validate_namespace
+    try:
+        validate_namespace("/" + namespace)
+    except InvalidNamespaceException as exc:
+        # each node would otherwise die in rclpy.init with a traceback (an invalid remap rule)
+        print(f"error: --namespace {opts.namespace!r}: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": namespace}
     can_params = None
     if str(cfg.get("backend", "sim")) == "can":
         can_params = _can_run_args(cfg, args)
@@ -137,7 +145,7 @@ def _cmd_run(opts) -> int:
     # commands (an explicit ROS_DOMAIN_ID is always respected)
     from bike_session import domains
     domains.ensure_private_domain("run")
-    print(f"[bike] config {config}, {duration_s:g} s simulated, namespace /{opts.namespace}"
+    print(f"[bike] config {config}, {duration_s:g} s simulated, namespace /{namespace}"
           + (f", recording to {bag_path}" if bag_path else ""), flush=True)
     try:
         code = launcher.run(str(opts.launch or default_launch_file()), args)
