@@ -152,11 +152,23 @@ def test_launcher_stops_the_graph_when_any_node_fails():
     assert codes["broken"] == 2 and codes["plant"] != 0
 
 
-@pytest.mark.parametrize("delay_s", [0.3, 1.5])
-def test_ctrl_c_during_start_up_stops_every_node_without_a_traceback(delay_s, tmp_path):
-    """Ctrl-C on `./bike run` while the nodes are still importing (rclpy, numba, kernels:
-    1-3 s) or just started: each node ends quietly (bike_plant.entry: exit 130 instead of a
-    KeyboardInterrupt traceback from the import machinery) and the run ends at once."""
+def test_an_interrupted_node_import_ends_with_exit_130_and_no_traceback(tmp_path):
+    """bike_plant.entry.start: a Ctrl-C while a node module is still importing (rclpy, numba,
+    kernels: 1-3 s at the start of ./bike run) ends the process quietly with 130. (The console
+    script's own few lines before it are not covered: a traceback stays possible in the
+    first ~0.1 s.)"""
+    import subprocess
+
+    (tmp_path / "slow_node_module.py").write_text("raise KeyboardInterrupt  # as if SIGINT came mid-import\n")
+    code = f"import sys; sys.path.insert(0, {str(tmp_path)!r}); from bike_plant.entry import start; start('slow_node_module')"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 130, run
+    assert "Traceback" not in run.stderr + run.stdout and "KeyboardInterrupt" not in run.stderr, run.stderr
+
+
+def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path):
+    """Ctrl-C on `./bike run` once every node runs its main(): each stops on its own SIGINT
+    path, the run ends at once with code 0 and no node prints a traceback."""
     import os
     import pathlib
     import random
@@ -165,11 +177,20 @@ def test_ctrl_c_during_start_up_stops_every_node_without_a_traceback(delay_s, tm
     root = pathlib.Path(__file__).resolve().parents[1]
     out = tmp_path / "run.log"
     with open(out, "w") as fh:
-        proc = subprocess.Popen([str(root / "bike"), "run", "--duration", "30"], stdout=fh, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen([str(root / "bike"), "run", "--duration", "60"], stdout=fh, stderr=subprocess.STDOUT,
                                 env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
-        time.sleep(delay_s)
-        proc.send_signal(signal.SIGINT)
-        code = proc.wait(30)
+        try:
+            end = time.monotonic() + 60
+            started = ("[plant] [INFO]", "[controller] [INFO]", "[session] [INFO]")
+            while time.monotonic() < end and not all(tag in out.read_text() for tag in started):
+                assert proc.poll() is None, out.read_text()[-3000:]
+                time.sleep(0.1)
+            proc.send_signal(signal.SIGINT)
+            code = proc.wait(30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
     text = out.read_text()
+    assert all(tag in text for tag in started), text[-3000:]
     assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]
     assert code == 0, text[-3000:]
