@@ -29,7 +29,7 @@ import time
 import pytest
 from node_harness import CONFIG, Collector, NodeProcess, stamp_ns  # noqa: F401
 
-from bike_msgs.msg import PlantState, SessionStatus  # noqa: E402
+from bike_msgs.msg import ControllerStatus, PlantState, SessionStatus  # noqa: E402
 from bike_session.bags import open_bag, read_topic  # noqa: E402
 from bike_session.recover import recover  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
@@ -172,16 +172,29 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
     rng = random.Random(f"restart-{victim}")
     kill_at_seq = rng.randint(300, 1200)
     domain = ros_domain                              # claimed: no other run on this host has it
-    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
-                             "session_status": SessionStatus})
+    topics = {"plant_state": PlantState, "/diagnostics": DiagnosticArray, "session_status": SessionStatus}
+    if victim == "session":
+        topics["controller_status"] = ControllerStatus
+    col = Collector(domain, topics)
     procs = _graph(col, domain, tmp_path, duration)
     everyone = list(procs.values())
     try:
         states = col.data["plant_state"]
         col.wait_for(lambda: states and states[-1].seq >= kill_at_seq, 60, f"seq {kill_at_seq}", everyone)
+        if victim == "session":
+            # the session must be in the loop when it dies: its Commands in force at the controller
+            # (the profile starts at 0.2, the config's command0 is 0). Its DDS match with the
+            # controller has taken seconds on a loaded machine; the controller then runs on
+            # command0 from the start, and killing a session it never heard tests nothing (seen
+            # once in CI: no 'session silent' after the kill, the first one came at t = 0)
+            col.wait_for(lambda: any(m.command > 0.0 for m in col.data["controller_status"]), 30,
+                         "the session's Commands at the controller", everyone)
         # the diagnostics the test waits for below must reach it
         col.wait_for(lambda: col.reads_from("/diagnostics", "plant") and col.reads_from("/diagnostics", "controller"),
                      10, "the test's /diagnostics reader matched to plant and controller", everyone)
+        def silent_diags() -> int:
+            return sum("session silent" in t for t in _diag_texts(col, DiagnosticStatus.WARN, "controller"))
+        silent_before = silent_diags()
         procs[victim].signal(signal.SIGKILL)
         procs[victim].wait(5.0)
         seq_at_kill = int(states[-1].seq)
@@ -206,9 +219,8 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
             # restarted at once: until it is up the controller goes on without it, saying so
             restarted = _restart(victim, domain, tmp_path, duration)
             everyone.append(restarted)
-            col.wait_for(lambda: any("session silent" in t for t in _diag_texts(col, DiagnosticStatus.WARN,
-                                                                                 "controller")),
-                         10, "the controller's 'session silent' diagnostic", [procs["controller"]])
+            col.wait_for(lambda: silent_diags() > silent_before, 10,
+                         "the controller's 'session silent' diagnostic after the kill", [procs["controller"]])
         else:
             # restarted at once (under a new bag name; the same name again is refused) while the
             # plant waits recorder_timeout_s for the dead one, then gives it up and runs on; once
