@@ -43,6 +43,11 @@ def recorder_progress(recorder_seq: int, reported: int, plant_k: int) -> int:
     return recorder_seq if reported > plant_k else max(recorder_seq, reported)
 
 
+def publisher_nodes(node, topic: str) -> set[tuple[str, str]]:
+    """(name, namespace) of every node the graph lists as publishing ``topic`` (resolved)."""
+    return {(i.node_name, i.node_namespace) for i in node.get_publishers_info_by_topic(topic)}
+
+
 def recorder_reads(node, publisher, progress_topic: str = "recorder_progress") -> bool:
     """True once the recorder reads ``publisher``'s topic and the writer has matched it.
 
@@ -51,8 +56,7 @@ def recorder_reads(node, publisher, progress_topic: str = "recorder_progress") -
     never reach it; ``get_subscription_count()`` is the writer's own matched count. So: a
     reader of the recorder's node is listed, and the writer has matched as many readers as
     the graph lists. Called while waiting to start, never per batch (graph queries are slow)."""
-    progress = node.resolve_topic_name(progress_topic)
-    recorders = {(i.node_name, i.node_namespace) for i in node.get_publishers_info_by_topic(progress)}
+    recorders = publisher_nodes(node, node.resolve_topic_name(progress_topic))
     if not recorders:
         return False
     readers = node.get_subscriptions_info_by_topic(publisher.topic_name)
@@ -167,9 +171,7 @@ class BusyWaitGuard:
         self.observers: list[str] = []
 
     def _find_observers(self) -> list[str]:
-        expected = {(i.node_name, i.node_namespace)
-                    for topic in (self.partner_topic, self.progress_topic)
-                    for i in self.node.get_publishers_info_by_topic(topic)}
+        expected = publisher_nodes(self.node, self.partner_topic) | publisher_nodes(self.node, self.progress_topic)
         found = set()
         for pub in self.publishers:
             for i in self.node.get_subscriptions_info_by_topic(pub.topic_name):

@@ -950,8 +950,8 @@ def _solve_switching(i0, ej0, we, p, ws, v0):
         d = ws[W_T + k]
         v = complex(ws[W_VA + k], ws[W_VB + k])
         if series:
-            # the two integrals' Taylor series (truncation < 1e-18 relative at 0.05),
-            # no per-segment branch
+            # the series of _int_exp_neg and _ie1 written out (truncation < 1e-18 relative at
+            # 0.05): without their per-call branch the solve takes ~106 ns, with the calls ~125
             y = a * d
             f1 = d * (1.0 - y * (1.0 / 2 - y * (1.0 / 6 - y * (1.0 / 24 - y * (1.0 / 120 - y * (
                 1.0 / 720 - y * (1.0 / 5040 - y * (1.0 / 40320 - y * (1.0 / 362880)))))))))
