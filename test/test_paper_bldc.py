@@ -39,3 +39,12 @@ def test_inner_loop_benchmark_reports_real_time():
     res = inner_loop_real_time(seconds=0.05, batched=False)
     assert res["real_time"] > 1.0 and res["compile_s"] >= 0.0
     assert res["fused_ns_per_period"] > 0 and abs(res["residual_j"]) < 1e-6
+
+
+def test_bench_host_summary_measures_a_plausible_clock():
+    # the bench prints its figures beside the host's clock; a chain the compiler folded away
+    # (or a wrong step count) would read as an impossible clock
+    from bike_session.bench_kernels import host_summary
+    host = host_summary(repeats=3)
+    assert 0.3 < host["clock_ghz"] < 8.0
+    assert host["cpu"] and host["cores"] >= 1 and isinstance(host["virtual"], bool)

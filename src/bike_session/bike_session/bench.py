@@ -21,7 +21,10 @@ Figures (keys of the JSON; real-time factors end in `_real_time`):
 - peers_*: the same PMSM scenario on our SPMSM and on motulator / gym-electric-motor when
   installed (`make peers`): real-time factors, speed-ups vs the targets, result differences
   (bike_session.bench_peers);
-- memory_*: every node's RSS over a long recorded lockstep session (bike_session.bench_memory).
+- memory_*: every node's RSS over a long recorded lockstep session (bike_session.bench_memory);
+- host_cpu / host_cores / host_clock_ghz: the machine, with its effective clock measured in the
+  run (bench_kernels.host_summary), and *_ns_per_period / inner_loop_bldc_cycles_per_period:
+  the inner loops' cost per period, which compares across hosts better than a real-time factor.
 Sections (`./bike bench --only SECTION`, repeatable): inner, fleet, graph, can, peers, memory.
 Timing assertions live here, not in the tests: this machine is shared and noisy.
 """
@@ -124,8 +127,8 @@ def _graph_run(batch_periods: int, duration_s: float, base_config: pathlib.Path)
     return {"samples": samples, "wall_total_s": wall_total, "exit_codes": codes}
 
 
-def spmsm_inner_loop_real_time(seconds: float = 1.0, switching: bool = False) -> tuple[float, float]:
-    """(sim s per wall s, first-call seconds) of the SPMSM plant + predictive controller
+def spmsm_inner_loop_real_time(seconds: float = 1.0, switching: bool = False) -> tuple[float, float, float]:
+    """(sim s per wall s, first-call seconds, control period s) of the SPMSM plant + predictive controller
     kernel (bike_controller.spmsm_control.run_spmsm_offline), prime mover at 200 r/min.
     The wall time is the fused closed loop's own (run_kernel: plant step + control law per
     100 us period, ``wall_s`` of the result), best of 5; the Python set-up of the run
@@ -145,7 +148,7 @@ def spmsm_inner_loop_real_time(seconds: float = 1.0, switching: bool = False) ->
     for _ in range(5):
         out = run_spmsm_offline(cfg, seconds, speed_ref_fn=lambda t: 200.0, switching=switching, record_every=1000)
         best = min(best, out["wall_s"])
-    return seconds / best, compile_s
+    return seconds / best, compile_s, float(cfg["control_period_s"])
 
 
 def main(json_path: str | None = None, quick: bool = False, only=None, memory_s: float | None = None) -> int:
@@ -179,18 +182,33 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
 
     show("bike bench (2-core shared machine: figures are noisy; compare ratios within one run)")
     try:
-        from bike_session.bench_kernels import FUSED_REPEATS, inner_loop_real_time
+        from bike_session.bench_kernels import FUSED_REPEATS, host_summary, inner_loop_real_time
     except ImportError as exc:  # pragma: no cover - reported, not hidden
-        inner_loop_real_time = None
+        inner_loop_real_time = host_summary = None
         show(f"inner loop: unavailable ({exc})")
+    clock_ghz = float("nan")
+    if host_summary is not None:
+        # the kernels' figures follow the host's clock and core: say which host they are from
+        host = host_summary()
+        clock_ghz = host["clock_ghz"]
+        figures["host_cpu"] = host["cpu"]
+        figures["host_cores"] = host["cores"]
+        figures["host_clock_ghz"] = clock_ghz
+        show(f"host: {host['cpu']}, {host['cores']} cores{', virtual machine' if host['virtual'] else ''}; "
+             f"effective clock {clock_ghz:.2f} GHz now (a two-cycle dependency chain)")
     if want("inner") and inner_loop_real_time is not None:
         inner = inner_loop_real_time(seconds=0.5 if quick else 2.0)
         figures["inner_loop_bldc_real_time"] = inner["real_time"]
         figures["inner_loop_bldc_median_real_time"] = inner["fused_real_time_median"]
         figures["inner_loop_bldc_compile_s"] = inner.get("compile_s", float("nan"))
+        ns = inner["fused_ns_per_period"]
+        figures["inner_loop_bldc_ns_per_period"] = ns
+        figures["inner_loop_bldc_cycles_per_period"] = ns * clock_ghz
         show(f"inner loop, BLDC 20 kHz, one core: {inner['real_time']:.0f}x real time, best of "
              f"{FUSED_REPEATS} runs (median {inner['fused_real_time_median']:.0f}x) "
              f"(target >= {TARGET_INNER_LOOP_REAL_TIME:.0f}x: ratio {inner['real_time'] / TARGET_INNER_LOOP_REAL_TIME:.2f}); "
+             f"{ns:.0f} ns = {ns * clock_ghz:.0f} cycles per period (the target allows "
+             f"{inner['control_period_s'] * 1e9 / TARGET_INNER_LOOP_REAL_TIME:.0f} ns); "
              f"JIT compile {figures['inner_loop_bldc_compile_s']:.1f} s")
     # fleet: 1000 independent BLDC bikes (plant + controller inner loop each, riders and commands
     # spread) in the batched numba kernel on 2 threads (bike_controller.fleet; ./bike fleet)
@@ -207,12 +225,15 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
     for key, switching in (("inner_loop_spmsm_real_time", False), ("inner_loop_spmsm_switching_real_time", True)):
         if not want("inner"):
             break
-        rt, compile_s = spmsm_inner_loop_real_time(seconds=0.5 if quick else 1.0, switching=switching)
+        rt, compile_s, spmsm_period_s = spmsm_inner_loop_real_time(seconds=0.5 if quick else 1.0, switching=switching)
         figures[key] = rt
         figures[key.replace("_real_time", "_compile_s")] = compile_s
+        ns = spmsm_period_s / rt * 1e9
+        figures[key.replace("_real_time", "_ns_per_period")] = ns
         show(f"inner loop, SPMSM 10 kHz ({'switching' if switching else 'average'} inverter), one core: "
              f"{rt:.0f}x real time (target >= {TARGET_INNER_LOOP_REAL_TIME:.0f}x: ratio "
-             f"{rt / TARGET_INNER_LOOP_REAL_TIME:.2f}); JIT compile / cache load {compile_s:.1f} s")
+             f"{rt / TARGET_INNER_LOOP_REAL_TIME:.2f}); {ns:.0f} ns = {ns * clock_ghz:.0f} cycles per period; "
+             f"JIT compile / cache load {compile_s:.1f} s")
     base = default_config_path()
     period_s = float(yaml.safe_load(base.read_text())["/**"]["ros__parameters"]["control_period_s"])
     if want("peers"):

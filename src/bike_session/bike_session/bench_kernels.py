@@ -9,8 +9,11 @@ JIT compile time (first call; with cache=True mostly a cache load) is reported a
 """
 from __future__ import annotations
 
+import os
+import platform
 import time
 
+import numba
 import numpy as np
 
 from bike_plant import bldc as K
@@ -88,6 +91,46 @@ def inner_loop_real_time(seconds: float = 1.0, cfg_path=None, speed_rpm: float =
                    batched_ns_per_period=wall_b / max(n_b, 1) * 1e9,
                    batch_periods=int(cfg.get("batch_periods", 20)))
     return res
+
+
+@numba.njit(cache=True)
+def _dependent_chain(n, x):
+    # an add, then an xor of its result: each step waits for the last, two cycles a step on
+    # any out-of-order x86-64 / arm64 core whatever its width, so the time is the clock's
+    for i in range(n):
+        x = x ^ (x + i)
+    return x
+
+
+CLOCK_CHAIN_STEPS = 20_000_000     # ~7 ms at 3 GHz
+
+
+def host_summary(repeats: int = 7) -> dict:
+    """The machine the figures were taken on: CPU model, cores, whether it is a VM guest, and
+    its effective clock measured now (the best of ``repeats`` runs of a two-cycle dependency
+    chain). The inner-loop kernels are bound by their serial chains, so their figures scale
+    with this clock and the core's design: a figure compares across hosts only beside them."""
+    model = platform.processor() or platform.machine()
+    virtual = False
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                key = key.strip()
+                if key == "model name":
+                    model = value.strip()
+                elif key == "flags":
+                    virtual = "hypervisor" in value.split()
+    except OSError:
+        pass
+    _dependent_chain(10, 1)
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        _dependent_chain(CLOCK_CHAIN_STEPS, 1)
+        best = min(best, time.perf_counter() - t0)
+    return {"cpu": model, "cores": os.cpu_count() or 1, "virtual": virtual,
+            "clock_ghz": 2.0 * CLOCK_CHAIN_STEPS / best / 1e9}
 
 
 if __name__ == "__main__":   # pragma: no cover
