@@ -408,7 +408,11 @@ def test_spmsm_no_assist_from_an_empty_pack():
     assert ctrl.pack.holds > 1000 and ctrl.pack.active and ctrl.last_out.saturated
     ctrl.battery_soc = 0.2
     ctrl._apply_mode(200.0, 1e-3, None)
-    assert not ctrl.pack.active and ctrl.inner.cs[C_RELAY_REQ] == 0.0
+    assert not ctrl.pack.active
+    # the relay follows the assist once the running mean of the wanted torque says so (RelayPath)
+    for _ in range(50):
+        ctrl._apply_mode(200.0, 1e-3, None)
+    assert ctrl.inner.cs[C_RELAY_REQ] == 0.0
     # the isokinetic speed loop: its motoring is held inside the 1 ms law (test_spmsm_control)
     from bike_controller.spmsm_control import C_NO_ASSIST
     ctrl.set_command(0.5, MODE_ISOKINETIC)
@@ -419,3 +423,77 @@ def test_spmsm_no_assist_from_an_empty_pack():
     ctrl.battery_soc = 0.2
     ctrl._apply_mode(200.0, 1e-3, None)
     assert ctrl.inner.cs[C_NO_ASSIST] == 0.0 and not ctrl.pack.active
+
+
+def test_relay_path_follows_the_mean_torque_not_each_pedal_stroke():
+    """RelayPath (SPMSM, paper 001 Fig. 2): a braking torque whose sign flips within every
+    pedal stroke keeps the rectifier; a sustained assist moves to the inverter once, after
+    the hold; a forced path (the isokinetic speed loop) is taken at once."""
+    from bike_controller.spmsm_session import RelayPath
+    relay = RelayPath(hold_s=0.5, band_nm=0.1)
+    dt = 1e-3
+    stroke = [3.0 + 8.0 * math.sin(2.0 * math.pi * 3.0 * k * dt) for k in range(4000)]   # 3 strokes/s, 35 % < 0
+    assert sum(t < 0 for t in stroke) > 1000, "the stroke must change sign for the test to mean anything"
+    assert all(relay.choose(t, dt) for t in stroke) and relay.switches == 0
+    paths = [relay.choose(-4.0, dt) for _ in range(1000)]
+    assert paths[-1] is False and relay.switches == 1
+    assert all(paths[:200]), "switched before the running mean turned"
+    # at least hold_s on a path, even when the mean turns at once
+    relay.force(False)                       # as the isokinetic loop does: the mean starts afresh
+    assert relay.switches == 1
+    paths = [relay.choose(16.0, dt) for _ in range(600)]
+    assert not any(paths[:499]) and paths[-1] is True and relay.switches == 2
+    relay.force(False)
+    assert relay.choose(5.0, dt) is False and relay.switches == 3
+    # hold_s = 0: every batch follows the sign (the old behaviour)
+    relay = RelayPath(hold_s=0.0, band_nm=0.1)
+    flips = [relay.choose(t, dt) for t in stroke]
+    assert relay.switches > 20 and not all(flips)
+
+
+def _spmsm_ride(hold_s: float, erg_s: float = 4.0, climb_s: float = 3.0):
+    """The default SPMSM bike (rider, virtual bike): ERG 180 W, then a 4 % climb (the
+    all_modes profile's order), ModedSpmsmController and the plant in the batch exchange of
+    the nodes, no ROS. Returns, for the climb, (connected-path switch-overs, batches with the
+    relay forced open under current, sign changes of the law's torque, controller)."""
+    import pathlib
+
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import load_config
+
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+    cfg["controller"] = dict(cfg["controller"], relay_hold_s=hold_s)
+    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+    ctrl = ModedSpmsmController(cfg)
+    law = ctrl.law
+    ctrl.set_command(180.0 / law.erg_power_max_w, MODE_ERG)
+    paths, forced, signs = [], 0, []
+    n_erg = int(round(erg_s / 1e-3))
+    for k in range(n_erg + int(round(climb_s / 1e-3))):
+        if k == n_erg:
+            ctrl.set_command((0.04 - law.mp.grade_min) / (law.mp.grade_max - law.mp.grade_min), MODE_SLOPE)
+            paths, forced, signs = [], 0, []
+        snap = plant.snapshot()
+        snap.update(rotor_angle_mech_rad=float(plant.state[M.S_THETA_M]), batch_periods=ctrl.batch_periods)
+        duties, relay, buck, _ = ctrl.decide(snap)
+        res = plant.step_batch(duties, relay, buck)
+        forced += bool(res.faults & M.FAULT_RELAY_FORCED)
+        signs.append(ctrl.last_out.brake_torque_nm >= 0.0)
+        if plant.state[M.S_RELAY] in (M.REL_INVERTER, M.REL_RECTIFIER):
+            paths.append(int(plant.state[M.S_RELAY]))
+    changes = lambda xs: sum(a != b for a, b in zip(xs, xs[1:]))  # noqa: E731
+    return changes(paths), forced, changes(signs), ctrl
+
+
+def test_spmsm_climb_with_the_virtual_bike_does_not_chatter_the_relay():
+    """On a 4 % climb the virtual bike's torque changes sign within the pedal stroke (the
+    rider's mass carries the cranks through the dead spots). The relay stays on the braking
+    path, and the assists it cannot give are flagged. Following each batch's sign (hold 0),
+    the same ride switches the relay tens of times and opens it under current."""
+    switches, forced, flips, ctrl = _spmsm_ride(0.5)
+    assert flips > 20, f"the law's torque changed sign {flips} times: the ride does not test the relay"
+    assert switches <= 1 and forced == 0, (switches, forced)
+    assert ctrl.relay.rectifier is True and ctrl.last_out is not None
+    switches, forced, _, _ = _spmsm_ride(0.0)
+    assert switches > 20 and forced > 5, (switches, forced)

@@ -143,6 +143,9 @@ class SpmsmControllerParams:
     speed_ref0_rpm: float = 0.0
     brake_torque0_nm: float = 0.0
     model: str = "nominal"
+    # session modes: the relay switches path only once the other one has been wanted this long
+    # (spmsm_session.RelayPath; 0: follow the torque's sign every batch)
+    relay_hold_s: float = 0.5
 
     def validate(self) -> None:
         if self.family not in FAMILIES:
@@ -166,6 +169,8 @@ class SpmsmControllerParams:
         require_positive(self, "observer_pole_hz")
         if self.brake_torque0_nm < 0:
             raise ValueError("brake_torque0_nm must be >= 0")
+        if not (math.isfinite(self.relay_hold_s) and self.relay_hold_s >= 0.0):
+            raise ValueError(f"relay_hold_s must be a finite number >= 0, got {self.relay_hold_s!r}")
 
 
 def controller_params_from_config(cfg: dict) -> SpmsmControllerParams:
