@@ -344,9 +344,12 @@ class PlantNode(Node):
         self.last_faults = -1
         self.last_drive_level = 0
         self.last_diag_wall = 0.0
+        self.wall0 = time.monotonic()  # diagnostics give wall_s beside sim_time_s: the plant's own pace
         self.problem = ""            # why the last bad command was rejected
+        # overruns / overrun_dropped_s (realtime): resynchronisations after falling behind wall
+        # time, and the wall time they skipped (sim time lags wall time by exactly that)
         self.stats = {"stale_commands": 0, "bad_commands": 0, "republished": 0, "held_batches": 0,
-                      "timeout_batches": 0, "overruns": 0}
+                      "timeout_batches": 0, "overruns": 0, "overrun_dropped_s": 0.0}
         self.get_logger().info(
             f"plant: backend={self.backend.name} sync_mode={self.sync_mode} N={self.n} "
             f"T={self.dt:g}s duration={self.duration_s:g}s config={path}")
@@ -531,14 +534,15 @@ class PlantNode(Node):
         status.message = "; ".join(reasons) if reasons else "running"
         values = {
             "faults": str(faults), "fault_names": fault_text(faults), "seq": str(self.k),
-            "sim_time_s": f"{stamp * 1e-9:.6f}", "sync_mode": self.sync_mode,
+            "sim_time_s": f"{stamp * 1e-9:.6f}", "wall_s": f"{time.monotonic() - self.wall0:.6f}",
+            "sync_mode": self.sync_mode,
             "speed_rpm": f"{float(snap.get('speed_rpm', 0.0)):.1f}",
             "dc_bus_v": f"{float(snap.get('dc_bus_v', 0.0)):.2f}",
         }
         if self.sync_mode == "realtime":
             # the safe-state latency in sim time: the batch that went safe vs the last command
             values["last_drive_command_sim_s"] = f"{self.latest_rx_sim_s:.6f}"
-        values.update({k: str(v) for k, v in self.stats.items()})
+        values.update({k: f"{v:.6f}" if isinstance(v, float) else str(v) for k, v in self.stats.items()})
         values.update(drive_values)
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         arr = DiagnosticArray()
@@ -770,6 +774,7 @@ class PlantNode(Node):
                 continue
             if now - next_tick > max(20 * self.batch_s, 0.02):
                 self.stats["overruns"] += 1
+                self.stats["overrun_dropped_s"] += now - next_tick
                 next_tick = now              # fell far behind (suspend, GC): resynchronise
             next_tick += self.batch_s
             # take what DDS already holds before judging a timeout (the loop itself may have
