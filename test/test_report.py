@@ -493,7 +493,8 @@ def test_report_of_a_real_session(tmp_path):
     assert s["mean_cadence_rpm"] == pytest.approx(np.sum(0.5 * (ps["speed_rpm"][1:] + ps["speed_rpm"][:-1]) * dt)
                                                   / 2.0 / 35.0, rel=1e-9)
     assert s["machine"] == {"gear_ratio": 35.0, "tmax_nm": 2.941995, "base_speed_rpm": 3300.0, "pmax_w": 1016.68,
-                            "source": "session_info config_text"}
+                            "source": "session_info config_text", "kind": "bldc"}
+    assert s["relay_switch_overs"] == 0 and "relay switch-overs" not in REAL_RUNS["resistance"][1]
     assert s["time_in_mode_s"]["resistance"] == pytest.approx(2.0, abs=0.002)
     # resistance tracking against Eq. 3-4 computed here from the ControllerStatus commands
     status = read_topic(bag, "controller_status")

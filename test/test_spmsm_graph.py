@@ -1,6 +1,7 @@
 """The SPMSM bike (paper 001) in the node graph: `./bike run --config <spmsm config>` works
 exactly like the BLDC one (plant, controller, session, recorder processes over DDS), and a
 recorded session replays against the other controller family."""
+import json
 import pathlib
 
 import numpy as np
@@ -12,6 +13,7 @@ from conftest import bike_command
 from bike_msgs.msg import PlantState
 from bike_session.bags import read_topic
 from bike_session.replay import command_timeline
+from bike_session.report import main as report_main
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PROFILE = """
@@ -73,6 +75,15 @@ def test_spmsm_session_in_the_node_graph_and_replay_with_pi(tmp_path, ros_domain
     # through the diodes, so the relay opens under current after its drain timeout (reported)
     faults = [m.faults for m in states if m.faults]
     assert set(faults) <= {PlantState.FAULT_RELAY_FORCED} and len(faults) <= 5, faults
+    # the report counts the path changes as the decoded relay states say: the plant starts on the
+    # inverter, then rectifier (resistance, ERG) -> inverter (isokinetic) -> rectifier (climb) ->
+    # inverter (descent)
+    conn = [m.relay_state for m in states if m.relay_state in (PlantState.RELAY_INVERTER, PlantState.RELAY_RECTIFIER)]
+    changes = sum(a != b for a, b in zip(conn, conn[1:]))
+    assert report_main([str(bag), "--out", str(tmp_path / "report")]) == 0
+    summary = json.loads((tmp_path / "report" / "summary.json").read_text())
+    assert summary["relay_switch_overs"] == changes and 3 <= changes <= 4 and summary["machine"]["kind"] == "spmsm"
+    assert f"relay switch-overs:    {changes}" in res.stdout
 
     # the same Commands and rider against the PI family
     res = bike_command("replay", str(bag), "--config", str(_bike_config(tmp_path, "pi")),

@@ -15,6 +15,8 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
 - ``interlock_blanked``    last interlock_blanked_count (cumulative since plant start).
 - ``fault_batches``        number of PlantState messages with each FAULT_* bit set;
   ``timeouts`` = fault_batches['command_timeout'].
+- ``relay_switch_overs``   SPMSM: changes of relay_state between RELAY_INVERTER and
+  RELAY_RECTIFIER (the RELAY_SWITCHING interval between them skipped).
 - ``messages``             number of messages per topic.
 - ``can``                  plant backend ``can`` only: the CAN statistics of the plant's last
   diagnostic (frames received / sent, dropped by reason, drive lost / re-armed, setpoints,
@@ -189,6 +191,7 @@ def machine_from_info(info: dict | None) -> dict:
         m["gear_ratio"] = 35.0
     m["erg_power_max_w"] = m["erg_power_max_w"] or m["pmax_w"]
     m["source"] = "session_info config_text" if params else "defaults"
+    m["kind"] = str(params.get("machine", "bldc"))
     m["notes"] = notes
     return m
 
@@ -403,10 +406,10 @@ PLANT_SPEC = (
     ("battery_ocv_v", "value", NAN), ("battery_soc", "value", NAN), ("battery_current_a", "value", NAN),
     ("energy_mech_in_j", "value", NAN), ("energy_battery_j", "value", NAN), ("energy_resistor_j", "value", NAN),
     ("energy_loss_j", "value", NAN), ("faults", "value", 0), ("interlock_blanked_count", "value", 0),
-    ("phase_current_a", "absmax", 0.0), ("current_samples_a", "absmax", 0.0),
+    ("phase_current_a", "absmax", 0.0), ("current_samples_a", "absmax", 0.0), ("relay_state", "value", 0),
 )
 (P_SEC, P_NSEC, P_SEQ, P_EOR, P_RPM, P_W, P_TEM, P_TLOAD, P_VBUS, P_OCV, P_SOC, P_IBAT, P_EMECH, P_EBAT, P_ERES,
- P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP) = range(len(PLANT_SPEC))
+ P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP, P_RELAY) = range(len(PLANT_SPEC))
 STATUS_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
                ("command", "value", NAN), ("mode_target", "value", NAN), ("mode_saturated", "value", False))
 COMMAND_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
@@ -584,6 +587,8 @@ class _Analyser:
         self.e_brake = 0.0
         self.peak = -np.inf
         self.fault_counts = {k: 0 for k in FAULT_BITS}
+        self.relay_last = None          # last connected path (RELAY_INVERTER / RELAY_RECTIFIER)
+        self.relay_switch_overs = 0
         self.end_of_run = False
         self.n_intervals = 0
         self.scatter = {k: [] for k in ("rpm", "torque", "mode", "command")}
@@ -742,6 +747,14 @@ class _Analyser:
         faults = r[:, C + P_FAULTS].astype(np.int64)
         for name, bit in FAULT_BITS.items():
             self.fault_counts[name] += int(np.count_nonzero(faults & bit))
+        # SPMSM: path changes, the break-before-make interval (RELAY_SWITCHING) in between skipped
+        rel = r[:, C + P_RELAY]
+        conn = rel[(rel == 0) | (rel == 1)]
+        if len(conn):
+            if self.relay_last is not None:
+                conn = np.concatenate([[self.relay_last], conn])
+            self.relay_switch_overs += int(np.count_nonzero(conn[1:] != conn[:-1]))
+            self.relay_last = float(conn[-1])
         self.end_of_run |= bool(np.any(r[:, C + P_EOR]))
 
     def _intervals(self, q: np.ndarray, status: np.ndarray) -> None:
@@ -853,7 +866,8 @@ class _Analyser:
             "software_version": info.get("software_version"),
             "config_path": info.get("config_path"),
             "machine": {k: mc[k] for k in ("gear_ratio", "tmax_nm", "base_speed_rpm", "pmax_w")}
-            | {"source": mc["source"]},
+            | {"source": mc["source"], "kind": mc["kind"]},
+            "relay_switch_overs": None,
             "plant_state_duplicates": int(self.dups),
             "plant_state_conflicts": int(self.conflicts),
             "plant_state_out_of_order": int(self.out_of_order),
@@ -885,6 +899,7 @@ class _Analyser:
             out["peak_phase_current_a"] = float(self.peak)
             out["interlock_blanked"] = int(last[C + P_ILOCK])
             out["fault_batches"] = dict(self.fault_counts)
+            out["relay_switch_overs"] = int(self.relay_switch_overs)
             out["timeouts"] = self.fault_counts["command_timeout"]
             out["end_of_run"] = bool(self.end_of_run)
             out["final_soc"] = float(last[C + P_SOC])
@@ -1065,6 +1080,8 @@ def format_summary(summary: dict) -> str:
     faults = s.get("fault_batches") or {}
     active = {k: v for k, v in faults.items() if v}
     lines.append("fault batches:         " + (", ".join(f"{k} {v}" for k, v in active.items()) if active else "none"))
+    if (s.get("machine") or {}).get("kind") == "spmsm" or s.get("relay_switch_overs"):
+        lines.append(f"relay switch-overs:    {_fmt(s.get('relay_switch_overs'))}  (inverter <-> rectifier path)")
     can = s.get("can")
     if can:
         dropped = ", ".join(f"{k[len('dropped_'):]} {v}" for k, v in can.items() if k.startswith("dropped_"))
