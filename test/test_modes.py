@@ -497,3 +497,43 @@ def test_spmsm_climb_with_the_virtual_bike_does_not_chatter_the_relay():
     assert ctrl.relay.rectifier is True and ctrl.last_out is not None
     switches, forced, _, _ = _spmsm_ride(0.0)
     assert switches > 20 and forced > 5, (switches, forced)
+
+
+def test_spmsm_full_pack_brakes_through_the_dump_resistor(caplog, monkeypatch):
+    """A full pack (at the charger's dump threshold) cannot take the inverter path's braking
+    energy: that path has no dump. The isokinetic mode then brakes through the rectifier with
+    the mode law's PI, into the dump resistor, and says so once. Without the guard the same
+    ride charged the pack past full; the plant flags that (FAULT_PACK_OVERCHARGE)."""
+    import pathlib
+
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import load_config
+
+    def ride(guard: bool):
+        cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+        cfg["battery"] = dict(cfg["battery"], soc0=0.99, capacity_ah=0.01)
+        plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+        ctrl = ModedSpmsmController(cfg)
+        if not guard:
+            monkeypatch.setattr(ctrl, "_pack_full", lambda: False)
+        law = ctrl.law
+        # 50 rpm against a rider who wants 80: the speed loop brakes
+        ctrl.set_command((50.0 - law.mp.isokinetic_cadence_min_rpm)
+                         / (law.mp.isokinetic_cadence_max_rpm - law.mp.isokinetic_cadence_min_rpm), MODE_ISOKINETIC)
+        faults = 0
+        for _ in range(2000):
+            snap = plant.snapshot()
+            snap.update(rotor_angle_mech_rad=float(plant.state[M.S_THETA_M]), batch_periods=ctrl.batch_periods)
+            duties, relay, buck, _ = ctrl.decide(snap)
+            faults |= plant.step_batch(duties, relay, buck).faults
+        return plant, ctrl, faults
+
+    with caplog.at_level("WARNING", logger="bike_controller.spmsm_session"):
+        plant, ctrl, faults = ride(True)
+    led = plant.ledger()
+    assert plant.state[M.S_SOC] <= 0.99 + 1e-9 and led["energy_resistor_j"] > 50.0, (plant.state[M.S_SOC], led)
+    assert not faults & M.FAULT_PACK_OVERCHARGE and plant.state[M.S_RELAY] == M.REL_RECTIFIER
+    assert caplog.text.count("battery full") == 1
+    plant, ctrl, faults = ride(False)
+    assert plant.state[M.S_SOC] > 1.0 and faults & M.FAULT_PACK_OVERCHARGE

@@ -27,6 +27,7 @@ from it (:func:`model_state_from_snapshot`): currents, encoder, angle, speed, re
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 
 import numpy as np
@@ -38,6 +39,8 @@ from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, ModeLaw,
                     machine_figures, mode_params_from_config)
 from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status
 from .spmsm_control import SpmsmController, controller_params_from_config
+
+_log = logging.getLogger(__name__)
 
 
 def model_state_from_snapshot(p_nom: np.ndarray, snap: dict) -> np.ndarray:
@@ -153,6 +156,11 @@ class ModedSpmsmController(SessionCommand):
         self.relay = RelayPath(cp.relay_hold_s, self.clip_tolerance_nm)
         self.pack = EmptyPackGuard()
         self.battery_soc = None          # of the last PlantState: no assist from an empty pack
+        # a full pack (the charger's dump threshold): the inverter puts braking energy straight
+        # into the pack, so braking goes through the rectifier path, whose dump resistor takes it
+        self.full_soc = float(nominal.battery.dump_above_soc)
+        self.full_holds = 0              # batches whose braking the inverter path held at zero
+        self.full_active = False
         self.base_speed_rpm = base
         # a drive on CAN (measured_by_drive): torque setpoints only, see session_control
         self.drive_law = DriveTorqueLaw(self.law, self.trim, self.inner.batch_periods * nominal.control_period_s)
@@ -166,7 +174,8 @@ class ModedSpmsmController(SessionCommand):
         out = self.law.step(self.command, self.mode, speed_rpm, dt_s)
         self.last_out = out
         inner.set_no_assist(self.pack.empty(self.battery_soc))
-        if self.mode == MODE_ISOKINETIC and not out.ramping:
+        full = self._pack_full()
+        if self.mode == MODE_ISOKINETIC and not out.ramping and not full:
             self.trim.reset()
             # the speed loop may brake (charging) but not motor: held inside its 1 ms law
             self.pack.hold_while_empty(self.battery_soc, "the isokinetic speed loop's assist")
@@ -176,6 +185,8 @@ class ModedSpmsmController(SessionCommand):
             inner.set_speed_ref(target, target)
             self._torque_command(None)
             return
+        # (a full pack: the isokinetic mode brakes with the mode law's PI below, through the
+        # relay like the other modes, instead of the paper's speed loop on the inverter)
         # ERG and resistance are brake-only: a trim wound up on a bad torque reading must not
         # turn their brake into assist (clamped, counted and logged by the trim)
         torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s,
@@ -190,11 +201,25 @@ class ModedSpmsmController(SessionCommand):
             inner.set_brake_torque(torque)
             self._torque_command(None)
         else:
+            if full and torque > 0.0:
+                # until the relay's mean moves it to the rectifier: no braking into a full pack
+                clipped = torque > self.clip_tolerance_nm
+                torque = 0.0
+                self.full_holds += 1
             inner.set_relay(False)
             if not self._torque_command(torque):
                 inner.set_speed_ref(speed_rpm, speed_rpm)
         if (self.trim.clamped or self.pack.active or clipped) and not out.saturated:
             self.last_out = out = dataclasses.replace(out, saturated=True)
+
+    def _pack_full(self) -> bool:
+        soc = self.battery_soc
+        full = soc is not None and math.isfinite(soc) and soc >= self.full_soc
+        if full and not self.full_active:
+            _log.warning("battery full (state of charge %.4f >= %.4f): braking goes through the rectifier "
+                         "path and its dump resistor, not into the pack", soc, self.full_soc)
+        self.full_active = full
+        return full
 
     def _torque_command(self, brake_torque_nm: float | None) -> bool:
         """Assist through the current loops when the law has a torque input."""

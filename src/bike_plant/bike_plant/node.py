@@ -211,7 +211,8 @@ class SpmsmSimBackend:
         model_faults = int(snap.get("faults", 0))
         snap["faults"] = ((PlantState.FAULT_RELAY_FORCED if model_faults & M.FAULT_RELAY_FORCED else 0)
                           | (PlantState.FAULT_UNCONTROLLED_GENERATION if model_faults & M.FAULT_OVERSPEED_DIODES
-                             else 0))
+                             else 0)
+                          | (PlantState.FAULT_OVERVOLTAGE if model_faults & M.FAULT_PACK_OVERCHARGE else 0))
         s = self.plant.state
         snap["rotor_angle_mech_rad"] = float(s[M.S_THETA_M])
         snap["encoder_count"] = int(s[M.S_COUNT])
@@ -505,7 +506,8 @@ class PlantNode(Node):
         if faults & PlantState.FAULT_INTERLOCK:
             reasons.append("gate pattern with both switches of a leg on was blanked")
         if faults & PlantState.FAULT_OVERVOLTAGE:
-            reasons.append("DC bus over the configured limit")
+            reasons.append("DC bus over the configured limit" if snap.get("machine") != "spmsm" else
+                           "a full pack charged through the inverter (no dump on that path: a BMS would open)")
         if faults & PlantState.FAULT_OVERCURRENT:
             reasons.append(f"overcurrent trip: a phase current above bldc.overcurrent_trip_a, gates blanked for "
                            f"{int(snap.get('overcurrent_trip_count', 0))} periods in total (stale gate decisions?)")

@@ -580,6 +580,7 @@ S_SIZE = 48
 REL_INVERTER, REL_RECTIFIER, REL_DRAIN, REL_DEAD = 0, 1, 2, 3
 FAULT_RELAY_FORCED = 32      # relay opened under current after the drain timeout
 FAULT_OVERSPEED_DIODES = 64  # gates off but the inverter diodes conduct (uncontrolled generation)
+FAULT_PACK_OVERCHARGE = 128  # charge into a full pack (SOC > 1) through the inverter: its BMS would open
 
 # workspace (switching segments) layout
 W_NSEG = 0
@@ -1493,6 +1494,9 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
         else:
             state[S_E_RES] += e_bus
     state[S_SOC] += ibatt * p[P_SOC_PER_A]                        # (precomputed: no division per period)
+    if ibatt > 0.0 and state[S_SOC] > 1.0:
+        # the inverter path has no dump: the model books the charge, and says it cannot be
+        state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_PACK_OVERCHARGE
     state[S_IBATT] = ibatt
     state[S_VLINK] = vlink
     # mean applied dq voltage (telemetry): terminal power / current is not unique; report the
