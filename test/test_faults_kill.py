@@ -21,6 +21,7 @@ from __future__ import annotations
 import os
 import pathlib
 import random
+import re
 import signal
 import subprocess
 import sys
@@ -243,7 +244,8 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
                      others + [restarted])
         assert procs["plant"].wait(10) == 0, procs["plant"].output()
         if victim == "recorder":
-            assert "a recorder reports again" in procs["plant"].output()
+            plant_log = procs["plant"].output()
+            assert "a recorder reports again" in plant_log
             assert not states[-1].faults & PlantState.FAULT_RECORDER_LOST, "cleared once the new recorder reports"
         if victim == "session":
             col.wait_for(lambda: any(s.state == SessionStatus.STATE_DONE for s in col.data["session_status"]),
@@ -262,7 +264,14 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
         s1 = _dedupe_seqs(read_topic(first, "plant_state"))
         assert s1 == list(range(len(s1))) and s1[-1] >= seq_at_kill - round(1.0 / BATCH_S)
         s2 = _dedupe_seqs(read_topic(tmp_path / "run2", "plant_state"))
-        assert s2 and s2 == list(range(s2[0], s2[0] + len(s2))) and s2[-1] == seqs[-1]
+        # no holes from the new recorder's first progress report on: the plant waits for it
+        # from there. Before it, DDS can hand the new reader a state (a re-published copy)
+        # ahead of the writer's side of the match, and the states until the match completes
+        # miss it (seen on a slow host: 831, then 899 on)
+        reported = int(re.search(r"a recorder reports again \(written up to seq (\d+)", plant_log).group(1))
+        tail = [x for x in s2 if x >= reported]
+        assert s2 and reported in s2 and tail == list(range(reported, reported + len(tail))), (reported, s2[:20])
+        assert tail[-1] == seqs[-1]
     else:
         recorded = _dedupe_seqs(read_topic(tmp_path / "run", "plant_state"))
         assert recorded == seqs, "the recorder kept every batch across the restart"
