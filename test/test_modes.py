@@ -537,3 +537,31 @@ def test_spmsm_full_pack_brakes_through_the_dump_resistor(caplog, monkeypatch):
     assert caplog.text.count("battery full") == 1
     plant, ctrl, faults = ride(False)
     assert plant.state[M.S_SOC] > 1.0 and faults & M.FAULT_PACK_OVERCHARGE
+
+
+def test_spmsm_isokinetic_full_pack_fallback_continues_from_the_torque_in_force():
+    """While the paper's speed loop runs the isokinetic mode, the mode law's PI (the full-pack
+    fallback) is kept at the braking torque in force: when the pack fills mid-mode the
+    fallback continues from it (without that: 8.9 N m -> 16.5 N m, Tmax, in one batch)."""
+    import pathlib
+
+    from bike_controller.spmsm_control import C_IQ_REF
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import load_config
+
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+    ctrl = ModedSpmsmController(cfg)
+    law = ctrl.law
+    ctrl.set_command((50.0 - law.mp.isokinetic_cadence_min_rpm)
+                     / (law.mp.isokinetic_cadence_max_rpm - law.mp.isokinetic_cadence_min_rpm), MODE_ISOKINETIC)
+    for k in range(2001):
+        snap = plant.snapshot()
+        snap.update(rotor_angle_mech_rad=float(plant.state[M.S_THETA_M]), batch_periods=ctrl.batch_periods)
+        if k == 2000:
+            in_force = -ctrl.kt * ctrl.inner.cs[C_IQ_REF]
+            snap["battery_soc"] = 0.99                       # the pack is full from this batch on
+        plant.step_batch(*ctrl.decide(snap)[:3])
+    assert in_force > 2.0, "the speed loop must be braking for the test to mean anything"
+    assert ctrl.full_active and ctrl.last_out.brake_torque_nm == pytest.approx(in_force, abs=0.1 * law.tmax_nm)

@@ -38,7 +38,7 @@ from bike_plant.params import RPM_PER_RAD_S
 from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim,
                     machine_figures, mode_params_from_config)
 from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status
-from .spmsm_control import SpmsmController, controller_params_from_config
+from .spmsm_control import C_IQ_REF, SpmsmController, controller_params_from_config
 
 _log = logging.getLogger(__name__)
 
@@ -184,6 +184,10 @@ class ModedSpmsmController(SessionCommand):
             target = out.target * self.gear
             inner.set_speed_ref(target, target)
             self._torque_command(None)
+            # the mode law's isokinetic PI (the full-pack fallback below) is kept at the torque in
+            # force, so a switch to it continues from there (before: a step of 7.5 N m to Tmax)
+            in_force_nm = -self.kt * float(inner.cs[C_IQ_REF])
+            self.law.integral_nm = in_force_nm - self.law.kp * (speed_rpm - target) / RPM_PER_RAD_S
             return
         # (a full pack: the isokinetic mode brakes with the mode law's PI below, through the
         # relay like the other modes, instead of the paper's speed loop on the inverter)
