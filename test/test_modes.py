@@ -451,6 +451,15 @@ def test_relay_path_follows_the_mean_torque_not_each_pedal_stroke():
     assert relay.switches > 20 and not all(flips)
 
 
+def _spmsm_batch(plant, ctrl, **snapshot):
+    """One batch of the nodes' exchange, no ROS: the plant's snapshot (+ overrides, and the
+    batch size PlantState carries) -> the session law's answer -> the plant. Returns the batch."""
+    snap = plant.snapshot()
+    snap.update(batch_periods=ctrl.batch_periods, **snapshot)
+    duties, relay, buck, _ = ctrl.decide(snap)
+    return plant.step_batch(duties, relay, buck)
+
+
 def _spmsm_ride(hold_s: float, erg_s: float = 4.0, climb_s: float = 3.0):
     """The default SPMSM bike (rider, virtual bike): ERG 180 W, then a 4 % climb (the
     all_modes profile's order), ModedSpmsmController and the plant in the batch exchange of
@@ -474,10 +483,7 @@ def _spmsm_ride(hold_s: float, erg_s: float = 4.0, climb_s: float = 3.0):
         if k == n_erg:
             ctrl.set_command((0.04 - law.mp.grade_min) / (law.mp.grade_max - law.mp.grade_min), MODE_SLOPE)
             paths, forced, signs = [], 0, []
-        snap = plant.snapshot()
-        snap.update(rotor_angle_mech_rad=float(plant.state[M.S_THETA_M]), batch_periods=ctrl.batch_periods)
-        duties, relay, buck, _ = ctrl.decide(snap)
-        res = plant.step_batch(duties, relay, buck)
+        res = _spmsm_batch(plant, ctrl)
         forced += bool(res.faults & M.FAULT_RELAY_FORCED)
         signs.append(ctrl.last_out.brake_torque_nm >= 0.0)
         if plant.state[M.S_RELAY] in (M.REL_INVERTER, M.REL_RECTIFIER):
@@ -523,10 +529,7 @@ def test_spmsm_full_pack_brakes_through_the_dump_resistor(caplog, monkeypatch):
                          / (law.mp.isokinetic_cadence_max_rpm - law.mp.isokinetic_cadence_min_rpm), MODE_ISOKINETIC)
         faults = 0
         for _ in range(2000):
-            snap = plant.snapshot()
-            snap.update(rotor_angle_mech_rad=float(plant.state[M.S_THETA_M]), batch_periods=ctrl.batch_periods)
-            duties, relay, buck, _ = ctrl.decide(snap)
-            faults |= plant.step_batch(duties, relay, buck).faults
+            faults |= _spmsm_batch(plant, ctrl).faults
         return plant, ctrl, faults
 
     with caplog.at_level("WARNING", logger="bike_controller.spmsm_session"):
@@ -557,11 +560,10 @@ def test_spmsm_isokinetic_full_pack_fallback_continues_from_the_torque_in_force(
     ctrl.set_command((50.0 - law.mp.isokinetic_cadence_min_rpm)
                      / (law.mp.isokinetic_cadence_max_rpm - law.mp.isokinetic_cadence_min_rpm), MODE_ISOKINETIC)
     for k in range(2001):
-        snap = plant.snapshot()
-        snap.update(rotor_angle_mech_rad=float(plant.state[M.S_THETA_M]), batch_periods=ctrl.batch_periods)
         if k == 2000:
             in_force = -ctrl.kt * ctrl.inner.cs[C_IQ_REF]
-            snap["battery_soc"] = 0.99                       # the pack is full from this batch on
-        plant.step_batch(*ctrl.decide(snap)[:3])
+            _spmsm_batch(plant, ctrl, battery_soc=0.99)      # the pack is full from this batch on
+        else:
+            _spmsm_batch(plant, ctrl)
     assert in_force > 2.0, "the speed loop must be braking for the test to mean anything"
     assert ctrl.full_active and ctrl.last_out.brake_torque_nm == pytest.approx(in_force, abs=0.1 * law.tmax_nm)

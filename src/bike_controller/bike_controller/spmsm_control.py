@@ -143,8 +143,8 @@ class SpmsmControllerParams:
     speed_ref0_rpm: float = 0.0
     brake_torque0_nm: float = 0.0
     model: str = "nominal"
-    # session modes: the relay switches path only once the other one has been wanted this long
-    # (spmsm_session.RelayPath; 0: follow the torque's sign every batch)
+    # session modes: time constant of the torque's running mean whose sign picks the relay path,
+    # and the least time on a path (spmsm_session.RelayPath; 0: follow every batch's sign)
     relay_hold_s: float = 0.5
 
     def validate(self) -> None:

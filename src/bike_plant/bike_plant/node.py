@@ -213,10 +213,6 @@ class SpmsmSimBackend:
                           | (PlantState.FAULT_UNCONTROLLED_GENERATION if model_faults & M.FAULT_OVERSPEED_DIODES
                              else 0)
                           | (PlantState.FAULT_OVERVOLTAGE if model_faults & M.FAULT_PACK_OVERCHARGE else 0))
-        s = self.plant.state
-        snap["rotor_angle_mech_rad"] = float(s[M.S_THETA_M])
-        snap["encoder_count"] = int(s[M.S_COUNT])
-        snap["encoder_edge_ticks"] = int(s[M.S_EDGE_TICKS])
         return snap
 
     def problem(self, msg, n: int) -> str | None:

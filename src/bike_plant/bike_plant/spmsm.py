@@ -1753,6 +1753,8 @@ class SpmsmPlant:
             "backend": "sim",
             "phase_current_a": [float(s[S_IA]), float(s[S_IB]), float(s[S_IC])],
             "rotor_angle_elec_rad": float((self.p[P_PP] * s[S_THETA_M]) % TWO_PI),
+            # the controller rebuilds its model's angle from it (spmsm_session.model_state_from_snapshot)
+            "rotor_angle_mech_rad": float(s[S_THETA_M]),
             "speed_rad_s": float(s[S_OMEGA]),
             "speed_rpm": float(s[S_OMEGA] * RPM_PER_RAD_S),
             "encoder_count": int(s[S_COUNT]),

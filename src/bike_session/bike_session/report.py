@@ -57,6 +57,8 @@ import numpy as np
 
 from bike_session.bags import BagError, open_bag
 
+# PlantState.RELAY_INVERTER, RELAY_RECTIFIER: the connected paths (RELAY_SWITCHING = 2 between them)
+RELAY_PATHS = (0, 1)
 FAULT_BITS = {
     "interlock": 1,
     "command_timeout": 2,
@@ -749,7 +751,7 @@ class _Analyser:
             self.fault_counts[name] += int(np.count_nonzero(faults & bit))
         # SPMSM: path changes, the break-before-make interval (RELAY_SWITCHING) in between skipped
         rel = r[:, C + P_RELAY]
-        conn = rel[(rel == 0) | (rel == 1)]
+        conn = rel[np.isin(rel, RELAY_PATHS)]
         if len(conn):
             if self.relay_last is not None:
                 conn = np.concatenate([[self.relay_last], conn])
