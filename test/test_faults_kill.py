@@ -246,7 +246,9 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
         if victim == "recorder":
             plant_log = procs["plant"].output()
             assert "a recorder reports again" in plant_log
-            assert not states[-1].faults & PlantState.FAULT_RECORDER_LOST, "cleared once the new recorder reports"
+            assert not states[-1].faults & PlantState.FAULT_RECORDER_LOST, \
+                f"cleared once the new recorder reports; plant log:\n{plant_log[-3000:]}\nnew recorder:\n" \
+                f"{restarted.output()[-2000:]}"
         if victim == "session":
             col.wait_for(lambda: any(s.state == SessionStatus.STATE_DONE for s in col.data["session_status"]),
                          10, "the restarted session's DONE", [restarted])

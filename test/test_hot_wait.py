@@ -126,3 +126,31 @@ def test_busy_wait_takes_a_message_that_comes_while_polling_then_blocks(node):
     assert cpu < 0.2, f"{cpu:.3f} s of CPU in 0.3 s: polled past busy_s instead of blocking"
     assert cpu >= 0.01, f"{cpu:.3f} s of CPU: no polling at all (each poll yields, so a loaded core gives less)"
     executor.shutdown()
+
+
+def test_replaced_subscription_is_waited_on_and_counted(node):
+    """A node that re-creates a subscription (the recorder's QoS downgrade) swaps it in: the
+    new one's messages end the wait and count, the destroyed one is never touched again."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import UInt64
+
+    pub, got, executor, hot = _matched_hot_topic(node, aux_period_s=60.0)   # the direct path only
+    old = hot.subs[0]
+    got2 = []
+    new = node.create_subscription(UInt64, "hot", lambda m: got2.append(m.data),
+                                   QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    hot.replace(old, new)
+    node.destroy_subscription(old)
+    deadline = time.monotonic() + 5.0
+    while new.handle.get_publisher_count() < 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    handled = 0
+    for k in range(10):
+        pub.publish(UInt64(data=k))
+        handled += hot.spin(2.0)
+    deadline = time.monotonic() + 2.0
+    while len(got2) < 10 and time.monotonic() < deadline:
+        handled += hot.spin(0.1)
+    assert got2 == list(range(10)) and handled == 10
+    assert hot.subs == [new]
+    executor.shutdown()

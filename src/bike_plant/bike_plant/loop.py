@@ -95,6 +95,12 @@ class HotWait:
         self.aux_period_s = aux_period_s
         self.next_aux = 0.0
 
+    def replace(self, old, new) -> None:
+        """Wait on subscription ``new`` in place of ``old`` (a node that re-creates one, e.g.
+        with another QoS)."""
+        new.callback = self._counted(new.callback)
+        self.subs[self.subs.index(old)] = new
+
     def _counted(self, callback):
         def counted(msg):
             self.hot_callbacks += 1
