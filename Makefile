@@ -8,8 +8,9 @@ setup:
 demo: setup
 	./bike run --record runs
 
+# --durations: the slowest tests in every log (the suite's aim is under 15 minutes on 2 cores)
 test: setup
-	source tools/env.sh && python -m pytest -q
+	source tools/env.sh && python -m pytest -q --durations=30
 
 # only the reliability suite's process-level fault tests (kill -9, message loss / delay; part
 # of `make test` too)
