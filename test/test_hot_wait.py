@@ -154,3 +154,33 @@ def test_replaced_subscription_is_waited_on_and_counted(node):
     assert got2 == list(range(10)) and handled == 10
     assert hot.subs == [new]
     executor.shutdown()
+
+
+def test_busy_wait_guard_names_an_observer_once_discovery_names_it():
+    """The graph can list a reader before its node's name arrives (seen in CI: the plant logged
+    `_NODE_NAMESPACE_UNKNOWN_/_NODE_NAME_UNKNOWN_ read(s) ...` and never named the observer).
+    It counts as an observer at once, and the line comes again when the name is known; the
+    partner and the recorder never count. A stand-in node: the guard's logic, not DDS."""
+    from types import SimpleNamespace as NS
+
+    from bike_plant.loop import UNNAMED_READER, BusyWaitGuard
+
+    readers = {"/bike/plant_state": [NS(node_name="controller", node_namespace="/bike")]}
+    writers = {"/bike/drive_command": [NS(node_name="controller", node_namespace="/bike")],
+               "/bike/recorder_progress": [NS(node_name="recorder", node_namespace="/bike")]}
+    lines = []
+    node = NS(resolve_topic_name=lambda t: "/bike/" + t,
+              get_publishers_info_by_topic=lambda t: writers.get(t, []),
+              get_subscriptions_info_by_topic=lambda t: readers.get(t, []),
+              get_logger=lambda: NS(info=lines.append))
+    guard = BusyWaitGuard(node, [NS(topic_name="/bike/plant_state")], "drive_command", 0.001, check_s=0.0)
+    assert guard.busy_s() == 0.001 and lines == []
+    readers["/bike/plant_state"].append(NS(node_name="recorder", node_namespace="/bike"))
+    assert guard.busy_s() == 0.001 and lines == [], "the recorder is waited for, not an observer"
+    readers["/bike/plant_state"].append(NS(node_name="_NODE_NAME_UNKNOWN_", node_namespace="_NODE_NAMESPACE_UNKNOWN_"))
+    assert guard.busy_s() == 0.0 and len(lines) == 1 and lines[0].startswith(UNNAMED_READER)
+    readers["/bike/plant_state"][-1] = NS(node_name="loop_observer", node_namespace="/bike")
+    assert guard.busy_s() == 0.0 and len(lines) == 2 and lines[1].startswith("/bike/loop_observer read(s)")
+    assert guard.busy_s() == 0.0 and len(lines) == 2, "logged once per change"
+    readers["/bike/plant_state"].pop()
+    assert guard.busy_s() == 0.001 and "polls again" in lines[2]

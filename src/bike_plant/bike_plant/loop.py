@@ -153,6 +153,9 @@ class HotWait:
         return handled
 
 
+UNNAMED_READER = "a reader whose node is not discovered yet"
+
+
 class BusyWaitGuard:
     """The lockstep busy wait of one loop node, held while an observer reads its loop topics.
 
@@ -163,8 +166,9 @@ class BusyWaitGuard:
     the readers of ``publishers``' topics: a reader in a node other than the partner (a
     publisher of ``partner_topic``, the topic this node waits on) and the recorder (the
     publisher of ``recorder_progress``) is an observer, and while one is there :meth:`busy_s`
-    is 0 (the node blocks at once). A line is logged when polling stops and when it resumes.
-    A graph query costs ~0.1 ms, once per ``check_s``, never per batch."""
+    is 0 (the node blocks at once). A line is logged when polling stops or the observers
+    change, and when it resumes. A graph query costs ~0.1 ms, once per ``check_s``, never
+    per batch."""
 
     def __init__(self, node, publishers, partner_topic: str, busy_s: float, check_s: float = 1.0):
         self.node = node
@@ -182,7 +186,10 @@ class BusyWaitGuard:
         for pub in self.publishers:
             for i in self.node.get_subscriptions_info_by_topic(pub.topic_name):
                 if (i.node_name, i.node_namespace) not in expected:
-                    found.add(f"{i.node_namespace.rstrip('/')}/{i.node_name}")
+                    # the graph can list a reader before its node's name arrives: it counts (it
+                    # may be an observer), and the log line comes again once it is named
+                    found.add(UNNAMED_READER if i.node_name == "_NODE_NAME_UNKNOWN_"
+                              else f"{i.node_namespace.rstrip('/')}/{i.node_name}")
         return sorted(found)
 
     def busy_s(self) -> float:
@@ -196,7 +203,7 @@ class BusyWaitGuard:
                 observers = self._find_observers()
             except Exception:        # the context is shutting down: keep the last answer
                 observers = self.observers
-            if observers and not self.observers:
+            if observers and observers != self.observers:
                 topics = ", ".join(p.topic_name for p in self.publishers)
                 self.node.get_logger().info(
                     f"{', '.join(observers)} read(s) {topics}: lockstep blocks instead of polling while "
