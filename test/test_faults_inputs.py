@@ -377,3 +377,34 @@ def test_discovery_is_limited_to_localhost_unless_configured():
         assert "ROS_AUTOMATIC_DISCOVERY_RANGE" not in (getattr(spec, "env", {}) or {})
     cli = (ROOT / "src" / "bike_session" / "bike_session" / "cli.py").read_text()
     assert not re.search(r"environ\[[\"']ROS_AUTOMATIC_DISCOVERY_RANGE", cli)
+
+
+def test_fast_dds_profile_is_selected_and_parses():
+    """tools/env.sh points Fast DDS at config/fastdds.xml unless the user chose a profiles file:
+    reliable writers ask for acknowledgments every 100 ms (Fast DDS's default, 3 s, held the
+    plant's exit for its end_of_run acknowledgment up to 3 s). Fast DDS reads the file when
+    a participant is made and ignores a malformed one with an XMLPARSER error line only, so
+    the test also makes a node with it and checks that nothing was refused."""
+    import xml.etree.ElementTree as ET
+
+    probe = "echo PROFILES=$FASTRTPS_DEFAULT_PROFILES_FILE"
+    env = {k: v for k, v in os.environ.items() if k != "FASTRTPS_DEFAULT_PROFILES_FILE"}
+    out = subprocess.run(["bash", "-c", f"source {ROOT}/tools/env.sh && {probe}"], env=env, capture_output=True,
+                         text=True, timeout=60).stdout
+    path = pathlib.Path(out.split("PROFILES=")[1].strip())
+    assert path == ROOT / "config" / "fastdds.xml"
+    out = subprocess.run(["bash", "-c", f"source {ROOT}/tools/env.sh && {probe}"],
+                         env=dict(env, FASTRTPS_DEFAULT_PROFILES_FILE="/x.xml"), capture_output=True, text=True,
+                         timeout=60).stdout
+    assert "PROFILES=/x.xml" in out, "a profiles file of the user's is respected"
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    writer = ET.parse(path).getroot().find("f:data_writer", ns)
+    assert writer.get("is_default_profile") == "true"
+    hb = writer.find("f:times/f:heartbeatPeriod", ns)
+    assert int(hb.find("f:sec", ns).text) == 0 and int(hb.find("f:nanosec", ns).text) == 100_000_000
+    code = ("import rclpy; rclpy.init(); n = rclpy.create_node('xml_probe'); "
+            "from std_msgs.msg import UInt64; n.create_publisher(UInt64, 'probe', 10); n.destroy_node(); "
+            "rclpy.shutdown(); print('made')")
+    res = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(path)),
+                         capture_output=True, text=True, timeout=60)
+    assert "made" in res.stdout and "XML" not in res.stdout + res.stderr, res.stdout + res.stderr

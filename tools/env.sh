@@ -9,5 +9,7 @@ source "$_bike_venv/bin/activate"
 source "$_bike_root/install/setup.bash"
 # Security default: DDS discovery stays on this host unless the user configures otherwise.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+# Fast DDS: reliable writers ask for acknowledgments every 100 ms, not every 3 s (config/fastdds.xml)
+export FASTRTPS_DEFAULT_PROFILES_FILE=${FASTRTPS_DEFAULT_PROFILES_FILE:-$_bike_root/config/fastdds.xml}
 export BIKE_ROOT="$_bike_root"
 export MPLBACKEND=${MPLBACKEND:-Agg}

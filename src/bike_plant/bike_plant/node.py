@@ -601,8 +601,9 @@ class PlantNode(Node):
             close()
         end = time.monotonic() + self.end_linger_s
         # a reliable reader (recorder, fleet monitor) that lost a datagram of the last states
-        # learns of it only from the writer's next heartbeat (Fast DDS: every 3 s), after a
-        # 0.5 s linger would have closed the writer: wait for its acknowledgment, up to
+        # learns of it only from the writer's next heartbeat (Fast DDS: every 3 s by default,
+        # 100 ms with config/fastdds.xml, which tools/env.sh selects), possibly after a 0.5 s
+        # linger would have closed the writer: wait for its acknowledgment, up to
         # END_ACK_TIMEOUT_S, spinning in between (a Ctrl-C still ends it)
         acked_by = time.monotonic() + max(self.end_linger_s, END_ACK_TIMEOUT_S)
         while not self.stop_requested and time.monotonic() < acked_by:
