@@ -22,6 +22,13 @@ def node(ros_domain):
     rclpy.shutdown(context=ctx)
 
 
+def _wait_matched(sub, timeout_s: float = 5.0) -> None:
+    """Until ``sub`` has matched a publisher (at most ``timeout_s``)."""
+    deadline = time.monotonic() + timeout_s
+    while sub.handle.get_publisher_count() < 1 and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
 def test_hot_wait_delivers_every_message_in_order_and_serves_the_rest(node):
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -40,9 +47,7 @@ def test_hot_wait_delivers_every_message_in_order_and_serves_the_rest(node):
 
     t0 = time.monotonic()
     assert hot.spin(0.2) == 0 and time.monotonic() - t0 >= 0.15, "nothing published: waits, then 0"
-    deadline = time.monotonic() + 5.0
-    while sub.handle.get_publisher_count() < 1 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    _wait_matched(sub)
     handled = 0
     for k in range(200):
         pub.publish(UInt64(data=k))
@@ -80,9 +85,7 @@ def _matched_hot_topic(node, aux_period_s):
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
     hot = HotWait(executor, [sub], node.context, aux_period_s=aux_period_s)
-    deadline = time.monotonic() + 5.0
-    while sub.handle.get_publisher_count() < 1 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    _wait_matched(sub)
     return pub, got, executor, hot
 
 
@@ -141,9 +144,7 @@ def test_replaced_subscription_is_waited_on_and_counted(node):
                                    QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     hot.replace(old, new)
     node.destroy_subscription(old)
-    deadline = time.monotonic() + 5.0
-    while new.handle.get_publisher_count() < 1 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    _wait_matched(new)
     handled = 0
     for k in range(10):
         pub.publish(UInt64(data=k))
