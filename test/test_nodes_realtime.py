@@ -120,6 +120,9 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         col.wait_for(lambda: faulted(), 5, "the ERROR diagnostic of the faulted batch", [plant])
         diag_ns, diag = faulted()[0]
         assert "no DriveCommand" in diag.message
+        # where this process has the state of that batch, it is the faulted one
+        assert all(m.faults & PlantState.FAULT_COMMAND_TIMEOUT for m in states[k_kill:]
+                   if stamp_ns(m.header.stamp) == diag_ns)
         # safe within 2 batches of command_timeout_s, in sim time measured by the plant: from the
         # batch in which the last DriveCommand arrived to the start of the first safe batch
         last_cmd_s = float({kv.key: kv.value for kv in diag.values}["last_drive_command_sim_s"])

@@ -543,6 +543,7 @@ def main(args=None) -> int:
             except Exception as exc:  # noqa: BLE001
                 print(f"recorder_node: error closing bag: {exc}", file=sys.stderr, flush=True)
                 rc = 1
+            node.executor_.remove_node(node)
             node.destroy_node()
         rclpy.try_shutdown()
     return rc
