@@ -168,7 +168,8 @@ def test_an_interrupted_node_import_ends_with_exit_130_and_no_traceback(tmp_path
 
 def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path):
     """Ctrl-C on `./bike run` once every node runs its main(): each stops on its own SIGINT
-    path, the run ends at once with code 0 and no node prints a traceback."""
+    path, the run ends at once with code 130 (interrupted, not finished), says so, and no
+    node prints a traceback."""
     import os
     import pathlib
     import random
@@ -177,7 +178,8 @@ def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path
     root = pathlib.Path(__file__).resolve().parents[1]
     out = tmp_path / "run.log"
     with open(out, "w") as fh:
-        proc = subprocess.Popen([str(root / "bike"), "run", "--duration", "60"], stdout=fh, stderr=subprocess.STDOUT,
+        proc = subprocess.Popen([str(root / "bike"), "run", "--duration", "60", "--record", str(tmp_path / "rec")],
+                                stdout=fh, stderr=subprocess.STDOUT,
                                 env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
         try:
             end = time.monotonic() + 60
@@ -193,4 +195,10 @@ def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path
     text = out.read_text()
     assert all(tag in text for tag in started), text[-3000:]
     assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]
-    assert code == 0, text[-3000:]
+    assert code == 130, text[-3000:]
+    assert "[launcher] interrupted by SIGINT: every node was stopped" in text, text[-3000:]
+    assert "exited with code" not in text and "was killed by" not in text, text[-3000:]
+    # the recording up to the stop is closed and summarised
+    bags = [b for b in (tmp_path / "rec").iterdir() if b.is_dir()]
+    assert len(bags) == 1 and (bags[0] / "metadata.yaml").exists(), text[-3000:]
+    assert f"[bike] bag written: {bags[0]}" in text and "mean braking power" in text.lower(), text[-3000:]

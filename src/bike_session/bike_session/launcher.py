@@ -252,6 +252,7 @@ class Launcher:
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
         self._lock = threading.Lock()
+        self.stopped_by_signal: int | None = None   # request_stop() from a signal handler: which one
 
     def start(self) -> None:
         commands = [spec.command() for spec in self.nodes]     # every program found before any starts
@@ -270,7 +271,9 @@ class Launcher:
                 self.stdout.write(f"[{name}] {line}" if self.prefix_output else line)
                 self.stdout.flush()
 
-    def request_stop(self, *_args) -> None:
+    def request_stop(self, signum: int | None = None, _frame=None) -> None:
+        if signum is not None and self.stopped_by_signal is None:
+            self.stopped_by_signal = int(signum)
         self._stop.set()
 
     def wait(self, timeout_s: float | None = None) -> dict[str, int]:
@@ -330,7 +333,9 @@ def failed_nodes(launcher: Launcher, codes: dict[str, int]) -> dict[str, int]:
 
 
 def run(launch_file: str, args: dict[str, str] | None = None, timeout_s: float | None = None) -> int:
-    """Launch, supervise and stop the graph; returns 0 when every node ended cleanly."""
+    """Launch, supervise and stop the graph; returns 0 when every node ended cleanly, 1 when
+    one failed, and 128 + the signal's number when the user stopped the run (Ctrl-C: 130,
+    SIGTERM: 143; a shell or CI job must not take an interrupted session for a finished one)."""
     launcher = Launcher(parse_launch(launch_file, args))
     previous = {sig: signal.signal(sig, launcher.request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -350,4 +355,10 @@ def run(launch_file: str, args: dict[str, str] | None = None, timeout_s: float |
                   file=sys.stderr)
         else:
             print(f"[launcher] node '{name}' exited with code {code}", file=sys.stderr)
-    return 1 if bad else 0
+    if bad:
+        return 1
+    if launcher.stopped_by_signal is not None:
+        print(f"[launcher] interrupted by {signal.Signals(launcher.stopped_by_signal).name}: every node was "
+              f"stopped", file=sys.stderr)
+        return 128 + launcher.stopped_by_signal
+    return 0
