@@ -49,11 +49,13 @@ from bike_plant import msgconv
 from bike_plant.config import ConfigError, number_param
 from bike_plant.loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                              recorder_reads)
-from bike_plant.node import run_loop_node
+from bike_plant.node import run_loop_node, warm_up_kernels
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+
+from .modes import MODE_NAMES
 
 CONTROLLER_DEFAULTS = {
     "sync_mode": "lockstep",
@@ -108,6 +110,8 @@ class ControllerNode(Node):
         except ValueError as exc:
             raise ConfigError(str(exc), path) from None
         self.n = self.ctrl.batch_periods
+        # before the node joins the graph (see the plant's warm-up)
+        warm_up_kernels(self.get_logger(), lambda: warm_up_law(self._make_law, cfg, self.machine, self.n))
         # Time comes from PlantState stamps; following /clock would only add a callback per batch.
         self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
 
@@ -346,6 +350,35 @@ def _positive(value, key, path) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise ConfigError(f"must be a number > 0, got {value!r}", path, key)
     return float(value)
+
+
+def warm_up_law(make_law, cfg: dict, machine: str, n: int, batches: int = 5) -> None:
+    """Close the loop for a few batches in every mode, throw-away laws on a throw-away
+    simulated plant, through the node's own paths (PlantState and DriveCommand as CDR
+    views, ControllerStatus encoded), so numba compiles or loads the law's kernels before
+    the node joins the graph. A compile inside the run held a lockstep run for tens of
+    seconds; in realtime it would time the plant out at a mode's first use (or its first
+    Hall edge: the config's rider starts pedalling, so edges come in the first batches)."""
+    from bike_plant.node import make_backend
+
+    build = msgconv.spmsm_drive_cdr if machine == "spmsm" else msgconv.drive_command_cdr
+    for mode in sorted(MODE_NAMES):
+        law = make_law()
+        try:
+            law.set_command(0.5, mode)
+        except ValueError:
+            continue                                  # a mode this machine's law does not take
+        plant = make_backend("sim", cfg, 0)
+        for k in range(batches):
+            snap = plant.snapshot()
+            snap.update(seq=k, batch_periods=n, backend="sim", measured_by_drive=False, end_of_run=False)
+            stamp = msgconv.seconds_to_ns(plant.time_s)
+            view = msgconv.PlantStateView(msgconv.plant_state_cdr(snap, stamp))
+            a, b, c, status = law.decide(dict(view.snap, stamp_ns=stamp), n)
+            raw = build(k, a, b, c, stamp, float(status.get("torque_cmd_nm", 0.0)),
+                        float(status.get("current_cmd_a", 0.0)))
+            msgconv.controller_status_cdr(dict(status, seq=k, command_rejected=False), stamp)
+            plant.apply(msgconv.DriveCommandView(raw))
 
 
 def main(args=None) -> int:

@@ -177,6 +177,22 @@ class SimBackend:
     def safe_batch(self, n: int) -> None:
         self.plant.step_batch(*self.plant.safe_gates(n))
 
+    def warm_up(self, n: int) -> None:
+        """Run the node's per-batch path once (a zero DriveCommand through the CDR view, the
+        check, a batch; the safe batch) on a copy of the plant, so numba compiles or loads
+        its kernels now and not inside the run."""
+        import copy
+
+        import numpy as np
+        twin = copy.copy(self)
+        twin.plant = copy.deepcopy(self.plant)
+        view = msgconv.DriveCommandView(msgconv.drive_command_cdr(
+            0, np.zeros(n, np.uint8), np.zeros(n, np.uint8), np.zeros(n, np.float32), 0))
+        if twin.problem(view, n) is None:
+            twin.apply(view)
+        twin.safe_batch(n)
+        twin.snapshot()
+
     def set_safe(self, on: bool) -> None:
         if on:
             self.plant.set_safe_state()
@@ -232,6 +248,20 @@ class SpmsmSimBackend:
                 self.plant.clear_safe_state()
 
     _safe = False
+
+    def warm_up(self, n: int) -> None:
+        """SimBackend.warm_up for the SPMSM plant (duties 0.5, relay on the inverter)."""
+        import copy
+
+        import numpy as np
+        twin = copy.copy(self)
+        twin.plant = copy.deepcopy(self.plant)
+        view = msgconv.DriveCommandView(msgconv.spmsm_drive_cdr(
+            0, np.full((n, 3), 0.5, np.float32), np.zeros(n, np.float32), np.ones(n, np.float32), 0))
+        if twin.problem(view, n) is None:
+            twin.apply(view)
+        twin.safe_batch(n)
+        twin.snapshot()
 
     def set_safe(self, on: bool) -> None:
         self._safe = bool(on)
@@ -301,6 +331,10 @@ class PlantNode(Node):
         self.recorder_timeout_s = _number(cfg, "recorder_timeout_s", float, 0.1, path)
         self.start_timeout_s = _number(cfg, "start_timeout_s", float, 0.0, path)
         self.backend = make_backend(str(cfg.get("backend")), cfg, _number(cfg, "seed", int, 0, path))
+        if hasattr(self.backend, "warm_up"):
+            # before the node joins the graph: a compile inside the run held its first batches
+            # for ~30 s and made the controller report a stopped plant
+            warm_up_kernels(self.get_logger(), lambda: self.backend.warm_up(self.n))
         # The plant is the clock source: it does not follow /clock itself (that would also
         # cost one extra callback per batch). Its stamps are the model's time.
         self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
@@ -831,6 +865,32 @@ def install_signal_handlers(node) -> None:
         node.stop_requested = True
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+
+
+# a warm-up longer than this was a compile, not a load from numba's cache
+COMPILED_AFTER_S = 5.0
+
+
+def warm_up_kernels(logger, warm_up) -> float:
+    """Run ``warm_up`` (a node's per-batch path on throw-away data) and log how long numba
+    took: the first run after installing or editing a kernel compiles for tens of seconds,
+    later runs load the cache in about a second. Returns the seconds."""
+    import threading
+
+    # said only when it is slow: a load from the cache takes a fraction of a second
+    slow = threading.Timer(2.0, lambda: logger.info(
+        "compiling the numba kernels (the first run after an install or a kernel edit: up to a minute; "
+        "cached for the next runs)"))
+    slow.daemon = True
+    t0 = time.perf_counter()
+    slow.start()
+    try:
+        warm_up()
+    finally:
+        slow.cancel()
+    took_s = time.perf_counter() - t0
+    logger.info(f"numba kernels ready in {took_s:.1f} s" + (" (compiled)" if took_s > COMPILED_AFTER_S else ""))
+    return took_s
 
 
 def run_loop_node(node_factory, label: str, args=None) -> int:

@@ -1,0 +1,134 @@
+"""The loop nodes compile (or load) their numba kernels before they join the graph.
+
+Before, the plant compiled its batch kernel after publishing seq 0 and the controller its law
+at its first PlantState: on a fresh install the demo's first batch waited ~37 s and the
+controller reported a stopped plant. Here: after the warm-up, the node's real per-batch path
+(a DriveCommand through the CDR view into the plant; a PlantState of a running plant into the
+law, in every mode) finds every signature compiled: no dispatcher gains one."""
+from __future__ import annotations
+
+import copy
+import pathlib
+import sys
+
+import numpy as np
+import pytest
+from numba.core.registry import CPUDispatcher
+
+from bike_plant import msgconv
+from bike_plant.config import load_config
+from bike_plant.node import make_backend, warm_up_kernels
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _signatures() -> dict:
+    """{dispatcher name: number of compiled signatures} over the project's loaded modules."""
+    out = {}
+    for name, mod in list(sys.modules.items()):
+        if name.split(".")[0] in ("bike_plant", "bike_controller", "bike_session"):
+            for attr, obj in list(vars(mod).items()):
+                if isinstance(obj, CPUDispatcher):
+                    out[f"{name}.{attr}"] = len(obj.signatures)
+    return out
+
+
+def _grown(before: dict) -> dict:
+    after = _signatures()
+    return {k: (before.get(k, 0), v) for k, v in after.items() if v > before.get(k, 0)}
+
+
+def _in_fresh_process(check: str, config: str) -> None:
+    """Run ``check(config)`` of this module in a new interpreter: in the test session other
+    tests have compiled (loaded) most signatures already, and a gap would go unseen."""
+    import subprocess
+    code = f"import sys; sys.path.insert(0, {str(ROOT / 'test')!r}); import test_warm_up as t; t.{check}({config!r})"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-4000:]
+
+
+@pytest.mark.parametrize("config", ["bldc_default.yaml", "spmsm_default.yaml"])
+def test_plant_warm_up_covers_the_batch_path(config):
+    _in_fresh_process("check_plant", config)
+
+
+@pytest.mark.parametrize("config", ["bldc_default.yaml", "spmsm_default.yaml"])
+def test_controller_warm_up_covers_every_mode(config):
+    _in_fresh_process("check_controller", config)
+
+
+def check_plant(config):
+    cfg = load_config(ROOT / "config" / config)
+    n = int(cfg["batch_periods"])
+    backend = make_backend("sim", cfg, 0)
+    start = copy.deepcopy(backend.snapshot())
+    backend.warm_up(n)
+    after = backend.snapshot()
+    assert after.keys() == start.keys() and all(np.array_equal(np.asarray(after[k]), np.asarray(start[k]))
+                                                for k in start), "the warm-up runs on a copy: the plant has not moved"
+    before = _signatures()
+    if cfg.get("machine") == "spmsm":
+        raw = msgconv.spmsm_drive_cdr(1, np.tile(np.float32([0.6, 0.4, 0.5]), (n, 1)), np.zeros(n, np.float32),
+                                      np.ones(n, np.float32), 0)
+    else:
+        raw = msgconv.drive_command_cdr(1, np.full(n, 0b100001, np.uint8), np.full(n, 0b000110, np.uint8),
+                                        np.full(n, 0.3, np.float32), 0)
+    view = msgconv.DriveCommandView(raw)
+    assert backend.problem(view, n) is None
+    for _ in range(3):
+        backend.apply(view)
+    backend.safe_batch(n)
+    backend.snapshot()
+    assert backend.time_s > 0
+    assert not _grown(before), f"compiled during the run: {_grown(before)}"
+
+
+def check_controller(config):
+    from bike_controller.modes import MODE_NAMES
+    from bike_controller.node import warm_up_law
+    from bike_plant.params import nominal_params_from_config
+
+    cfg = load_config(ROOT / "config" / config)
+    if cfg.get("machine") == "spmsm":
+        from bike_controller.spmsm_session import ModedSpmsmController
+        make_law = lambda: ModedSpmsmController(cfg)  # noqa: E731
+    else:
+        from bike_controller.session_control import ModedController
+        make_law = lambda: ModedController(cfg, nominal_params_from_config(cfg))  # noqa: E731
+    n = make_law().batch_periods
+    warm_up_law(make_law, cfg, str(cfg.get("machine", "bldc")), n)
+    before = _signatures()
+    # a running plant's states, as the node gets them, answered in each mode
+    backend = make_backend("sim", cfg, 0)
+    law = make_law()
+    build = msgconv.spmsm_drive_cdr if cfg.get("machine") == "spmsm" else msgconv.drive_command_cdr
+    for k, mode in enumerate(sorted(MODE_NAMES) * 3):
+        try:
+            law.set_command(0.7, mode)
+        except ValueError:
+            continue
+        snap = backend.snapshot()
+        snap.update(seq=k, batch_periods=n, backend="sim", measured_by_drive=False, end_of_run=False)
+        stamp = msgconv.seconds_to_ns(backend.time_s)
+        view = msgconv.PlantStateView(msgconv.plant_state_cdr(snap, stamp))
+        a, b, c, status = law.decide(dict(view.snap, stamp_ns=stamp), n)
+        raw = build(k, a, b, c, stamp, float(status.get("torque_cmd_nm", 0.0)))
+        backend.apply(msgconv.DriveCommandView(raw))
+    assert backend.time_s > 0
+    assert not _grown(before), f"compiled during the run: {_grown(before)}"
+
+
+def test_warm_up_log_says_how_long_and_a_slow_one_says_why():
+    import time
+
+    lines = []
+
+    class Log:
+        def info(self, text):
+            lines.append(text)
+
+    took = warm_up_kernels(Log(), lambda: None)
+    assert took < 1.0 and lines == [f"numba kernels ready in {took:.1f} s"]
+    lines.clear()
+    warm_up_kernels(Log(), lambda: time.sleep(2.3))
+    assert lines[0].startswith("compiling the numba kernels") and lines[1].startswith("numba kernels ready in 2.")
