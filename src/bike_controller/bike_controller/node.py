@@ -362,6 +362,8 @@ def warm_up_law(make_law, cfg: dict, machine: str, n: int, batches: int = 5) -> 
     from bike_plant.node import make_backend
 
     build = msgconv.spmsm_drive_cdr if machine == "spmsm" else msgconv.drive_command_cdr
+    # a drive on CAN: its states say measured_by_drive, and the law answers torque only
+    measured = str(cfg.get("backend", "sim")) == "can"
     for mode in sorted(MODE_NAMES):
         law = make_law()
         try:
@@ -371,14 +373,18 @@ def warm_up_law(make_law, cfg: dict, machine: str, n: int, batches: int = 5) -> 
         plant = make_backend("sim", cfg, 0)
         for k in range(batches):
             snap = plant.snapshot()
-            snap.update(seq=k, batch_periods=n, backend="sim", measured_by_drive=False, end_of_run=False)
+            snap.update(seq=k, batch_periods=n, backend="sim", measured_by_drive=measured, end_of_run=False)
             stamp = msgconv.seconds_to_ns(plant.time_s)
             view = msgconv.PlantStateView(msgconv.plant_state_cdr(snap, stamp))
             a, b, c, status = law.decide(dict(view.snap, stamp_ns=stamp), n)
             raw = build(k, a, b, c, stamp, float(status.get("torque_cmd_nm", 0.0)),
                         float(status.get("current_cmd_a", 0.0)))
             msgconv.controller_status_cdr(dict(status, seq=k, command_rejected=False), stamp)
-            plant.apply(msgconv.DriveCommandView(raw))
+            drive = msgconv.DriveCommandView(raw)
+            if plant.problem(drive, n) is None:
+                plant.apply(drive)
+            else:                                     # a torque-only answer: the twin still moves
+                plant.safe_batch(n)
 
 
 def main(args=None) -> int:
