@@ -914,6 +914,9 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
     finally:
         if node is not None:
             node.executor_.remove_node(node)
+            # its guard conditions now, while the context lives: left to Executor.__del__ at
+            # interpreter exit, Python 3.12 printed an InvalidHandle traceback (context gone)
+            node.executor_.shutdown()
             node.destroy_node()
         rclpy.try_shutdown()
     return code

@@ -86,6 +86,7 @@ def echo_tuned(n: int) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        executor.shutdown()                     # see bike_plant.node.run_loop_node
         rclpy.try_shutdown()
     return 0
 
@@ -106,20 +107,24 @@ def _measure_tuned(node, context, n: int, round_trips: int, warmup: int) -> list
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     hot = HotWait(executor, [sub], context)
-    deadline = time.monotonic() + 30
-    while (pub.get_subscription_count() == 0 or node.count_publishers("pong") == 0) and time.monotonic() < deadline:
-        hot.spin(0.05)
-    latencies = []
-    for i in range(warmup + round_trips):
-        want = got[0] + 1
-        start = time.perf_counter()
-        pub.publish(raw_ping)
-        while got[0] < want:
-            hot.spin(1.0, LOCKSTEP_BUSY_WAIT_S)
-            if time.perf_counter() - start > 5.0:
-                raise RuntimeError("ping-pong echo stopped answering")
-        if i >= warmup:
-            latencies.append(time.perf_counter() - start)
+    try:
+        deadline = time.monotonic() + 30
+        while (pub.get_subscription_count() == 0 or node.count_publishers("pong") == 0) and time.monotonic() < deadline:
+            hot.spin(0.05)
+        latencies = []
+        for i in range(warmup + round_trips):
+            want = got[0] + 1
+            start = time.perf_counter()
+            pub.publish(raw_ping)
+            while got[0] < want:
+                hot.spin(1.0, LOCKSTEP_BUSY_WAIT_S)
+                if time.perf_counter() - start > 5.0:
+                    raise RuntimeError("ping-pong echo stopped answering")
+            if i >= warmup:
+                latencies.append(time.perf_counter() - start)
+    finally:
+        executor.remove_node(node)
+        executor.shutdown()
     return latencies
 
 

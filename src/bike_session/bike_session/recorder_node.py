@@ -544,6 +544,7 @@ def main(args=None) -> int:
                 print(f"recorder_node: error closing bag: {exc}", file=sys.stderr, flush=True)
                 rc = 1
             node.executor_.remove_node(node)
+            node.executor_.shutdown()           # see bike_plant.node.run_loop_node
             node.destroy_node()
         rclpy.try_shutdown()
     return rc

@@ -426,6 +426,7 @@ def main(args=None) -> int:
     finally:
         if executor is not None:
             executor.remove_node(node)
+            executor.shutdown()                 # see bike_plant.node.run_loop_node
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
