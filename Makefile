@@ -1,6 +1,6 @@
 # The two commands of the README: `make demo` and `make test`.
 SHELL := /bin/bash
-.PHONY: setup demo test test-faults test-fast bench peers clean
+.PHONY: setup demo test test-faults test-smoke test-fast bench peers clean
 
 setup:
 	@./tools/setup.sh
@@ -16,6 +16,12 @@ test: setup
 # of `make test` too)
 test-faults: setup
 	source tools/env.sh && python -m pytest -q -m faults
+
+# a short process-level smoke (launcher and Ctrl-C, kill -9 of each node, the recorded demo
+# graph, the kernels' warm-up): CI runs it on the other supported interpreter, Python 3.12
+test-smoke: setup
+	source tools/env.sh && python -m pytest -q test/test_launcher.py test/test_faults_kill.py test/test_graph.py \
+		test/test_warm_up.py
 
 bench: setup
 	./bike bench

@@ -13,6 +13,13 @@ hash_of() { cat "$@" 2>/dev/null | sha256sum | cut -c1-16; }
 
 # 1. virtual environment + pinned wheels
 req_hash=$(hash_of requirements.txt constraints.txt)
+pyver() { "$1" -c 'import sys; print("%d.%d" % sys.version_info[:2])'; }
+if [ -x "$venv/bin/python" ] && [ -n "${PYTHON:-}" ] && [ "$(pyver "$venv/bin/python")" != "$(pyver "$py")" ]; then
+  # PYTHON asks for another interpreter than the existing environment's: kept, it would
+  # silently run the old one, and colcon's build/ and install/ hold that version's paths
+  log "$venv has Python $(pyver "$venv/bin/python"), PYTHON=$py is $(pyver "$py"): recreating it"
+  rm -rf "$venv" build install
+fi
 if [ ! -x "$venv/bin/python" ]; then
   log "creating virtual environment $venv with $($py --version 2>&1)"
   "$py" -m venv "$venv"
@@ -29,7 +36,7 @@ fi
 # 2. colcon build (skipped when no source file changed)
 # Python sources are symlinked (--symlink-install), so only interfaces and package metadata
 # need a rebuild; a new module or console script changes setup.py and triggers one.
-src_hash=$( (find src \( -name '*.msg' -o -name 'package.xml' -o -name 'setup.py' -o -name 'setup.cfg' -o -name 'CMakeLists.txt' \) -print0 | sort -z | xargs -0 sha256sum; echo "$venv") | sha256sum | cut -c1-16)
+src_hash=$( (find src \( -name '*.msg' -o -name 'package.xml' -o -name 'setup.py' -o -name 'setup.cfg' -o -name 'CMakeLists.txt' \) -print0 | sort -z | xargs -0 sha256sum; echo "$venv"; "$venv/bin/python" --version) | sha256sum | cut -c1-16)
 if [ "$(cat install/.bike-src 2>/dev/null)" != "$src_hash" ]; then
   log "building the workspace with colcon"
   export AMENT_PREFIX_PATH="$venv" CMAKE_PREFIX_PATH="$venv"
