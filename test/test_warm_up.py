@@ -132,8 +132,16 @@ def test_warm_up_log_says_how_long_and_a_slow_one_says_why():
         def info(self, text):
             lines.append(text)
 
+        def warning(self, text):
+            lines.append("WARN " + text)
+
     took = warm_up_kernels(Log(), lambda: None)
     assert took < 1.0 and lines == [f"numba kernels ready in {took:.1f} s"]
     lines.clear()
     warm_up_kernels(Log(), lambda: time.sleep(2.3))
     assert lines[0].startswith("compiling the numba kernels") and lines[1].startswith("numba kernels ready in 2.")
+    # a failing warm-up is said once and does not stop the node
+    lines.clear()
+    warm_up_kernels(Log(), lambda: 1 / 0)
+    assert lines == ["WARN numba kernel warm-up failed (ZeroDivisionError: division by zero): they compile at "
+                     "first use"]
