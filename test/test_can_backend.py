@@ -17,7 +17,7 @@ from bike_plant.can import HOST_TO_DRIVE, AxisState, ODriveError, OdriveCanSimpl
 from bike_plant.can.backend import (FAULT_DRIVE_DISARMED, FAULT_DRIVE_LOST, FAULT_DRIVE_STALE, CanBackend,
                                     can_params_from_config,
                                     emulator_args_from_config)
-from bike_plant.can.emulator import AverageTorqueDrive, DriveEmulator, DriveFirmware, DriveModelParams
+from bike_controller.drive_emulator import AverageTorqueDrive, DriveEmulator, DriveFirmware, DriveModelParams
 from bike_plant.config import ConfigError, load_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -674,7 +674,7 @@ def test_the_launch_file_starts_the_emulator_with_the_bus_of_the_config(tmp_path
                                        "can_log": "/tmp/x.can.asc"})
     emu = specs[0]
     assert isinstance(emu, ExecutableSpec) and emu.name == "drive_emulator"
-    assert emu.argv[0].endswith("lib/bike_plant/bike-drive-emulator") and not emu.shutdown_on_exit
+    assert emu.argv[0].endswith("lib/bike_controller/bike-drive-emulator") and not emu.shutdown_on_exit
     assert emu.argv[emu.argv.index("--config") + 1] == str(CAN_CONFIG)
     assert emu.argv[emu.argv.index("--port") + 1] == "43213" and emu.argv[emu.argv.index("--node-id") + 1] == "0"
     plant = specs[1]

@@ -1,4 +1,4 @@
-"""Drive emulator (bike_plant.can.emulator): physics and firmware in-process, and the
+"""Drive emulator (bike_controller.drive_emulator): physics and firmware in-process, and the
 bike-drive-emulator as a separate PROCESS over python-can's udp_multicast bus.
 
 Each process test uses its own UDP port (isolation from parallel runs) and generous
@@ -23,7 +23,7 @@ import can
 import pytest
 
 from bike_plant.can import AxisState, ODriveError, OdriveCanSimple, ProcedureResult
-from bike_plant.can.emulator import (AverageTorqueDrive, BldcPlantDrive, DriveEmulator, DriveFirmware, DriveModelParams,
+from bike_controller.drive_emulator import (AverageTorqueDrive, BldcPlantDrive, DriveEmulator, DriveFirmware, DriveModelParams,
                                      SpmsmPlantDrive, benchmark_physics, make_drive_model)
 from bike_plant.config import load_config
 
@@ -98,7 +98,7 @@ def test_firmware_watchdog_refusal_and_recovery(params):
 
 
 def test_injected_faults_disarm_and_persist_through_clear_errors(params):
-    from bike_plant.can.emulator import parse_fault
+    from bike_controller.drive_emulator import parse_fault
 
     drv = int(ODriveError.DRV_FAULT)
     assert parse_fault("drv_fault") == drv and parse_fault("IDLE") == 0 and parse_fault("0x40") == 0x40
@@ -297,7 +297,7 @@ class Emulator:
         self._out = open(self.out_path, "w")
         self._err = open(self.err_path, "w")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "bike_plant.can.emulator", "--interface", "udp_multicast", "--channel", GROUP,
+            [sys.executable, "-m", "bike_controller.drive_emulator", "--interface", "udp_multicast", "--channel", GROUP,
              "--port", str(self.port), "--node-id", str(node_id), "--config", str(config), *args],
             stdout=self._out, stderr=self._err, stdin=subprocess.DEVNULL, start_new_session=True)
         self.bus = can.Bus(interface="udp_multicast", channel=GROUP, port=self.port)

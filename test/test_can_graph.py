@@ -71,7 +71,7 @@ class Emulator:
         self.out = tmp_path / f"emulator_{port}_{time.monotonic_ns()}.out"
         self._out = open(self.out, "w")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "bike_plant.can.emulator", "--interface", "udp_multicast", "--channel", GROUP,
+            [sys.executable, "-m", "bike_controller.drive_emulator", "--interface", "udp_multicast", "--channel", GROUP,
              "--port", str(port), "--config", str(config), *args],
             stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
         # the first start on a fresh clone compiles the plant kernels (cold numba cache)
@@ -411,8 +411,8 @@ def test_controller_killed_the_drive_watchdog_trips_and_the_plant_reports_it(rig
 
 
 def test_drive_command_to_can_frame_latency_is_measured(ros_domain):
-    """bike_plant.can.latency.can_latency (for ./bike bench): every command timed, numbers sane."""
-    from bike_plant.can.latency import can_latency
+    """bike_session.can_latency.can_latency (for ./bike bench): every command timed, numbers sane."""
+    from bike_session.can_latency import can_latency
 
     result = can_latency(n=100, rate_hz=200.0, domain=ros_domain, config=CAN_CONFIG)
     print("DriveCommand -> CAN frame:", {k: round(v, 3) if isinstance(v, float) else v for k, v in result.items()

@@ -177,7 +177,11 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
     if victim == "session":
         topics["controller_status"] = ControllerStatus
     col = Collector(domain, topics)
-    procs = _graph(col, domain, tmp_path, duration)
+    # recorder: 3 s to give a silent recorder up, not 1.5. The plant applies the same timeout
+    # to the restarted one, and a new recorder starved for 1.5 s on a loaded 2-core machine (six
+    # busy processes) was given up on again: its bag then had a hole (CI: 122 states)
+    procs = _graph(col, domain, tmp_path, duration,
+                   plant_extra={"recorder_timeout_s": 3.0} if victim == "recorder" else None)
     everyone = list(procs.values())
     try:
         states = col.data["plant_state"]
@@ -272,7 +276,9 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
         # miss it (seen on a slow host: 831, then 899 on)
         reported = int(re.search(r"a recorder reports again \(written up to seq (\d+)", plant_log).group(1))
         tail = [x for x in s2 if x >= reported]
-        assert s2 and reported in s2 and tail == list(range(reported, reported + len(tail))), (reported, s2[:20])
+        holes = [(a, b) for a, b in zip(tail, tail[1:]) if b != a + 1]
+        assert s2 and reported in s2 and not holes, \
+            f"reported {reported}, first seqs {s2[:5]}, holes after it {holes[:5]}; plant log:\n{plant_log[-3000:]}"
         assert tail[-1] == seqs[-1]
     else:
         recorded = _dedupe_seqs(read_topic(tmp_path / "run", "plant_state"))

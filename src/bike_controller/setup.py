@@ -16,5 +16,6 @@ setup(
     maintainer_email="maintainers@example.org",
     description="Torque controller of the bike testbed: control laws (no ROS) and the batched inner-loop node",
     license="Apache-2.0",
-    entry_points={"console_scripts": ["controller_node = bike_plant.entry:controller_node"]},
+    entry_points={"console_scripts": ["controller_node = bike_plant.entry:controller_node",
+                                      "bike-drive-emulator = bike_plant.entry:drive_emulator"]},
 )

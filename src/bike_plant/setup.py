@@ -17,6 +17,5 @@ setup(
     maintainer_email="maintainers@example.org",
     description="Machine and power stage of the bike testbed: physics kernels (no ROS) and the plant node",
     license="Apache-2.0",
-    entry_points={"console_scripts": ["plant_node = bike_plant.entry:plant_node",
-                                      "bike-drive-emulator = bike_plant.entry:drive_emulator"]},
+    entry_points={"console_scripts": ["plant_node = bike_plant.entry:plant_node"]},
 )

@@ -27,7 +27,7 @@ def plant_node():
 
 
 def drive_emulator():
-    return start("bike_plant.can.emulator")
+    return start("bike_controller.drive_emulator")
 
 
 def controller_node():

@@ -287,7 +287,7 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
     lat = None
     if want("can"):
         try:
-            from bike_plant.can.latency import can_latency
+            from bike_session.can_latency import can_latency
             lat = can_latency(n=200 if quick else 500)
         except Exception as exc:  # noqa: BLE001 - reported, not hidden
             show(f"CAN latency: unavailable ({exc})")

@@ -1,10 +1,11 @@
-"""CAN side of the bike plant: drive protocols and a drive emulator (no ROS imports).
+"""CAN side of the bike plant: drive protocols (no ROS imports) and the plant's CAN backend.
 
 * :mod:`bike_plant.can.protocol` -- :class:`DriveProtocol` (abstract host side of a drive
   on a python-can bus) and :class:`OdriveCanSimple` (ODrive CANSimple, firmware 0.6.x,
   over the DBC ``odrive_cansimple_0_6.dbc`` shipped in this folder, node 0 ids).
-* :mod:`bike_plant.can.emulator` -- ``bike-drive-emulator``: an ODrive-like drive on any
-  python-can bus whose physics is the bike of a config file.
+* the drive emulator (``bike-drive-emulator``, an ODrive-like drive whose physics is the bike
+  of a config file) is :mod:`bike_controller.drive_emulator`: its firmware runs the
+  controller package's current loops, and bike_plant depends on no other package of ours.
 
 Names are imported lazily (PEP 562): ``import bike_plant.can`` stays light, and
 ``python -m bike_plant.can.protocol`` does not find its module imported twice.

@@ -10,7 +10,7 @@ Layers
   ``can.Message`` frames and classifies received frames: a frame is either decoded, or
   rejected with a *reason* (see :data:`MALFORMED_REASONS` / :data:`IGNORED_REASONS`).
   Both the host side (:class:`OdriveCanSimple`) and the drive emulator
-  (:mod:`bike_plant.can.emulator`) use it, so both ends speak the same layout.
+  (:mod:`bike_controller.drive_emulator`) use it, so both ends speak the same layout.
 * :class:`DriveProtocol` -- the abstract host side of "a drive on CAN": setpoints and
   requests out, protocol-neutral :class:`Measurement` objects in, counters, link
   supervision (heartbeat) and watchdog feeding. VESC or CANopen CiA 402 can be added

@@ -13,9 +13,9 @@ and the listener's socket. The frame's timestamp is the receive time python-can 
 The plant's in-process part alone (callback -> frame handed to the bus) is reported too
 (``plant_submit_p50_us`` / ``plant_submit_max_us``, from its diagnostic).
 
-    python -m bike_plant.can.latency [--n 500] [--rate-hz 200] [--json FILE]
+    python -m bike_session.can_latency [--n 500] [--rate-hz 200] [--json FILE]
 
-Imports rclpy (unlike the rest of bike_plant.can): call it from tools, not from kernels.
+Imports rclpy: call it from tools (./bike bench), not from kernels.
 """
 from __future__ import annotations
 
@@ -75,9 +75,9 @@ def can_latency(n: int = 500, rate_hz: float = 200.0, config: str | os.PathLike 
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
-    from .. import msgconv
-    from ..config import default_config_path
-    from ..loop import AUX_QOS, LOOP_QOS
+    from bike_plant import msgconv
+    from bike_plant.config import default_config_path
+    from bike_plant.loop import AUX_QOS, LOOP_QOS
 
     base = pathlib.Path(config) if config else default_config_path().with_name("bldc_can.yaml")
     port = port or random.SystemRandom().randint(41000, 48999)
@@ -98,7 +98,7 @@ def can_latency(n: int = 500, rate_hz: float = 200.0, config: str | os.PathLike 
                    PYTHONUNBUFFERED="1")
         logs += [open(pathlib.Path(tmp.name) / name, "w") for name in ("emulator.log", "plant.log")]
         procs.append(subprocess.Popen(
-            [sys.executable, "-m", "bike_plant.can.emulator", "--interface", "udp_multicast", "--channel", GROUP,
+            [sys.executable, "-m", "bike_controller.drive_emulator", "--interface", "udp_multicast", "--channel", GROUP,
              "--port", str(port), "--config", str(cfg_path), "--quiet"],
             stdout=logs[0], stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env, start_new_session=True))
         plant = os.path.join(get_package_prefix("bike_plant"), "lib", "bike_plant", "plant_node")
@@ -233,7 +233,7 @@ def can_latency(n: int = 500, rate_hz: float = 200.0, config: str | os.PathLike 
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bike_plant.can.latency", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m bike_session.can_latency", description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=500, help="DriveCommands to time (default 500)")
     ap.add_argument("--rate-hz", type=float, default=200.0, help="publishing rate (default 200)")
     ap.add_argument("--config", help="bike config (default config/bldc_can.yaml)")

@@ -100,19 +100,20 @@ import can
 import numpy as np
 from numba import njit
 
-from bike_controller import bldc_control as BC
-from bike_controller import spmsm_control as SC
-from bike_controller import speed_estimator, torque_command
+from bike_plant import bldc as K
+from bike_plant import mechanics
+from bike_plant import params as P
+from bike_plant import spmsm as M
+from bike_plant.can.protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, AxisState, ControlMode,
+                                     InputMode, ODriveError, OdriveCanSimpleCodec, ProcedureResult, _EchoFilter,
+                                     error_names)
+from bike_plant.config import ConfigError, load_config, section
+from bike_plant.params import RPM_PER_RAD_S, TWO_PI, LoadParams
+from bike_plant.sim import BldcPlant
 
-from .. import bldc as K
-from .. import mechanics
-from .. import params as P
-from .. import spmsm as M
-from ..config import ConfigError, load_config, section
-from ..params import RPM_PER_RAD_S, TWO_PI, LoadParams
-from ..sim import BldcPlant
-from .protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, AxisState, ControlMode, InputMode,
-                       ODriveError, OdriveCanSimpleCodec, ProcedureResult, _EchoFilter, error_names)
+from . import bldc_control as BC
+from . import spmsm_control as SC
+from . import speed_estimator, torque_command
 
 # the batch kernels below compile the plant and control-law kernels into this module's
 # numba cache: drop it when one of those modules changed (numba keys it on this file only)
@@ -163,7 +164,7 @@ class DriveModelParams:
         path = cfg.get("_config_path")
         ctrl = section(cfg, "controller", path)
         if machine == "bldc":
-            from ..params import plant_params_from_config
+            from bike_plant.params import plant_params_from_config
             p = plant_params_from_config(cfg)
             b, bt = p.bldc, p.battery
             return cls(machine="bldc", torque_constant_nm_per_a=b.kt_nm_per_a,
@@ -178,7 +179,7 @@ class DriveModelParams:
                        current_limit_a=float(ctrl.get("current_limit_a", 60.0)), current_tau_s=current_tau_s)
         if machine == "spmsm":
             try:
-                from ..spmsm import plant_params_from_config as spmsm_params
+                from bike_plant.spmsm import plant_params_from_config as spmsm_params
             except ImportError as exc:   # pragma: no cover - depends on the SPMSM module
                 raise ConfigError(f"machine 'spmsm' needs bike_plant.spmsm ({exc})", path, "machine") from None
             p = spmsm_params(cfg)

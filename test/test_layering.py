@@ -1,0 +1,39 @@
+"""The packages' layering: bike_plant <- bike_controller <- bike_session, declared in each
+package.xml (colcon orders the build by it; a cycle could not be declared), and the physics
+and control modules import no rclpy (nodes are thin adapters)."""
+from __future__ import annotations
+
+import pathlib
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+LAYERS = {"bike_plant": set(), "bike_controller": {"bike_plant"}, "bike_session": {"bike_plant", "bike_controller"}}
+IMPORT = re.compile(r"^\s*(?:from|import)\s+(bike_[a-z]+)", re.M)
+
+
+def test_each_package_imports_only_the_layers_below_it_and_declares_them():
+    for pkg, below in LAYERS.items():
+        imported = set()
+        for path in (ROOT / "src" / pkg / pkg).rglob("*.py"):
+            for name in IMPORT.findall(path.read_text()):
+                if name in LAYERS and name != pkg:
+                    imported.add(name)
+                    assert name in below, f"{path.relative_to(ROOT)} imports {name}, a package above {pkg}"
+        declared = {e.text for e in ET.parse(ROOT / "src" / pkg / "package.xml").getroot().iter("exec_depend")}
+        assert imported <= declared, f"{pkg}/package.xml does not declare {sorted(imported - declared)}"
+
+
+def test_physics_and_control_modules_import_no_rclpy():
+    modules = ["bike_plant.bldc", "bike_plant.spmsm", "bike_plant.sim", "bike_plant.params", "bike_plant.mechanics",
+               "bike_plant.can.protocol", "bike_controller.bldc_control", "bike_controller.spmsm_control",
+               "bike_controller.session_control", "bike_controller.spmsm_session", "bike_controller.modes",
+               "bike_controller.closed_loop", "bike_controller.fleet", "bike_controller.drive_emulator"]
+    code = ("import importlib, sys\n"
+            f"for m in {modules!r}: importlib.import_module(m)\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy'))\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.strip() == "[]", run.stdout
