@@ -178,20 +178,10 @@ class SimBackend:
         self.plant.step_batch(*self.plant.safe_gates(n))
 
     def warm_up(self, n: int) -> None:
-        """Run the node's per-batch path once (a zero DriveCommand through the CDR view, the
-        check, a batch; the safe batch) on a copy of the plant, so numba compiles or loads
-        its kernels now and not inside the run."""
-        import copy
-
+        """_warm_up_twin with all gates off."""
         import numpy as np
-        twin = copy.copy(self)
-        twin.plant = copy.deepcopy(self.plant)
-        view = msgconv.DriveCommandView(msgconv.drive_command_cdr(
-            0, np.zeros(n, np.uint8), np.zeros(n, np.uint8), np.zeros(n, np.float32), 0))
-        if twin.problem(view, n) is None:
-            twin.apply(view)
-        twin.safe_batch(n)
-        twin.snapshot()
+        _warm_up_twin(self, msgconv.drive_command_cdr(
+            0, np.zeros(n, np.uint8), np.zeros(n, np.uint8), np.zeros(n, np.float32), 0), n)
 
     def set_safe(self, on: bool) -> None:
         if on:
@@ -250,18 +240,10 @@ class SpmsmSimBackend:
     _safe = False
 
     def warm_up(self, n: int) -> None:
-        """SimBackend.warm_up for the SPMSM plant (duties 0.5, relay on the inverter)."""
-        import copy
-
+        """_warm_up_twin with duties 0.5 and the relay on the inverter."""
         import numpy as np
-        twin = copy.copy(self)
-        twin.plant = copy.deepcopy(self.plant)
-        view = msgconv.DriveCommandView(msgconv.spmsm_drive_cdr(
-            0, np.full((n, 3), 0.5, np.float32), np.zeros(n, np.float32), np.ones(n, np.float32), 0))
-        if twin.problem(view, n) is None:
-            twin.apply(view)
-        twin.safe_batch(n)
-        twin.snapshot()
+        _warm_up_twin(self, msgconv.spmsm_drive_cdr(
+            0, np.full((n, 3), 0.5, np.float32), np.zeros(n, np.float32), np.ones(n, np.float32), 0), n)
 
     def set_safe(self, on: bool) -> None:
         self._safe = bool(on)
@@ -269,6 +251,20 @@ class SpmsmSimBackend:
             self.plant.set_safe_state()
         else:
             self.plant.clear_safe_state()
+
+
+def _warm_up_twin(backend, raw: bytes, n: int) -> None:
+    """Run the node's per-batch path once on a copy of ``backend``'s plant: the DriveCommand
+    ``raw`` through the CDR view, the check, a batch; the safe batch; the snapshot. numba then
+    compiles or loads the kernels now, not inside the run."""
+    import copy
+    twin = copy.copy(backend)
+    twin.plant = copy.deepcopy(backend.plant)
+    view = msgconv.DriveCommandView(raw)
+    if twin.problem(view, n) is None:
+        twin.apply(view)
+    twin.safe_batch(n)
+    twin.snapshot()
 
 
 def make_backend(kind: str, cfg: dict, seed: int):
@@ -874,7 +870,7 @@ COMPILED_AFTER_S = 5.0
 def warm_up_kernels(logger, warm_up) -> float:
     """Run ``warm_up`` (a node's per-batch path on throw-away data) and log how long numba
     took: the first run after installing or editing a kernel compiles for tens of seconds,
-    later runs load the cache in about a second. Returns the seconds."""
+    later runs load the cache in a fraction of a second. Returns the seconds."""
     import threading
 
     # said only when it is slow: a load from the cache takes a fraction of a second
