@@ -166,10 +166,9 @@ def test_an_interrupted_node_import_ends_with_exit_130_and_no_traceback(tmp_path
     assert "Traceback" not in run.stderr + run.stdout and "KeyboardInterrupt" not in run.stderr, run.stderr
 
 
-def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path):
-    """Ctrl-C on `./bike run` once every node runs its main(): each stops on its own SIGINT
-    path, the run ends at once with code 130 (interrupted, not finished), says so, and no
-    node prints a traceback."""
+def _ctrl_c_bike_run(tmp_path, started, args, env=None):
+    """`./bike run` (60 s) with its output in a file; SIGINT once every string of ``started``
+    is in it. Returns (output, exit code)."""
     import os
     import pathlib
     import random
@@ -178,12 +177,11 @@ def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path
     root = pathlib.Path(__file__).resolve().parents[1]
     out = tmp_path / "run.log"
     with open(out, "w") as fh:
-        proc = subprocess.Popen([str(root / "bike"), "run", "--duration", "60", "--record", str(tmp_path / "rec")],
+        proc = subprocess.Popen([str(root / "bike"), "run", "--duration", "60", *args],
                                 stdout=fh, stderr=subprocess.STDOUT,
-                                env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
+                                env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200)), **(env or {})))
         try:
             end = time.monotonic() + 60
-            started = ("[plant] [INFO]", "[controller] [INFO]", "[session] [INFO]")
             while time.monotonic() < end and not all(tag in out.read_text() for tag in started):
                 assert proc.poll() is None, out.read_text()[-3000:]
                 time.sleep(0.1)
@@ -192,7 +190,17 @@ def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path
         finally:
             if proc.poll() is None:
                 proc.kill()
-    text = out.read_text()
+    return out.read_text(), code
+
+
+def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path):
+    """Ctrl-C on `./bike run` once every node runs its main(): each stops on its own SIGINT
+    path, the run ends at once with code 130 (interrupted, not finished), says so, and no
+    node prints a traceback."""
+    # the nodes' first lines after their warm-up (a Ctrl-C during it: the next test)
+    started = ("[plant] [INFO]", "bike.plant]: plant: backend=", "bike.controller]: controller: sync_mode=",
+               "[session] [INFO]")
+    text, code = _ctrl_c_bike_run(tmp_path, started, ["--record", str(tmp_path / "rec")])
     assert all(tag in text for tag in started), text[-3000:]
     assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]
     assert code == 130, text[-3000:]
@@ -202,3 +210,20 @@ def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path
     bags = [b for b in (tmp_path / "rec").iterdir() if b.is_dir()]
     assert len(bags) == 1 and (bags[0] / "metadata.yaml").exists(), text[-3000:]
     assert f"[bike] bag written: {bags[0]}" in text and "mean braking power" in text.lower(), text[-3000:]
+
+
+def test_ctrl_c_during_the_first_compile_stops_every_node_without_a_traceback(tmp_path):
+    """Ctrl-C while the plant and the controller compile their kernels (an empty numba cache:
+    the first run after an install): the run stops at once with 130. CI (3.12) saw a SIGINT
+    land in llvmlite's ctypes callback, where it was printed as a traceback and swallowed;
+    the node then logged a failed warm-up and ran on, and the run took 10 s to end."""
+    started = ("bike.plant]: compiling the numba kernels", "bike.controller]: compiling the numba kernels")
+    t0 = time.monotonic()
+    text, code = _ctrl_c_bike_run(tmp_path, started, [], env={"NUMBA_CACHE_DIR": str(tmp_path / "numba")})
+    assert all(tag in text for tag in started), text[-3000:]
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]
+    assert "warm-up failed" not in text and "kernels ready" not in text, text[-3000:]
+    # neither node went on to its run
+    assert "plant: backend=" not in text and "controller: sync_mode=" not in text, text[-3000:]
+    assert code == 130 and "[launcher] interrupted by SIGINT: every node was stopped" in text, text[-3000:]
+    assert "exited with code" not in text and "was killed by" not in text, text[-3000:]

@@ -145,3 +145,47 @@ def test_warm_up_log_says_how_long_and_a_slow_one_says_why():
     warm_up_kernels(Log(), lambda: 1 / 0)
     assert lines == ["WARN numba kernel warm-up failed (ZeroDivisionError: division by zero): they compile at "
                      "first use"]
+
+
+def test_a_ctrl_c_swallowed_by_a_ctypes_callback_still_stops_the_warm_up(capsys):
+    """CI, Python 3.12: a SIGINT that landed in llvmlite's ctypes object-cache callback was
+    printed as "Exception ignored ... KeyboardInterrupt", numba then raised a RuntimeError,
+    and the node logged a failed warm-up and ran on, ignoring the Ctrl-C. The same mechanism,
+    with a real ctypes callback: the interrupt is raised again, nothing is printed."""
+    import ctypes
+
+    def interrupted_callback():
+        raise KeyboardInterrupt
+
+    callback = ctypes.CFUNCTYPE(None)(interrupted_callback)
+    lines = []
+
+    class Log:
+        def info(self, text):
+            lines.append(text)
+
+        def warning(self, text):
+            lines.append("WARN " + text)
+
+    def compile_interrupted_in_callback():
+        callback()  # ctypes swallows the KeyboardInterrupt here
+        raise RuntimeError("no compiled object yet")  # what numba says next
+
+    hook = sys.unraisablehook
+    with pytest.raises(KeyboardInterrupt):
+        warm_up_kernels(Log(), compile_interrupted_in_callback)
+    assert lines == [] and "Traceback" not in capsys.readouterr().err
+    assert sys.unraisablehook is hook
+    # swallowed, and the compile still finished: the node stops all the same
+    with pytest.raises(KeyboardInterrupt):
+        warm_up_kernels(Log(), callback)
+    # a plain KeyboardInterrupt passes through; other unraisable errors still reach the hook
+    with pytest.raises(KeyboardInterrupt):
+        warm_up_kernels(Log(), interrupted_callback)
+    seen = []
+    sys.unraisablehook = seen.append
+    try:
+        warm_up_kernels(Log(), ctypes.CFUNCTYPE(None)(lambda: 1 / 0))
+    finally:
+        sys.unraisablehook = hook
+    assert len(seen) == 1 and isinstance(seen[0].exc_value, ZeroDivisionError)

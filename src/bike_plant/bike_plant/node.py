@@ -870,8 +870,23 @@ COMPILED_AFTER_S = 5.0
 def warm_up_kernels(logger, warm_up) -> float:
     """Run ``warm_up`` (a node's per-batch path on throw-away data) and log how long numba
     took: the first run after installing or editing a kernel compiles for tens of seconds,
-    later runs load the cache in a fraction of a second. Returns the seconds."""
+    later runs load the cache in a fraction of a second. Returns the seconds.
+
+    A Ctrl-C during the compile ends the node (KeyboardInterrupt), as anywhere else before
+    its loop runs. When the SIGINT lands inside llvmlite's ctypes object-cache callback,
+    ctypes swallows the KeyboardInterrupt (printing it as an "exception ignored" traceback)
+    and numba then fails with an unrelated RuntimeError; the interrupt is caught there
+    and raised again here, so the node neither runs on nor prints a traceback."""
     import threading
+
+    interrupted = []
+    previous_hook = sys.unraisablehook
+
+    def unraisable(info):
+        if isinstance(info.exc_value, KeyboardInterrupt):
+            interrupted.append(info)
+        else:
+            previous_hook(info)
 
     # said only when it is slow: a load from the cache takes a fraction of a second
     slow = threading.Timer(2.0, lambda: logger.info(
@@ -879,15 +894,22 @@ def warm_up_kernels(logger, warm_up) -> float:
         "cached for the next runs)"))
     slow.daemon = True
     t0 = time.perf_counter()
+    sys.unraisablehook = unraisable
     slow.start()
     try:
-        warm_up()
-    except Exception as exc:  # noqa: BLE001 - a warm-up never keeps a node from running
-        # (e.g. a CAN config whose machine section a simulated twin cannot be built from)
-        logger.warning(f"numba kernel warm-up failed ({type(exc).__name__}: {exc}): they compile at first use")
-        return time.perf_counter() - t0
+        try:
+            warm_up()
+        except Exception as exc:  # noqa: BLE001 - a warm-up never keeps a node from running
+            if interrupted:
+                raise KeyboardInterrupt from None
+            # (e.g. a CAN config whose machine section a simulated twin cannot be built from)
+            logger.warning(f"numba kernel warm-up failed ({type(exc).__name__}: {exc}): they compile at first use")
+            return time.perf_counter() - t0
+        if interrupted:
+            raise KeyboardInterrupt
     finally:
         slow.cancel()
+        sys.unraisablehook = previous_hook
     took_s = time.perf_counter() - t0
     logger.info(f"numba kernels ready in {took_s:.1f} s" + (" (compiled)" if took_s > COMPILED_AFTER_S else ""))
     return took_s
