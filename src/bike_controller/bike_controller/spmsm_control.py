@@ -16,9 +16,27 @@ Two controller families, selected by ``controller.family``, same telemetry:
   With beta = b^2/(b^2 + r) the closed loop (ideal inner loop, a ~ 1) has the poles of
   z^2 - (1 - beta)(1 + a) z + a (1 - beta): beta = 1 (r = 0) is dead-beat, small beta is
   slow AND lightly damped (zeta ~ sqrt(beta)/2: the law is an I-P controller with Kp/Ki =
-  a T). Defaults (simulated compromise, see SpmsmControllerParams): beta = 0.15 for the
-  speed loop, whose loop also holds the speed measurement and the current loop, and
-  beta = 0.7 for the current loops.
+  a T). Defaults (simulated compromise, see SpmsmControllerParams): beta = 0.6 for the
+  speed loop with the reference trajectory below (0.15 without it: its loop also holds the
+  speed measurement and the current loop), and beta = 0.7 for the current loops.
+  Reference trajectory (``speed_reference_pole_hz`` f > 0, speed loop): the target one
+  sample ahead is a point on a first-order path from the present speed towards the command,
+      w_t(k+1) = w*(k+1) - alpha (w*(k) - w(k)),   alpha = exp(-2 pi f Ts),
+  in place of w*(k+1) (the reference trajectory of predictive functional control). A ramp
+  or a sine is still followed without a steady error: the command's next value is kept. The
+  closed loop (ideal inner loop, a ~ 1) then has the poles of
+      z^2 - ((1 - beta)(1 + a) + alpha beta) z + a (1 - beta),
+  real for alpha >= 2 s / (1 + s), s = sqrt(1 - beta). A step still moves the speed by up
+  to beta of itself in the sample it is seen (the cost looks one sample ahead, as printed;
+  the current limits cut this for large steps); the rest of the error then closes without
+  overshoot at the dominant real pole (the paper's "first-order transient responses", Fig.
+  11a), where the law as printed rings (zeta = sqrt(beta)/2: 13-63 % overshoot on the
+  steps the limits do not shape at beta 0.15). Steps from 50 to 350 r/min then share one
+  shape ("similar linear responses", Fig. 14); below, Coulomb friction and cogging shape
+  them. A step response without overshoot and a ramp followed without lag cannot both
+  come from a causal loop; the anticipation (the command's next value) is what allows it
+  here. Defaults: beta_speed = 0.6, f = 10 Hz (alpha = 0.939 >= 0.775; poles 0.936 and
+  0.427). f = 0 is the law as printed.
 * pi: velocity-form PI controllers on the same discrete plants, tuned by pole placement:
   for x(k+1) = a x(k) + b u(k) and u(k) = u(k-1) + Kp (e(k) - e(k-1)) + Ki T e(k) the
   characteristic polynomial (z - 1)(z - a) + b (Kp (z - 1) + Ki T z) is set to (z - p)^2,
@@ -117,16 +135,18 @@ class SpmsmControllerParams:
     """controller: section of an SPMSM config (paper 001, sections 3-5, 7).
 
     Weights (SI units: speed in rad/s, current in A, voltage in V):
-    speed_weight_r [(rad/s)^2/A^2] = 0.068 -> beta_s = b^2/(b^2 + r) = 0.15 (b = 0.11 rad/s per A);
+    speed_weight_r [(rad/s)^2/A^2] = 0.008 -> beta_s = b^2/(b^2 + r) = 0.60 (b = 0.11 rad/s per A);
     current_weight_r [A^2/V^2] = 4.2e-5 -> beta_c = 0.70 (b = 0.00985 A/V).
-    beta_s = 0.15 was chosen by simulation: larger values limit-cycle once the measurement
-    delay (M/T estimate, ~half a speed sample) and the current loop are in the loop, smaller
-    ones ring (zeta = sqrt(beta)/2) and recover more slowly.
+    speed_reference_pole_hz = 10 (reference trajectory, module doc). Without a trajectory
+    the law needs beta_s ~ 0.15: larger values limit-cycle once the measurement delay (M/T
+    estimate, ~half a speed sample) and the current loop are in the loop (beta 0.6: 2 A of
+    iq ripple at 100 r/min), smaller ones ring (zeta = sqrt(beta)/2) and recover more
+    slowly. With the 10 Hz trajectory beta 0.6 holds steady with either speed estimate.
     PI poles: double real poles at pi_speed_pole_hz / pi_current_pole_hz (see module doc).
     """
     family: str = "predictive"
     speed_loop_periods: int = 10          # 1 ms speed loop / 100 us current loop (section 7)
-    speed_weight_r: float = 0.068
+    speed_weight_r: float = 0.008
     current_weight_r: float = 4.2e-5
     pi_speed_pole_hz: float = 1.5
     pi_current_pole_hz: float = 200.0
@@ -138,6 +158,7 @@ class SpmsmControllerParams:
     observer_pole_hz: float = 5.0         # triple pole of the speed observer (config comment)
     speed_delay_compensation: bool = False  # mt only: extrapolate the M/T estimate by half a sample
     speed_filter_hz: float = 0.0          # first-order low-pass on the speed the speed law sees (0: off)
+    speed_reference_pole_hz: float = 10.0  # predictive: first-order path towards the command (0: off)
     computation_delay_periods: int = 0    # 1: duties computed in period k are applied in k + 1 (DSP)
     current_sensor_lsb_a: float = 0.0     # ADC step of the phase-current measurement (0: exact)
     speed_ref0_rpm: float = 0.0
@@ -166,6 +187,8 @@ class SpmsmControllerParams:
             raise ValueError(f"current_sensor_lsb_a must be in [0, 1] A, got {self.current_sensor_lsb_a!r}")
         if not self.speed_filter_hz >= 0.0:
             raise ValueError(f"speed_filter_hz must be >= 0, got {self.speed_filter_hz!r}")
+        if not (math.isfinite(self.speed_reference_pole_hz) and self.speed_reference_pole_hz >= 0.0):
+            raise ValueError(f"speed_reference_pole_hz must be a finite number >= 0, got {self.speed_reference_pole_hz!r}")
         require_positive(self, "observer_pole_hz")
         if self.brake_torque0_nm < 0:
             raise ValueError("brake_torque0_nm must be >= 0")
@@ -201,7 +224,8 @@ Q_INV_VDC = 45          # 1 / Vdc
 Q_VMAX = 46             # voltage_limit_factor * Vdc: the modulator's circle [V]
 Q_HALF_DT2 = 47         # T^2 / 2 (observer prediction)
 Q_TORQUE_K = 48         # 1.5 pp lambda (nominal Kt, torque estimate)
-Q_SIZE = 49
+Q_REF_ALPHA = 49        # reference trajectory: the error kept per speed sample (0: the command itself)
+Q_SIZE = 50
 
 (C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
  C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
@@ -262,6 +286,7 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_JN] = nominal.mech.inertia_kgm2
     q[Q_BN] = nominal.mech.friction_nms
     q[Q_SPEED_KF] = -math.expm1(-TWO_PI * cp.speed_filter_hz * ts) if cp.speed_filter_hz > 0 else 0.0
+    q[Q_REF_ALPHA] = math.exp(-TWO_PI * cp.speed_reference_pole_hz * ts) if cp.speed_reference_pole_hz > 0 else 0.0
     q[Q_MMETHOD] = 1.0 if cp.speed_estimator == "m" else 0.0
     q[Q_DELAY] = float(cp.computation_delay_periods)
     q[Q_ILSB] = cp.current_sensor_lsb_a
@@ -591,7 +616,10 @@ def speed_loop(cs, q):
     cs[C_IQ_N] = 0.0
     if q[Q_FAMILY] == 0.0:
         # predictive_increment(w*(k+1), w, dw, a, b, r) with b / (b^2 + r) precomputed
-        du = q[Q_GS] * (cs[C_SPEED_REF_NEXT] - w - q[Q_AS] * (w - cs[C_SPEED_PREV]))
+        # reference trajectory: the error to the command is closed along a first-order path
+        # (alpha per sample), the command's own next step is kept (ramps: no lag)
+        target = cs[C_SPEED_REF_NEXT] - q[Q_REF_ALPHA] * e
+        du = q[Q_GS] * (target - w - q[Q_AS] * (w - cs[C_SPEED_PREV]))
     else:
         du = q[Q_KPS] * (e - cs[C_E_SPEED_PREV]) + q[Q_KIS] * e
     iq_dem = cs[C_IQ_REF_PREV] + du
