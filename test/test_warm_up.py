@@ -123,26 +123,33 @@ def check_controller(config):
     assert not _grown(before), f"compiled during the run: {_grown(before)}"
 
 
+class ListLog:
+    """A node logger that keeps its lines (warnings prefixed WARN)."""
+
+    def __init__(self):
+        self.lines = []
+
+    def info(self, text):
+        self.lines.append(text)
+
+    def warning(self, text):
+        self.lines.append("WARN " + text)
+
+
 def test_warm_up_log_says_how_long_and_a_slow_one_says_why():
     import time
 
-    lines = []
+    log = ListLog()
+    lines = log.lines
 
-    class Log:
-        def info(self, text):
-            lines.append(text)
-
-        def warning(self, text):
-            lines.append("WARN " + text)
-
-    took = warm_up_kernels(Log(), lambda: None)
+    took = warm_up_kernels(log, lambda: None)
     assert took < 1.0 and lines == [f"numba kernels ready in {took:.1f} s"]
     lines.clear()
-    warm_up_kernels(Log(), lambda: time.sleep(2.3))
+    warm_up_kernels(log, lambda: time.sleep(2.3))
     assert lines[0].startswith("compiling the numba kernels") and lines[1].startswith("numba kernels ready in 2.")
     # a failing warm-up is said once and does not stop the node
     lines.clear()
-    warm_up_kernels(Log(), lambda: 1 / 0)
+    warm_up_kernels(log, lambda: 1 / 0)
     assert lines == ["WARN numba kernel warm-up failed (ZeroDivisionError: division by zero): they compile at "
                      "first use"]
 
@@ -158,14 +165,7 @@ def test_a_ctrl_c_swallowed_by_a_ctypes_callback_still_stops_the_warm_up(capsys)
         raise KeyboardInterrupt
 
     callback = ctypes.CFUNCTYPE(None)(interrupted_callback)
-    lines = []
-
-    class Log:
-        def info(self, text):
-            lines.append(text)
-
-        def warning(self, text):
-            lines.append("WARN " + text)
+    log = ListLog()
 
     def compile_interrupted_in_callback():
         callback()  # ctypes swallows the KeyboardInterrupt here
@@ -173,19 +173,19 @@ def test_a_ctrl_c_swallowed_by_a_ctypes_callback_still_stops_the_warm_up(capsys)
 
     hook = sys.unraisablehook
     with pytest.raises(KeyboardInterrupt):
-        warm_up_kernels(Log(), compile_interrupted_in_callback)
-    assert lines == [] and "Traceback" not in capsys.readouterr().err
+        warm_up_kernels(log, compile_interrupted_in_callback)
+    assert log.lines == [] and "Traceback" not in capsys.readouterr().err
     assert sys.unraisablehook is hook
     # swallowed, and the compile still finished: the node stops all the same
     with pytest.raises(KeyboardInterrupt):
-        warm_up_kernels(Log(), callback)
+        warm_up_kernels(log, callback)
     # a plain KeyboardInterrupt passes through; other unraisable errors still reach the hook
     with pytest.raises(KeyboardInterrupt):
-        warm_up_kernels(Log(), interrupted_callback)
+        warm_up_kernels(log, interrupted_callback)
     seen = []
     sys.unraisablehook = seen.append
     try:
-        warm_up_kernels(Log(), ctypes.CFUNCTYPE(None)(lambda: 1 / 0))
+        warm_up_kernels(log, ctypes.CFUNCTYPE(None)(lambda: 1 / 0))
     finally:
         sys.unraisablehook = hook
     assert len(seen) == 1 and isinstance(seen[0].exc_value, ZeroDivisionError)
