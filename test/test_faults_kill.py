@@ -344,9 +344,13 @@ def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_pat
     first_run = {stamp_ns(c.header.stamp): (c.command, c.mode) for c in read_topic(tmp_path / "run", "command")}
     assert commands and all(first_run.get(stamp_ns(c.header.stamp), (c.command, c.mode)) == (c.command, c.mode)
                             for c in commands)
-    # one warning from the session, not one per /clock message of the new run
+    # at most one warning from the session, not one per /clock message of the new run. None
+    # when the session's reader matched the new plant only after its run had passed the old
+    # one's last time (CI: the lockstep run does not wait for the session): the profile is a
+    # function of sim time, so nothing was missed (checked above). The warning itself:
+    # test_session_follows_the_clock_back_with_one_warning
     session_log = procs["session"].output()
-    assert session_log.count("went back") == 1, session_log[-2000:]
+    assert session_log.count("went back") <= 1, session_log[-2000:]
     assert "the plant restarted, starting a new run" in procs["controller"].output()
     # the session's progress restarted with the new run and ran to its end
     status = read_topic(tmp_path / "run_run2", "session_status")
@@ -404,3 +408,53 @@ def test_plant_killed_the_controller_says_so_and_stays_up(tmp_path, ros_domain):
         codes = {name: p.stop() for name, p in procs.items() if name != "plant"}
         col.close()
     assert codes == {"controller": 0, "session": 0}, codes
+
+
+def test_session_follows_the_clock_back_with_one_warning(ros_domain):
+    """The session node alone, the test publishing its /clock: after 1 s of a run, time goes
+    back to 0 (a restarted plant). The session says so once (log and WARN diagnostic), sends
+    the profile's Commands from t = 0 again with the same stamps and values, and ends DONE at
+    the run's end (one warning, not one per /clock message of the new run)."""
+    from bike_msgs.msg import Command
+    from bike_plant.loop import LOOP_QOS
+    from builtin_interfaces.msg import Time
+    from rosgraph_msgs.msg import Clock
+
+    col = Collector(ros_domain, {"command": Command, "/diagnostics": DiagnosticArray})
+    clock = col.node.create_publisher(Clock, "/clock", LOOP_QOS)
+    session = NodeProcess("bike_session", "session_node", ros_domain, {"duration_s": 2.0, "config_path": str(CONFIG)})
+    try:
+        col.wait_for(lambda: clock.get_subscription_count() >= 1 and col.reads_from("command", "session"), 30,
+                     "the session matched", [session])
+
+        def ride(t0_s, t1_s):
+            for k in range(round(t0_s / 0.01), round(t1_s / 0.01) + 1):
+                t_ns = k * 10_000_000
+                clock.publish(Clock(clock=Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)))
+                time.sleep(0.002)
+
+        def stamps():
+            return [stamp_ns(c.header.stamp) for c in col.data["command"]]
+
+        ride(0.0, 1.0)
+        col.wait_for(lambda: max(stamps(), default=-1) >= 1_000_000_000, 10, "Commands up to t = 1 s", [session])
+        first = {stamp_ns(c.header.stamp): (c.command, c.mode) for c in col.data["command"]}
+        n_first = len(col.data["command"])
+        ride(0.0, 2.0)
+        assert session.wait(15) == 0, session.output()
+        col.wait_for(lambda: any("plant restarted" in st.message for a in col.data["/diagnostics"] for st in a.status),
+                     5, "the session's WARN diagnostic", [])
+    finally:
+        session.stop()
+        col.close()
+    log = session.output()
+    assert log.count("went back") == 1 and "/clock went back from 1 s to 0 s" in log, log[-2000:]
+    warns = [st.message for a in col.data["/diagnostics"] for st in a.status
+             if st.level == DiagnosticStatus.WARN and "plant restarted" in st.message]
+    assert warns == ["plant restarted: the profile follows it from t = 0 s"], warns
+    # the profile again from t = 0: the same stamps and values as in the first run
+    again = {}
+    for c in col.data["command"][n_first:]:
+        again.setdefault(stamp_ns(c.header.stamp), set()).add((c.command, c.mode))
+    assert 0 in again and all(v == {first[t]} for t, v in again.items() if t in first), again
+    assert max(again) >= 2_000_000_000 and "session done" in log
