@@ -225,7 +225,9 @@ Q_VMAX = 46             # voltage_limit_factor * Vdc: the modulator's circle [V]
 Q_HALF_DT2 = 47         # T^2 / 2 (observer prediction)
 Q_TORQUE_K = 48         # 1.5 pp lambda (nominal Kt, torque estimate)
 Q_REF_ALPHA = 49        # reference trajectory: the error kept per speed sample (0: the command itself)
-Q_SIZE = 50
+Q_RAD_PER_COUNT = 50    # 2 pi / counts per turn (mechanical rad per encoder count)
+Q_INV_JN = 51           # 1 / nominal J
+Q_SIZE = 52
 
 (C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
  C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
@@ -287,6 +289,8 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_BN] = nominal.mech.friction_nms
     q[Q_SPEED_KF] = -math.expm1(-TWO_PI * cp.speed_filter_hz * ts) if cp.speed_filter_hz > 0 else 0.0
     q[Q_REF_ALPHA] = math.exp(-TWO_PI * cp.speed_reference_pole_hz * ts) if cp.speed_reference_pole_hz > 0 else 0.0
+    q[Q_RAD_PER_COUNT] = TWO_PI / q[Q_CPR]
+    q[Q_INV_JN] = 1.0 / q[Q_JN]
     q[Q_MMETHOD] = 1.0 if cp.speed_estimator == "m" else 0.0
     q[Q_DELAY] = float(cp.computation_delay_periods)
     q[Q_ILSB] = cp.current_sensor_lsb_a
@@ -553,7 +557,7 @@ def observer_update(cs, q, meas, iq_a):
     """Speed observer, once per current period: correct with the encoder angle (count + 1/2
     count), then predict one period with the measured torque Kt iq (nominal Kt, J, B; pass
     iq_a = 0 for a pure tracking filter)."""
-    th_meas = (meas[M.S_COUNT] + 0.5) * TWO_PI / q[Q_CPR]
+    th_meas = (meas[M.S_COUNT] + 0.5) * q[Q_RAD_PER_COUNT]
     if cs[C_OBS_INIT] == 0.0:
         cs[C_OBS_TH] = th_meas
         cs[C_OBS_W] = cs[C_SPEED_EST]
@@ -565,7 +569,7 @@ def observer_update(cs, q, meas, iq_a):
     d = cs[C_OBS_D] + q[Q_OBS_L3] * e
     cs[C_SPEED_EST] = w
     h = q[Q_DT]
-    acc = (q[Q_KT] * iq_a - q[Q_BN] * w) / q[Q_JN] + d
+    acc = (q[Q_KT] * iq_a - q[Q_BN] * w) * q[Q_INV_JN] + d
     cs[C_OBS_TH] = th + h * w + q[Q_HALF_DT2] * acc
     cs[C_OBS_W] = w + h * acc
     cs[C_OBS_D] = d
@@ -681,8 +685,9 @@ def control_period(cs, q, meas):
     # count moves (exact sincos every 64 periods and on large jumps)
     pp = q[Q_PP]
     cnt = meas[M.S_COUNT]
-    th = pp * (cnt + 0.5) * TWO_PI / q[Q_CPR]
-    dth = pp * (cnt - cs[C_CNT]) * TWO_PI / q[Q_CPR]
+    # (reciprocals precomputed: a division per use costs the per-period path several ns)
+    th = pp * (cnt + 0.5) * q[Q_RAD_PER_COUNT]
+    dth = pp * (cnt - cs[C_CNT]) * q[Q_RAD_PER_COUNT]
     if cs[C_HAVE_ANGLE] == 0.0 or (int(meas[M.S_PERIODS]) & 63) == 0 or abs(dth) > 0.5:
         c = math.cos(th)
         s = math.sin(th)
@@ -799,7 +804,7 @@ def control_period(cs, q, meas):
     if q[Q_ANGLE_COMP] != 0.0:
         # exp(j (th + we T (1/2 + delay))): the mid angle of the period the voltage is applied in
         # (Taylor series below 0.1 rad, i.e. below ~1900 r/min: no libm sincos per period)
-        rot = M._rot_poly(complex(c, -s), -(0.5 + q[Q_DELAY]) * we * q[Q_DT]).conjugate()
+        rot = M._rot_tel(complex(c, -s), -(0.5 + q[Q_DELAY]) * we * q[Q_DT]).conjugate()
         ca = rot.real
         sa = rot.imag
     else:
