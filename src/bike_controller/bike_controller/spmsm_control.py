@@ -803,7 +803,8 @@ def control_period(cs, q, meas):
     cs[C_VQ] = vq
     if q[Q_ANGLE_COMP] != 0.0:
         # exp(j (th + we T (1/2 + delay))): the mid angle of the period the voltage is applied in
-        # (Taylor series below 0.1 rad, i.e. below ~1900 r/min: no libm sincos per period)
+        # (a short series below 0.02 rad, ~640 r/min, a longer one below 0.1 rad, ~1900 r/min:
+        # no libm sincos per period)
         rot = M._rot_tel(complex(c, -s), -(0.5 + q[Q_DELAY]) * we * q[Q_DT]).conjugate()
         ca = rot.real
         sa = rot.imag

@@ -730,8 +730,8 @@ def _rot_small(e1, dx):
 
 @njit(**JIT_INLINE)
 def _rot_tel(e1, dx):
-    """e1 * exp(-j dx) for telemetry: a shorter series below 0.02 rad (truncation < 1e-18
-    relative), else :func:`_rot_poly`."""
+    """e1 * exp(-j dx) for telemetry and the controller's angle compensation: a shorter
+    series below 0.02 rad (truncation < 1e-18 relative), else :func:`_rot_poly`."""
     if abs(dx) < 0.02:
         x2 = dx * dx
         c = 1.0 - x2 * (0.5 - x2 * (1.0 / 24.0 - x2 * (1.0 / 720.0)))
@@ -743,7 +743,7 @@ def _rot_tel(e1, dx):
 @njit(**JIT_INLINE)
 def _rot_poly(e1, dx):
     """e1 * exp(-j dx) by :func:`_cis_neg` (Taylor below 0.1, no libm sincos). Telemetry, and
-    the controller's angle compensation (bike_controller.spmsm_control.control_period: its
+    above 0.02 rad the controller's angle compensation (spmsm_control.control_period: its
     dx, half a period's electrical angle, is below 0.1 rad up to ~1900 r/min; there the
     series agrees with libm's sincos to the last bit in all but rare cases, and Table 1 of
     `./bike paper seed2-table1` is unchanged; elsewhere the trajectory keeps libm's sincos, a
