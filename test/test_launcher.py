@@ -218,7 +218,6 @@ def test_ctrl_c_during_the_first_compile_stops_every_node_without_a_traceback(tm
     land in llvmlite's ctypes callback, where it was printed as a traceback and swallowed;
     the node then logged a failed warm-up and ran on, and the run took 10 s to end."""
     started = ("bike.plant]: compiling the numba kernels", "bike.controller]: compiling the numba kernels")
-    t0 = time.monotonic()
     text, code = _ctrl_c_bike_run(tmp_path, started, [], env={"NUMBA_CACHE_DIR": str(tmp_path / "numba")})
     assert all(tag in text for tag in started), text[-3000:]
     assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-3000:]

@@ -896,21 +896,22 @@ def warm_up_kernels(logger, warm_up) -> float:
     t0 = time.perf_counter()
     sys.unraisablehook = unraisable
     slow.start()
+    failure = None
     try:
-        try:
-            warm_up()
-        except Exception as exc:  # noqa: BLE001 - a warm-up never keeps a node from running
-            if interrupted:
-                raise KeyboardInterrupt from None
-            # (e.g. a CAN config whose machine section a simulated twin cannot be built from)
-            logger.warning(f"numba kernel warm-up failed ({type(exc).__name__}: {exc}): they compile at first use")
-            return time.perf_counter() - t0
-        if interrupted:
-            raise KeyboardInterrupt
+        warm_up()
+    except Exception as exc:  # noqa: BLE001 - a warm-up never keeps a node from running
+        failure = exc
     finally:
         slow.cancel()
         sys.unraisablehook = previous_hook
+    if interrupted:
+        raise KeyboardInterrupt from None
     took_s = time.perf_counter() - t0
+    if failure is not None:
+        # (e.g. a CAN config whose machine section a simulated twin cannot be built from)
+        logger.warning(f"numba kernel warm-up failed ({type(failure).__name__}: {failure}): they compile at "
+                       "first use")
+        return took_s
     logger.info(f"numba kernels ready in {took_s:.1f} s" + (" (compiled)" if took_s > COMPILED_AFTER_S else ""))
     return took_s
 
