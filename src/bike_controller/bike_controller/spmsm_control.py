@@ -227,7 +227,8 @@ Q_TORQUE_K = 48         # 1.5 pp lambda (nominal Kt, torque estimate)
 Q_REF_ALPHA = 49        # reference trajectory: the error kept per speed sample (0: the command itself)
 Q_RAD_PER_COUNT = 50    # 2 pi / counts per turn (mechanical rad per encoder count)
 Q_INV_JN = 51           # 1 / nominal J
-Q_SIZE = 52
+Q_INV_ILSB = 52         # 1 / ADC step (0 without the ADC)
+Q_SIZE = 53
 
 (C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
  C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
@@ -294,6 +295,7 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_MMETHOD] = 1.0 if cp.speed_estimator == "m" else 0.0
     q[Q_DELAY] = float(cp.computation_delay_periods)
     q[Q_ILSB] = cp.current_sensor_lsb_a
+    q[Q_INV_ILSB] = 1.0 / cp.current_sensor_lsb_a if cp.current_sensor_lsb_a > 0.0 else 0.0
     q[Q_INV_VDC] = 1.0 / q[Q_VDC]
     q[Q_VMAX] = q[Q_VMAX_FACTOR] * q[Q_VDC]
     q[Q_HALF_DT2] = 0.5 * dt * dt
@@ -704,9 +706,13 @@ def control_period(cs, q, meas):
     cs[C_CNT] = cnt
     if q[Q_ILSB] > 0.0:
         # two phase currents through the ADC (quantised to one LSB), the third from their sum
+        # (x * (1 / lsb) as fastmath's arcp formed it, the reciprocal precomputed; np.floor
+        # stays a float: math.floor's int64 round trip is two conversions on the period's
+        # longest latency chain)
         lsb = q[Q_ILSB]
-        ia_m = math.floor(meas[M.S_IA] / lsb + 0.5) * lsb
-        ib_m = math.floor(meas[M.S_IB] / lsb + 0.5) * lsb
+        inv_lsb = q[Q_INV_ILSB]
+        ia_m = np.floor(meas[M.S_IA] * inv_lsb + 0.5) * lsb
+        ib_m = np.floor(meas[M.S_IB] * inv_lsb + 0.5) * lsb
         ial = ia_m
         ibe = (ia_m + 2.0 * ib_m) * (1.0 / SQRT3)
     else:

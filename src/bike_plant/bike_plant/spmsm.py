@@ -455,7 +455,8 @@ P_INV_R = P_INV_L + 1
 P_TEM_K = P_INV_R + 1                   # 1.5 pp / T (prime mover: torque telemetry / ledger only)
 P_HALF_PP_DT = P_TEM_K + 1              # pp T / 2: half a period's electrical angle per rad/s (telemetry)
 P_SOC_PER_A = P_HALF_PP_DT + 1          # T Vbatt / battery capacity: SOC per A of a period
-P_SIZE = P_SOC_PER_A + 1
+P_DRY_W19 = P_SOC_PER_A + 1             # 19 w_s: beyond it the Coulomb friction's tanh is 1
+P_SIZE = P_DRY_W19 + 1
 
 LOAD_DYNO, LOAD_PRIME_MOVER, LOAD_HOOK, LOAD_NONE = 0, 1, 2, 3
 
@@ -504,6 +505,7 @@ def pack_params(p: SpmsmPlantParams) -> np.ndarray:
     v[P_DT_DUTY] = inv.carrier_multiple * inv.dead_time_s / p.control_period_s
     v[P_DRY_T] = m.dry_friction_nm
     v[P_DRY_WS] = m.dry_friction_speed_rpm / RPM_PER_RAD_S
+    v[P_DRY_W19] = 19.0 * v[P_DRY_WS]
     v[P_COG_SIX] = 1.0 if m.cogging_per_rev == 6 * m.pole_pairs else 0.0
     v[P_COG_C] = math.cos(math.radians(m.cogging_phase_deg))
     v[P_COG_S] = math.sin(math.radians(m.cogging_phase_deg))
@@ -1172,13 +1174,13 @@ def friction_torque(w, p):
     Tc tanh(w / w_s) (smoothed through standstill)."""
     f = p[P_B] * w
     if p[P_DRY_T] != 0.0:
-        x = w / p[P_DRY_WS]
-        if x > 19.0:                 # tanh(19) = 1 - 6e-17: saves the tanh
+        # |w| > 19 w_s: tanh(19) = 1 - 6e-17, so no tanh and no division on that path
+        if w > p[P_DRY_W19]:
             f += p[P_DRY_T]
-        elif x < -19.0:
+        elif w < -p[P_DRY_W19]:
             f -= p[P_DRY_T]
         else:
-            f += p[P_DRY_T] * math.tanh(x)
+            f += p[P_DRY_T] * math.tanh(w / p[P_DRY_WS])
     return f
 
 
