@@ -558,7 +558,8 @@ S_SPEED_TARGET = 22        # prime mover [rad/s]
 S_TEXT = 23                # hook load torque on the shaft [N m], accelerating positive
 S_TEM = 24                 # mean Te of the last period
 S_TLOAD = 25               # mean external torque of the last period (accelerating positive)
-S_VD, S_VQ = 26, 27        # mean applied dq voltage of the last period (at its mid angle)
+# 26, 27: free (held the plant's mean applied dq voltage, computed every period and read by
+# nothing; the applied voltage is the controller's vd / vq telemetry)
 S_IBATT = 28               # mean battery current of the last period, charging positive
 S_VLINK = 29               # rectifier DC link of the last period
 S_FAULTS = 30
@@ -1501,17 +1502,6 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
         state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_PACK_OVERCHARGE
     state[S_IBATT] = ibatt
     state[S_VLINK] = vlink
-    # mean applied dq voltage (telemetry): terminal power / current is not unique; report the
-    # period-mean voltage vector at the mid angle
-    if path == 0:
-        vm = _rot_tel(v1, p[P_HALF_PP_DT] * wg)             # telemetry only
-    elif path == 4:
-        vm = complex(0.0, 0.0)
-    else:
-        u = i0 if (i0.real != 0.0 or i0.imag != 0.0) else i1
-        vm = -vr * u / abs(u) if abs(u) > 0.0 else complex(0.0, 0.0)
-    state[S_VD] = vm.real
-    state[S_VQ] = vm.imag
     # ---- ledger: shaft
     w_avg = 0.5 * (w0 + w1)
     if kind == LOAD_PRIME_MOVER:
