@@ -172,7 +172,8 @@ def process_edge(cs, q, count):
 def _bound_speed(cs, q, model, p):
     """No edge for longer than the last interval: Eq. 1 of the elapsed count bounds the speed."""
     if cs[C_HAVE_EDGE] != 0.0:
-        now = math.floor(model[K.S_PERIODS] * (p[P.P_TIMER_HZ] * p[P.P_DT]))   # the plant's timer formula
+        # the plant's timer formula (np.floor: a float floor, no int64 round trip per period)
+        now = np.floor(model[K.S_PERIODS] * (p[P.P_TIMER_HZ] * p[P.P_DT]))
         elapsed = now - cs[C_LAST_EDGE]
         if elapsed > cs[C_NC] and elapsed > 0.0:
             bound = speed_rpm_from_counts(elapsed, q[Q_FC], q[Q_PP])

@@ -1080,11 +1080,11 @@ def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_st
     u1 = u0 + du
     periods = state[S_PERIODS]
     if du > 0.0:
-        k = math.floor(u0) + 1.0
+        k = np.floor(u0) + 1.0       # (np: a float floor, no int64 round trip)
         if k <= u1:
             n_edges = _hall_edges(state, p, k, u0, u1, du, periods, 1.0, edge_counts, edge_states, n_edges)
     elif du < 0.0:
-        k = math.ceil(u0) - 1.0
+        k = np.ceil(u0) - 1.0
         if k >= u1:
             n_edges = _hall_edges(state, p, k, u0, u1, du, periods, -1.0, edge_counts, edge_states, n_edges)
 
