@@ -2,19 +2,16 @@
 predictor's model is the plant's, PI pole placement, operating regions, closed loop."""
 from __future__ import annotations
 
-import copy
 import math
-import pathlib
 
 import numpy as np
 import pytest
 
 from bike_plant import spmsm as M
-from bike_plant.config import ConfigError, load_config
+from bike_plant.config import ConfigError
 from bike_controller import spmsm_control as C
+from conftest import config_variant, spmsm_paper_config
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-CFG_PATH = ROOT / "config" / "spmsm_default.yaml"
 LOW_R = 0.684     # the Rs under which the paper's 200 r/min / 1 N m and 350 r/min are feasible at 24 V
 # the plant's non-idealities off (back-EMF harmonics, cogging, Coulomb friction, dead time)
 # and exact current sensing: for the tests of the control law's own properties (the
@@ -25,22 +22,10 @@ IDEAL = {"spmsm": {"emf_harmonic_5": 0.0, "emf_harmonic_7": 0.0, "cogging_torque
 
 @pytest.fixture(scope="module")
 def cfg():
-    # these tests use the paper's printed Rs = 6.84 ohm; the default config reads it as
-    # 0.684 ohm (see its comment) and the cases that need that set it explicitly
-    c = load_config(CFG_PATH)
-    assert c["spmsm"]["rs_ohm"] == 0.684
-    c["spmsm"]["rs_ohm"] = 6.84
-    # the paper's test bench, not the bike: dynamometer load, shaft at rest
-    c["load"]["kind"] = "dynamometer"
-    c["mechanics"]["speed0_rpm"] = 0.0
-    return c
+    return spmsm_paper_config()
 
 
-def variant(cfg, **sections):
-    c = copy.deepcopy(cfg)
-    for name, values in sections.items():
-        c[name] = dict(c.get(name, {}), **values)
-    return c
+variant = config_variant
 
 
 def ideal(cfg, **sections):

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from bike_plant import spmsm as M
-from bike_plant.config import ConfigError, load_config
+from bike_plant.config import ConfigError
+from conftest import config_variant, spmsm_paper_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CFG_PATH = ROOT / "config" / "spmsm_default.yaml"
@@ -19,22 +20,11 @@ CFG_PATH = ROOT / "config" / "spmsm_default.yaml"
 
 @pytest.fixture(scope="module")
 def cfg():
-    # these tests use the paper's printed Rs = 6.84 ohm; the default config reads it as
-    # 0.684 ohm (see its comment) and the cases that need that set it explicitly
-    c = load_config(CFG_PATH)
-    assert c["spmsm"]["rs_ohm"] == 0.684
-    c["spmsm"]["rs_ohm"] = 6.84
-    # the paper's test bench, not the bike: dynamometer load, shaft at rest
-    c["load"]["kind"] = "dynamometer"
-    c["mechanics"]["speed0_rpm"] = 0.0
-    return c
+    return spmsm_paper_config()
 
 
 def plant_with(cfg, **sections):
-    c = copy.deepcopy(cfg)
-    for name, values in sections.items():
-        c[name] = dict(c.get(name, {}), **values)
-    return M.SpmsmPlant(M.plant_params_from_config(c))
+    return M.SpmsmPlant(M.plant_params_from_config(config_variant(cfg, **sections)))
 
 
 def test_section6_parameters_and_flux_interpretation(cfg):
