@@ -453,8 +453,7 @@ P_INV_L = P_RAD_PER_COUNT + 1           # 1 / L, 1 / R (the per-period path mult
                                         # numbers as before: fastmath arcp already did x * (1/L))
 P_INV_R = P_INV_L + 1
 P_TEM_K = P_INV_R + 1                   # 1.5 pp / T (prime mover: torque telemetry / ledger only)
-P_HALF_PP_DT = P_TEM_K + 1              # pp T / 2: half a period's electrical angle per rad/s (telemetry)
-P_SOC_PER_A = P_HALF_PP_DT + 1          # T Vbatt / battery capacity: SOC per A of a period
+P_SOC_PER_A = P_TEM_K + 1               # T Vbatt / battery capacity: SOC per A of a period
 P_DRY_W19 = P_SOC_PER_A + 1             # 19 w_s: beyond it the Coulomb friction's tanh is 1
 P_SIZE = P_DRY_W19 + 1
 
@@ -524,7 +523,6 @@ def pack_params(p: SpmsmPlantParams) -> np.ndarray:
     v[P_INV_L] = 1.0 / ind
     v[P_INV_R] = 1.0 / r
     v[P_TEM_K] = 1.5 * m.pole_pairs / p.control_period_s
-    v[P_HALF_PP_DT] = 0.5 * m.pole_pairs * p.control_period_s
     v[P_FCAP] = p.encoder.capture_timer_hz
     v[P_DYNO_N] = len(p.load.dyno_time_s)
     for k, (t, tq) in enumerate(zip(p.load.dyno_time_s, p.load.dyno_torque_nm)):
@@ -733,8 +731,8 @@ def _rot_small(e1, dx):
 
 @njit(**JIT_INLINE)
 def _rot_tel(e1, dx):
-    """e1 * exp(-j dx) for telemetry and the controller's angle compensation: a shorter
-    series below 0.02 rad (truncation < 1e-18 relative), else :func:`_rot_poly`."""
+    """e1 * exp(-j dx) for the controller's angle compensation: a shorter series below
+    0.02 rad (truncation < 1e-18 relative), else :func:`_rot_poly`."""
     if abs(dx) < 0.02:
         x2 = dx * dx
         c = 1.0 - x2 * (0.5 - x2 * (1.0 / 24.0 - x2 * (1.0 / 720.0)))
@@ -745,8 +743,8 @@ def _rot_tel(e1, dx):
 
 @njit(**JIT_INLINE)
 def _rot_poly(e1, dx):
-    """e1 * exp(-j dx) by :func:`_cis_neg` (Taylor below 0.1, no libm sincos). Telemetry, and
-    above 0.02 rad the controller's angle compensation (spmsm_control.control_period: its
+    """e1 * exp(-j dx) by :func:`_cis_neg` (Taylor below 0.1, no libm sincos): above 0.02 rad
+    the controller's angle compensation (spmsm_control.control_period: its
     dx, half a period's electrical angle, is below 0.1 rad up to ~1900 r/min; there the
     series agrees with libm's sincos to the last bit in all but rare cases, and Table 1 of
     `./bike paper seed2-table1` is unchanged; elsewhere the trajectory keeps libm's sincos, a
@@ -1329,7 +1327,7 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             v1 = vab * ej0.conjugate()
         else:
             switching_segments(_clip01(da), _clip01(db), _clip01(dc), state[S_IA], state[S_IB], state[S_IC], p, ws)
-            # the period's mean voltage vector (shaft guess, telemetry; the solution uses the segments)
+            # the period's mean voltage vector (the shaft guess; the solution uses the segments)
             vsum = complex(0.0, 0.0)
             for k in range(int(ws[W_NSEG])):
                 vsum += complex(ws[W_VA + k], ws[W_VB + k]) * ws[W_T + k]
