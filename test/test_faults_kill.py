@@ -263,8 +263,12 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
             col.wait_for(lambda: any(s.state == SessionStatus.STATE_DONE for s in col.data["session_status"]),
                          10, "the restarted session's DONE", [restarted])
             assert restarted.wait(10) == 0, restarted.output()
+        # the test's own reader is not in the loop: the lockstep graph does not wait for it, and
+        # under load it can fall more than the writer's history (LOOP_QOS depth) behind and miss
+        # states (CI: 93 in a row while the restarted session started). The run's continuity is
+        # read from the bag below: the recorder holds the plant to its pace.
         seqs = _dedupe_seqs(states)
-        assert seqs == list(range(len(seqs))) and states[-1].end_of_run
+        assert states[-1].end_of_run
         assert abs(stamp_ns(states[-1].header.stamp) * 1e-9 - duration) < 1e-6
         assert not any(m.faults & PlantState.FAULT_BAD_COMMAND for m in states)
     finally:
@@ -288,7 +292,9 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
         assert tail[-1] == seqs[-1]
     else:
         recorded = _dedupe_seqs(read_topic(tmp_path / "run", "plant_state"))
-        assert recorded == seqs, "the recorder kept every batch across the restart"
+        assert recorded == list(range(len(recorded))) and recorded[-1] == seqs[-1], \
+            "the run resumed, and the recorder kept every batch across the restart"
+        assert set(seqs) <= set(recorded)
 
 
 def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_path, ros_domain):
