@@ -1,7 +1,6 @@
 """Shared test helpers: isolated DDS domains and real node processes; the SPMSM paper-bench config."""
 from __future__ import annotations
 
-import copy
 import os
 import pathlib
 import signal
@@ -27,14 +26,6 @@ def spmsm_paper_config() -> dict:
     c["spmsm"]["rs_ohm"] = 6.84
     c["load"]["kind"] = "dynamometer"
     c["mechanics"]["speed0_rpm"] = 0.0
-    return c
-
-
-def config_variant(cfg: dict, **sections) -> dict:
-    """A deep copy of `cfg` with each section's keys updated from `sections` (name=dict)."""
-    c = copy.deepcopy(cfg)
-    for name, values in sections.items():
-        c[name] = dict(c.get(name, {}), **values)
     return c
 
 

@@ -24,6 +24,7 @@ import re
 import numpy as np
 import pytest
 
+from bike_plant.config import config_variant
 from bike_session import paper_spmsm as P
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -159,7 +160,7 @@ def test_overmodulation_raises_the_thd_but_not_to_the_papers_level():
     """inverter.overmodulation: clamp (voltage limit 2 Vdc/pi, per-phase duty clamp) at 200 r/min
     and 1 N m: less flux-weakening current, more 5th / 7th voltage, a higher THD for both
     families, still below half the paper's 8.8 / 12.5 % (why: paper_spmsm docstring)."""
-    cfg = P.variant(P._load(CFG_PATH), inverter={"overmodulation": "clamp"})
+    cfg = config_variant(P._load(CFG_PATH), inverter={"overmodulation": "clamp"})
     base = P._load(CFG_PATH)
     for fam, paper in zip(P.FAMILIES, P.PAPER[("thd", "phase_current_thd")]):
         lin, om = P.current_thd(base, fam), P.current_thd(cfg, fam)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from bike_plant import spmsm as M
-from bike_plant.config import ConfigError
+from bike_plant.config import ConfigError, config_variant
 from bike_controller import spmsm_control as C
-from conftest import config_variant, spmsm_paper_config
+from conftest import spmsm_paper_config
 
 LOW_R = 0.684     # the Rs under which the paper's 200 r/min / 1 N m and 350 r/min are feasible at 24 V
 # the plant's non-idealities off (back-EMF harmonics, cogging, Coulomb friction, dead time)

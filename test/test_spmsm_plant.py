@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from bike_plant import spmsm as M
-from bike_plant.config import ConfigError
-from conftest import config_variant, spmsm_paper_config
+from bike_plant.config import ConfigError, config_variant
+from conftest import spmsm_paper_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CFG_PATH = ROOT / "config" / "spmsm_default.yaml"

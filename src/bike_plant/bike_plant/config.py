@@ -9,6 +9,7 @@ Values are never evaluated as code: the file is parsed with ``yaml.safe_load``.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -85,6 +86,15 @@ def load_config(path: str | os.PathLike | None = None, node_name: str | None = N
         raise ConfigError(f"no '{WILDCARD}: ros__parameters:' section", path)
     merged["_config_path"] = str(path.resolve())
     return merged
+
+
+def config_variant(cfg: dict, **sections) -> dict:
+    """A deep copy of a loaded config with the given sections' keys updated, e.g.
+    config_variant(cfg, load={"kind": "none"}) (experiments and tests derive their cases so)."""
+    c = copy.deepcopy(cfg)
+    for name, values in sections.items():
+        c[name] = dict(c.get(name) or {}, **values)
+    return c
 
 
 def _deep_merge(into: dict, other: Mapping) -> None:

@@ -121,7 +121,7 @@ import time
 
 import numpy as np
 
-from bike_plant.config import load_config
+from bike_plant.config import config_variant, load_config
 
 from bike_controller import spmsm_control as C
 
@@ -158,17 +158,9 @@ def _load(cfg_or_path) -> dict:
     return load_config(cfg_or_path)
 
 
-def variant(cfg: dict, **sections) -> dict:
-    """A copy of cfg with the given sections updated (variant(cfg, load={'kind': 'none'}))."""
-    c = copy.deepcopy(cfg)
-    for name, values in sections.items():
-        c[name] = dict(c.get(name) or {}, **values)
-    return c
-
-
 def _free_shaft(cfg: dict, speed0_rpm: float) -> dict:
     """The dynamometer is driven by the runner's load_fn; the shaft starts at speed0."""
-    return variant(cfg, load={"kind": "none"}, mechanics={"speed0_rpm": float(speed0_rpm)})
+    return config_variant(cfg, load={"kind": "none"}, mechanics={"speed0_rpm": float(speed0_rpm)})
 
 
 def _moving_mean(x: np.ndarray, n: int) -> np.ndarray:
