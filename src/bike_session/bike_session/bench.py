@@ -226,15 +226,16 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
     for key, switching in (("inner_loop_spmsm_real_time", False), ("inner_loop_spmsm_switching_real_time", True)):
         if not want("inner"):
             break
+        repeats = 5 if quick else 20
         rt, compile_s, spmsm_period_s, rt_median = spmsm_inner_loop_real_time(
-            seconds=0.5 if quick else 1.0, switching=switching, repeats=5 if quick else 20)
+            seconds=0.5 if quick else 1.0, switching=switching, repeats=repeats)
         figures[key] = rt
         figures[key.replace("_real_time", "_median_real_time")] = rt_median
         figures[key.replace("_real_time", "_compile_s")] = compile_s
         ns = spmsm_period_s / rt * 1e9
         figures[key.replace("_real_time", "_ns_per_period")] = ns
         show(f"inner loop, SPMSM 10 kHz ({'switching' if switching else 'average'} inverter), one core: "
-             f"{rt:.0f}x real time, best of {5 if quick else 20} runs (median {rt_median:.0f}x) "
+             f"{rt:.0f}x real time, best of {repeats} runs (median {rt_median:.0f}x) "
              f"(target >= {TARGET_INNER_LOOP_REAL_TIME:.0f}x: ratio "
              f"{rt / TARGET_INNER_LOOP_REAL_TIME:.2f}); {ns:.0f} ns = {ns * clock_ghz:.0f} cycles per period; "
              f"JIT compile / cache load {compile_s:.1f} s")
