@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import pathlib
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -179,6 +180,20 @@ def test_a_ctrl_c_swallowed_by_a_ctypes_callback_still_stops_the_warm_up(capsys)
     # swallowed, and the compile still finished: the node stops all the same
     with pytest.raises(KeyboardInterrupt):
         warm_up_kernels(log, callback)
+    # swallowed, and the compile goes on (CI: 10 s on, until the launcher's SIGTERM): it stops
+    # within a few of the compile's steps, not after the rest of the warm-up (2 s here)
+    rest_of_compile = []
+
+    def compile_goes_on():
+        callback()
+        for _ in range(400):
+            rest_of_compile.append(1)
+            time.sleep(0.005)
+
+    with pytest.raises(KeyboardInterrupt):
+        warm_up_kernels(log, compile_goes_on)
+    assert len(rest_of_compile) < 100, len(rest_of_compile)
+    assert log.lines == [] and "Traceback" not in capsys.readouterr().err
     # a plain KeyboardInterrupt passes through; other unraisable errors still reach the hook
     with pytest.raises(KeyboardInterrupt):
         warm_up_kernels(log, interrupted_callback)

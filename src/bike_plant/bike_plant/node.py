@@ -867,6 +867,11 @@ def install_signal_handlers(node) -> None:
 COMPILED_AFTER_S = 5.0
 
 
+# warm_up_kernels: a Ctrl-C swallowed by a ctypes callback is delivered again this long after
+# (the callback has returned by then; the compile's next Python line raises it)
+REINTERRUPT_DELAY_S = 0.01
+
+
 def warm_up_kernels(logger, warm_up) -> float:
     """Run ``warm_up`` (a node's per-batch path on throw-away data) and log how long numba
     took: the first run after installing or editing a kernel compiles for tens of seconds,
@@ -875,18 +880,35 @@ def warm_up_kernels(logger, warm_up) -> float:
     A Ctrl-C during the compile ends the node (KeyboardInterrupt), as anywhere else before
     its loop runs. When the SIGINT lands inside llvmlite's ctypes object-cache callback,
     ctypes swallows the KeyboardInterrupt (printing it as an "exception ignored" traceback)
-    and numba then fails with an unrelated RuntimeError; the interrupt is caught there
-    and raised again here, so the node neither runs on nor prints a traceback."""
+    and numba then either fails with an unrelated RuntimeError or compiles on, for tens of
+    seconds (CI: past the launcher's 10 s grace, so the node was killed by SIGTERM). The
+    interrupt is caught there and delivered to the main thread again just after the callback
+    has returned (_thread.interrupt_main from a timer thread: the compile's next Python line
+    raises it; from inside the hook it would be raised, and swallowed, in the hook itself),
+    and raised here if the warm-up returned first, so the node neither runs on nor prints a
+    traceback."""
+    import _thread
     import threading
 
     interrupted = []
+    deliveries = []
     previous_hook = sys.unraisablehook
 
+    def deliver_again():
+        timer = threading.Timer(REINTERRUPT_DELAY_S, _thread.interrupt_main)
+        timer.daemon = True
+        deliveries.append(timer)
+        timer.start()
+
     def unraisable(info):
-        if isinstance(info.exc_value, KeyboardInterrupt):
-            interrupted.append(info)
-        else:
-            previous_hook(info)
+        try:
+            if isinstance(info.exc_value, KeyboardInterrupt):
+                interrupted.append(info)
+                deliver_again()
+            else:
+                previous_hook(info)
+        except KeyboardInterrupt:       # a delivery landed in the hook itself: once more
+            deliver_again()
 
     # said only when it is slow: a load from the cache takes a fraction of a second
     slow = threading.Timer(2.0, lambda: logger.info(
@@ -902,8 +924,10 @@ def warm_up_kernels(logger, warm_up) -> float:
     except Exception as exc:  # noqa: BLE001 - a warm-up never keeps a node from running
         failure = exc
     finally:
-        slow.cancel()
         sys.unraisablehook = previous_hook
+        slow.cancel()
+        for timer in deliveries:        # not due any more: raised below
+            timer.cancel()
     if interrupted:
         raise KeyboardInterrupt from None
     took_s = time.perf_counter() - t0
