@@ -48,6 +48,7 @@ the plant's diagnostic (``can_*``).
 from __future__ import annotations
 
 import math
+import os
 import signal
 import sys
 import time
@@ -867,9 +868,13 @@ def install_signal_handlers(node) -> None:
 COMPILED_AFTER_S = 5.0
 
 
-# warm_up_kernels: a Ctrl-C swallowed by a ctypes callback is delivered again this long after
-# (the callback has returned by then; the compile's next Python line raises it)
-REINTERRUPT_DELAY_S = 0.01
+# warm_up_kernels says "compiling ..." when the warm-up takes longer than this
+SLOW_WARM_UP_S = 2.0
+JOIN_POLL_S = 0.05
+
+# the finished events of warm-up threads left compiling by a Ctrl-C (warm_up_kernels):
+# run_loop_node exits without waiting for them
+_abandoned_warm_ups: list = []
 
 
 def warm_up_kernels(logger, warm_up) -> float:
@@ -877,67 +882,68 @@ def warm_up_kernels(logger, warm_up) -> float:
     took: the first run after installing or editing a kernel compiles for tens of seconds,
     later runs load the cache in a fraction of a second. Returns the seconds.
 
-    A Ctrl-C during the compile ends the node (KeyboardInterrupt), as anywhere else before
-    its loop runs. When the SIGINT lands inside llvmlite's ctypes object-cache callback,
-    ctypes swallows the KeyboardInterrupt (printing it as an "exception ignored" traceback)
-    and numba then either fails with an unrelated RuntimeError or compiles on, for tens of
-    seconds (CI: past the launcher's 10 s grace, so the node was killed by SIGTERM). The
-    interrupt is caught there and delivered to the main thread again just after the callback
-    has returned (_thread.interrupt_main from a timer thread: the compile's next Python line
-    raises it; from inside the hook it would be raised, and swallowed, in the hook itself),
-    and raised here if the warm-up returned first, so the node neither runs on nor prints a
-    traceback."""
-    import _thread
+    The warm-up runs in a worker thread while this (main) thread waits. CPython runs signal
+    handlers in the main thread only, so a Ctrl-C during the compile raises KeyboardInterrupt
+    here, in the wait, and ends the node at once, as anywhere else before its loop runs. It
+    never lands inside numba: there, in llvmlite's ctypes object-cache callback, ctypes
+    swallowed it (CI), and numba then failed with an unrelated error or compiled on for tens
+    of seconds, past the launcher's 10 s grace. The interrupted compile is left to its daemon
+    thread, and run_loop_node exits without waiting for it (numba writes a cache file under a
+    temporary name and renames it when complete, so none is left half-written)."""
     import threading
 
-    interrupted = []
-    deliveries = []
-    previous_hook = sys.unraisablehook
+    outcome = []
+    finished = threading.Event()
 
-    def deliver_again():
-        timer = threading.Timer(REINTERRUPT_DELAY_S, _thread.interrupt_main)
-        timer.daemon = True
-        deliveries.append(timer)
-        timer.start()
-
-    def unraisable(info):
+    def run():
         try:
-            if isinstance(info.exc_value, KeyboardInterrupt):
-                interrupted.append(info)
-                deliver_again()
-            else:
-                previous_hook(info)
-        except KeyboardInterrupt:       # a delivery landed in the hook itself: once more
-            deliver_again()
+            # the kernel then delivers SIGINT / SIGTERM to the main thread: its wait returns
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+            warm_up()
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread below
+            outcome.append(exc)
+        finally:
+            finished.set()
 
-    # said only when it is slow: a load from the cache takes a fraction of a second
-    slow = threading.Timer(2.0, lambda: logger.info(
-        "compiling the numba kernels (the first run after an install or a kernel edit: up to a minute; "
-        "cached for the next runs)"))
-    slow.daemon = True
+    worker = threading.Thread(target=run, name="numba-warm-up", daemon=True)
     t0 = time.perf_counter()
-    sys.unraisablehook = unraisable
-    slow.start()
-    failure = None
+    worker.start()
+    said = False
     try:
-        warm_up()
-    except Exception as exc:  # noqa: BLE001 - a warm-up never keeps a node from running
-        failure = exc
-    finally:
-        sys.unraisablehook = previous_hook
-        slow.cancel()
-        for timer in deliveries:        # not due any more: raised below
-            timer.cancel()
-    if interrupted:
-        raise KeyboardInterrupt from None
+        # short waits: back in Python often, where a pending signal's handler runs. An Event,
+        # not Thread.join: a join interrupted by KeyboardInterrupt marks the thread as stopped
+        # while it runs on (CPython gh-90882), and run_loop_node must see it running.
+        while not finished.wait(JOIN_POLL_S):
+            if not said and time.perf_counter() - t0 > SLOW_WARM_UP_S:
+                # said only when it is slow: a load from the cache takes a fraction of a second
+                logger.info("compiling the numba kernels (the first run after an install or a kernel edit: up "
+                            "to a minute; cached for the next runs)")
+                said = True
+    except KeyboardInterrupt:
+        _abandoned_warm_ups.append(finished)
+        raise
     took_s = time.perf_counter() - t0
-    if failure is not None:
-        # (e.g. a CAN config whose machine section a simulated twin cannot be built from)
+    if outcome:
+        failure = outcome[0]
+        if not isinstance(failure, Exception):
+            raise failure
+        # a warm-up never keeps a node from running (e.g. a CAN config whose machine section
+        # a simulated twin cannot be built from)
         logger.warning(f"numba kernel warm-up failed ({type(failure).__name__}: {failure}): they compile at "
                        "first use")
         return took_s
     logger.info(f"numba kernels ready in {took_s:.1f} s" + (" (compiled)" if took_s > COMPILED_AFTER_S else ""))
     return took_s
+
+
+def exit_if_a_warm_up_is_left(code: int) -> None:
+    """After a Ctrl-C during warm_up_kernels: end the process now, with `code`, instead of
+    finalising the interpreter while the abandoned compile runs on in its thread (inside
+    llvmlite, which calls back into Python). The node is already shut down; stdio is flushed."""
+    if not all(finished.is_set() for finished in _abandoned_warm_ups):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
 
 
 def run_loop_node(node_factory, label: str, args=None) -> int:
@@ -966,6 +972,7 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
             node.executor_.shutdown()
             node.destroy_node()
         rclpy.try_shutdown()
+    exit_if_a_warm_up_is_left(code)
     return code
 
 
