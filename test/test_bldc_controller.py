@@ -1,7 +1,6 @@
 """BLDC controller (paper 000): Eq. 1-9 with the paper's numbers, commutation, validation."""
 from __future__ import annotations
 
-import copy
 import math
 import pathlib
 
@@ -13,7 +12,7 @@ from bike_controller.closed_loop import run_offline
 from bike_controller.speed_estimator import HallSpeedEstimator, pulses_per_rev, speed_rpm_from_counts
 from bike_controller.torque_command import KGF_CM_TO_NM, pmax_w, torque_command_nm
 from bike_plant import bldc as K
-from bike_plant.config import load_config
+from bike_plant.config import config_variant, load_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CFG_PATH = ROOT / "config" / "bldc_default.yaml"
@@ -40,9 +39,7 @@ def cfg():
 @pytest.fixture
 def paper_cfg(cfg):
     """The paper's own k table: 0.8 below 4500 rpm, 1.0 above (section 5)."""
-    c = copy.deepcopy(cfg)
-    c["controller"] = dict(c["controller"], k_speed_rpm=[0.0, 4500.0], k_factor=[0.8, 1.0], k_interp="step")
-    return c
+    return config_variant(cfg, controller={"k_speed_rpm": [0.0, 4500.0], "k_factor": [0.8, 1.0], "k_interp": "step"})
 
 
 def test_eq1_speed_from_capture_counts():
@@ -130,8 +127,7 @@ def test_other_pattern_trial_held_at_zero_matches_the_exact_split(cfg, speed_rpm
     generating run's crossing trials it agrees with the exact split (two diode legs in
     series reach zero together and the bridge blocks)."""
     from bike_plant import params as P
-    c = copy.deepcopy(cfg)
-    c["load"] = dict(c["load"], speed_rpm=speed_rpm)
+    c = config_variant(cfg, load={"speed_rpm": speed_rpm})
     pp = P.plant_params_from_config(c)
     p = P.pack_params(pp)
     state = K.new_state(p, speed_rpm, pp.battery.soc0)
@@ -176,8 +172,7 @@ def test_status_fields_and_decide_shapes(cfg):
 
 
 def test_closed_loop_gates_never_short_and_speed_estimate(cfg):
-    c = copy.deepcopy(cfg)
-    c["load"] = dict(c["load"], speed_rpm=4200.0)
+    c = config_variant(cfg, load={"speed_rpm": 4200.0})
     out = run_offline(c, 0.05, lambda t: (1.0, 0))
     ctrl, plant = out["controller"], out["plant"]
     assert plant.snapshot()["interlock_blanked_count"] == 0
@@ -188,8 +183,7 @@ def test_closed_loop_gates_never_short_and_speed_estimate(cfg):
 
 
 def test_motoring_quadrant_one(cfg):
-    c = copy.deepcopy(cfg)
-    c["load"] = dict(c["load"], speed_rpm=1000.0)
+    c = config_variant(cfg, load={"speed_rpm": 1000.0})
     out = run_offline(c, 0.06, lambda t: (0.5, 1))
     t_em = np.mean(out["torque_em_nm"][out["time_s"] > 0.02])
     assert t_em > 0.0                                       # motoring: torque along the speed
@@ -198,8 +192,7 @@ def test_motoring_quadrant_one(cfg):
 
 
 def test_current_hysteresis_mean_35a_at_3000rpm(cfg):
-    c = copy.deepcopy(cfg)
-    c["load"] = dict(c["load"], speed_rpm=3000.0)
+    c = config_variant(cfg, load={"speed_rpm": 3000.0})
     out = run_offline(c, 0.06, lambda t: (1.0, 0), current_override_a=35.0, record_samples=True)
     s = out["samples_a"][400:]
     i_fb = 0.5 * np.abs(s).sum(axis=1)

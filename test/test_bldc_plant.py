@@ -1,7 +1,6 @@
 """BLDC plant (paper 000): parameters, back-EMF, bridge, interlock, Hall edges, ledger."""
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import pathlib
@@ -11,7 +10,7 @@ import pytest
 
 from bike_plant import bldc as K
 from bike_plant import params as P
-from bike_plant.config import ConfigError, load_config
+from bike_plant.config import ConfigError, config_variant, load_config
 from bike_plant.sim import BldcPlant
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -65,17 +64,14 @@ def test_table1_constants(cfg):
     (("bldc", "overcurrent_trip_a"), 0.0, "bldc"),
 ])
 def test_bad_config_values_name_the_key(cfg, key, value, needle):
-    bad = copy.deepcopy(cfg)
-    bad[key[0]] = dict(bad[key[0]], **{key[1]: value})
+    bad = config_variant(cfg, **{key[0]: {key[1]: value}})
     with pytest.raises(ConfigError) as exc:
         P.plant_params_from_config(bad)
     assert needle in str(exc.value)
 
 
 def test_nominal_params_switch_off_nonidealities(cfg):
-    c = copy.deepcopy(cfg)
-    c["bldc"] = dict(c["bldc"], inductance_variation=0.2, emf_nonideal=True)
-    c["controller"] = dict(c["controller"], model="nominal")
+    c = config_variant(cfg, bldc={"inductance_variation": 0.2, "emf_nonideal": True}, controller={"model": "nominal"})
     nom = P.nominal_params_from_config(c)
     assert nom.bldc.inductance_variation == 0.0 and not nom.bldc.emf_nonideal
     c["controller"]["model"] = "actual"
@@ -259,8 +255,7 @@ def test_snapshot_has_exactly_plantstate_fields(cfg):
 
 
 def test_brake_resistor_switches_with_hysteresis(cfg):
-    c = copy.deepcopy(cfg)
-    c["battery"] = dict(c["battery"], soc0=0.99)
+    c = config_variant(cfg, battery={"soc0": 0.99})
     pp = P.plant_params_from_config(c)
     pp.load = dataclasses.replace(pp.load, speed_rpm=14000.0)      # strong diode rectification
     plant = BldcPlant(pp)
@@ -275,9 +270,7 @@ def test_brake_resistor_switches_with_hysteresis(cfg):
 
 
 def test_rider_load_holds_cadence(cfg):
-    c = copy.deepcopy(cfg)
-    c["load"] = dict(c["load"], kind="rider")
-    c["mechanics"] = dict(c["mechanics"], speed0_rpm=2500.0)
+    c = config_variant(cfg, load={"kind": "rider"}, mechanics={"speed0_rpm": 2500.0})
     plant = BldcPlant(P.plant_params_from_config(c))
     for _ in range(1000):
         plant.step_batch(np.zeros(20, np.uint8), np.zeros(20, np.uint8), np.ones(20))
