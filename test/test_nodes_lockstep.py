@@ -134,9 +134,16 @@ def test_lockstep_closed_loop(domain):
         early = [m.torque_em_nm for m in states if 0.01 <= stamp_ns(m.header.stamp) * 1e-9 < 0.2]
         assert abs(np.mean(early)) < 0.05
         # invalid Commands: WARN diagnostics, command_rejected, and the node kept running
-        warns = [s for a in col.data["/diagnostics"] for s in a.status
-                 if s.name.endswith("controller") and s.level == DiagnosticStatus.WARN and "rejected" in s.message]
-        assert len(warns) >= 5, [s.message for s in warns]
+        def rejections():
+            return [s for a in list(col.data["/diagnostics"]) for s in a.status
+                    if s.name.endswith("controller") and s.level == DiagnosticStatus.WARN and "rejected" in s.message]
+        # waited for, not read once: CI (a loaded host) had 1 of the 5 here at end of run, and a
+        # reliable writer's repairs of samples lost on the way come with its 100 ms heartbeats
+        try:
+            col.wait_for(lambda: len(rejections()) >= 5, 5.0, "a WARN diagnostic for each invalid Command")
+        except AssertionError:
+            raise AssertionError([s.message for s in rejections()]) from None
+        warns = rejections()
         assert any("not finite" in s.message for s in warns) and any("outside [0, 1]" in s.message for s in warns)
         assert any("unknown mode" in s.message for s in warns)
         assert any(s.command_rejected for s in statuses.values())

@@ -18,28 +18,43 @@ JIT_HOT = dict(JIT, _nrt=False)
 JIT_INLINE = dict(JIT_HOT, forceinline=True)
 
 
+def numba_cache_dirs(module_file: str) -> list:
+    """The directories where numba keeps the cache files of `module_file`'s functions: the
+    __pycache__ beside it and, when NUMBA_CACHE_DIR is set (numba then writes there only),
+    its sub-directory for the module's folder, found with numba's own locator."""
+    import pathlib
+    dirs = [pathlib.Path(module_file).resolve().parent / "__pycache__"]
+    from numba.core import config
+    if config.CACHE_DIR:
+        from numba.core.caching import UserProvidedCacheLocator
+        dirs.append(pathlib.Path(config.CACHE_DIR) / UserProvidedCacheLocator.get_suitable_cache_subpath(module_file))
+    return dirs
+
+
 def invalidate_stale_numba_cache(module_file: str, dependencies) -> int:
     """Delete this module's numba cache files if a module it calls into is newer.
 
     numba's cache=True keys a compiled function on its own source file only; functions
     here inline code and constants from other modules (params layout, plant kernels), so
-    an edit there would otherwise leave a stale, silently wrong cache. Returns the number
-    of files removed."""
+    an edit there would otherwise leave a stale, silently wrong cache. Both places numba
+    may keep them are checked (numba_cache_dirs: with NUMBA_CACHE_DIR set, the beside-the-
+    source check alone missed them and a kernel ran on with the old inlined code). Returns
+    the number of files removed."""
     import pathlib
     src = pathlib.Path(module_file).resolve()
-    cache_dir = src.parent / "__pycache__"
-    if not cache_dir.is_dir():
-        return 0
     try:
         newest = max(pathlib.Path(d).resolve().stat().st_mtime for d in dependencies)
     except OSError:
         return 0
     removed = 0
-    for f in list(cache_dir.glob(src.stem + ".*.nbi")) + list(cache_dir.glob(src.stem + ".*.nbc")):
-        try:
-            if f.stat().st_mtime < newest:
-                f.unlink()
-                removed += 1
-        except OSError:
-            pass
+    for cache_dir in numba_cache_dirs(module_file):
+        if not cache_dir.is_dir():
+            continue
+        for f in list(cache_dir.glob(src.stem + ".*.nbi")) + list(cache_dir.glob(src.stem + ".*.nbc")):
+            try:
+                if f.stat().st_mtime < newest:
+                    f.unlink()
+                    removed += 1
+            except OSError:
+                pass
     return removed
