@@ -147,20 +147,20 @@ class Collector:
 
     def wait_for(self, predicate, timeout: float, what: str = "condition", procs=()) -> None:
         end = time.monotonic() + timeout
+        exited = None
         while time.monotonic() < end:
             if predicate():
                 return
-            for p in procs:
-                if not p.alive():
+            if exited is None:
+                exited = next((p for p in procs if not p.alive()), None)
+                if exited is not None:
                     # its last messages (an end_of_run) can still be on their way to this process,
                     # which a loaded host delays (seen: a plant's normal exit, its end_of_run not yet read)
-                    grace = time.monotonic() + EXIT_GRACE_S
-                    while time.monotonic() < grace:
-                        if predicate():
-                            return
-                        time.sleep(0.01)
-                    raise AssertionError(f"{p.name} exited ({p.proc.returncode}) while waiting for {what}:\n{p.output()}")
+                    end = min(end, time.monotonic() + EXIT_GRACE_S)
             time.sleep(0.01)
+        if exited is not None:
+            raise AssertionError(f"{exited.name} exited ({exited.proc.returncode}) while waiting for {what}:\n"
+                                 f"{exited.output()}")
         logs = "\n".join(f"--- {p.name}:\n{p.output()[-3000:]}" for p in procs)
         raise AssertionError(f"timeout ({timeout}s) waiting for {what}\n{logs}")
 

@@ -187,12 +187,12 @@ def test_a_ctrl_c_during_the_compile_stops_the_node_and_never_lands_inside_the_c
         done.set()
 
     log = ListLog()
-    t0 = time.perf_counter()
     _sigint_after(0.3)
     with pytest.raises(KeyboardInterrupt):
         warm_up_kernels(log, compile_through_callbacks)
-    stopped_s = time.perf_counter() - t0
-    assert stopped_s < 0.8, stopped_s           # not after the rest of the warm-up
+    # stopped while the compile still ran (an ordering, not a wall-clock bound: before, the
+    # warm-up returned only after its compile)
+    assert not done.is_set() and 0 < len(steps) < 100, len(steps)
     assert log.lines == []
     # the compile went on, undisturbed, in its own thread, to its end
     assert done.wait(5.0) and len(steps) == 100 and set(steps) == {"numba-warm-up"}

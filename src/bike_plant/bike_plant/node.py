@@ -870,7 +870,7 @@ COMPILED_AFTER_S = 5.0
 
 # warm_up_kernels says "compiling ..." when the warm-up takes longer than this
 SLOW_WARM_UP_S = 2.0
-JOIN_POLL_S = 0.05
+WAIT_POLL_S = 0.05
 
 # the finished events of warm-up threads left compiling by a Ctrl-C (warm_up_kernels):
 # run_loop_node exits without waiting for them
@@ -913,7 +913,7 @@ def warm_up_kernels(logger, warm_up) -> float:
         # short waits: back in Python often, where a pending signal's handler runs. An Event,
         # not Thread.join: a join interrupted by KeyboardInterrupt marks the thread as stopped
         # while it runs on (CPython gh-90882), and run_loop_node must see it running.
-        while not finished.wait(JOIN_POLL_S):
+        while not finished.wait(WAIT_POLL_S):
             if not said and time.perf_counter() - t0 > SLOW_WARM_UP_S:
                 # said only when it is slow: a load from the cache takes a fraction of a second
                 logger.info("compiling the numba kernels (the first run after an install or a kernel edit: up "
