@@ -653,7 +653,9 @@ def test_the_controller_holds_its_trim_on_stale_measurements_and_erg_never_motor
 def test_spmsm_controller_answers_a_drive_with_a_torque_only():
     from bike_controller.spmsm_session import ModedSpmsmController
 
-    cfg = load_config(ROOT / "config" / "spmsm_default.yaml")
+    # the CAN config: its drive brakes on its inverter, so no rectifier envelope (zero brake at
+    # 200 r/min) limits the law
+    cfg = load_config(ROOT / "config" / "spmsm_can.yaml")
     ctrl = ModedSpmsmController(cfg)
     ctrl.set_command(0.5, 0)
     duties, relay, buck, st = ctrl.decide(_drive_snapshot(200.0), 10)

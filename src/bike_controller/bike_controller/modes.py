@@ -8,13 +8,19 @@ speeds are at the MOTOR shaft; ``gear_ratio`` = motor speed / crank cadence.
 
 Modes (``bike_msgs/Command``):
 
-- RESISTANCE (0): paper 000 Eq. 2-5, Tcmd = C*Tmax below wb, C*Pmax/w above.
+- RESISTANCE (0): paper 000 Eq. 2-5, Tcmd = C*Tmax below wb, C*Pmax/w above: C times the
+  machine's braking envelope. A machine whose braking path is weaker than Tmax / Pmax at some
+  speeds (the SPMSM's diode rectifier + buck of paper 001, Fig. 8: nothing below ~215 r/min,
+  6 N m at 320 r/min against Pmax/w = 10 N m) gives the law its own envelope
+  (``brake_envelope``, motor r/min -> N m): Tcmd = C * min(Eq. 3-4, envelope), so every
+  Command is a torque the bike can brake, and C = 1 is its strongest brake at that speed.
 - MOTORING (1): assist torque C*Tmax (quadrant I, paper 000 section 3).
 - ERG (2): hold P* = C * ``erg_power_max_w``: T = P*/max(w, w_min). Below the minimum
   cadence the torque stops rising (it stays at P*/w_min, so power falls with cadence):
   the rider who slows down is not pushed into the "spiral of death" of trainers that hold
-  power down to standstill (research notes, trainers.md section 5). T is capped at Tmax;
-  when that cap binds the output says so (``saturated``), the target is not met silently.
+  power down to standstill (research notes, trainers.md section 5). T is capped at Tmax (and
+  the braking envelope, when the machine has one); when that cap binds the output says so
+  (``saturated``), the target is not met silently.
 - SLOPE (3): virtual terrain. Grade G = grade_min + C*(grade_max - grade_min) (C = 0.5
   is flat with the default +-20 %). Road load at the virtual speed v (from cadence,
   virtual gear and wheel radius):
@@ -51,6 +57,8 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+
+import numpy as np
 
 from .torque_command import RPM_PER_RAD_S, torque_command_nm
 
@@ -124,8 +132,18 @@ class ModeLaw:
     """Per-batch torque law of every mode, with the switch-over rate limit."""
 
     def __init__(self, mp: ModeParams, *, gear_ratio: float, inertia_kgm2: float, tmax_nm: float,
-                 pmax_w: float, base_speed_rpm: float, friction_nms: float = 0.0):
+                 pmax_w: float, base_speed_rpm: float, friction_nms: float = 0.0,
+                 brake_envelope: tuple | None = None):
         self.mp = mp
+        # (motor r/min grid, N m): the strongest steady brake of the machine's braking path,
+        # when it is weaker than Tmax / Pmax somewhere (None: Eq. 3-4 is the envelope)
+        self.envelope_rpm = self.envelope_nm = None
+        if brake_envelope is not None:
+            rpm, nm = (np.asarray(v, dtype=float) for v in brake_envelope)
+            if rpm.ndim != 1 or rpm.shape != nm.shape or rpm.size < 2 or not np.all(np.diff(rpm) > 0) \
+                    or not np.all(np.isfinite(nm)) or np.any(nm < 0):
+                raise ValueError("brake_envelope must be (increasing speeds, torques >= 0) of equal length >= 2")
+            self.envelope_rpm, self.envelope_nm = rpm, nm
         self.friction_nms = float(friction_nms)
         self.gear_ratio = float(gear_ratio)
         self.inertia_kgm2 = float(inertia_kgm2)
@@ -166,6 +184,13 @@ class ModeLaw:
         self.rider_torque_nm = (self.inertia_kgm2 * (w - self.obs_w) / tau + self.obs_tb
                                 + self.friction_nms * self.obs_w)
 
+    def brake_cap_nm(self, w: float) -> float:
+        """The strongest brake at motor speed ``w`` [rad/s]: Tmax, or less where the
+        machine's braking envelope is lower (held at its last value beyond the table)."""
+        if self.envelope_rpm is None:
+            return self.tmax_nm
+        return min(self.tmax_nm, float(np.interp(w * RPM_PER_RAD_S, self.envelope_rpm, self.envelope_nm)))
+
     # ---------------------------------------------------------------- the laws
     def road_force_n(self, grade: float, v_mps: float) -> float:
         """Road load of section 3 of the research notes (Gribble), drivetrain loss left out."""
@@ -180,15 +205,19 @@ class ModeLaw:
         cadence_rpm = w * RPM_PER_RAD_S / self.gear_ratio
         v = w * self.mps_per_rad_s
         if mode == MODE_RESISTANCE:
-            return torque_command_nm(command, w * RPM_PER_RAD_S, self.tmax_nm, self.base_speed_rpm,
-                                     self.pmax_w), command, v, False
+            t = torque_command_nm(command, w * RPM_PER_RAD_S, self.tmax_nm, self.base_speed_rpm, self.pmax_w)
+            if self.envelope_rpm is not None:
+                # C times the lower of Eq. 3-4 and the envelope (both linear in C)
+                t = min(t, command * self.brake_cap_nm(w))
+            return t, command, v, False
         if mode == MODE_MOTORING:
             return -command * self.tmax_nm, command, v, False
         if mode == MODE_ERG:
             p_w = command * self.erg_power_max_w
             w_min = mp.erg_min_cadence_rpm * self.gear_ratio / RPM_PER_RAD_S
             t = p_w / max(w, w_min)
-            return min(t, self.tmax_nm), p_w, v, t > self.tmax_nm
+            cap = self.brake_cap_nm(w)
+            return min(t, cap), p_w, v, t > cap
         if mode == MODE_SLOPE:
             grade = mp.grade_min + command * (mp.grade_max - mp.grade_min)
             k = self.mps_per_rad_s
@@ -211,6 +240,9 @@ class ModeLaw:
                     t = 0.0
                 elif t < -self.assist_max_nm:
                     t, sat = -self.assist_max_nm, True
+            # Tmax, not the envelope: capping the virtual bike's brake at a steep envelope
+            # (the SPMSM's rectifier path) made its PI swing into assist on a 4 % climb; the
+            # trim flags a brake the path cannot give
             if t > self.tmax_nm:
                 t, sat = self.tmax_nm, True
             if integral is not None and not sat:
@@ -224,6 +256,7 @@ class ModeLaw:
             t_p = self.kp * err
             integral = self.integral_nm + self.ki * err * dt_s
             t = t_p + integral
+            # Tmax, not the envelope: the SPMSM's isokinetic speed loop brakes on the inverter
             lo, hi = -self.assist_max_nm, self.tmax_nm
             sat = not (lo <= t <= hi)
             if not sat:
@@ -281,12 +314,16 @@ class MachineFigures:
     base_speed_rpm: float
     pmax_w: float
     gear_ratio: float            # motor speed / crank cadence
+    # (motor r/min grid, N m): the braking path's strongest steady brake where it is weaker
+    # than Tmax / Pmax (the SPMSM's rectifier path); None: Eq. 3-4 is the envelope
+    brake_envelope: tuple | None = None
 
 
 def machine_figures(cfg: dict) -> MachineFigures:
     """Tmax, base speed, Pmax (= Tmax wb, Eq. 2 of paper 000) and gear of either machine:
     BLDC from ``controller`` (paper 000's Tmax / wb / Pmax); SPMSM: ``controller.tmax_nm``
-    or Kt * current limit, the rated speed as wb. ValueError names what is missing."""
+    or Kt * current limit, the rated speed as wb, and the rectifier path's braking envelope
+    (spmsm_control.brake_envelope; not for a drive on CAN). ValueError names what is missing."""
     machine = str(cfg.get("machine", "bldc"))
     ctrl = cfg.get("controller") or {}
     load = cfg.get("load") or {}
@@ -298,7 +335,13 @@ def machine_figures(cfg: dict) -> MachineFigures:
         tmax = float(ctrl.get("tmax_nm") or nominal.spmsm.torque_constant_nm_per_a
                      * controller_params_from_config(cfg).current_limit_a)
         base = float(nominal.spmsm.rated_speed_rpm)
-        return MachineFigures("spmsm", tmax, base, tmax * base / RPM_PER_RAD_S, float(nominal.load.gear_ratio))
+        envelope = None
+        if cfg.get("backend", "sim") != "can":
+            # braking goes through the relay's rectifier path (a drive on CAN brakes through its inverter)
+            from .spmsm_control import brake_envelope, pack_controller
+            envelope = brake_envelope(pack_controller(controller_params_from_config(cfg), nominal))
+        return MachineFigures("spmsm", tmax, base, tmax * base / RPM_PER_RAD_S, float(nominal.load.gear_ratio),
+                              envelope)
     if machine != "bldc":
         raise ValueError(f"unknown machine {machine!r} (bldc | spmsm)")
     values = []

@@ -452,6 +452,30 @@ def brake_torque_nm(vlink, we, q):
     return -te if we >= 0.0 else te
 
 
+BRAKE_ENVELOPE_STEP_RPM = 5.0
+BRAKE_ENVELOPE_MAX_RPM = 1500.0      # 375 r/min cadence at gear 4: beyond any rider
+
+
+def brake_envelope(q) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The rectifier path's strongest steady braking torque against motor speed: the buck at
+    duty 1, so the link sits at the buck's output voltage (:func:`brake_torque_nm` at
+    Q_BUCK_V, the steady state of Fig. 8 that the plant's average model also settles to).
+    Zero while the line-to-line back-EMF is below the link (about 215 r/min with the paper's
+    machine). Returns (motor r/min grid, N m), for the session's mode laws and the report;
+    plain Python (the plant's own functions, uncompiled), so a report needs no JIT."""
+    steady = M.rectifier_steady_state.py_func
+    vr = M.rectifier_voltage.py_func(q[Q_BUCK_V], q[Q_RECT_DIODE_V])
+    n = int(round(BRAKE_ENVELOPE_MAX_RPM / BRAKE_ENVELOPE_STEP_RPM))
+    rpm = tuple(k * BRAKE_ENVELOPE_STEP_RPM for k in range(n + 1))
+    torque = []
+    for speed_rpm in rpm:
+        we = q[Q_PP] * speed_rpm / RPM_PER_RAD_S
+        i = steady(vr, we, q[Q_R], q[Q_L], q[Q_LAM])
+        t_nm = -1.5 * q[Q_PP] * q[Q_LAM] * i.imag
+        torque.append(t_nm if t_nm > 0.0 else 0.0)
+    return rpm, tuple(torque)
+
+
 @njit(**JIT_HOT)
 def buck_duty_for_brake_torque(t_brake, we, q):
     """Buck duty D = Vbus / Vlink that makes the rectifier brake with t_brake (steady state);

@@ -142,7 +142,7 @@ class ModedSpmsmController(SessionCommand):
         self.gear = float(nominal.load.gear_ratio)
         self.law = ModeLaw(mp, gear_ratio=self.gear, inertia_kgm2=nominal.mech.inertia_kgm2, tmax_nm=tmax,
                            pmax_w=tmax * base / RPM_PER_RAD_S, base_speed_rpm=base,
-                           friction_nms=nominal.mech.friction_nms)
+                           friction_nms=nominal.mech.friction_nms, brake_envelope=fig.brake_envelope)
         self.family = cp.family
         self.command = 0.0
         self.mode = MODE_RESISTANCE

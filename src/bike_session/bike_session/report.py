@@ -102,6 +102,7 @@ DEFAULT_MACHINE = {
     "isokinetic_cadence_max_rpm": 120.0,
     "grade_min": -0.20,
     "grade_max": 0.20,
+    "brake_envelope": None,      # (motor r/min, N m) of a braking path weaker than Eq. 3-4 (SPMSM)
 }
 MACHINE_KEYS = {
     "gear_ratio": "load.gear_ratio",
@@ -171,7 +172,7 @@ def machine_from_info(info: dict | None) -> dict:
             from bike_plant.config import unflatten
             fig = machine_figures(unflatten(params))
             m.update(tmax_nm=fig.tmax_nm, base_speed_rpm=fig.base_speed_rpm, pmax_w=fig.pmax_w,
-                     gear_ratio=fig.gear_ratio)
+                     gear_ratio=fig.gear_ratio, brake_envelope=fig.brake_envelope)
             derived = {"tmax_nm", "base_speed_rpm", "pmax_w", "gear_ratio"}
             found_pmax = True
         except Exception as exc:  # noqa: BLE001 - a report must still come out
@@ -199,12 +200,17 @@ def machine_from_info(info: dict | None) -> dict:
 
 
 def resistance_torque_nm(command, speed_rpm, machine: dict):
-    """Eq. 3-4 of paper 000 (braking torque magnitude) for arrays of command and motor speed."""
+    """Eq. 3-4 of paper 000 (braking torque magnitude) for arrays of command and motor speed;
+    with the machine's ``brake_envelope``, C * min(Eq. 3-4 at C = 1, envelope), as the
+    controller's mode law (bike_controller.modes, RESISTANCE)."""
     command = np.asarray(command, dtype=float)
     rpm = np.abs(np.asarray(speed_rpm, dtype=float))
     w = np.maximum(rpm, 1e-9) / RPM_PER_RAD_S
-    return np.where(rpm < machine["base_speed_rpm"], command * machine["tmax_nm"],
-                    command * machine["pmax_w"] / w)
+    full = np.where(rpm < machine["base_speed_rpm"], machine["tmax_nm"], machine["pmax_w"] / w)
+    envelope = machine.get("brake_envelope")
+    if envelope is not None:
+        full = np.minimum(full, np.interp(rpm, envelope[0], envelope[1]))
+    return command * full
 
 
 def target_from_command(mode, command, machine: dict):
@@ -1283,10 +1289,11 @@ def plot_torque_speed(ax, data: SessionData) -> None:
     rpm = np.linspace(max(top / 400, 1.0), top, 400)
     cmap = _plt().get_cmap("viridis")
     cmds = curve_commands(data.res_commands)
+    law = "Eq. 3-4" if mc.get("brake_envelope") is None else "Eq. 3-4 in the brake envelope"
     for i, c in enumerate(cmds):
         ax.plot(rpm, resistance_torque_nm(c, rpm, mc), color=cmap(i / max(len(cmds) - 1, 1)), lw=1.4,
-                label=f"Eq. 3-4, C = {c:g}")
-    ax.plot(rpm, resistance_torque_nm(1.0, rpm, mc), color="black", lw=0.8, ls=":", label="Eq. 3-4, C = 1")
+                label=f"{law}, C = {c:g}")
+    ax.plot(rpm, resistance_torque_nm(1.0, rpm, mc), color="black", lw=0.8, ls=":", label=f"{law}, C = 1")
     ax.axvline(mc["base_speed_rpm"], color="gray", lw=0.6, ls="--")
     ax.set(xlabel="motor speed [rpm]", ylabel="braking torque -T_em [N m]")
     ax.grid(True, alpha=0.3)
