@@ -677,3 +677,11 @@ def test_spmsm_session_law_and_report_share_the_envelope():
         assert out.brake_torque_nm < 0.9 * machine_figures(cfg).pmax_w / (speed / RPM_PER_RAD_S)
     can = dict(cfg, backend="can")
     assert machine_figures(can).brake_envelope is None
+
+
+def test_spmsm_controller_says_what_its_brake_can_do():
+    from bike_controller.spmsm_session import ModedSpmsmController, envelope_summary
+
+    note = ModedSpmsmController(_spmsm_cfg()).startup_note
+    assert "no brake below 220 r/min (cadence 55 rpm)" in note and "6.83 N m at 420 r/min" in note
+    assert "cannot brake at any speed" in envelope_summary(((0.0, 100.0), (0.0, 0.0)), 4.0)

@@ -157,6 +157,8 @@ class ControllerNode(Node):
         self.get_logger().info(
             f"controller: sync_mode={self.sync_mode} N={self.n} session.period_s={self.period_s:g} "
             f"command_wait_s={self.command_wait_s:g} config={path}")
+        if getattr(self.ctrl, "startup_note", ""):
+            self.get_logger().info(self.ctrl.startup_note)
 
     # ------------------------------------------------------------ inputs
     def _on_command(self, msg: Command) -> None:

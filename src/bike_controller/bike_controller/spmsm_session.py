@@ -124,6 +124,19 @@ class RelayPath:
         return self.rectifier
 
 
+def envelope_summary(envelope, gear_ratio: float) -> str:
+    """One line on what the rectifier path can brake (said once at start-up: a resistance
+    that is zero at low cadence is the path's physics, not a fault)."""
+    rpm, nm = envelope
+    onset = next((r for r, t in zip(rpm, nm) if t > 0.0), None)
+    if onset is None:
+        return "rectifier braking envelope: the path cannot brake at any speed up to %g r/min" % rpm[-1]
+    k = max(range(len(nm)), key=nm.__getitem__)
+    return (f"rectifier braking envelope: no brake below {onset:g} r/min (cadence {onset / gear_ratio:.0f} rpm), "
+            f"strongest {nm[k]:.2f} N m at {rpm[k]:g} r/min; the resistance mode is Command x this envelope "
+            "where it is below Eq. 3-4")
+
+
 class ModedSpmsmController(SessionCommand):
     """SpmsmController + session modes (same decide/status interface as ModedController)."""
 
@@ -143,6 +156,8 @@ class ModedSpmsmController(SessionCommand):
         self.law = ModeLaw(mp, gear_ratio=self.gear, inertia_kgm2=nominal.mech.inertia_kgm2, tmax_nm=tmax,
                            pmax_w=tmax * base / RPM_PER_RAD_S, base_speed_rpm=base,
                            friction_nms=nominal.mech.friction_nms, brake_envelope=fig.brake_envelope)
+        # for the node's log at start-up
+        self.startup_note = envelope_summary(fig.brake_envelope, self.gear) if fig.brake_envelope else ""
         self.family = cp.family
         self.command = 0.0
         self.mode = MODE_RESISTANCE
