@@ -81,3 +81,22 @@ def test_build_dataclass_checks_types_ranges_and_unknown_keys():
                             ({"table": [1, float("inf")]}, "finite")]:
         with pytest.raises(ConfigError, match=message):
             build_dataclass(Example, values, "ex")
+
+
+@pytest.mark.parametrize("values, message", [
+    ({"kind": "rider", "rider_effort0": 1.5}, "rider_effort0 must be in"),
+    ({"kind": "rider", "rider_t0_nm": 0.0}, "rider_t0_nm"),
+    ({"schedule_time_s": [0.0, "x"], "schedule_speed_rpm": [1.0, 2.0]}, "schedule_time_s entries must be numbers"),
+    ({"schedule_time_s": [1.0, 0.0], "schedule_speed_rpm": [1.0, 2.0]}, "schedule_time_s must be increasing"),
+    ({"schedule_time_s": [0.0], "schedule_speed_rpm": []}, "same length"),
+    ({"gear_ratio": -1.0}, "gear_ratio"),
+])
+def test_both_machines_check_the_shared_load_fields_alike(values, message):
+    """The rider, gear and prime-mover schedule are one dataclass (params.ShaftLoadParams)
+    under both machines' load sections: the same bad value, the same one error."""
+    from bike_plant.params import LoadParams
+    from bike_plant.spmsm import SpmsmLoadParams
+
+    for cls in (LoadParams, SpmsmLoadParams):
+        with pytest.raises(ConfigError, match=message):
+            build_dataclass(cls, values, "load")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Mapping
 
 import numpy as np
@@ -116,19 +116,10 @@ LOAD_KINDS = ("prime_mover", "rider", "none")
 
 
 @dataclass
-class LoadParams:
-    """External load on the shaft.
-
-    prime_mover: speed held exactly (paper 000, section 5: 'a prime mover is used to
-    rotate the BLPMEM at a fixed speed'), optionally a schedule of (time_s, speed_rpm) steps.
-    rider: crank torque T = effort * T0 (1 - cadence/cadence_max) (1 + 0.5 cos(2 crank)),
-    two peaks per crank turn, through gear ratio motor/crank; effort from a PI on cadence.
-    """
-    kind: str = "prime_mover"
-    speed_rpm: float = 3000.0
-    schedule_time_s: list = field(default_factory=list)
-    schedule_speed_rpm: list = field(default_factory=list)
-    gear_ratio: float = 35.0
+class RiderParams:
+    """The rider of either machine's ``load`` section (bike_plant.mechanics): crank torque
+    T = effort * T0 (1 - cadence/cadence_max) (1 + 0.5 cos(2 crank)), two peaks per crank
+    turn, through the load's gear ratio motor/crank; effort from a PI on cadence."""
     rider_t0_nm: float = 120.0
     rider_cadence_max_rpm: float = 160.0
     rider_target_cadence_rpm: float = 80.0
@@ -136,18 +127,54 @@ class LoadParams:
     rider_ki: float = 0.1
     rider_effort0: float = 0.3
 
+    def validate_rider(self) -> None:
+        require_positive(self, "rider_t0_nm", "rider_cadence_max_rpm")
+        if not 0.0 <= self.rider_effort0 <= 1.0:
+            raise ValueError("rider_effort0 must be in [0, 1]")
+
+    def rider_fields(self) -> dict:
+        """The rider's fields by name (to carry the rider to another load dataclass)."""
+        return {f.name: getattr(self, f.name) for f in fields(RiderParams)}
+
+
+@dataclass
+class ShaftLoadParams(RiderParams):
+    """What both machines' ``load`` sections share: the rider, the gear motor/crank and the
+    prime mover (speed held exactly at speed_rpm, optionally a schedule of (time_s,
+    speed_rpm) steps). Each machine's section redeclares the defaults of speed and gear."""
+    speed_rpm: float = 3000.0
+    schedule_time_s: list = field(default_factory=list)
+    schedule_speed_rpm: list = field(default_factory=list)
+    gear_ratio: float = 35.0
+
+    def validate_shaft_load(self) -> None:
+        for name in ("schedule_time_s", "schedule_speed_rpm"):
+            if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in getattr(self, name)):
+                raise ValueError(f"{name} entries must be numbers")
+        if len(self.schedule_time_s) != len(self.schedule_speed_rpm):
+            raise ValueError("schedule_time_s and schedule_speed_rpm must have the same length")
+        if list(self.schedule_time_s) != sorted(self.schedule_time_s):
+            raise ValueError("schedule_time_s must be increasing")
+        require_positive(self, "gear_ratio")
+        self.validate_rider()
+
+
+@dataclass
+class LoadParams(ShaftLoadParams):
+    """External load on the shaft.
+
+    prime_mover: speed held exactly (paper 000, section 5: 'a prime mover is used to
+    rotate the BLPMEM at a fixed speed'), optionally a schedule of (time_s, speed_rpm) steps.
+    rider: :class:`RiderParams` through gear ratio motor/crank.
+    """
+    kind: str = "prime_mover"
+    speed_rpm: float = 3000.0
+    gear_ratio: float = 35.0
+
     def validate(self) -> None:
         if self.kind not in LOAD_KINDS:
             raise ValueError(f"kind must be one of {', '.join(LOAD_KINDS)}, got {self.kind!r}")
-        require_positive(self, "gear_ratio", "rider_t0_nm", "rider_cadence_max_rpm")
-        if len(self.schedule_time_s) != len(self.schedule_speed_rpm):
-            raise ValueError("schedule_time_s and schedule_speed_rpm must have the same length")
-        if any(not isinstance(v, (int, float)) for v in list(self.schedule_time_s) + list(self.schedule_speed_rpm)):
-            raise ValueError("schedule entries must be numbers")
-        if list(self.schedule_time_s) != sorted(self.schedule_time_s):
-            raise ValueError("schedule_time_s must be increasing")
-        if not 0.0 <= self.rider_effort0 <= 1.0:
-            raise ValueError("rider_effort0 must be in [0, 1]")
+        self.validate_shaft_load()
 
 
 # Rider presets (research notes trainers.md section 4: linear torque-cadence model,

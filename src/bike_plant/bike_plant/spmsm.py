@@ -121,7 +121,7 @@ from . import jit as _jit
 from . import mechanics
 from .config import ConfigError, build_dataclass, require_positive, section
 from .jit import JIT, JIT_HOT, JIT_INLINE, invalidate_stale_numba_cache  # noqa: F401
-from .params import RPM_PER_RAD_S, TWO_PI, LoadParams, MechParams, load_section_with_preset
+from .params import RPM_PER_RAD_S, TWO_PI, LoadParams, MechParams, ShaftLoadParams, load_section_with_preset
 
 # numba options of every kernel (bike_plant.jit: FMA contraction and reciprocal division,
 # ~30 % faster on the latency-bound serial chains; IEEE NaN / Inf)
@@ -283,32 +283,25 @@ SPMSM_LOAD_KINDS = ("dynamometer", "prime_mover", "rider", "none")
 
 
 @dataclass
-class SpmsmLoadParams:
+class SpmsmLoadParams(ShaftLoadParams):
     """External load on the shaft (paper 001, Fig. 9b: dynamometer; ARCHITECTURE.md loads).
 
     dynamometer: TL(t) piecewise constant, TL = dyno_torque_nm[k] from dyno_time_s[k] on
     (Eq. 3 sign: positive opposes positive rotation). prime_mover: speed held at speed_rpm
-    (optional schedule). rider: the torque-cadence rider of bike_plant.mechanics through the
-    gear motor/crank (the outer rotor turns ~2.5x the crank). none: free shaft.
+    (optional schedule). rider: the torque-cadence rider of bike_plant.mechanics
+    (:class:`bike_plant.params.RiderParams`) through the gear motor/crank (the outer rotor
+    turns ~2.5x the crank). none: free shaft.
     """
     kind: str = "dynamometer"
     dyno_time_s: list = field(default_factory=lambda: [0.0])
     dyno_torque_nm: list = field(default_factory=lambda: [0.0])
     speed_rpm: float = 200.0
-    schedule_time_s: list = field(default_factory=list)
-    schedule_speed_rpm: list = field(default_factory=list)
     gear_ratio: float = 2.5
-    rider_t0_nm: float = 120.0
-    rider_cadence_max_rpm: float = 160.0
-    rider_target_cadence_rpm: float = 80.0
-    rider_kp: float = 0.05
-    rider_ki: float = 0.1
-    rider_effort0: float = 0.3
 
     def validate(self) -> None:
         if self.kind not in SPMSM_LOAD_KINDS:
             raise ValueError(f"kind must be one of {', '.join(SPMSM_LOAD_KINDS)}, got {self.kind!r}")
-        for name in ("dyno_time_s", "dyno_torque_nm", "schedule_time_s", "schedule_speed_rpm"):
+        for name in ("dyno_time_s", "dyno_torque_nm"):
             if any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in getattr(self, name)):
                 raise ValueError(f"{name} entries must be numbers")
         if len(self.dyno_time_s) != len(self.dyno_torque_nm) or not self.dyno_time_s:
@@ -317,20 +310,11 @@ class SpmsmLoadParams:
             raise ValueError(f"at most {MAX_DYNO_POINTS} dynamometer profile points")
         if any(b <= a for a, b in zip(self.dyno_time_s, self.dyno_time_s[1:])):
             raise ValueError("dyno_time_s must be strictly increasing")
-        if len(self.schedule_time_s) != len(self.schedule_speed_rpm):
-            raise ValueError("schedule_time_s and schedule_speed_rpm must have the same length")
-        if list(self.schedule_time_s) != sorted(self.schedule_time_s):
-            raise ValueError("schedule_time_s must be increasing")
-        require_positive(self, "gear_ratio", "rider_t0_nm", "rider_cadence_max_rpm")
-        if not 0.0 <= self.rider_effort0 <= 1.0:
-            raise ValueError("rider_effort0 must be in [0, 1]")
+        self.validate_shaft_load()
 
     def rider_load_params(self) -> LoadParams:
         """The same rider as bike_plant.params.LoadParams (for bike_plant.mechanics)."""
-        return LoadParams(kind="rider", gear_ratio=self.gear_ratio, rider_t0_nm=self.rider_t0_nm,
-                          rider_cadence_max_rpm=self.rider_cadence_max_rpm,
-                          rider_target_cadence_rpm=self.rider_target_cadence_rpm, rider_kp=self.rider_kp,
-                          rider_ki=self.rider_ki, rider_effort0=self.rider_effort0)
+        return LoadParams(kind="rider", gear_ratio=self.gear_ratio, **self.rider_fields())
 
 
 def _default_mech() -> MechParams:
