@@ -473,12 +473,18 @@ class PlantNode(Node):
         now = time.monotonic()
         drive_level_of = getattr(self.backend, "diagnostic_level", None)
         drive_level = drive_level_of() if drive_level_of is not None else 0
-        if (faults != self.last_faults or drive_level != self.last_drive_level
-                or now - self.last_diag_wall >= self.diag_period_s or end_of_run):
-            self._publish_diag(snap, stamp, faults)
+        changed = faults != self.last_faults or drive_level != self.last_drive_level or end_of_run
+        if self._diag_if_due(snap, stamp, faults, now, changed):
             self.last_faults = faults
             self.last_drive_level = drive_level
-            self.last_diag_wall = now
+
+    def _diag_if_due(self, snap: dict, stamp: int, faults: int, now: float, changed: bool = False) -> bool:
+        """The diagnostic every ``diagnostics_period_s`` of wall time, or at once on a change."""
+        if not (changed or now - self.last_diag_wall >= self.diag_period_s):
+            return False
+        self._publish_diag(snap, stamp, faults)
+        self.last_diag_wall = now
+        return True
 
     def _publish_clock(self, stamp: int) -> None:
         self.pub_clock.publish(msgconv.clock_cdr(stamp))
@@ -765,9 +771,7 @@ class PlantNode(Node):
             if now >= again and self.latest_rx is None:
                 again = now + FIRST_STATE_REPUBLISH_S
                 self._republish()
-                if now - self.last_diag_wall >= self.diag_period_s:
-                    self._publish_diag(self._last_snap, self._last_stamp, max(self.last_faults, 0))
-                    self.last_diag_wall = now
+                self._diag_if_due(self._last_snap, self._last_stamp, max(self.last_faults, 0), now)
         self.holding_start = False
         if self.latest_rx is not None and time.monotonic() - start > 1.0:
             self.get_logger().info(f"first DriveCommand after {time.monotonic() - start:.1f}s: sim time starts")
