@@ -240,9 +240,9 @@ class ModeLaw:
                     t = 0.0
                 elif t < -self.assist_max_nm:
                     t, sat = -self.assist_max_nm, True
-            # Tmax, not the envelope: capping the virtual bike's brake at a steep envelope
-            # (the SPMSM's rectifier path) made its PI swing into assist on a 4 % climb; the
-            # trim flags a brake the path cannot give
+            # Tmax, not the envelope: with the envelope as its cap the SPMSM's virtual bike rode
+            # the all_modes climb no better (its brake still swings with the pedal stroke), and
+            # the trim flags a brake the path cannot give
             if t > self.tmax_nm:
                 t, sat = self.tmax_nm, True
             if integral is not None and not sat:
