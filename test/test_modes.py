@@ -687,3 +687,19 @@ def test_spmsm_controller_says_what_its_brake_can_do():
     note = ModedSpmsmController(_spmsm_cfg()).startup_note
     assert "no brake below 220 r/min (cadence 55 rpm)" in note and "6.83 N m at 420 r/min" in note
     assert "cannot brake at any speed" in envelope_summary(((0.0, 100.0), (0.0, 0.0)), 4.0)
+
+
+def test_trim_holds_on_the_shortfall_of_a_saturated_request():
+    """Conditional integration: a request the law flagged saturated (beyond a braking envelope)
+    measures short by design; the trim holds on it and still corrects unflagged requests.
+    Without this the SPMSM's ERG wound the trim up in the slow part of the pedal stroke and
+    over-braked after it (the graph test's ERG 150 W read 171 W)."""
+    from bike_controller.modes import TorqueTrim
+
+    trim = TorqueTrim(10.0)
+    for _ in range(100):
+        trim.correct(6.0, -4.0, 1e-3, brake_only=True, saturated=True)     # 2 N m short, flagged
+    assert trim.trim_nm == 0.0
+    for _ in range(100):
+        trim.correct(3.0, -2.5, 1e-3, brake_only=True)                     # 0.5 N m short: a model error
+    assert trim.trim_nm == pytest.approx(99 * 0.5 * 1e-3 / trim.tau_s)

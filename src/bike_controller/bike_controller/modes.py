@@ -403,6 +403,7 @@ class TorqueTrim:
         self.tau_s = tau_s
         self.trim_nm = 0.0
         self.asked_nm: float | None = None
+        self.asked_beyond = False    # the last request was flagged saturated: no trim on its shortfall
         self.sign_clamps = 0         # steps whose brake torque the trim would have turned into motoring
         self.held_steps = 0          # steps on a stale measurement: no integration
         self.clamped = False         # the last step was clamped
@@ -410,22 +411,27 @@ class TorqueTrim:
     def reset(self) -> None:
         self.trim_nm = 0.0
         self.asked_nm = None
+        self.asked_beyond = False
         self.clamped = False
 
     def correct(self, brake_torque_nm: float, measured_em_torque_nm, dt_s: float, *, fresh: bool = True,
-                brake_only: bool = False) -> float:
+                brake_only: bool = False, saturated: bool = False) -> float:
         """The torque to request for ``brake_torque_nm``, given the measured mean
         electromagnetic torque of the last batch (motoring positive; None: unknown).
         ``fresh`` False: the measurement is stale (held), the trim holds. ``brake_only``:
-        the result stays a brake (>= 0), see the class doc."""
+        the result stays a brake (>= 0), see the class doc. ``saturated``: the law flagged the
+        request (ModeOutput.saturated: at a limit, or beyond a braking envelope); the shortfall
+        measured for it is no model error, so the trim holds on it (conditional integration: a
+        trim wound up there over-brakes once the speed lets the path deliver)."""
         if (self.asked_nm is not None and measured_em_torque_nm is not None
-                and math.isfinite(measured_em_torque_nm)):
+                and math.isfinite(measured_em_torque_nm) and not self.asked_beyond):
             if fresh:
                 err = self.asked_nm - (-float(measured_em_torque_nm))
                 self.trim_nm = min(max(self.trim_nm + err * dt_s / self.tau_s, -self.limit_nm), self.limit_nm)
             else:
                 self.held_steps += 1
         self.asked_nm = brake_torque_nm
+        self.asked_beyond = saturated
         self.clamped = False
         if brake_torque_nm == 0.0:
             return 0.0

@@ -209,7 +209,7 @@ class ModedSpmsmController(SessionCommand):
         # ERG and resistance are brake-only: a trim wound up on a bad torque reading must not
         # turn their brake into assist (clamped, counted and logged by the trim)
         torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s,
-                                   brake_only=self.mode in BRAKE_ONLY_MODES)
+                                   brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated)
         torque = self.pack.limit(torque, self.battery_soc)
         clipped = False
         if self.relay.choose(torque, dt_s):
