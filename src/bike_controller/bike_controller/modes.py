@@ -403,7 +403,7 @@ class TorqueTrim:
         self.tau_s = tau_s
         self.trim_nm = 0.0
         self.asked_nm: float | None = None
-        self.asked_beyond = False    # the last request was flagged saturated: no trim on its shortfall
+        self.asked_saturated = False    # the last request was flagged saturated: no trim on its shortfall
         self.sign_clamps = 0         # steps whose brake torque the trim would have turned into motoring
         self.held_steps = 0          # steps on a stale measurement: no integration
         self.clamped = False         # the last step was clamped
@@ -411,7 +411,7 @@ class TorqueTrim:
     def reset(self) -> None:
         self.trim_nm = 0.0
         self.asked_nm = None
-        self.asked_beyond = False
+        self.asked_saturated = False
         self.clamped = False
 
     def correct(self, brake_torque_nm: float, measured_em_torque_nm, dt_s: float, *, fresh: bool = True,
@@ -424,14 +424,14 @@ class TorqueTrim:
         measured for it is no model error, so the trim holds on it (conditional integration: a
         trim wound up there over-brakes once the speed lets the path deliver)."""
         if (self.asked_nm is not None and measured_em_torque_nm is not None
-                and math.isfinite(measured_em_torque_nm) and not self.asked_beyond):
+                and math.isfinite(measured_em_torque_nm) and not self.asked_saturated):
             if fresh:
                 err = self.asked_nm - (-float(measured_em_torque_nm))
                 self.trim_nm = min(max(self.trim_nm + err * dt_s / self.tau_s, -self.limit_nm), self.limit_nm)
             else:
                 self.held_steps += 1
         self.asked_nm = brake_torque_nm
-        self.asked_beyond = saturated
+        self.asked_saturated = saturated
         self.clamped = False
         if brake_torque_nm == 0.0:
             return 0.0

@@ -154,7 +154,7 @@ class ModedSpmsmController(SessionCommand):
             raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
         self.gear = float(nominal.load.gear_ratio)
         self.law = ModeLaw(mp, gear_ratio=self.gear, inertia_kgm2=nominal.mech.inertia_kgm2, tmax_nm=tmax,
-                           pmax_w=tmax * base / RPM_PER_RAD_S, base_speed_rpm=base,
+                           pmax_w=fig.pmax_w, base_speed_rpm=base,
                            friction_nms=nominal.mech.friction_nms, brake_envelope=fig.brake_envelope)
         # for the node's log at start-up
         self.startup_note = envelope_summary(fig.brake_envelope, self.gear) if fig.brake_envelope else ""

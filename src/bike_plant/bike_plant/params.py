@@ -141,7 +141,7 @@ class RiderParams:
 class ShaftLoadParams(RiderParams):
     """What both machines' ``load`` sections share: the rider, the gear motor/crank and the
     prime mover (speed held exactly at speed_rpm, optionally a schedule of (time_s,
-    speed_rpm) steps). Each machine's section redeclares the defaults of speed and gear."""
+    speed_rpm) steps). The defaults of speed and gear are the BLDC's; SpmsmLoadParams redeclares them."""
     speed_rpm: float = 3000.0
     schedule_time_s: list = field(default_factory=list)
     schedule_speed_rpm: list = field(default_factory=list)
@@ -168,8 +168,6 @@ class LoadParams(ShaftLoadParams):
     rider: :class:`RiderParams` through gear ratio motor/crank.
     """
     kind: str = "prime_mover"
-    speed_rpm: float = 3000.0
-    gear_ratio: float = 35.0
 
     def validate(self) -> None:
         if self.kind not in LOAD_KINDS:
