@@ -689,6 +689,27 @@ def test_spmsm_controller_says_what_its_brake_can_do():
     assert "cannot brake at any speed" in envelope_summary(((0.0, 100.0), (0.0, 0.0)), 4.0)
 
 
+def test_torque_only_law_does_not_wind_up_on_an_erg_beyond_tmax():
+    """The torque-only law of a drive on CAN (DriveTorqueLaw) passes the law's saturation flag
+    to the trim: ERG asking more than Tmax at a low cadence measures short at the drive's
+    limit, and the trim must not wind up there and over-brake once the request fits."""
+    from bike_controller.modes import TorqueTrim
+    from bike_controller.session_control import DriveTorqueLaw
+
+    drive = DriveTorqueLaw(law(), TorqueTrim(TMAX), DT)
+    stamp = 0
+    for _ in range(2000):                                   # 2 s: ERG at Pmax and 300 r/min, 32 N m asked
+        stamp += int(DT * 1e9)
+        brake, out = drive.step(1.0, MODE_ERG, {"stamp_ns": stamp, "speed_rpm": 300.0,
+                                                "torque_em_nm": -0.8 * TMAX, "faults": 0})
+    assert out.saturated and out.brake_torque_nm == pytest.approx(TMAX)
+    assert drive.trim.trim_nm == 0.0, "no trim on a shortfall the law flagged"
+    stamp += int(DT * 1e9)
+    brake, out = drive.step(1.0, MODE_ERG, {"stamp_ns": stamp, "speed_rpm": 4000.0,
+                                            "torque_em_nm": -0.8 * TMAX, "faults": 0})
+    assert not out.saturated and brake == pytest.approx(out.brake_torque_nm), "no wound-up trim on top"
+
+
 def test_trim_holds_on_the_shortfall_of_a_saturated_request():
     """Conditional integration: a request the law flagged saturated (beyond a braking envelope)
     measures short by design; the trim holds on it and still corrects unflagged requests.

@@ -153,7 +153,7 @@ class DriveTorqueLaw:
         # a flagged stale speed: the law's own integrators (speed loops, virtual bike) hold too
         out = self.law.step(command, mode, speed_rpm, 0.0 if flagged else dt, speed_valid=math.isfinite(speed_rpm))
         brake = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt, fresh=fresh,
-                                  brake_only=mode in BRAKE_ONLY_MODES)
+                                  brake_only=mode in BRAKE_ONLY_MODES, saturated=out.saturated)
         brake = self.pack.limit(brake, snapshot.get("battery_soc"))
         if (self.trim.clamped or self.pack.active) and not out.saturated:
             out = dataclasses.replace(out, saturated=True)
@@ -252,7 +252,7 @@ class ModedController(SessionCommand):
             inner.set_command(self.command, MODE_RESISTANCE)
             return
         torque = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt_s,
-                                   brake_only=self.mode in BRAKE_ONLY_MODES)
+                                   brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated)
         torque = self.pack.limit(torque, snapshot.get("battery_soc"))
         if self.pack.active and not out.saturated:
             self.last_out = out = dataclasses.replace(out, saturated=True)
