@@ -160,6 +160,30 @@ def test_slope_virtual_bike_does_not_dissipate_the_pedal_stroke_ripple():
     assert res[True][2] < 0.5 * res[False][2], "the heavy virtual bike smooths the pedal stroke"
 
 
+def test_virtual_bike_observes_the_rider_through_the_measured_brake():
+    """A machine that brakes less than the virtual bike asks (the SPMSM's rectifier path on a
+    climb): with the measured brake the observer still reads the rider's torque; from the
+    law's own output it would take the missing brake for rider torque."""
+    cap_nm, rider_nm = 0.5, 1.5
+    est = {}
+    for measured in (True, False):
+        m = ModeLaw(ModeParams(virtual_inertia=True), gear_ratio=GEAR, inertia_kgm2=J, tmax_nm=TMAX,
+                    pmax_w=PMAX, base_speed_rpm=WB, friction_nms=B)
+        w, tb, asked, seen = 300.0, 0.0, [], []
+        for k in range(3000):
+            out = m.step(0.6, MODE_SLOPE, w * RPM_PER_RAD_S, DT, measured_brake_nm=tb if measured else None)
+            tb = min(max(out.brake_torque_nm, 0.0), cap_nm)           # what this machine can brake
+            for _ in range(10):
+                w += (rider_nm - tb - B * w) / J * (DT / 10)
+            if k >= 1000:
+                asked.append(out.brake_torque_nm)
+                seen.append(m.rider_torque_nm)
+        est[measured] = (np.mean(seen), np.mean(asked))
+    assert est[True][1] > cap_nm + 0.3, "the virtual bike asks more than the machine gives"
+    assert est[True][0] == pytest.approx(rider_nm, abs=0.02), est
+    assert est[False][0] > rider_nm + 0.3, est
+
+
 def test_isokinetic_holds_cadence_against_the_rider():
     """Closed loop on the flywheel J dw/dt = T_rider - T_brake: the rider pushes harder and
     softer; the cadence returns to the target either way."""
@@ -460,11 +484,11 @@ def _spmsm_batch(plant, ctrl, **snapshot):
     return plant.step_batch(duties, relay, buck)
 
 
-def _spmsm_ride(hold_s: float, erg_s: float = 4.0, climb_s: float = 3.0):
-    """The default SPMSM bike (rider, virtual bike): ERG 180 W, then a 4 % climb (the
-    all_modes profile's order), ModedSpmsmController and the plant in the batch exchange of
-    the nodes, no ROS. Returns, for the climb, (connected-path switch-overs, batches with the
-    relay forced open under current, sign changes of the law's torque, controller)."""
+def _spmsm_ride(hold_s: float, erg_s: float = 4.0, slope_s: float = 6.0, grade: float = -0.04):
+    """The default SPMSM bike (rider, virtual bike): ERG 180 W, then ``slope_s`` on ``grade``,
+    ModedSpmsmController and the plant in the batch exchange of the nodes, no ROS. Returns,
+    for the slope, (connected-path switch-overs, batches with the relay forced open under
+    current, sign changes of the law's torque, controller)."""
     import pathlib
 
     from bike_controller.spmsm_session import ModedSpmsmController
@@ -479,9 +503,9 @@ def _spmsm_ride(hold_s: float, erg_s: float = 4.0, climb_s: float = 3.0):
     ctrl.set_command(180.0 / law.erg_power_max_w, MODE_ERG)
     paths, forced, signs = [], 0, []
     n_erg = int(round(erg_s / 1e-3))
-    for k in range(n_erg + int(round(climb_s / 1e-3))):
+    for k in range(n_erg + int(round(slope_s / 1e-3))):
         if k == n_erg:
-            ctrl.set_command((0.04 - law.mp.grade_min) / (law.mp.grade_max - law.mp.grade_min), MODE_SLOPE)
+            ctrl.set_command((grade - law.mp.grade_min) / (law.mp.grade_max - law.mp.grade_min), MODE_SLOPE)
             paths, forced, signs = [], 0, []
         res = _spmsm_batch(plant, ctrl)
         forced += bool(res.faults & M.FAULT_RELAY_FORCED)
@@ -492,18 +516,19 @@ def _spmsm_ride(hold_s: float, erg_s: float = 4.0, climb_s: float = 3.0):
     return changes(paths), forced, changes(signs), ctrl
 
 
-def test_spmsm_climb_with_the_virtual_bike_does_not_chatter_the_relay():
-    """On a 4 % climb the virtual bike's torque changes sign within the pedal stroke (the
-    rider's mass carries the cranks through the dead spots). The relay stays on the braking
-    path, and the assists it cannot give are flagged. Following each batch's sign (hold 0),
-    the same ride switches the relay tens of times and opens it under current."""
+def test_spmsm_descent_with_the_virtual_bike_does_not_chatter_the_relay():
+    """On a 4 % descent the virtual bike's torque changes sign within the pedal stroke (brake
+    on the push, assist through the dead spots, where gravity carries the heavy virtual bike).
+    The relay stays on one path, and what that path cannot give is flagged. Following each
+    batch's sign (hold 0), the same ride switches the relay and opens it under current.
+    (A 4 % climb no longer serves: it brakes steadily since the virtual bike observes the
+    rider through the measured brake; 17 sign changes in 3 s before, an artefact.)"""
     switches, forced, flips, ctrl = _spmsm_ride(0.5)
-    # 17 sign changes in the 3 s climb since ERG is capped at the rectifier's envelope (before: 20+)
-    assert flips > 10, f"the law's torque changed sign {flips} times: the ride does not test the relay"
+    assert flips > 50, f"the law's torque changed sign {flips} times: the ride does not test the relay"
     assert switches <= 1 and forced == 0, (switches, forced)
-    assert ctrl.relay.rectifier is True and ctrl.last_out is not None
+    assert ctrl.last_out is not None
     switches, forced, _, _ = _spmsm_ride(0.0)
-    assert switches > 10 and forced > 5, (switches, forced)
+    assert switches > 5 and forced > 2, (switches, forced)
 
 
 def test_spmsm_full_pack_brakes_through_the_dump_resistor(caplog, monkeypatch):
@@ -611,15 +636,28 @@ def test_erg_says_where_the_brake_envelope_binds():
 
 
 def test_isokinetic_and_slope_keep_tmax_with_a_brake_envelope():
-    """The SPMSM's isokinetic speed loop brakes on the inverter, and the virtual bike's brake is
-    left to the trim: the envelope caps neither."""
-    for mode, command, speed in ((MODE_ISOKINETIC, 0.0, 1500.0), (MODE_SLOPE, 1.0, 1500.0)):
-        a = ModeLaw(ModeParams(), gear_ratio=GEAR, inertia_kgm2=J, tmax_nm=TMAX, pmax_w=PMAX, base_speed_rpm=WB,
-                    brake_envelope=ENVELOPE)
-        b = law()
-        outs_a = [a.step(command, mode, speed, DT).brake_torque_nm for _ in range(300)]
-        outs_b = [b.step(command, mode, speed, DT).brake_torque_nm for _ in range(300)]
-        assert max(outs_a) > 1.0 and outs_a == outs_b
+    """The SPMSM's isokinetic speed loop brakes on the inverter: the envelope changes nothing.
+    The virtual bike asks up to Tmax too, but beyond the envelope it is flagged saturated and
+    its integral holds (conditional integration, like the trim)."""
+    a = ModeLaw(ModeParams(), gear_ratio=GEAR, inertia_kgm2=J, tmax_nm=TMAX, pmax_w=PMAX, base_speed_rpm=WB,
+                brake_envelope=ENVELOPE)
+    b = law()
+    outs_a = [a.step(0.0, MODE_ISOKINETIC, 1500.0, DT).brake_torque_nm for _ in range(300)]
+    outs_b = [b.step(0.0, MODE_ISOKINETIC, 1500.0, DT).brake_torque_nm for _ in range(300)]
+    assert max(outs_a) > 1.0 and outs_a == outs_b
+    a = ModeLaw(ModeParams(), gear_ratio=GEAR, inertia_kgm2=J, tmax_nm=TMAX, pmax_w=PMAX, base_speed_rpm=WB,
+                brake_envelope=ENVELOPE)
+    cap = a.brake_cap_nm(1500.0 / RPM_PER_RAD_S)
+    outs = []
+    for _ in range(300):
+        held = a.integral_nm
+        out = a.step(1.0, MODE_SLOPE, 1500.0, DT)                   # 20 % up at a steady speed
+        outs.append(out)
+        assert out.saturated == (out.brake_torque_nm > cap)
+        if out.saturated:
+            assert a.integral_nm == held
+    assert max(o.brake_torque_nm for o in outs) == pytest.approx(TMAX) and TMAX > cap, "asked up to Tmax, not capped"
+    assert any(o.saturated for o in outs) and not outs[0].saturated
 
 
 def test_brake_envelope_rejects_a_malformed_table():

@@ -31,7 +31,8 @@ Modes (``bike_msgs/Command``):
   measured acceleration cannot do this: with any delay, derivative feedback stronger than
   the real inertia is unstable, and a low-pass makes it dissipative (+20 % power at 5 %
   grade with 50 ms). Instead the law runs a virtual bike: a disturbance observer estimates
-  the rider's torque T_r = J dw/dt + T_brake + B w (low-pass ``observer_tau_s``), the
+  the rider's torque T_r = J dw/dt + T_brake + B w (low-pass ``observer_tau_s``; T_brake
+  the batch's measured torque where the caller gives it, else the law's request), the
   virtual speed follows J_eq dw_v/dt = T_r - T_road(w_v), and the flywheel is made to
   follow w_v: T_brake = T_r - B w - J (T_r - T_road)/J_eq (feedforward; the derivative
   part has gain 1 - J/J_eq < 1 so a delay cannot destabilise it) + PI on w - w_v (the
@@ -172,7 +173,7 @@ class ModeLaw:
         self.rider_torque_nm = 0.0            # observer output
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
 
-    def _observe(self, w: float, dt_s: float) -> None:
+    def _observe(self, w: float, dt_s: float, brake_nm: float) -> None:
         """Rider torque T_r = J dw/dt + T_brake + B w, all through one low-pass (the
         derivative as J (w - w_lp) / tau: no differentiation of the quantised estimate)."""
         if self.obs_w is None:
@@ -180,7 +181,7 @@ class ModeLaw:
         tau = self.mp.observer_tau_s
         a = dt_s / (tau + dt_s)
         self.obs_w += a * (w - self.obs_w)
-        self.obs_tb += a * (self.torque_nm - self.obs_tb)
+        self.obs_tb += a * (brake_nm - self.obs_tb)
         self.rider_torque_nm = (self.inertia_kgm2 * (w - self.obs_w) / tau + self.obs_tb
                                 + self.friction_nms * self.obs_w)
 
@@ -243,11 +244,11 @@ class ModeLaw:
                     t = 0.0
                 elif t < -self.assist_max_nm:
                     t, sat = -self.assist_max_nm, True
-            # Tmax, not the envelope: with the envelope as its cap the SPMSM's virtual bike rode
-            # the all_modes climb no better (its brake still swings with the pedal stroke), and
-            # the trim flags a brake the path cannot give
+            # flagged beyond the braking envelope (the trim holds on it), asked up to Tmax, like ERG
             if t > self.tmax_nm:
                 t, sat = self.tmax_nm, True
+            elif t > self.brake_cap_nm(w):
+                sat = True
             if integral is not None and not sat:
                 self.integral_nm = integral     # conditional integration
             return t, grade, v, sat
@@ -269,12 +270,15 @@ class ModeLaw:
         raise ValueError(f"unknown mode {mode!r}")
 
     def step(self, command: float, mode: int, speed_rpm: float, dt_s: float,
-             speed_valid: bool = True) -> ModeOutput:
+             speed_valid: bool = True, measured_brake_nm: float | None = None) -> ModeOutput:
         """One batch: the torque for the next ``dt_s`` seconds from the speed estimate.
 
         ``speed_valid`` False (no speed estimate yet, e.g. before the second Hall edge):
         the output holds and no mode starts, so the speed loops and the virtual bike start
-        from a real speed, not from 0."""
+        from a real speed, not from 0. ``measured_brake_nm``: the braking torque measured
+        over the batch that led to ``speed_rpm`` (-PlantState.torque_em_nm); the virtual
+        bike's rider-torque observer uses it, so a brake the machine could not give is not
+        taken for the rider's torque. None (or not finite): the law's own last output."""
         if not (math.isfinite(command) and 0.0 <= command <= 1.0):
             raise ValueError(f"command must be in [0, 1], got {command!r}")
         if mode not in MODE_NAMES:
@@ -283,7 +287,8 @@ class ModeLaw:
             return ModeOutput(self.torque_nm, self.torque_nm, command, 0.0, False, False)
         w = max(speed_rpm, 0.0) / RPM_PER_RAD_S
         if dt_s > 0:
-            self._observe(w, dt_s)
+            measured = measured_brake_nm is not None and math.isfinite(measured_brake_nm)
+            self._observe(w, dt_s, float(measured_brake_nm) if measured else self.torque_nm)
         switched = self.last_mode is not None and mode != self.last_mode
         if mode != self.last_mode:
             if mode == MODE_ISOKINETIC:

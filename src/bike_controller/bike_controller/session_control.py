@@ -151,7 +151,9 @@ class DriveTorqueLaw:
         if not fresh:
             self.stale_steps += 1
         # a flagged stale speed: the law's own integrators (speed loops, virtual bike) hold too
-        out = self.law.step(command, mode, speed_rpm, 0.0 if flagged else dt, speed_valid=math.isfinite(speed_rpm))
+        measured = snapshot.get("torque_em_nm")
+        out = self.law.step(command, mode, speed_rpm, 0.0 if flagged else dt, speed_valid=math.isfinite(speed_rpm),
+                            measured_brake_nm=None if measured is None or not fresh else -float(measured))
         brake = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt, fresh=fresh,
                                   brake_only=mode in BRAKE_ONLY_MODES, saturated=out.saturated)
         brake = self.pack.limit(brake, snapshot.get("battery_soc"))
@@ -244,7 +246,9 @@ class ModedController(SessionCommand):
     def _apply_mode(self, dt_s: float, snapshot: dict) -> None:
         inner = self.inner
         speed_rpm = float(inner.cs[C_SPEED_EST])
-        out = self.law.step(self.command, self.mode, speed_rpm, dt_s, speed_valid=inner.cs[C_NC] > 0)
+        measured = snapshot.get("torque_em_nm")
+        out = self.law.step(self.command, self.mode, speed_rpm, dt_s, speed_valid=inner.cs[C_NC] > 0,
+                            measured_brake_nm=None if measured is None else -float(measured))
         self.last_out = out
         if self.mode == MODE_RESISTANCE and not out.ramping:
             self.trim.reset()
