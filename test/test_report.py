@@ -227,9 +227,11 @@ def session_mode(k, erg_targets=(90.0, 120.0)):
 
 
 def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
-                      status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None):
+                      status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None,
+                      modes=None, virtual_mps=None):
     """A 1 kHz session of n PlantStates (t = i ms): 100 rad/s, 1 N m of braking (100 W),
-    rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()."""
+    rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()
+    (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given."""
     from bike_msgs.msg import Command, ControllerStatus, PlantState
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import BatteryState
@@ -270,7 +272,7 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
             m.energy_mech_in_j += 1.0
             sink.write(_full("plant_state"), t_ns, serialize_message(m))
         if i < n - 1:
-            mode, command, target, sat = session_mode(i, erg_targets)
+            mode, command, target, sat = modes(i) if modes else session_mode(i, erg_targets)
             if i % 100 == 0:
                 c = Command(command=command, mode=mode)
                 c.header.stamp = m.header.stamp
@@ -279,7 +281,8 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
                 if status_type is not None:
                     sink.write(_full("controller_status"), t_ns, status_type(m.header.stamp, i, mode, command))
                 else:
-                    s = ControllerStatus(seq=i, command=command, mode=mode, mode_target=target, mode_saturated=sat)
+                    s = ControllerStatus(seq=i, command=command, mode=mode, mode_target=target, mode_saturated=sat,
+                                         virtual_speed_mps=virtual_mps(i) if virtual_mps else 0.0)
                     s.header.stamp = m.header.stamp
                     sink.write(_full("controller_status"), t_ns, serialize_message(s))
         if i % 10 == 0:
@@ -314,6 +317,31 @@ def check_modes_summary(s):
     # Eq. 3 at C = 0.5 below wb: 0.5 * 1.8 = 0.9 N m; the machine brakes with 1.0 N m
     assert res["windows"] == 3 and res["rms"] == pytest.approx(0.1, rel=1e-9) and res["mean"] == pytest.approx(0.1)
     return tr
+
+
+def test_slope_tracking_is_the_road_speed_against_the_virtual_bike(tmp_path):
+    """slope_speed: the road speed of the cadence (wheel radius x virtual gear / gear ratio of
+    the config) minus the virtual bike's speed, per 0.1 s window; statuses without a virtual
+    speed (NaN) are left out rather than read as zero error."""
+    from bike_session.report import analyse
+
+    road_mps = W * 0.3 * 2.5 / 10.0
+    config = CONFIG_TEXT + "    modes:\n      wheel_radius_m: 0.3\n      virtual_gear_ratio: 2.5\n"
+    slope = lambda k: (3, 0.6, 0.04, k >= 500)                           # noqa: E731
+    d = analyse(write_session_bag(tmp_path / "a", config_text=config, modes=slope,
+                                  virtual_mps=lambda k: road_mps - (0.3 if k < 500 else -0.1)))
+    tr = d.summary["tracking"]["slope_speed"]
+    assert tr["unit"] == "m/s" and tr["windows"] == 10
+    assert tr["rms"] == pytest.approx(np.sqrt(0.05), rel=1e-9) and tr["mean"] == pytest.approx(0.1, rel=1e-9)
+    assert tr["max_abs"] == pytest.approx(0.3, rel=1e-9) and tr["saturated_fraction"] == pytest.approx(0.5)
+    assert "tracking slope_speed:" in format_summary(d.summary)
+    d = analyse(write_session_bag(tmp_path / "b", config_text=config, modes=slope,
+                                  virtual_mps=lambda k: float("nan") if k < 500 else road_mps - 0.2))
+    tr = d.summary["tracking"]["slope_speed"]
+    assert tr["windows"] == 5 and tr["rms"] == pytest.approx(0.2, rel=1e-9) and tr["time_s"] == pytest.approx(1.0)
+    d = analyse(write_session_bag(tmp_path / "c", config_text=config, modes=slope,
+                                  virtual_mps=lambda k: float("nan")))
+    assert "slope_speed" not in d.summary["tracking"] and d.summary["time_in_mode_s"]["slope"] == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])

@@ -2,6 +2,7 @@
 DDS, lockstep), recorded; power targets in ERG mode; a bad file starts nothing."""
 import json
 import pathlib
+import re
 
 import numpy as np
 import pytest
@@ -66,6 +67,9 @@ def test_every_mode_in_the_node_graph(tmp_path, ros_domain):
     assert np.mean([m.speed_rpm for m in iso]) / 35.0 == pytest.approx(70.0, abs=1.5)
     assert not any(s.mode_saturated for w in modes for s in w)
     assert all(m.faults == 0 for m in states)
+    # the summary's slope tracking: the flywheel follows the virtual bike (0.002 m/s measured)
+    slope = re.search(r"tracking slope_speed:\s+rms ([0-9.]+) m/s", result.stdout)
+    assert slope and float(slope.group(1)) < 0.05, result.stdout[-3000:]
 
 
 @pytest.mark.slow

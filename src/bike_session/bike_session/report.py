@@ -31,10 +31,14 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   ``erg_power`` braking power - mode_target [W]; ``isokinetic_cadence`` crank cadence
   (mean over the batch) - mode_target [rpm]; ``resistance_torque`` braking torque
   -T_em - Eq. 3-4 of paper 000 at the command in force and the batch's mean speed, with
-  Tmax, wb, Pmax of the recorded config [N m]. ``rms`` / ``max_abs`` / ``mean`` are over
-  ``window_s`` windows that lie wholly in the mode (error averaged over the window, which
-  removes the commutation ripple); ``rms_batch`` / ``max_abs_batch`` over single batches.
-  A mode_target missing from an older bag is derived from the command and the config.
+  Tmax, wb, Pmax of the recorded config [N m]; ``slope_speed`` the road speed of the
+  batch's mean cadence (wheel radius and virtual gear of the config) - the virtual bike's
+  speed (ControllerStatus.virtual_speed_mps) [m/s]: how closely the flywheel followed the
+  virtual bike (statuses without a virtual speed, from older bags, are left out).
+  ``rms`` / ``max_abs`` / ``mean`` are over ``window_s`` windows that lie wholly in the mode
+  (error averaged over the window, which removes the commutation ripple); ``rms_batch`` /
+  ``max_abs_batch`` over single batches. A mode_target missing from an older bag is derived
+  from the command and the config.
 
 Long bags: messages are decoded straight from the CDR bytes into numpy blocks of
 ``CHUNK`` PlantStates; only per-bin sums (``bin_s``, 10 ms for short sessions, at most
@@ -80,6 +84,7 @@ TRACKED = (
     (MODE_ERG, "erg_power", "W", "braking power vs mode_target"),
     (MODE_ISOKINETIC, "isokinetic_cadence", "rpm", "crank cadence vs mode_target"),
     (MODE_RESISTANCE, "resistance_torque", "N m", "braking torque vs Eq. 3-4 at the command"),
+    (MODE_SLOPE, "slope_speed", "m/s", "road speed from the cadence vs the virtual bike's speed"),
 )
 RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 CHUNK = 16384                 # PlantStates decoded per numpy block
@@ -102,6 +107,8 @@ DEFAULT_MACHINE = {
     "isokinetic_cadence_max_rpm": 120.0,
     "grade_min": -0.20,
     "grade_max": 0.20,
+    "wheel_radius_m": 0.335,
+    "virtual_gear_ratio": 2.75,
     "brake_envelope": None,      # (motor r/min, N m) of a braking path weaker than Eq. 3-4 (SPMSM)
 }
 MACHINE_KEYS = {
@@ -114,6 +121,8 @@ MACHINE_KEYS = {
     "isokinetic_cadence_max_rpm": "modes.isokinetic_cadence_max_rpm",
     "grade_min": "modes.grade_min",
     "grade_max": "modes.grade_max",
+    "wheel_radius_m": "modes.wheel_radius_m",
+    "virtual_gear_ratio": "modes.virtual_gear_ratio",
 }
 
 
@@ -419,7 +428,9 @@ PLANT_SPEC = (
 (P_SEC, P_NSEC, P_SEQ, P_EOR, P_RPM, P_W, P_TEM, P_TLOAD, P_VBUS, P_OCV, P_SOC, P_IBAT, P_EMECH, P_EBAT, P_ERES,
  P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP, P_RELAY) = range(len(PLANT_SPEC))
 STATUS_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
-               ("command", "value", NAN), ("mode_target", "value", NAN), ("mode_saturated", "value", False))
+               ("command", "value", NAN), ("mode_target", "value", NAN), ("mode_saturated", "value", False),
+               ("virtual_speed_mps", "value", NAN))
+STATUS_COLUMNS = 6            # t, mode, command, target, saturated, virtual speed
 COMMAND_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
                 ("command", "value", NAN))
 BATTERY_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("voltage", "value", NAN),
@@ -447,7 +458,8 @@ BIN_SUMS = ["dt", "e_brake", "e_mech", "tq_dt", "rpm_dt", "vbus_dt", "ocv_dt", "
             "bat_v", "bat_v_n", "bat_pct", "bat_pct_n", "bat_i",
             *[f"mode_dt{m}" for m in MODE_NAMES], *[f"target_dt{m}" for m in MODE_NAMES],
             *[f"sat_dt{m}" for m in MODE_NAMES],
-            *[f"err_dt{m}" for m, *_ in TRACKED], *[f"err2_dt{m}" for m, *_ in TRACKED]]
+            *[f"trk_dt{m}" for m, *_ in TRACKED], *[f"err_dt{m}" for m, *_ in TRACKED],
+            *[f"err2_dt{m}" for m, *_ in TRACKED]]
 BIN_LAST = ["E_mech", "E_bat", "E_res", "E_loss"]
 BIN_MAX = ["ipk", *[f"errmax{m}" for m, *_ in TRACKED]]
 
@@ -685,7 +697,7 @@ class _Analyser:
             block = np.column_stack([c[:, 0] + c[:, 1] * 1e-9, c[:, 2], c[:, 3]])
             self.command_blocks.append(block)
             if not self.use_status:
-                self.status_rows.extend((r[0], r[1], r[2], NAN, False) for r in block)
+                self.status_rows.extend((r[0], r[1], r[2], NAN, False, NAN) for r in block)
         if self.battery_rows:
             b = np.array(self.battery_rows, dtype=float).reshape(-1, len(BATTERY_SPEC))
             self.battery_rows.clear()
@@ -733,18 +745,20 @@ class _Analyser:
             self._intervals(q, status)
 
     def _status_block(self) -> np.ndarray:
-        """Statuses (t, mode, command, target, saturated) read so far, the carried one first."""
+        """Statuses (t, mode, command, target, saturated, virtual speed) read so far, the carried
+        one first."""
         if self.status_rows:
-            s = np.array(self.status_rows, dtype=float).reshape(-1, 5 if not self.use_status else len(STATUS_SPEC))
+            s = np.array(self.status_rows, dtype=float).reshape(
+                -1, STATUS_COLUMNS if not self.use_status else len(STATUS_SPEC))
             self.status_rows.clear()
             if self.use_status:
-                s = np.column_stack([s[:, 0] + s[:, 1] * 1e-9, s[:, 2], s[:, 3], s[:, 4], s[:, 5]])
+                s = np.column_stack([s[:, 0] + s[:, 1] * 1e-9, s[:, 2], s[:, 3], s[:, 4], s[:, 5], s[:, 6]])
             if self.status_carry is not None:
                 s = np.vstack([self.status_carry, s])
             s = s[np.argsort(s[:, 0], kind="stable")]
             self.status_carry = s[-1:].copy()
             return s
-        return self.status_carry if self.status_carry is not None else np.zeros((0, 5))
+        return self.status_carry if self.status_carry is not None else np.zeros((0, STATUS_COLUMNS))
 
     def _rows(self, r: np.ndarray) -> None:
         C = 1
@@ -797,9 +811,10 @@ class _Analyser:
             command = np.where(has, status[idx, 2], np.nan)
             target = np.where(has, status[idx, 3], np.nan)
             sat = np.where(has, status[idx, 4], 0.0) > 0
+            virtual_mps = np.where(has, status[idx, 5], np.nan)
         else:
             mode = np.full(len(dt), -1, dtype=np.int64)
-            command = target = np.full(len(dt), np.nan)
+            command = target = virtual_mps = np.full(len(dt), np.nan)
             sat = np.zeros(len(dt), dtype=bool)
         missing = ~np.isfinite(target)
         if missing.any():
@@ -816,9 +831,14 @@ class _Analyser:
                 bins.add(f"sat_dt{m}", b[s2], dt[s2])
         for m, *_ in TRACKED:
             sel = (mode == m) & np.isfinite(target)
+            if m == MODE_SLOPE:
+                sel &= np.isfinite(virtual_mps)
             if not sel.any():
                 continue
-            if m == MODE_ERG:
+            if m == MODE_SLOPE:
+                mps_per_rad_s = mc["wheel_radius_m"] * mc["virtual_gear_ratio"] / mc["gear_ratio"]
+                err = rpm_mid[sel] / RPM_PER_RAD_S * mps_per_rad_s - virtual_mps[sel]
+            elif m == MODE_ERG:
                 err = p_brake[sel] - target[sel]
             elif m == MODE_ISOKINETIC:
                 err = cadence_mid[sel] - target[sel]
@@ -828,6 +848,7 @@ class _Analyser:
                 wsum = np.bincount(inv, weights=dt[sel])
                 for c, w in zip(cmds.tolist(), wsum.tolist()):
                     self.res_commands[c] = self.res_commands.get(c, 0.0) + w
+            bins.add(f"trk_dt{m}", b[sel], dt[sel])
             bins.add(f"err_dt{m}", b[sel], err * dt[sel])
             bins.add(f"err2_dt{m}", b[sel], err * err * dt[sel])
             bins.max(f"errmax{m}", b[sel], np.abs(err))
@@ -1024,11 +1045,12 @@ def tracking(bins: dict, bin_s: float, n_bins: int | None = None) -> dict:
     dt = _rebin(bins["dt"][:n], k, "sum")
     out = {}
     for m, key, unit, what in TRACKED:
-        mdt_raw = bins[f"mode_dt{m}"][:n]
-        t_in = float(mdt_raw.sum())
-        if not t_in > 0:
+        t_in = float(bins[f"mode_dt{m}"][:n].sum())
+        trk_raw = bins[f"trk_dt{m}"][:n]          # time in the mode with something to compare
+        t_trk = float(trk_raw.sum())
+        if not (t_in > 0 and t_trk > 0):
             continue
-        mdt = _rebin(mdt_raw, k, "sum")
+        mdt = _rebin(trk_raw, k, "sum")
         err = _rebin(bins[f"err_dt{m}"][:n], k, "sum")
         full = (mdt > 0) & (mdt >= dt * (1 - 1e-9))
         e_w = err[full] / mdt[full]
@@ -1043,7 +1065,7 @@ def tracking(bins: dict, bin_s: float, n_bins: int | None = None) -> dict:
             "rms": float(np.sqrt(np.mean(e_w ** 2))) if e_w.size else None,
             "max_abs": float(np.max(np.abs(e_w))) if e_w.size else None,
             "mean": float(np.mean(e_w)) if e_w.size else None,
-            "rms_batch": float(math.sqrt(max(err2, 0.0) / t_in)),
+            "rms_batch": float(math.sqrt(max(err2, 0.0) / t_trk)),
             "max_abs_batch": float(np.nanmax(emax)) if np.isfinite(emax).any() else None,
             "mean_target": float(bins[f"target_dt{m}"][:n].sum() / t_in),
             "saturated_fraction": float(bins[f"sat_dt{m}"][:n].sum() / t_in),
