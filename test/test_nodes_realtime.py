@@ -151,8 +151,19 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         # any state since the new controller matched (not only the last few received: on a slow
         # host DDS gaps time the loop out now and then, 50 ms at a time, and this process gets
         # states in bursts)
-        col.wait_for(commanding(lambda: any(m.faults == 0 and _peak_current(m) > 10 for m in states[k_ctrl2:])),
-                     15, "recovery", [plant, ctrl2])
+        # 30 s: one CI run saw the plant leave the safe state as the new controller started, yet
+        # no braking state reached this process within 15 s (a loaded host; what it did get is
+        # in the message)
+        try:
+            col.wait_for(commanding(lambda: any(m.faults == 0 and _peak_current(m) > 10 for m in states[k_ctrl2:])),
+                         30, "recovery", [plant, ctrl2])
+        except AssertionError as exc:
+            got = states[k_ctrl2:]
+            raise AssertionError(
+                f"{len(got)} states since the second controller started: faults "
+                f"{sorted({int(m.faults) for m in got})}, peak current "
+                f"{max((_peak_current(m) for m in got), default=0.0):.1f} A, command subscriptions "
+                f"{cmd_pub.get_subscription_count()}\n{exc}") from None
         col.wait_for(lambda: any(s.name.endswith("plant") and s.level == DiagnosticStatus.OK
                                  for a in col.data["/diagnostics"][-5:] for s in a.status), 5, "OK diagnostic", [plant])
 

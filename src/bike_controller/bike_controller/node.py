@@ -127,7 +127,7 @@ class ControllerNode(Node):
         self.executor_.add_node(self)
         # the loop waits on its three topics directly (bike_plant.loop.HotWait); Commands are
         # taken before the PlantState that may need them
-        self.hot = HotWait(self.executor_, subs, self.context)
+        self.hot = HotWait(self.executor_, subs, self.context, logger=self.get_logger())
         self.busy = BusyWaitGuard(self, [self.pub_drive, self.pub_status], "plant_state", self.busy_wait_s)
 
         self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "controller"

@@ -354,7 +354,7 @@ class PlantNode(Node):
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
         self.hot = HotWait(self.executor_, [self.sub_drive] + ([self.sub_progress] if self.recorder_window > 0 else []),
-                           self.context)
+                           self.context, logger=self.get_logger())
         self.busy = BusyWaitGuard(self, [self.pub_state], "drive_command", self.busy_wait_s)
 
         self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "plant"

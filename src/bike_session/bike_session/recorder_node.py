@@ -355,7 +355,7 @@ def _make_node_class():
             from bike_plant.loop import HotWait
             self.executor_ = SingleThreadedExecutor(context=self.context)
             self.executor_.add_node(self)
-            self.hot = HotWait(self.executor_, list(self.subs.values()), self.context)
+            self.hot = HotWait(self.executor_, list(self.subs.values()), self.context, logger=self.get_logger())
 
         def spin(self, timeout_s: float) -> int:
             """Record every message waiting (waiting up to ``timeout_s`` for the first)."""

@@ -410,7 +410,7 @@ def main(args=None) -> int:
         executor.add_node(node)
         # /clock comes every batch: taken straight from a wait set (bike_plant.loop.HotWait),
         # the timer and parameter services through the executor
-        hot = HotWait(executor, [node.sub_clock], node.context)
+        hot = HotWait(executor, [node.sub_clock], node.context, logger=node.get_logger())
         while rclpy.ok() and not node.done:
             if hot.spin(0.1) and not node.done:
                 pause = node.gather_pause_s(time.monotonic())
