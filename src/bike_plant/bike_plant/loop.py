@@ -84,18 +84,25 @@ class HotWait:
     whole timeout with the answer already in hand: 100 ms stalls, a third of the lockstep
     graph's wall time).
 
-    A take that raises (rclpy could not convert a message: seen once in CI, in the session's
-    /clock take, under load right after another node was killed) is counted in
-    ``take_errors`` and logged (the first, then every ``TAKE_ERROR_LOG_EVERY``-th): rcl has
-    already taken that sample, the next one is taken on the next call, and the node lives on."""
+    A take that raises: a SIGINT that lands while rclpy converts the taken message raises its
+    KeyboardInterrupt inside that conversion, and rclpy reports "Unable to convert call
+    argument '0' to Python object" instead (the interrupt is lost; reproduced in 10 of 25
+    Ctrl-Cs of a busy /clock loop; seen in CI as a session traceback when `bike run` stopped the
+    graph). rclpy's handler has shut the context down by then, so with the context down the
+    error is re-raised as the KeyboardInterrupt it was, and the node stops as on any Ctrl-C.
+    Otherwise it is counted in ``take_errors`` and logged (the first, then every
+    ``TAKE_ERROR_LOG_EVERY``-th): rcl has already taken that sample, the next one is taken on
+    the next call, and the node lives on."""
 
     TAKE_ERROR_LOG_EVERY = 100
+    SHUTDOWN_GRACE_S = 0.05       # how long a failed take waits to see whether it was a Ctrl-C
 
     def __init__(self, executor, subscriptions, context, aux_period_s: float = 0.05,
                  logger=None):
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 
         self.executor = executor
+        self.context = context
         self.subs = list(subscriptions)
         self.hot_callbacks = 0
         self.take_errors = 0
@@ -133,6 +140,12 @@ class HotWait:
                     sub.callback(taken[0])
 
     def _take_failed(self, sub, exc: Exception) -> None:
+        # rclpy shuts the context down from its own signal thread: give it a moment
+        deadline = time.monotonic() + self.SHUTDOWN_GRACE_S
+        while self.context.ok() and time.monotonic() < deadline:
+            time.sleep(0.005)
+        if not self.context.ok():
+            raise KeyboardInterrupt from None          # the interrupt rclpy's conversion swallowed
         self.take_errors += 1
         if self.take_errors % self.TAKE_ERROR_LOG_EVERY == 1:
             self._log.warning(f"could not take a message on {sub.topic_name}: {type(exc).__name__}: {exc}; "
