@@ -171,7 +171,7 @@ def test_virtual_bike_observes_the_rider_through_the_measured_brake():
                     pmax_w=PMAX, base_speed_rpm=WB, friction_nms=B)
         w, tb, asked, seen = 300.0, 0.0, [], []
         for k in range(3000):
-            out = m.step(0.6, MODE_SLOPE, w * RPM_PER_RAD_S, DT, measured_brake_nm=tb if measured else None)
+            out = m.step(0.6, MODE_SLOPE, w * RPM_PER_RAD_S, DT, measured_em_torque_nm=-tb if measured else None)
             tb = min(max(out.brake_torque_nm, 0.0), cap_nm)           # what this machine can brake
             for _ in range(10):
                 w += (rider_nm - tb - B * w) / J * (DT / 10)

@@ -270,15 +270,16 @@ class ModeLaw:
         raise ValueError(f"unknown mode {mode!r}")
 
     def step(self, command: float, mode: int, speed_rpm: float, dt_s: float,
-             speed_valid: bool = True, measured_brake_nm: float | None = None) -> ModeOutput:
+             speed_valid: bool = True, measured_em_torque_nm: float | None = None) -> ModeOutput:
         """One batch: the torque for the next ``dt_s`` seconds from the speed estimate.
 
         ``speed_valid`` False (no speed estimate yet, e.g. before the second Hall edge):
         the output holds and no mode starts, so the speed loops and the virtual bike start
-        from a real speed, not from 0. ``measured_brake_nm``: the braking torque measured
-        over the batch that led to ``speed_rpm`` (-PlantState.torque_em_nm); the virtual
-        bike's rider-torque observer uses it, so a brake the machine could not give is not
-        taken for the rider's torque. None (or not finite): the law's own last output."""
+        from a real speed, not from 0. ``measured_em_torque_nm``: the electromagnetic torque
+        measured over the batch that led to ``speed_rpm`` (PlantState.torque_em_nm, motoring
+        positive, as :meth:`TorqueTrim.correct` takes it); the virtual bike's rider-torque
+        observer brakes with its negative, so a brake the machine could not give is not taken
+        for the rider's torque. None (or not finite): the law's own last output."""
         if not (math.isfinite(command) and 0.0 <= command <= 1.0):
             raise ValueError(f"command must be in [0, 1], got {command!r}")
         if mode not in MODE_NAMES:
@@ -287,8 +288,8 @@ class ModeLaw:
             return ModeOutput(self.torque_nm, self.torque_nm, command, 0.0, False, False)
         w = max(speed_rpm, 0.0) / RPM_PER_RAD_S
         if dt_s > 0:
-            measured = measured_brake_nm is not None and math.isfinite(measured_brake_nm)
-            self._observe(w, dt_s, float(measured_brake_nm) if measured else self.torque_nm)
+            measured = measured_em_torque_nm is not None and math.isfinite(measured_em_torque_nm)
+            self._observe(w, dt_s, -float(measured_em_torque_nm) if measured else self.torque_nm)
         switched = self.last_mode is not None and mode != self.last_mode
         if mode != self.last_mode:
             if mode == MODE_ISOKINETIC:

@@ -153,8 +153,8 @@ class DriveTorqueLaw:
         # a flagged stale speed: the law's own integrators (speed loops, virtual bike) hold too
         measured = snapshot.get("torque_em_nm")
         out = self.law.step(command, mode, speed_rpm, 0.0 if flagged else dt, speed_valid=math.isfinite(speed_rpm),
-                            measured_brake_nm=None if measured is None or not fresh else -float(measured))
-        brake = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt, fresh=fresh,
+                            measured_em_torque_nm=measured if fresh else None)
+        brake = self.trim.correct(out.brake_torque_nm, measured, dt, fresh=fresh,
                                   brake_only=mode in BRAKE_ONLY_MODES, saturated=out.saturated)
         brake = self.pack.limit(brake, snapshot.get("battery_soc"))
         if (self.trim.clamped or self.pack.active) and not out.saturated:
@@ -248,14 +248,14 @@ class ModedController(SessionCommand):
         speed_rpm = float(inner.cs[C_SPEED_EST])
         measured = snapshot.get("torque_em_nm")
         out = self.law.step(self.command, self.mode, speed_rpm, dt_s, speed_valid=inner.cs[C_NC] > 0,
-                            measured_brake_nm=None if measured is None else -float(measured))
+                            measured_em_torque_nm=measured)
         self.last_out = out
         if self.mode == MODE_RESISTANCE and not out.ramping:
             self.trim.reset()
             inner.cs[C_IOVERRIDE] = -1.0                         # no override: Eq. 2-9 inside the batch
             inner.set_command(self.command, MODE_RESISTANCE)
             return
-        torque = self.trim.correct(out.brake_torque_nm, snapshot.get("torque_em_nm"), dt_s,
+        torque = self.trim.correct(out.brake_torque_nm, measured, dt_s,
                                    brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated)
         torque = self.pack.limit(torque, snapshot.get("battery_soc"))
         if self.pack.active and not out.saturated:

@@ -186,8 +186,7 @@ class ModedSpmsmController(SessionCommand):
 
     def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm) -> None:
         inner = self.inner
-        out = self.law.step(self.command, self.mode, speed_rpm, dt_s, measured_brake_nm=None
-                            if measured_em_torque_nm is None else -float(measured_em_torque_nm))
+        out = self.law.step(self.command, self.mode, speed_rpm, dt_s, measured_em_torque_nm=measured_em_torque_nm)
         self.last_out = out
         inner.set_no_assist(self.pack.empty(self.battery_soc))
         full = self._pack_full()
