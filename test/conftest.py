@@ -29,6 +29,15 @@ def spmsm_paper_config() -> dict:
     return c
 
 
+@pytest.fixture(scope="session", autouse=True)
+def node_log_dir(tmp_path_factory):
+    """Node processes started by the tests log here (node_harness.log_file), not loose in /tmp."""
+    path = tmp_path_factory.mktemp("node-logs")
+    os.environ["BIKE_TEST_LOG_DIR"] = str(path)
+    yield path
+    os.environ.pop("BIKE_TEST_LOG_DIR", None)
+
+
 @pytest.fixture
 def ros_domain(monkeypatch):
     """A DDS domain of its own for this test (locked against other runs on this host, see

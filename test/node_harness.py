@@ -21,6 +21,15 @@ CONFIG = ROOT / "config" / "bldc_default.yaml"
 # wait_for: after a watched process exits, how long its last messages may take to be read here
 EXIT_GRACE_S = 2.0
 
+
+def log_file(prefix: str):
+    """An open log file for a node process's output, named after the node, in the directory
+    conftest sets for this pytest run (BIKE_TEST_LOG_DIR, under pytest's basetemp: pytest keeps
+    the last three runs' and deletes older ones). Logs of failed tests stay readable, and the
+    host's /tmp no longer fills with them (~600 files after a few suite runs)."""
+    return tempfile.NamedTemporaryFile("w+", prefix=f"{prefix}-", suffix=".log", delete=False,
+                                       dir=os.environ.get("BIKE_TEST_LOG_DIR") or None)
+
 rclpy = pytest.importorskip("rclpy")
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
@@ -48,7 +57,7 @@ class NodeProcess:
             args += ["-p", f"{key}:={value}"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                    BIKE_ROOT=str(ROOT), PYTHONUNBUFFERED="1")
-        self.log = tempfile.NamedTemporaryFile("w+", prefix=f"{exe}-", suffix=".log", delete=False)
+        self.log = log_file(exe)
         self.name = exe
         self.proc = subprocess.Popen(args, stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT),
                                      start_new_session=True)

@@ -21,7 +21,7 @@ import time
 import numpy as np
 import pytest
 from node_harness import (CONFIG, ROOT, Collector, NodeProcess, domain, executable,  # noqa: F401
-                          publish_wall_times, stamp_ns)
+                          log_file, publish_wall_times, stamp_ns)
 
 from bike_msgs.msg import Command, PlantState  # noqa: E402
 from bike_plant import msgconv  # noqa: E402
@@ -68,8 +68,7 @@ class RemappedController(NodeProcess):
             args += ["-p", f"{key}:={value}"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                    PYTHONUNBUFFERED="1")
-        import tempfile
-        self.log = tempfile.NamedTemporaryFile("w+", prefix="controller-", suffix=".log", delete=False)
+        self.log = log_file("controller")
         self.name = "controller_node"
         self.proc = subprocess.Popen(args, stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT),
                                      start_new_session=True)
@@ -79,8 +78,7 @@ class Relay(NodeProcess):
     def __init__(self, domain: int, schedule, seed: int):
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                    PYTHONUNBUFFERED="1")
-        import tempfile
-        self.log = tempfile.NamedTemporaryFile("w+", prefix="relay-", suffix=".log", delete=False)
+        self.log = log_file("relay")
         self.name = "fault_relay"
         self.proc = subprocess.Popen([sys.executable, str(pathlib.Path(__file__).with_name("fault_relay.py")),
                                       json.dumps(schedule), str(seed)], stdout=self.log, stderr=subprocess.STDOUT,
