@@ -144,7 +144,8 @@ def test_warm_up_log_says_how_long_and_a_slow_one_says_why():
     lines = log.lines
 
     took = warm_up_kernels(log, lambda: None)
-    assert took < 1.0 and lines == [f"numba kernels ready in {took:.1f} s"]
+    # (and, where this process had LLVM's pages mapped, how much of them it dropped: bike_plant.memory)
+    assert took < 1.0 and len(lines) == 1 and lines[0].startswith(f"numba kernels ready in {took:.1f} s"), lines
     lines.clear()
     warm_up_kernels(log, lambda: time.sleep(2.3))
     assert lines[0].startswith("compiling the numba kernels") and lines[1].startswith("numba kernels ready in 2.")

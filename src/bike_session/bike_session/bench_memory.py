@@ -13,6 +13,11 @@ recorder memory bounded, compile time apart from steady state):
   from launch to the first simulated second: process start, imports, JIT compile or numba
   cache load, discovery), memory_bag_mb.
 RSS is read from /proc/<pid>/status (VmRSS) for each node's process and its children.
+- memory_<node>_max_pss_mb / _max_uss_mb: the node process's largest PSS (shared pages divided
+  among the processes that map them) and USS (its private pages), from smaps_rollup: what the
+  node costs the host, where RSS counts every shared library page it has mapped in full. The
+  loop nodes drop numba's code generator (LLVM, ~65 MB of RSS) once their kernels are loaded
+  (bike_plant.memory).
 """
 from __future__ import annotations
 
@@ -79,11 +84,13 @@ def slope_per_hour(samples: list[tuple[float, float]]) -> float:
     return sxy / sxx * 3600.0
 
 
-def summarise(series: dict[str, list[tuple[float, float]]], sim_s: float) -> dict[str, dict]:
-    """Per node: max RSS, steady-state slope (MB per simulated hour), first / last steady RSS.
+def summarise(series: dict[str, list[tuple[float, float]]], sim_s: float, shares: dict | None = None) -> dict[str, dict]:
+    """Per node: max RSS, steady-state slope (MB per simulated hour), first / last steady RSS,
+    and from shares[node] = {'pss': max, 'uss': max} (NaN without) the largest PSS and USS.
     series[node] = [(sim_s, rss_mb), ...]."""
     out = {}
     for name, pts in series.items():
+        peak = (shares or {}).get(name, {})
         live = [(s, v) for s, v in pts if v > 0.0]
         steady = [(s, v) for s, v in live if s >= STEADY_FROM * sim_s]
         out[name] = {
@@ -92,6 +99,8 @@ def summarise(series: dict[str, list[tuple[float, float]]], sim_s: float) -> dic
             "steady_first_mb": steady[0][1] if steady else 0.0,
             "steady_last_mb": steady[-1][1] if steady else 0.0,
             "samples": len(live),
+            "max_pss_mb": peak.get("pss", float("nan")),
+            "max_uss_mb": peak.get("uss", float("nan")),
         }
     return out
 
@@ -103,6 +112,7 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
     from rosgraph_msgs.msg import Clock
 
     from bike_plant.config import default_config_path
+    from bike_plant.memory import memory_mb
 
     from bike_session import launcher
     from bike_session.bench import _config_with, spin_in_background
@@ -135,6 +145,7 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
         executor.add_node(node)
         stop_spinning = spin_in_background(executor)
         series: dict[str, list[tuple[float, float]]] = {}
+        shares: dict[str, dict] = {}
         walls: list[tuple[float, float]] = []
         codes = {}
         log_path = tmp_path / "nodes.log"
@@ -158,6 +169,11 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
                 for name, proc in graph.procs.items():
                     if proc.poll() is None:
                         series.setdefault(name, []).append((sim, rss_mb(proc.pid)))
+                        m = memory_mb(proc.pid)
+                        if m:
+                            peak = shares.setdefault(name, {"pss": 0.0, "uss": 0.0})
+                            peak["pss"] = max(peak["pss"], m["pss"])
+                            peak["uss"] = max(peak["uss"], m["uss"])
                 if progress is not None and now - last_report >= 30.0:
                     last_report = now
                     progress(f"  memory run: {sim:.0f} / {sim_s:.0f} s simulated, {now - started:.0f} s wall")
@@ -175,7 +191,7 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
         "sim_s": float(clock["sim"]), "requested_sim_s": float(sim_s), "batch_periods": batch_periods,
         "wall_s": wall_total, "real_time": real_time,
         "startup_s": first_progress.get("t", float("nan")) - started,
-        "bag_mb": bag_mb, "exit_codes": codes, "nodes": summarise(series, sim_s), "log_tail": log_tail,
+        "bag_mb": bag_mb, "exit_codes": codes, "nodes": summarise(series, sim_s, shares), "log_tail": log_tail,
     }
 
 
@@ -203,9 +219,12 @@ def bench_memory(show, figures: dict, sim_s: float, batch_periods: int = 200) ->
         figures[f"memory_{name}_max_rss_mb"] = s["max_rss_mb"]
         figures[f"memory_{name}_rss_slope_mb_per_sim_h"] = s["slope_mb_per_sim_h"]
         figures[f"memory_{name}_max_rss_ratio_to_limit"] = ratio
+        figures[f"memory_{name}_max_pss_mb"] = s["max_pss_mb"]
+        figures[f"memory_{name}_max_uss_mb"] = s["max_uss_mb"]
         show(f"  {name:<11} max RSS {s['max_rss_mb']:6.1f} MB (target < {TARGET_RSS_MB:.0f} MB: ratio {ratio:.2f}); "
              f"steady {s['steady_first_mb']:.1f} -> {s['steady_last_mb']:.1f} MB, slope "
-             f"{s['slope_mb_per_sim_h']:+.1f} MB per simulated hour"
+             f"{s['slope_mb_per_sim_h']:+.1f} MB per simulated hour; max PSS {s['max_pss_mb']:.1f}, "
+             f"private (USS) {s['max_uss_mb']:.1f} MB"
              + (" (indicative only: run shorter than "
                 f"{SLOPE_MIN_SIM_S:g} s)" if r["sim_s"] < SLOPE_MIN_SIM_S else ""))
     figures["memory_max_rss_ratio_to_limit"] = worst

@@ -406,6 +406,12 @@ def main(args=None) -> int:
         from rclpy.executors import SingleThreadedExecutor
 
         node = _make_node_class()()
+        # the mode figures (bike_controller.modes) brought in numba and its code generator, which
+        # the session does not run again: drop LLVM's pages from its RSS (bike_plant.memory)
+        from bike_plant.memory import release_clean_library_pages
+        released_mb = release_clean_library_pages() / 2**20
+        if released_mb >= 1.0:
+            node.get_logger().info(f"released {released_mb:.0f} MB of LLVM library pages")
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         # /clock comes every batch: taken straight from a wait set (bike_plant.loop.HotWait),

@@ -1,0 +1,112 @@
+"""Resident memory of a node process: what it is made of, and the library pages it can drop.
+
+A loop node (plant, controller) imports numba, which maps LLVM (llvmlite's libllvmlite.so,
+~180 MB on disk). Loading the node's cached kernels at start-up touches ~70 MB of it, and
+those pages count in the process's RSS for as long as they stay mapped, although after the
+warm-up nothing in the node runs LLVM again (the kernels are machine code of their own) and
+the pages are clean copies of the file, shared with every other process that maps it.
+:func:`release_clean_library_pages` unmaps them from this process (madvise MADV_DONTNEED):
+the file's pages stay in the page cache (the next node's start-up finds them there), and
+should LLVM run again in this process (a compile of a kernel the warm-up did not cover) it
+faults them back in, at the cost of page faults, never of correctness.
+
+Only a mapping that is read-only and holds no anonymous (copied-on-write) page is dropped:
+the dynamic linker writes relocations into parts of a library (RELRO) and then makes them
+read-only, and dropping those pages would bring back the unrelocated file contents (tried:
+the process crashed at exit). Linux only; elsewhere nothing is released.
+
+:func:`memory_mb` reads RSS, PSS (shared pages divided among the processes that map them) and
+USS (this process's private pages) from /proc, for the benchmark.
+"""
+from __future__ import annotations
+
+import ctypes
+import re
+import sys
+
+MADV_DONTNEED = 4
+# libraries used only to load the kernels (numba's code generator)
+LOAD_TIME_LIBRARIES = ("libllvmlite.so",)
+
+_HEADER = re.compile(r"^([0-9a-f]+)-([0-9a-f]+) (\S+) \S+ \S+ \S+\s*(.*)$")
+
+
+def releasable_mappings(smaps_text: str, suffixes=LOAD_TIME_LIBRARIES) -> list[tuple[int, int, int]]:
+    """(start, end, rss_bytes) of each mapping in /proc/<pid>/smaps text that belongs to a library
+    named by `suffixes`, is not writable and holds no anonymous or dirty page: the mappings
+    whose resident pages are clean file pages, safe to drop and fault back."""
+    out = []
+    cur = None
+
+    def close(m):
+        if m is None or not m["path"].endswith(suffixes) or "w" in m["perms"] or m["rss"] == 0:
+            return
+        if m["anon"] or m["dirty"] or m.get("incomplete", True):
+            return
+        out.append((m["start"], m["end"], m["rss"]))
+
+    for line in smaps_text.splitlines():
+        h = _HEADER.match(line)
+        if h:
+            close(cur)
+            cur = {"start": int(h.group(1), 16), "end": int(h.group(2), 16), "perms": h.group(3),
+                   "path": h.group(4).strip(), "rss": 0, "anon": 0, "dirty": 0, "incomplete": True}
+            continue
+        if cur is None or ":" not in line:
+            continue
+        key, _, rest = line.partition(":")
+        fields = rest.split()
+        if not fields or not fields[0].isdigit():
+            continue
+        kib = int(fields[0]) * 1024
+        if key == "Rss":
+            cur["rss"] = kib
+        elif key == "Anonymous":
+            cur["anon"] = kib
+            cur["incomplete"] = False
+        elif key in ("Private_Dirty", "Shared_Dirty"):
+            cur["dirty"] += kib
+    close(cur)
+    return out
+
+
+def release_clean_library_pages(suffixes=LOAD_TIME_LIBRARIES) -> int:
+    """Drop this process's clean, read-only pages of the libraries named by `suffixes` (see the
+    module docstring). Returns the bytes that were resident in the mappings released (0 where
+    /proc or madvise is not available)."""
+    if not sys.platform.startswith("linux"):
+        return 0
+    try:
+        with open("/proc/self/smaps") as f:
+            text = f.read()
+        libc = ctypes.CDLL(None, use_errno=True)
+        madvise = libc.madvise
+    except (OSError, AttributeError):
+        return 0
+    madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    madvise.restype = ctypes.c_int
+    released = 0
+    for start, end, rss in releasable_mappings(text, suffixes):
+        if madvise(start, end - start, MADV_DONTNEED) == 0:
+            released += rss
+    return released
+
+
+def memory_mb(pid: int | str = "self") -> dict:
+    """{'rss', 'pss', 'uss'} of a process in MB from /proc/<pid>/smaps_rollup (uss: private
+    clean + dirty pages); {} when the process is gone or /proc has no rollup."""
+    vals = {}
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as f:
+            for line in f:
+                key, _, rest = line.partition(":")
+                fields = rest.split()
+                if fields and fields[0].isdigit():
+                    vals[key] = int(fields[0]) / 1024.0
+    except OSError:
+        return {}
+    if "Rss" not in vals:
+        return {}
+    return {"rss": vals["Rss"], "pss": vals.get("Pss", 0.0),
+            "uss": vals.get("Private_Clean", 0.0) + vals.get("Private_Dirty", 0.0)}
+
