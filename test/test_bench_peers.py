@@ -103,6 +103,11 @@ def test_memory_helpers():
     # a start-up peak counts in the maximum, not in the steady-state slope (first 20 % skipped)
     s = bench_memory.summarise({"plant": [(0.0, 150.0)] + pts}, sim_s=600.0)["plant"]
     assert s["max_rss_mb"] == 150.0 and s["slope_mb_per_sim_h"] == pytest.approx(36.0)
+    # a peak between two samples (the processes' VmHWM) counts too, and PSS / USS are passed on
+    peak = {"plant": {"pss": 90.0, "uss": 80.0, "hwm": 170.0}}
+    s = bench_memory.summarise({"plant": [(0.0, 150.0)] + pts}, sim_s=600.0, shares=peak)["plant"]
+    assert (s["max_rss_mb"], s["max_pss_mb"], s["max_uss_mb"]) == (170.0, 90.0, 80.0)
+    assert bench_memory.rss_mb(os.getpid(), "VmHWM") >= bench_memory.rss_mb(os.getpid())
 
 
 def test_bench_rejects_bad_sections_and_lengths(capsys):

@@ -910,6 +910,9 @@ def warm_up_kernels(logger, warm_up) -> float:
         finally:
             finished.set()
 
+    # LLVM's pages touched so far (the node's construction loaded kernels through it) are not
+    # needed again either: dropped before the warm-up touches its own
+    released = release_clean_library_pages()
     worker = threading.Thread(target=run, name="numba-warm-up", daemon=True)
     t0 = time.perf_counter()
     worker.start()
@@ -939,7 +942,7 @@ def warm_up_kernels(logger, warm_up) -> float:
         return took_s
     # the code generator's library pages were needed to load (or compile) the kernels only: drop
     # them from this process's RSS (bike_plant.memory; ~65 MB of a ~190 MB node)
-    released_mb = release_clean_library_pages() / 2**20
+    released_mb = (released + release_clean_library_pages()) / 2**20
     logger.info(f"numba kernels ready in {took_s:.1f} s" + (" (compiled)" if took_s > COMPILED_AFTER_S else "")
                 + (f"; released {released_mb:.0f} MB of LLVM library pages" if released_mb >= 1.0 else ""))
     return took_s
@@ -961,6 +964,10 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     code = 0
+    # the imports brought in LLVM (numba's code generator), whose start-up (relocations, static
+    # constructors) touched ~40 MB of it that nothing needs again: drop them before the node
+    # loads its kernels (warm_up_kernels drops the rest; bike_plant.memory)
+    release_clean_library_pages()
     try:
         node = node_factory()
         install_signal_handlers(node)

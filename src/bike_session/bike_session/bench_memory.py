@@ -4,7 +4,8 @@ with every node's resident memory sampled over time.
 
 Figures (issue 6: every node under 200 MB RSS and flat over a 1 h simulated session,
 recorder memory bounded, compile time apart from steady state):
-- memory_<node>_max_rss_mb: the largest RSS of the node's process tree [MB];
+- memory_<node>_max_rss_mb: the largest RSS of the node's process tree [MB]: the larger of the
+  sampled RSS and the processes' own peak (VmHWM, last read while they ran);
 - memory_<node>_rss_slope_mb_per_sim_h: least-squares slope of RSS against simulated time
   over the steady part (after the first 20 % of simulated time: imports, JIT compile / cache
   load, DDS discovery and the first allocations are over), in MB per simulated hour;
@@ -48,8 +49,10 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def rss_mb(pid: int) -> float:
-    """Resident set size [MB] of a process and its descendants (0 if it is gone)."""
+def rss_mb(pid: int, field: str = "VmRSS") -> float:
+    """Resident set size [MB] of a process and its descendants (0 if it is gone). field
+    "VmHWM": their peaks so far (the kernel's high-water mark, which a 1 s sampling of VmRSS
+    can miss: a node's start-up peak lasts a fraction of a second)."""
     total_kb = 0
     stack = [pid]
     seen = set()
@@ -61,7 +64,7 @@ def rss_mb(pid: int) -> float:
         try:
             with open(f"/proc/{p}/status") as f:
                 for line in f:
-                    if line.startswith("VmRSS:"):
+                    if line.startswith(field + ":"):
                         total_kb += int(line.split()[1])
                         break
         except OSError:
@@ -86,7 +89,8 @@ def slope_per_hour(samples: list[tuple[float, float]]) -> float:
 
 def summarise(series: dict[str, list[tuple[float, float]]], sim_s: float, shares: dict | None = None) -> dict[str, dict]:
     """Per node: max RSS, steady-state slope (MB per simulated hour), first / last steady RSS,
-    and from shares[node] = {'pss': max, 'uss': max} (NaN without) the largest PSS and USS.
+    and from shares[node] = {'pss': max, 'uss': max, 'hwm': peak RSS} (NaN without) the largest
+    PSS and USS; the max RSS takes the peak when it is larger than every sample.
     series[node] = [(sim_s, rss_mb), ...]."""
     out = {}
     for name, pts in series.items():
@@ -94,7 +98,7 @@ def summarise(series: dict[str, list[tuple[float, float]]], sim_s: float, shares
         live = [(s, v) for s, v in pts if v > 0.0]
         steady = [(s, v) for s, v in live if s >= STEADY_FROM * sim_s]
         out[name] = {
-            "max_rss_mb": max((v for _, v in live), default=0.0),
+            "max_rss_mb": max([v for _, v in live] + [peak.get("hwm", 0.0)], default=0.0),
             "slope_mb_per_sim_h": slope_per_hour(steady),
             "steady_first_mb": steady[0][1] if steady else 0.0,
             "steady_last_mb": steady[-1][1] if steady else 0.0,
@@ -170,10 +174,12 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
                     if proc.poll() is None:
                         series.setdefault(name, []).append((sim, rss_mb(proc.pid)))
                         m = memory_mb(proc.pid)
+                        hwm = rss_mb(proc.pid, "VmHWM")
                         if m:
-                            peak = shares.setdefault(name, {"pss": 0.0, "uss": 0.0})
+                            peak = shares.setdefault(name, {"pss": 0.0, "uss": 0.0, "hwm": 0.0})
                             peak["pss"] = max(peak["pss"], m["pss"])
                             peak["uss"] = max(peak["uss"], m["uss"])
+                            peak["hwm"] = max(peak["hwm"], hwm)
                 if progress is not None and now - last_report >= 30.0:
                     last_report = now
                     progress(f"  memory run: {sim:.0f} / {sim_s:.0f} s simulated, {now - started:.0f} s wall")
