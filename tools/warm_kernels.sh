@@ -11,10 +11,13 @@ cd "$root"
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 step() {
-  local t0=$SECONDS
-  if ! "$@" > "$tmp/out.log" 2>&1; then
+  local t0=$SECONDS rc=0
+  "$@" > "$tmp/out.log" 2>&1 || rc=$?
+  # `bike paper` exits 1 when it ran but a figure misses its target (seed2-table1's documented
+  # misses, README): the kernels ran all the same, which is all this needs
+  if [ "$rc" -ne 0 ] && ! { [ "$rc" -eq 1 ] && [ "$1 $2" = "./bike paper" ] && grep -q "^  wrote " "$tmp/out.log"; }; then
     tail -30 "$tmp/out.log" >&2
-    echo "[warm] failed: $*" >&2
+    echo "[warm] failed (exit $rc): $*" >&2
     exit 1
   fi
   echo "[warm] $((SECONDS - t0)) s: $*"
