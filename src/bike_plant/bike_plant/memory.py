@@ -41,7 +41,7 @@ def releasable_mappings(smaps_text: str, suffixes=LOAD_TIME_LIBRARIES) -> list[t
     def close(m):
         if m is None or not m["path"].endswith(suffixes) or "w" in m["perms"] or m["rss"] == 0:
             return
-        if m["anon"] or m["dirty"] or m.get("incomplete", True):
+        if m["anon"] != 0 or m["dirty"]:       # anon None: the record had no Anonymous line
             return
         out.append((m["start"], m["end"], m["rss"]))
 
@@ -50,7 +50,7 @@ def releasable_mappings(smaps_text: str, suffixes=LOAD_TIME_LIBRARIES) -> list[t
         if h:
             close(cur)
             cur = {"start": int(h.group(1), 16), "end": int(h.group(2), 16), "perms": h.group(3),
-                   "path": h.group(4).strip(), "rss": 0, "anon": 0, "dirty": 0, "incomplete": True}
+                   "path": h.group(4).strip(), "rss": 0, "anon": None, "dirty": 0}
             continue
         if cur is None or ":" not in line:
             continue
@@ -63,7 +63,6 @@ def releasable_mappings(smaps_text: str, suffixes=LOAD_TIME_LIBRARIES) -> list[t
             cur["rss"] = kib
         elif key == "Anonymous":
             cur["anon"] = kib
-            cur["incomplete"] = False
         elif key in ("Private_Dirty", "Shared_Dirty"):
             cur["dirty"] += kib
     close(cur)

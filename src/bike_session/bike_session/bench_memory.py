@@ -49,11 +49,13 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def rss_mb(pid: int, field: str = "VmRSS") -> float:
-    """Resident set size [MB] of a process and its descendants (0 if it is gone). field
-    "VmHWM": their peaks so far (the kernel's high-water mark, which a 1 s sampling of VmRSS
-    can miss: a node's start-up peak lasts a fraction of a second)."""
-    total_kb = 0
+def status_mb(pid: int, fields=("VmRSS",)) -> tuple[float, ...]:
+    """Memory fields of /proc/<pid>/status [MB], each summed over the process and its
+    descendants (0 if it is gone), from one read of each status file. "VmRSS": resident set
+    size; "VmHWM": its peak so far (the kernel's high-water mark, which a 1 s sampling of
+    VmRSS can miss: a node's start-up peak lasts a fraction of a second)."""
+    totals_kb = [0] * len(fields)
+    prefixes = tuple(f + ":" for f in fields)
     stack = [pid]
     seen = set()
     while stack:
@@ -64,13 +66,17 @@ def rss_mb(pid: int, field: str = "VmRSS") -> float:
         try:
             with open(f"/proc/{p}/status") as f:
                 for line in f:
-                    if line.startswith(field + ":"):
-                        total_kb += int(line.split()[1])
-                        break
+                    if line.startswith(prefixes):
+                        totals_kb[prefixes.index(line[:line.index(":") + 1])] += int(line.split()[1])
         except OSError:
             continue
         stack += _children(p)
-    return total_kb / 1024.0
+    return tuple(kb / 1024.0 for kb in totals_kb)
+
+
+def rss_mb(pid: int, field: str = "VmRSS") -> float:
+    """status_mb of one field: the resident set size (default) of a process and its descendants."""
+    return status_mb(pid, (field,))[0]
 
 
 def slope_per_hour(samples: list[tuple[float, float]]) -> float:
@@ -172,9 +178,9 @@ def run_memory(sim_s: float, batch_periods: int = 200, config: pathlib.Path | No
                 walls.append((now, sim))
                 for name, proc in graph.procs.items():
                     if proc.poll() is None:
-                        series.setdefault(name, []).append((sim, rss_mb(proc.pid)))
+                        rss, hwm = status_mb(proc.pid, ("VmRSS", "VmHWM"))
+                        series.setdefault(name, []).append((sim, rss))
                         m = memory_mb(proc.pid)
-                        hwm = rss_mb(proc.pid, "VmHWM")
                         if m:
                             peak = shares.setdefault(name, {"pss": 0.0, "uss": 0.0, "hwm": 0.0})
                             peak["pss"] = max(peak["pss"], m["pss"])
