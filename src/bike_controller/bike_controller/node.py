@@ -237,6 +237,9 @@ class ControllerNode(Node):
         self.pending = None
         self.cached = None
         self.last_seq = -1
+        # a give-up of the old run (its plant died with a batch waiting) does not carry over:
+        # the new run waits for the session again (command_wait_s) like the first did
+        self.no_session = False
 
     # ------------------------------------------------------------ the batch
     def _holds_command_for(self, t_ns: int) -> bool:
