@@ -17,11 +17,14 @@ test: setup
 test-faults: setup
 	source tools/env.sh && python -m pytest -q -m faults
 
-# a short process-level smoke (launcher and Ctrl-C, kill -9 of each node, the recorded demo
-# graph, the kernels' warm-up): CI runs it on the other supported interpreter, Python 3.12
+# a short process-level smoke (launcher and Ctrl-C, kill -9 of each node under `bike run`, the
+# session following a plant's clock back, the recorded demo graph, the kernels' warm-up): CI
+# runs it on the other supported interpreter, Python 3.12. The restart and give-up fault tests
+# exercise the same interpreter paths and run in the 3.11 suite (`make test`)
 test-smoke: setup
-	source tools/env.sh && python -m pytest -q test/test_launcher.py test/test_faults_kill.py test/test_graph.py \
-		test/test_warm_up.py
+	source tools/env.sh && python -m pytest -q test/test_launcher.py test/test_graph.py test/test_warm_up.py \
+		test/test_faults_kill.py::test_kill_9_under_bike_run_ends_the_run_cleanly \
+		test/test_faults_kill.py::test_session_follows_the_clock_back_with_one_warning
 
 bench: setup
 	./bike bench
