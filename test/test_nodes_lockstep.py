@@ -341,14 +341,16 @@ def test_lockstep_controller_waits_for_the_session(domain):
         states = col.data["plant_state"]
         t_last = lambda: stamp_ns(states[-1].header.stamp) * 1e-9 if states else -1.0  # noqa: E731
 
-        cmd_pub.publish(msgconv.command_msg(0.3, 0, 0))
-        col.wait_for(lambda: t_last() >= PERIOD - 1e-9, 10, "run up to the first missing Command", procs)
-        time.sleep(1.0)
-        assert abs(t_last() - PERIOD) < 1e-9, "the controller must hold batch k until the Command for j is in"
+        # the Command for tau_1 first, as a controller sees the session's stream when its reader
+        # matched between tau_0 and tau_1 (the session publishes both at t = 0): tau_1 alone
+        # does not stand for tau_0, batch 0 waits (it once ran on no Command)
         cmd_pub.publish(msgconv.command_msg(0.6, 0, msgconv.seconds_to_ns(PERIOD)))
-        col.wait_for(lambda: t_last() >= 2 * PERIOD - 1e-9, 10, "run up to the next missing Command", procs)
-        time.sleep(0.5)
-        assert abs(t_last() - 2 * PERIOD) < 1e-9
+        time.sleep(1.0)
+        assert t_last() == 0.0, "batch 0 must wait for a Command in force at t = 0"
+        cmd_pub.publish(msgconv.command_msg(0.3, 0, 0))
+        col.wait_for(lambda: t_last() >= 2 * PERIOD - 1e-9, 10, "run up to the first missing Command", procs)
+        time.sleep(1.0)
+        assert abs(t_last() - 2 * PERIOD) < 1e-9, "the controller must hold batch k until the Command for j is in"
         status_pub.publish(SessionStatus(state=SessionStatus.STATE_DONE))
         col.wait_for(lambda: any(m.end_of_run for m in states), 10, "end_of_run after DONE", procs)
         assert plant.wait(5.0) == 0

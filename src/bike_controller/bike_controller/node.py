@@ -24,7 +24,8 @@ Determinism (lockstep, docs/DESIGN.md, Lockstep protocol): for the PlantState of
 at sim time t_k the controller applies the newest Command with stamp <= t_k. It does not
 answer batch k until it holds the Command for j = floor(t_k / session.period_s + 1e-9),
 i.e. a Command stamped >= j * period (the session publishes in stamp order on a reliable
-topic, so everything up to tau_j is then in), unless a SessionStatus DONE was seen or
+topic, so everything up to tau_j is then in) and one stamped <= t_k (what was written before
+this reader matched never arrives; the session sends it again), unless a SessionStatus DONE was seen or
 nothing arrived for ``command_wait_s`` wall seconds (then it proceeds with the last / zero
 command, logs once, and stops waiting until a new Command arrives). A re-published
 PlantState that was already answered gets the cached answer again (decide() is never run
@@ -243,9 +244,17 @@ class ControllerNode(Node):
 
     # ------------------------------------------------------------ the batch
     def _holds_command_for(self, t_ns: int) -> bool:
+        """The Command for j = floor(t / period) is in (a stamp >= tau_j), and so is one in force
+        at t: the oldest stamp held is <= t. The second part matters when this reader matched
+        the session's writer between two of its Commands: the session publishes a period ahead
+        (tau_0 and tau_1 together at t = 0), a volatile reader gets nothing written before the
+        match, and tau_1 alone used to pass for 'everything up to tau_0 is in'. Batch 0 then
+        ran on no Command (seen under load: a run that differed from a second run of the same
+        config). The session sends them again while the plant re-publishes the held state."""
         j = math.floor(t_ns * 1e-9 / self.period_s + 1e-9)
         need = int(round(j * self.period_s * 1e9))
-        return self.max_stamp is not None and self.max_stamp >= need - STAMP_TOL_NS
+        return (self.max_stamp is not None and self.max_stamp >= need - STAMP_TOL_NS
+                and self.stamps[0] <= t_ns + STAMP_TOL_NS)
 
     def _try_answer(self) -> None:
         if self.pending is None:
