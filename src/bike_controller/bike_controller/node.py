@@ -137,7 +137,6 @@ class ControllerNode(Node):
         self.values = array.array("d")     # their command values
         self.modes = array.array("B")      # and modes
         self.applied_index = -1            # timeline entry in force (-1: config command0/mode0)
-        self.max_stamp = None              # newest stamp received
         self.rejected = False              # last received Command was invalid
         self.reject_reason = ""
         self.session_done = False
@@ -184,7 +183,6 @@ class ControllerNode(Node):
             self.modes.insert(i, int(msg.mode))
             if self.applied_index >= i:
                 self.applied_index += 1
-        self.max_stamp = stamp if self.max_stamp is None else max(self.max_stamp, stamp)
         self.no_session = False
         self._try_answer()
 
@@ -226,7 +224,7 @@ class ControllerNode(Node):
         # restart command_wait_s (a dead session would stall the run for ever). Before the first
         # Command it does restart it: a session node still starting up is waited for.
         received = (self.pending[1] if self.pending is not None and int(self.pending[0].seq) == seq
-                    and self.max_stamp is not None else None)
+                    and len(self.stamps) else None)
         self.pending = (msg, received if received is not None else time.monotonic())
         self._try_answer()
 
@@ -253,7 +251,8 @@ class ControllerNode(Node):
         config). The session sends them again while the plant re-publishes the held state."""
         j = math.floor(t_ns * 1e-9 / self.period_s + 1e-9)
         need = int(round(j * self.period_s * 1e9))
-        return (self.max_stamp is not None and self.max_stamp >= need - STAMP_TOL_NS
+        # (the timeline is sorted and keeps every stamp: its ends are the oldest and newest held)
+        return (len(self.stamps) > 0 and self.stamps[-1] >= need - STAMP_TOL_NS
                 and self.stamps[0] <= t_ns + STAMP_TOL_NS)
 
     def _try_answer(self) -> None:
