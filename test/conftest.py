@@ -29,6 +29,16 @@ def spmsm_paper_config() -> dict:
     return c
 
 
+def pytest_configure(config):
+    """A runner started as a background job of a script (`make test &` in a non-interactive
+    shell, some CI agents) inherits SIGINT ignored, and every process the tests start would
+    too: the Ctrl-C tests and the nodes' stop on SIGINT would fail on the environment, not on
+    the code. Give SIGINT its default meaning (a caught signal is reset to the default in a
+    child at exec; an ignored one stays ignored)."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def node_log_dir(tmp_path_factory):
     """Node processes started by the tests log here (node_harness.log_file), not loose in /tmp."""
