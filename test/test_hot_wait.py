@@ -122,12 +122,24 @@ def test_busy_wait_takes_a_message_that_comes_while_polling_then_blocks(node):
         assert hot.spin(5.0, busy_s=1.0) == 1, f"message {k} not handled by the polling call"
         timer.join()
     assert got == list(range(10))
+    # each take of the call, timed: polls for busy_s, then one take after the blocking wait
+    # (times, not CPU seconds: each poll yields, so a loaded core gives the poll little CPU)
+    takes = []
+    take_all = hot._take_all
+
+    def timed_take_all():
+        takes.append(time.monotonic())
+        take_all()
+    hot._take_all = timed_take_all
     cpu0, t0 = time.process_time(), time.monotonic()
     assert hot.spin(0.3, busy_s=0.05) == 0
     wall, cpu = time.monotonic() - t0, time.process_time() - cpu0
     assert wall >= 0.25, f"returned after {wall:.3f} s of a 0.3 s timeout"
     assert cpu < 0.2, f"{cpu:.3f} s of CPU in 0.3 s: polled past busy_s instead of blocking"
-    assert cpu >= 0.01, f"{cpu:.3f} s of CPU: no polling at all (each poll yields, so a loaded core gives less)"
+    polls = [t - t0 for t in takes[1:-1]]            # between the first take and the last
+    assert len(polls) >= 2, f"{len(polls)} polls: no busy wait"
+    assert polls[-1] < 0.05 + 0.1, f"last poll {polls[-1]:.3f} s into the call: polled past busy_s = 0.05 s"
+    assert takes[-1] - t0 >= 0.25, "the last take comes after the blocking wait"
     executor.shutdown()
 
 
