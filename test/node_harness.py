@@ -124,7 +124,7 @@ class Collector:
         self.executor.add_node(self.node)
         # every subscription taken straight from one wait set, as the loop nodes take theirs:
         # the executor's ~150 us of Python per message left this reader at ~50 states/s of a
-        # realtime plant's 1000 beside two CPU hogs (seconds behind; four tests failed on it)
+        # realtime plant's 1000 beside two CPU hogs (seconds behind; three tests failed on it)
         from bike_plant.loop import HotWait
         self.hot = HotWait(self.executor, list(self.subs.values()), self.context)
         self._stop = False

@@ -224,7 +224,7 @@ class ControllerNode(Node):
         # restart command_wait_s (a dead session would stall the run for ever). Before the first
         # Command it does restart it: a session node still starting up is waited for.
         received = (self.pending[1] if self.pending is not None and int(self.pending[0].seq) == seq
-                    and len(self.stamps) else None)
+                    and len(self.stamps) > 0 else None)
         self.pending = (msg, received if received is not None else time.monotonic())
         self._try_answer()
 
