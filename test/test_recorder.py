@@ -170,7 +170,10 @@ def test_session_and_recorder_processes(tmp_path, ros_domain, procs):
                     and node.count_subscribers(f"{NS}/command") >= 2 and node.count_publishers(f"{NS}/command") >= 1
                     and len(got_info) == 1)
         assert wait_for(ready, 15.0), (recorder.err()[-2000:], session.err()[-2000:])
-        assert recorder.out().startswith(f"bag: {record_dir / 'bag'}")
+        # (the recorder prints its bag once its constructor returns, which can be just after
+        # discovery saw the subscriptions it made: ci16 read nothing yet)
+        assert wait_for(lambda: recorder.out().startswith(f"bag: {record_dir / 'bag'}"), 10.0), \
+            (recorder.out()[-500:], recorder.err()[-2000:])
 
         for name, pub in others.items():
             msg = pub.msg_type()
