@@ -39,6 +39,11 @@ fi
 src_hash=$( (find src \( -name '*.msg' -o -name 'package.xml' -o -name 'setup.py' -o -name 'setup.cfg' -o -name 'CMakeLists.txt' \) -print0 | sort -z | xargs -0 sha256sum; echo "$venv"; "$venv/bin/python" --version) | sha256sum | cut -c1-16)
 if [ "$(cat install/.bike-src 2>/dev/null)" != "$src_hash" ]; then
   log "building the workspace with colcon"
+  # Build against the venv alone. colcon bakes every workspace sourced in the caller's shell
+  # (COLCON_PREFIX_PATH) into install/setup.bash as an underlay: a second checkout built from a
+  # shell that had sourced the first then loads the first's extensions, another Python's when
+  # the interpreters differ (CI's 3.12 copy aborted so in a PyUnicode assertion).
+  unset COLCON_PREFIX_PATH PYTHONPATH LD_LIBRARY_PATH
   export AMENT_PREFIX_PATH="$venv" CMAKE_PREFIX_PATH="$venv"
   export PATH="$venv/bin:$PATH"
   if ! "$venv/bin/colcon" build --symlink-install \

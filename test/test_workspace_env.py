@@ -1,0 +1,48 @@
+"""The workspace's environment stays its own: a second checkout (another clone, CI's Python
+3.12 copy) entered or built from a shell that had entered this one must not load this one's
+install space. It did: CI's 3.12 copy, built from such a shell, chained the first checkout into
+its install/setup.bash and its session node aborted in a Python 3.11 extension's assertion."""
+from __future__ import annotations
+
+import os
+import pathlib
+import re
+import subprocess
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_env_drops_another_checkouts_paths(tmp_path):
+    """tools/env.sh removes the paths of a previously entered checkout (BIKE_ROOT) and keeps
+    the user's own; under `set -euo pipefail` too, as ./bike sources it."""
+    other = tmp_path / "other"
+    lib = f"{other}/install/bike_msgs/lib"
+    site = f"{other}/install/bike_msgs/lib/python3.11/site-packages"
+    env = dict(os.environ, BIKE_ROOT=str(other),
+               PYTHONPATH=f"{site}:/keep/py", LD_LIBRARY_PATH=f"/keep/lib:{lib}",
+               AMENT_PREFIX_PATH=f"{other}/install/bike_msgs:{other}/.venv",
+               COLCON_PREFIX_PATH=f"{other}/install",
+               PATH=f"{other}/.venv/bin:{os.environ['PATH']}")
+    probe = "; ".join(f'echo "{v}=${v}"' for v in
+                      ("PYTHONPATH", "LD_LIBRARY_PATH", "AMENT_PREFIX_PATH", "COLCON_PREFIX_PATH", "PATH",
+                       "BIKE_ROOT"))
+    out = subprocess.run(["bash", "-c", f"set -euo pipefail; set +u; source {ROOT}/tools/env.sh; {probe}"],
+                         env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    values = dict(line.split("=", 1) for line in out.stdout.splitlines())
+    for name in ("PYTHONPATH", "LD_LIBRARY_PATH", "AMENT_PREFIX_PATH", "COLCON_PREFIX_PATH", "PATH"):
+        assert str(other) not in values[name], (name, values[name])
+    assert "/keep/py" in values["PYTHONPATH"].split(":")
+    assert "/keep/lib" in values["LD_LIBRARY_PATH"].split(":")
+    assert f"{ROOT}/install/bike_msgs/lib" in values["LD_LIBRARY_PATH"].split(":")
+    assert values["BIKE_ROOT"] == str(ROOT)
+
+
+def test_install_space_chains_no_other_workspace():
+    """tools/setup.sh builds with no inherited COLCON_PREFIX_PATH: the install space's
+    setup.bash sources only itself (colcon writes each underlay as a literal prefix line)."""
+    text = (ROOT / "install" / "setup.bash").read_text()
+    chained = re.findall(r'^COLCON_CURRENT_PREFIX="(/[^"]*)"', text, flags=re.M)
+    assert chained == [], f"install/setup.bash chains other workspaces: {chained}"
+    setup = (ROOT / "tools" / "setup.sh").read_text()
+    assert re.search(r"^\s*unset COLCON_PREFIX_PATH\b", setup, flags=re.M)
