@@ -163,7 +163,9 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
                 f"{len(got)} states since the second controller started: faults "
                 f"{sorted({int(m.faults) for m in got})}, peak current "
                 f"{max((_peak_current(m) for m in got), default=0.0):.1f} A, command subscriptions "
-                f"{cmd_pub.get_subscription_count()}\n{exc}") from None
+                f"{cmd_pub.get_subscription_count()}, in this process's graph: plant_state readers "
+                f"{col.node.count_subscribers('/bike/plant_state')}, drive_command writers "
+                f"{col.node.count_publishers('/bike/drive_command')}\n{exc}") from None
         col.wait_for(lambda: any(s.name.endswith("plant") and s.level == DiagnosticStatus.OK
                                  for a in col.data["/diagnostics"][-5:] for s in a.status), 5, "OK diagnostic", [plant])
 

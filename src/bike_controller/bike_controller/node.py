@@ -147,6 +147,8 @@ class ControllerNode(Node):
         self.last_diag_wall = 0.0
         self.state_rx = None               # wall time of the last PlantState (plant-silence diagnostic)
         self.plant_silent = False
+        self.started_s = time.monotonic()
+        self.first_state_logged = False    # one INFO line at the first PlantState (diagnosis: matched?)
         # the plant waits for the recorder's reader of plant_state, not for its readers of this
         # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
         # first seconds before discovery matched them (a bag without ControllerStatus). Both
@@ -201,6 +203,10 @@ class ControllerNode(Node):
             return
         seq = int(msg.seq)
         self.state_rx = None if msg.end_of_run else time.monotonic()
+        if not self.first_state_logged:
+            self.first_state_logged = True
+            self.get_logger().info(f"first PlantState (seq {seq}, t={msg.stamp_ns * 1e-9:.3f}s) "
+                                   f"{time.monotonic() - self.started_s:.1f}s after start")
         if self.plant_silent:
             self.plant_silent = False
             self.get_logger().info(f"PlantState seq {seq} received: the plant is back")
