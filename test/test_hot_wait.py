@@ -89,6 +89,39 @@ def _matched_hot_topic(node, aux_period_s):
     return pub, got, executor, hot
 
 
+def test_a_busy_topic_does_not_hold_back_the_others(node):
+    """Messages are taken in passes of at most TAKE_BURST per subscription: with 300 waiting
+    on the first topic, the second's one comes after TAKE_BURST of them, not after all 300
+    (a lagging reader of a realtime plant's states got its diagnostics 0.2 s late), and the
+    call still drains both."""
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import UInt64
+
+    from bike_plant.loop import HotWait
+
+    qos = QoSProfile(depth=400, reliability=ReliabilityPolicy.RELIABLE)
+    order = []
+    pub_a = node.create_publisher(UInt64, "busy", qos)
+    pub_b = node.create_publisher(UInt64, "quiet", qos)
+    sub_a = node.create_subscription(UInt64, "busy", lambda m: order.append(("a", m.data)), qos)
+    sub_b = node.create_subscription(UInt64, "quiet", lambda m: order.append(("b", m.data)), qos)
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    hot = HotWait(executor, [sub_a, sub_b], node.context, aux_period_s=1000.0)
+    assert hot.spin(0.0) == 0                 # the executor's first turn, before anything waits
+    _wait_matched(sub_a)
+    _wait_matched(sub_b)
+    pub_b.publish(UInt64(data=0))
+    for k in range(300):
+        pub_a.publish(UInt64(data=k))
+    time.sleep(1.0)                           # all delivered to the reader's queues
+    assert hot.spin(0.0) == 301
+    assert order.index(("b", 0)) == HotWait.TAKE_BURST, order[:HotWait.TAKE_BURST + 2]
+    assert [m for t, m in order if t == "a"] == list(range(300))
+    executor.shutdown()
+
+
 def test_a_hot_message_the_executor_took_ends_the_wait(node):
     """The executor's turn (aux_period_s) may take the hot message the caller waits for: the
     call must return it as handled instead of waiting out its timeout with the answer in hand

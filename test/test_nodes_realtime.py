@@ -114,9 +114,12 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         after = states[i_fault + 100:i_fault + 200]
         assert all(m.faults & PlantState.FAULT_COMMAND_TIMEOUT for m in after)
         assert max(_peak_current(m) for m in after) < 1e-3
-        errors = [s for a in col.data["/diagnostics"] for s in a.status
-                  if s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR]
-        assert errors and "no DriveCommand" in errors[0].message and "safe state" in errors[0].message
+        def errors():
+            return [s for a in list(col.data["/diagnostics"]) for s in a.status
+                    if s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR]
+        # waited for: beside CPU hogs this process had the faulted states before the diagnostic
+        col.wait_for(errors, 5, "an ERROR diagnostic from the plant", [plant])
+        assert "no DriveCommand" in errors()[0].message and "safe state" in errors()[0].message
         # an ERROR diagnostic is published with the plant's first faulted batch (same sim stamp);
         # not necessarily the first ERROR: a saturated machine can starve the loop of DDS delivery
         # for ~1 s before the kill (README, DDS gaps in realtime mode), a timeout of its own. The
