@@ -31,7 +31,8 @@ def _peak_current(m) -> float:
 
 
 def test_realtime_timeout_safe_state_and_recovery(domain):
-    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray, "battery": BatteryState})
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray, "battery": BatteryState,
+                             "controller_status": ControllerStatus})
     procs = []
     try:
         cmd_pub = col.publisher(Command, "command")
@@ -122,23 +123,31 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         assert "no DriveCommand" in errors()[0].message and "safe state" in errors()[0].message
         # an ERROR diagnostic is published with the plant's first faulted batch (same sim stamp);
         # not necessarily the first ERROR: a saturated machine can starve the loop of DDS delivery
-        # for ~1 s before the kill (README, DDS gaps in realtime mode), a timeout of its own. The
-        # first faulted state THIS process got may be a later one (a reader lagging more than the
-        # writer's history of 200 batches loses the oldest; seen in CI), so the faulted batch is
-        # the diagnostic's: after the last state before the kill, at or before that state
-        kill_ns = stamp_ns(states[k_kill - 1].header.stamp)
+        # for ~1 s before the kill (README, DDS gaps in realtime mode), a timeout of its own, and
+        # the kill can land inside such a safe state (beside two CPU hogs: no new ERROR after the
+        # kill, the plant was already safe). The first faulted state THIS process got may be a
+        # later one (a reader lagging more than the writer's history of 200 batches loses the
+        # oldest; seen in CI). So the episode's start is the last ERROR at or before that state,
+        # and every state this process has from there to it must be faulted
         fault_ns = stamp_ns(states[i_fault].header.stamp)
 
-        def faulted():
-            return [(stamp_ns(a.header.stamp), s) for a in list(col.data["/diagnostics"])
-                    if kill_ns < stamp_ns(a.header.stamp) <= fault_ns
-                    for s in a.status if s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR]
-        col.wait_for(lambda: faulted(), 5, "the ERROR diagnostic of the faulted batch", [plant])
-        diag_ns, diag = faulted()[0]
+        def unfaulted_since(t_ns):
+            return [int(m.seq) for m in list(states) if t_ns <= stamp_ns(m.header.stamp) <= fault_ns
+                    and not m.faults & PlantState.FAULT_COMMAND_TIMEOUT]
+
+        def episode_start():
+            """The last plant ERROR at or before the faulted state, if none of the states
+            received since it is unfaulted (an earlier one, of a recovered timeout, is not it)."""
+            found = [(stamp_ns(a.header.stamp), s) for a in list(col.data["/diagnostics"])
+                     if stamp_ns(a.header.stamp) <= fault_ns
+                     for s in a.status if s.name.endswith("plant") and s.level == DiagnosticStatus.ERROR]
+            if not found:
+                return None
+            start = max(found, key=lambda pair: pair[0])
+            return None if unfaulted_since(start[0]) else start
+        col.wait_for(lambda: episode_start() is not None, 5, "the ERROR diagnostic of the faulted batch", [plant])
+        diag_ns, diag = episode_start()
         assert "no DriveCommand" in diag.message
-        # where this process has the state of that batch, it is the faulted one
-        assert all(m.faults & PlantState.FAULT_COMMAND_TIMEOUT for m in states[k_kill:]
-                   if stamp_ns(m.header.stamp) == diag_ns)
         # safe within 2 batches of command_timeout_s, in sim time measured by the plant: from the
         # batch in which the last DriveCommand arrived to the start of the first safe batch
         last_cmd_s = float({kv.key: kv.value for kv in diag.values}["last_drive_command_sim_s"])
@@ -168,7 +177,11 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
                 f"{max((_peak_current(m) for m in got), default=0.0):.1f} A, command subscriptions "
                 f"{cmd_pub.get_subscription_count()}, in this process's graph: plant_state readers "
                 f"{col.node.count_subscribers('/bike/plant_state')}, drive_command writers "
-                f"{col.node.count_publishers('/bike/drive_command')}\n{exc}") from None
+                f"{col.node.count_publishers('/bike/drive_command')}\nlast states (seq, faults, speed rpm): "
+                f"{[(int(m.seq), int(m.faults), round(m.speed_rpm)) for m in got[-3:]]}\nlast controller "
+                f"status (seq, command, speed_est_rpm, torque_cmd_nm, current_cmd_a): "
+                f"{[(int(c.seq), c.command, round(c.speed_est_rpm), c.torque_cmd_nm, c.current_cmd_a) for c in col.data['controller_status'][-3:]]}"
+                f"\n{exc}") from None
         col.wait_for(lambda: any(s.name.endswith("plant") and s.level == DiagnosticStatus.OK
                                  for a in col.data["/diagnostics"][-5:] for s in a.status), 5, "OK diagnostic", [plant])
 
@@ -176,6 +189,41 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         assert plant.wait(10.0) == 0, plant.output()
         ctrl2.signal(signal.SIGINT)
         assert ctrl2.wait(10.0) == 0, ctrl2.output()
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+def test_realtime_controller_without_commands_says_so(domain):
+    """A controller that joins a running realtime plant and gets no Command (no session, or
+    one it does not match) rides on the config's command0 = 0: it warns once, after
+    command_wait_s, and a Command that then comes is applied."""
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray,
+                             "controller_status": ControllerStatus})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        # the plant starts sim time without a controller (start_timeout_s), so the controller's
+        # first PlantState is past t = 0: realtime then answers without waiting for the session
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0, start_timeout_s=0.5))
+        procs.append(plant)
+        col.wait_for(lambda: any(stamp_ns(m.header.stamp) > 0 for m in col.data["plant_state"]), 20,
+                     "sim time running", procs)
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, dict(RT, command_wait_s=0.5))
+        procs.append(ctrl)
+
+        def warnings():
+            return [s.message for a in list(col.data["/diagnostics"]) for s in a.status
+                    if s.name.endswith("controller") and s.level == DiagnosticStatus.WARN]
+        col.wait_for(lambda: any("no Command received" in w for w in warnings()), 20, "the controller's warning",
+                     procs)
+        assert all(c.command == 0.0 for c in col.data["controller_status"]), "command0 until a Command comes"
+        col.wait_for(lambda: (cmd_pub.publish(msgconv.command_msg(0.5, 0, 0)) or
+                              any(c.command == 0.5 for c in col.data["controller_status"])), 15,
+                     "the Command applied", procs)
+        assert sum("no Command received" in w for w in warnings()) == 1, warnings()
+        assert ctrl.output().count("no Command received") == 1, ctrl.output()
     finally:
         for p in procs:
             p.stop()

@@ -149,6 +149,8 @@ class ControllerNode(Node):
         self.plant_silent = False
         self.started_s = time.monotonic()
         self.first_state_logged = False    # one INFO line at the first PlantState (diagnosis: matched?)
+        self.first_state_s = math.inf
+        self.commandless_warned = False    # realtime: one warning when no Command came at all
         # the plant waits for the recorder's reader of plant_state, not for its readers of this
         # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
         # first seconds before discovery matched them (a bag without ControllerStatus). Both
@@ -205,6 +207,7 @@ class ControllerNode(Node):
         self.state_rx = None if msg.end_of_run else time.monotonic()
         if not self.first_state_logged:
             self.first_state_logged = True
+            self.first_state_s = time.monotonic()
             self.get_logger().info(f"first PlantState (seq {seq}, t={msg.stamp_ns * 1e-9:.3f}s) "
                                    f"{time.monotonic() - self.started_s:.1f}s after start")
         if self.plant_silent:
@@ -291,6 +294,15 @@ class ControllerNode(Node):
             self.get_logger().warning(text)
             self._publish_diag(DiagnosticStatus.WARN, f"session silent: {text}", t_ns)
             self.stats["waits"] += 1
+        elif (not may_wait and len(self.stamps) == 0 and not self.session_done and not self.commandless_warned
+                and time.monotonic() - self.first_state_s > self.command_wait_s):
+            # realtime does not wait for the session: say so when none of its Commands came
+            # (a session not running, or not matched: zero torque, and nothing else tells why)
+            self.commandless_warned = True
+            text = (f"no Command received in the {self.command_wait_s:g}s (command_wait_s) since the first "
+                    "PlantState: riding on the config's command0 / mode0")
+            self.get_logger().warning(text)
+            self._publish_diag(DiagnosticStatus.WARN, f"session silent: {text}", t_ns)
         self._apply_timeline(t_ns)
         snap = msg.snap
         snap["stamp_ns"] = t_ns                            # a drive on CAN: the law's time base
