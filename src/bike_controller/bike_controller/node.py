@@ -330,6 +330,9 @@ class ControllerNode(Node):
         if now - self.last_diag_wall >= self.diag_period_s:
             level = DiagnosticStatus.WARN if self.rejected else DiagnosticStatus.OK
             text = f"last Command rejected: {self.reject_reason}" if self.rejected else "running"
+            if self.commandless_warned and len(self.stamps) == 0:
+                # repeated while it lasts: a monitor that matched after the one-off warning sees it too
+                level, text = DiagnosticStatus.WARN, "session silent: no Command received; riding on command0 / mode0"
             self._publish_diag(level, text, t_ns)
 
     def _apply_timeline(self, t_ns: int) -> None:
