@@ -148,8 +148,7 @@ class ControllerNode(Node):
         self.state_rx = None               # wall time of the last PlantState (plant-silence diagnostic)
         self.plant_silent = False
         self.started_s = time.monotonic()
-        self.first_state_logged = False    # one INFO line at the first PlantState (diagnosis: matched?)
-        self.first_state_s = math.inf
+        self.first_state_s = None          # when the first PlantState came (logged: diagnosis, matched?)
         self.commandless_warned = False    # realtime: one warning when no Command came at all
         # the plant waits for the recorder's reader of plant_state, not for its readers of this
         # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
@@ -205,8 +204,7 @@ class ControllerNode(Node):
             return
         seq = int(msg.seq)
         self.state_rx = None if msg.end_of_run else time.monotonic()
-        if not self.first_state_logged:
-            self.first_state_logged = True
+        if self.first_state_s is None:
             self.first_state_s = time.monotonic()
             self.get_logger().info(f"first PlantState (seq {seq}, t={msg.stamp_ns * 1e-9:.3f}s) "
                                    f"{time.monotonic() - self.started_s:.1f}s after start")
