@@ -1,0 +1,172 @@
+#!/usr/bin/env python3
+"""Does a node restarted after kill -9 hear every writer that survived it?
+
+Plain rclpy, no bike code: PEERS long-lived writer processes (a 100 Hz and a 1 kHz rate, half
+of them also reading the victim's own topic, as the session and plant read the controller's)
+stay up while a victim process subscribing to all of them is started, killed with SIGKILL at a
+random moment after it heard them all, and started again, RESTARTS times. A restart that has
+not heard a peer within --wait-s counts as deaf; the probe then waits up to --give-up-s to
+tell late from never. Exit status 0 when no restart was deaf, 1 otherwise.
+
+Why: a realtime controller restarted after kill -9 once got the plant's states but no Command
+for 30 s beside two CPU hogs (README, reliability table). This asks the middleware the same
+question without the bike's nodes, on the machine and the RMW at hand:
+
+    source tools/env.sh && python tools/dds_restart_probe.py --restarts 100
+
+Run it beside CPU hogs to load it like the recovery test was loaded. The victim's output is
+read by a thread: select() on a buffered pipe misses lines already in the reader's buffer
+(an earlier version of this probe counted such lines as deaf restarts).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import queue
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+RATES_HZ = (100.0, 1000.0)
+
+
+def peer_main(topic: str, rate_hz: float, reads_victim: bool) -> None:
+    """A surviving writer: publishes `topic` at rate_hz until SIGINT / SIGTERM."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64
+    rclpy.init()
+    node = rclpy.create_node("probe_peer_" + topic)
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(Float64, topic, qos)
+    if reads_victim:
+        node.create_subscription(Float64, "probe_victim", lambda _m: None, qos)
+    count = [0]
+
+    def tick():
+        count[0] += 1
+        pub.publish(Float64(data=float(count[0])))
+    node.create_timer(1.0 / rate_hz, tick)
+    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, Exception):   # ExternalShutdownException on SIGTERM
+        pass
+
+
+def victim_main(topics: list) -> None:
+    """The restarted node: prints 'heard TOPIC' once per topic, answers each message of the
+    first topic on probe_victim (a writer of its own, read by some peers)."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64
+    rclpy.init()
+    node = rclpy.create_node("probe_victim")
+    qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+    pub = node.create_publisher(Float64, "probe_victim", qos)
+    heard = set()
+
+    def on(topic):
+        def cb(msg):
+            if topic not in heard:
+                heard.add(topic)
+                print(f"heard {topic}", flush=True)
+            if topic == topics[0]:
+                pub.publish(msg)
+        return cb
+    for t in topics:
+        node.create_subscription(Float64, t, on(t), qos)
+    rclpy.spin(node)
+
+
+def _lines(proc) -> "queue.Queue":
+    q: queue.Queue = queue.Queue()
+
+    def pump():
+        for line in proc.stdout:
+            q.put(line.strip())
+        q.put(None)
+    threading.Thread(target=pump, daemon=True).start()
+    return q
+
+
+def _wait_heard(q, heard: set, want: set, until_s: float) -> None:
+    while heard < want and time.monotonic() < until_s:
+        try:
+            line = q.get(timeout=max(0.0, until_s - time.monotonic()))
+        except queue.Empty:
+            return
+        if line is None:                  # the victim died
+            return
+        if line.startswith("heard "):
+            heard.add(line.split(None, 1)[1])
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--restarts", type=int, default=50)
+    ap.add_argument("--peers", type=int, default=4)
+    ap.add_argument("--wait-s", type=float, default=7.0, help="a restart must hear every peer within this")
+    ap.add_argument("--give-up-s", type=float, default=40.0, help="then wait this long to tell late from never")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--silent-topic", action="store_true",
+                    help="the victim also subscribes to a topic nobody writes (checks that the probe sees deafness)")
+    ap.add_argument("--role", choices=["driver", "peer", "victim"], default="driver", help=argparse.SUPPRESS)
+    ap.add_argument("role_args", nargs="*", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.role == "peer":
+        peer_main(args.role_args[0], float(args.role_args[1]), args.role_args[2] == "1")
+        return 0
+    if args.role == "victim":
+        victim_main(args.role_args)
+        return 0
+    if args.restarts < 1 or args.peers < 1 or args.wait_s <= 0 or args.give_up_s < args.wait_s:
+        ap.error("need --restarts >= 1, --peers >= 1, 0 < --wait-s <= --give-up-s")
+
+    rng = random.Random(args.seed)
+    me = os.path.abspath(__file__)
+    peers = {f"probe_w{i}": (RATES_HZ[i % 2], i % 4 < 2) for i in range(args.peers)}
+    topics = list(peers) + (["probe_nobody"] if args.silent_topic else [])
+    procs = [subprocess.Popen([sys.executable, me, "--role", "peer", t, str(rate), "1" if reads else "0"])
+             for t, (rate, reads) in peers.items()]
+    deaf = late = 0
+    try:
+        time.sleep(2.0)
+        for i in range(args.restarts):
+            victim = subprocess.Popen([sys.executable, me, "--role", "victim", *topics],
+                                      stdout=subprocess.PIPE, text=True)
+            t0 = time.monotonic()
+            q, heard = _lines(victim), set()
+            _wait_heard(q, heard, set(topics), t0 + args.wait_s)
+            if heard < set(topics):
+                missing = sorted(set(topics) - heard)
+                _wait_heard(q, heard, set(topics), t0 + args.give_up_s)
+                never = sorted(set(topics) - heard)
+                deaf += 1
+                late += not never
+                print(f"restart {i}: not heard within {args.wait_s:g} s: {missing}; "
+                      f"never within {args.give_up_s:g} s: {never or 'none'}", flush=True)
+            time.sleep(rng.uniform(0.05, 1.0))     # kill at a random moment of its steady state
+            victim.kill()
+            victim.wait()
+            time.sleep(rng.uniform(0.0, 0.5))
+    finally:
+        for p in procs:
+            p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+    print(f"dds restart probe: {deaf} of {args.restarts} restarts deaf to a surviving writer "
+          f"({late} only late), {args.peers} peers, "
+          f"RMW {os.environ.get('RMW_IMPLEMENTATION', 'default')}, "
+          f"transports {os.environ.get('FASTDDS_BUILTIN_TRANSPORTS', 'default')}", flush=True)
+    return 1 if deaf else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
