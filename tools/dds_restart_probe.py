@@ -36,6 +36,7 @@ RATES_HZ = (100.0, 1000.0)
 def peer_main(topic: str, rate_hz: float, reads_victim: bool) -> None:
     """A surviving writer: publishes `topic` at rate_hz until SIGINT / SIGTERM."""
     import rclpy
+    from rclpy.executors import ExternalShutdownException
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import Float64
     rclpy.init()
@@ -50,10 +51,9 @@ def peer_main(topic: str, rate_hz: float, reads_victim: bool) -> None:
         count[0] += 1
         pub.publish(Float64(data=float(count[0])))
     node.create_timer(1.0 / rate_hz, tick)
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
     try:
         rclpy.spin(node)
-    except (KeyboardInterrupt, Exception):   # ExternalShutdownException on SIGTERM
+    except (KeyboardInterrupt, ExternalShutdownException):   # rclpy's own SIGINT / SIGTERM handling
         pass
 
 
