@@ -8,7 +8,9 @@ Semantics (lockstep, the default):
   machine state is held), says so in a WARN diagnostic, and a restarted controller resumes
   the run; never restarted, the plant ends the run with one error after start_timeout_s;
 - session killed: the controller proceeds with the last Command after command_wait_s (WARN
-  diagnostic); a restarted session resumes the profile and finishes it;
+  diagnostic); a restarted session resumes the profile and finishes it (the test holds the run
+  by stopping the controller until the new session follows /clock: a fast host ends the rest of
+  the run before a new process is up);
 - recorder killed: the plant gives it up after recorder_timeout_s (ERROR diagnostic) and runs
   on; a restarted recorder (new bag name) records the rest; the killed bag is recovered;
 - plant killed: the controller says the plant went silent; the graph stays up, idle. A
@@ -227,11 +229,25 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
             assert seq_at_kill <= held and int(states[-1].seq) == held, \
                 f"no batch may run without the controller (held at {held}, last state {states[-1].seq})"
         elif victim == "session":
-            # restarted at once: until it is up the controller goes on without it, saying so
-            restarted = _restart(victim, domain, tmp_path, duration)
-            everyone.append(restarted)
+            # without it the controller goes on after command_wait_s, saying so
             col.wait_for(lambda: silent_diags() > silent_before, 10,
                          "the controller's 'session silent' diagnostic after the kill", [procs["controller"]])
+            # The run then goes at the graph's full speed: on a fast host (4.5 GHz, ~10x real time)
+            # its last seconds were over before a new session process was up (imports, discovery:
+            # 1-2 s), and that session waited for a /clock that never came. To test the resume
+            # itself, the test holds the run meanwhile: a stopped controller answers nothing, so the
+            # plant holds sim time and re-publishes its state and /clock every republish_s, which
+            # the restarted session follows as soon as it is up
+            procs["controller"].signal(signal.SIGSTOP)
+            try:
+                status_before = len(col.data["session_status"])
+                restarted = _restart(victim, domain, tmp_path, duration)
+                everyone.append(restarted)
+                col.wait_for(lambda: any(s.state == SessionStatus.STATE_RUNNING
+                                         for s in col.data["session_status"][status_before:]), 30,
+                             "the restarted session following the held run's /clock", [restarted])
+            finally:
+                procs["controller"].signal(signal.SIGCONT)
         else:
             # restarted at once (under a new bag name; the same name again is refused) while the
             # plant waits recorder_timeout_s for the dead one, then gives it up and runs on; once
