@@ -51,8 +51,15 @@ def executable(pkg: str, exe: str) -> str:
 class NodeProcess:
     """One node as an OS process (own process group), output captured to a file."""
 
-    def __init__(self, pkg: str, exe: str, domain: int, params: dict | None = None, ns: str = "/bike"):
-        args = [executable(pkg, exe), "--ros-args", "-r", f"__ns:={ns}", "--params-file", str(CONFIG)]
+    # a node started through bike_plant.entry prints every thread's stack on SIGUSR1
+    dumps_stacks = True
+
+    def __init__(self, pkg: str, exe: str, domain: int, params: dict | None = None, ns: str = "/bike",
+                 remaps: dict | None = None):
+        args = [executable(pkg, exe), "--ros-args", "-r", f"__ns:={ns}"]
+        for old, new in (remaps or {}).items():
+            args += ["-r", f"{old}:={new}"]
+        args += ["--params-file", str(CONFIG)]
         for key, value in (params or {}).items():
             args += ["-p", f"{key}:={value}"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
@@ -82,6 +89,16 @@ class NodeProcess:
     def signal(self, sig: int) -> None:
         if self.alive():
             os.killpg(self.proc.pid, sig)
+
+    def stacks(self) -> str:
+        """Every thread's Python stack as the node prints it now (SIGUSR1, bike_plant.entry);
+        '' when it has exited or prints none. For a failure message: where a quiet node is."""
+        if not (self.dumps_stacks and self.alive()):
+            return ""
+        before = len(self.output())
+        os.kill(self.proc.pid, signal.SIGUSR1)
+        time.sleep(0.5)
+        return self.output()[before:]
 
     def stop(self, timeout: float = 5.0) -> int | None:
         """SIGINT, then SIGKILL if it does not end within ``timeout``; returns the exit code."""
@@ -175,7 +192,13 @@ class Collector:
         if exited is not None:
             raise AssertionError(f"{exited.name} exited ({exited.proc.returncode}) while waiting for {what}:\n"
                                  f"{exited.output()}")
-        logs = "\n".join(f"--- {p.name}:\n{p.output()[-3000:]}" for p in procs)
+        logs = []
+        for p in procs:
+            logs.append(f"--- {p.name}:\n{p.output()[-3000:]}")
+            stacks = p.stacks()
+            if stacks:
+                logs.append(f"--- {p.name}, its threads at the timeout:\n{stacks[-6000:]}")
+        logs = "\n".join(logs)
         raise AssertionError(f"timeout ({timeout}s) waiting for {what}\n{logs}")
 
     def close(self):

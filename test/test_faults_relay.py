@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 import pytest
-from node_harness import (CONFIG, ROOT, Collector, NodeProcess, domain, executable,  # noqa: F401
+from node_harness import (CONFIG, ROOT, Collector, NodeProcess, domain,  # noqa: F401
                           log_file, publish_wall_times, stamp_ns)
 
 from bike_msgs.msg import Command, PlantState  # noqa: E402
@@ -58,23 +58,9 @@ E_LL_MAX = CFG["bldc"]["ke_v_per_rpm"] * 5400.0
 BOUND_A = TRIP_A + CFG["control_period_s"] * 2.0 / 3.0 * (V_MAX + E_LL_MAX) / CFG["bldc"]["inductance_h"]
 
 
-class RemappedController(NodeProcess):
-    """controller_node publishing on drive_command_raw (the relay forwards it)."""
-
-    def __init__(self, domain: int, params: dict):
-        args = [executable("bike_controller", "controller_node"), "--ros-args", "-r", "__ns:=/bike",
-                "-r", "drive_command:=drive_command_raw", "--params-file", str(CONFIG)]
-        for key, value in params.items():
-            args += ["-p", f"{key}:={value}"]
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                   PYTHONUNBUFFERED="1")
-        self.log = log_file("controller")
-        self.name = "controller_node"
-        self.proc = subprocess.Popen(args, stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=str(ROOT),
-                                     start_new_session=True)
-
-
 class Relay(NodeProcess):
+    dumps_stacks = False          # a plain script (no SIGUSR1 handler: the signal would end it)
+
     def __init__(self, domain: int, schedule, seed: int):
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                    PYTHONUNBUFFERED="1")
@@ -148,7 +134,7 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
                                  dict(rt, duration_s=0.0, command_timeout_s=TIMEOUT_S)))
         relay = Relay(domain, SCHEDULE, seed=6)
         procs.append(relay)
-        ctrl = RemappedController(domain, rt)
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, rt, remaps={"drive_command": "drive_command_raw"})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 30, "controller's command subscription", procs)
         states, stamps = col.data["plant_state"], col.stamps["plant_state"]

@@ -235,6 +235,35 @@ def test_realtime_controller_without_commands_says_so(domain):
         col.close()
 
 
+def test_a_controller_fed_nothing_by_a_matched_plant_state_writer_says_so(domain):
+    """A plant_state writer matched but silent (here the test's own, which never publishes;
+    in CI once a restarted controller that got no PlantState from a running plant): the
+    controller logs and publishes one WARN naming it, instead of waiting without a word. And
+    SIGUSR1 prints every thread's stack while the node runs on (how a quiet node is
+    diagnosed: blocked, or spinning with nothing delivered)."""
+    col = Collector(domain, {"/diagnostics": DiagnosticArray})
+    procs = []
+    try:
+        col.publisher(PlantState, "plant_state")            # matched, never publishes
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+        procs.append(ctrl)
+
+        def warnings():
+            return [s.message for a in list(col.data["/diagnostics"]) for s in a.status
+                    if s.name.endswith("controller") and s.level == DiagnosticStatus.WARN]
+        col.wait_for(lambda: any("no PlantState" in w for w in warnings()), 30, "the controller's warning", procs)
+        assert "(1 matched)" in next(w for w in warnings() if "no PlantState" in w)
+        stacks = ctrl.stacks()
+        assert "Current thread" in stacks and "in run" in stacks, stacks      # the main thread in its loop
+        time.sleep(0.5)
+        assert ctrl.alive()
+        assert ctrl.output().count("no PlantState") == 1, ctrl.output()
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
 def test_realtime_without_controller_stays_safe_and_ends(domain):
     """No controller at all: t = 0 held for start_timeout_s, then gates off, a WARN diagnostic,
     end_of_run at duration_s."""

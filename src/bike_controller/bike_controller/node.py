@@ -124,6 +124,7 @@ class ControllerNode(Node):
                 # taken serialized, decoded by msgconv.PlantStateView (bike_plant.cdr: the hot path)
                 self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode),
                                          raw=True)]
+        self.sub_state = subs[2]
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
         # the loop waits on its three topics directly (bike_plant.loop.HotWait); Commands are
@@ -150,6 +151,8 @@ class ControllerNode(Node):
         self.started_s = time.monotonic()
         self.first_state_s = None          # when the first PlantState came (logged: diagnosis, matched?)
         self.commandless_warned = False    # realtime: one warning when no Command came at all
+        self.state_writer_since = None     # before the first PlantState: since when a plant_state writer matched
+        self.stateless_warned = False      # ... and one warning when it delivered nothing
         # the plant waits for the recorder's reader of plant_state, not for its readers of this
         # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
         # first seconds before discovery matched them (a bag without ControllerStatus). Both
@@ -362,9 +365,30 @@ class ControllerNode(Node):
         self.pub_diag.publish(arr)
         self.last_diag_wall = time.monotonic()
 
+    def _check_stateless(self) -> None:
+        """Before the first PlantState: a plant_state writer matched for PLANT_SILENT_S that
+        delivered nothing is not a plant still starting (a plant joins the graph after its
+        warm-up and re-publishes a held state every republish_s). Say so once, with what
+        this node sees: nothing else would tell why the plant stays in its safe state."""
+        if self.sub_state.get_publisher_count() == 0:
+            self.state_writer_since = None
+            return
+        now = time.monotonic()
+        if self.state_writer_since is None:
+            self.state_writer_since = now
+        elif now - self.state_writer_since > PLANT_SILENT_S:
+            self.stateless_warned = True
+            text = (f"no PlantState in the {PLANT_SILENT_S:g}s since a plant_state writer matched "
+                    f"({self.sub_state.get_publisher_count()} matched): nothing delivered to this node, "
+                    "nothing to answer")
+            self.get_logger().warning(text)
+            self._publish_diag(DiagnosticStatus.WARN, text)
+
     def run(self) -> int:
         while not self.stop_requested:
             self.hot.spin(0.1, self.busy.busy_s())
+            if self.first_state_s is None and not self.stateless_warned:
+                self._check_stateless()
             if self.pending is not None:
                 self._try_answer()                         # command_wait_s expiry
             if (self.state_rx is not None and not self.plant_silent

@@ -9,13 +9,20 @@ console script's own lines before this module runs (importlib.metadata and the e
 lookup, ~0.1 s; longer on a loaded machine), where a Ctrl-C still prints a traceback."""
 from __future__ import annotations
 
+import faulthandler
 import importlib
+import signal
 import sys
 
 
 def start(module: str, func: str = "main"):
     """Import ``module`` and run its ``func``; a KeyboardInterrupt that escapes either is
-    exit code 130 without a traceback."""
+    exit code 130 without a traceback.
+
+    ``kill -USR1 <pid>`` prints every thread's Python stack to the node's stderr and the node
+    runs on: the way to see where a node that went quiet is (blocked, or spinning with nothing
+    delivered). Registered before the import, so a hang in it shows too."""
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         return getattr(importlib.import_module(module), func)()
     except KeyboardInterrupt:
