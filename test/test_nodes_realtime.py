@@ -236,15 +236,15 @@ def test_realtime_controller_without_commands_says_so(domain):
 
 
 def test_a_controller_fed_nothing_by_a_matched_plant_state_writer_says_so(domain):
-    """A plant_state writer matched but silent (here the test's own, which never publishes;
-    in CI once a restarted controller that got no PlantState from a running plant): the
-    controller logs and publishes one WARN naming it, instead of waiting without a word. And
-    SIGUSR1 prints every thread's stack while the node runs on (how a quiet node is
-    diagnosed: blocked, or spinning with nothing delivered)."""
+    """A plant_state writer matched but silent (here the test's own, which publishes nothing at
+    first; in CI once a restarted controller that got no PlantState from a running plant): the
+    controller logs and publishes one WARN naming it, instead of waiting without a word, and
+    re-creates its subscription, which then receives. SIGUSR1 prints every thread's stack while
+    the node runs on (how a quiet node is diagnosed: blocked, or spinning with nothing delivered)."""
     col = Collector(domain, {"/diagnostics": DiagnosticArray})
     procs = []
     try:
-        col.publisher(PlantState, "plant_state")            # matched, never publishes
+        state_pub = col.publisher(PlantState, "plant_state")      # matched, publishes nothing at first
         ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
         procs.append(ctrl)
 
@@ -255,8 +255,11 @@ def test_a_controller_fed_nothing_by_a_matched_plant_state_writer_says_so(domain
         assert "(1 matched)" in next(w for w in warnings() if "no PlantState" in w)
         stacks = ctrl.stacks()
         assert "Current thread" in stacks and "in run" in stacks, stacks      # the main thread in its loop
-        time.sleep(0.5)
         assert ctrl.alive()
+        # the re-created subscription receives: a state now published is the controller's first
+        col.wait_for(lambda: state_pub.publish(PlantState()) or "first PlantState (seq 0" in ctrl.output(), 10,
+                     "the state on the re-created subscription", procs)
+        assert "(on the re-created subscription)" in ctrl.output()
         assert ctrl.output().count("no PlantState") == 1, ctrl.output()
     finally:
         for p in procs:

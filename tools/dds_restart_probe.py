@@ -55,11 +55,18 @@ def peer_main(topic: str, rate_hz: float, reads_victim: bool) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):   # rclpy's own SIGINT / SIGTERM handling
         pass
+    except RuntimeError:
+        # the same shutdown, landed between two waits: rclpy then fails to build the next wait
+        # set on the invalid context (RCLError, a RuntimeError) instead of raising the above
+        if rclpy.ok():
+            raise
 
 
-def victim_main(topics: list) -> None:
+def victim_main(topics: list, best_effort: bool = False) -> None:
     """The restarted node: prints 'heard TOPIC' once per topic, answers each message of the
-    first topic on probe_victim (a writer of its own, read by some peers)."""
+    first topic on probe_victim (a writer of its own, read by some peers). best_effort: its
+    readers are best effort (the writers stay reliable), as a realtime controller's
+    PlantState reader is (bike_plant.loop.REALTIME_QOS)."""
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from std_msgs.msg import Float64
@@ -67,6 +74,8 @@ def victim_main(topics: list) -> None:
     node = rclpy.create_node("probe_victim")
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     pub = node.create_publisher(Float64, "probe_victim", qos)
+    if best_effort:
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
     heard = set()
 
     def on(topic):
@@ -114,6 +123,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--silent-topic", action="store_true",
                     help="the victim also subscribes to a topic nobody writes (checks that the probe sees deafness)")
+    ap.add_argument("--best-effort", action="store_true",
+                    help="the victim reads best effort (the writers stay reliable), as a realtime controller does")
     ap.add_argument("--role", choices=["driver", "peer", "victim"], default="driver", help=argparse.SUPPRESS)
     ap.add_argument("role_args", nargs="*", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -121,7 +132,7 @@ def main(argv=None) -> int:
         peer_main(args.role_args[0], float(args.role_args[1]), args.role_args[2] == "1")
         return 0
     if args.role == "victim":
-        victim_main(args.role_args)
+        victim_main(args.role_args, args.best_effort)
         return 0
     if args.restarts < 1 or args.peers < 1 or args.wait_s <= 0 or args.give_up_s < args.wait_s:
         ap.error("need --restarts >= 1, --peers >= 1, 0 < --wait-s <= --give-up-s")
@@ -132,11 +143,12 @@ def main(argv=None) -> int:
     topics = list(peers) + (["probe_nobody"] if args.silent_topic else [])
     procs = [subprocess.Popen([sys.executable, me, "--role", "peer", t, str(rate), "1" if reads else "0"])
              for t, (rate, reads) in peers.items()]
+    victim_flags = ["--best-effort"] if args.best_effort else []
     deaf = late = 0
     try:
         time.sleep(2.0)
         for i in range(args.restarts):
-            victim = subprocess.Popen([sys.executable, me, "--role", "victim", *topics],
+            victim = subprocess.Popen([sys.executable, me, "--role", "victim", *victim_flags, *topics],
                                       stdout=subprocess.PIPE, text=True)
             t0 = time.monotonic()
             q, heard = _lines(victim), set()

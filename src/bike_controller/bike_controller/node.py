@@ -121,9 +121,7 @@ class ControllerNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", AUX_QOS)
         subs = [self.create_subscription(Command, "command", self._on_command, LOOP_QOS),
                 self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS),
-                # taken serialized, decoded by msgconv.PlantStateView (bike_plant.cdr: the hot path)
-                self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode),
-                                         raw=True)]
+                self._state_subscription()]
         self.sub_state = subs[2]
         self.executor_ = SingleThreadedExecutor()
         self.executor_.add_node(self)
@@ -165,6 +163,11 @@ class ControllerNode(Node):
             f"command_wait_s={self.command_wait_s:g} config={path}")
         if getattr(self.ctrl, "startup_note", ""):
             self.get_logger().info(self.ctrl.startup_note)
+
+    def _state_subscription(self):
+        # taken serialized, decoded by msgconv.PlantStateView (bike_plant.cdr: the hot path)
+        return self.create_subscription(PlantState, "plant_state", self._on_state, loop_reader_qos(self.sync_mode),
+                                        raw=True)
 
     # ------------------------------------------------------------ inputs
     def _on_command(self, msg: Command) -> None:
@@ -210,7 +213,8 @@ class ControllerNode(Node):
         if self.first_state_s is None:
             self.first_state_s = time.monotonic()
             self.get_logger().info(f"first PlantState (seq {seq}, t={msg.stamp_ns * 1e-9:.3f}s) "
-                                   f"{time.monotonic() - self.started_s:.1f}s after start")
+                                   f"{time.monotonic() - self.started_s:.1f}s after start"
+                                   + (" (on the re-created subscription)" if self.stateless_warned else ""))
         if self.plant_silent:
             self.plant_silent = False
             self.get_logger().info(f"PlantState seq {seq} received: the plant is back")
@@ -369,7 +373,10 @@ class ControllerNode(Node):
         """Before the first PlantState: a plant_state writer matched for PLANT_SILENT_S that
         delivered nothing is not a plant still starting (a plant joins the graph after its
         warm-up and re-publishes a held state every republish_s). Say so once, with what
-        this node sees: nothing else would tell why the plant stays in its safe state."""
+        this node sees: nothing else would tell why the plant stays in its safe state. Then
+        try a new reader: the subscription is re-created once (CI saw a restarted controller
+        that never got a PlantState from a running plant, cause not found; whether a new
+        reader heals that is not known, it costs nothing where all is well)."""
         if self.sub_state.get_publisher_count() == 0:
             self.state_writer_since = None
             return
@@ -380,9 +387,13 @@ class ControllerNode(Node):
             self.stateless_warned = True
             text = (f"no PlantState in the {PLANT_SILENT_S:g}s since a plant_state writer matched "
                     f"({self.sub_state.get_publisher_count()} matched): nothing delivered to this node, "
-                    "nothing to answer")
+                    "nothing to answer; re-creating the subscription")
             self.get_logger().warning(text)
             self._publish_diag(DiagnosticStatus.WARN, text)
+            old = self.sub_state
+            self.sub_state = self._state_subscription()
+            self.hot.replace(old, self.sub_state)
+            self.destroy_subscription(old)
 
     def run(self) -> int:
         while not self.stop_requested:
