@@ -8,11 +8,17 @@ random moment after it heard them all, and started again, RESTARTS times. A rest
 not heard a peer within --wait-s counts as deaf; the probe then waits up to --give-up-s to
 tell late from never. Exit status 0 when no restart was deaf, 1 otherwise.
 
-Why: a realtime controller restarted after kill -9 once got the plant's states but no Command
-for 30 s beside two CPU hogs (README, reliability table). This asks the middleware the same
-question without the bike's nodes, on the machine and the RMW at hand:
+Why: a realtime controller restarted after kill -9 beside a running plant once answered
+nothing for 30 s (CI; again 2026-12-04 in one of five full local runs, where its log showed
+that no PlantState ever reached it; README, reliability table). This asks the middleware the
+same question without the bike's nodes, on the machine and the RMW at hand:
 
     source tools/env.sh && python tools/dds_restart_probe.py --restarts 100
+    ... --best-effort --payload-bytes 600 --rates-hz 1000    # closer to the realtime controller
+
+(--best-effort: the restarted reader is best effort, as a realtime controller's PlantState
+reader is; --payload-bytes: the peers send Strings of that size, a PlantState at N = 20 being
+~600 B; --rates-hz: the peers' rates.)
 
 Run it beside CPU hogs to load it like the recovery test was loaded. The victim's output is
 read by a thread: select() on a buffered pipe misses lines already in the reader's buffer
@@ -30,26 +36,26 @@ import sys
 import threading
 import time
 
-RATES_HZ = (100.0, 1000.0)
 
-
-def peer_main(topic: str, rate_hz: float, reads_victim: bool) -> None:
-    """A surviving writer: publishes `topic` at rate_hz until SIGINT / SIGTERM."""
+def peer_main(topic: str, rate_hz: float, reads_victim: bool, payload_bytes: int = 0) -> None:
+    """A surviving writer: publishes `topic` at rate_hz until SIGINT / SIGTERM (payload_bytes >
+    0: a std_msgs/String of that many bytes instead of a Float64)."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from std_msgs.msg import Float64
+    from std_msgs.msg import Float64, String
     rclpy.init()
     node = rclpy.create_node("probe_peer_" + topic)
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    pub = node.create_publisher(Float64, topic, qos)
+    payload = "x" * payload_bytes
+    pub = node.create_publisher(String if payload else Float64, topic, qos)
     if reads_victim:
         node.create_subscription(Float64, "probe_victim", lambda _m: None, qos)
     count = [0]
 
     def tick():
         count[0] += 1
-        pub.publish(Float64(data=float(count[0])))
+        pub.publish(String(data=payload) if payload else Float64(data=float(count[0])))
     node.create_timer(1.0 / rate_hz, tick)
     try:
         rclpy.spin(node)
@@ -62,14 +68,15 @@ def peer_main(topic: str, rate_hz: float, reads_victim: bool) -> None:
             raise
 
 
-def victim_main(topics: list, best_effort: bool = False) -> None:
+def victim_main(topics: list, best_effort: bool = False, big: bool = False) -> None:
     """The restarted node: prints 'heard TOPIC' once per topic, answers each message of the
     first topic on probe_victim (a writer of its own, read by some peers). best_effort: its
     readers are best effort (the writers stay reliable), as a realtime controller's
-    PlantState reader is (bike_plant.loop.REALTIME_QOS)."""
+    PlantState reader is (bike_plant.loop.REALTIME_QOS). big: the peers send Strings
+    (--payload-bytes)."""
     import rclpy
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from std_msgs.msg import Float64
+    from std_msgs.msg import Float64, String
     rclpy.init()
     node = rclpy.create_node("probe_victim")
     qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -84,10 +91,10 @@ def victim_main(topics: list, best_effort: bool = False) -> None:
                 heard.add(topic)
                 print(f"heard {topic}", flush=True)
             if topic == topics[0]:
-                pub.publish(msg)
+                pub.publish(Float64(data=0.0))
         return cb
     for t in topics:
-        node.create_subscription(Float64, t, on(t), qos)
+        node.create_subscription(String if big else Float64, t, on(t), qos)
     rclpy.spin(node)
 
 
@@ -125,25 +132,35 @@ def main(argv=None) -> int:
                     help="the victim also subscribes to a topic nobody writes (checks that the probe sees deafness)")
     ap.add_argument("--best-effort", action="store_true",
                     help="the victim reads best effort (the writers stay reliable), as a realtime controller does")
+    ap.add_argument("--payload-bytes", type=int, default=0,
+                    help="the peers send std_msgs/String messages of this size (a PlantState at N = 20: ~600 B)")
+    ap.add_argument("--rates-hz", default="100,1000", help="the peers' rates, alternating (default 100,1000)")
     ap.add_argument("--role", choices=["driver", "peer", "victim"], default="driver", help=argparse.SUPPRESS)
     ap.add_argument("role_args", nargs="*", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.role == "peer":
-        peer_main(args.role_args[0], float(args.role_args[1]), args.role_args[2] == "1")
+        peer_main(args.role_args[0], float(args.role_args[1]), args.role_args[2] == "1", args.payload_bytes)
         return 0
     if args.role == "victim":
-        victim_main(args.role_args, args.best_effort)
+        victim_main(args.role_args, args.best_effort, args.payload_bytes > 0)
         return 0
     if args.restarts < 1 or args.peers < 1 or args.wait_s <= 0 or args.give_up_s < args.wait_s:
         ap.error("need --restarts >= 1, --peers >= 1, 0 < --wait-s <= --give-up-s")
+    try:
+        rates = [float(x) for x in args.rates_hz.split(",")]
+    except ValueError:
+        rates = []
+    if not rates or not all(0.0 < r <= 20000.0 for r in rates) or args.payload_bytes < 0:
+        ap.error("need --rates-hz of numbers in (0, 20000], --payload-bytes >= 0")
 
     rng = random.Random(args.seed)
     me = os.path.abspath(__file__)
-    peers = {f"probe_w{i}": (RATES_HZ[i % 2], i % 4 < 2) for i in range(args.peers)}
+    peers = {f"probe_w{i}": (rates[i % len(rates)], i % 4 < 2) for i in range(args.peers)}
     topics = list(peers) + (["probe_nobody"] if args.silent_topic else [])
-    procs = [subprocess.Popen([sys.executable, me, "--role", "peer", t, str(rate), "1" if reads else "0"])
+    size = ["--payload-bytes", str(args.payload_bytes)]
+    procs = [subprocess.Popen([sys.executable, me, "--role", "peer", *size, t, str(rate), "1" if reads else "0"])
              for t, (rate, reads) in peers.items()]
-    victim_flags = ["--best-effort"] if args.best_effort else []
+    victim_flags = (["--best-effort"] if args.best_effort else []) + size
     deaf = late = 0
     try:
         time.sleep(2.0)
@@ -174,7 +191,9 @@ def main(argv=None) -> int:
             except subprocess.TimeoutExpired:
                 p.kill()
     print(f"dds restart probe: {deaf} of {args.restarts} restarts deaf to a surviving writer "
-          f"({late} only late), {args.peers} peers, "
+          f"({late} only late), {args.peers} peers at {args.rates_hz} Hz"
+          f"{f', {args.payload_bytes} B messages' if args.payload_bytes else ''}"
+          f"{', best-effort reader' if args.best_effort else ''}, "
           f"RMW {os.environ.get('RMW_IMPLEMENTATION', 'default')}, "
           f"transports {os.environ.get('FASTDDS_BUILTIN_TRANSPORTS', 'default')}", flush=True)
     return 1 if deaf else 0
