@@ -134,7 +134,9 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
                                  dict(rt, duration_s=0.0, command_timeout_s=TIMEOUT_S)))
         relay = Relay(domain, SCHEDULE, seed=6)
         procs.append(relay)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, rt, remaps={"drive_command": "drive_command_raw"})
+        # the controller publishes on drive_command_raw, which the relay forwards
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, rt,
+                           remaps={"drive_command": "drive_command_raw"})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 30, "controller's command subscription", procs)
         states, stamps = col.data["plant_state"], col.stamps["plant_state"]
