@@ -37,3 +37,14 @@ def test_the_probe_reports_a_writer_it_never_hears(domain):
     assert run.returncode == 1, run.stdout + run.stderr[-3000:]
     assert "never within 2 s: ['probe_nobody']" in run.stdout, run.stdout
     assert "1 of 1 restarts deaf" in run.stdout, run.stdout
+
+
+@pytest.mark.faults
+def test_the_realtime_controllers_reader_restarted_after_kill_9_hears_every_writer(domain):
+    """The same with the realtime controller's side of it: a best-effort reader of reliable
+    writers sending PlantState-sized messages (--best-effort, --payload-bytes, --rates-hz)."""
+    run = _probe(domain, "--restarts", "2", "--peers", "2", "--seed", "2", "--best-effort",
+                 "--payload-bytes", "600", "--rates-hz", "1000")
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+    assert "0 of 2 restarts deaf" in run.stdout, run.stdout
+    assert "2 peers at 1000 Hz, 600 B messages, best-effort reader" in run.stdout, run.stdout

@@ -9,7 +9,7 @@ not heard a peer within --wait-s counts as deaf; the probe then waits up to --gi
 tell late from never. Exit status 0 when no restart was deaf, 1 otherwise.
 
 Why: a realtime controller restarted after kill -9 beside a running plant once answered
-nothing for 30 s (CI; again 2026-12-04 in one of five full local runs, where its log showed
+nothing for 30 s (CI; again 2026-12-04 in one of seven full local runs, where its log showed
 that no PlantState ever reached it; README, reliability table). This asks the middleware the
 same question without the bike's nodes, on the machine and the RMW at hand:
 
