@@ -27,6 +27,21 @@ def test_a_reader_restarted_after_kill_9_hears_every_surviving_writer(domain):
     run = _probe(domain, "--restarts", "4", "--peers", "4", "--seed", "1")
     assert run.returncode == 0, run.stdout + run.stderr[-3000:]
     assert "dds restart probe: 0 of 4 restarts deaf" in run.stdout, run.stdout
+    # under LOCALHOST rmw_fastrtps always adds shared memory; the summary says so
+    assert "transports SHM + UDPv4 (rmw_fastrtps for LOCALHOST)" in run.stdout, run.stdout
+
+
+def test_the_probe_names_the_transports_in_effect():
+    """FASTDDS_BUILTIN_TRANSPORTS counts only outside LOCALHOST (a UDPv4-only run under
+    LOCALHOST, believed in an earlier stop, still went over shared memory)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("dds_restart_probe", PROBE)
+    probe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(probe)
+    udp = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+    assert probe.transports_in_effect(dict(udp, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")).startswith("SHM + UDPv4")
+    assert probe.transports_in_effect(dict(udp, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")) == "UDPv4"
+    assert probe.transports_in_effect({}) == "DEFAULT (SHM + UDPv4)"
 
 
 @pytest.mark.faults

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns  # noqa: F401
+from node_harness import CONFIG, Collector, NodeProcess, domain, guarded_ports, shm_lock_ports, stamp_ns  # noqa: F401
 
 from bike_msgs.msg import Command, ControllerStatus, PlantState  # noqa: E402
 from bike_plant import msgconv  # noqa: E402
@@ -94,6 +94,8 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
             raise AssertionError("\n".join(seen))
         assert col.data["battery"], "BatteryState is published"
 
+        # the shared-memory ports the controller listens on (the plant writes to them)
+        ports1 = shm_lock_ports(ctrl.pid)
         # the controller dies without a word
         ctrl.signal(signal.SIGKILL)
         t_kill = time.monotonic()
@@ -184,6 +186,9 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
                 f"\n{exc}") from None
         col.wait_for(lambda: any(s.name.endswith("plant") and s.level == DiagnosticStatus.OK
                                  for a in col.data["/diagnostics"][-5:] for s in a.status), 5, "OK diagnostic", [plant])
+        # the new controller stayed off the killed one's ports, which the live plant still maps
+        # (Fast DDS would hand them on: bike_plant.shm_guard, test_shm_guard.py)
+        assert ports1 and ports1 <= guarded_ports(ctrl2.output()), (sorted(ports1), ctrl2.output()[-3000:])
 
         plant.signal(signal.SIGTERM)
         assert plant.wait(10.0) == 0, plant.output()

@@ -98,6 +98,15 @@ def victim_main(topics: list, best_effort: bool = False, big: bool = False) -> N
     rclpy.spin(node)
 
 
+def transports_in_effect(env) -> str:
+    """What Fast DDS sends over. Under ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST the Jazzy
+    rmw_fastrtps installs its own shared-memory + UDPv4 transports, so FASTDDS_BUILTIN_TRANSPORTS
+    (and an XML profile's transports) have no effect there; only other ranges honour them."""
+    if env.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "") == "LOCALHOST":
+        return "SHM + UDPv4 (rmw_fastrtps for LOCALHOST)"
+    return env.get("FASTDDS_BUILTIN_TRANSPORTS", "DEFAULT (SHM + UDPv4)")
+
+
 def _lines(proc) -> "queue.Queue":
     q: queue.Queue = queue.Queue()
 
@@ -194,8 +203,8 @@ def main(argv=None) -> int:
           f"({late} only late), {args.peers} peers at {args.rates_hz} Hz"
           f"{f', {args.payload_bytes} B messages' if args.payload_bytes else ''}"
           f"{', best-effort reader' if args.best_effort else ''}, "
-          f"RMW {os.environ.get('RMW_IMPLEMENTATION', 'default')}, "
-          f"transports {os.environ.get('FASTDDS_BUILTIN_TRANSPORTS', 'default')}", flush=True)
+          f"RMW {os.environ.get('RMW_IMPLEMENTATION', 'default')}, transports {transports_in_effect(os.environ)}",
+          flush=True)
     return 1 if deaf else 0
 
 

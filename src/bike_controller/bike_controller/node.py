@@ -46,7 +46,7 @@ import sys
 import time
 
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
-from bike_plant import msgconv
+from bike_plant import msgconv, shm_guard
 from bike_plant.config import ConfigError, number_param
 from bike_plant.loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                              recorder_reads)
@@ -373,10 +373,12 @@ class ControllerNode(Node):
         """Before the first PlantState: a plant_state writer matched for PLANT_SILENT_S that
         delivered nothing is not a plant still starting (a plant joins the graph after its
         warm-up and re-publishes a held state every republish_s). Say so once, with what
-        this node sees: nothing else would tell why the plant stays in its safe state. Then
-        try a new reader: the subscription is re-created once (CI saw a restarted controller
-        that never got a PlantState from a running plant, cause not found; whether a new
-        reader heals that is not known, it costs nothing where all is well)."""
+        this node sees: nothing else would tell why the plant stays in its safe state, and
+        name any process that still writes to a deleted shared-memory segment of this node's
+        ports (the Fast DDS stale-port failure that bike_plant.shm_guard prevents at start-up).
+        Then try a new reader: the subscription is re-created once. It cannot heal that
+        failure (a new reader keeps the participant's ports) but may heal another, and costs
+        nothing where all is well."""
         if self.sub_state.get_publisher_count() == 0:
             self.state_writer_since = None
             return
@@ -385,9 +387,13 @@ class ControllerNode(Node):
             self.state_writer_since = now
         elif now - self.state_writer_since > PLANT_SILENT_S:
             self.stateless_warned = True
+            stale = shm_guard.writers_to_deleted(shm_guard.own_ports())
+            why = "".join(f"; pid(s) {', '.join(map(str, pids))} still write to a deleted segment of this node's "
+                          f"shared-memory port {port} (Fast DDS stale port after a kill -9, eProsima/Fast-DDS #5053)"
+                          for port, pids in sorted(stale.items()))
             text = (f"no PlantState in the {PLANT_SILENT_S:g}s since a plant_state writer matched "
                     f"({self.sub_state.get_publisher_count()} matched): nothing delivered to this node, "
-                    "nothing to answer; re-creating the subscription")
+                    f"nothing to answer{why}; re-creating the subscription")
             self.get_logger().warning(text)
             self._publish_diag(DiagnosticStatus.WARN, text)
             old = self.sub_state
