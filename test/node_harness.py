@@ -234,6 +234,12 @@ def shm_lock_ports(pid: int) -> set:
     return ports
 
 
+def shm_mapped_ports(pid: int) -> set:
+    """The Fast DDS shared-memory ports whose segments a process maps (those it writes to)."""
+    with open(f"/proc/{pid}/maps") as f:
+        return {int(m) for m in re.findall(r"/fastrtps_port(\d+)(?:\s|$)", f.read())}
+
+
 def guarded_ports(output: str) -> set:
     """The ports a node's shm guard kept it off, from its log line (bike_plant.entry)."""
     m = re.search(r"shm_guard: kept off \d+ shared-memory port\(s\) .*?\(([\d, ]+)\)", output)

@@ -11,7 +11,10 @@ tell late from never. Exit status 0 when no restart was deaf, 1 otherwise.
 Why: a realtime controller restarted after kill -9 beside a running plant once answered
 nothing for 30 s (CI; again 2026-12-04 in one of seven full local runs, where its log showed
 that no PlantState ever reached it; README, reliability table). This asks the middleware the
-same question without the bike's nodes, on the machine and the RMW at hand:
+same question without the bike's nodes, on the machine and the RMW at hand. (The cause, found
+later: a kill landing in a microsecond window of the reader's shared-memory listener leaves the
+writers on a stale port; random kills rarely hit it, so this probe did not.
+tools/shm_stale_port_repro.py hits it on purpose, and bike_plant.shm_guard prevents it.)
 
     source tools/env.sh && python tools/dds_restart_probe.py --restarts 100
     ... --best-effort --payload-bytes 600 --rates-hz 1000    # closer to the realtime controller

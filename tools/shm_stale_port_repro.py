@@ -1,0 +1,218 @@
+#!/usr/bin/env python3
+"""Reproduce, on demand, the Fast DDS 2.14 stale shared-memory port that made a node restarted
+after kill -9 deaf, and show that bike_plant.shm_guard prevents it.
+
+Three plain rclpy processes on this host (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, where the
+Jazzy rmw_fastrtps always uses shared memory): a writer (10 samples every 1 ms) stays up; a best-effort reader
+is killed with SIGKILL at the one moment that matters; a second reader is started 1.5 s later
+(with --guard: through bike_plant.entry's guard, as every bike node is) and must hear the writer.
+
+The moment: each port segment (/dev/shm/fastrtps_port<N>) ends with a status byte per listener
+(1024 of 20 bytes before the domain name: bit 0 in use, bit 1 waiting, bit 2 processing;
+Fast DDS SharedMemGlobal.hpp, PortNode / ListenerStatus). A listener killed while in use but
+neither waiting nor processing (between popping a buffer and starting on it, a window of
+microseconds) is never found stuck by the writer's port watchdog, so the writer keeps its handle
+on that segment; the new reader takes the same port number (the lowest whose lock nobody holds),
+deletes the segment and makes a new one, and the writer's samples go into the deleted one. The
+probe polls the reader's status byte, stops the reader (SIGSTOP) when it reads "in use" alone,
+and kills it if the byte still says so once it is stopped; the byte is frozen from then on.
+
+    source tools/env.sh && python tools/shm_stale_port_repro.py            # deaf: exit 1
+    source tools/env.sh && python tools/shm_stale_port_repro.py --guard    # hears: exit 0
+
+Exit status: 0 the restarted reader heard the writer, 1 it did not within --wait-s, 2 the window
+was not caught or the segment layout is not the one above (another Fast DDS version).
+"""
+from __future__ import annotations
+
+import argparse
+import mmap
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+STATUS_STRIDE_B = 20       # sizeof(ListenerStatus) in Fast DDS 2.14
+MAX_LISTENERS = 1024
+IN_USE, WAITING, PROCESSING = 1, 2, 4
+
+
+def node_main(role: str, guard: bool) -> None:
+    """writer: Float64 in bursts of 10 every 1 ms, reliable. reader: best effort; prints
+    'heard' once."""
+    if guard:
+        from bike_plant.entry import guard_shared_memory_ports
+        guard_shared_memory_ports("repro reader")
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64
+    rclpy.init()
+    node = rclpy.create_node("shm_repro_" + role)
+    if role == "writer":
+        pub = node.create_publisher(Float64, "shm_repro", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        msg = Float64(data=1.0)
+
+        def burst():                    # 10 kHz of samples: more windows to catch per second
+            for _ in range(10):
+                pub.publish(msg)
+        node.create_timer(0.001, burst)
+    else:
+        def on_msg(_msg, seen=[]):
+            if not seen:
+                seen.append(True)
+                print("heard", flush=True)
+        node.create_subscription(Float64, "shm_repro", on_msg,
+                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+
+
+class _Proc:
+    def __init__(self, role: str, guard: bool = False):
+        args = [sys.executable, os.path.abspath(__file__), "--role", role] + (["--guard"] if guard else [])
+        self.p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines: queue.Queue = queue.Queue()
+        self.out: list = []
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self):
+        for line in self.p.stdout:
+            self.out.append(line.rstrip())
+            self.lines.put(line.strip())
+
+    def heard(self, wait_s: float) -> bool:
+        until = time.monotonic() + wait_s
+        while time.monotonic() < until:
+            try:
+                if self.lines.get(timeout=max(0.0, until - time.monotonic())) == "heard":
+                    return True
+            except queue.Empty:
+                break
+        return False
+
+    def stop(self):
+        if self.p.poll() is None:
+            self.p.kill()
+        self.p.wait(10)
+
+
+def lock_ports(pid: int) -> set:
+    ports = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            m = re.search(r"fastrtps_port(\d+)_el$", os.readlink(f"/proc/{pid}/fd/{fd}"))
+        except OSError:
+            continue
+        if m:
+            ports.add(int(m.group(1)))
+    return ports
+
+
+def _stopped(pid: int) -> bool:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0] == "T"
+
+
+def find_listener(port: int, sample_s: float = 0.3):
+    """(mmap, offset of the status byte) of the one active listener of the port: the entry that
+    is in use and was seen both waiting and processing; None if there is no such entry."""
+    f = open(f"/dev/shm/fastrtps_port{port}", "rb")
+    m = mmap.mmap(f.fileno(), 0, prot=mmap.PROT_READ)
+    end = m[:].rfind(b"fastrtps\0")
+    base = end - MAX_LISTENERS * STATUS_STRIDE_B
+    if end < 0 or base < 0:
+        return None
+    seen: dict = {}
+    until = time.monotonic() + sample_s
+    while time.monotonic() < until:
+        for k in range(8):                          # the first few entries (a fresh port uses entry 0)
+            seen.setdefault(k, set()).add(m[base + k * STATUS_STRIDE_B])
+    for k, values in seen.items():
+        if all(v & IN_USE for v in values) and any(v & WAITING for v in values) and any(v & PROCESSING for v in values):
+            return m, base + k * STATUS_STRIDE_B
+    return None
+
+
+def kill_in_window(pid: int, m, off: int, give_up_s: float) -> int | None:
+    """SIGKILL the process while its listener is in use and neither waiting nor processing;
+    returns the number of stops it took, None if not caught within give_up_s."""
+    stops = 0
+    until = time.monotonic() + give_up_s
+    while time.monotonic() < until:
+        if m[off] != IN_USE:
+            continue
+        stops += 1
+        os.kill(pid, signal.SIGSTOP)
+        while not _stopped(pid):
+            pass
+        if m[off] == IN_USE:
+            os.kill(pid, signal.SIGKILL)
+            return stops
+        os.kill(pid, signal.SIGCONT)
+    return None
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--guard", action="store_true", help="start the second reader through bike_plant's shm guard")
+    ap.add_argument("--wait-s", type=float, default=10.0, help="the second reader must hear the writer within this")
+    ap.add_argument("--give-up-s", type=float, default=60.0, help="give up catching the window after this")
+    ap.add_argument("--role", choices=["driver", "writer", "reader"], default="driver", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.role != "driver":
+        node_main(args.role, args.guard)
+        return 0
+    procs = [_Proc("writer")]
+    try:
+        time.sleep(1.0)
+        first = _Proc("reader")
+        procs.append(first)
+        if not first.heard(20.0):
+            print("shm stale port repro: the first reader never heard the writer", first.out[-10:], flush=True)
+            return 2
+        ports = sorted(lock_ports(first.p.pid) - lock_ports(procs[0].p.pid))
+        found = None
+        for port in sorted(ports, reverse=True):     # the domain's data port first
+            found = find_listener(port)
+            if found:
+                break
+        if found is None:
+            print(f"shm stale port repro: no active listener found in ports {ports} (another segment layout?)",
+                  flush=True)
+            return 2
+        t_hunt = time.monotonic()
+        stops = kill_in_window(first.p.pid, *found, args.give_up_s)
+        if stops is None:
+            print(f"shm stale port repro: window not caught in {args.give_up_s:g} s", flush=True)
+            return 2
+        first.p.wait(10)
+        frozen = found[0][found[1]]
+        time.sleep(1.5)
+        second = _Proc("reader", guard=args.guard)
+        procs.append(second)
+        heard = second.heard(args.wait_s)
+        with open(f"/proc/{procs[0].p.pid}/maps") as f:
+            deleted = sorted(set(re.findall(r"fastrtps_port(\d+) \(deleted\)", f.read())))
+        print(f"shm stale port repro: first reader killed in the window after {stops} stop(s), "
+              f"{time.monotonic() - t_hunt:.1f} s (status byte "
+              f"{frozen:#04x}, ports {ports}); second reader{' (guarded)' if args.guard else ''} on ports "
+              f"{sorted(lock_ports(second.p.pid))} {'heard the writer' if heard else f'DEAF for {args.wait_s:g} s'}; "
+              f"writer maps deleted port segments {deleted or 'none'}", flush=True)
+        guard_lines = [line for line in second.out if "shm_guard" in line]
+        if guard_lines:
+            print(guard_lines[0], flush=True)
+        return 0 if heard else 1
+    finally:
+        for p in reversed(procs):
+            p.stop()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
