@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import pathlib
-import re
 import signal
 import subprocess
 import tempfile
@@ -217,33 +216,6 @@ def domain():
     d = domains.claim()
     yield d
     domains.release(d)
-
-
-def shm_lock_ports(pid: int) -> set:
-    """The Fast DDS shared-memory ports whose locks a process holds (its listening ports, and
-    any the shm guard holds to keep it off them)."""
-    ports = set()
-    fd_dir = f"/proc/{pid}/fd"
-    for fd in os.listdir(fd_dir):
-        try:
-            m = re.search(r"fastrtps_port(\d+)_el$", os.readlink(os.path.join(fd_dir, fd)))
-        except OSError:
-            continue
-        if m:
-            ports.add(int(m.group(1)))
-    return ports
-
-
-def shm_mapped_ports(pid: int) -> set:
-    """The Fast DDS shared-memory ports whose segments a process maps (those it writes to)."""
-    with open(f"/proc/{pid}/maps") as f:
-        return {int(m) for m in re.findall(r"/fastrtps_port(\d+)(?:\s|$)", f.read())}
-
-
-def guarded_ports(output: str) -> set:
-    """The ports a node's shm guard kept it off, from its log line (bike_plant.entry)."""
-    m = re.search(r"shm_guard: kept off \d+ shared-memory port\(s\) .*?\(([\d, ]+)\)", output)
-    return {int(x) for x in m.group(1).split(",")} if m else set()
 
 
 def stamp_ns(stamp) -> int:

@@ -7,11 +7,10 @@ import time
 
 import numpy as np
 import pytest
-from node_harness import (CONFIG, Collector, NodeProcess, domain, guarded_ports, shm_lock_ports,  # noqa: F401
-                          shm_mapped_ports, stamp_ns)
+from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns  # noqa: F401
 
 from bike_msgs.msg import Command, ControllerStatus, PlantState  # noqa: E402
-from bike_plant import msgconv  # noqa: E402
+from bike_plant import msgconv, shm_ports  # noqa: E402
 from bike_plant.config import load_config  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from sensor_msgs.msg import BatteryState  # noqa: E402
@@ -95,8 +94,6 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
             raise AssertionError("\n".join(seen))
         assert col.data["battery"], "BatteryState is published"
 
-        # the shared-memory ports the controller listens on (the plant writes to them)
-        ports1 = shm_lock_ports(ctrl.pid)
         # the controller dies without a word
         ctrl.signal(signal.SIGKILL)
         t_kill = time.monotonic()
@@ -158,9 +155,7 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         assert 0 < latency_s <= TIMEOUT + 2 * N * DT + 1e-9, f"safe state {latency_s:.4f} s after the last command"
         assert plant.alive()
 
-        # a new controller: commands return, the fault clears, braking resumes. The killed
-        # one's ports the plant still writes to must not be handed on (bike_plant.shm_guard)
-        stale = ports1 & shm_mapped_ports(plant.pid)
+        # a new controller: commands return, the fault clears, braking resumes
         ctrl2 = NodeProcess("bike_controller", "controller_node", domain, RT)
         procs.append(ctrl2)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "second controller", procs[:1] + [ctrl2])
@@ -176,7 +171,12 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
                          30, "recovery", [plant, ctrl2])
         except AssertionError as exc:
             got = states[k_ctrl2:]
+            # the known cause: the plant writes to a deleted segment of the new controller's
+            # port (Fast DDS 2.14 after a kill -9 in its listener's window; test_shm_ports.py)
+            stale = shm_ports.writers_to_deleted(shm_ports.own_ports(ctrl2.pid))
             raise AssertionError(
+                f"processes writing to a deleted shared-memory segment of the new controller's ports "
+                f"(plant pid {plant.pid}): {stale or 'none'}\n"
                 f"{len(got)} states since the second controller started: faults "
                 f"{sorted({int(m.faults) for m in got})}, peak current "
                 f"{max((_peak_current(m) for m in got), default=0.0):.1f} A, command subscriptions "
@@ -189,10 +189,6 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
                 f"\n{exc}") from None
         col.wait_for(lambda: any(s.name.endswith("plant") and s.level == DiagnosticStatus.OK
                                  for a in col.data["/diagnostics"][-5:] for s in a.status), 5, "OK diagnostic", [plant])
-        # the new controller stayed off the killed one's ports that the live plant still maps
-        # (Fast DDS would hand them on: bike_plant.shm_guard, test_shm_guard.py)
-        assert stale and stale <= guarded_ports(ctrl2.output()), (sorted(ports1), sorted(stale),
-                                                                   ctrl2.output()[-3000:])
 
         plant.signal(signal.SIGTERM)
         assert plant.wait(10.0) == 0, plant.output()

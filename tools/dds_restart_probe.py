@@ -14,7 +14,7 @@ that no PlantState ever reached it; README, reliability table). This asks the mi
 same question without the bike's nodes, on the machine and the RMW at hand. (The cause, found
 later: a kill landing in a microsecond window of the reader's shared-memory listener leaves the
 writers on a stale port; random kills rarely hit it, so this probe did not.
-tools/shm_stale_port_repro.py hits it on purpose, and bike_plant.shm_guard prevents it.)
+tools/shm_stale_port_repro.py hits it on purpose.)
 
     source tools/env.sh && python tools/dds_restart_probe.py --restarts 100
     ... --best-effort --payload-bytes 600 --rates-hz 1000    # closer to the realtime controller

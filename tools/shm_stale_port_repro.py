@@ -1,11 +1,12 @@
 #!/usr/bin/env python3
 """Reproduce, on demand, the Fast DDS 2.14 stale shared-memory port that made a node restarted
-after kill -9 deaf, and show that bike_plant.shm_guard prevents it.
+after kill -9 deaf (bike_plant.shm_ports), and try a guard against it.
 
 Three plain rclpy processes on this host (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, where the
 Jazzy rmw_fastrtps always uses shared memory): a writer (10 samples every 1 ms) stays up; a best-effort reader
 is killed with SIGKILL at the one moment that matters; a second reader is started 1.5 s later
-(with --guard: through bike_plant.entry's guard, as every bike node is) and must hear the writer.
+(with --guard: after taking the locks of the killed reader's ports, see hold_stale_ports) and
+must hear the writer.
 
 The moment: each port segment (/dev/shm/fastrtps_port<N>) ends with a status byte per listener
 (1024 of 20 bytes before the domain name: bit 0 in use, bit 1 waiting, bit 2 processing;
@@ -20,12 +21,21 @@ and kills it if the byte still says so once it is stopped; the byte is frozen fr
     source tools/env.sh && python tools/shm_stale_port_repro.py            # deaf: exit 1
     source tools/env.sh && python tools/shm_stale_port_repro.py --guard    # hears: exit 0
 
+The guard is an experiment, not in the nodes. It kept a restarted node off the stale port in
+every run, but in the first fresh-clone CI run with it every node holding such locks, a test
+process hung for good: writers kept re-creating the dead port's segment (nobody took it over
+until the dead participant's lease ran out), a writer killed during one of those re-creations
+left a segment with an uninitialised header, and the next process to open it spun in boost's
+managed_open_or_create_impl while holding its DataWriter's mutex (and, inside rclpy's
+publish, the GIL). A rare deaf node is better than a hung one.
+
 Exit status: 0 the restarted reader heard the writer, 1 it did not within --wait-s, 2 the window
 was not caught or the segment layout is not the one above (another Fast DDS version).
 """
 from __future__ import annotations
 
 import argparse
+import fcntl
 import mmap
 import os
 import queue
@@ -41,12 +51,61 @@ MAX_LISTENERS = 1024
 IN_USE, WAITING, PROCESSING = 1, 2, 4
 
 
+def ports_mapped_by_others(proc_dir: str = "/proc") -> dict:
+    """{port: [pid, ...]} of the Fast DDS port segments other live processes have mapped."""
+    me, mapped = os.getpid(), {}
+    for pid in (int(p) for p in os.listdir(proc_dir) if p.isdigit()):
+        if pid == me:
+            continue
+        try:
+            with open(os.path.join(proc_dir, str(pid), "maps"), "rb") as f:
+                text = f.read()
+        except OSError:
+            continue                     # gone, or not ours to read
+        for port in {int(m) for m in re.findall(rb"/fastrtps_port(\d+)(?:\s|$)", text)}:
+            mapped.setdefault(port, []).append(pid)
+    return mapped
+
+
+_held: list = []
+
+
+def hold_stale_ports(shm_dir: str = "/dev/shm", proc_dir: str = "/proc") -> list:
+    """Take and keep the lock of each zombie port (its lock file nobody holds) that another
+    live process maps, so this process's participant finds it locked, as Fast DDS's own flock
+    on a new file description does, and takes a fresh port. Returns those ports."""
+    locks = {}
+    for name in os.listdir(shm_dir):
+        m = re.fullmatch(r"fastrtps_port(\d+)_el", name)
+        if m is None:
+            continue
+        try:
+            fd = os.open(os.path.join(shm_dir, name), os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)                 # a live listener holds it
+            continue
+        locks[int(m.group(1))] = fd
+    mapped = ports_mapped_by_others(proc_dir) if locks else {}
+    kept = []
+    for port, fd in locks.items():
+        if port in mapped:
+            _held.append(fd)
+            kept.append(port)
+        else:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+    return sorted(kept)
+
+
 def node_main(role: str, guard: bool) -> None:
     """writer: Float64 in bursts of 10 every 1 ms, reliable. reader: best effort; prints
     'heard' once."""
     if guard:
-        from bike_plant.entry import guard_shared_memory_ports
-        guard_shared_memory_ports("repro reader")
+        print("guard: kept off ports", hold_stale_ports(), flush=True)
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -161,7 +220,8 @@ def kill_in_window(pid: int, m, off: int, give_up_s: float) -> int | None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--guard", action="store_true", help="start the second reader through bike_plant's shm guard")
+    ap.add_argument("--guard", action="store_true",
+                    help="the second reader first holds the locks of stale ports (an experiment: see the docstring)")
     ap.add_argument("--wait-s", type=float, default=10.0, help="the second reader must hear the writer within this")
     ap.add_argument("--give-up-s", type=float, default=60.0, help="give up catching the window after this")
     ap.add_argument("--role", choices=["driver", "writer", "reader"], default="driver", help=argparse.SUPPRESS)
@@ -205,7 +265,7 @@ def main(argv=None) -> int:
               f"{frozen:#04x}, ports {ports}); second reader{' (guarded)' if args.guard else ''} on ports "
               f"{sorted(lock_ports(second.p.pid))} {'heard the writer' if heard else f'DEAF for {args.wait_s:g} s'}; "
               f"writer maps deleted port segments {deleted or 'none'}", flush=True)
-        guard_lines = [line for line in second.out if "shm_guard" in line]
+        guard_lines = [line for line in second.out if line.startswith("guard:")]
         if guard_lines:
             print(guard_lines[0], flush=True)
         return 0 if heard else 1

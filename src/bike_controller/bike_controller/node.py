@@ -46,7 +46,7 @@ import sys
 import time
 
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
-from bike_plant import msgconv, shm_guard
+from bike_plant import msgconv, shm_ports
 from bike_plant.config import ConfigError, number_param
 from bike_plant.loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                              recorder_reads)
@@ -375,10 +375,9 @@ class ControllerNode(Node):
         warm-up and re-publishes a held state every republish_s). Say so once, with what
         this node sees: nothing else would tell why the plant stays in its safe state, and
         name any process that still writes to a deleted shared-memory segment of this node's
-        ports (the Fast DDS stale-port failure that bike_plant.shm_guard prevents at start-up).
-        Then try a new reader: the subscription is re-created once. It cannot heal that
-        failure (a new reader keeps the participant's ports) but may heal another, and costs
-        nothing where all is well."""
+        ports (the Fast DDS stale-port failure, bike_plant.shm_ports). Then try a new reader:
+        the subscription is re-created once. It cannot heal that failure (a new reader keeps
+        the participant's ports) but may heal another, and costs nothing where all is well."""
         if self.sub_state.get_publisher_count() == 0:
             self.state_writer_since = None
             return
@@ -387,7 +386,7 @@ class ControllerNode(Node):
             self.state_writer_since = now
         elif now - self.state_writer_since > PLANT_SILENT_S:
             self.stateless_warned = True
-            stale = shm_guard.writers_to_deleted(shm_guard.own_ports())
+            stale = shm_ports.writers_to_deleted(shm_ports.own_ports())
             why = "".join(f"; pid(s) {', '.join(map(str, pids))} still write to a deleted segment of this node's "
                           f"shared-memory port {port} (Fast DDS stale port after a kill -9, eProsima/Fast-DDS #5053)"
                           for port, pids in sorted(stale.items()))

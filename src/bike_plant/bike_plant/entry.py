@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import faulthandler
 import importlib
-import os
 import signal
 import sys
 
@@ -22,30 +21,12 @@ def start(module: str, func: str = "main"):
 
     ``kill -USR1 <pid>`` prints every thread's Python stack to the node's stderr and the node
     runs on: the way to see where a node that went quiet is (blocked, or spinning with nothing
-    delivered). Registered before the import, so a hang in it shows too.
-
-    Before the node creates its DDS participant, :mod:`bike_plant.shm_guard` keeps it off the
-    shared-memory ports of killed nodes that live processes still write to (Fast DDS 2.14 would
-    hand it such a port, and those processes would go on writing to the old segment)."""
+    delivered). Registered before the import, so a hang in it shows too."""
     faulthandler.register(signal.SIGUSR1, all_threads=True)
-    guard_shared_memory_ports(module)
     try:
         return getattr(importlib.import_module(module), func)()
     except KeyboardInterrupt:
         sys.exit(130)
-
-
-def guard_shared_memory_ports(who: str) -> list:
-    """Run the guard when the RMW is Fast DDS (the default); say on stderr which ports it kept."""
-    if "fastrtps" not in os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp"):
-        return []
-    from bike_plant.shm_guard import hold_stale_ports
-    kept = hold_stale_ports()
-    if kept:
-        print(f"[{who}] shm_guard: kept off {len(kept)} shared-memory port(s) of killed processes that live "
-              f"ones still write to ({', '.join(map(str, kept))}); this node takes fresh ones "
-              "(Fast DDS 2.14 stale-port bug, eProsima/Fast-DDS #5053)", file=sys.stderr, flush=True)
-    return kept
 
 
 def plant_node():

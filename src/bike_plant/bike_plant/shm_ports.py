@@ -1,0 +1,70 @@
+"""Which Fast DDS shared-memory ports a process listens on, and who still writes to a deleted one.
+
+Why: the ROS 2 Jazzy wheels run Fast DDS 2.14, and under ``ROS_AUTOMATIC_DISCOVERY_RANGE=
+LOCALHOST`` (our default, tools/env.sh) rmw_fastrtps always adds its shared-memory transport
+(FASTDDS_BUILTIN_TRANSPORTS and XML transport settings are overridden there). A participant
+takes the lowest port N whose listener lock, an flock on ``/dev/shm/fastrtps_port<N>_el``,
+nobody holds. The port of a process killed with SIGKILL is such a "zombie": the next
+participant deletes its segment and creates a new one under the same name. A live process
+that had sent to the killed one keeps its handle on the old, now deleted, segment and goes on
+writing into it; it re-opens the port only when its watchdog finds the dead listener stuck,
+which it never does if the kill landed while the listener was in use but neither waiting nor
+processing, a window of microseconds (Fast DDS SharedMemGlobal.hpp: ``Port::is_zombie``,
+``open_port_internal``, the port watchdog; eProsima/Fast-DDS #5053, fix proposed in PRs
+#4728 / #4737, not in 2.14). The new node is then matched and receives nothing from that
+process, for good. tools/shm_stale_port_repro.py makes it happen on demand.
+
+:func:`writers_to_deleted` finds that signature (a live process mapping a deleted segment of
+one of this node's ports), so a node fed nothing can say why. Reading other processes'
+``/proc/<pid>/maps`` needs the same user (or root); a process we cannot read is skipped.
+"""
+from __future__ import annotations
+
+import os
+import re
+
+PROC_DIR = "/proc"
+_LOCK_RE = re.compile(r"fastrtps_port(\d+)_el")
+
+
+def own_ports(pid: int | None = None, proc_dir: str = PROC_DIR) -> list:
+    """The Fast DDS shared-memory ports a process (default: this one) listens on: the port
+    locks its participants hold."""
+    fd_dir = os.path.join(proc_dir, "self" if pid is None else str(pid), "fd")
+    ports = set()
+    try:
+        fds = os.listdir(fd_dir)
+    except OSError:
+        return []
+    for fd in fds:
+        try:
+            m = _LOCK_RE.search(os.readlink(os.path.join(fd_dir, fd)))
+        except OSError:
+            continue
+        if m is not None:
+            ports.add(int(m.group(1)))
+    return sorted(ports)
+
+
+def writers_to_deleted(ports, proc_dir: str = PROC_DIR) -> dict:
+    """{port: [pid, ...]}: live processes that map a deleted segment of one of ``ports``, i.e.
+    send to this node over a segment it no longer reads (the module docstring)."""
+    want = set(ports)
+    found: dict = {}
+    if not want:
+        return found
+    try:
+        pids = [p for p in os.listdir(proc_dir) if p.isdigit()]
+    except OSError:
+        return found
+    for pid in pids:
+        try:
+            with open(os.path.join(proc_dir, pid, "maps"), "rb") as f:
+                text = f.read()
+        except OSError:
+            continue
+        for m in re.finditer(rb"/fastrtps_port(\d+) \(deleted\)", text):
+            port = int(m.group(1))
+            if port in want and int(pid) not in found.get(port, []):
+                found.setdefault(port, []).append(int(pid))
+    return found
