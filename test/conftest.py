@@ -1,6 +1,7 @@
 """Shared test helpers: isolated DDS domains and real node processes; the SPMSM paper-bench config."""
 from __future__ import annotations
 
+import faulthandler
 import os
 import pathlib
 import signal
@@ -29,6 +30,30 @@ def spmsm_paper_config() -> dict:
     return c
 
 
+# A test stuck inside C code that holds the GIL (rclpy's publish blocked in Fast DDS: seen in
+# CI, a writer mutex held by a thread spinning on a half-made shared-memory segment) never lets
+# pytest-timeout's handler run, and the run would sit until CI's own limit. faulthandler's
+# timer runs in a C thread without the GIL: past HANG_S it prints every thread's Python stack
+# and ends the run (exit 1). pytest-timeout (300 s, pytest.ini) still handles ordinary hangs.
+# The stacks go to the runner's own stderr, not to the test's captured one (lost at the exit).
+HANG_S = float(os.environ.get("BIKE_TEST_HANG_S", "600"))
+_hang_fd = [2]
+
+
+@pytest.fixture(autouse=True)
+def _hang_watchdog():
+    faulthandler.dump_traceback_later(HANG_S, exit=True, file=_hang_fd[0])
+    yield
+    faulthandler.cancel_dump_traceback_later()
+
+
+def _runner_stderr_fd(config) -> int:
+    """A copy of the stderr the runner had before pytest captured it (fd 2 if not captured)."""
+    capman = config.pluginmanager.getplugin("capturemanager")
+    err = getattr(getattr(capman, "_global_capturing", None), "err", None)
+    return os.dup(getattr(err, "targetfd_save", 2))
+
+
 def pytest_configure(config):
     """A runner started as a background job of a script (`make test &` in a non-interactive
     shell, some CI agents) inherits SIGINT ignored, and every process the tests start would
@@ -37,6 +62,7 @@ def pytest_configure(config):
     child at exec; an ignored one stays ignored)."""
     if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    _hang_fd[0] = _runner_stderr_fd(config)
 
 
 @pytest.fixture(scope="session", autouse=True)

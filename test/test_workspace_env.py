@@ -8,6 +8,8 @@ import os
 import pathlib
 import re
 import subprocess
+import sys
+import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -46,3 +48,20 @@ def test_install_space_chains_no_other_workspace():
     assert chained == [], f"install/setup.bash chains other workspaces: {chained}"
     setup = (ROOT / "tools" / "setup.sh").read_text()
     assert re.search(r"^\s*unset COLCON_PREFIX_PATH\b", setup, flags=re.M)
+
+
+def test_a_test_stuck_in_c_with_the_gil_ends_the_run_with_the_stacks(tmp_path):
+    """conftest's hang watchdog: a test blocked in C code that holds the GIL (pytest-timeout's
+    handler cannot run then) ends the run after BIKE_TEST_HANG_S with every thread's Python
+    stack on the runner's stderr, instead of sitting until CI's own limit."""
+    (tmp_path / "test_stuck.py").write_text(
+        "import ctypes\n\n\ndef test_stuck():\n    ctypes.PyDLL(None).sleep(60)   # libc sleep, GIL held\n")
+    env = dict(os.environ, BIKE_TEST_HANG_S="2",
+               PYTHONPATH=os.pathsep.join([str(ROOT / "test"), os.environ.get("PYTHONPATH", "")]))
+    t0 = time.monotonic()
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "conftest",
+                          "--rootdir", str(tmp_path), "-o", "addopts=", str(tmp_path / "test_stuck.py")],
+                         env=env, capture_output=True, text=True, timeout=60)
+    assert time.monotonic() - t0 < 30
+    assert run.returncode != 0
+    assert "Timeout (0:00:02)!" in run.stderr and "in test_stuck" in run.stderr, run.stdout + run.stderr
