@@ -2,12 +2,13 @@
 timeout -> safe state, recovery."""
 from __future__ import annotations
 
+import re
 import signal
 import time
 
 import numpy as np
 import pytest
-from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns  # noqa: F401
+from node_harness import CONFIG, ROOT, Collector, NodeProcess, domain, stamp_ns  # noqa: F401
 
 from bike_msgs.msg import Command, ControllerStatus, PlantState  # noqa: E402
 from bike_plant import msgconv, shm_ports  # noqa: E402
@@ -328,6 +329,58 @@ def test_realtime_start_holds_t0_until_a_late_session_is_heard(domain):
         assert all(s.command > 0.0 for s in status), "never the config's command0 = 0"
         t_end = stamp_ns(states[-1].header.stamp) * 1e-9
         assert t_end == pytest.approx(duration, abs=1e-6)
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+@pytest.mark.faults
+@pytest.mark.timeout(180)
+def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_ports(domain):
+    """The Fast DDS stale port, forced (tools/shm_stale_port_repro.py's way): the first
+    controller is killed while its shared-memory listener is in use but neither waiting nor
+    processing, so the running plant keeps writing PlantStates into that port's old segment,
+    and a second controller, which takes the same port, gets none. It says so, names the plant
+    as the writer to a deleted segment, starts over with a new DDS participant on fresh ports
+    (bike_plant.node._on_fresh_ports), and the loop closes again: braking resumes."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("shm_repro", ROOT / "tools" / "shm_stale_port_repro.py")
+    repro = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(repro)
+    col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+        procs += [plant, ctrl]
+        states = col.data["plant_state"]
+
+        def braking():
+            cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
+            return len(states) > 50 and all(m.faults == 0 and _peak_current(m) > 10 for m in states[-20:])
+        col.wait_for(braking, 30, "braking under the first controller", procs)
+        ports = sorted(set(shm_ports.own_ports(ctrl.pid)), reverse=True)
+        found = next((f for f in (repro.find_listener(p) for p in ports) if f), None)
+        assert found, f"no active shared-memory listener in the controller's ports {ports}"
+        assert repro.kill_in_window(ctrl.pid, *found, 60.0) is not None, "the window was not caught in 60 s"
+        ctrl.proc.wait(10)
+        time.sleep(1.0)
+        ctrl2 = NodeProcess("bike_controller", "controller_node", domain, RT)
+        procs.append(ctrl2)
+        k = len(states)
+        col.wait_for(lambda: braking() and len(states) > k + 50 and all(
+            m.faults == 0 and _peak_current(m) > 10 for m in states[-20:]), 60, "braking again", [plant, ctrl2])
+        out = ctrl2.output()
+        # the plant among the writers to the deleted segment (the test process, which sent it
+        # Commands, may be there too)
+        writers = re.search(r"pid\(s\) ([\d, ]+) still write to a deleted segment", out)
+        assert writers and str(plant.pid) in writers.group(1).split(", "), out[-3000:]
+        assert "starting over with a new DDS participant on fresh ports" in out, out[-3000:]
+        assert "on fresh shared-memory ports" in out, out[-3000:]
+        ctrl2.signal(signal.SIGINT)
+        assert ctrl2.wait(10.0) == 0, ctrl2.output()[-3000:]
     finally:
         for p in procs:
             p.stop()

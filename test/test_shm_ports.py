@@ -167,3 +167,20 @@ def test_the_stale_port_failure_on_demand(domain):
     assert run.returncode == 1, run.stdout + run.stderr[-2000:]
     assert "second reader on ports" in run.stdout and "DEAF for 8 s" in run.stdout, run.stdout
     assert "writer maps deleted port segments ['" in run.stdout, run.stdout
+
+
+def test_hold_ports_keeps_a_participant_off_them(tmp_path):
+    """bike_plant.node._on_fresh_ports holds its old ports' locks: Fast DDS's flock on them
+    fails (so no later participant inherits the stale port), own_ports() leaves them out, and
+    a lock file the old participant removed at its clean exit is made again."""
+    (tmp_path / "fastrtps_port7411_el").write_bytes(b"")
+    try:
+        assert shm_ports.hold_ports([7411, 7413], str(tmp_path)) == [7411, 7413]
+        assert _locked_elsewhere(tmp_path / "fastrtps_port7411_el")
+        assert _locked_elsewhere(tmp_path / "fastrtps_port7413_el")
+        assert shm_ports.held_ports() == [7411, 7413]
+        assert not set(shm_ports.own_ports()) & {7411, 7413}
+    finally:
+        for fd in shm_ports._held.values():
+            os.close(fd)
+        shm_ports._held.clear()

@@ -123,7 +123,7 @@ class ControllerNode(Node):
                 self.create_subscription(SessionStatus, "session_status", self._on_session, AUX_QOS),
                 self._state_subscription()]
         self.sub_state = subs[2]
-        self.executor_ = SingleThreadedExecutor()
+        self.executor_ = SingleThreadedExecutor(context=self.context)
         self.executor_.add_node(self)
         # the loop waits on its three topics directly (bike_plant.loop.HotWait); Commands are
         # taken before the PlantState that may need them
@@ -375,9 +375,10 @@ class ControllerNode(Node):
         warm-up and re-publishes a held state every republish_s). Say so once, with what
         this node sees: nothing else would tell why the plant stays in its safe state, and
         name any process that still writes to a deleted shared-memory segment of this node's
-        ports (the Fast DDS stale-port failure, bike_plant.shm_ports). Then try a new reader:
-        the subscription is re-created once. It cannot heal that failure (a new reader keeps
-        the participant's ports) but may heal another, and costs nothing where all is well."""
+        ports (the Fast DDS stale-port failure, bike_plant.shm_ports). That failure is healed
+        by a new participant on fresh ports: the node stops and run_loop_node starts it over
+        in a new context (once per process). Otherwise try a new reader: the subscription is
+        re-created once; it costs nothing where all is well."""
         if self.sub_state.get_publisher_count() == 0:
             self.state_writer_since = None
             return
@@ -390,11 +391,19 @@ class ControllerNode(Node):
             why = "".join(f"; pid(s) {', '.join(map(str, pids))} still write to a deleted segment of this node's "
                           f"shared-memory port {port} (Fast DDS stale port after a kill -9, eProsima/Fast-DDS #5053)"
                           for port, pids in sorted(stale.items()))
+            # that failure needs new ports: a new participant (bike_plant.node._on_fresh_ports),
+            # once per process
+            fresh = bool(stale) and not shm_ports.held_ports()
             text = (f"no PlantState in the {PLANT_SILENT_S:g}s since a plant_state writer matched "
                     f"({self.sub_state.get_publisher_count()} matched): nothing delivered to this node, "
-                    f"nothing to answer{why}; re-creating the subscription")
+                    f"nothing to answer{why}; " + ("starting over with a new DDS participant on fresh ports"
+                                                   if fresh else "re-creating the subscription"))
             self.get_logger().warning(text)
             self._publish_diag(DiagnosticStatus.WARN, text)
+            if fresh:
+                self.fresh_ports_wanted = True
+                self.stop_requested = True
+                return
             old = self.sub_state
             self.sub_state = self._state_subscription()
             self.hot.replace(old, self.sub_state)

@@ -65,7 +65,7 @@ from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import BatteryState
 
-from . import msgconv
+from . import msgconv, shm_ports
 from .config import ConfigError
 from .config import number_param as _number
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
@@ -865,6 +865,7 @@ def install_signal_handlers(node) -> None:
     """SIGINT / SIGTERM ask the loop to stop (checked at least every 0.1 s)."""
     def handler(signum, frame):
         node.stop_requested = True
+        node.signalled = True
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
 
@@ -958,6 +959,26 @@ def exit_if_a_warm_up_is_left(code: int) -> None:
         os._exit(code)
 
 
+def _on_fresh_ports(node_factory, old, args):
+    """A node that a live writer cannot reach over shared memory (Fast DDS's stale port after
+    a kill -9, bike_plant.shm_ports) starts over in a new rclpy context: a new DDS participant,
+    created while the old one still holds its ports, takes fresh ones, which the writer opens
+    anew. Then the old participant leaves cleanly (the others drop it at once), and its ports'
+    locks are held for the rest of the process, so no later participant inherits them."""
+    stale = shm_ports.own_ports()
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context)
+    node = node_factory(context=context)
+    old.executor_.remove_node(old)
+    old.executor_.shutdown()
+    old.destroy_node()
+    rclpy.try_shutdown(context=old.context)
+    held = shm_ports.hold_ports(stale)
+    node.get_logger().info(f"on fresh shared-memory ports {shm_ports.own_ports()} (holding the old ones "
+                           f"{held} for the rest of this process)")
+    return node
+
+
 def run_loop_node(node_factory, label: str, args=None) -> int:
     """Shared main() of the loop nodes: init without rclpy's signal handlers, run the node's
     own loop, turn a ConfigError into one line and exit code 2, always shut down cleanly."""
@@ -972,6 +993,10 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
         node = node_factory()
         install_signal_handlers(node)
         code = node.run()
+        while getattr(node, "fresh_ports_wanted", False) and not getattr(node, "signalled", False):
+            node = _on_fresh_ports(node_factory, node, args)
+            install_signal_handlers(node)
+            code = node.run()
     except StartupTimeout as exc:
         print(f"{label}: error: {exc}", file=sys.stderr)
         code = 2

@@ -20,16 +20,19 @@ one of this node's ports), so a node fed nothing can say why. Reading other proc
 """
 from __future__ import annotations
 
+import fcntl
 import os
 import re
 
 PROC_DIR = "/proc"
+SHM_DIR = "/dev/shm"
 _LOCK_RE = re.compile(r"fastrtps_port(\d+)_el")
+_held: dict = {}        # port -> fd of a lock this process keeps (bike_plant.node._on_fresh_ports)
 
 
 def own_ports(pid: int | None = None, proc_dir: str = PROC_DIR) -> list:
     """The Fast DDS shared-memory ports a process (default: this one) listens on: the port
-    locks its participants hold."""
+    locks its participants hold (for this process, not those hold_ports keeps)."""
     fd_dir = os.path.join(proc_dir, "self" if pid is None else str(pid), "fd")
     ports = set()
     try:
@@ -43,7 +46,7 @@ def own_ports(pid: int | None = None, proc_dir: str = PROC_DIR) -> list:
             continue
         if m is not None:
             ports.add(int(m.group(1)))
-    return sorted(ports)
+    return sorted(ports - set(_held)) if pid is None else sorted(ports)
 
 
 def writers_to_deleted(ports, proc_dir: str = PROC_DIR) -> dict:
@@ -68,3 +71,29 @@ def writers_to_deleted(ports, proc_dir: str = PROC_DIR) -> dict:
             if port in want and int(pid) not in found.get(port, []):
                 found.setdefault(port, []).append(int(pid))
     return found
+
+
+def hold_ports(ports, shm_dir: str = SHM_DIR) -> list:
+    """Take and keep, for the life of the process, the listener locks of ``ports`` (this
+    process's old ports, after its participant left them), so that no participant started
+    later takes them: a live writer may still hold a stale handle on that port number. Fast
+    DDS's own flock on a new file description then fails and it moves on. Returns the ports
+    held (a lock another process took meanwhile is skipped)."""
+    for port in ports:
+        if port in _held:
+            continue
+        try:
+            fd = os.open(os.path.join(shm_dir, f"fastrtps_port{port}_el"), os.O_RDONLY | os.O_CREAT, 0o666)
+        except OSError:
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        _held[port] = fd
+    return sorted(p for p in ports if p in _held)
+
+
+def held_ports() -> list:
+    return sorted(_held)
