@@ -1012,6 +1012,8 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
             # interpreter exit, Python 3.12 printed an InvalidHandle traceback (context gone)
             node.executor_.shutdown()
             node.destroy_node()
+            if node.context is not rclpy.get_default_context():       # started over (_on_fresh_ports)
+                rclpy.try_shutdown(context=node.context)
         rclpy.try_shutdown()
     exit_if_a_warm_up_is_left(code)
     return code

@@ -15,7 +15,8 @@ processing, a window of microseconds (Fast DDS SharedMemGlobal.hpp: ``Port::is_z
 process, for good. tools/shm_stale_port_repro.py makes it happen on demand.
 
 :func:`writers_to_deleted` finds that signature (a live process mapping a deleted segment of
-one of this node's ports), so a node fed nothing can say why. Reading other processes'
+one of this node's ports), so a node fed nothing can say why; a controller then starts over on
+fresh ports (bike_plant.node._on_fresh_ports) and :func:`hold_ports` keeps its old ones. Reading other processes'
 ``/proc/<pid>/maps`` needs the same user (or root); a process we cannot read is skipped.
 """
 from __future__ import annotations
