@@ -3,10 +3,10 @@
 after kill -9 deaf (bike_plant.shm_ports), and try a guard against it.
 
 Three plain rclpy processes on this host (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, where the
-Jazzy rmw_fastrtps always uses shared memory): a writer (10 samples every 1 ms) stays up; a best-effort reader
-is killed with SIGKILL at the one moment that matters; a second reader is started 1.5 s later
-(with --guard: after taking the locks of the killed reader's ports, see hold_stale_ports) and
-must hear the writer.
+Jazzy rmw_fastrtps always uses shared memory): a writer (10 samples every 1 ms) stays up; a
+best-effort reader is killed with SIGKILL at the one moment that matters; a second reader is
+started 1.5 s later (with --guard: after taking the locks of the killed reader's ports, see
+hold_stale_ports) and must hear the writer.
 
 The moment: each port segment (/dev/shm/fastrtps_port<N>) ends with a status byte per listener
 (1024 of 20 bytes before the domain name: bit 0 in use, bit 1 waiting, bit 2 processing;
@@ -27,7 +27,10 @@ process hung for good: writers kept re-creating the dead port's segment (nobody 
 until the dead participant's lease ran out), a writer killed during one of those re-creations
 left a segment with an uninitialised header, and the next process to open it spun in boost's
 managed_open_or_create_impl while holding its DataWriter's mutex (and, inside rclpy's
-publish, the GIL). A rare deaf node is better than a hung one.
+publish, the GIL). A rare deaf node is better than a hung one. The nodes heal it another way:
+a controller that finds itself on a stale port starts over with a new participant while the
+old one still holds its ports, and the old one then leaves cleanly (bike_plant.node.
+_on_fresh_ports; test_nodes_realtime.py forces it on the real nodes with this tool's functions).
 
 Exit status: 0 the restarted reader heard the writer, 1 it did not within --wait-s, 2 the window
 was not caught or the segment layout is not the one above (another Fast DDS version).
