@@ -10,7 +10,7 @@ import subprocess
 import sys
 
 import pytest
-from node_harness import domain  # noqa: F401
+from node_harness import domain, tool_module  # noqa: F401
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PROBE = ROOT / "tools" / "dds_restart_probe.py"
@@ -34,10 +34,7 @@ def test_a_reader_restarted_after_kill_9_hears_every_surviving_writer(domain):
 def test_the_probe_names_the_transports_in_effect():
     """FASTDDS_BUILTIN_TRANSPORTS counts only outside LOCALHOST (a UDPv4-only run under
     LOCALHOST, believed in an earlier stop, still went over shared memory)."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("dds_restart_probe", PROBE)
-    probe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(probe)
+    probe = tool_module("dds_restart_probe")
     udp = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
     assert probe.transports_in_effect(dict(udp, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")).startswith("SHM + UDPv4")
     assert probe.transports_in_effect(dict(udp, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")) == "UDPv4"

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 import pytest
-from node_harness import CONFIG, ROOT, Collector, NodeProcess, domain, stamp_ns  # noqa: F401
+from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns, tool_module  # noqa: F401
 
 from bike_msgs.msg import Command, ControllerStatus, PlantState  # noqa: E402
 from bike_plant import msgconv, shm_ports  # noqa: E402
@@ -344,10 +344,7 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
     and a second controller, which takes the same port, gets none. It says so, names the plant
     as the writer to a deleted segment, starts over with a new DDS participant on fresh ports
     (bike_plant.node._on_fresh_ports), and the loop closes again: braking resumes."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("shm_repro", ROOT / "tools" / "shm_stale_port_repro.py")
-    repro = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(repro)
+    repro = tool_module("shm_stale_port_repro")
     col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus})
     procs = []
     try:
@@ -361,7 +358,7 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
             cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
             return len(states) > 50 and all(m.faults == 0 and _peak_current(m) > 10 for m in states[-20:])
         col.wait_for(braking, 30, "braking under the first controller", procs)
-        ports = sorted(set(shm_ports.own_ports(ctrl.pid)), reverse=True)
+        ports = shm_ports.own_ports(ctrl.pid)[::-1]          # the domain's data port first
         found = next((f for f in (repro.find_listener(p) for p in ports) if f), None)
         assert found, f"no active shared-memory listener in the controller's ports {ports}"
         assert repro.kill_in_window(ctrl.pid, *found, 60.0) is not None, "the window was not caught in 60 s"
@@ -370,8 +367,7 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
         ctrl2 = NodeProcess("bike_controller", "controller_node", domain, RT)
         procs.append(ctrl2)
         k = len(states)
-        col.wait_for(lambda: braking() and len(states) > k + 50 and all(
-            m.faults == 0 and _peak_current(m) > 10 for m in states[-20:]), 60, "braking again", [plant, ctrl2])
+        col.wait_for(lambda: braking() and len(states) > k + 50, 60, "braking again", [plant, ctrl2])
         out = ctrl2.output()
         # the plant among the writers to the deleted segment (the test process, which sent it
         # Commands, may be there too)

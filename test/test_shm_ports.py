@@ -6,29 +6,18 @@ the killed one's ports), the failure on demand, and the guard experiment of the 
 from __future__ import annotations
 
 import fcntl
-import importlib.util
 import os
 import pathlib
-import queue
-import signal
 import subprocess
 import sys
-import threading
 import time
 
 import pytest
-from node_harness import domain  # noqa: F401
+from node_harness import domain, tool_module  # noqa: F401
 
 from bike_plant import shm_ports
 
 REPRO = pathlib.Path(__file__).resolve().parents[1] / "tools" / "shm_stale_port_repro.py"
-
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("shm_stale_port_repro", REPRO)
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
-    return tool
 
 
 def _maps(proc, pid, *ports, deleted=False):
@@ -51,6 +40,13 @@ def _locked_elsewhere(path) -> bool:
     return False
 
 
+def _release_held():
+    """Let go of the locks shm_ports.hold_ports took in this (test) process."""
+    for fd in shm_ports._held.values():
+        os.close(fd)
+    shm_ports._held.clear()
+
+
 def test_writers_to_deleted_segments_are_named(tmp_path):
     """The controller's silent-writer warning names the processes that write to a deleted
     segment of its own ports (the failure itself)."""
@@ -61,7 +57,7 @@ def test_writers_to_deleted_segments_are_named(tmp_path):
 
 
 def test_the_repro_tools_guard_holds_only_zombie_ports_a_live_process_maps(tmp_path):
-    tool = _tool()
+    tool = tool_module("shm_stale_port_repro")
     shm, proc = tmp_path / "shm", tmp_path / "proc"
     shm.mkdir()
     proc.mkdir()
@@ -79,80 +75,35 @@ def test_the_repro_tools_guard_holds_only_zombie_ports_a_live_process_maps(tmp_p
         assert _locked_elsewhere(shm / "fastrtps_port7411_el")       # a participant moves on
         assert not _locked_elsewhere(shm / "fastrtps_port7413_el")   # nobody maps it: let go
     finally:
-        for fd in tool._held:
-            os.close(fd)
+        _release_held()
         holder.kill()
         holder.wait()
 
 
-NODE = r"""
-import sys
-import rclpy
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Float64
-from bike_plant import shm_ports
-rclpy.init()
-node = rclpy.create_node("shm_ports_probe")
-if sys.argv[1] == "writer":
-    pub = node.create_publisher(Float64, "shm_ports_t", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    node.create_timer(0.001, lambda: pub.publish(Float64(data=1.0)))
-else:
-    def cb(msg, seen=[]):
-        if not seen:
-            seen.append(1)
-            print("heard", " ".join(map(str, shm_ports.own_ports())), flush=True)
-    node.create_subscription(Float64, "shm_ports_t", cb, QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
-rclpy.spin(node)
-"""
-
-
-class _Node:
-    def __init__(self, domain, role):
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-        self.proc = subprocess.Popen([sys.executable, "-c", NODE, role], env=env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, text=True)
-        self.lines: queue.Queue = queue.Queue()
-        threading.Thread(target=lambda: [self.lines.put(x.strip()) for x in self.proc.stdout], daemon=True).start()
-
-    def heard(self, timeout_s=20.0) -> set:
-        """Its own ports, once the first message came."""
-        until, seen = time.monotonic() + timeout_s, []
-        while time.monotonic() < until:
-            try:
-                line = self.lines.get(timeout=max(0.0, until - time.monotonic()))
-            except queue.Empty:
-                break
-            seen.append(line)
-            if line.startswith("heard "):
-                return {int(x) for x in line.split()[1:]}
-        raise AssertionError(f"nothing heard in {timeout_s} s; output: {seen[-20:]}")
-
-    def kill(self):
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(10)
-
-
 @pytest.mark.faults
-def test_a_reader_restarted_after_kill_9_takes_the_killed_ones_ports(domain):
+def test_a_reader_restarted_after_kill_9_takes_the_killed_ones_ports(domain, monkeypatch):
     """The premise, real DDS: a reader started after one killed with SIGKILL listens on exactly
     the killed one's shared-memory ports (Fast DDS gives a participant the lowest port whose
-    lock nobody holds), and own_ports() sees them."""
-    writer = _Node(domain, "writer")
-    nodes = [writer]
+    lock nobody holds), and own_ports() sees them. (The repro tool's writer and readers.)"""
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    tool = tool_module("shm_stale_port_repro")
+    nodes = [tool._Proc("writer")]
     try:
-        first = _Node(domain, "reader")
+        first = tool._Proc("reader")
         nodes.append(first)
-        ports1 = first.heard()
+        assert first.heard(20.0), first.out[-20:]
+        ports1 = shm_ports.own_ports(first.p.pid)
         assert ports1, "the reader listens on shared-memory ports (rmw_fastrtps, LOCALHOST)"
-        first.kill()
+        first.stop()                                      # SIGKILL
         time.sleep(0.5)
-        second = _Node(domain, "reader")
+        second = tool._Proc("reader")
         nodes.append(second)
-        assert second.heard() == ports1
+        assert second.heard(20.0), second.out[-20:]
+        assert shm_ports.own_ports(second.p.pid) == ports1
     finally:
         for n in nodes:
-            n.kill()
+            n.stop()
 
 
 @pytest.mark.faults
@@ -181,6 +132,4 @@ def test_hold_ports_keeps_a_participant_off_them(tmp_path):
         assert shm_ports.held_ports() == [7411, 7413]
         assert not set(shm_ports.own_ports()) & {7411, 7413}
     finally:
-        for fd in shm_ports._held.values():
-            os.close(fd)
-        shm_ports._held.clear()
+        _release_held()

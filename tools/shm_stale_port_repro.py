@@ -38,7 +38,6 @@ was not caught or the segment layout is not the one above (another Fast DDS vers
 from __future__ import annotations
 
 import argparse
-import fcntl
 import mmap
 import os
 import queue
@@ -49,59 +48,21 @@ import sys
 import threading
 import time
 
+from bike_plant import shm_ports
+
 STATUS_STRIDE_B = 20       # sizeof(ListenerStatus) in Fast DDS 2.14
 MAX_LISTENERS = 1024
 IN_USE, WAITING, PROCESSING = 1, 2, 4
 
 
-def ports_mapped_by_others(proc_dir: str = "/proc") -> dict:
-    """{port: [pid, ...]} of the Fast DDS port segments other live processes have mapped."""
-    me, mapped = os.getpid(), {}
-    for pid in (int(p) for p in os.listdir(proc_dir) if p.isdigit()):
-        if pid == me:
-            continue
-        try:
-            with open(os.path.join(proc_dir, str(pid), "maps"), "rb") as f:
-                text = f.read()
-        except OSError:
-            continue                     # gone, or not ours to read
-        for port in {int(m) for m in re.findall(rb"/fastrtps_port(\d+)(?:\s|$)", text)}:
-            mapped.setdefault(port, []).append(pid)
-    return mapped
-
-
-_held: list = []
-
-
-def hold_stale_ports(shm_dir: str = "/dev/shm", proc_dir: str = "/proc") -> list:
-    """Take and keep the lock of each zombie port (its lock file nobody holds) that another
-    live process maps, so this process's participant finds it locked, as Fast DDS's own flock
-    on a new file description does, and takes a fresh port. Returns those ports."""
-    locks = {}
-    for name in os.listdir(shm_dir):
-        m = re.fullmatch(r"fastrtps_port(\d+)_el", name)
-        if m is None:
-            continue
-        try:
-            fd = os.open(os.path.join(shm_dir, name), os.O_RDONLY)
-        except OSError:
-            continue
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)                 # a live listener holds it
-            continue
-        locks[int(m.group(1))] = fd
-    mapped = ports_mapped_by_others(proc_dir) if locks else {}
-    kept = []
-    for port, fd in locks.items():
-        if port in mapped:
-            _held.append(fd)
-            kept.append(port)
-        else:
-            fcntl.flock(fd, fcntl.LOCK_UN)
-            os.close(fd)
-    return sorted(kept)
+def hold_stale_ports(shm_dir: str = shm_ports.SHM_DIR, proc_dir: str = shm_ports.PROC_DIR) -> list:
+    """Take and keep the lock of each port that another live process maps and whose lock file
+    nobody holds (a killed process's port), so this process's participant finds it locked and
+    takes a fresh port. Returns those ports."""
+    mapped = shm_ports.mapped_ports(proc_dir)
+    locks = (re.fullmatch(r"fastrtps_port(\d+)_el", name) for name in os.listdir(shm_dir))
+    ports = [int(m.group(1)) for m in locks if m and int(m.group(1)) in mapped]
+    return shm_ports.hold_ports(ports, shm_dir)        # a lock a live listener holds is skipped
 
 
 def node_main(role: str, guard: bool) -> None:
@@ -165,18 +126,6 @@ class _Proc:
         self.p.wait(10)
 
 
-def lock_ports(pid: int) -> set:
-    ports = set()
-    for fd in os.listdir(f"/proc/{pid}/fd"):
-        try:
-            m = re.search(r"fastrtps_port(\d+)_el$", os.readlink(f"/proc/{pid}/fd/{fd}"))
-        except OSError:
-            continue
-        if m:
-            ports.add(int(m.group(1)))
-    return ports
-
-
 def _stopped(pid: int) -> bool:
     with open(f"/proc/{pid}/stat") as f:
         return f.read().rsplit(")", 1)[1].split()[0] == "T"
@@ -185,8 +134,8 @@ def _stopped(pid: int) -> bool:
 def find_listener(port: int, sample_s: float = 0.3):
     """(mmap, offset of the status byte) of the one active listener of the port: the entry that
     is in use and was seen both waiting and processing; None if there is no such entry."""
-    f = open(f"/dev/shm/fastrtps_port{port}", "rb")
-    m = mmap.mmap(f.fileno(), 0, prot=mmap.PROT_READ)
+    with open(os.path.join(shm_ports.SHM_DIR, f"fastrtps_port{port}"), "rb") as f:
+        m = mmap.mmap(f.fileno(), 0, prot=mmap.PROT_READ)       # the map keeps its own fd
     end = m[:].rfind(b"fastrtps\0")
     base = end - MAX_LISTENERS * STATUS_STRIDE_B
     if end < 0 or base < 0:
@@ -240,7 +189,7 @@ def main(argv=None) -> int:
         if not first.heard(20.0):
             print("shm stale port repro: the first reader never heard the writer", first.out[-10:], flush=True)
             return 2
-        ports = sorted(lock_ports(first.p.pid) - lock_ports(procs[0].p.pid))
+        ports = sorted(set(shm_ports.own_ports(first.p.pid)) - set(shm_ports.own_ports(procs[0].p.pid)))
         found = None
         for port in sorted(ports, reverse=True):     # the domain's data port first
             found = find_listener(port)
@@ -261,12 +210,12 @@ def main(argv=None) -> int:
         second = _Proc("reader", guard=args.guard)
         procs.append(second)
         heard = second.heard(args.wait_s)
-        with open(f"/proc/{procs[0].p.pid}/maps") as f:
-            deleted = sorted(set(re.findall(r"fastrtps_port(\d+) \(deleted\)", f.read())))
+        deleted = [str(port) for port, pids in sorted(shm_ports.writers_to_deleted(ports).items())
+                   if procs[0].p.pid in pids]
         print(f"shm stale port repro: first reader killed in the window after {stops} stop(s), "
               f"{time.monotonic() - t_hunt:.1f} s (status byte "
               f"{frozen:#04x}, ports {ports}); second reader{' (guarded)' if args.guard else ''} on ports "
-              f"{sorted(lock_ports(second.p.pid))} {'heard the writer' if heard else f'DEAF for {args.wait_s:g} s'}; "
+              f"{shm_ports.own_ports(second.p.pid)} {'heard the writer' if heard else f'DEAF for {args.wait_s:g} s'}; "
               f"writer maps deleted port segments {deleted or 'none'}", flush=True)
         guard_lines = [line for line in second.out if line.startswith("guard:")]
         if guard_lines:

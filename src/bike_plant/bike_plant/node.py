@@ -965,7 +965,7 @@ def _on_fresh_ports(node_factory, old, args):
     created while the old one still holds its ports, takes fresh ones, which the writer opens
     anew. Then the old participant leaves cleanly (the others drop it at once), and its ports'
     locks are held for the rest of the process, so no later participant inherits them."""
-    stale = shm_ports.own_ports()
+    old_ports = shm_ports.own_ports()
     context = rclpy.Context()
     rclpy.init(args=args, context=context)
     node = node_factory(context=context)
@@ -973,7 +973,7 @@ def _on_fresh_ports(node_factory, old, args):
     old.executor_.shutdown()
     old.destroy_node()
     rclpy.try_shutdown(context=old.context)
-    held = shm_ports.hold_ports(stale)
+    held = shm_ports.hold_ports(old_ports)
     node.get_logger().info(f"on fresh shared-memory ports {shm_ports.own_ports()} (holding the old ones "
                            f"{held} for the rest of this process)")
     return node

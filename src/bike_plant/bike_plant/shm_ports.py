@@ -16,8 +16,9 @@ process, for good. tools/shm_stale_port_repro.py makes it happen on demand.
 
 :func:`writers_to_deleted` finds that signature (a live process mapping a deleted segment of
 one of this node's ports), so a node fed nothing can say why; a controller then starts over on
-fresh ports (bike_plant.node._on_fresh_ports) and :func:`hold_ports` keeps its old ones. Reading other processes'
-``/proc/<pid>/maps`` needs the same user (or root); a process we cannot read is skipped.
+fresh ports (bike_plant.node._on_fresh_ports) and :func:`hold_ports` keeps its old ones.
+Reading other processes' ``/proc/<pid>/maps`` needs the same user (or root); a process we
+cannot read is skipped.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ import re
 PROC_DIR = "/proc"
 SHM_DIR = "/dev/shm"
 _LOCK_RE = re.compile(r"fastrtps_port(\d+)_el")
+_MAP_RE = re.compile(rb"/fastrtps_port(\d+)( \(deleted\))?$", re.M)
 _held: dict = {}        # port -> fd of a lock this process keeps (bike_plant.node._on_fresh_ports)
 
 
@@ -50,6 +52,37 @@ def own_ports(pid: int | None = None, proc_dir: str = PROC_DIR) -> list:
     return sorted(ports - set(_held)) if pid is None else sorted(ports)
 
 
+def _port_mappings(proc_dir: str):
+    """(pid, {port: deleted?}) for every other live process that maps Fast DDS port segments."""
+    me = os.getpid()
+    try:
+        pids = [int(p) for p in os.listdir(proc_dir) if p.isdigit()]
+    except OSError:
+        return
+    for pid in pids:
+        if pid == me:
+            continue
+        try:
+            with open(os.path.join(proc_dir, str(pid), "maps"), "rb") as f:
+                text = f.read()
+        except OSError:
+            continue                     # gone, or not ours to read
+        ports = {}
+        for port, deleted in _MAP_RE.findall(text):
+            ports[int(port)] = ports.get(int(port), False) or bool(deleted)
+        if ports:
+            yield pid, ports
+
+
+def mapped_ports(proc_dir: str = PROC_DIR) -> dict:
+    """{port: [pid, ...]}: the Fast DDS port segments other live processes map (send to)."""
+    found: dict = {}
+    for pid, ports in _port_mappings(proc_dir):
+        for port in ports:
+            found.setdefault(port, []).append(pid)
+    return found
+
+
 def writers_to_deleted(ports, proc_dir: str = PROC_DIR) -> dict:
     """{port: [pid, ...]}: live processes that map a deleted segment of one of ``ports``, i.e.
     send to this node over a segment it no longer reads (the module docstring)."""
@@ -57,20 +90,10 @@ def writers_to_deleted(ports, proc_dir: str = PROC_DIR) -> dict:
     found: dict = {}
     if not want:
         return found
-    try:
-        pids = [p for p in os.listdir(proc_dir) if p.isdigit()]
-    except OSError:
-        return found
-    for pid in pids:
-        try:
-            with open(os.path.join(proc_dir, pid, "maps"), "rb") as f:
-                text = f.read()
-        except OSError:
-            continue
-        for m in re.finditer(rb"/fastrtps_port(\d+) \(deleted\)", text):
-            port = int(m.group(1))
-            if port in want and int(pid) not in found.get(port, []):
-                found.setdefault(port, []).append(int(pid))
+    for pid, mapped in _port_mappings(proc_dir):
+        for port, deleted in mapped.items():
+            if deleted and port in want:
+                found.setdefault(port, []).append(pid)
     return found
 
 
