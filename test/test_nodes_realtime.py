@@ -358,14 +358,25 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
             cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
             return len(states) > 50 and all(m.faults == 0 and _peak_current(m) > 10 for m in states[-20:])
         col.wait_for(braking, 30, "braking under the first controller", procs)
-        ports = shm_ports.own_ports(ctrl.pid)[::-1]          # the domain's data port first
-        found = next((f for f in (repro.find_listener(p) for p in ports) if f), None)
-        assert found, f"no active shared-memory listener in the controller's ports {ports}"
-        assert repro.kill_in_window(ctrl.pid, *found, 60.0) is not None, "the window was not caught in 60 s"
-        ctrl.proc.wait(10)
-        time.sleep(1.0)
-        ctrl2 = NodeProcess("bike_controller", "controller_node", domain, RT)
-        procs.append(ctrl2)
+        for attempt in range(3):
+            # about 1 kill in 15 in the window still leaves the plant writing to the live segment
+            # (the new controller hears it at once): the premise did not happen, force it again
+            ports = shm_ports.own_ports(ctrl.pid)
+            hit = repro.find_data_listener(ports)
+            assert hit, f"no active shared-memory listener in the controller's data port ({ports})"
+            assert repro.kill_in_window(ctrl.pid, *hit[1], 60.0) is not None, "the window was not caught in 60 s"
+            ctrl.proc.wait(10)
+            time.sleep(1.0)
+            ctrl = ctrl2 = NodeProcess("bike_controller", "controller_node", domain, RT)
+            procs.append(ctrl2)
+            col.wait_for(lambda: re.search("first PlantState|starting over", ctrl2.output()), 30,
+                         "the second controller's first PlantState or its stale-port warning", [plant, ctrl2])
+            if "starting over" in ctrl2.output().split("first PlantState")[0]:
+                break
+            col.wait_for(braking, 30, f"braking under controller {attempt + 2}", [plant, ctrl2])
+        else:
+            raise AssertionError("no kill in the window left the new controller deaf in 3 attempts "
+                                 "(has a Fast DDS update fixed the stale port? see test_shm_ports.py)")
         k = len(states)
         col.wait_for(lambda: braking() and len(states) > k + 50, 60, "braking again", [plant, ctrl2])
         out = ctrl2.output()

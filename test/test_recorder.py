@@ -396,6 +396,8 @@ def test_recorder_puts_a_restarted_plants_run_into_a_new_bag(tmp_path, ros_domai
         assert wait_for(lambda: min(p.get_subscription_count() for p in (pub_ps, pub_cmd, pub_info)) >= 1, 15.0), \
             rec.err()[-2000:]
         pub_info.publish(String(data='{"profile": "unit"}'))
+        # a writer matched is not a reader matched: the first run waits until the recorder has it
+        assert wait_for(lambda: "session_info: latched message recorded" in rec.err(), 15.0), rec.err()[-2000:]
         for run in (1, 2):
             pub_cmd.publish(_stamp(Command(command=0.3), 0))
             for seq in range(3):

@@ -113,8 +113,11 @@ def test_the_stale_port_failure_on_demand(domain):
     reader started after it hears nothing while the writer maps a deleted segment. This is
     Fast DDS 2.14's failure, not ours; if an update fixes it, this test fails and says so."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    run = subprocess.run([sys.executable, str(REPRO), "--wait-s", "8"], env=env, capture_output=True, text=True,
-                         timeout=240)
+    for _attempt in range(2):          # exit 2: the window was not caught (a loaded host); once more
+        run = subprocess.run([sys.executable, str(REPRO), "--wait-s", "8"], env=env, capture_output=True,
+                             text=True, timeout=240)
+        if run.returncode != 2:
+            break
     assert run.returncode == 1, run.stdout + run.stderr[-2000:]
     assert "second reader on ports" in run.stdout and "DEAF for 8 s" in run.stdout, run.stdout
     assert "writer maps deleted port segments ['" in run.stdout, run.stdout

@@ -151,6 +151,21 @@ def find_listener(port: int, sample_s: float = 0.3):
     return None
 
 
+def find_data_listener(ports, give_up_s: float = 30.0):
+    """find_listener on the domain's data port (the highest of a participant's ports: the other,
+    7001 here, carries no user data, so a kill in its window leaves the data flowing), sampled
+    again until give_up_s: on a loaded host one 0.3 s sample can miss the listener's waiting or
+    processing state. (port, (mmap, offset)), or None."""
+    if not ports:
+        return None
+    port = max(ports)
+    until = time.monotonic() + give_up_s
+    while True:
+        found = find_listener(port)
+        if found or time.monotonic() >= until:
+            return (port, found) if found else None
+
+
 def kill_in_window(pid: int, m, off: int, give_up_s: float) -> int | None:
     """SIGKILL the process while its listener is in use and neither waiting nor processing;
     returns the number of stops it took, None if not caught within give_up_s."""
@@ -190,15 +205,12 @@ def main(argv=None) -> int:
             print("shm stale port repro: the first reader never heard the writer", first.out[-10:], flush=True)
             return 2
         ports = sorted(set(shm_ports.own_ports(first.p.pid)) - set(shm_ports.own_ports(procs[0].p.pid)))
-        found = None
-        for port in sorted(ports, reverse=True):     # the domain's data port first
-            found = find_listener(port)
-            if found:
-                break
-        if found is None:
-            print(f"shm stale port repro: no active listener found in ports {ports} (another segment layout?)",
-                  flush=True)
+        hit = find_data_listener(ports)
+        if hit is None:
+            print(f"shm stale port repro: no active listener found in data port {max(ports, default=None)} of "
+                  f"{ports} (another segment layout?)", flush=True)
             return 2
+        data_port, found = hit
         t_hunt = time.monotonic()
         stops = kill_in_window(first.p.pid, *found, args.give_up_s)
         if stops is None:
@@ -214,7 +226,7 @@ def main(argv=None) -> int:
                    if procs[0].p.pid in pids]
         print(f"shm stale port repro: first reader killed in the window after {stops} stop(s), "
               f"{time.monotonic() - t_hunt:.1f} s (status byte "
-              f"{frozen:#04x}, ports {ports}); second reader{' (guarded)' if args.guard else ''} on ports "
+              f"{frozen:#04x}, data port {data_port} of {ports}); second reader{' (guarded)' if args.guard else ''} on ports "
               f"{shm_ports.own_ports(second.p.pid)} {'heard the writer' if heard else f'DEAF for {args.wait_s:g} s'}; "
               f"writer maps deleted port segments {deleted or 'none'}", flush=True)
         guard_lines = [line for line in second.out if line.startswith("guard:")]

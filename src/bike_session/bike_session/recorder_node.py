@@ -459,6 +459,9 @@ def _make_node_class():
                 if is_clock:
                     self.latest_clock_ns = max(self.latest_clock_ns, t_ns)
                 if latched:
+                    if topic not in self._latched_raw:     # said once: a run started before it lacks it
+                        self.get_logger().info(f"{topic}: latched message recorded (written again into each "
+                                               "new run's bag)")
                     self._latched_raw[topic] = bytes(raw)
                 self.sink.write(topic, t_ns, raw)
                 if is_plant:
