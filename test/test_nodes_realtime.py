@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns, tool_module  # noqa: F401
 
-from bike_msgs.msg import Command, ControllerStatus, PlantState  # noqa: E402
+from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus  # noqa: E402
 from bike_plant import msgconv, shm_ports  # noqa: E402
 from bike_plant.config import load_config  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
@@ -337,13 +337,48 @@ def test_realtime_start_holds_t0_until_a_late_session_is_heard(domain):
 
 @pytest.mark.faults
 @pytest.mark.timeout(180)
+def _restart_onto_a_stale_port(repro, victim, restart, verdict, ready, col, live, procs):
+    """Kill ``victim`` in its shared-memory listener's window (tools/shm_stale_port_repro.py's
+    way) and start ``restart()`` on its port; ``verdict(new)`` says "deaf" (it found itself on
+    the stale port) or "heard" (it was reached at once) or None (not yet). About 1 kill in 15
+    in the window still leaves the writer on the live segment: the premise did not happen, so
+    it is forced again (after ``ready()``), up to 3 times. Returns the deaf process."""
+    for attempt in range(3):
+        ports = shm_ports.own_ports(victim.pid)
+        hit = repro.find_data_listener(ports)
+        assert hit, f"no active shared-memory listener in {victim.name}'s data port ({ports})"
+        assert repro.kill_in_window(victim.pid, *hit[1], 60.0) is not None, "the window was not caught in 60 s"
+        victim.proc.wait(10)
+        time.sleep(1.0)
+        victim = restart()
+        procs.append(victim)
+        said = []
+        col.wait_for(lambda: said.append(verdict(victim)) or said[-1], 30,
+                     f"the restarted {victim.name}'s first input or its stale-port warning", live + [victim])
+        if said[-1] == "deaf":
+            return victim
+        col.wait_for(ready, 30, f"the loop closed again after restart {attempt + 1}", live + [victim])
+    raise AssertionError("no kill in the window left the restarted node deaf in 3 attempts "
+                         "(has a Fast DDS update fixed the stale port? see test_shm_ports.py)")
+
+
+def _started_over(out: str, writer_pid: int) -> None:
+    """The node's log names ``writer_pid`` among the writers to a deleted segment of its ports
+    and says it started over on fresh ports (the test process, which sent it messages, may be
+    among the writers too)."""
+    writers = re.search(r"pid\(s\) ([\d, ]+) still write to a deleted segment", out)
+    assert writers and str(writer_pid) in writers.group(1).split(", "), out[-3000:]
+    assert "starting over with a new DDS participant on fresh ports" in out, out[-3000:]
+    assert "on fresh shared-memory ports" in out, out[-3000:]
+
+
 def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_ports(domain):
-    """The Fast DDS stale port, forced (tools/shm_stale_port_repro.py's way): the first
-    controller is killed while its shared-memory listener is in use but neither waiting nor
-    processing, so the running plant keeps writing PlantStates into that port's old segment,
-    and a second controller, which takes the same port, gets none. It says so, names the plant
-    as the writer to a deleted segment, starts over with a new DDS participant on fresh ports
-    (bike_plant.node._on_fresh_ports), and the loop closes again: braking resumes."""
+    """The Fast DDS stale port, forced: the first controller is killed while its shared-memory
+    listener is in use but neither waiting nor processing, so the running plant keeps writing
+    PlantStates into that port's old segment, and a second controller, which takes the same
+    port, gets none. It says so, names the plant as the writer to a deleted segment, starts
+    over with a new DDS participant on fresh ports (bike_plant.node._on_fresh_ports), and the
+    loop closes again: braking resumes."""
     repro = tool_module("shm_stale_port_repro")
     col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus})
     procs = []
@@ -358,37 +393,121 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
             cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
             return len(states) > 50 and all(m.faults == 0 and _peak_current(m) > 10 for m in states[-20:])
         col.wait_for(braking, 30, "braking under the first controller", procs)
-        for attempt in range(3):
-            # about 1 kill in 15 in the window still leaves the plant writing to the live segment
-            # (the new controller hears it at once): the premise did not happen, force it again
-            ports = shm_ports.own_ports(ctrl.pid)
-            hit = repro.find_data_listener(ports)
-            assert hit, f"no active shared-memory listener in the controller's data port ({ports})"
-            assert repro.kill_in_window(ctrl.pid, *hit[1], 60.0) is not None, "the window was not caught in 60 s"
-            ctrl.proc.wait(10)
-            time.sleep(1.0)
-            ctrl = ctrl2 = NodeProcess("bike_controller", "controller_node", domain, RT)
-            procs.append(ctrl2)
-            col.wait_for(lambda: re.search("first PlantState|starting over", ctrl2.output()), 30,
-                         "the second controller's first PlantState or its stale-port warning", [plant, ctrl2])
-            if "starting over" in ctrl2.output().split("first PlantState")[0]:
-                break
-            col.wait_for(braking, 30, f"braking under controller {attempt + 2}", [plant, ctrl2])
-        else:
-            raise AssertionError("no kill in the window left the new controller deaf in 3 attempts "
-                                 "(has a Fast DDS update fixed the stale port? see test_shm_ports.py)")
+
+        def verdict(c):
+            out = c.output()
+            first = out.find("first PlantState")
+            warned = out.find("starting over")
+            return "deaf" if warned >= 0 and (first < 0 or warned < first) else "heard" if first >= 0 else None
+        ctrl2 = _restart_onto_a_stale_port(
+            repro, ctrl, lambda: NodeProcess("bike_controller", "controller_node", domain, RT), verdict, braking,
+            col, [plant], procs)
         k = len(states)
         col.wait_for(lambda: braking() and len(states) > k + 50, 60, "braking again", [plant, ctrl2])
-        out = ctrl2.output()
-        # the plant among the writers to the deleted segment (the test process, which sent it
-        # Commands, may be there too)
-        writers = re.search(r"pid\(s\) ([\d, ]+) still write to a deleted segment", out)
-        assert writers and str(plant.pid) in writers.group(1).split(", "), out[-3000:]
-        assert "starting over with a new DDS participant on fresh ports" in out, out[-3000:]
-        assert "on fresh shared-memory ports" in out, out[-3000:]
+        _started_over(ctrl2.output(), plant.pid)
         ctrl2.signal(signal.SIGINT)
         assert ctrl2.wait(10.0) == 0, ctrl2.output()[-3000:]
     finally:
         for p in procs:
             p.stop()
+        col.close()
+
+
+def test_a_plant_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_ports(domain):
+    """The same failure the other way round: a plant killed in its listener's window and
+    restarted (a new run, t = 0 held for the first DriveCommand) gets none of the running
+    controller's DriveCommands, which go to the old segment. Nothing has run yet, so it starts
+    over on fresh ports (bike_plant.node.PlantNode._check_deaf_start), names the controller,
+    and the new run brakes under it."""
+    repro = tool_module("shm_stale_port_repro")
+    col = Collector(domain, {"plant_state": PlantState})
+    procs = []
+    try:
+        cmd_pub = col.publisher(Command, "command")
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+        procs += [plant, ctrl]
+        states = col.data["plant_state"]
+
+        def braking(since=0):
+            cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
+            new = states[since:]
+            return len(new) > 50 and all(m.faults == 0 and _peak_current(m) > 10 for m in new[-20:])
+        col.wait_for(braking, 30, "braking under the controller", procs)
+        marks = []
+
+        def restart():
+            marks.append(len(states))
+            return NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+
+        def verdict(p):
+            if "starting over" in p.output():
+                return "deaf"
+            # the new run's t = 0 is held until its first DriveCommand: later seqs mean it heard one
+            return "heard" if any(m.seq > 20 for m in states[marks[-1]:]) else None
+        plant2 = _restart_onto_a_stale_port(repro, plant, restart, verdict, lambda: braking(marks[-1]),
+                                            col, [ctrl], procs)
+        k = len(states)
+        col.wait_for(lambda: braking(k) and states[-1].seq > 50, 60, "the new run braking", [ctrl, plant2])
+        _started_over(plant2.output(), ctrl.pid)
+        plant2.signal(signal.SIGINT)
+        assert plant2.wait(10.0) == 0, plant2.output()[-3000:]
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+def test_a_session_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_ports(domain):
+    """The stale port under the session: killed in its listener's window and restarted, it
+    gets none of the running plant's /clock (which goes to the old segment) and would wait
+    for good. Nothing is played yet, so it says so, names the plant, starts over on fresh
+    ports (session_node._check_deaf_start) and follows the ride again."""
+    repro = tool_module("shm_stale_port_repro")
+    col = Collector(domain, {"session_status": SessionStatus})
+    procs = []
+    try:
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+        session_params = {"duration_s": 600.0, "config_path": str(CONFIG)}
+        session = NodeProcess("bike_session", "session_node", domain, session_params)
+        procs += [plant, ctrl, session]
+        statuses = col.data["session_status"]
+        marks = [0]
+
+        def running():
+            return any(m.state == SessionStatus.STATE_RUNNING for m in statuses[marks[-1]:])
+        col.wait_for(running, 30, "the session running", procs)
+
+        def restart():
+            marks.append(len(statuses))
+            return NodeProcess("bike_session", "session_node", domain, session_params)
+
+        def verdict(s):
+            return "deaf" if "starting over" in s.output() else "heard" if running() else None
+        session2 = _restart_onto_a_stale_port(repro, session, restart, verdict, running, col, [plant, ctrl], procs)
+        # the deaf one published WAITING only: RUNNING since the restart is the started-over node's
+        col.wait_for(running, 30, "the restarted session running again", [plant, ctrl, session2])
+        _started_over(session2.output(), plant.pid)
+        session2.signal(signal.SIGINT)
+        assert session2.wait(10.0) == 0, session2.output()[-3000:]
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()
+
+
+def test_a_session_without_a_plant_says_waiting_every_second(domain):
+    """Before the first /clock the session re-publishes its WAITING status every second (and
+    looks for a stale port then): its timer runs on the steady clock, because under the
+    configs' use_sim_time a ROS-time timer would wait for the very /clock that is missing."""
+    col = Collector(domain, {"session_status": SessionStatus})
+    session = NodeProcess("bike_session", "session_node", domain, {"duration_s": 10.0, "config_path": str(CONFIG)})
+    try:
+        statuses = col.data["session_status"]
+        col.wait_for(lambda: len(statuses) >= 4, 20, "four WAITING statuses", [session])
+        assert {m.state for m in statuses} == {SessionStatus.STATE_WAITING}
+        assert "use_sim_time: true" in CONFIG.read_text()
+    finally:
+        session.stop()
         col.close()

@@ -56,6 +56,22 @@ def test_writers_to_deleted_segments_are_named(tmp_path):
     assert shm_ports.writers_to_deleted([], str(tmp_path)) == {}
 
 
+def test_the_stale_port_check_says_who_and_starts_over_once(tmp_path, monkeypatch):
+    """What the controller, the plant and the session ask when nothing comes: the writers to a
+    deleted segment of their ports, named, and a start over only while the process has not
+    started over yet (it then holds its old ports)."""
+    monkeypatch.setattr(shm_ports, "own_ports", lambda: [7411, 7413])
+    _maps(tmp_path, 4242, 7411, deleted=True)
+    _maps(tmp_path, 4243, 7413)
+    why, start_over = shm_ports.stale_port_check(str(tmp_path))
+    assert start_over and "pid(s) 4242 still write to a deleted segment of this node's shared-memory port 7411" in why
+    assert "7413" not in why and "Fast-DDS #5053" in why
+    monkeypatch.setitem(shm_ports._held, 7400, -1)          # started over once already
+    assert shm_ports.stale_port_check(str(tmp_path))[1] is False
+    monkeypatch.setattr(shm_ports, "own_ports", lambda: [7413])
+    assert shm_ports.stale_port_check(str(tmp_path)) == ("", False)
+
+
 def test_the_repro_tools_guard_holds_only_zombie_ports_a_live_process_maps(tmp_path):
     tool = tool_module("shm_stale_port_repro")
     shm, proc = tmp_path / "shm", tmp_path / "proc"
@@ -113,10 +129,13 @@ def test_the_stale_port_failure_on_demand(domain):
     reader started after it hears nothing while the writer maps a deleted segment. This is
     Fast DDS 2.14's failure, not ours; if an update fixes it, this test fails and says so."""
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    for _attempt in range(2):          # exit 2: the window was not caught (a loaded host); once more
+    # exit 2: the window was not caught (a loaded host); exit 0: about 1 kill in 10 in the
+    # window still leaves the writer on the live segment. Either way the premise did not
+    # happen: up to 3 attempts (a fixed Fast DDS would hear in every one)
+    for _attempt in range(3):
         run = subprocess.run([sys.executable, str(REPRO), "--wait-s", "8"], env=env, capture_output=True,
                              text=True, timeout=240)
-        if run.returncode != 2:
+        if run.returncode == 1:
             break
     assert run.returncode == 1, run.stdout + run.stderr[-2000:]
     assert "second reader on ports" in run.stdout and "DEAF for 8 s" in run.stdout, run.stdout

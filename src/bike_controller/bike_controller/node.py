@@ -387,16 +387,12 @@ class ControllerNode(Node):
             self.state_writer_since = now
         elif now - self.state_writer_since > PLANT_SILENT_S:
             self.stateless_warned = True
-            stale = shm_ports.writers_to_deleted(shm_ports.own_ports())
-            why = "".join(f"; pid(s) {', '.join(map(str, pids))} still write to a deleted segment of this node's "
-                          f"shared-memory port {port} (Fast DDS stale port after a kill -9, eProsima/Fast-DDS #5053)"
-                          for port, pids in sorted(stale.items()))
             # that failure needs new ports: a new participant (bike_plant.node._on_fresh_ports),
             # once per process
-            fresh = bool(stale) and not shm_ports.held_ports()
+            why, fresh = shm_ports.stale_port_check()
             text = (f"no PlantState in the {PLANT_SILENT_S:g}s since a plant_state writer matched "
                     f"({self.sub_state.get_publisher_count()} matched): nothing delivered to this node, "
-                    f"nothing to answer{why}; " + ("starting over with a new DDS participant on fresh ports"
+                    f"nothing to answer{'; ' + why if why else ''}; " + ("starting over with a new DDS participant on fresh ports"
                                                    if fresh else "re-creating the subscription"))
             self.get_logger().warning(text)
             self._publish_diag(DiagnosticStatus.WARN, text)

@@ -77,6 +77,7 @@ from .memory import release_clean_library_pages
 RECORDER_START_MIN_S = 10.0
 FIRST_STATE_REPUBLISH_S = 0.1    # recording: seq 0 again this often until the recorder reports it [wall s]
 PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
+DEAF_START_S = 3.0               # no DriveCommand this long after a writer matched: look for a stale port [wall s]
 PLANT_DEFAULTS = {
     "backend": "sim",
     "sync_mode": "lockstep",
@@ -352,7 +353,7 @@ class PlantNode(Node):
                 UInt64, "recorder_progress", self._on_progress,
                 QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.executor_ = SingleThreadedExecutor()
+        self.executor_ = SingleThreadedExecutor(context=self.context)     # a started-over node's own
         self.executor_.add_node(self)
         self.hot = HotWait(self.executor_, [self.sub_drive] + ([self.sub_progress] if self.recorder_window > 0 else []),
                            self.context, logger=self.get_logger())
@@ -360,6 +361,9 @@ class PlantNode(Node):
 
         self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "plant"
         self.stop_requested = False
+        self.drive_heard = False     # any DriveCommand bytes yet (_check_deaf_start)
+        self.waiting_since = None    # wall time the wait for the first DriveCommand began
+        self.deaf_next_check = 0.0
         self.k = 0                   # batches applied
         self.pending_seq = -1        # lockstep: seq we wait for
         self.answer = None           # lockstep: DriveCommand(seq=pending_seq)
@@ -385,6 +389,7 @@ class PlantNode(Node):
 
     # ------------------------------------------------------------ callbacks
     def _on_drive(self, raw: bytes) -> None:
+        self.drive_heard = True
         try:
             msg = msgconv.DriveCommandView(raw)
         except msgconv.CdrError as exc:
@@ -661,6 +666,8 @@ class PlantNode(Node):
         start = time.monotonic()
         while not self.stop_requested and waiting():
             self._spin(0.05)
+            if self._check_deaf_start():       # discovery data goes to a stale port too
+                return
             if self.start_timeout_s > 0 and time.monotonic() - start > self.start_timeout_s:
                 raise StartupTimeout(f"no controller after start_timeout_s={self.start_timeout_s:g}s (no plant_state "
                                      "subscriber / drive_command publisher on this ROS_DOMAIN_ID and namespace)")
@@ -695,6 +702,8 @@ class PlantNode(Node):
             sent = first = time.monotonic()
             while self.answer is None and not self.stop_requested:
                 self.hot.spin(0.1, self.busy.busy_s())
+                if self._check_deaf_start():
+                    return
                 if self.answer is None and time.monotonic() - sent > self.republish_s:
                     self._republish()
                     sent = time.monotonic()
@@ -748,6 +757,8 @@ class PlantNode(Node):
                and not self._recorder_ready() and not self._recorder_absent(start)):
             self._service_backend()
             self._spin(0.05)
+            if self._check_deaf_start():
+                return
         self.recorder_window = 0
 
     def _hold_start(self) -> None:
@@ -764,6 +775,8 @@ class PlantNode(Node):
         while not self.stop_requested and self.latest_rx is None:
             self._service_backend()
             self._spin(0.02)
+            if self._check_deaf_start():
+                return
             now = time.monotonic()
             if self.start_timeout_s > 0 and now - start > self.start_timeout_s:
                 self.get_logger().warning(f"no DriveCommand within start_timeout_s={self.start_timeout_s:g}s: "
@@ -776,6 +789,36 @@ class PlantNode(Node):
         self.holding_start = False
         if self.latest_rx is not None and time.monotonic() - start > 1.0:
             self.get_logger().info(f"first DriveCommand after {time.monotonic() - start:.1f}s: sim time starts")
+
+    def _check_deaf_start(self) -> bool:
+        """A plant that has heard no DriveCommand at all DEAF_START_S after it began waiting
+        for one, while a live process writes to a deleted segment of its shared-memory ports, is
+        a plant restarted after a kill -9 on the killed one's port (Fast DDS's stale port,
+        bike_plant.shm_ports): the controller's DriveCommands (and its discovery data, so the
+        writer may not even show as matched) go to the old segment, for good. Nothing has run
+        yet (seq 0 is held), so starting over loses nothing: say so, name the writers, and stop;
+        run_loop_node starts the node again with a new participant on fresh ports (once per
+        process). Looked for every DEAF_START_S while nothing is heard; True when stopping."""
+        if self.drive_heard:
+            return False
+        now = time.monotonic()
+        if self.waiting_since is None:
+            self.waiting_since = now
+            self.deaf_next_check = now + DEAF_START_S
+        if now < self.deaf_next_check:
+            return False
+        self.deaf_next_check = now + DEAF_START_S
+        why, fresh = shm_ports.stale_port_check()
+        if not fresh:
+            return False
+        text = (f"no DriveCommand in the {now - self.waiting_since:.0f}s since this run began waiting for one: "
+                f"{why}; starting over with a new DDS participant on fresh ports (seq 0 held, nothing lost)")
+        self.get_logger().warning(text)
+        self.wait_reason = text
+        self._publish_diag(self._last_snap, self._last_stamp, max(self.last_faults, 0))
+        self.fresh_ports_wanted = True
+        self.stop_requested = True
+        return True
 
     def _recorder_ready(self) -> bool:
         """The recorder is up and this plant's PlantState writer has matched its reader (seq 0
@@ -799,6 +842,8 @@ class PlantNode(Node):
         applied = None
         timed_out = False
         self._wait_for_recorder_start()
+        if self.stop_requested:
+            return
         self._service_backend()
         self._hold_start()
         next_tick = time.monotonic() + self.batch_s
@@ -959,18 +1004,20 @@ def exit_if_a_warm_up_is_left(code: int) -> None:
         os._exit(code)
 
 
-def _on_fresh_ports(node_factory, old, args):
+def _on_fresh_ports(node_factory, old, args, old_executor=None):
     """A node that a live writer cannot reach over shared memory (Fast DDS's stale port after
     a kill -9, bike_plant.shm_ports) starts over in a new rclpy context: a new DDS participant,
     created while the old one still holds its ports, takes fresh ones, which the writer opens
     anew. Then the old participant leaves cleanly (the others drop it at once), and its ports'
-    locks are held for the rest of the process, so no later participant inherits them."""
+    locks are held for the rest of the process, so no later participant inherits them.
+    ``old_executor``: the old node's executor when it is not its ``executor_`` (session_node)."""
     old_ports = shm_ports.own_ports()
     context = rclpy.Context()
     rclpy.init(args=args, context=context)
     node = node_factory(context=context)
-    old.executor_.remove_node(old)
-    old.executor_.shutdown()
+    old_executor = old_executor or old.executor_
+    old_executor.remove_node(old)
+    old_executor.shutdown()
     old.destroy_node()
     rclpy.try_shutdown(context=old.context)
     held = shm_ports.hold_ports(old_ports)

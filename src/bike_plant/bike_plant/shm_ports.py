@@ -97,6 +97,19 @@ def writers_to_deleted(ports, proc_dir: str = PROC_DIR) -> dict:
     return found
 
 
+def stale_port_check(proc_dir: str = PROC_DIR) -> tuple:
+    """For a node fed nothing by a matched writer: (why, start_over). ``why`` names each live
+    process that writes to a deleted segment of this process's ports ("" if none); ``start_over``
+    is True when there is one and this process has not started over yet (it holds no old ports):
+    then a new participant on fresh ports heals it (bike_plant.node._on_fresh_ports)."""
+    stale = writers_to_deleted(own_ports(), proc_dir)
+    why = "; ".join(f"pid(s) {', '.join(map(str, pids))} still write to a deleted segment of this node's "
+                    f"shared-memory port {port}" for port, pids in sorted(stale.items()))
+    if why:
+        why += " (Fast DDS stale port after a kill -9, eProsima/Fast-DDS #5053)"
+    return why, bool(stale) and not _held
+
+
 def hold_ports(ports, shm_dir: str = SHM_DIR) -> list:
     """Take and keep, for the life of the process, the listener locks of ``ports`` (this
     process's old ports, after its participant left them), so that no participant started

@@ -30,6 +30,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import time
 
 from bike_session.profiles import MODE_NAMES, Profile, ProfileError, load_profile
 
@@ -38,6 +39,7 @@ COMMAND_QOS_DEPTH = 100
 # /clock comes once per batch; the node takes it in bursts (see gather_pause_s): the reader
 # keeps this many samples so that none is lost meanwhile (every value is handled, in order)
 CLOCK_QOS_DEPTH = 1000
+DEAF_START_S = 3.0             # no /clock this long after a writer matched: look for a stale port [wall s]
 GATHER_MAX_S = 0.02            # longest pause between bursts [wall s]
 GATHER_SHARE_OF_PERIOD = 0.25  # a burst lags sim time by at most this share of session.period_s
 
@@ -141,8 +143,8 @@ def _make_node_class():
     any_type = ParameterDescriptor(dynamic_typing=True)
 
     class SessionNode(Node):
-        def __init__(self):
-            super().__init__(NODE_NAME)
+        def __init__(self, **kwargs):
+            super().__init__(NODE_NAME, **kwargs)
             p = {}
             for name, default in (("session.profile", ""), ("config_path", ""), ("session.workout", ""),
                                   ("session.over_range", "warn")):
@@ -204,6 +206,9 @@ def _make_node_class():
             self.resent_at_ns = None     # /clock value whose Commands were last sent again
             self.state = SessionStatus.STATE_WAITING
             self.done = False
+            self.fresh_ports_wanted = False  # deaf on a stale shared-memory port (_check_deaf_start)
+            self.deaf_next_check_s = DEAF_START_S     # [s since start-up]
+            self.started_wall = time.monotonic()
             self.commands_published = 0
             self.readers_at_publish = 0      # matched Command readers when the last Command went out
             self._rate_mark = None           # (sim ns, wall s) at the last burst (gather_pause_s)
@@ -213,7 +218,12 @@ def _make_node_class():
             self.pub_info.publish(String(data=json.dumps(info, sort_keys=True)))
             self._publish_status(0, SessionStatus.STATE_WAITING)
             self._publish_diag("waiting for /clock")
-            self.wait_timer = self.create_timer(1.0, self._on_wait_timer)
+            # on the steady clock: under use_sim_time (the configs) a ROS-time timer waits for a
+            # /clock that has not come, and this one is for exactly that time
+            from rclpy.clock import Clock as RosClock
+            from rclpy.clock import ClockType
+            self.wait_timer = self.create_timer(1.0, self._on_wait_timer,
+                                                clock=RosClock(clock_type=ClockType.STEADY_TIME))
             self.get_logger().info(
                 f"profile {self.profile.name!r} ({self.profile.duration_s:g} s, {len(self.profile.segments)} segments) "
                 f"from {profile_path}; run {self.duration_s:g} s, period {self.period_s:g} s")
@@ -292,6 +302,29 @@ def _make_node_class():
         def _on_wait_timer(self) -> None:
             if self.state == self._SessionStatus.STATE_WAITING:
                 self._publish_status(0, self._SessionStatus.STATE_WAITING)
+                self._check_deaf_start()
+
+        def _check_deaf_start(self) -> None:
+            """No /clock DEAF_START_S after start-up while a live process writes to a deleted
+            segment of this node's shared-memory ports: a session restarted after a kill -9 on
+            the killed one's port (Fast DDS's stale port, bike_plant.shm_ports), deaf to the
+            plant for good (its discovery data goes there too, so the /clock writer may not
+            even show as matched). Nothing has been played yet, so it says so and starts over
+            with a new participant on fresh ports (main(), once per process). Looked for
+            every DEAF_START_S while waiting."""
+            from bike_plant import shm_ports
+            waited_s = time.monotonic() - self.started_wall
+            if waited_s < self.deaf_next_check_s:
+                return
+            self.deaf_next_check_s = waited_s + DEAF_START_S
+            why, fresh = shm_ports.stale_port_check()
+            if not fresh:
+                return
+            text = (f"no /clock in the {waited_s:.0f}s since start-up: {why}; starting over "
+                    "with a new DDS participant on fresh ports (nothing played yet)")
+            self.get_logger().warning(text)
+            self._publish_diag(text, self._DiagnosticStatus.WARN)
+            self.fresh_ports_wanted = True
 
         def _on_clock(self, msg) -> None:
             if self.done:
@@ -392,8 +425,6 @@ def _make_node_class():
 
 
 def main(args=None) -> int:
-    import time
-
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
@@ -405,23 +436,30 @@ def main(args=None) -> int:
         from bike_plant.loop import HotWait
         from rclpy.executors import SingleThreadedExecutor
 
-        node = _make_node_class()()
+        node_class = _make_node_class()
+        node = node_class()
         # the mode figures (bike_controller.modes) brought in numba and its code generator, which
         # the session does not run again: drop LLVM's pages from its RSS (bike_plant.memory)
         from bike_plant.memory import release_clean_library_pages
         released_mb = release_clean_library_pages() / 2**20
         if released_mb >= 1.0:
             node.get_logger().info(f"released {released_mb:.0f} MB of LLVM library pages")
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        # /clock comes every batch: taken straight from a wait set (bike_plant.loop.HotWait),
-        # the timer and parameter services through the executor
-        hot = HotWait(executor, [node.sub_clock], node.context, logger=node.get_logger())
-        while rclpy.ok() and not node.done:
-            if hot.spin(0.1) and not node.done:
-                pause = node.gather_pause_s(time.monotonic())
-                if pause > 0.0:
-                    time.sleep(pause)
+        while True:
+            executor = SingleThreadedExecutor(context=node.context)
+            executor.add_node(node)
+            # /clock comes every batch: taken straight from a wait set (bike_plant.loop.HotWait),
+            # the timer and parameter services through the executor
+            hot = HotWait(executor, [node.sub_clock], node.context, logger=node.get_logger())
+            while rclpy.ok(context=node.context) and not node.done and not node.fresh_ports_wanted:
+                if hot.spin(0.1) and not node.done:
+                    pause = node.gather_pause_s(time.monotonic())
+                    if pause > 0.0:
+                        time.sleep(pause)
+            if not node.fresh_ports_wanted:
+                break
+            from bike_plant.node import _on_fresh_ports      # a stale port: a new participant
+            old_executor, executor = executor, None
+            node = _on_fresh_ports(node_class, node, args, old_executor)
         if node.done:
             node.flush()
     except SetupError as exc:
@@ -435,6 +473,8 @@ def main(args=None) -> int:
             executor.shutdown()                 # see bike_plant.node.run_loop_node
         if node is not None:
             node.destroy_node()
+            if node.context is not rclpy.get_default_context():   # started over (_on_fresh_ports)
+                rclpy.try_shutdown(context=node.context)
         rclpy.try_shutdown()
     return rc
 
