@@ -511,3 +511,53 @@ def test_a_session_without_a_plant_says_waiting_every_second(domain):
     finally:
         session.stop()
         col.close()
+
+
+def test_a_recorder_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_ports(domain, tmp_path):
+    """The stale port under the recorder: killed in its listener's window and restarted into a
+    new bag, it gets nothing from the running graph (the plant, the controller and this test
+    write into the old segment). Its bag still empty, it says so, names the plant, removes the
+    empty bag, starts over on fresh ports (recorder_node._start_over) and records the ride
+    into the same bag, which reads back after a Ctrl-C."""
+    from std_msgs.msg import UInt64
+
+    from bike_session.bags import read_topic
+    repro = tool_module("shm_stale_port_repro")
+    col = Collector(domain, {"recorder_progress": UInt64})
+    procs = []
+    try:
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+        rec = NodeProcess("bike_session", "recorder_node", domain, {"record_dir": str(tmp_path), "bag_name": "run1"})
+        procs += [plant, ctrl, rec]
+        progress = col.data["recorder_progress"]
+        cmd_pub = col.publisher(Command, "command")      # the session's part: t = 0 waits for it
+        marks = [0]
+
+        def recording():
+            cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
+            return len(progress) > marks[-1] + 5
+        col.wait_for(recording, 30, "the recorder's progress", procs)
+        names = iter(f"run{n}" for n in range(2, 10))
+
+        def restart():
+            marks.append(len(progress))
+            return NodeProcess("bike_session", "recorder_node", domain,
+                               {"record_dir": str(tmp_path), "bag_name": next(names)})
+
+        def verdict(r):
+            return "deaf" if "starting over" in r.output() else "heard" if recording() else None
+        rec2 = _restart_onto_a_stale_port(repro, rec, restart, verdict, recording, col, [plant, ctrl], procs)
+        # the deaf one recorded nothing: progress since the restart is the started-over node's
+        col.wait_for(recording, 30, "the restarted recorder recording", [plant, ctrl, rec2])
+        out = rec2.output()
+        _started_over(out, plant.pid)
+        bag = re.search(r"the empty bag (\S+) is made again", out).group(1)
+        plant.stop()                  # the recorder drains until the graph falls silent
+        rec2.signal(signal.SIGINT)
+        assert rec2.wait(15.0) == 0, rec2.output()[-3000:]
+        assert len(read_topic(bag, "plant_state")) > 50, rec2.output()[-3000:]
+    finally:
+        for p in procs:
+            p.stop()
+        col.close()

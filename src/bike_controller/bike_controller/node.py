@@ -151,6 +151,7 @@ class ControllerNode(Node):
         self.commandless_warned = False    # realtime: one warning when no Command came at all
         self.state_writer_since = None     # before the first PlantState: since when a plant_state writer matched
         self.stateless_warned = False      # ... and one warning when it delivered nothing
+        self.unmatched_check_at = time.monotonic() + PLANT_SILENT_S   # no writer matched: next stale-port look
         # the plant waits for the recorder's reader of plant_state, not for its readers of this
         # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
         # first seconds before discovery matched them (a bag without ControllerStatus). Both
@@ -378,11 +379,23 @@ class ControllerNode(Node):
         ports (the Fast DDS stale-port failure, bike_plant.shm_ports). That failure is healed
         by a new participant on fresh ports: the node stops and run_loop_node starts it over
         in a new context (once per process). Otherwise try a new reader: the subscription is
-        re-created once; it costs nothing where all is well."""
+        re-created once; it costs nothing where all is well. With no writer matched at all,
+        the signature is looked for every PLANT_SILENT_S: the writers' discovery data goes into
+        the stale segment too (a deaf session never saw the /clock writer)."""
+        now = time.monotonic()
         if self.sub_state.get_publisher_count() == 0:
             self.state_writer_since = None
+            if now >= self.unmatched_check_at:
+                self.unmatched_check_at = now + PLANT_SILENT_S
+                why, fresh = shm_ports.stale_port_check()
+                if fresh:
+                    text = (f"no plant_state writer matched and no PlantState: {why}; starting over with a new "
+                            "DDS participant on fresh ports")
+                    self.get_logger().warning(text)
+                    self._publish_diag(DiagnosticStatus.WARN, text)
+                    self.fresh_ports_wanted = True
+                    self.stop_requested = True
             return
-        now = time.monotonic()
         if self.state_writer_since is None:
             self.state_writer_since = now
         elif now - self.state_writer_since > PLANT_SILENT_S:
@@ -392,8 +405,9 @@ class ControllerNode(Node):
             why, fresh = shm_ports.stale_port_check()
             text = (f"no PlantState in the {PLANT_SILENT_S:g}s since a plant_state writer matched "
                     f"({self.sub_state.get_publisher_count()} matched): nothing delivered to this node, "
-                    f"nothing to answer{'; ' + why if why else ''}; " + ("starting over with a new DDS participant on fresh ports"
-                                                   if fresh else "re-creating the subscription"))
+                    f"nothing to answer{'; ' + why if why else ''}; "
+                    + ("starting over with a new DDS participant on fresh ports" if fresh
+                       else "re-creating the subscription"))
             self.get_logger().warning(text)
             self._publish_diag(DiagnosticStatus.WARN, text)
             if fresh:

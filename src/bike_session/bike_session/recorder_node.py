@@ -277,8 +277,8 @@ def _make_node_class():
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     class RecorderNode(Node):
-        def __init__(self):
-            super().__init__("recorder")
+        def __init__(self, **kwargs):
+            super().__init__("recorder", **kwargs)
             record_dir = self.declare_parameter("record_dir", ".").value
             bag_name = self.declare_parameter("bag_name", "").value or default_bag_name()
             storage = self.declare_parameter("storage", "mcap").value
@@ -312,6 +312,10 @@ def _make_node_class():
             self._flush_timer = self.create_timer(float(flush_period_s), self._flush_idle)
             self.latest_clock_ns = 0
             self.last_msg_wall = time.monotonic()
+            self.heard_any = False               # any message yet (check_deaf_start)
+            self.started_wall = self.last_msg_wall
+            self.deaf_next_check_s = DEAF_START_S
+            self.fresh_ports_wanted = False
             self.end_of_run_seen = False
             self.bad_stamps = 0
             # lockstep: a plant that waits for an answer re-publishes its pending PlantState and
@@ -424,6 +428,7 @@ def _make_node_class():
 
             def callback(raw: bytes) -> None:
                 self.last_msg_wall = time.monotonic()
+                self.heard_any = True
                 if self.sink.closed:
                     return
                 t_ns = self.latest_clock_ns
@@ -486,9 +491,31 @@ def _make_node_class():
         def close(self) -> None:
             self.sink.close()
 
+        def check_deaf_start(self) -> bool:
+            """No message at all DEAF_START_S after start-up while a live process writes to a
+            deleted segment of this node's shared-memory ports: a recorder restarted after a
+            kill -9 on the killed one's port (Fast DDS's stale port, bike_plant.shm_ports),
+            deaf for good (the writers' discovery data goes there too). Its bag is still empty,
+            so it says so and asks to start over with a new participant on fresh ports (main(),
+            once per process). Looked for every DEAF_START_S while nothing is heard."""
+            from bike_plant import shm_ports
+            waited_s = time.monotonic() - self.started_wall
+            if self.heard_any or waited_s < self.deaf_next_check_s:
+                return False
+            self.deaf_next_check_s = waited_s + DEAF_START_S
+            why, fresh = shm_ports.stale_port_check()
+            if not fresh:
+                return False
+            self.get_logger().warning(
+                f"nothing recorded in the {waited_s:.0f}s since start-up: {why}; starting over with a new DDS "
+                f"participant on fresh ports (the empty bag {self.sink.path} is made again)")
+            self.fresh_ports_wanted = True
+            return True
+
     return RecorderNode
 
 
+DEAF_START_S = 3.0      # nothing heard this long after start-up: look for a stale port [wall s]
 _signals = {"count": 0}
 
 
@@ -506,22 +533,25 @@ def main(args=None) -> int:
     node = None
     rc = 0
     try:
-        node = _make_node_class()()
+        node_class = _make_node_class()
+        node = node_class()
         print(f"bag: {node.bag_paths[0]}", flush=True)
         node.get_logger().info(f"recording {len(node.subs)} topics to {node.bag_paths[0]}")
-        while rclpy.ok() and _signals["count"] == 0:
+        while rclpy.ok(context=node.context) and _signals["count"] == 0:
             if node.spin(0.1):
                 time.sleep(GATHER_S)
+            elif node.check_deaf_start():
+                node = _start_over(node_class, node, args)
             if node.stop_on_end_of_run and node.end_of_run_seen:
                 break
         # drain: until end_of_run is recorded or SILENCE_S without messages (a second signal stops now)
-        while rclpy.ok() and not node.end_of_run_seen and _signals["count"] < 2:
+        while rclpy.ok(context=node.context) and not node.end_of_run_seen and _signals["count"] < 2:
             if time.monotonic() - node.last_msg_wall > SILENCE_S:
                 break
             node.spin(0.05)
         # take what is already queued (trailing status / commands), 0.2 s of quiet at most
         quiet_until = time.monotonic() + 0.2
-        while rclpy.ok() and time.monotonic() < quiet_until and _signals["count"] < 2:
+        while rclpy.ok(context=node.context) and time.monotonic() < quiet_until and _signals["count"] < 2:
             before = node.last_msg_wall
             node.spin(0.05)
             if node.last_msg_wall != before:
@@ -549,8 +579,26 @@ def main(args=None) -> int:
             node.executor_.remove_node(node)
             node.executor_.shutdown()           # see bike_plant.node.run_loop_node
             node.destroy_node()
+            if node.context is not rclpy.get_default_context():   # started over (_start_over)
+                rclpy.try_shutdown(context=node.context)
         rclpy.try_shutdown()
     return rc
+
+
+def _start_over(node_class, old, args):
+    """A deaf recorder on a stale port (RecorderNode.check_deaf_start): its empty bag is closed
+    and removed, and a new node in a new context, on fresh ports, makes it again
+    (bike_plant.node._on_fresh_ports)."""
+    import shutil
+
+    from bike_plant.node import _on_fresh_ports
+    old.close()
+    if not any(old.sink.counts.values()):           # nothing recorded: only our own empty bag goes
+        shutil.rmtree(old.sink.path, ignore_errors=True)
+    node = _on_fresh_ports(node_class, old, args)
+    signal.signal(signal.SIGINT, _on_signal)        # rclpy.init of the new context installed its own
+    signal.signal(signal.SIGTERM, _on_signal)
+    return node
 
 
 if __name__ == "__main__":
