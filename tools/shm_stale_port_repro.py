@@ -28,9 +28,11 @@ until the dead participant's lease ran out), a writer killed during one of those
 left a segment with an uninitialised header, and the next process to open it spun in boost's
 managed_open_or_create_impl while holding its DataWriter's mutex (and, inside rclpy's
 publish, the GIL). A rare deaf node is better than a hung one. The nodes heal it another way:
-a controller that finds itself on a stale port starts over with a new participant while the
-old one still holds its ports, and the old one then leaves cleanly (bike_plant.node.
-_on_fresh_ports; test_nodes_realtime.py forces it on the real nodes with this tool's functions).
+a node (controller, plant, session, recorder) that finds itself on a stale port before it has
+heard anything starts over with a new participant while the old one still holds its ports,
+and the old one then leaves cleanly (bike_plant.node._on_fresh_ports; test_nodes_realtime.py
+forces it on each real node with this tool's functions). About 1 kill in 10 in the window
+still leaves the writer on the live segment (exit 0): run it again.
 
 Exit status: 0 the restarted reader heard the writer, 1 it did not within --wait-s, 2 the window
 was not caught or the segment layout is not the one above (another Fast DDS version).

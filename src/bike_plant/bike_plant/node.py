@@ -77,7 +77,7 @@ from .memory import release_clean_library_pages
 RECORDER_START_MIN_S = 10.0
 FIRST_STATE_REPUBLISH_S = 0.1    # recording: seq 0 again this often until the recorder reports it [wall s]
 PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
-DEAF_START_S = 3.0               # no DriveCommand this long after a writer matched: look for a stale port [wall s]
+DEAF_START_S = 3.0               # no DriveCommand this long into the wait for the first: look for a stale port [wall s]
 PLANT_DEFAULTS = {
     "backend": "sim",
     "sync_mode": "lockstep",

@@ -15,8 +15,9 @@ processing, a window of microseconds (Fast DDS SharedMemGlobal.hpp: ``Port::is_z
 process, for good. tools/shm_stale_port_repro.py makes it happen on demand.
 
 :func:`writers_to_deleted` finds that signature (a live process mapping a deleted segment of
-one of this node's ports), so a node fed nothing can say why; a controller then starts over on
-fresh ports (bike_plant.node._on_fresh_ports) and :func:`hold_ports` keeps its old ones.
+one of this node's ports), so a node fed nothing can say why (:func:`stale_port_check`); the
+node then starts over on fresh ports (bike_plant.node._on_fresh_ports: controller, plant,
+session, recorder) and :func:`hold_ports` keeps its old ones.
 Reading other processes' ``/proc/<pid>/maps`` needs the same user (or root); a process we
 cannot read is skipped.
 """
@@ -98,10 +99,11 @@ def writers_to_deleted(ports, proc_dir: str = PROC_DIR) -> dict:
 
 
 def stale_port_check(proc_dir: str = PROC_DIR) -> tuple:
-    """For a node fed nothing by a matched writer: (why, start_over). ``why`` names each live
-    process that writes to a deleted segment of this process's ports ("" if none); ``start_over``
-    is True when there is one and this process has not started over yet (it holds no old ports):
-    then a new participant on fresh ports heals it (bike_plant.node._on_fresh_ports)."""
+    """For a node fed nothing (the controller, plant, session and recorder ask): (why,
+    start_over). ``why`` names each live process that writes to a deleted segment of this
+    process's ports ("" if none); ``start_over`` is True when there is one and this process has
+    not started over yet (it holds no old ports): then a new participant on fresh ports heals it
+    (bike_plant.node._on_fresh_ports)."""
     stale = writers_to_deleted(own_ports(), proc_dir)
     why = "; ".join(f"pid(s) {', '.join(map(str, pids))} still write to a deleted segment of this node's "
                     f"shared-memory port {port}" for port, pids in sorted(stale.items()))

@@ -39,7 +39,7 @@ COMMAND_QOS_DEPTH = 100
 # /clock comes once per batch; the node takes it in bursts (see gather_pause_s): the reader
 # keeps this many samples so that none is lost meanwhile (every value is handled, in order)
 CLOCK_QOS_DEPTH = 1000
-DEAF_START_S = 3.0             # no /clock this long after a writer matched: look for a stale port [wall s]
+DEAF_START_S = 3.0             # no /clock this long after start-up: look for a stale port [wall s]
 GATHER_MAX_S = 0.02            # longest pause between bursts [wall s]
 GATHER_SHARE_OF_PERIOD = 0.25  # a burst lags sim time by at most this share of session.period_s
 
