@@ -362,14 +362,19 @@ def _restart_onto_a_stale_port(repro, victim, restart, verdict, ready, col, live
                          "(has a Fast DDS update fixed the stale port? see test_shm_ports.py)")
 
 
-def _started_over(out: str, writer_pid: int) -> None:
+def _started_over(node, writer_pid: int, stop: bool = True) -> str:
     """The node's log names ``writer_pid`` among the writers to a deleted segment of its ports
     and says it started over on fresh ports (the test process, which sent it messages, may be
-    among the writers too)."""
+    among the writers too); with ``stop``, a Ctrl-C then ends it with exit code 0. Returns the log."""
+    out = node.output()
     writers = re.search(r"pid\(s\) ([\d, ]+) still write to a deleted segment", out)
     assert writers and str(writer_pid) in writers.group(1).split(", "), out[-3000:]
     assert "starting over with a new DDS participant on fresh ports" in out, out[-3000:]
     assert "on fresh shared-memory ports" in out, out[-3000:]
+    if stop:
+        node.signal(signal.SIGINT)
+        assert node.wait(15.0) == 0, node.output()[-3000:]
+    return out
 
 
 def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_ports(domain):
@@ -404,9 +409,7 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
             col, [plant], procs)
         k = len(states)
         col.wait_for(lambda: braking() and len(states) > k + 50, 60, "braking again", [plant, ctrl2])
-        _started_over(ctrl2.output(), plant.pid)
-        ctrl2.signal(signal.SIGINT)
-        assert ctrl2.wait(10.0) == 0, ctrl2.output()[-3000:]
+        _started_over(ctrl2, plant.pid)
     finally:
         for p in procs:
             p.stop()
@@ -449,9 +452,7 @@ def test_a_plant_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_po
                                             col, [ctrl], procs)
         k = len(states)
         col.wait_for(lambda: braking(k) and states[-1].seq > 50, 60, "the new run braking", [ctrl, plant2])
-        _started_over(plant2.output(), ctrl.pid)
-        plant2.signal(signal.SIGINT)
-        assert plant2.wait(10.0) == 0, plant2.output()[-3000:]
+        _started_over(plant2, ctrl.pid)
     finally:
         for p in procs:
             p.stop()
@@ -488,9 +489,7 @@ def test_a_session_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_
         session2 = _restart_onto_a_stale_port(repro, session, restart, verdict, running, col, [plant, ctrl], procs)
         # the deaf one published WAITING only: RUNNING since the restart is the started-over node's
         col.wait_for(running, 30, "the restarted session running again", [plant, ctrl, session2])
-        _started_over(session2.output(), plant.pid)
-        session2.signal(signal.SIGINT)
-        assert session2.wait(10.0) == 0, session2.output()[-3000:]
+        _started_over(session2, plant.pid)
     finally:
         for p in procs:
             p.stop()
@@ -550,12 +549,9 @@ def test_a_recorder_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh
         rec2 = _restart_onto_a_stale_port(repro, rec, restart, verdict, recording, col, [plant, ctrl], procs)
         # the deaf one recorded nothing: progress since the restart is the started-over node's
         col.wait_for(recording, 30, "the restarted recorder recording", [plant, ctrl, rec2])
-        out = rec2.output()
-        _started_over(out, plant.pid)
-        bag = re.search(r"the empty bag (\S+) is made again", out).group(1)
         plant.stop()                  # the recorder drains until the graph falls silent
-        rec2.signal(signal.SIGINT)
-        assert rec2.wait(15.0) == 0, rec2.output()[-3000:]
+        out = _started_over(rec2, plant.pid)
+        bag = re.search(r"the empty bag (\S+) is made again", out).group(1)
         assert len(read_topic(bag, "plant_state")) > 50, rec2.output()[-3000:]
     finally:
         for p in procs:
