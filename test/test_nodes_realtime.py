@@ -320,6 +320,9 @@ def test_realtime_start_holds_t0_until_a_late_session_is_heard(domain):
         assert {int(m.seq) for m in early} == {0} and {stamp_ns(m.header.stamp) for m in early} == {0}, \
             "sim time held at 0 without a session"
         assert not col.data["controller_status"], "the controller waits for the session's first Command"
+        # ... and says so once command_wait_s has passed (a graph with no session stays there)
+        col.wait_for(lambda: "holding t = 0 for the session" in procs[1].output(), 10,
+                     "the controller's t = 0 hold warning", procs)
         procs.append(NodeProcess("bike_session", "session_node", domain,
                                  {"duration_s": duration, "config_path": str(CONFIG)}))
         col.wait_for(lambda: any(m.end_of_run for m in states), 30, "end_of_run", procs)

@@ -149,6 +149,7 @@ class ControllerNode(Node):
         self.started_s = time.monotonic()
         self.first_state_s = None          # when the first PlantState came (logged: diagnosis, matched?)
         self.commandless_warned = False    # realtime: one warning when no Command came at all
+        self.t0_hold_warned = False        # realtime: one warning while t = 0 is held for a session
         self.state_writer_since = None     # before the first PlantState: since when a plant_state writer matched
         self.stateless_warned = False      # ... and one warning when it delivered nothing
         self.unmatched_check_at = time.monotonic() + PLANT_SILENT_S   # no writer matched: next stale-port look
@@ -292,6 +293,7 @@ class ControllerNode(Node):
         if (may_wait and not self.session_done and not self.no_session
                 and not self._holds_command_for(t_ns)):
             if time.monotonic() - received < self.command_wait_s:
+                self._say_t0_held(t_ns)
                 return                                    # wait for the session
             self.no_session = True
             j = math.floor(t_ns * 1e-9 / self.period_s + 1e-9)
@@ -340,6 +342,21 @@ class ControllerNode(Node):
                 # repeated while it lasts: a monitor that matched after the one-off warning sees it too
                 level, text = DiagnosticStatus.WARN, "session silent: no Command received; riding on command0 / mode0"
             self._publish_diag(level, text, t_ns)
+
+    def _say_t0_held(self, t_ns: int) -> None:
+        """Realtime, no Command at all: the plant re-publishes the held t = 0 every 0.1 s, and
+        each copy restarts command_wait_s (a session still starting up is waited for, however
+        long), so a graph with no session stays at t = 0 until the plant's start_timeout_s.
+        Say so once, after command_wait_s, in the log and as a WARN diagnostic."""
+        if (self.t0_hold_warned or self.sync_mode != "realtime" or len(self.stamps) > 0
+                or time.monotonic() - self.first_state_s <= self.command_wait_s):
+            return
+        self.t0_hold_warned = True
+        text = (f"holding t = 0 for the session: no Command in the {self.command_wait_s:g}s (command_wait_s) "
+                "since the first PlantState; the run starts at its first Command (or, with no controller "
+                "answer, when the plant's start_timeout_s runs out)")
+        self.get_logger().warning(text)
+        self._publish_diag(DiagnosticStatus.WARN, f"session silent: {text}", t_ns)
 
     def _apply_timeline(self, t_ns: int) -> None:
         """Put the newest Command with stamp <= t_k in force (set_command only on change)."""
