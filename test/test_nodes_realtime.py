@@ -502,13 +502,18 @@ def test_a_session_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_
 def test_a_session_without_a_plant_says_waiting_every_second(domain):
     """Before the first /clock the session re-publishes its WAITING status every second (and
     looks for a stale port then): its timer runs on the steady clock, because under the
-    configs' use_sim_time a ROS-time timer would wait for the very /clock that is missing."""
+    configs' use_sim_time a ROS-time timer would wait for the very /clock that is missing.
+    After NO_CLOCK_WARN_S it says once that it waits for a plant."""
     col = Collector(domain, {"session_status": SessionStatus})
     session = NodeProcess("bike_session", "session_node", domain, {"duration_s": 10.0, "config_path": str(CONFIG)})
     try:
         statuses = col.data["session_status"]
         col.wait_for(lambda: len(statuses) >= 4, 20, "four WAITING statuses", [session])
         assert {m.state for m in statuses} == {SessionStatus.STATE_WAITING}
+        # and it says once why nothing happens (no plant on this domain)
+        col.wait_for(lambda: "no /clock in the" in session.output(), 20, "the session's no-/clock warning",
+                     [session])
+        assert "waiting for a plant on this ROS_DOMAIN_ID" in session.output()
         assert "use_sim_time: true" in CONFIG.read_text()
     finally:
         session.stop()

@@ -40,6 +40,7 @@ COMMAND_QOS_DEPTH = 100
 # keeps this many samples so that none is lost meanwhile (every value is handled, in order)
 CLOCK_QOS_DEPTH = 1000
 DEAF_START_S = 3.0             # no /clock this long after start-up: look for a stale port [wall s]
+NO_CLOCK_WARN_S = 5.0          # no /clock this long after start-up: say so once [wall s]
 GATHER_MAX_S = 0.02            # longest pause between bursts [wall s]
 GATHER_SHARE_OF_PERIOD = 0.25  # a burst lags sim time by at most this share of session.period_s
 
@@ -209,6 +210,7 @@ def _make_node_class():
             self.fresh_ports_wanted = False  # deaf on a stale shared-memory port (_check_deaf_start)
             self.deaf_next_check_s = DEAF_START_S     # [s since start-up]
             self.started_wall = time.monotonic()
+            self.no_clock_warned = False
             self.commands_published = 0
             self.readers_at_publish = 0      # matched Command readers when the last Command went out
             self._rate_mark = None           # (sim ns, wall s) at the last burst (gather_pause_s)
@@ -303,6 +305,16 @@ def _make_node_class():
             if self.state == self._SessionStatus.STATE_WAITING:
                 self._publish_status(0, self._SessionStatus.STATE_WAITING)
                 self._check_deaf_start()
+                waited_s = time.monotonic() - self.started_wall
+                if not self.no_clock_warned and waited_s > NO_CLOCK_WARN_S and not self.fresh_ports_wanted:
+                    # a plant that is not running (or ended its run before this session came) sends
+                    # no /clock, and the profile is played on its sim time
+                    self.no_clock_warned = True
+                    text = (f"no /clock in the {waited_s:.0f}s since start-up: waiting for a plant on this "
+                            f"ROS_DOMAIN_ID and namespace ({self.sub_clock.get_publisher_count()} /clock writer(s) "
+                            "matched); the profile is played on the plant's sim time")
+                    self.get_logger().warning(text)
+                    self._publish_diag(text, self._DiagnosticStatus.WARN)
 
         def _check_deaf_start(self) -> None:
             """No /clock DEAF_START_S after start-up while a live process writes to a deleted
