@@ -155,3 +155,38 @@ def test_hold_ports_keeps_a_participant_off_them(tmp_path):
         assert not set(shm_ports.own_ports()) & {7411, 7413}
     finally:
         _release_held()
+
+
+def test_a_ctrl_c_while_a_node_starts_over_is_not_lost(domain, tmp_path):
+    """run_loop_node with real rclpy nodes: a Ctrl-C that lands while the new node is made
+    (bike_plant.node._on_fresh_ports) goes to the old node's handler; the new node stops at
+    once instead of running on."""
+    script = tmp_path / "node.py"
+    script.write_text(
+        "import os, signal, sys, time\n"
+        "from rclpy.executors import SingleThreadedExecutor\n"
+        "from rclpy.node import Node\n"
+        "from bike_plant import node as bn\n"
+        "made = []\n"
+        "class Fake(Node):\n"
+        "    def __init__(self, **kwargs):\n"
+        "        super().__init__('fake', **kwargs)\n"
+        "        self.executor_ = SingleThreadedExecutor(context=self.context)\n"
+        "        self.executor_.add_node(self)\n"
+        "        self.stop_requested = False\n"
+        "        made.append(self)\n"
+        "        if len(made) == 2:\n"
+        "            os.kill(os.getpid(), signal.SIGINT)   # while the new node is made\n"
+        "    def run(self):\n"
+        "        if len(made) == 1:\n"
+        "            self.fresh_ports_wanted = True\n"
+        "            return 0\n"
+        "        t0 = time.monotonic()\n"
+        "        while not self.stop_requested and time.monotonic() - t0 < 5.0:\n"
+        "            time.sleep(0.01)\n"
+        "        print('stopped' if self.stop_requested else 'ran on', flush=True)\n"
+        "        return 3\n"
+        "sys.exit(bn.run_loop_node(Fake, 'fake'))\n")
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+    out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 3 and out.stdout.strip() == "stopped", (out.returncode, out.stdout, out.stderr[-2000:])

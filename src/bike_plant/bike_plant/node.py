@@ -1041,8 +1041,12 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
         install_signal_handlers(node)
         code = node.run()
         while getattr(node, "fresh_ports_wanted", False) and not getattr(node, "signalled", False):
-            node = _on_fresh_ports(node_factory, node, args)
+            old = node
+            node = _on_fresh_ports(node_factory, old, args)
             install_signal_handlers(node)
+            if getattr(old, "signalled", False):
+                # a Ctrl-C while the new node was made went to the old one's handler: not lost
+                node.stop_requested = node.signalled = True
             code = node.run()
     except StartupTimeout as exc:
         print(f"{label}: error: {exc}", file=sys.stderr)
