@@ -116,3 +116,23 @@ def test_bench_rejects_bad_sections_and_lengths(capsys):
     assert "unknown bench section(s) bogus" in capsys.readouterr().err
     assert bench.main(only=["memory"], memory_s=-5.0) == 2
     assert "--memory-s must be > 0" in capsys.readouterr().err
+
+
+def test_the_graph_figure_falls_back_on_the_plants_own_rate(monkeypatch):
+    """A lockstep graph run over before discovery matched the bench's battery watch (seen: no
+    sample in a 5 s run) still gives its figure: the rate the plant logs at the end of the
+    same run, and the figure says where it came from."""
+    from bike_session import bench
+
+    line = "[plant] [INFO] [1.0] [bike.plant]: lockstep rate 6290 batches per wall second (6.29 x real time)"
+    assert bench.PLANT_RATE_RE.findall(line) == ["6.29"]
+    runs = iter([{"samples": [], "exit_codes": {}, "plant_real_time": 6.29},
+                 {"samples": [(4.0, 10.0), (16.0, 12.0)], "exit_codes": {}, "plant_real_time": 6.0}])
+    monkeypatch.setattr(bench, "_graph_run", lambda *a: next(runs))
+    got = bench.graph_real_time(20, 16.0, None)
+    assert (got["real_time"], got["source"]) == (6.29, "the plant's own rate")
+    got = bench.graph_real_time(20, 16.0, None)
+    assert (got["real_time"], got["source"]) == (6.0, "battery watch")
+    monkeypatch.setattr(bench, "_graph_run", lambda *a: {"samples": [], "exit_codes": {}, "plant_real_time": None})
+    with pytest.raises(RuntimeError, match="the plant logged no rate"):
+        bench.graph_real_time(20, 16.0, None)
