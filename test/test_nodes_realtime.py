@@ -1,5 +1,6 @@
 """Realtime plant_node + controller_node as real processes: wall-clock batches, command
-timeout -> safe state, recovery."""
+timeout -> safe state, recovery; and each node (controller, plant, session, recorder)
+restarted onto a stale Fast DDS shared-memory port heals itself (bike_plant.shm_ports)."""
 from __future__ import annotations
 
 import re
