@@ -72,6 +72,23 @@ def test_the_stale_port_check_says_who_and_starts_over_once(tmp_path, monkeypatc
     assert shm_ports.stale_port_check(str(tmp_path)) == ("", False)
 
 
+def test_the_stale_port_watch_looks_every_period_from_its_start(monkeypatch):
+    """The plant, session, recorder and (no writer matched) controller look for the signature
+    once per period from their start, and start over only when stale_port_check says so."""
+    looks = []
+    answers = iter([("", False), ("pid(s) 4242 still write ...", True)])
+    monkeypatch.setattr(shm_ports, "stale_port_check", lambda: looks.append(1) or next(answers))
+    watch = shm_ports.StalePortWatch(3.0)
+    assert watch.start_over(100.0) == "" and not looks          # the first call starts the clock
+    assert watch.start_over(102.9) == "" and not looks
+    assert watch.start_over(103.0) == "" and len(looks) == 1    # looked: nothing stale
+    assert watch.start_over(105.0) == "" and len(looks) == 1
+    assert watch.start_over(106.0) == "pid(s) 4242 still write ..." and len(looks) == 2
+    assert watch.waited_s(106.0) == 6.0
+    started = shm_ports.StalePortWatch(3.0, since=50.0)
+    assert started.start_over(52.0) == "" and len(looks) == 2
+
+
 def test_the_repro_tools_guard_holds_only_zombie_ports_a_live_process_maps(tmp_path):
     tool = tool_module("shm_stale_port_repro")
     shm, proc = tmp_path / "shm", tmp_path / "proc"

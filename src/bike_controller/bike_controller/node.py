@@ -152,7 +152,7 @@ class ControllerNode(Node):
         self.t0_hold_warned = False        # realtime: one warning while t = 0 is held for a session
         self.state_writer_since = None     # before the first PlantState: since when a plant_state writer matched
         self.stateless_warned = False      # ... and one warning when it delivered nothing
-        self.unmatched_check_at = time.monotonic() + PLANT_SILENT_S   # no writer matched: next stale-port look
+        self.unmatched_watch = shm_ports.StalePortWatch(PLANT_SILENT_S, since=time.monotonic())   # no writer matched
         # the plant waits for the recorder's reader of plant_state, not for its readers of this
         # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
         # first seconds before discovery matched them (a bag without ControllerStatus). Both
@@ -402,16 +402,14 @@ class ControllerNode(Node):
         now = time.monotonic()
         if self.sub_state.get_publisher_count() == 0:
             self.state_writer_since = None
-            if now >= self.unmatched_check_at:
-                self.unmatched_check_at = now + PLANT_SILENT_S
-                why, fresh = shm_ports.stale_port_check()
-                if fresh:
-                    text = (f"no plant_state writer matched and no PlantState: {why}; starting over with a new "
-                            "DDS participant on fresh ports")
-                    self.get_logger().warning(text)
-                    self._publish_diag(DiagnosticStatus.WARN, text)
-                    self.fresh_ports_wanted = True
-                    self.stop_requested = True
+            why = self.unmatched_watch.start_over(now)
+            if why:
+                text = (f"no plant_state writer matched and no PlantState: {why}; starting over with a new "
+                        "DDS participant on fresh ports")
+                self.get_logger().warning(text)
+                self._publish_diag(DiagnosticStatus.WARN, text)
+                self.fresh_ports_wanted = True
+                self.stop_requested = True
             return
         if self.state_writer_since is None:
             self.state_writer_since = now

@@ -77,7 +77,6 @@ from .memory import release_clean_library_pages
 RECORDER_START_MIN_S = 10.0
 FIRST_STATE_REPUBLISH_S = 0.1    # recording: seq 0 again this often until the recorder reports it [wall s]
 PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
-DEAF_START_S = 3.0               # no DriveCommand this long into the wait for the first: look for a stale port [wall s]
 PLANT_DEFAULTS = {
     "backend": "sim",
     "sync_mode": "lockstep",
@@ -362,8 +361,7 @@ class PlantNode(Node):
         self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "plant"
         self.stop_requested = False
         self.drive_heard = False     # any DriveCommand bytes yet (_check_deaf_start)
-        self.waiting_since = None    # wall time the wait for the first DriveCommand began
-        self.deaf_next_check = 0.0
+        self.deaf_watch = shm_ports.StalePortWatch()     # from the wait for the first DriveCommand
         self.k = 0                   # batches applied
         self.pending_seq = -1        # lockstep: seq we wait for
         self.answer = None           # lockstep: DriveCommand(seq=pending_seq)
@@ -791,27 +789,19 @@ class PlantNode(Node):
             self.get_logger().info(f"first DriveCommand after {time.monotonic() - start:.1f}s: sim time starts")
 
     def _check_deaf_start(self) -> bool:
-        """A plant that has heard no DriveCommand at all DEAF_START_S after it began waiting
+        """A plant that has heard no DriveCommand at all DEAF_CHECK_S after it began waiting
         for one, while a live process writes to a deleted segment of its shared-memory ports, is
         a plant restarted after a kill -9 on the killed one's port (Fast DDS's stale port,
         bike_plant.shm_ports): the controller's DriveCommands (and its discovery data, so the
         writer may not even show as matched) go to the old segment, for good. Nothing has run
         yet (seq 0 is held), so starting over loses nothing: say so, name the writers, and stop;
         run_loop_node starts the node again with a new participant on fresh ports (once per
-        process). Looked for every DEAF_START_S while nothing is heard; True when stopping."""
-        if self.drive_heard:
+        process). Looked for every shm_ports.DEAF_CHECK_S while nothing is heard; True when
+        stopping."""
+        why = "" if self.drive_heard else self.deaf_watch.start_over()
+        if not why:
             return False
-        now = time.monotonic()
-        if self.waiting_since is None:
-            self.waiting_since = now
-            self.deaf_next_check = now + DEAF_START_S
-        if now < self.deaf_next_check:
-            return False
-        self.deaf_next_check = now + DEAF_START_S
-        why, fresh = shm_ports.stale_port_check()
-        if not fresh:
-            return False
-        text = (f"no DriveCommand in the {now - self.waiting_since:.0f}s since this run began waiting for one: "
+        text = (f"no DriveCommand in the {self.deaf_watch.waited_s():.0f}s since this run began waiting for one: "
                 f"{why}; starting over with a new DDS participant on fresh ports (seq 0 held, nothing lost)")
         self.get_logger().warning(text)
         self.wait_reason = text

@@ -26,9 +26,11 @@ from __future__ import annotations
 import fcntl
 import os
 import re
+import time
 
 PROC_DIR = "/proc"
 SHM_DIR = "/dev/shm"
+DEAF_CHECK_S = 3.0      # a node that has heard nothing looks for the signature this often [wall s]
 _LOCK_RE = re.compile(r"fastrtps_port(\d+)_el")
 _MAP_RE = re.compile(rb"/fastrtps_port(\d+)( \(deleted\))?$", re.M)
 _held: dict = {}        # port -> fd of a lock this process keeps (bike_plant.node._on_fresh_ports)
@@ -110,6 +112,34 @@ def stale_port_check(proc_dir: str = PROC_DIR) -> tuple:
     if why:
         why += " (Fast DDS stale port after a kill -9, eProsima/Fast-DDS #5053)"
     return why, bool(stale) and not _held
+
+
+class StalePortWatch:
+    """The look of a node that has heard nothing yet (plant, session, recorder, a controller
+    with no writer matched): :func:`stale_port_check` every ``period_s`` from ``since`` (wall
+    time; default: the first call). The writers' discovery data goes into the stale segment
+    too, so no matched writer is waited for."""
+
+    def __init__(self, period_s: float = DEAF_CHECK_S, since: float | None = None):
+        self.period_s = period_s
+        self.since = since
+        self.next_at = None if since is None else since + period_s
+
+    def start_over(self, now: float | None = None) -> str:
+        """The writers to a deleted segment of this node's ports, named (stale_port_check's
+        ``why``), when the node should start over on fresh ports now; "" otherwise."""
+        now = time.monotonic() if now is None else now
+        if self.since is None:
+            self.since, self.next_at = now, now + self.period_s
+        if now < self.next_at:
+            return ""
+        self.next_at = now + self.period_s
+        why, fresh = stale_port_check()
+        return why if fresh else ""
+
+    def waited_s(self, now: float | None = None) -> float:
+        """Wall seconds since ``since`` (after the first :meth:`start_over`)."""
+        return (time.monotonic() if now is None else now) - self.since
 
 
 def hold_ports(ports, shm_dir: str = SHM_DIR) -> list:

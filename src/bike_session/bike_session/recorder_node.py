@@ -313,8 +313,8 @@ def _make_node_class():
             self.latest_clock_ns = 0
             self.last_msg_wall = time.monotonic()
             self.heard_any = False               # any message yet (check_deaf_start)
-            self.started_wall = self.last_msg_wall
-            self.deaf_next_check_s = DEAF_START_S
+            from bike_plant.shm_ports import StalePortWatch
+            self.deaf_watch = StalePortWatch(since=self.last_msg_wall)
             self.fresh_ports_wanted = False
             self.end_of_run_seen = False
             self.bad_stamps = 0
@@ -492,22 +492,17 @@ def _make_node_class():
             self.sink.close()
 
         def check_deaf_start(self) -> bool:
-            """No message at all DEAF_START_S after start-up while a live process writes to a
+            """No message at all DEAF_CHECK_S after start-up while a live process writes to a
             deleted segment of this node's shared-memory ports: a recorder restarted after a
             kill -9 on the killed one's port (Fast DDS's stale port, bike_plant.shm_ports),
             deaf for good (the writers' discovery data goes there too). Its bag is still empty,
             so it says so and asks to start over with a new participant on fresh ports (main(),
-            once per process). Looked for every DEAF_START_S while nothing is heard."""
-            from bike_plant import shm_ports
-            waited_s = time.monotonic() - self.started_wall
-            if self.heard_any or waited_s < self.deaf_next_check_s:
-                return False
-            self.deaf_next_check_s = waited_s + DEAF_START_S
-            why, fresh = shm_ports.stale_port_check()
-            if not fresh:
+            once per process). Looked for every shm_ports.DEAF_CHECK_S while nothing is heard."""
+            why = "" if self.heard_any else self.deaf_watch.start_over()
+            if not why:
                 return False
             self.get_logger().warning(
-                f"nothing recorded in the {waited_s:.0f}s since start-up: {why}; starting over with a new DDS "
+                f"nothing recorded in the {self.deaf_watch.waited_s():.0f}s since start-up: {why}; starting over with a new DDS "
                 f"participant on fresh ports (the empty bag {self.sink.path} is made again)")
             self.fresh_ports_wanted = True
             return True
@@ -515,7 +510,6 @@ def _make_node_class():
     return RecorderNode
 
 
-DEAF_START_S = 3.0      # nothing heard this long after start-up: look for a stale port [wall s]
 _signals = {"count": 0}
 
 

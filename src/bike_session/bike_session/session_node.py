@@ -39,7 +39,6 @@ COMMAND_QOS_DEPTH = 100
 # /clock comes once per batch; the node takes it in bursts (see gather_pause_s): the reader
 # keeps this many samples so that none is lost meanwhile (every value is handled, in order)
 CLOCK_QOS_DEPTH = 1000
-DEAF_START_S = 3.0             # no /clock this long after start-up: look for a stale port [wall s]
 NO_CLOCK_WARN_S = 5.0          # no /clock this long after start-up: say so once [wall s]
 GATHER_MAX_S = 0.02            # longest pause between bursts [wall s]
 GATHER_SHARE_OF_PERIOD = 0.25  # a burst lags sim time by at most this share of session.period_s
@@ -208,8 +207,9 @@ def _make_node_class():
             self.state = SessionStatus.STATE_WAITING
             self.done = False
             self.fresh_ports_wanted = False  # deaf on a stale shared-memory port (_check_deaf_start)
-            self.deaf_next_check_s = DEAF_START_S     # [s since start-up]
             self.started_wall = time.monotonic()
+            from bike_plant.shm_ports import StalePortWatch
+            self.deaf_watch = StalePortWatch(since=self.started_wall)
             self.no_clock_warned = False
             self.commands_published = 0
             self.readers_at_publish = 0      # matched Command readers when the last Command went out
@@ -317,22 +317,17 @@ def _make_node_class():
                     self._publish_diag(text, self._DiagnosticStatus.WARN)
 
         def _check_deaf_start(self) -> None:
-            """No /clock DEAF_START_S after start-up while a live process writes to a deleted
+            """No /clock DEAF_CHECK_S after start-up while a live process writes to a deleted
             segment of this node's shared-memory ports: a session restarted after a kill -9 on
             the killed one's port (Fast DDS's stale port, bike_plant.shm_ports), deaf to the
             plant for good (its discovery data goes there too, so the /clock writer may not
             even show as matched). Nothing has been played yet, so it says so and starts over
             with a new participant on fresh ports (main(), once per process). Looked for
-            every DEAF_START_S while waiting."""
-            from bike_plant import shm_ports
-            waited_s = time.monotonic() - self.started_wall
-            if waited_s < self.deaf_next_check_s:
+            every shm_ports.DEAF_CHECK_S while waiting."""
+            why = self.deaf_watch.start_over()
+            if not why:
                 return
-            self.deaf_next_check_s = waited_s + DEAF_START_S
-            why, fresh = shm_ports.stale_port_check()
-            if not fresh:
-                return
-            text = (f"no /clock in the {waited_s:.0f}s since start-up: {why}; starting over "
+            text = (f"no /clock in the {self.deaf_watch.waited_s():.0f}s since start-up: {why}; starting over "
                     "with a new DDS participant on fresh ports (nothing played yet)")
             self.get_logger().warning(text)
             self._publish_diag(text, self._DiagnosticStatus.WARN)
