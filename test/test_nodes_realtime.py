@@ -386,7 +386,7 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
     listener is in use but neither waiting nor processing, so the running plant keeps writing
     PlantStates into that port's old segment, and a second controller, which takes the same
     port, gets none. It says so, names the plant as the writer to a deleted segment, starts
-    over with a new DDS participant on fresh ports (bike_plant.node._on_fresh_ports), and the
+    over with a new DDS participant on fresh ports (bike_plant.loop.start_over_on_fresh_ports), and the
     loop closes again: braking resumes."""
     repro = tool_module("shm_stale_port_repro")
     col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus})

@@ -160,7 +160,7 @@ def test_the_stale_port_failure_on_demand(domain):
 
 
 def test_hold_ports_keeps_a_participant_off_them(tmp_path):
-    """bike_plant.node._on_fresh_ports holds its old ports' locks: Fast DDS's flock on them
+    """bike_plant.loop.start_over_on_fresh_ports holds its old ports' locks: Fast DDS's flock on them
     fails (so no later participant inherits the stale port), own_ports() leaves them out, and
     a lock file the old participant removed at its clean exit is made again."""
     (tmp_path / "fastrtps_port7411_el").write_bytes(b"")
@@ -176,7 +176,7 @@ def test_hold_ports_keeps_a_participant_off_them(tmp_path):
 
 def test_a_ctrl_c_while_a_node_starts_over_is_not_lost(domain, tmp_path):
     """run_loop_node with real rclpy nodes: a Ctrl-C that lands while the new node is made
-    (bike_plant.node._on_fresh_ports) goes to the old node's handler; the new node stops at
+    (bike_plant.loop.start_over_on_fresh_ports) goes to the old node's handler; the new node stops at
     once instead of running on."""
     script = tmp_path / "node.py"
     script.write_text(

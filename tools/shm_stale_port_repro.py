@@ -30,7 +30,7 @@ managed_open_or_create_impl while holding its DataWriter's mutex (and, inside rc
 publish, the GIL). A rare deaf node is better than a hung one. The nodes heal it another way:
 a node (controller, plant, session, recorder) that finds itself on a stale port before it has
 heard anything starts over with a new participant while the old one still holds its ports,
-and the old one then leaves cleanly (bike_plant.node._on_fresh_ports; test_nodes_realtime.py
+and the old one then leaves cleanly (bike_plant.loop.start_over_on_fresh_ports; test_nodes_realtime.py
 forces it on each real node with this tool's functions). About 1 kill in 10 in the window
 still leaves the writer on the live segment (exit 0): run it again.
 

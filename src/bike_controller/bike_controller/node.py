@@ -415,7 +415,7 @@ class ControllerNode(Node):
             self.state_writer_since = now
         elif now - self.state_writer_since > PLANT_SILENT_S:
             self.stateless_warned = True
-            # that failure needs new ports: a new participant (bike_plant.node._on_fresh_ports),
+            # that failure needs new ports: a new participant (bike_plant.loop.start_over_on_fresh_ports),
             # once per process
             why, fresh = shm_ports.stale_port_check()
             text = (f"no PlantState in the {PLANT_SILENT_S:g}s since a plant_state writer matched "

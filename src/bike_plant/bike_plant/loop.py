@@ -1,12 +1,16 @@
 """The loop nodes' shared transport pieces (plant, controller, session; no physics here):
-the loop topics' QoS and HotWait, the wait on a node's hot topics."""
+the loop topics' QoS and HotWait, the wait on a node's hot topics; and the start-over on
+fresh shared-memory ports that every node (the recorder too) uses after a stale port."""
 from __future__ import annotations
 
 import logging
 import os
 import time
 
+import rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from . import shm_ports
 
 LOOP_QOS = QoSProfile(depth=200, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
@@ -258,3 +262,25 @@ class BusyWaitGuard:
                     f"no observer left: lockstep polls again (busy_wait_s = {self.configured_s:g})")
             self.observers = observers
         return 0.0 if self.observers else self.configured_s
+
+
+def start_over_on_fresh_ports(node_factory, old, args, old_executor=None):
+    """A node that a live writer cannot reach over shared memory (Fast DDS's stale port after
+    a kill -9, bike_plant.shm_ports) starts over in a new rclpy context: a new DDS participant,
+    created while the old one still holds its ports, takes fresh ones, which the writer opens
+    anew. Then the old participant leaves cleanly (the others drop it at once), and its ports'
+    locks are held for the rest of the process, so no later participant inherits them.
+    ``old_executor``: the old node's executor when it is not its ``executor_`` (session_node)."""
+    old_ports = shm_ports.own_ports()
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context)
+    node = node_factory(context=context)
+    old_executor = old_executor or old.executor_
+    old_executor.remove_node(old)
+    old_executor.shutdown()
+    old.destroy_node()
+    rclpy.try_shutdown(context=old.context)
+    held = shm_ports.hold_ports(old_ports)
+    node.get_logger().info(f"on fresh shared-memory ports {shm_ports.own_ports()} (holding the old ones "
+                           f"{held} for the rest of this process)")
+    return node

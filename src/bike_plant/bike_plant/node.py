@@ -69,7 +69,7 @@ from . import msgconv, shm_ports
 from .config import ConfigError
 from .config import number_param as _number
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
-                   recorder_progress, recorder_reads)
+                   recorder_progress, recorder_reads, start_over_on_fresh_ports)
 from .memory import release_clean_library_pages
 
 # the start-up wait for a recorder: matching its reader took ~3 s on a loaded 2-core machine,
@@ -994,28 +994,6 @@ def exit_if_a_warm_up_is_left(code: int) -> None:
         os._exit(code)
 
 
-def _on_fresh_ports(node_factory, old, args, old_executor=None):
-    """A node that a live writer cannot reach over shared memory (Fast DDS's stale port after
-    a kill -9, bike_plant.shm_ports) starts over in a new rclpy context: a new DDS participant,
-    created while the old one still holds its ports, takes fresh ones, which the writer opens
-    anew. Then the old participant leaves cleanly (the others drop it at once), and its ports'
-    locks are held for the rest of the process, so no later participant inherits them.
-    ``old_executor``: the old node's executor when it is not its ``executor_`` (session_node)."""
-    old_ports = shm_ports.own_ports()
-    context = rclpy.Context()
-    rclpy.init(args=args, context=context)
-    node = node_factory(context=context)
-    old_executor = old_executor or old.executor_
-    old_executor.remove_node(old)
-    old_executor.shutdown()
-    old.destroy_node()
-    rclpy.try_shutdown(context=old.context)
-    held = shm_ports.hold_ports(old_ports)
-    node.get_logger().info(f"on fresh shared-memory ports {shm_ports.own_ports()} (holding the old ones "
-                           f"{held} for the rest of this process)")
-    return node
-
-
 def run_loop_node(node_factory, label: str, args=None) -> int:
     """Shared main() of the loop nodes: init without rclpy's signal handlers, run the node's
     own loop, turn a ConfigError into one line and exit code 2, always shut down cleanly."""
@@ -1032,7 +1010,7 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
         code = node.run()
         while getattr(node, "fresh_ports_wanted", False) and not getattr(node, "signalled", False):
             old = node
-            node = _on_fresh_ports(node_factory, old, args)
+            node = start_over_on_fresh_ports(node_factory, old, args)
             install_signal_handlers(node)
             if getattr(old, "signalled", False):
                 # a Ctrl-C while the new node was made went to the old one's handler: not lost
@@ -1053,7 +1031,7 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
             # interpreter exit, Python 3.12 printed an InvalidHandle traceback (context gone)
             node.executor_.shutdown()
             node.destroy_node()
-            if node.context is not rclpy.get_default_context():       # started over (_on_fresh_ports)
+            if node.context is not rclpy.get_default_context():       # started over (loop.start_over_on_fresh_ports)
                 rclpy.try_shutdown(context=node.context)
         rclpy.try_shutdown()
     exit_if_a_warm_up_is_left(code)

@@ -16,7 +16,7 @@ process, for good. tools/shm_stale_port_repro.py makes it happen on demand.
 
 :func:`writers_to_deleted` finds that signature (a live process mapping a deleted segment of
 one of this node's ports), so a node fed nothing can say why (:func:`stale_port_check`); the
-node then starts over on fresh ports (bike_plant.node._on_fresh_ports: controller, plant,
+node then starts over on fresh ports (bike_plant.loop.start_over_on_fresh_ports: controller, plant,
 session, recorder) and :func:`hold_ports` keeps its old ones.
 Reading other processes' ``/proc/<pid>/maps`` needs the same user (or root); a process we
 cannot read is skipped.
@@ -33,7 +33,7 @@ SHM_DIR = "/dev/shm"
 DEAF_CHECK_S = 3.0      # a node that has heard nothing looks for the signature this often [wall s]
 _LOCK_RE = re.compile(r"fastrtps_port(\d+)_el")
 _MAP_RE = re.compile(rb"/fastrtps_port(\d+)( \(deleted\))?$", re.M)
-_held: dict = {}        # port -> fd of a lock this process keeps (bike_plant.node._on_fresh_ports)
+_held: dict = {}        # port -> fd of a lock this process keeps (bike_plant.loop.start_over_on_fresh_ports)
 
 
 def own_ports(pid: int | None = None, proc_dir: str = PROC_DIR) -> list:
@@ -105,7 +105,7 @@ def stale_port_check(proc_dir: str = PROC_DIR) -> tuple:
     start_over). ``why`` names each live process that writes to a deleted segment of this
     process's ports ("" if none); ``start_over`` is True when there is one and this process has
     not started over yet (it holds no old ports): then a new participant on fresh ports heals it
-    (bike_plant.node._on_fresh_ports)."""
+    (bike_plant.loop.start_over_on_fresh_ports)."""
     stale = writers_to_deleted(own_ports(), proc_dir)
     why = "; ".join(f"pid(s) {', '.join(map(str, pids))} still write to a deleted segment of this node's "
                     f"shared-memory port {port}" for port, pids in sorted(stale.items()))

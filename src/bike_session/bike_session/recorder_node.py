@@ -582,14 +582,14 @@ def main(args=None) -> int:
 def _start_over(node_class, old, args):
     """A deaf recorder on a stale port (RecorderNode.check_deaf_start): its empty bag is closed
     and removed, and a new node in a new context, on fresh ports, makes it again
-    (bike_plant.node._on_fresh_ports)."""
+    (bike_plant.loop.start_over_on_fresh_ports)."""
     import shutil
 
-    from bike_plant.node import _on_fresh_ports
+    from bike_plant.loop import start_over_on_fresh_ports
     old.close()
     if not any(old.sink.counts.values()):           # nothing recorded: only our own empty bag goes
         shutil.rmtree(old.sink.path, ignore_errors=True)
-    node = _on_fresh_ports(node_class, old, args)
+    node = start_over_on_fresh_ports(node_class, old, args)
     signal.signal(signal.SIGINT, _on_signal)        # rclpy.init of the new context installed its own
     signal.signal(signal.SIGTERM, _on_signal)
     return node

@@ -440,7 +440,7 @@ def main(args=None) -> int:
     executor = None
     rc = 0
     try:
-        from bike_plant.loop import HotWait
+        from bike_plant.loop import HotWait, start_over_on_fresh_ports
         from rclpy.executors import SingleThreadedExecutor
 
         node_class = _make_node_class()
@@ -464,9 +464,8 @@ def main(args=None) -> int:
                         time.sleep(pause)
             if not node.fresh_ports_wanted:
                 break
-            from bike_plant.node import _on_fresh_ports      # a stale port: a new participant
-            old_executor, executor = executor, None
-            node = _on_fresh_ports(node_class, node, args, old_executor)
+            old_executor, executor = executor, None      # a stale port: a new participant
+            node = start_over_on_fresh_ports(node_class, node, args, old_executor)
         if node.done:
             node.flush()
     except SetupError as exc:
@@ -480,7 +479,7 @@ def main(args=None) -> int:
             executor.shutdown()                 # see bike_plant.node.run_loop_node
         if node is not None:
             node.destroy_node()
-            if node.context is not rclpy.get_default_context():   # started over (_on_fresh_ports)
+            if node.context is not rclpy.get_default_context():   # started over (start_over_on_fresh_ports)
                 rclpy.try_shutdown(context=node.context)
         rclpy.try_shutdown()
     return rc
