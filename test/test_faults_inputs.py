@@ -159,10 +159,10 @@ def test_no_config_value_is_evaluated_as_code():
 
 # ------------------------------------------------------------------ workouts
 def test_fuzzed_workouts_give_one_clear_error_each(tmp_path):
-    """40 seeded variants of each real workout file (.zwo, .erg, .mrc): a workout or one
+    """40 seeded variants of each real workout file (.zwo, .erg, .mrc, .fit): a workout or one
     ProfileError; never another exception."""
     originals = sorted(p for p in WORKOUTS.iterdir() if p.is_file())
-    assert {p.suffix for p in originals} >= {".zwo", ".erg", ".mrc"}
+    assert {p.suffix for p in originals} >= {".zwo", ".erg", ".mrc", ".fit"}
     errors = 0
     for src in originals:
         for i, variant in enumerate(_mutations(src.read_bytes(), seed=hash(src.name) & 0xFFFF, count=40)):
@@ -178,9 +178,53 @@ def test_fuzzed_workouts_give_one_clear_error_each(tmp_path):
     assert errors >= 40
 
 
+def _with_fit_crc(data: bytes) -> bytes:
+    """A FIT file's trailing CRC made right again for (mutated) content: the decoder then parses
+    the records instead of stopping at the checksum."""
+    from garmin_fit_sdk import CrcCalculator
+    if len(data) < 16:
+        return data
+    body = data[:-2]
+    return body + struct.pack("<H", CrcCalculator.calculate_crc(body, 0, len(body)))
+
+
+def test_fuzzed_fit_records_past_the_checksum_give_one_clear_error_each(tmp_path):
+    """200 seeded byte flips and junk insertions inside the records of a real FIT workout, the
+    file CRC recomputed each time (so the FIT SDK's decoder, and then the step rules, see the
+    hostile content): a workout or one ProfileError, never another exception."""
+    src = WORKOUTS / "sweet_spot.fit"
+    data = src.read_bytes()
+    header, records = data[:14], data[14:-2]
+    rng = random.Random(2026)
+    outcomes = {"workout": 0, "error": 0}
+    for i in range(200):
+        b = bytearray(records)
+        if i % 2:
+            for _ in range(rng.randint(1, 6)):
+                b[rng.randrange(len(b))] = rng.randrange(256)
+        else:
+            pos = rng.randrange(len(b))
+            b[pos:pos] = bytes(rng.randrange(256) for _ in range(rng.randint(1, 16)))
+            # keep the header's data size right, so the decoder reads the records
+            header = data[:4] + struct.pack("<I", len(b)) + data[8:12]
+            from garmin_fit_sdk import CrcCalculator
+            header += struct.pack("<H", CrcCalculator.calculate_crc(header, 0, 12))
+        path = tmp_path / f"f{i}.fit"
+        path.write_bytes(_with_fit_crc((header if not i % 2 else data[:14]) + bytes(b) + b"\0\0"))
+        try:
+            load_workout(path, ftp_w=250.0, pmax_w=1016.68)
+            outcomes["workout"] += 1
+        except ProfileError as exc:
+            assert str(exc).strip() and path.name in str(exc)
+            outcomes["error"] += 1
+        except Exception as exc:  # noqa: BLE001
+            pytest.fail(f"variant {i} raised {type(exc).__name__}: {exc}")
+    assert outcomes["error"] >= 20 and outcomes["workout"] >= 1, outcomes
+
+
 def test_hostile_workouts_are_bounded(tmp_path):
-    """Deep nesting, many elements, a huge repeat count, a sparse file claiming 2 GB: one
-    ProfileError each, quickly, without reading the file into memory."""
+    """Deep nesting, many elements, a huge repeat count (ZWO and FIT), a 300 kB FIT file, a sparse
+    file claiming 2 GB: one ProfileError each, quickly, without reading the file into memory."""
     cases = {
         "deep.zwo": "<workout_file><workout>" + "<a>" * 100_000 + "</a>" * 100_000 + "</workout></workout_file>",
         "wide.zwo": "<workout_file><workout>" + '<SteadyState Duration="1" Power="0.5"/>' * 60_000
@@ -197,6 +241,16 @@ def test_hostile_workouts_are_bounded(tmp_path):
         path.write_text(text)
         with pytest.raises(ProfileError):
             load_workout(path, ftp_w=250.0)
+    # FIT: a repeat of 10^9 and a 300 kB file, both with valid CRCs
+    from fit_files import fit_workout_bytes
+    step = dict(duration_type="time", duration_value=1000, target_type="open")
+    repeat = dict(duration_type="repeat_until_steps_cmplt", duration_value=0, target_type="open",
+                  target_value=1_000_000_000)
+    (tmp_path / "repeat.fit").write_bytes(fit_workout_bytes([step, repeat]))
+    (tmp_path / "wide.fit").write_bytes(fit_workout_bytes([step] * 30_000))
+    for name in ("repeat.fit", "wide.fit"):
+        with pytest.raises(ProfileError, match="repeat count|too large"):
+            load_workout(tmp_path / name, ftp_w=250.0, pmax_w=1016.68)
     huge = tmp_path / "huge.zwo"
     with open(huge, "wb") as fh:
         fh.truncate(2 << 30)           # sparse: claims 2 GB, occupies nothing

@@ -1,5 +1,5 @@
-"""`./bike run --workout FILE`: a workout file ridden in the node graph (separate processes,
-DDS, lockstep), recorded; power targets in ERG mode; a bad file starts nothing."""
+"""`./bike run --workout FILE`: a workout file (.erg, .zwo, .fit, a profile) ridden in the node graph
+(separate processes, DDS, lockstep), recorded; power targets in ERG mode; a bad file starts nothing."""
 import json
 import pathlib
 import re
@@ -15,28 +15,32 @@ DATA = pathlib.Path(__file__).resolve().parent / "data" / "workouts"
 
 
 @pytest.mark.slow
-def test_ride_an_erg_file_in_the_node_graph(tmp_path, ros_domain):
-    # erg_smoke.erg: 100 W warm-up from t = 0 (FTP header 200 W, rider FTP 200: watts as written)
-    result = bike_command("run", "--workout", str(DATA / "erg_smoke.erg"), "--ftp", "200", "--duration", "3",
+@pytest.mark.parametrize("name, title, text, first_w, target_w", [
+    # erg_smoke.erg: 100 W warm-up ramp from t = 0 (FTP header 200 W, rider FTP 200: watts as written)
+    ("erg_smoke.erg", "erg-smoke", "Warm up", 100.0, (100.0, 102.0)),
+    # sweet_spot.fit (Garmin FIT, written by the FIT SDK): warm-up at 50-60 % FTP of 200 W, ridden at the mean
+    ("sweet_spot.fit", "Sweet spot 2x8", "Easy spin to start", 110.0, (110.0, 110.001)),
+])
+def test_ride_a_workout_file_in_the_node_graph(tmp_path, ros_domain, name, title, text, first_w, target_w):
+    result = bike_command("run", "--workout", str(DATA / name), "--ftp", "200", "--duration", "3",
                           "--record", str(tmp_path))
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
-    assert "erg-smoke" in result.stdout and "Warm up" in result.stdout, "workout summary and text event"
+    assert title in result.stdout and text in result.stdout, "workout summary and text event"
     bag = next(p for p in tmp_path.iterdir() if p.is_dir())
     commands = read_topic(bag, "command")
     assert commands and all(c.mode == 2 for c in commands[:-1]), "power targets ride in ERG mode"
-    assert commands[0].command == pytest.approx(100.0 / 1016.68)
+    assert commands[0].command == pytest.approx(first_w / 1016.68)
     info = json.loads(read_topic(bag, "session_info")[0].data)
-    assert info["workout"]["workout_format"] == "erg" and info["profile_name"] == "erg-smoke"
+    assert info["workout"]["workout_format"] == name.rsplit(".", 1)[1] and info["profile_name"] == title
     status = read_topic(bag, "controller_status")
     late = [s for s in status if s.header.stamp.sec >= 2]
-    # the warm-up ramps up from 100 W
-    assert all(s.mode == 2 and 100.0 <= s.mode_target < 102.0 for s in late)
+    assert all(s.mode == 2 and target_w[0] <= s.mode_target < target_w[1] for s in late)
     states = [m for m in read_topic(bag, "plant_state") if m.header.stamp.sec >= 2]
     power = [-m.torque_em_nm * m.speed_rad_s for m in states]
     assert np.mean(power) == pytest.approx(np.mean([s.mode_target for s in late]), rel=0.05), np.mean(power)
 
 
-@pytest.mark.parametrize("bad", ["bad_xml.zwo", "decreasing.erg", "entity_bomb.zwo", "workout.txt"])
+@pytest.mark.parametrize("bad", ["bad_xml.zwo", "decreasing.erg", "entity_bomb.zwo", "workout.txt", "truncated.fit"])
 def test_a_bad_workout_file_starts_nothing(tmp_path, bad, ros_domain):
     result = bike_command("run", "--workout", str(DATA / "bad" / bad), "--duration", "1", "--record", str(tmp_path))
     assert result.returncode == 2

@@ -344,7 +344,7 @@ BAD_TEXTS = [
     ("a.erg", "[COURSE HEADER]\n[END COURSE HEADER]\n[COURSE DATA]\n0\x00 100\n", None, "binary file"),
     ("a.mrc", "[COURSE HEADER]\nMINUTES WATTS\n[END COURSE HEADER]\n[COURSE DATA]\n0 50\n1 50\n[END COURSE DATA]\n",
      "line 1", "header says MINUTES WATTS"),
-    ("a.fit", "whatever", None, "FIT workouts are binary"),
+    ("a.fit", "whatever", None, "not a FIT file"),
     ("a", "whatever", None, "unsupported workout extension '(none)'"),
 ]
 

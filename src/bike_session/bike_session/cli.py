@@ -1,7 +1,7 @@
 """`./bike`: the front door of the testbed.
 
     ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
-          [--workout FILE.zwo|.erg|.mrc [--ftp W]]             ... riding a workout file
+          [--workout FILE.zwo|.erg|.mrc|.fit [--ftp W]]         ... riding a workout file
     ./bike report BAG                                          summarise a recorded session
     ./bike compare BAG_A BAG_B [--out DIR]                     A/B report of two recorded sessions
     ./bike replay BAG [--config OTHER] [--record DIR]          ride a recorded session again
@@ -355,9 +355,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "for a number of simulated seconds")
     run.add_argument("--config", help="bike config (ROS 2 parameter file); default config/bldc_default.yaml")
     run.add_argument("--duration", type=float, help="simulated seconds (default: duration_s of the config)")
-    run.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc or a profile .yaml) "
-                                                        "instead of the config's profile; power targets in ERG mode; "
-                                                        "the run lasts the workout unless --duration is given")
+    run.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc, .fit or a profile "
+                                                        ".yaml) instead of the config's profile; power targets in "
+                                                        "ERG mode; the run lasts the workout unless --duration is given")
     run.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets "
                                                             "(default: the file's own FTP when it has one)")
     run.add_argument("--record", metavar="DIR", help="record every topic to an MCAP bag under DIR and summarise it")

@@ -4,7 +4,7 @@ Node name ``session`` (namespace ``/bike`` by default). Parameters:
 
 - ``session.profile`` (string): profile YAML; a relative path resolves against the
   directory of ``config_path`` when that is set, else against the working directory.
-- ``session.workout`` (string, ""): a workout file (.zwo, .erg, .mrc or a profile .yaml)
+- ``session.workout`` (string, ""): a workout file (.zwo, .erg, .mrc, .fit or a profile .yaml)
   ridden instead of ``session.profile`` when set (bike_session.workouts); power targets
   ride in ERG mode. ``session.ftp_w`` (0 = the file's own FTP) is the rider's FTP and
   ``session.over_range`` (warn | error) what to do with targets beyond the machine's

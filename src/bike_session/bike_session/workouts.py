@@ -1,4 +1,4 @@
-"""Import the workout files riders already have (.zwo, .erg, .mrc) as session profiles.
+"""Import the workout files riders already have (.zwo, .erg, .mrc, .fit) as session profiles.
 
 ``load_workout(path, ftp_w=..., pmax_w=...)`` picks the reader from the file extension and
 returns a :class:`Workout`, a :class:`~bike_session.profiles.Profile` subclass: the session
@@ -33,6 +33,9 @@ Formats (see /work/shared/research/trainers.md, section 1)
         events; ``;`` starts a comment. Times must not decrease. When the
         first point is after minute 0 its value holds from 0.
   .mrc  as .erg with ``MINUTES PERCENT`` (values in percent of FTP).
+  .fit  Garmin FIT workout (binary; decoded with Garmin's FIT SDK): time steps, repeats,
+        power ranges in % FTP or watts, open / cadence steps ridden free
+        (:mod:`bike_session.fit_workout` has the rules).
 
 Power -> Command (the choices, all explicit parameters)
 
@@ -94,7 +97,7 @@ MAX_CADENCE_RPM = 250.0
 DEFAULT_FREERIDE_COMMAND = 0.2
 DEFAULT_MAXEFFORT_COMMAND = 0.5
 
-FORMATS = {".zwo": "zwo", ".erg": "erg", ".mrc": "mrc", ".yaml": "yaml", ".yml": "yaml"}
+FORMATS = {".zwo": "zwo", ".erg": "erg", ".mrc": "mrc", ".fit": "fit", ".yaml": "yaml", ".yml": "yaml"}
 
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
 
@@ -212,15 +215,14 @@ def load_workout(path: str | os.PathLike, *, ftp_w: float | None = None, pmax_w:
                  mode: str = "erg", over_range: str = "warn", use_file_ftp: bool = False,
                  freeride_command: float = DEFAULT_FREERIDE_COMMAND,
                  maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND, units=None) -> Profile:
-    """Read a workout (.zwo/.erg/.mrc, or a .yaml profile) into a Profile; WorkoutError on any problem.
+    """Read a workout (.zwo/.erg/.mrc/.fit, or a .yaml profile) into a Profile; WorkoutError on any problem.
     ``units`` (profiles.ModeUnits) lets a .yaml profile give targets in W / % / rpm."""
     path = pathlib.Path(path)
     fmt = FORMATS.get(path.suffix.lower())
     if fmt is None:
         known = ", ".join(sorted(FORMATS))
-        extra = " (FIT workouts are binary and not supported)" if path.suffix.lower() == ".fit" else ""
-        raise WorkoutError(f"unsupported workout extension {path.suffix or '(none)'!r}{extra}; "
-                           f"expected one of {known}", path)
+        raise WorkoutError(f"unsupported workout extension {path.suffix or '(none)'!r}; expected one of {known}",
+                           path)
     if fmt == "yaml":
         return load_profile(path, units=units)
     data = read_bounded(path)
@@ -256,7 +258,7 @@ def parse_workout_bytes(data: bytes | str, fmt: str, *, source: str = "<workout>
                         over_range: str = "warn", use_file_ftp: bool = False,
                         freeride_command: float = DEFAULT_FREERIDE_COMMAND,
                         maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND) -> Workout:
-    """Parse workout text of format ``zwo``, ``erg`` or ``mrc`` (see the module docstring)."""
+    """Parse a workout of format ``zwo``, ``erg``, ``mrc`` or ``fit`` (see the module docstring)."""
     if isinstance(data, str):
         data = data.encode("utf-8")
     if len(data) > MAX_WORKOUT_BYTES:
@@ -270,8 +272,11 @@ def parse_workout_bytes(data: bytes | str, fmt: str, *, source: str = "<workout>
         workout = _parse_zwo(data, source, default_name, opts)
     elif fmt in ("erg", "mrc"):
         workout = _parse_erg(data, source, default_name, opts, fmt)
+    elif fmt == "fit":
+        from bike_session.fit_workout import parse_fit     # (the FIT SDK loads only for .fit files)
+        workout = parse_fit(data, source, default_name, opts)
     else:
-        raise WorkoutError(f"unknown workout format {fmt!r}; expected zwo, erg or mrc", source)
+        raise WorkoutError(f"unknown workout format {fmt!r}; expected zwo, erg, mrc or fit", source)
     for text in workout.warnings:
         warnings.warn(text, WorkoutWarning, stacklevel=3)
     return workout
