@@ -2,7 +2,7 @@
 
     ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
           [--workout FILE.zwo|.erg|.mrc|.fit [--ftp W]]         ... riding a workout file
-    ./bike report BAG                                          summarise a recorded session
+    ./bike report BAG [--out DIR] [--fit FILE]                 summarise a recorded session
     ./bike compare BAG_A BAG_B [--out DIR]                     A/B report of two recorded sessions
     ./bike replay BAG [--config OTHER] [--record DIR]          ride a recorded session again
     ./bike bag recover BAG [--out DIR]                         rescue a crashed recording
@@ -216,7 +216,8 @@ def _load_workout_for_run(opts, cfg):
 def _cmd_report(opts) -> int:
     from bike_session import report
 
-    return report.main([opts.bag] + (["--out", opts.out] if opts.out else []) + (["--json"] if opts.json else []))
+    return report.main([opts.bag] + (["--out", opts.out] if opts.out else []) + (["--json"] if opts.json else [])
+                       + (["--fit", opts.fit] if opts.fit else []))
 
 
 def _cmd_compare(opts) -> int:
@@ -370,6 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("bag")
     rep.add_argument("--out", help="also write charts (PNG) and summary.txt/.json/.html into this folder")
     rep.add_argument("--json", action="store_true", help="print the summary as JSON")
+    rep.add_argument("--fit", metavar="FILE", help="also write the ride as a FIT activity (power, cadence, speed, "
+                                                  "distance per second) for Garmin Connect, Strava, GoldenCheetah")
     rep.set_defaults(func=_cmd_report)
 
     cmp = sub.add_parser("compare", help="A/B comparison of two recorded sessions: tracking error, power, "

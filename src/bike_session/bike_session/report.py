@@ -1363,24 +1363,43 @@ def write_outputs(bag_path, summary: dict | SessionData, out_dir) -> list[pathli
 
 
 def main(argv=None) -> int:
-    """``bike report BAG [--json] [--out DIR]``: print the summary; BagError -> one error line, exit 2."""
+    """``bike report BAG [--json] [--out DIR] [--fit FILE]``: print the summary; BagError -> one
+    error line, exit 2."""
     parser = argparse.ArgumentParser(prog="bike report", description="Summarise a recorded bike session.")
     parser.add_argument("bag", help="bag directory (rosbag2, MCAP or sqlite3) or .mcap file")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--out", help="also write summary.json/.txt/.html and charts (PNG) into this folder")
+    parser.add_argument("--fit", metavar="FILE", help="also write the ride as a FIT activity (1 s records of power, "
+                                                     "cadence, speed, distance) for Garmin Connect, Strava, "
+                                                     "intervals.icu or GoldenCheetah")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.fit:
+        from bike_session.cli import output_file_ok
+        if not output_file_ok(args.fit, "--fit"):       # before the bag is read: one error, no work lost
+            return 2
+    target = args.out
     try:
         data = analyse(args.bag, progress="bike report")
         written = write_outputs(args.bag, data, args.out) if args.out else []
+        fit_totals = None
+        if args.fit:
+            from bike_session.fit_export import export_fit
+            target = args.fit
+            fit_totals = export_fit(args.bag, args.fit, data)
     except BagError as exc:
         print(f"bike report: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
-        print(f"bike report: error: cannot write to {args.out}: {exc.strerror or exc}", file=sys.stderr)
+        print(f"bike report: error: cannot write to {target}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     print(json.dumps(data.summary, indent=2) if args.json else format_summary(data.summary))
     for path in written:
         print(f"wrote {path}")
+    if fit_totals is not None:
+        from bike_session.fit_export import format_totals
+        # (with --json, stdout stays one JSON document)
+        print(f"wrote {args.fit}: FIT activity, {format_totals(fit_totals)}",
+              file=sys.stderr if args.json else sys.stdout)
     return 0
 
 

@@ -1,0 +1,128 @@
+"""A recorded session as a FIT activity file (``./bike report BAG --fit FILE``), for the tools
+riders and trainer engineers already analyse rides with (Garmin Connect, Strava,
+intervals.icu, GoldenCheetah). Written with Garmin's FIT SDK encoder (garmin-fit-sdk).
+
+What goes in, per second of the session (the report's 1 s bins, bike_session.report):
+
+- ``power`` [W]: the rider's mean mechanical power into the bike in that second (the report's
+  rider power, from the plant's energy ledger), what a trainer's power meter reports;
+- ``cadence`` [rpm]: the motor speed over ``load.gear_ratio``;
+- ``speed`` [m/s] and ``distance`` [m]: the road speed the trainer shows, from the cadence
+  through the virtual gear and wheel (``modes.virtual_gear_ratio``, ``modes.wheel_radius_m``,
+  as the report's slope tracking uses), and its integral.
+
+Messages: file_id (type activity), a timer start event, the records, a timer stop event, one
+lap, one session (sport cycling, sub-sport indoor cycling) and the activity, with the
+lap / session totals (time, distance, work, mean and max power, cadence and speed). Time
+starts at the session's ``start_wall_time`` (session_info), else at the bag's own start.
+A second without any PlantState in the bag gets no record (a gap, as a head unit's pause).
+No rclpy import here.
+"""
+from __future__ import annotations
+
+import datetime
+import pathlib
+
+import numpy as np
+
+from bike_session.bags import BagError
+from bike_session.report import RPM_PER_RAD_S, SessionData, analyse, series
+
+MAX_RECORDS = 7 * 24 * 3600       # one record per second: a week of riding
+
+
+def activity_arrays(data: SessionData) -> dict:
+    """Per-second arrays (t_s from the session start, power_w, cadence_rpm, speed_mps,
+    distance_m) of the seconds that hold data."""
+    s = series(data, points=None, merge=max(1, int(round(1.0 / data.bin_s))))
+    keep = np.flatnonzero(np.nan_to_num(s["p_rider"], nan=-1.0) > -1.0)     # bins with PlantStates
+    mc = data.machine
+    mps_per_rad_s = mc["wheel_radius_m"] * mc["virtual_gear_ratio"] / mc["gear_ratio"]
+    speed = np.abs(np.nan_to_num(s["motor_rpm"])) / RPM_PER_RAD_S * mps_per_rad_s
+    width = s["bin_s"]
+    t_end = (np.arange(len(speed)) + 1) * width
+    distance = np.cumsum(speed * width)
+    return {"t_s": t_end[keep], "power_w": np.clip(np.nan_to_num(s["p_rider"][keep]), 0.0, None),
+            "cadence_rpm": np.abs(np.nan_to_num(s["cadence"][keep])), "speed_mps": speed[keep],
+            "distance_m": distance[keep], "bin_s": width}
+
+
+def _start_time(data: SessionData) -> datetime.datetime:
+    text = (data.info or {}).get("start_wall_time")
+    if isinstance(text, str):
+        try:
+            t = datetime.datetime.fromisoformat(text)
+            return t if t.tzinfo else t.replace(tzinfo=datetime.timezone.utc)
+        except ValueError:
+            pass
+    stat = pathlib.Path(str(data.path)).stat()
+    return datetime.datetime.fromtimestamp(stat.st_mtime, tz=datetime.timezone.utc)
+
+
+def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
+    """The FIT activity of an analysed session, and its totals (what the lap / session say)."""
+    from garmin_fit_sdk import Encoder, Profile
+
+    a = activity_arrays(data)
+    n = len(a["t_s"])
+    if n == 0:
+        raise BagError(f"{data.path}: no PlantState in the bag: nothing to export")
+    if n > MAX_RECORDS:
+        raise BagError(f"{data.path}: {n} seconds of riding is beyond the export's {MAX_RECORDS} records")
+    start = _start_time(data)
+    elapsed_s = float(a["t_s"][-1])
+    timer_s = n * a["bin_s"]
+    end = start + datetime.timedelta(seconds=elapsed_s)
+    power = np.rint(a["power_w"]).astype(int)
+    cadence = np.rint(a["cadence_rpm"]).astype(int)
+    totals = {
+        "start_time": start.isoformat(), "records": n, "elapsed_s": elapsed_s, "timer_s": timer_s,
+        "distance_m": float(a["distance_m"][-1]), "work_j": float(np.sum(a["power_w"]) * a["bin_s"]),
+        "avg_power_w": float(np.mean(a["power_w"])), "max_power_w": float(np.max(a["power_w"])),
+        "avg_cadence_rpm": float(np.mean(a["cadence_rpm"])), "max_cadence_rpm": float(np.max(a["cadence_rpm"])),
+        "avg_speed_mps": float(np.mean(a["speed_mps"])), "max_speed_mps": float(np.max(a["speed_mps"])),
+    }
+    mesg = Profile["mesg_num"]
+    enc = Encoder()
+    enc.write_mesg({"mesg_num": mesg["FILE_ID"], "type": "activity", "manufacturer": "development", "product": 0,
+                    "serial_number": 1, "time_created": start})
+    enc.write_mesg({"mesg_num": mesg["EVENT"], "timestamp": start, "event": "timer", "event_type": "start"})
+    for k in range(n):
+        enc.write_mesg({"mesg_num": mesg["RECORD"], "timestamp": start + datetime.timedelta(seconds=float(a["t_s"][k])),
+                        "power": int(power[k]), "cadence": int(min(cadence[k], 254)),
+                        "speed": float(a["speed_mps"][k]), "distance": float(a["distance_m"][k])})
+    enc.write_mesg({"mesg_num": mesg["EVENT"], "timestamp": end, "event": "timer", "event_type": "stop_all"})
+    summary = {"start_time": start, "total_elapsed_time": elapsed_s, "total_timer_time": timer_s,
+               "total_distance": totals["distance_m"], "total_work": int(round(totals["work_j"])),
+               "avg_power": int(round(totals["avg_power_w"])), "max_power": int(round(totals["max_power_w"])),
+               "avg_cadence": int(round(min(totals["avg_cadence_rpm"], 254))),
+               "max_cadence": int(round(min(totals["max_cadence_rpm"], 254))),
+               "avg_speed": totals["avg_speed_mps"], "max_speed": totals["max_speed_mps"],
+               "sport": "cycling", "sub_sport": "indoor_cycling"}
+    enc.write_mesg({"mesg_num": mesg["LAP"], "message_index": 0, "timestamp": end, "event": "lap",
+                    "event_type": "stop", **summary})
+    enc.write_mesg({"mesg_num": mesg["SESSION"], "message_index": 0, "timestamp": end, "event": "session",
+                    "event_type": "stop", "first_lap_index": 0, "num_laps": 1, "trigger": "activity_end", **summary})
+    enc.write_mesg({"mesg_num": mesg["ACTIVITY"], "timestamp": end, "total_timer_time": timer_s, "num_sessions": 1,
+                    "type": "manual", "event": "activity", "event_type": "stop"})
+    return enc.close(), totals
+
+
+def export_fit(bag_path, out_path, data: SessionData | None = None) -> dict:
+    """Write a bag's FIT activity to ``out_path``; returns the totals. ``data``: the bag already
+    analysed (reused when its bins make whole seconds, else the bag is read again with 1 s
+    bins). BagError on a bag that cannot be read (or holds no ride), OSError on a file that
+    cannot be written."""
+    per_s = 1.0 / data.bin_s if data is not None else 0.0
+    if data is None or data.bin_s > 1.0 or abs(per_s - round(per_s)) > 1e-9:
+        data = analyse(bag_path, bin_s=1.0)
+    payload, totals = fit_activity_bytes(data)
+    pathlib.Path(out_path).write_bytes(payload)
+    totals["bytes"] = len(payload)
+    return totals
+
+
+def format_totals(totals: dict) -> str:
+    return (f"{totals['records']} records over {totals['elapsed_s']:.0f} s, "
+            f"{totals['distance_m'] / 1000.0:.2f} km, {totals['work_j'] / 1000.0:.1f} kJ, "
+            f"mean {totals['avg_power_w']:.0f} W / {totals['avg_cadence_rpm']:.0f} rpm")

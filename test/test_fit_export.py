@@ -1,0 +1,74 @@
+"""A recorded session as a FIT activity (`./bike report BAG --fit FILE`, bike_session.fit_export),
+read back with Garmin's FIT SDK decoder: per-second records of the rider's power, cadence,
+road speed and distance, and the lap / session totals."""
+import datetime
+import json
+
+import numpy as np
+import pytest
+
+from test_report import CADENCE, W, main, read_topic, real_session, write_session_bag
+
+from bike_session.bags import BagError
+from bike_session.fit_export import export_fit
+
+
+def _decode(path):
+    from garmin_fit_sdk import Decoder, Stream
+    data = bytearray(path.read_bytes())
+    assert Decoder(Stream.from_byte_array(data)).check_integrity(), "header and file CRCs"
+    messages, errors = Decoder(Stream.from_byte_array(data)).read()
+    assert errors == []
+    return messages
+
+
+def test_a_session_becomes_per_second_records_and_totals(tmp_path):
+    # 3 s at 1 kHz: rider 150 W (ledger), motor 100 rad/s; CONFIG_TEXT: gear 10, default wheel and virtual gear
+    bag = write_session_bag(tmp_path / "bag", n=3001)
+    out = tmp_path / "ride.fit"
+    totals = export_fit(bag, out)
+    m = _decode(out)
+    assert m["file_id_mesgs"][0]["type"] == "activity"
+    rec = m["record_mesgs"]
+    speed = W * 0.335 * 2.75 / 10.0          # motor rad/s -> crank (gear 10) -> virtual gear 2.75, wheel 0.335 m
+    assert len(rec) == 3 and totals["records"] == 3
+    assert [r["power"] for r in rec] == [150, 150, 150]
+    assert [r["cadence"] for r in rec] == [round(CADENCE)] * 3
+    assert [r["speed"] for r in rec] == pytest.approx([speed] * 3, abs=1e-3)
+    assert [r["distance"] for r in rec] == pytest.approx([speed, 2 * speed, 3 * speed], abs=0.01)
+    stamps = [r["timestamp"] for r in rec]
+    assert [(b - a).total_seconds() for a, b in zip(stamps, stamps[1:])] == [1.0, 1.0]
+    for lap_or_session in (m["lap_mesgs"][0], m["session_mesgs"][0]):
+        assert lap_or_session["total_timer_time"] == 3.0 and lap_or_session["total_work"] == 450
+        assert lap_or_session["avg_power"] == 150 and lap_or_session["total_distance"] == pytest.approx(3 * speed,
+                                                                                                        abs=0.01)
+    assert m["session_mesgs"][0]["sport"] == "cycling" and m["session_mesgs"][0]["sub_sport"] == "indoor_cycling"
+    assert m["activity_mesgs"][0]["num_sessions"] == 1
+    assert [e["event_type"] for e in m["event_mesgs"]] == ["start", "stop_all"]
+
+
+def test_a_bag_without_plant_states_is_one_error(tmp_path):
+    bag = write_session_bag(tmp_path / "bag", n=1)        # one PlantState: no riding second
+    with pytest.raises(BagError, match="nothing to export"):
+        export_fit(bag, tmp_path / "x.fit")
+    assert not (tmp_path / "x.fit").exists()
+
+
+@pytest.mark.slow
+def test_a_real_session_exports_what_the_report_says(tmp_path, capsys):
+    bag = real_session("erg")
+    out = tmp_path / "fit" / "ride.fit"
+    assert main([str(bag), "--json", "--fit", str(out)]) == 0
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out)
+    assert f"wrote {out}: FIT activity, 2 records" in captured.err
+    m = _decode(out)
+    rec = m["record_mesgs"]
+    assert len(rec) == 2
+    # the records' mean is the report's rider power (whole watts per second)
+    assert np.mean([r["power"] for r in rec]) == pytest.approx(summary["mean_rider_power_w"], abs=0.5)
+    assert np.mean([r["cadence"] for r in rec]) == pytest.approx(summary["mean_cadence_rpm"], abs=0.5)
+    info = json.loads(read_topic(bag, "session_info")[0].data)
+    start = datetime.datetime.fromisoformat(info["start_wall_time"])
+    assert m["session_mesgs"][0]["start_time"] == start.replace(microsecond=0)
+    assert rec[0]["timestamp"] == (start + datetime.timedelta(seconds=1)).replace(microsecond=0)
