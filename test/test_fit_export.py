@@ -31,7 +31,7 @@ def test_a_session_becomes_per_second_records_and_totals(tmp_path):
     assert m["file_id_mesgs"][0]["type"] == "activity"
     rec = m["record_mesgs"]
     speed = W * 0.335 * 2.75 / 10.0          # motor rad/s -> crank (gear 10) -> virtual gear 2.75, wheel 0.335 m
-    assert len(rec) == 3 and totals["records"] == 3
+    assert len(rec) == 3 and totals["records"] == 3 and totals["laps"] == 1, "no SessionStatus: one lap"
     assert [r["power"] for r in rec] == [150, 150, 150]
     assert [r["cadence"] for r in rec] == [round(CADENCE)] * 3
     assert [r["speed"] for r in rec] == pytest.approx([speed] * 3, abs=1e-3)
@@ -45,6 +45,22 @@ def test_a_session_becomes_per_second_records_and_totals(tmp_path):
     assert m["session_mesgs"][0]["sport"] == "cycling" and m["session_mesgs"][0]["sub_sport"] == "indoor_cycling"
     assert m["activity_mesgs"][0]["num_sessions"] == 1
     assert [e["event_type"] for e in m["event_mesgs"]] == ["start", "stop_all"]
+
+
+def test_a_lap_per_workout_segment(tmp_path):
+    """Segments 0 (0-2 s), 1 (2-3 s), 2 (3-5 s) of the session: three laps, as a head unit
+    running the workout would record them, with their own totals."""
+    bag = write_session_bag(tmp_path / "bag", n=5001, segment=lambda k: 0 if k < 2000 else (1 if k < 3000 else 2))
+    totals = export_fit(bag, tmp_path / "ride.fit")
+    m = _decode(tmp_path / "ride.fit")
+    laps = m["lap_mesgs"]
+    assert totals["laps"] == 3 and m["session_mesgs"][0]["num_laps"] == 3
+    assert [lap["wkt_step_index"] for lap in laps] == [0, 1, 2]
+    assert [lap["total_timer_time"] for lap in laps] == [2.0, 1.0, 2.0]
+    assert [lap["total_work"] for lap in laps] == [300, 150, 300]
+    assert sum(lap["total_distance"] for lap in laps) == pytest.approx(m["session_mesgs"][0]["total_distance"],
+                                                                      abs=0.02)
+    assert [(lap["start_time"] - laps[0]["start_time"]).total_seconds() for lap in laps] == [0.0, 2.0, 3.0]
 
 
 def test_a_bag_without_plant_states_is_one_error(tmp_path):
@@ -61,7 +77,7 @@ def test_a_real_session_exports_what_the_report_says(tmp_path, capsys):
     assert main([str(bag), "--json", "--fit", str(out)]) == 0
     captured = capsys.readouterr()
     summary = json.loads(captured.out)
-    assert f"wrote {out}: FIT activity, 2 records" in captured.err
+    assert f"wrote {out}: FIT activity, 2 records over 2 s in 1 lap," in captured.err
     m = _decode(out)
     rec = m["record_mesgs"]
     assert len(rec) == 2

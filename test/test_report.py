@@ -228,11 +228,12 @@ def session_mode(k, erg_targets=(90.0, 120.0)):
 
 def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
                       status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None,
-                      modes=None, virtual_mps=None):
+                      modes=None, virtual_mps=None, segment=None):
     """A 1 kHz session of n PlantStates (t = i ms): 100 rad/s, 1 N m of braking (100 W),
     rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()
-    (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given."""
-    from bike_msgs.msg import Command, ControllerStatus, PlantState
+    (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given;
+    with ``segment(k)``, a RUNNING SessionStatus every 100 ms in that profile segment."""
+    from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import BatteryState
     from std_msgs.msg import String
@@ -285,6 +286,10 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
                                          virtual_speed_mps=virtual_mps(i) if virtual_mps else 0.0)
                     s.header.stamp = m.header.stamp
                     sink.write(_full("controller_status"), t_ns, serialize_message(s))
+        if segment is not None and i % 100 == 0 and i < n - 1:
+            st = SessionStatus(profile_name="modes", state=SessionStatus.STATE_RUNNING, segment_index=segment(i))
+            st.header.stamp = m.header.stamp
+            sink.write(_full("session_status"), t_ns, serialize_message(st))
         if i % 10 == 0:
             b = BatteryState(voltage=50.0, current=1.6, percentage=m.battery_soc)
             b.header.stamp = m.header.stamp

@@ -11,12 +11,14 @@ What goes in, per second of the session (the report's 1 s bins, bike_session.rep
   through the virtual gear and wheel (``modes.virtual_gear_ratio``, ``modes.wheel_radius_m``,
   as the report's slope tracking uses), and its integral.
 
-Messages: file_id (type activity), a timer start event, the records, a timer stop event, one
-lap, one session (sport cycling, sub-sport indoor cycling) and the activity, with the
-lap / session totals (time, distance, work, mean and max power, cadence and speed). Time
-starts at the session's ``start_wall_time`` (session_info), else at the bag's own start.
-A second without any PlantState in the bag gets no record (a gap, as a head unit's pause).
-No rclpy import here.
+Messages: file_id (type activity), a timer start event, the records, a timer stop event, a
+lap per workout segment (where SessionStatus.segment_index changed, as a head unit running a
+structured workout starts a lap per step; ``wkt_step_index`` = the segment; one lap for a
+bag without SessionStatus), one session (sport cycling, sub-sport indoor cycling) and the
+activity, each lap and the session with its totals (time, distance, work, mean and max
+power, cadence and speed). Time starts at the session's ``start_wall_time`` (session_info),
+else at the bag's own start. A second without any PlantState in the bag gets no record (a
+gap, as a head unit's pause). No rclpy import here.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ import pathlib
 
 import numpy as np
 
-from bike_session.bags import BagError
+from bike_session.bags import BagError, read_topic, stamp_s
 from bike_session.report import RPM_PER_RAD_S, SessionData, analyse, series
 
 MAX_RECORDS = 7 * 24 * 3600       # one record per second: a week of riding
@@ -45,6 +47,20 @@ def activity_arrays(data: SessionData) -> dict:
     return {"t_s": t_end[keep], "power_w": np.clip(np.nan_to_num(s["p_rider"][keep]), 0.0, None),
             "cadence_rpm": np.abs(np.nan_to_num(s["cadence"][keep])), "speed_mps": speed[keep],
             "distance_m": distance[keep], "bin_s": width}
+
+
+def segment_starts(data: SessionData) -> list[tuple[float, int]]:
+    """(t_s from the session start, segment index) where a running session entered a segment
+    (SessionStatus), in time order; empty for a bag without SessionStatus."""
+    from bike_msgs.msg import SessionStatus
+
+    out: list[tuple[float, int]] = []
+    for msg in sorted(read_topic(data.path, "session_status"), key=stamp_s):
+        if msg.state != SessionStatus.STATE_RUNNING:
+            continue
+        if not out or msg.segment_index != out[-1][1]:
+            out.append((stamp_s(msg) - data.origin_s, int(msg.segment_index)))
+    return out
 
 
 def _start_time(data: SessionData) -> datetime.datetime:
@@ -75,13 +91,15 @@ def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
     end = start + datetime.timedelta(seconds=elapsed_s)
     power = np.rint(a["power_w"]).astype(int)
     cadence = np.rint(a["cadence_rpm"]).astype(int)
-    totals = {
-        "start_time": start.isoformat(), "records": n, "elapsed_s": elapsed_s, "timer_s": timer_s,
-        "distance_m": float(a["distance_m"][-1]), "work_j": float(np.sum(a["power_w"]) * a["bin_s"]),
-        "avg_power_w": float(np.mean(a["power_w"])), "max_power_w": float(np.max(a["power_w"])),
-        "avg_cadence_rpm": float(np.mean(a["cadence_rpm"])), "max_cadence_rpm": float(np.max(a["cadence_rpm"])),
-        "avg_speed_mps": float(np.mean(a["speed_mps"])), "max_speed_mps": float(np.max(a["speed_mps"])),
-    }
+    width = a["bin_s"]
+    starts = segment_starts(data)
+    # the lap of each record: the segment its second began in (one lap without SessionStatus)
+    edges = np.array([t for t, _ in starts[1:]])
+    lap_of = np.searchsorted(edges, a["t_s"] - width + 1e-6, side="right")
+    laps = [np.flatnonzero(lap_of == j) for j in range(len(starts) or 1)]
+    laps = [(j, idx) for j, idx in enumerate(laps) if idx.size]
+    totals = _totals(a, np.arange(n), 0.0)
+    totals.update(start_time=start.isoformat(), records=n, laps=len(laps))
     mesg = Profile["mesg_num"]
     enc = Encoder()
     enc.write_mesg({"mesg_num": mesg["FILE_ID"], "type": "activity", "manufacturer": "development", "product": 0,
@@ -92,20 +110,41 @@ def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
                         "power": int(power[k]), "cadence": int(min(cadence[k], 254)),
                         "speed": float(a["speed_mps"][k]), "distance": float(a["distance_m"][k])})
     enc.write_mesg({"mesg_num": mesg["EVENT"], "timestamp": end, "event": "timer", "event_type": "stop_all"})
-    summary = {"start_time": start, "total_elapsed_time": elapsed_s, "total_timer_time": timer_s,
-               "total_distance": totals["distance_m"], "total_work": int(round(totals["work_j"])),
-               "avg_power": int(round(totals["avg_power_w"])), "max_power": int(round(totals["max_power_w"])),
-               "avg_cadence": int(round(min(totals["avg_cadence_rpm"], 254))),
-               "max_cadence": int(round(min(totals["max_cadence_rpm"], 254))),
-               "avg_speed": totals["avg_speed_mps"], "max_speed": totals["max_speed_mps"],
-               "sport": "cycling", "sub_sport": "indoor_cycling"}
-    enc.write_mesg({"mesg_num": mesg["LAP"], "message_index": 0, "timestamp": end, "event": "lap",
-                    "event_type": "stop", **summary})
+    for k, (j, idx) in enumerate(laps):
+        lap = _totals(a, idx, float(a["distance_m"][idx[0] - 1]) if idx[0] > 0 else 0.0)
+        lap_start = start + datetime.timedelta(seconds=float(a["t_s"][idx[0]] - width))
+        lap_end = start + datetime.timedelta(seconds=float(a["t_s"][idx[-1]]))
+        extra = {"wkt_step_index": starts[j][1]} if starts else {}
+        enc.write_mesg({"mesg_num": mesg["LAP"], "message_index": k, "timestamp": lap_end, "event": "lap",
+                        "event_type": "stop", **_fit_totals(lap, lap_start), **extra})
     enc.write_mesg({"mesg_num": mesg["SESSION"], "message_index": 0, "timestamp": end, "event": "session",
-                    "event_type": "stop", "first_lap_index": 0, "num_laps": 1, "trigger": "activity_end", **summary})
+                    "event_type": "stop", "first_lap_index": 0, "num_laps": len(laps), "trigger": "activity_end",
+                    **_fit_totals(totals, start)})
     enc.write_mesg({"mesg_num": mesg["ACTIVITY"], "timestamp": end, "total_timer_time": timer_s, "num_sessions": 1,
                     "type": "manual", "event": "activity", "event_type": "stop"})
     return enc.close(), totals
+
+
+def _totals(a: dict, idx: np.ndarray, distance0_m: float) -> dict:
+    """Totals of the records idx (consecutive seconds of one lap, or all of them)."""
+    width = a["bin_s"]
+    p, c, v = a["power_w"][idx], a["cadence_rpm"][idx], a["speed_mps"][idx]
+    return {"elapsed_s": float(a["t_s"][idx[-1]] - a["t_s"][idx[0]] + width), "timer_s": idx.size * width,
+            "distance_m": float(a["distance_m"][idx[-1]] - distance0_m), "work_j": float(np.sum(p) * width),
+            "avg_power_w": float(np.mean(p)), "max_power_w": float(np.max(p)),
+            "avg_cadence_rpm": float(np.mean(c)), "max_cadence_rpm": float(np.max(c)),
+            "avg_speed_mps": float(np.mean(v)), "max_speed_mps": float(np.max(v))}
+
+
+def _fit_totals(t: dict, start: datetime.datetime) -> dict:
+    """A lap's or the session's totals as FIT fields."""
+    return {"start_time": start, "total_elapsed_time": t["elapsed_s"], "total_timer_time": t["timer_s"],
+            "total_distance": t["distance_m"], "total_work": int(round(t["work_j"])),
+            "avg_power": int(round(t["avg_power_w"])), "max_power": int(round(t["max_power_w"])),
+            "avg_cadence": int(round(min(t["avg_cadence_rpm"], 254))),
+            "max_cadence": int(round(min(t["max_cadence_rpm"], 254))),
+            "avg_speed": t["avg_speed_mps"], "max_speed": t["max_speed_mps"],
+            "sport": "cycling", "sub_sport": "indoor_cycling"}
 
 
 def export_fit(bag_path, out_path, data: SessionData | None = None) -> dict:
@@ -123,6 +162,7 @@ def export_fit(bag_path, out_path, data: SessionData | None = None) -> dict:
 
 
 def format_totals(totals: dict) -> str:
-    return (f"{totals['records']} records over {totals['elapsed_s']:.0f} s, "
+    return (f"{totals['records']} records over {totals['elapsed_s']:.0f} s in {totals['laps']} "
+            f"lap{'s' if totals['laps'] != 1 else ''}, "
             f"{totals['distance_m'] / 1000.0:.2f} km, {totals['work_j'] / 1000.0:.1f} kJ, "
             f"mean {totals['avg_power_w']:.0f} W / {totals['avg_cadence_rpm']:.0f} rpm")
