@@ -67,6 +67,15 @@ def test_nested_repeats_ride_as_on_a_head_unit(tmp_path):
     assert w.duration_s == pytest.approx((10 + 20 + 20 + 30) * 3 + 5)
 
 
+def test_steps_go_by_their_12_bit_message_index(tmp_path):
+    """Written out of order and with the 'selected' flag (0x8000) on one: ridden by index; more
+    steps than 12 bits can index is one error."""
+    steps = [dict(_power(10, 1200), message_index=1 | 0x8000), dict(_power(20, 1100), message_index=0)]
+    assert [s.target_start_w for s in _load(tmp_path, steps).segments] == [100, 200]
+    with pytest.raises(WorkoutError, match="more than a FIT workout can index"):
+        _load(tmp_path, [_power(1, 1100)] * (fit_workout.MAX_FIT_STEPS + 1))
+
+
 def test_percent_targets_need_the_riders_ftp(tmp_path):
     with pytest.raises(WorkoutError, match=r"step 0.*ftp_w"):
         _load(tmp_path, [_power(60, 80)])

@@ -51,6 +51,7 @@ from bike_session.workouts import (MAX_CADENCE_RPM, MAX_FTP_FRACTION, MAX_TEXT_E
                                    WorkoutError, _Options, _Timeline)
 
 MAX_FIT_BYTES = 256 * 1024
+MAX_FIT_STEPS = 0x0FFF            # message_index 0..4094 (12 bits; 0x0FFF is the invalid value)
 OPEN_STEP_S = 300.0               # an 'open' step (until the lap button), ridden on a time base
 POWER_TARGETS = {"power", "power_3s", "power_10s", "power_30s", "power_lap"}
 FREE_TARGETS = {"open", "cadence"}
@@ -151,16 +152,21 @@ def _decode(data: bytes, source: str) -> dict:
 
 
 def _in_order(raw_steps: list[dict], source: str) -> list[dict]:
-    """The steps by message_index, which repeats refer to: 0, 1, ... without gaps or doubles."""
-    if len(raw_steps) > MAX_LEAF_SEGMENTS:
-        raise WorkoutError(f"more than {MAX_LEAF_SEGMENTS} workout steps", source)
+    """The steps by message_index, which repeats refer to: 0, 1, ... without gaps or doubles.
+    A FIT message_index is the low 12 bits of its field (0x0FFF, the SDK's 'mask'; 0x8000
+    marks a 'selected' message), so a workout has at most MAX_FIT_STEPS steps."""
+    if len(raw_steps) > MAX_FIT_STEPS:
+        raise WorkoutError(f"{len(raw_steps)} workout steps: more than a FIT workout can index "
+                           f"({MAX_FIT_STEPS}, message_index is 12 bits)", source)
     indices = [s.get("message_index") for s in raw_steps]
     if all(k is None for k in indices):
         return list(raw_steps)
+    indices = [k & 0x0FFF if isinstance(k, int) else k for k in indices]
     if any(not isinstance(k, int) for k in indices) or sorted(indices) != list(range(len(raw_steps))):
         raise WorkoutError(f"workout_step message_index values must be 0..{len(raw_steps) - 1}, each once; got "
                            f"{indices[:20]}", source)
-    return sorted(raw_steps, key=lambda s: s["message_index"])
+    order = sorted(range(len(raw_steps)), key=indices.__getitem__)
+    return [raw_steps[k] for k in order]
 
 
 def _repeat(i: int, step: dict, leaves: list, first_leaf: dict, source: str) -> None:
