@@ -202,6 +202,12 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         col.close()
 
 
+def _warnings(col, node: str) -> list[str]:
+    """The WARN diagnostics of one node the collector has received so far."""
+    return [s.message for a in list(col.data["/diagnostics"]) for s in a.status
+            if s.name.endswith(node) and s.level == DiagnosticStatus.WARN]
+
+
 def test_realtime_controller_without_commands_says_so(domain):
     """A controller that joins a running realtime plant and gets no Command (no session, or
     one it does not match) rides on the config's command0 = 0: it logs a warning once, after
@@ -221,12 +227,8 @@ def test_realtime_controller_without_commands_says_so(domain):
                      "sim time running", procs)
         ctrl = NodeProcess("bike_controller", "controller_node", domain, dict(RT, command_wait_s=0.5))
         procs.append(ctrl)
-
-        def warnings():
-            return [s.message for a in list(col.data["/diagnostics"]) for s in a.status
-                    if s.name.endswith("controller") and s.level == DiagnosticStatus.WARN]
-        col.wait_for(lambda: any("no Command received" in w for w in warnings()), 20, "the controller's warning",
-                     procs)
+        col.wait_for(lambda: any("no Command received" in w for w in _warnings(col, "controller")), 20,
+                     "the controller's warning", procs)
         assert all(c.command == 0.0 for c in col.data["controller_status"]), "command0 until a Command comes"
         col.wait_for(lambda: (cmd_pub.publish(msgconv.command_msg(0.5, 0, 0)) or
                               any(c.command == 0.5 for c in col.data["controller_status"])), 15,
@@ -254,12 +256,9 @@ def test_a_controller_fed_nothing_by_a_matched_plant_state_writer_says_so(domain
         state_pub = col.publisher(PlantState, "plant_state")      # matched, publishes nothing at first
         ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
         procs.append(ctrl)
-
-        def warnings():
-            return [s.message for a in list(col.data["/diagnostics"]) for s in a.status
-                    if s.name.endswith("controller") and s.level == DiagnosticStatus.WARN]
-        col.wait_for(lambda: any("no PlantState" in w for w in warnings()), 30, "the controller's warning", procs)
-        assert "(1 matched)" in next(w for w in warnings() if "no PlantState" in w)
+        col.wait_for(lambda: any("no PlantState" in w for w in _warnings(col, "controller")), 30,
+                     "the controller's warning", procs)
+        assert "(1 matched)" in next(w for w in _warnings(col, "controller") if "no PlantState" in w)
         stacks = ctrl.stacks()
         assert "Current thread" in stacks and "in run" in stacks, stacks      # the main thread in its loop
         assert ctrl.alive()
