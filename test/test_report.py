@@ -485,6 +485,29 @@ def test_series_for_the_charts(tmp_path):
     assert coarse["E_bat"][-1] == pytest.approx(80.0) and np.allclose(coarse["p_brake"], 100.0)
 
 
+def test_erg_response_times_each_target_step():
+    """0.1 s windows: ERG 100 W for 1 s, a step to 200 W that the braking power reaches within
+    5 % after 0.3 s and holds, a step to 150 W at 3 s that it never reaches before ERG ends at
+    3.5 s, then resistance mode."""
+    from bike_session.report import MODE_ERG, MODE_RESISTANCE, erg_response, format_summary
+
+    n = 40
+    target = np.r_[np.full(10, 100.0), np.full(20, 200.0), np.full(5, 150.0), np.full(5, np.nan)]
+    power = np.r_[np.full(10, 100.0), [120.0, 150.0, 180.0, 195.0], np.full(16, 200.0), np.full(5, 200.0),
+                  np.full(5, 50.0)]
+    erg = np.isfinite(target)
+    bins = {"dt": np.full(n, 0.1), "e_brake": power * 0.1,
+            f"mode_dt{MODE_ERG}": np.where(erg, 0.1, 0.0), f"target_dt{MODE_ERG}": np.where(erg, target * 0.1, 0.0),
+            f"mode_dt{MODE_RESISTANCE}": np.where(erg, 0.0, 0.1)}
+    r = erg_response(bins, 0.1)
+    assert r["steps"] == 2 and r["settled"] == 1
+    assert r["settle_s"][0] == pytest.approx(0.3) and r["settle_s"][1] is None
+    assert r["median_s"] == pytest.approx(0.3) and r["max_s"] == pytest.approx(0.3)
+    assert "erg response:          2 target steps, 1 settled" in format_summary({"erg_response": r})
+    bins[f"target_dt{MODE_ERG}"] = np.where(erg, 100.0 * 0.1, 0.0)        # no step: nothing to say
+    assert erg_response(bins, 0.1) is None
+
+
 # ---------------------------------------------------------------- a real recorded session
 
 REAL_RUNS: dict = {}

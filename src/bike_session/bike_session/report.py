@@ -39,6 +39,9 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   (error averaged over the window, which removes the commutation ripple); ``rms_batch`` /
   ``max_abs_batch`` over single batches. A mode_target missing from an older bag is derived
   from the command and the config.
+- ``erg_response``         ERG target steps (a change of more than 10 W and 5 % between
+  tracking windows) and the time from each until the braking power stays within
+  max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
 
 Long bags: messages are decoded straight from the CDR bytes into numpy blocks of
 ``CHUNK`` PlantStates; only per-bin sums (``bin_s``, 10 ms for short sessions, at most
@@ -938,6 +941,7 @@ class _Analyser:
             out["time_in_mode_s"] = {MODE_NAMES[m]: float(bins[f"mode_dt{m}"].sum()) for m in MODE_NAMES
                                      if bins[f"mode_dt{m}"].sum() > 0}
             out["tracking"] = tracking(bins, self.bin_s)
+            out["erg_response"] = erg_response(bins, self.bin_s)
         first = {}
         if self.first is not None:
             first = {"t": float(self.first[0]), "E_mech": float(self.first[C + P_EMECH]),
@@ -1074,6 +1078,49 @@ def tracking(bins: dict, bin_s: float, n_bins: int | None = None) -> dict:
     return out
 
 
+ERG_STEP_W = 10.0             # a target change larger than this (and ERG_TOL of it) between windows is a step
+ERG_TOL = 0.05                # settled: braking power within this fraction of the target ...
+ERG_TOL_MIN_W = 5.0           # ... or of this many watts, whichever is larger
+ERG_HOLD_S = 1.0              # ... for this long
+
+
+def erg_response(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | None:
+    """How fast ERG reaches a new power target (the figure trainer reviews quote: high-end
+    trainers 3-5 s). On ``window_s`` windows wholly in ERG: a step is a target change of more
+    than ERG_STEP_W and ERG_TOL; it settles at the first window from which the braking power
+    stays within max(ERG_TOL x target, ERG_TOL_MIN_W) for ERG_HOLD_S, before the next step
+    or the end of ERG. ``settle_s`` per step from the first window at the new target (None:
+    not settled). None when the session has no step."""
+    n = len(bins["dt"]) if n_bins is None else int(n_bins)
+    k = window_bins(bin_s)
+    width = bin_s * k
+    dt = _rebin(bins["dt"][:n], k, "sum")
+    mdt = _rebin(bins[f"mode_dt{MODE_ERG}"][:n], k, "sum")
+    full = (mdt > 0) & (mdt >= dt * (1 - 1e-9))
+    target = _div(_rebin(bins[f"target_dt{MODE_ERG}"][:n], k, "sum"), mdt)
+    power = _div(_rebin(bins["e_brake"][:n], k, "sum"), dt)
+    hold = max(1, int(round(ERG_HOLD_S / width)))
+    steps = [i for i in range(1, len(dt)) if full[i] and full[i - 1]
+             and abs(target[i] - target[i - 1]) > max(ERG_STEP_W, ERG_TOL * abs(target[i - 1]))]
+    if not steps:
+        return None
+    settle: list[float | None] = []
+    starts = set(steps)
+    for i in steps:
+        end = i
+        while end < len(dt) and full[end] and (end == i or end not in starts):
+            end += 1
+        ok = np.abs(power[i:end] - target[i:end]) <= np.maximum(ERG_TOL * np.abs(target[i:end]), ERG_TOL_MIN_W)
+        # the first window from which `hold` windows in a row are within the band
+        run = np.convolve(ok.astype(int), np.ones(hold, dtype=int), "valid") == hold if ok.size >= hold else []
+        first = int(np.argmax(run)) if np.any(run) else None
+        settle.append(None if first is None else first * width)
+    done = [x for x in settle if x is not None]
+    return {"steps": len(steps), "settled": len(done), "settle_s": settle, "window_s": width,
+            "median_s": float(np.median(done)) if done else None, "max_s": float(max(done)) if done else None,
+            "tolerance": f"max({100 * ERG_TOL:g} % of the target, {ERG_TOL_MIN_W:g} W) for {ERG_HOLD_S:g} s"}
+
+
 # ============================================================================ text
 
 def _fmt(value, unit: str = "", digits: int = 3) -> str:
@@ -1132,6 +1179,11 @@ def format_summary(summary: dict) -> str:
         lines.append(f"tracking {key + ':':<19} rms {_fmt(r.get('rms'), r['unit'], 3)}, max {_fmt(r.get('max_abs'), r['unit'], 3)}"
                      f" ({r['window_s']:g} s windows; per batch rms {_fmt(r.get('rms_batch'), '', 3)},"
                      f" max {_fmt(r.get('max_abs_batch'), '', 3)}; saturated {100 * r['saturated_fraction']:.1f} %)")
+    erg = s.get("erg_response")
+    if erg:
+        lines.append(f"erg response:          {erg['steps']} target steps, {erg['settled']} settled (braking power "
+                     f"within {erg['tolerance']}) after median {_fmt(erg['median_s'], 's', 2)}, max "
+                     f"{_fmt(erg['max_s'], 's', 2)} ({erg['window_s']:g} s windows; trainer reviews: 3-5 s)")
     if s.get("software_version"):
         lines.append(f"software:              {s['software_version']}")
     for w in s.get("warnings") or []:
