@@ -22,8 +22,11 @@ def test_same_bag_twice_all_deltas_zero(tmp_path, capsys):
     assert main([str(bag), str(bag), "--out", str(out)]) == 0
     text = capsys.readouterr().out
     r = json.loads((out / "compare.json").read_text())
-    assert len(r["metrics"]) == 9 + 3 * 4          # 9 session numbers + 4 per tracked mode
+    assert len(r["metrics"]) == 9 + 3 * 4 + 4      # 9 session numbers + 4 per tracked mode + ERG response
     for m in r["metrics"]:
+        if m["key"] in ("erg_response.median_s", "erg_response.max_s"):
+            assert m["a"] is None and m["b"] is None, m      # its one step (90 -> 120 W) never settles
+            continue
         assert m["a"] is not None and m["a"] == m["b"], m
         assert m["delta"] == 0.0, m
     assert metric(r, "mean_braking_power_w")["a"] == pytest.approx(100.0)
@@ -64,6 +67,9 @@ def test_different_lengths_compare_on_the_overlap(tmp_path):
     assert iso["a"] == pytest.approx(CADENCE - 90.0) and iso["delta"] == pytest.approx(0.0, abs=1e-9)
     assert metric(r, "tracking.isokinetic_cadence.time_s")["a"] == pytest.approx(0.2)
     assert "resistance_torque" not in r["tracking"], "resistance starts at 0.7 s, after the overlap"
+    # A steps 90 -> 120 W at 0.2 s against a constant 100 W braking power: never settles; B has no step
+    steps, settled = metric(r, "erg_response.steps"), metric(r, "erg_response.settled")
+    assert (steps["a"], steps["b"], settled["a"]) == (1, 0, 0) and metric(r, "erg_response.median_s")["a"] is None
     params = r["config_diff"]["parameters"]
     assert params == [{"key": "controller.tmax_nm", "a": 1.8, "b": 2.0, "only_in": None}]
     assert "-      tmax_nm: 1.8" in r["config_diff"]["text_diff"]

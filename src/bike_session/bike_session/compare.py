@@ -12,6 +12,8 @@ Per session, over the overlap (definitions as in :mod:`bike_session.report`):
 - ``peak_phase_current_a``
 - ``tracking``: per mode (ERG power, isokinetic cadence, resistance torque against Eq. 3-4)
   RMS and max |error| over 0.1 s windows, and per batch
+- ``erg_response``: ERG target steps, how many settled, median and max settle time
+  (:func:`bike_session.report.erg_response`), when either session has a step
 
 ``delta`` = B - A (``delta_pct`` relative to |A|). Same bag twice: every delta is 0.
 The controller / config differences are the parameters that differ between the two
@@ -35,7 +37,7 @@ import numpy as np
 
 from bike_session.bags import BagError, open_bag
 from bike_session.report import (PLOT_POINTS, SessionData, analyse, auto_bin_s, config_params,
-                                  img_tag, series, time_axis, tracking, write_html)
+                                  erg_response, img_tag, series, time_axis, tracking, write_html)
 
 COLORS = {"A": "tab:blue", "B": "tab:orange"}
 DIFF_LINES = 60
@@ -53,6 +55,9 @@ METRICS = (
 )
 TRACK_FIELDS = (("rms", "RMS error", 3), ("max_abs", "max |error|", 3), ("rms_batch", "RMS error per batch", 3),
                 ("time_s", "time in mode", 3))
+# (field of report.erg_response, label, unit, digits)
+ERG_FIELDS = (("steps", "ERG target steps", "count", 0), ("settled", "ERG steps settled", "count", 0),
+              ("median_s", "ERG settle time, median", "s", 2), ("max_s", "ERG settle time, max", "s", 2))
 
 
 def range_metrics(d: SessionData, n: int) -> dict:
@@ -73,6 +78,7 @@ def range_metrics(d: SessionData, n: int) -> dict:
     ipk = b["ipk"][np.isfinite(b["ipk"])]
     out["peak_phase_current_a"] = float(ipk.max()) if ipk.size else None
     out["tracking"] = tracking(d.bins, d.bin_s, n)
+    out["erg_response"] = erg_response(d.bins, d.bin_s, n)
     return out
 
 
@@ -173,6 +179,15 @@ def compare(bag_a, bag_b, progress: str | None = None) -> tuple[dict, SessionDat
                             "unit": "s" if field == "time_s" else unit, "a": ra.get(field), "b": rb.get(field),
                             "delta": delta, "delta_pct": pct, "digits": digits})
         track[key] = entry
+    ea, eb = a["metrics"]["erg_response"], b["metrics"]["erg_response"]
+    if ea or eb:
+        for field, label, unit, digits in ERG_FIELDS:
+            # a side without a target step: 0 steps, no settle time
+            va = (ea or {}).get(field, 0 if unit == "count" else None)
+            vb = (eb or {}).get(field, 0 if unit == "count" else None)
+            delta, pct = _delta(va, vb)
+            metrics.append({"key": f"erg_response.{field}", "label": label, "unit": unit, "a": va, "b": vb,
+                            "delta": delta, "delta_pct": pct, "digits": digits})
     result = {
         "a": a, "b": b, "overlap": overlap, "metrics": metrics, "tracking": track,
         "config_diff": config_diff((da.info or {}).get("config_text"), (db.info or {}).get("config_text")),
