@@ -3,6 +3,7 @@ read back with Garmin's FIT SDK decoder: per-second records of the rider's power
 road speed and distance, and the lap / session totals."""
 import datetime
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -68,6 +69,13 @@ def test_a_bag_without_plant_states_is_one_error(tmp_path):
     with pytest.raises(BagError, match="nothing to export"):
         export_fit(bag, tmp_path / "x.fit")
     assert not (tmp_path / "x.fit").exists()
+
+
+def test_without_the_fit_sdk_the_export_is_one_clear_error(tmp_path, monkeypatch):
+    bag = write_session_bag(tmp_path / "bag", n=2001)
+    monkeypatch.setitem(sys.modules, "garmin_fit_sdk", None)                   # import fails
+    with pytest.raises(BagError, match="pip install garmin-fit-sdk"):
+        export_fit(bag, tmp_path / "x.fit")
 
 
 @pytest.mark.slow

@@ -147,3 +147,9 @@ def test_an_oversized_fit_file_is_refused_before_decoding(tmp_path, monkeypatch)
     with pytest.raises(WorkoutError, match="FIT file too large"):
         load_workout(path, ftp_w=250, pmax_w=PMAX)
     assert calls == []
+
+
+def test_without_the_fit_sdk_a_fit_file_is_one_clear_error(monkeypatch):
+    monkeypatch.setitem(__import__("sys").modules, "garmin_fit_sdk", None)      # import fails
+    with pytest.raises(WorkoutError, match="pip install garmin-fit-sdk"):
+        load_workout(DATA / "sweet_spot.fit", ftp_w=250, pmax_w=PMAX)

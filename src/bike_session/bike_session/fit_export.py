@@ -77,14 +77,18 @@ def _start_time(data: SessionData) -> datetime.datetime:
 
 def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
     """The FIT activity of an analysed session, and its totals (what the lap / session say)."""
-    from garmin_fit_sdk import Encoder, Profile
+    try:
+        from garmin_fit_sdk import Encoder, Profile
+    except ImportError:
+        raise BagError("writing FIT files needs Garmin's FIT SDK: pip install garmin-fit-sdk (make setup installs "
+                       "it)", data.path) from None
 
     a = activity_arrays(data)
     n = len(a["t_s"])
     if n == 0:
-        raise BagError(f"{data.path}: no PlantState in the bag: nothing to export")
+        raise BagError("no PlantState in the bag: nothing to export", data.path)
     if n > MAX_RECORDS:
-        raise BagError(f"{data.path}: {n} seconds of riding is beyond the export's {MAX_RECORDS} records")
+        raise BagError(f"{n} seconds of riding is beyond the export's {MAX_RECORDS} records", data.path)
     start = _start_time(data)
     elapsed_s = float(a["t_s"][-1])
     timer_s = n * a["bin_s"]

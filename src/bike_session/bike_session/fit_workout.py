@@ -135,7 +135,11 @@ def parse_fit(data: bytes, source: str, default_name: str, opts: _Options) -> Wo
 
 def _decode(data: bytes, source: str) -> dict:
     """The file's messages, by the FIT SDK (header and CRCs checked); one WorkoutError otherwise."""
-    from garmin_fit_sdk import Decoder, Stream
+    try:
+        from garmin_fit_sdk import Decoder, Stream
+    except ImportError:
+        raise WorkoutError("reading FIT files needs Garmin's FIT SDK: pip install garmin-fit-sdk "
+                           "(make setup installs it)", source) from None
 
     try:
         if not Decoder(Stream.from_byte_array(bytearray(data))).is_fit():
