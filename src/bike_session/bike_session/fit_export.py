@@ -28,7 +28,7 @@ import pathlib
 import numpy as np
 
 from bike_session.bags import BagError, read_topic, stamp_s
-from bike_session.report import RPM_PER_RAD_S, SessionData, analyse, series
+from bike_session.report import RPM_PER_RAD_S, SESSION_STATES, SessionData, analyse, series
 
 MAX_RECORDS = 7 * 24 * 3600       # one record per second: a week of riding
 
@@ -52,11 +52,9 @@ def activity_arrays(data: SessionData) -> dict:
 def segment_starts(data: SessionData) -> list[tuple[float, int]]:
     """(t_s from the session start, segment index) where a running session entered a segment
     (SessionStatus), in time order; empty for a bag without SessionStatus."""
-    from bike_msgs.msg import SessionStatus
-
     out: list[tuple[float, int]] = []
     for msg in sorted(read_topic(data.path, "session_status"), key=stamp_s):
-        if msg.state != SessionStatus.STATE_RUNNING:
+        if SESSION_STATES.get(msg.state) != "RUNNING":
             continue
         if not out or msg.segment_index != out[-1][1]:
             out.append((stamp_s(msg) - data.origin_s, int(msg.segment_index)))
