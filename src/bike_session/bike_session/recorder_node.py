@@ -477,8 +477,11 @@ def _make_node_class():
                     self.plant_states_written += 1
                     if end:
                         self.end_of_run_seen = True
-                    # a run's seq 0 at once: a lockstep plant holds seq 1 until it hears it
-                    if end or seq == 0 or self.plant_states_written % PROGRESS_EVERY == 0:
+                    # a run's seq 0 at once: a lockstep plant holds seq 1 until it hears it; and this
+                    # recorder's first state at once: a plant that gave up on a dead recorder waits for
+                    # a restarted one again from its first report (a held plant sends no new states)
+                    if end or seq == 0 or self.plant_states_written == 1 \
+                            or self.plant_states_written % PROGRESS_EVERY == 0:
                         self._progress_msg.data = seq
                         self.pub_progress.publish(self._progress_msg)
 
