@@ -33,14 +33,23 @@ def dedupe(states):
     return out
 
 
-def _check_lockstep_states(states, n, duration_s):
+def _check_lockstep_states(states, n, duration_s, reader_may_lose=False):
+    """The plant's states as the test's reader got them: seq 0 .. end_of_run at duration_s, one
+    batch (N * T of sim time) per seq. ``reader_may_lose``: the reader is not in the loop and
+    may fall more than the writer's history behind (it did once in CI at N = 200, 46 states
+    early in a 10 s run); then the states it got must still carry sim time = seq * N * T (no
+    batch skipped or applied twice), and seq only grows."""
     states = dedupe(states)
     seqs = [int(m.seq) for m in states]
-    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "PlantState seq must increase by 1 without gaps"
-    assert seqs[0] == 0
-    stamps = np.array([stamp_ns(m.header.stamp) for m in states])
     step_ns = n * DT * 1e9
-    assert np.all(np.abs(np.diff(stamps) - step_ns) <= 2), "sim time must advance N * T per batch"
+    stamps = np.array([stamp_ns(m.header.stamp) for m in states])
+    if reader_may_lose:
+        assert np.all(np.diff(seqs) > 0), "PlantState seq must grow"
+        assert np.all(np.abs(stamps - np.array(seqs) * step_ns) <= 2), "sim time must be seq * N * T"
+    else:
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "PlantState seq must increase by 1 without gaps"
+        assert np.all(np.abs(np.diff(stamps) - step_ns) <= 2), "sim time must advance N * T per batch"
+    assert seqs[0] == 0
     assert states[-1].end_of_run and not any(m.end_of_run for m in states[:-1])
     assert abs(stamps[-1] * 1e-9 - duration_s) < 1e-6
     assert all(m.batch_periods == n for m in states)
@@ -77,7 +86,8 @@ def _rate(col):
     for m, t in zip(col.data["plant_state"], col.stamps["plant_state"]):
         first.setdefault(int(m.seq), t)
     seqs = sorted(first)
-    return (seqs[-1] - 1) / max(first[seqs[-1]] - first[1], 1e-9)
+    base = next(k for k in seqs if k >= 1)          # seq 1, or the first the reader got after it
+    return (seqs[-1] - base) / max(first[seqs[-1]] - first[base], 1e-9)
 
 
 def test_lockstep_closed_loop(domain):
@@ -174,7 +184,9 @@ def test_lockstep_rate(domain, n, duration):
             cmd_pub.publish(msgconv.command_msg(0.5, 0, msgconv.seconds_to_ns(tau)))
         col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 40, "end_of_run", procs)
         assert plant.wait(5.0) == 0
-        _check_lockstep_states(list(col.data["plant_state"]), n, duration)
+        # the reader is not in the loop (no recorder here): the batches are counted by the plant
+        _check_lockstep_states(list(col.data["plant_state"]), n, duration, reader_may_lose=True)
+        assert f"after {round(duration / (n * DT))} batches" in plant.output(), plant.output()[-2000:]
         rate = _rate(col)
         print(f"\nlockstep N={n}: {rate:.0f} batches/s = {rate * n * DT:.2f} x real time")
         assert rate > 100, rate
