@@ -178,23 +178,23 @@ def test_fuzzed_workouts_give_one_clear_error_each(tmp_path):
     assert errors >= 40
 
 
-def _with_fit_crc(data: bytes) -> bytes:
-    """A FIT file's trailing CRC made right again for (mutated) content: the decoder then parses
-    the records instead of stopping at the checksum."""
+def _fit_file(header: bytes, records: bytes) -> bytes:
+    """A FIT file of (mutated) records, its header's data size and both CRCs made right again:
+    the decoder then parses the records instead of stopping at a size or a checksum."""
     from garmin_fit_sdk import CrcCalculator
-    if len(data) < 16:
-        return data
-    body = data[:-2]
+    head = header[:4] + struct.pack("<I", len(records)) + header[8:12]
+    head += struct.pack("<H", CrcCalculator.calculate_crc(head, 0, 12))
+    body = head + records
     return body + struct.pack("<H", CrcCalculator.calculate_crc(body, 0, len(body)))
 
 
 def test_fuzzed_fit_records_past_the_checksum_give_one_clear_error_each(tmp_path):
     """200 seeded byte flips and junk insertions inside the records of a real FIT workout, the
-    file CRC recomputed each time (so the FIT SDK's decoder, and then the step rules, see the
-    hostile content): a workout or one ProfileError, never another exception."""
-    src = WORKOUTS / "sweet_spot.fit"
-    data = src.read_bytes()
+    data size and CRCs made right each time (so the FIT SDK's decoder, and then the step rules,
+    see the hostile content): a workout or one ProfileError, never another exception."""
+    data = (WORKOUTS / "sweet_spot.fit").read_bytes()
     header, records = data[:14], data[14:-2]
+    assert _fit_file(header, records) == data
     rng = random.Random(2026)
     outcomes = {"workout": 0, "error": 0}
     for i in range(200):
@@ -205,12 +205,8 @@ def test_fuzzed_fit_records_past_the_checksum_give_one_clear_error_each(tmp_path
         else:
             pos = rng.randrange(len(b))
             b[pos:pos] = bytes(rng.randrange(256) for _ in range(rng.randint(1, 16)))
-            # keep the header's data size right, so the decoder reads the records
-            header = data[:4] + struct.pack("<I", len(b)) + data[8:12]
-            from garmin_fit_sdk import CrcCalculator
-            header += struct.pack("<H", CrcCalculator.calculate_crc(header, 0, 12))
         path = tmp_path / f"f{i}.fit"
-        path.write_bytes(_with_fit_crc((header if not i % 2 else data[:14]) + bytes(b) + b"\0\0"))
+        path.write_bytes(_fit_file(header, bytes(b)))
         try:
             load_workout(path, ftp_w=250.0, pmax_w=1016.68)
             outcomes["workout"] += 1

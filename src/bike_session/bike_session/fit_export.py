@@ -88,20 +88,16 @@ def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
     if n > MAX_RECORDS:
         raise BagError(f"{n} seconds of riding is beyond the export's {MAX_RECORDS} records", data.path)
     start = _start_time(data)
-    elapsed_s = float(a["t_s"][-1])
-    timer_s = n * a["bin_s"]
-    end = start + datetime.timedelta(seconds=elapsed_s)
     power = np.rint(a["power_w"]).astype(int)
     cadence = np.rint(a["cadence_rpm"]).astype(int)
-    width = a["bin_s"]
     starts = segment_starts(data)
     # the lap of each record: the segment its second began in (one lap without SessionStatus)
     edges = np.array([t for t, _ in starts[1:]])
-    lap_of = np.searchsorted(edges, a["t_s"] - width + 1e-6, side="right")
+    lap_of = np.searchsorted(edges, a["t_s"] - a["bin_s"] + 1e-6, side="right")
     laps = [np.flatnonzero(lap_of == j) for j in range(len(starts) or 1)]
     laps = [(j, idx) for j, idx in enumerate(laps) if idx.size]
-    totals = _totals(a, np.arange(n), 0.0)
-    totals.update(start_time=start.isoformat(), records=n, laps=len(laps))
+    session = _totals(a, np.arange(n), start)
+    end = session["end"]
     mesg = Profile["mesg_num"]
     enc = Encoder()
     enc.write_mesg({"mesg_num": mesg["FILE_ID"], "type": "activity", "manufacturer": "development", "product": 0,
@@ -113,34 +109,39 @@ def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
                         "speed": float(a["speed_mps"][k]), "distance": float(a["distance_m"][k])})
     enc.write_mesg({"mesg_num": mesg["EVENT"], "timestamp": end, "event": "timer", "event_type": "stop_all"})
     for k, (j, idx) in enumerate(laps):
-        lap = _totals(a, idx, float(a["distance_m"][idx[0] - 1]) if idx[0] > 0 else 0.0)
-        lap_start = start + datetime.timedelta(seconds=float(a["t_s"][idx[0]] - width))
-        lap_end = start + datetime.timedelta(seconds=float(a["t_s"][idx[-1]]))
+        lap = _totals(a, idx, start)
         extra = {"wkt_step_index": starts[j][1]} if starts else {}
-        enc.write_mesg({"mesg_num": mesg["LAP"], "message_index": k, "timestamp": lap_end, "event": "lap",
-                        "event_type": "stop", **_fit_totals(lap, lap_start), **extra})
+        enc.write_mesg({"mesg_num": mesg["LAP"], "message_index": k, "timestamp": lap["end"], "event": "lap",
+                        "event_type": "stop", **_fit_totals(lap), **extra})
     enc.write_mesg({"mesg_num": mesg["SESSION"], "message_index": 0, "timestamp": end, "event": "session",
                     "event_type": "stop", "first_lap_index": 0, "num_laps": len(laps), "trigger": "activity_end",
-                    **_fit_totals(totals, start)})
-    enc.write_mesg({"mesg_num": mesg["ACTIVITY"], "timestamp": end, "total_timer_time": timer_s, "num_sessions": 1,
-                    "type": "manual", "event": "activity", "event_type": "stop"})
+                    **_fit_totals(session)})
+    enc.write_mesg({"mesg_num": mesg["ACTIVITY"], "timestamp": end, "total_timer_time": session["timer_s"],
+                    "num_sessions": 1, "type": "manual", "event": "activity", "event_type": "stop"})
+    totals = {k: v for k, v in session.items() if k not in ("start", "end")}
+    totals.update(start_time=start.isoformat(), records=n, laps=len(laps))
     return enc.close(), totals
 
 
-def _totals(a: dict, idx: np.ndarray, distance0_m: float) -> dict:
-    """Totals of the records idx (consecutive seconds of one lap, or all of them)."""
+def _totals(a: dict, idx: np.ndarray, session_start: datetime.datetime) -> dict:
+    """Totals of the records idx (consecutive seconds of one lap, or all of them): from the
+    start of the first record's second (``start``) to the end of the last one's (``end``)."""
     width = a["bin_s"]
     p, c, v = a["power_w"][idx], a["cadence_rpm"][idx], a["speed_mps"][idx]
-    return {"elapsed_s": float(a["t_s"][idx[-1]] - a["t_s"][idx[0]] + width), "timer_s": idx.size * width,
+    t0, t1 = float(a["t_s"][idx[0]] - width), float(a["t_s"][idx[-1]])
+    distance0_m = float(a["distance_m"][idx[0] - 1]) if idx[0] > 0 else 0.0
+    return {"start": session_start + datetime.timedelta(seconds=t0),
+            "end": session_start + datetime.timedelta(seconds=t1),
+            "elapsed_s": t1 - t0, "timer_s": idx.size * width,
             "distance_m": float(a["distance_m"][idx[-1]] - distance0_m), "work_j": float(np.sum(p) * width),
             "avg_power_w": float(np.mean(p)), "max_power_w": float(np.max(p)),
             "avg_cadence_rpm": float(np.mean(c)), "max_cadence_rpm": float(np.max(c)),
             "avg_speed_mps": float(np.mean(v)), "max_speed_mps": float(np.max(v))}
 
 
-def _fit_totals(t: dict, start: datetime.datetime) -> dict:
+def _fit_totals(t: dict) -> dict:
     """A lap's or the session's totals as FIT fields."""
-    return {"start_time": start, "total_elapsed_time": t["elapsed_s"], "total_timer_time": t["timer_s"],
+    return {"start_time": t["start"], "total_elapsed_time": t["elapsed_s"], "total_timer_time": t["timer_s"],
             "total_distance": t["distance_m"], "total_work": int(round(t["work_j"])),
             "avg_power": int(round(t["avg_power_w"])), "max_power": int(round(t["max_power_w"])),
             "avg_cadence": int(round(min(t["avg_cadence_rpm"], 254))),

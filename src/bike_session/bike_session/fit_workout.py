@@ -63,7 +63,6 @@ WATTS_OFFSET = 1000               # FIT workout_power: values above it are watts
 class _Step:
     """One ridable step: its length, its power target (None: free) and what labels it."""
 
-    index: int
     duration_s: float
     target_w: float | None
     cadence_rpm: float | None
@@ -238,7 +237,7 @@ def _ridable(i: int, step: dict, ftp: float | None, opts: _Options, notes: dict,
     elif target not in FREE_TARGETS:
         notes.setdefault(f"{target!r} targets are not ridden (no model of them here): free ride at Command "
                          f"{opts.freeride_command:g}", []).append(i)
-    return _Step(i, duration, target_w, cadence, label, block, text)
+    return _Step(duration, target_w, cadence, label, block, text)
 
 
 def _watts(value: Any, ftp: float | None, err) -> float:
