@@ -134,6 +134,67 @@ def test_a_node_stuck_after_a_normal_end_is_a_warning_but_a_killed_node_fails_th
     assert not launch.ended_normally and launcher.failed_nodes(launch, codes) == {"victim": -signal.SIGKILL}
 
 
+def test_a_node_stuck_after_the_users_ctrl_c_is_named_and_a_warning(capsys):
+    """The user stopped the run: it ends as interrupted (the caller's 130), also when a node
+    had to be killed on the way out; the launcher says which node, and when."""
+    stubborn = "import signal, time\nfor s in (signal.SIGINT, signal.SIGTERM): signal.signal(s, signal.SIG_IGN)\n" \
+               "print('ready', flush=True)\ntime.sleep(60)"
+    out = []
+
+    class Sink:
+        def write(self, text):
+            out.append(text)
+
+        def flush(self):
+            pass
+
+    launch = Launcher([_Script("plant", "import time; time.sleep(60)", shutdown=True), _Script("stubborn", stubborn)],
+                      grace_s=0.5, stdout=Sink())
+    launch.start()
+    end = time.monotonic() + 30
+    while "[stubborn] ready\n" not in out and time.monotonic() < end:
+        time.sleep(0.05)
+    launch.request_stop(signal.SIGINT)
+    codes = launch.wait(timeout_s=30)
+    assert codes == {"plant": -signal.SIGINT, "stubborn": -signal.SIGKILL} and not launch.ended_normally
+    assert launcher.failed_nodes(launch, codes) == {}
+    assert "node 'stubborn' did not stop within 0.5 s of SIGINT when the run was stopped; it was stopped with " \
+           "SIGKILL" in capsys.readouterr().err
+    assert "[launcher] still running 0.5 s after SIGINT: stubborn; stopping with SIGTERM" in "".join(out)
+
+
+def test_a_project_node_left_running_after_sigint_prints_its_stacks(ros_domain, monkeypatch):
+    """Before the SIGTERM, a project node still running after the SIGINT grace is asked for
+    its threads' stacks (SIGUSR1, bike_plant.entry), which come out under its name: where a
+    hung node hangs. A real session node, given no grace at all."""
+    from conftest import DEFAULT_CONFIG as CONFIG
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
+    out = []
+
+    class Sink:
+        def write(self, text):
+            out.append(text)
+
+        def flush(self):
+            pass
+
+    spec = NodeSpec(pkg="bike_session", exec="session_node", name="session", namespace="bike",
+                    params_files=[str(CONFIG)], params={"duration_s": "5.0", "config_path": str(CONFIG)})
+    launch = Launcher([spec], grace_s=0.0, stdout=Sink())
+    launch.start()
+    end = time.monotonic() + 120
+    while "[session] [INFO]" not in "".join(out) and time.monotonic() < end:
+        assert launch.procs["session"].poll() is None, "".join(out)
+        time.sleep(0.05)
+    codes = launch.shutdown()
+    text = "".join(out)
+    assert "[launcher] still running 0 s after SIGINT: session; stopping with SIGTERM" in text, text
+    assert "[session] Current thread" in text or "[session] Thread 0x" in text, text
+    assert 'session_node.py", line' in text, text          # the main thread's frames, in the node's code
+    assert codes["session"] == 0, text                       # the SIGTERM then stops it on its own path
+
+
 def test_missing_package_is_a_clear_error():
     with pytest.raises(LaunchError, match="package 'no_such_pkg' not found"):
         launcher.executable_path("no_such_pkg", "x")
@@ -208,6 +269,7 @@ def test_ctrl_c_of_a_started_graph_stops_every_node_without_a_traceback(tmp_path
     assert code == 130, text[-3000:]
     assert "[launcher] interrupted by SIGINT: every node was stopped" in text, text[-3000:]
     assert "exited with code" not in text and "was killed by" not in text, text[-3000:]
+    assert "did not stop within" not in text and "still running" not in text, text[-3000:]
     # the recording up to the stop is closed and summarised
     bags = [b for b in (tmp_path / "rec").iterdir() if b.is_dir()]
     assert len(bags) == 1 and (bags[0] / "metadata.yaml").exists(), text[-3000:]

@@ -71,6 +71,14 @@ class NodeSpec:
         return args + list(self.ros_args)
 
 
+# the project's nodes print every thread's Python stack on SIGUSR1 and run on
+# (bike_plant.entry.start); any other program may die of it or use it (the drive emulator
+# injects a fault), so only these get it
+STACKS_ON_SIGUSR1 = {("bike_plant", "plant_node"), ("bike_controller", "controller_node"),
+                     ("bike_session", "session_node"), ("bike_session", "recorder_node")}
+STACKS_WAIT_S = 0.5
+
+
 @dataclass
 class ExecutableSpec:
     """An ``executable`` action: a program with its arguments (no ROS arguments added)."""
@@ -298,13 +306,17 @@ class Launcher:
         return self.shutdown()
 
     def shutdown(self) -> dict[str, int]:
-        """SIGINT every running node, then SIGTERM, then SIGKILL; return exit codes."""
+        """SIGINT every running node, then SIGTERM, then SIGKILL; return exit codes. A node
+        still running after the SIGINT grace first prints its threads' stacks (the project's
+        nodes do on SIGUSR1), so that the output shows where it hung."""
         for sig, wait_s in ((signal.SIGINT, self.grace_s), (signal.SIGTERM, 3.0), (signal.SIGKILL, 2.0)):
             running = [p for p in self.procs.values() if p.poll() is None]
             if not running:
                 break
             if sig != signal.SIGINT:
                 self.escalated.update({name: sig for name, p in self.procs.items() if p in running})
+            if sig == signal.SIGTERM:
+                self._print_stacks(running)
             for proc in running:
                 try:
                     os.killpg(proc.pid, sig)
@@ -317,17 +329,38 @@ class Launcher:
             thread.join(timeout=1.0)
         return {name: proc.wait() for name, proc in self.procs.items()}
 
+    def _print_stacks(self, stuck: list[subprocess.Popen]) -> None:
+        specs = {spec.name: spec for spec in self.nodes}
+        names = [name for name, p in self.procs.items() if p in stuck]
+        with self._lock:
+            self.stdout.write(f"[launcher] still running {self.grace_s:g} s after SIGINT: {', '.join(names)}; "
+                              f"stopping with SIGTERM (their stacks follow, where they print them)\n")
+            self.stdout.flush()
+        asked = False
+        for name in names:
+            spec = specs.get(name)
+            if isinstance(spec, NodeSpec) and (spec.pkg, spec.exec) in STACKS_ON_SIGUSR1:
+                try:
+                    os.kill(self.procs[name].pid, signal.SIGUSR1)
+                    asked = True
+                except ProcessLookupError:
+                    pass
+        if asked:
+            time.sleep(STACKS_WAIT_S)        # the pump threads relay what faulthandler wrote
+
 
 def failed_nodes(launcher: Launcher, codes: dict[str, int]) -> dict[str, int]:
     """The nodes whose exit code fails the run. After a run that ended by itself (every
-    result in), a node that would not stop on SIGINT and had to be stopped with SIGTERM /
-    SIGKILL (e.g. a DDS flush stuck on a loaded machine) gets a warning, not a failed run."""
+    result in) or that the user stopped (Ctrl-C, SIGTERM: the run ends as interrupted either
+    way), a node that would not stop on SIGINT and had to be stopped with SIGTERM / SIGKILL
+    (e.g. a DDS flush stuck on a loaded machine) gets a warning, not a failed run; its stacks
+    are in the output (Launcher.shutdown)."""
     bad = {name: code for name, code in codes.items() if code not in (0, -signal.SIGINT, 130)}
-    if launcher.ended_normally:
+    if launcher.ended_normally or launcher.stopped_by_signal is not None:
+        when = "after the run ended" if launcher.ended_normally else "when the run was stopped"
         for name in [n for n in bad if n in launcher.escalated and bad[n] == -launcher.escalated[n]]:
-            print(f"[launcher] warning: node '{name}' did not stop within {launcher.grace_s:g} s of SIGINT after "
-                  f"the run ended; it was stopped with {signal.Signals(launcher.escalated[name]).name}",
-                  file=sys.stderr)
+            print(f"[launcher] warning: node '{name}' did not stop within {launcher.grace_s:g} s of SIGINT {when}; "
+                  f"it was stopped with {signal.Signals(launcher.escalated[name]).name}", file=sys.stderr)
             del bad[name]
     return bad
 

@@ -28,6 +28,7 @@ import json
 import math
 import os
 import pathlib
+import signal
 import subprocess
 import sys
 import time
@@ -431,11 +432,30 @@ def _make_node_class():
     return SessionNode
 
 
+def _stop_on_signals() -> dict:
+    """SIGINT / SIGTERM only ask the loop to stop (checked at least every 0.1 s), as in the
+    loop nodes (bike_plant.node.install_signal_handlers) and the recorder. rclpy's own handlers
+    (rclpy.init's default) shut the context down from their signal thread while this thread may
+    be inside rcl (a take, a publish, a wait), and raise KeyboardInterrupt wherever Python is,
+    also inside rclpy's message conversion (bike_plant.loop.HotWait). A CI run's session
+    outlived SIGINT and SIGTERM that way and was killed (2026-12-05, cause not seen:
+    the launcher now prints a stuck node's stacks); here the stop is one flag read between
+    waits, on this thread."""
+    asked = {"signum": None}
+
+    def handler(signum, _frame):
+        asked["signum"] = signum
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return asked
+
+
 def main(args=None) -> int:
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = _stop_on_signals()
     node = None
     executor = None
     rc = 0
@@ -457,12 +477,13 @@ def main(args=None) -> int:
             # /clock comes every batch: taken straight from a wait set (bike_plant.loop.HotWait),
             # the timer and parameter services through the executor
             hot = HotWait(executor, [node.sub_clock], node.context, logger=node.get_logger())
-            while rclpy.ok(context=node.context) and not node.done and not node.fresh_ports_wanted:
+            while (stop["signum"] is None and rclpy.ok(context=node.context) and not node.done
+                   and not node.fresh_ports_wanted):
                 if hot.spin(0.1) and not node.done:
                     pause = node.gather_pause_s(time.monotonic())
                     if pause > 0.0:
                         time.sleep(pause)
-            if not node.fresh_ports_wanted:
+            if stop["signum"] is not None or not node.fresh_ports_wanted:
                 break
             old_executor, executor = executor, None      # a stale port: a new participant
             node = start_over_on_fresh_ports(node_class, node, args, old_executor)
@@ -471,7 +492,7 @@ def main(args=None) -> int:
     except SetupError as exc:
         print(f"session_node: error: {exc}", file=sys.stderr, flush=True)
         rc = 2
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except KeyboardInterrupt:      # a Ctrl-C before the handlers above were set
         rc = 0
     finally:
         if executor is not None:
