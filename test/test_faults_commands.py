@@ -1,6 +1,7 @@
 """Reliability suite: fuzzed Command values published to a running controller process.
 
-Every invalid Command (NaN, +-inf, negative, > 1, an unknown mode) gets exactly one WARN
+Every invalid Command (NaN, +-inf, negative, > 1, an unknown mode, a virtual gear that is not
+finite or outside [0.3, 8]) gets exactly one WARN
 diagnostic naming the problem; valid ones in between get none; the node stays alive and
 ends cleanly on SIGINT."""
 from __future__ import annotations
@@ -21,11 +22,18 @@ pytestmark = pytest.mark.timeout(60)
 
 
 def _fuzzed_commands(seed: int, count: int):
-    """[(value, mode, expected problem word or None)], about one in four valid."""
+    """[(value, mode, virtual gear, expected problem word or None)], about one in three valid."""
     rng = random.Random(seed)
     out = []
     for _ in range(count):
-        kind = rng.randrange(8)
+        kind = rng.randrange(10)
+        if kind == 8:
+            gear = rng.choice([math.nan, math.inf, -math.inf, -2.75, 0.1, 0.29, 8.01, 1e9])
+            out.append((rng.random(), rng.randrange(5), gear, "gear"))
+            continue
+        if kind == 9:
+            out.append((rng.random(), rng.randrange(5), rng.choice([0.0, 0.3, 2.7471, 8.0]), None))
+            continue
         if kind == 0:
             out.append((rng.random(), rng.randrange(5), None))
         elif kind == 1:
@@ -42,7 +50,7 @@ def _fuzzed_commands(seed: int, count: int):
             out.append((rng.choice([0.0, 1.0]), rng.randrange(5), None))
         else:
             out.append((-rng.random(), rng.randrange(5, 256), None))      # two problems: still one diagnostic
-    return out
+    return [c if len(c) == 4 else (c[0], c[1], 0.0, c[2]) for c in out]
 
 
 def test_fuzzed_commands_one_diagnostic_each(domain):
@@ -53,10 +61,10 @@ def test_fuzzed_commands_one_diagnostic_each(domain):
         col.wait_for(lambda: pub.get_subscription_count() >= 1, 30, "controller's command subscription", [ctrl])
         time.sleep(0.3)                       # the controller's side of the match (volatile QoS)
         commands = _fuzzed_commands(seed=6, count=60)
-        for j, (value, mode, _) in enumerate(commands):
-            pub.publish(msgconv.command_msg(value, mode, msgconv.seconds_to_ns(0.1 * j)))
+        for j, (value, mode, gear, _) in enumerate(commands):
+            pub.publish(msgconv.command_msg(value, mode, msgconv.seconds_to_ns(0.1 * j), gear))
             time.sleep(0.005)
-        bad = [c for c in commands if c[2] is not None or c[0] < 0]
+        bad = [c for c in commands if c[3] is not None or c[0] < 0]
         assert 20 < len(bad) < 60
 
         def rejections():
@@ -68,8 +76,9 @@ def test_fuzzed_commands_one_diagnostic_each(domain):
         assert len(msgs) == len(bad), "exactly one diagnostic per invalid Command"
         assert all(s.level == DiagnosticStatus.WARN for a in col.data["/diagnostics"] for s in a.status
                    if "Command rejected" in s.message)
-        for (value, mode, word), text in zip(bad, msgs):
-            assert word is None or word in text, (value, mode, text)
+        assert sum(c[3] == "gear" for c in bad) >= 3
+        for (value, mode, gear, word), text in zip(bad, msgs):
+            assert word is None or word in text, (value, mode, gear, text)
         assert ctrl.alive()
         ctrl.signal(signal.SIGINT)
         assert ctrl.wait(10) == 0, ctrl.output()

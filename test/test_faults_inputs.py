@@ -263,7 +263,8 @@ def _small_bag(path: pathlib.Path, storage: str) -> None:
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
     for k in range(200):
-        msg = Command(header=Header(stamp=Time(sec=0, nanosec=k * 1000), frame_id=""), command=0.5, mode=0)
+        msg = Command(header=Header(stamp=Time(sec=0, nanosec=k * 1000), frame_id=""), command=0.5, mode=0,
+                      virtual_gear_ratio=0.0)
         sink.write("/bike/command", k * 1000, ts.serialize_cdr(msg, "bike_msgs/msg/Command"))
     sink.close()
 

@@ -762,3 +762,60 @@ def test_trim_holds_on_the_shortfall_of_a_saturated_request():
     for _ in range(100):
         trim.correct(3.0, -2.5, 1e-3, brake_only=True)                     # 0.5 N m short: a model error
     assert trim.trim_nm == pytest.approx(99 * 0.5 * 1e-3 / trim.tau_s)
+
+
+# ------------------------------------------------------------------ virtual shifting
+def test_a_virtual_shift_keeps_the_road_speed_and_scales_the_bike_mass():
+    """A shift keeps the virtual bike's road speed (w_v scales by old / new gear), J_eq follows
+    the gear squared, and on a climb the flywheel, still at the old gear's cadence, is braked
+    harder towards the new gear's; 0 is the config's gear; a gear outside [0.3, 8] is refused."""
+    m = law()
+    c = (0.05 - m.mp.grade_min) / (m.mp.grade_max - m.mp.grade_min)
+    before = settle(m, c, MODE_SLOPE, 80 * GEAR, n=300)
+    v, j = m.virtual_w * m.mps_per_rad_s, m.j_virtual_kgm2
+    m.set_virtual_gear(3.5)
+    assert m.virtual_gear_ratio == 3.5
+    assert m.virtual_w * m.mps_per_rad_s == pytest.approx(v, rel=1e-12)
+    assert m.j_virtual_kgm2 == pytest.approx(j * (3.5 / 2.75) ** 2)
+    after = m.step(c, MODE_SLOPE, 80 * GEAR, DT)
+    assert after.virtual_speed_mps == pytest.approx(before.virtual_speed_mps, rel=0.01)
+    assert after.wanted_torque_nm > before.wanted_torque_nm + 1.0
+    v = m.virtual_w * m.mps_per_rad_s
+    m.set_virtual_gear(0.0)
+    assert m.virtual_gear_ratio == 2.75 and m.virtual_w * m.mps_per_rad_s == pytest.approx(v, rel=1e-12)
+    for bad in (0.1, 9.0, math.nan, math.inf, -2.75, True, "3"):
+        with pytest.raises(ValueError, match="gear"):
+            m.set_virtual_gear(bad)
+    assert m.virtual_gear_ratio == 2.75
+    with pytest.raises(ValueError, match="virtual_gears must rise"):
+        mode_params_from_config({"modes": {"virtual_gears": [1.0, 3.0, 2.0]}})
+    with pytest.raises(ValueError, match="virtual_gears: gear ratio 12"):
+        mode_params_from_config({"modes": {"virtual_gears": [1.0, 12.0]}})
+    with pytest.raises(ValueError, match="list of numbers"):
+        mode_params_from_config({"modes": {"virtual_gears": "1 2 3"}})
+    assert mode_params_from_config({"modes": {"virtual_gears": [1, 2.5]}}).virtual_gears == (1.0, 2.5)
+
+
+def test_plant_virtual_upshift_on_a_climb_drops_the_cadence_not_the_road_speed():
+    """The BLDC plant and its rider on a 5 % climb, shifted from gear 2.1189 to 2.7471 at 4 s
+    (the Command's virtual_gear_ratio): the virtual bike keeps its road speed (unit test above),
+    and within half a second the brake has taken the flywheel down to it, i.e. the cadence to
+    about old / new x the cadence before (a chain would do it at once); the rider, who holds a
+    cadence, then climbs faster in the bigger gear, with more power."""
+    low, high = 2.1189, 2.7471
+    c = (0.05 + 0.2) / 0.4
+    r, ctrl = _ride_plant(lambda t: (c, MODE_SLOPE, low if t < 4.0 else high), 9.0)
+    t = r["time_s"]
+    w = r["speed_rpm"] / RPM_PER_RAD_S
+    wheel_m = ctrl.law.mp.wheel_radius_m
+    road = w * wheel_m * np.where(t < 4.0, low, high) / GEAR
+    cadence = r["speed_rpm"] / GEAR
+    just_before = (t > 3.7) & (t < 4.0)
+    chained = cadence[just_before].mean() * low / high
+    settled = (t > 4.5) & (t < 5.0)
+    assert cadence[settled].mean() == pytest.approx(chained, rel=0.1), (cadence[settled].mean(), chained)
+    assert road[settled].mean() == pytest.approx(road[just_before].mean(), rel=0.1)
+    assert road[t > 8.0].mean() > 1.1 * road[(t > 3.0) & (t < 4.0)].mean()
+    p = -(r["torque_em_nm"] * w)
+    assert p[t > 8.0].mean() > 1.1 * p[(t > 3.0) & (t < 4.0)].mean()
+    assert ctrl.status()["virtual_gear_ratio"] == high

@@ -5,7 +5,7 @@ import pathlib
 import pytest
 
 from bike_session.profiles import (MAX_PROFILE_BYTES, MODES, Profile, ProfileError, load_profile,
-                                   parse_profile, parse_profile_text)
+                                   parse_profile, parse_profile_text, shifted_gear)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -149,6 +149,10 @@ BAD = [
     ("segments:\n  - {kind: step, duration_s: 1, command: 0.1, mode: turbo}\n", "segments[0].mode", "unknown mode"),
     ("segments:\n  - {kind: step, duration_s: 1, command: 0.1, mode: 1}\n", "segments[0].mode", "unknown mode"),
     ("segments:\n  - {kind: step, duration_s: 1, command: 0.1, label: 3}\n", "segments[0].label", "expected a string"),
+    ("segments:\n  - {kind: step, duration_s: 1, command: 0.1, gear: 9}\n", "segments[0].gear", "outside [0.3, 8]"),
+    ("segments:\n  - {kind: step, duration_s: 1, command: 0.1, gear: -2}\n", "segments[0].gear", "outside [0.3, 8]"),
+    ("segments:\n  - {kind: step, duration_s: 1, command: 0.1, gear: .nan}\n", "segments[0].gear", "finite"),
+    ("segments:\n  - {kind: step, duration_s: 1, command: 0.1, gear: big}\n", "segments[0].gear", "expected a number"),
     ("segments:\n  - {kind: step, duration_s: 1, command: 0.1, comand: 2}\n", "segments[0]", "unknown key(s) comand"),
     ("segments:\n  - {kind: ramp, duration_s: 1, start: 0.1}\n", "segments[0]", "missing key 'end'"),
     ("segments:\n  - {kind: ramp, duration_s: 1, start: 0.1, end: 2}\n", "segments[0].end", "[0, 1]"),
@@ -270,3 +274,33 @@ def test_mode_units_follow_the_config():
     u = mode_units_from_config(cfg)
     assert u.erg_power_max_w == 600.0 and u.grade_max == 0.1
     assert load_profile(ROOT / "config" / "profiles" / "all_modes.yaml", units=u).duration_s == 20.0
+
+
+def test_virtual_gears_stay_in_force_until_the_next_one_given():
+    """``gear`` on any segment (inherited by intervals / repeat children) is the virtual gear
+    from its start until a later segment gives another; 0 before any and back to the config's."""
+    p = parse_profile({"mode": "slope", "segments": [
+        {"kind": "step", "duration_s": 2, "command": 0.5},
+        {"kind": "step", "duration_s": 2, "command": 0.6, "gear": 2.1},
+        {"kind": "step", "duration_s": 2, "command": 0.6},
+        {"kind": "intervals", "repeat": 2, "gear": 3.5, "on": {"duration_s": 1, "command": 0.7},
+         "off": {"duration_s": 1, "command": 0.4, "gear": 1.5}},
+        {"kind": "step", "duration_s": 1, "command": 0.5, "gear": 0}]})
+    gears = [p.gear_at(t + 0.5) for t in range(11)]
+    assert gears == [0.0, 0.0, 2.1, 2.1, 2.1, 2.1, 3.5, 1.5, 3.5, 1.5, 0.0]
+    assert p.gear_at(100.0) == 0.0 and p.gear_at(-1.0) == 0.0
+    assert p.command_at(6.5)[:2] == (0.7, MODES["slope"]), "gears change nothing else"
+    assert parse_profile({"segments": [{"kind": "step", "duration_s": 1, "command": 0.1}]}).gear_at(0.5) == 0.0
+
+
+def test_shifted_gear_walks_the_table_and_says_how_far_it_got():
+    table = (1.0, 1.5, 2.0, 3.0)
+    assert shifted_gear(table, 1.5, 1) == (2.0, 1)
+    assert shifted_gear(table, 1.5, -1) == (1.0, -1)
+    assert shifted_gear(table, 1.5, 2) == (3.0, 2)
+    assert shifted_gear(table, 1.5, 5) == (3.0, 2), "two gears above: two taken"
+    assert shifted_gear(table, 3.0, 1) == (3.0, 0), "top gear"
+    assert shifted_gear(table, 1.0, -3) == (1.0, 0), "bottom gear"
+    assert shifted_gear(table, 1.7, 1) == (2.0, 1) and shifted_gear(table, 1.7, -1) == (1.5, -1), \
+        "from a gear off the table: the next one in that direction"
+    assert shifted_gear(table, 2.0 * (1 + 1e-9), 1) == (3.0, 1), "round-off is the same gear"

@@ -76,3 +76,20 @@ def test_replay_refuses_bad_input_with_one_error(tmp_path, ros_domain):
     assert res.returncode == 2 and res.stderr.count("error:") == 1
     res = bike_command("replay", "--help")
     assert res.returncode == 0 and "--config" in res.stdout and "--load" in res.stdout
+
+
+def test_a_replayed_timeline_keeps_its_virtual_gears():
+    """profile_from_timeline: a step per change of command, mode or gear; a gear is given where
+    it changes (and stays in force), 0 included; the final Command's gear (the run's end, as
+    the session sends it) is kept by one step past the end."""
+    from bike_session.profiles import parse_profile
+    from bike_session.replay import profile_from_timeline
+    s = 1_000_000_000
+    timeline = [(0, 0.6, 3, 0.0), (s, 0.6, 3, 2.1), (2 * s, 0.6, 3, 2.1), (3 * s, 0.7, 3, 2.1),
+                (4 * s, 0.7, 3, 0.0), (5 * s, 0.0, 3, 3.5)]
+    doc = profile_from_timeline(timeline, 5.0, "r")
+    assert [seg.get("gear") for seg in doc["segments"]] == [None, 2.1, None, 0.0, 3.5]
+    p = parse_profile(doc)
+    for t, _c, _m, g in timeline:
+        assert p.gear_at(t * 1e-9) == g
+    assert [p.command_at(t * 1e-9)[0] for t, *_ in timeline[:-1]] == [c for _t, c, *_ in timeline[:-1]]

@@ -213,6 +213,7 @@ CONFIG_TEXT = """/**:
 PMAX = 565.4866776461628
 W = 100.0                      # motor speed [rad/s]
 CADENCE = W * RPM_PER_RAD_S / 10.0
+ROAD_MPS = W * 0.335 * 2.75 / 10.0   # the controller's virtual speed: gear 10, virtual gear 2.75, wheel 0.335 m
 
 
 def session_mode(k, erg_targets=(90.0, 120.0)):
@@ -231,7 +232,8 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
                       modes=None, virtual_mps=None, segment=None):
     """A 1 kHz session of n PlantStates (t = i ms): 100 rad/s, 1 N m of braking (100 W),
     rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()
-    (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given;
+    (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given (else
+    ROAD_MPS, what a controller reports for 100 rad/s on CONFIG_TEXT's bike);
     with ``segment(k)``, a RUNNING SessionStatus every 100 ms in that profile segment."""
     from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus
     from rclpy.serialization import serialize_message
@@ -283,7 +285,7 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
                     sink.write(_full("controller_status"), t_ns, status_type(m.header.stamp, i, mode, command))
                 else:
                     s = ControllerStatus(seq=i, command=command, mode=mode, mode_target=target, mode_saturated=sat,
-                                         virtual_speed_mps=virtual_mps(i) if virtual_mps else 0.0)
+                                         virtual_speed_mps=virtual_mps(i) if virtual_mps else ROAD_MPS)
                     s.header.stamp = m.header.stamp
                     sink.write(_full("controller_status"), t_ns, serialize_message(s))
         if segment is not None and i % 100 == 0 and i < n - 1:

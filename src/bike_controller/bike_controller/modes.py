@@ -39,6 +39,12 @@ Modes (``bike_msgs/Command``):
   isokinetic gains). Negative F (downhill)
   gives assist torque, at most ``assist_max_nm`` and only above ``assist_min_cadence_rpm``
   (the motor never starts turning the cranks of a rider who stopped).
+  Virtual shifting: a Command may carry a ``virtual_gear_ratio`` (0: the config's). A shift
+  keeps the virtual bike's road speed, v = w_v r_wheel gear_virtual / gear_ratio, so the
+  virtual motor speed w_v jumps by gear_old / gear_new, and the flywheel is then made to follow
+  it: after an upshift on a climb the brake holds the cranks back until the cadence has fallen
+  to the new gear's, as the chain would on a road bike (at most Tmax, flagged saturated where
+  that binds); J_eq follows the gear squared. Other modes only report the new virtual speed.
 - ISOKINETIC (4): constant cadence c* = cadence_min + C*(cadence_max - cadence_min) by a
   PI speed loop (pole placement on J: both poles at -``isokinetic_bandwidth_rad_s``,
   kp = 2 J wn, ki = J wn^2), braking above c*, assisting below, with integrator clamping.
@@ -61,6 +67,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bike_plant.mechanics import VIRTUAL_GEAR_MAX, VIRTUAL_GEAR_MIN, virtual_gear_problem  # noqa: F401
+
 from .torque_command import RPM_PER_RAD_S, torque_command_nm
 
 MODE_RESISTANCE = 0
@@ -73,6 +81,11 @@ MODE_NAMES = {MODE_RESISTANCE: "resistance", MODE_MOTORING: "motoring", MODE_ERG
 G_MPS2 = 9.80665
 BRAKE_ONLY_MODES = (MODE_RESISTANCE, MODE_ERG)   # laws whose torque is a brake by design (>= 0)
 _log = logging.getLogger(__name__)
+
+# the default table of the session's shift buttons: 24 gears in equal steps (x 1.0904) over
+# Zwift's virtual-gear span 0.75 .. 5.49 (research notes, trainers.md section 3); gear 16
+# (2.747) is about the default virtual_gear_ratio 2.75
+DEFAULT_VIRTUAL_GEARS = tuple(round(0.75 * (5.49 / 0.75) ** (k / 23), 4) for k in range(24))
 
 
 @dataclass(frozen=True)
@@ -90,7 +103,8 @@ class ModeParams:
     air_density_kg_m3: float = 1.204
     wind_mps: float = 0.0                    # head wind positive
     wheel_radius_m: float = 0.335
-    virtual_gear_ratio: float = 2.75         # wheel turns per crank turn (e.g. 50/18)
+    virtual_gear_ratio: float = 2.75         # wheel turns per crank turn (e.g. 50/18); a Command may shift
+    virtual_gears: tuple = DEFAULT_VIRTUAL_GEARS   # the session's shift buttons step through these
     virtual_inertia: bool = True
     observer_tau_s: float = 0.005            # rider-torque observer low-pass
     assist_max_nm: float = 0.0               # 0 -> Tmax
@@ -117,6 +131,18 @@ class ModeParams:
             raise ValueError(f"need -1 <= grade_min < grade_max <= 1, got {self.grade_min!r}, {self.grade_max!r}")
         if not self.isokinetic_cadence_min_rpm < self.isokinetic_cadence_max_rpm:
             raise ValueError("isokinetic_cadence_min_rpm must be below isokinetic_cadence_max_rpm")
+        problem = virtual_gear_problem(self.virtual_gear_ratio, allow_default=False)
+        if problem:
+            raise ValueError(f"virtual_gear_ratio: {problem}")
+        gears = self.virtual_gears
+        if not isinstance(gears, (tuple, list)) or len(gears) < 2:
+            raise ValueError(f"virtual_gears must be a list of at least 2 gear ratios, got {gears!r}")
+        for g in gears:
+            problem = virtual_gear_problem(g, allow_default=False)
+            if problem:
+                raise ValueError(f"virtual_gears: {problem}")
+        if any(b <= a for a, b in zip(gears, gears[1:])):
+            raise ValueError(f"virtual_gears must rise from gear to gear, got {list(gears)!r}")
 
 
 @dataclass
@@ -154,9 +180,7 @@ class ModeLaw:
         self.erg_power_max_w = mp.erg_power_max_w or self.pmax_w
         self.assist_max_nm = mp.assist_max_nm or self.tmax_nm
         self.m_total_kg = mp.rider_mass_kg + mp.bike_mass_kg
-        # v = w_motor * mps_per_rad_s; J_eq = m * mps_per_rad_s^2 (kinetic energy of rider + bike)
-        self.mps_per_rad_s = mp.wheel_radius_m * mp.virtual_gear_ratio / self.gear_ratio
-        self.j_virtual_kgm2 = self.m_total_kg * self.mps_per_rad_s ** 2
+        self._set_gear(mp.virtual_gear_ratio)
         wn = mp.isokinetic_bandwidth_rad_s
         self.kp = 2.0 * self.inertia_kgm2 * wn
         self.ki = self.inertia_kgm2 * wn * wn
@@ -172,6 +196,25 @@ class ModeLaw:
         self.obs_tb = float(torque_nm)        # ... and low-passed applied braking torque
         self.rider_torque_nm = 0.0            # observer output
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
+
+    def _set_gear(self, ratio: float) -> None:
+        self.virtual_gear_ratio = float(ratio)
+        # v = w_motor * mps_per_rad_s; J_eq = m * mps_per_rad_s^2 (kinetic energy of rider + bike)
+        self.mps_per_rad_s = self.mp.wheel_radius_m * self.virtual_gear_ratio / self.gear_ratio
+        self.j_virtual_kgm2 = self.m_total_kg * self.mps_per_rad_s ** 2
+
+    def set_virtual_gear(self, ratio: float) -> None:
+        """Shift the virtual bike to ``ratio`` wheel turns per crank turn (0: the config's
+        gear), keeping its road speed: the virtual motor speed scales by old / new (module
+        docstring). ValueError outside [VIRTUAL_GEAR_MIN, VIRTUAL_GEAR_MAX]."""
+        problem = virtual_gear_problem(ratio)
+        if problem:
+            raise ValueError(problem)
+        new = float(ratio) or self.mp.virtual_gear_ratio
+        if new == self.virtual_gear_ratio:
+            return
+        self.virtual_w *= self.virtual_gear_ratio / new
+        self._set_gear(new)
 
     def _observe(self, w: float, dt_s: float, brake_nm: float) -> None:
         """Rider torque T_r = J dw/dt + T_brake + B w, all through one low-pass (the
@@ -374,6 +417,11 @@ def mode_params_from_config(cfg: dict) -> ModeParams:
         raise ValueError(f"modes: unknown key(s) {', '.join(unknown)}")
     kwargs = {}
     for k, v in section.items():
+        if k == "virtual_gears":
+            if not isinstance(v, list) or not all(isinstance(g, (int, float)) and not isinstance(g, bool) for g in v):
+                raise ValueError(f"modes.virtual_gears must be a list of numbers, got {v!r}")
+            kwargs[k] = tuple(float(g) for g in v)
+            continue
         if isinstance(known[k].default, bool):
             if not isinstance(v, bool):
                 raise ValueError(f"modes.{k} must be true or false, got {v!r}")

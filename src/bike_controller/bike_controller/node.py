@@ -14,10 +14,11 @@ current loop) gets a torque-only answer: the mode torque from the measured speed
 the drive's torque estimate, in DriveCommand.torque_cmd_nm (motoring positive), no gates or
 duties (session_control.DriveTorqueLaw).
 
-Commands: a Command that is not finite, outside [0, 1] or of an unknown mode is rejected
+Commands: a Command that is not finite, outside [0, 1], of an unknown mode or with a virtual gear
+outside [0.3, 8] (0: the config's gear) is rejected
 (WARN diagnostic, ControllerStatus.command_rejected = true until the next valid one); the
 previous command stays in force. Valid Commands go into a timeline sorted by header.stamp,
-kept whole (compact arrays, 17 bytes a Command: ~0.6 MB for an hour at 10 Hz), so that a
+kept whole (compact arrays, 25 bytes a Command: ~0.9 MB for an hour at 10 Hz), so that a
 plant restarted mid-run (seq 0 again) gets the same Commands from t = 0 as the first run.
 
 Determinism (lockstep, docs/DESIGN.md, Lockstep protocol): for the PlantState of batch k
@@ -135,6 +136,7 @@ class ControllerNode(Node):
         self.stamps = array.array("q")     # timeline of valid Commands, sorted by stamp [ns]
         self.values = array.array("d")     # their command values
         self.modes = array.array("B")      # and modes
+        self.gears = array.array("d")      # and virtual gears (0: the config's)
         self.applied_index = -1            # timeline entry in force (-1: config command0/mode0)
         self.rejected = False              # last received Command was invalid
         self.reject_reason = ""
@@ -186,12 +188,14 @@ class ControllerNode(Node):
         i = bisect.bisect_right(self.stamps, stamp)
         if i > 0 and self.stamps[i - 1] == stamp:       # same stamp: the newer one replaces it
             self.values[i - 1], self.modes[i - 1] = float(msg.command), int(msg.mode)
+            self.gears[i - 1] = float(msg.virtual_gear_ratio)
             if self.applied_index == i - 1:
                 self.applied_index = -2                  # force re-application
         else:
             self.stamps.insert(i, stamp)
             self.values.insert(i, float(msg.command))
             self.modes.insert(i, int(msg.mode))
+            self.gears.insert(i, float(msg.virtual_gear_ratio))
             if self.applied_index >= i:
                 self.applied_index += 1
         self.no_session = False
@@ -365,7 +369,7 @@ class ControllerNode(Node):
             return
         value, mode = self.values[i], self.modes[i]
         try:
-            self.ctrl.set_command(value, mode)
+            self.ctrl.set_command(value, mode, self.gears[i])
         except ValueError as exc:                         # the law's own validation
             self.rejected = True
             self.reject_reason = str(exc)

@@ -37,7 +37,7 @@ import numpy as np
 
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
-                    TorqueTrim, mode_params_from_config)
+                    TorqueTrim, mode_params_from_config, virtual_gear_problem)
 
 FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this module imports no ROS)
 FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
@@ -197,15 +197,21 @@ class SessionCommand:
     mode: int = MODE_RESISTANCE
     command_rejected: bool = False
 
-    def set_command(self, command: float, mode: int = MODE_RESISTANCE) -> None:
+    def set_command(self, command: float, mode: int = MODE_RESISTANCE, virtual_gear_ratio: float = 0.0) -> None:
+        """The Command in force; ``virtual_gear_ratio`` shifts the virtual bike
+        (:meth:`ModeLaw.set_virtual_gear`, 0: the config's gear). ValueError: nothing changes."""
         try:
             validate_session_command(command, mode)
+            problem = virtual_gear_problem(virtual_gear_ratio)
+            if problem:
+                raise ValueError(problem)
         except ValueError:
             self.command_rejected = True
             raise
         self.command_rejected = False
         self.command = float(command)
         self.mode = int(mode)
+        self.law.set_virtual_gear(virtual_gear_ratio)
 
 
 class ModedController(SessionCommand):
@@ -282,7 +288,7 @@ class ModedController(SessionCommand):
         self.last_out = out
         speed = float(snapshot.get("speed_rpm", 0.0))
         base = {"seq": int(snapshot.get("seq", 0)), "command": self.command, "mode": self.mode,
-                "command_rejected": self.command_rejected}
+                "command_rejected": self.command_rejected, "virtual_gear_ratio": self.law.virtual_gear_ratio}
         status = drive_status(base, brake, out, speed, self.kt, self.inner.cp.base_speed_rpm, self.trim.trim_nm)
         empty = np.zeros(0, np.uint8)
         return empty, empty.copy(), np.zeros(0), status
@@ -299,6 +305,7 @@ class ModedController(SessionCommand):
         status["mode_saturated"] = bool(out is not None and out.saturated) or self.trim.saturated
         status["mode_ramping"] = bool(out is not None and out.ramping)
         status["virtual_speed_mps"] = float(out.virtual_speed_mps) if out is not None else 0.0
+        status["virtual_gear_ratio"] = self.law.virtual_gear_ratio
         status["torque_trim_nm"] = float(self.trim.trim_nm)
         # the SPMSM's dq telemetry does not apply to this machine
         status.update(family="", speed_ref_rpm=0.0, id_a=0.0, iq_a=0.0, id_ref_a=0.0, iq_ref_a=0.0, vd_v=0.0, vq_v=0.0)

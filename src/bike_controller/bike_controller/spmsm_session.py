@@ -269,7 +269,7 @@ class ModedSpmsmController(SessionCommand):
         brake, out = self.drive_law.step(self.command, self.mode, snapshot)
         self.last_out = out
         base = {"seq": int(snapshot.get("seq", 0)), "command": self.command, "mode": self.mode,
-                "command_rejected": self.command_rejected}
+                "command_rejected": self.command_rejected, "virtual_gear_ratio": self.law.virtual_gear_ratio}
         status = drive_status(base, brake, out, float(snapshot.get("speed_rpm", 0.0)), self.kt,
                               self.base_speed_rpm, self.trim.trim_nm)
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0), status
@@ -289,6 +289,7 @@ class ModedSpmsmController(SessionCommand):
             "mode_saturated": bool(out is not None and out.saturated) or self.trim.saturated,
             "mode_ramping": bool(out is not None and out.ramping),
             "virtual_speed_mps": float(out.virtual_speed_mps) if out is not None else 0.0,
+            "virtual_gear_ratio": self.law.virtual_gear_ratio,
             "torque_trim_nm": float(self.trim.trim_nm),
             "family": self.family, "speed_ref_rpm": st["speed_ref_rpm"], "id_a": st["id_a"], "iq_a": st["iq_a"],
             "id_ref_a": st["id_ref_a"], "iq_ref_a": st["iq_ref_a"], "vd_v": st["vd_v"], "vq_v": st["vq_v"],

@@ -14,6 +14,25 @@ import math
 from .params import RPM_PER_RAD_S, LoadParams
 
 
+# virtual gears (wheel turns per crank turn) a Command or a profile may give: wide enough for
+# any road or track gear (34/34 = 1.0 .. 56/11 = 5.1) and the apps' virtual gear tables
+VIRTUAL_GEAR_MIN = 0.3
+VIRTUAL_GEAR_MAX = 8.0
+
+
+def virtual_gear_problem(ratio, allow_default: bool = True) -> str | None:
+    """Why ``ratio`` is not a virtual gear (None if it is): a number in [VIRTUAL_GEAR_MIN,
+    VIRTUAL_GEAR_MAX], or 0 (the config's gear) where ``allow_default``."""
+    if isinstance(ratio, bool) or not isinstance(ratio, (int, float)) or not math.isfinite(ratio):
+        return f"a gear ratio must be a finite number, got {ratio!r}"
+    if allow_default and ratio == 0:
+        return None
+    if not VIRTUAL_GEAR_MIN <= ratio <= VIRTUAL_GEAR_MAX:
+        return (f"gear ratio {ratio!r} outside [{VIRTUAL_GEAR_MIN:g}, {VIRTUAL_GEAR_MAX:g}] wheel turns per crank turn"
+                + (" (0: the config's gear)" if allow_default else ""))
+    return None
+
+
 def rider_crank_torque_nm(effort: float, cadence_rpm: float, crank_angle_rad: float, load: LoadParams) -> float:
     """Crank torque of the rider (>= 0: a rider pedals, never brakes)."""
     line = max(0.0, 1.0 - cadence_rpm / load.rider_cadence_max_rpm)

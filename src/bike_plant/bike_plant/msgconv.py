@@ -20,6 +20,7 @@ from builtin_interfaces.msg import Time
 from .cdr import CdrError as CdrError  # re-exported: the nodes catch it
 from .cdr import Codec
 from .jit import JIT_HOT
+from .mechanics import virtual_gear_problem
 
 GATE_LIMIT = 64          # 6 gate bits: values 0..63
 
@@ -350,12 +351,13 @@ def command_problem(msg: Command) -> str | None:
     if msg.mode not in (Command.MODE_RESISTANCE, Command.MODE_MOTORING, Command.MODE_ERG, Command.MODE_SLOPE,
                         Command.MODE_ISOKINETIC):
         return f"unknown mode {msg.mode} (0 resistance, 1 motoring, 2 erg, 3 slope, 4 isokinetic)"
-    return None
+    return virtual_gear_problem(msg.virtual_gear_ratio)
 
 
-def command_msg(value: float, mode: int = 0, stamp: int = 0) -> Command:
+def command_msg(value: float, mode: int = 0, stamp: int = 0, virtual_gear_ratio: float = 0.0) -> Command:
     msg = Command()
     msg.header.stamp = time_msg(stamp)
     msg.command = float(value)
     msg.mode = int(mode)
+    msg.virtual_gear_ratio = float(virtual_gear_ratio)
     return msg

@@ -347,6 +347,11 @@ def _cmd_fleet(opts) -> int:
     return 0
 
 
+def _cmd_shift(opts) -> int:
+    from bike_session.shifter import press
+    return press(opts.gears, opts.namespace, opts.domain)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="bike", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -431,6 +436,14 @@ def build_parser() -> argparse.ArgumentParser:
     flt.add_argument("--config", help="bike config (default config/bldc_default.yaml)")
     flt.add_argument("--json", help="also write the figures to this JSON file")
     flt.set_defaults(func=_cmd_fleet)
+
+    shf = sub.add_parser("shift", help="press a running bike's virtual shifter: N gears up, -N down "
+                                       "(std_msgs/Int8 on /<namespace>/shift)")
+    shf.add_argument("gears", type=int, help="gears to shift: 1 up, -1 down, ...")
+    shf.add_argument("--domain", type=int, help="ROS_DOMAIN_ID of the run (`./bike run` prints it; "
+                                                "default: $ROS_DOMAIN_ID)")
+    shf.add_argument("--namespace", default="bike", help="namespace of the bike (default bike)")
+    shf.set_defaults(func=_cmd_shift)
     return parser
 
 

@@ -7,9 +7,11 @@ What goes in, per second of the session (the report's 1 s bins, bike_session.rep
 - ``power`` [W]: the rider's mean mechanical power into the bike in that second (the report's
   rider power, from the plant's energy ledger), what a trainer's power meter reports;
 - ``cadence`` [rpm]: the motor speed over ``load.gear_ratio``;
-- ``speed`` [m/s] and ``distance`` [m]: the road speed the trainer shows, from the cadence
-  through the virtual gear and wheel (``modes.virtual_gear_ratio``, ``modes.wheel_radius_m``,
-  as the report's slope tracking uses), and its integral.
+- ``speed`` [m/s] and ``distance`` [m]: the road speed the trainer shows, the controller's
+  virtual speed (ControllerStatus.virtual_speed_mps: the virtual bike's in slope mode, else
+  the cadence through the virtual gear in force and the wheel), as the report's distance
+  uses (an older bag without it: the cadence through ``modes.virtual_gear_ratio``), and its
+  integral.
 
 Messages: file_id (type activity), a timer start event, the records, a timer stop event, a
 lap per workout segment (where SessionStatus.segment_index changed, as a head unit running a
@@ -28,7 +30,7 @@ import pathlib
 import numpy as np
 
 from bike_session.bags import BagError, read_topic, stamp_s
-from bike_session.report import RPM_PER_RAD_S, SESSION_STATES, SessionData, analyse, series
+from bike_session.report import SESSION_STATES, SessionData, analyse, series
 
 MAX_RECORDS = 7 * 24 * 3600       # one record per second: a week of riding
 
@@ -38,9 +40,7 @@ def activity_arrays(data: SessionData) -> dict:
     distance_m) of the seconds that hold data."""
     s = series(data, points=None, merge=max(1, int(round(1.0 / data.bin_s))))
     keep = np.flatnonzero(np.nan_to_num(s["p_rider"], nan=-1.0) > -1.0)     # bins with PlantStates
-    mc = data.machine
-    mps_per_rad_s = mc["wheel_radius_m"] * mc["virtual_gear_ratio"] / mc["gear_ratio"]
-    speed = np.abs(np.nan_to_num(s["motor_rpm"])) / RPM_PER_RAD_S * mps_per_rad_s
+    speed = np.nan_to_num(s["road_mps"])        # through the virtual gear in force (report)
     width = s["bin_s"]
     t_end = (np.arange(len(speed)) + 1) * width
     distance = np.cumsum(speed * width)

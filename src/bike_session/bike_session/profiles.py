@@ -24,6 +24,12 @@ Segment kinds
   repeat     ``repeat``, ``segments`` (a list of any segments, nesting allowed);
              optional ``mode``/``label`` inherited by the children
 
+Any segment may give ``gear``: the virtual bike's gear ratio (wheel turns per crank turn, 0.3 ..
+8; 0: the config's ``modes.virtual_gear_ratio``) from its start on, inherited like ``mode`` by
+the children of ``intervals`` / ``repeat``; it stays in force until a later segment gives
+another (:meth:`Profile.gear_at`; 0 before any). It shapes slope mode's road load (virtual
+shifting, bike_controller.modes) and the virtual speed of every mode.
+
 Modes are names (``resistance``, ``motoring``, ``erg``, ``slope``, ``isokinetic``) mapped
 to the bike_msgs/Command constants by :data:`MODES`. Commands are in [0, 1]. Instead of a
 command, a step may give ``target`` and a ramp ``start_target`` / ``end_target`` in the
@@ -45,6 +51,7 @@ import pathlib
 from typing import Any, Mapping
 
 import yaml
+from bike_plant.mechanics import virtual_gear_problem
 
 # name -> bike_msgs/msg/Command mode constant (bike_controller.modes)
 MODES: dict[str, int] = {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4}
@@ -56,7 +63,7 @@ MAX_REPEAT = 10_000
 MAX_DEPTH = 16
 KINDS = ("step", "ramp", "intervals", "repeat")
 
-_COMMON = {"kind", "mode", "label"}
+_COMMON = {"kind", "mode", "label", "gear"}
 _KEYS = {
     "step": _COMMON | {"duration_s", "command", "target"},
     "ramp": _COMMON | {"duration_s", "start", "end", "start_target", "end_target"},
@@ -157,7 +164,8 @@ class Profile:
     ``segment_index == len(segments)``, label ``"end"``.
     """
 
-    def __init__(self, name: str, segments: list[Segment], source: str = "<profile>", text: str = ""):
+    def __init__(self, name: str, segments: list[Segment], source: str = "<profile>", text: str = "",
+                 gears: Mapping[int, float] | None = None):
         if not segments:
             raise ProfileError("a profile needs at least one segment", source, "segments")
         self.name = name
@@ -166,6 +174,13 @@ class Profile:
         self.text = text
         self._starts = [s.start_s for s in segments]
         self.duration_s = segments[-1].end_s
+        # the gear in force in each leaf: the last one given at or before it (0: none yet)
+        self.gears_given = dict(gears or {})
+        self._gear_in_force = []
+        gear = 0.0
+        for seg in segments:
+            gear = self.gears_given.get(seg.index, gear)
+            self._gear_in_force.append(gear)
 
     def __repr__(self) -> str:
         return f"Profile({self.name!r}, {len(self.segments)} segments, {self.duration_s:g} s)"
@@ -187,6 +202,12 @@ class Profile:
             return 0.0, last.mode, len(self.segments), "end"
         value = seg.value_at(t_s)
         return min(max(value, 0.0), 1.0), seg.mode, seg.index, seg.label
+
+    def gear_at(self, t_s: float) -> float:
+        """The virtual gear ratio in force at ``t_s`` (0: the config's gear); past the end,
+        the last one."""
+        seg = self.segment_at(t_s)
+        return self._gear_in_force[-1 if seg is None else seg.index]
 
     def timeline(self, period_s: float, duration_s: float | None = None) -> list[tuple[float, float, int]]:
         """[(tau_j, command, mode)] for tau_j = j * period_s, j = 0 .. floor(duration / period)."""
@@ -265,7 +286,7 @@ def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "prof
     builder.segment_list(doc["segments"], "segments", mode, None, 0, "")
     if not builder.leaves:
         raise ProfileError("a profile needs at least one segment", source, "segments")
-    return Profile(name, builder.leaves, source=source)
+    return Profile(name, builder.leaves, source=source, gears=builder.gears)
 
 
 class _Builder:
@@ -273,20 +294,21 @@ class _Builder:
         self.source = source
         self.units = units
         self.leaves: list[Segment] = []
+        self.gears: dict[int, float] = {}      # leaf index -> the gear it gives (or inherits)
         self.t = 0.0
 
     def err(self, where: str, message: str) -> ProfileError:
         return ProfileError(message, self.source, where)
 
-    def segment_list(self, items, where, mode, label, depth, rep):
+    def segment_list(self, items, where, mode, label, depth, rep, gear=None):
         if not isinstance(items, list):
             raise self.err(where, f"expected a list of segments, got {_tname(items)}")
         if not items:
             raise self.err(where, "empty list of segments")
         for i, item in enumerate(items):
-            self.segment(item, f"{where}[{i}]", mode, label, depth, rep)
+            self.segment(item, f"{where}[{i}]", mode, label, depth, rep, gear=gear)
 
-    def segment(self, seg, where, mode, label, depth, rep, default_kind=None):
+    def segment(self, seg, where, mode, label, depth, rep, default_kind=None, gear=None):
         if depth > MAX_DEPTH:
             raise self.err(where, f"segments nested deeper than {MAX_DEPTH} levels")
         if not isinstance(seg, Mapping):
@@ -309,6 +331,11 @@ class _Builder:
             label = seg["label"]
             if not isinstance(label, str):
                 raise self.err(f"{where}.label", f"expected a string, got {_tname(label)}")
+        if "gear" in seg:
+            gear = self.number(seg["gear"], f"{where}.gear")
+            problem = virtual_gear_problem(gear)
+            if problem:
+                raise self.err(f"{where}.gear", problem)
         if kind in ("step", "ramp"):
             duration = self.number(seg["duration_s"], f"{where}.duration_s")
             if duration <= 0:
@@ -320,6 +347,8 @@ class _Builder:
                 end = self.value(seg, "end", "end_target", mode, where)
             if len(self.leaves) >= MAX_LEAF_SEGMENTS:
                 raise self.err(where, f"profile expands to more than {MAX_LEAF_SEGMENTS} segments")
+            if gear is not None:
+                self.gears[len(self.leaves)] = gear
             self.leaves.append(Segment(len(self.leaves), where + rep, self.t, duration, start, end, mode,
                                        label if label is not None else kind))
             self.t += duration
@@ -334,12 +363,12 @@ class _Builder:
                     raise self.err(f"{where}.{part}.kind", f"must be step or ramp, got {body.get('kind')!r}")
             for r in range(count):
                 r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
-                self.segment(seg["on"], f"{where}.on", mode, label, depth + 1, r_tag, "step")
-                self.segment(seg["off"], f"{where}.off", mode, label, depth + 1, r_tag, "step")
+                self.segment(seg["on"], f"{where}.on", mode, label, depth + 1, r_tag, "step", gear=gear)
+                self.segment(seg["off"], f"{where}.off", mode, label, depth + 1, r_tag, "step", gear=gear)
         else:
             for r in range(count):
                 r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
-                self.segment_list(seg["segments"], f"{where}.segments", mode, label, depth + 1, r_tag)
+                self.segment_list(seg["segments"], f"{where}.segments", mode, label, depth + 1, r_tag, gear=gear)
 
     def number(self, value, where) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -380,6 +409,21 @@ class _Builder:
         if not 1 <= value <= MAX_REPEAT:
             raise self.err(where, f"must be in [1, {MAX_REPEAT}], got {value!r}")
         return value
+
+
+def shifted_gear(gears, current: float, steps: int) -> tuple[float, int]:
+    """Shift ``steps`` gears (> 0 up, to a bigger ratio) through the rising table ``gears``
+    from ``current``, which need not be in it (a profile's gear: the first step goes to the
+    next gear of the table in that direction). Returns (new gear, steps taken): fewer than
+    asked at either end of the table, the caller says so."""
+    tol = 1e-6 * current
+    if steps > 0:
+        ahead = [g for g in gears if g > current + tol]
+        taken = min(steps, len(ahead))
+        return (ahead[taken - 1] if taken else current), taken
+    behind = [g for g in gears if g < current - tol][::-1]
+    taken = min(-steps, len(behind))
+    return (behind[taken - 1] if taken else current), -taken
 
 
 def _yaml11_keys(seg: Mapping) -> dict:

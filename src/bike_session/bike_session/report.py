@@ -432,10 +432,10 @@ PLANT_SPEC = (
  P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP, P_RELAY) = range(len(PLANT_SPEC))
 STATUS_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
                ("command", "value", NAN), ("mode_target", "value", NAN), ("mode_saturated", "value", False),
-               ("virtual_speed_mps", "value", NAN))
-STATUS_COLUMNS = 6            # t, mode, command, target, saturated, virtual speed
+               ("virtual_speed_mps", "value", NAN), ("virtual_gear_ratio", "value", NAN))
+STATUS_COLUMNS = 7            # t, mode, command, target, saturated, virtual speed, virtual gear
 COMMAND_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
-                ("command", "value", NAN))
+                ("command", "value", NAN), ("virtual_gear_ratio", "value", 0.0))
 BATTERY_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("voltage", "value", NAN),
                 ("current", "value", NAN), ("percentage", "value", NAN))
 
@@ -457,7 +457,7 @@ def window_bins(bin_s: float) -> int:
     return max(1, int(round(max(WINDOW_S, bin_s) / bin_s)))
 
 
-BIN_SUMS = ["dt", "e_brake", "e_mech", "tq_dt", "rpm_dt", "vbus_dt", "ocv_dt", "soc_dt", "ibat_dt",
+BIN_SUMS = ["dt", "e_brake", "e_mech", "tq_dt", "rpm_dt", "road_m", "vbus_dt", "ocv_dt", "soc_dt", "ibat_dt",
             "bat_v", "bat_v_n", "bat_pct", "bat_pct_n", "bat_i",
             *[f"mode_dt{m}" for m in MODE_NAMES], *[f"target_dt{m}" for m in MODE_NAMES],
             *[f"sat_dt{m}" for m in MODE_NAMES],
@@ -597,6 +597,9 @@ class _Analyser:
         self.command_blocks: list = []
         self.plant_carry = None
         self.status_carry = None
+        self.gear_shifts = 0                      # changes of the virtual gear in force
+        self.gear_first = None
+        self.gear_range = (math.inf, -math.inf)
         self.machine = machine_from_info(None)
         self.info: dict = {}
         self.last_status_raw = None
@@ -700,7 +703,7 @@ class _Analyser:
             block = np.column_stack([c[:, 0] + c[:, 1] * 1e-9, c[:, 2], c[:, 3]])
             self.command_blocks.append(block)
             if not self.use_status:
-                self.status_rows.extend((r[0], r[1], r[2], NAN, False, NAN) for r in block)
+                self.status_rows.extend((r[0], r[1], r[2], NAN, False, NAN, g) for r, g in zip(block, c[:, 4]))
         if self.battery_rows:
             b = np.array(self.battery_rows, dtype=float).reshape(-1, len(BATTERY_SPEC))
             self.battery_rows.clear()
@@ -748,17 +751,22 @@ class _Analyser:
             self._intervals(q, status)
 
     def _status_block(self) -> np.ndarray:
-        """Statuses (t, mode, command, target, saturated, virtual speed) read so far, the carried
-        one first."""
+        """Statuses (t, mode, command, target, saturated, virtual speed, virtual gear: 0 or NaN
+        for the config's) read so far, the carried one first; counts the gear shifts."""
         if self.status_rows:
             s = np.array(self.status_rows, dtype=float).reshape(
                 -1, STATUS_COLUMNS if not self.use_status else len(STATUS_SPEC))
             self.status_rows.clear()
             if self.use_status:
-                s = np.column_stack([s[:, 0] + s[:, 1] * 1e-9, s[:, 2], s[:, 3], s[:, 4], s[:, 5], s[:, 6]])
+                s = np.column_stack([s[:, 0] + s[:, 1] * 1e-9, s[:, 2], s[:, 3], s[:, 4], s[:, 5], s[:, 6], s[:, 7]])
             if self.status_carry is not None:
                 s = np.vstack([self.status_carry, s])
             s = s[np.argsort(s[:, 0], kind="stable")]
+            gear = np.where(np.isfinite(s[:, 6]) & (s[:, 6] > 0), s[:, 6], self.machine["virtual_gear_ratio"])
+            self.gear_shifts += int(np.count_nonzero(np.diff(gear)))
+            if self.status_carry is None:
+                self.gear_first = float(gear[0])
+            self.gear_range = (min(self.gear_range[0], float(gear.min())), max(self.gear_range[1], float(gear.max())))
             self.status_carry = s[-1:].copy()
             return s
         return self.status_carry if self.status_carry is not None else np.zeros((0, STATUS_COLUMNS))
@@ -815,10 +823,19 @@ class _Analyser:
             target = np.where(has, status[idx, 3], np.nan)
             sat = np.where(has, status[idx, 4], 0.0) > 0
             virtual_mps = np.where(has, status[idx, 5], np.nan)
+            gear = np.where(has, status[idx, 6], np.nan)
         else:
             mode = np.full(len(dt), -1, dtype=np.int64)
-            command = target = virtual_mps = np.full(len(dt), np.nan)
+            command = target = virtual_mps = gear = np.full(len(dt), np.nan)
             sat = np.zeros(len(dt), dtype=bool)
+        # the road speed: the controller's virtual speed (in slope mode the virtual bike's, which
+        # a shift does not change while the brake takes the flywheel to the new gear), else the
+        # flywheel's through the gear in force (0 / NaN: the config's; an older bag has none)
+        gear = np.where(np.isfinite(gear) & (gear > 0), gear, mc["virtual_gear_ratio"])
+        mps_per_rad_s = mc["wheel_radius_m"] * gear / mc["gear_ratio"]
+        road_mps = np.where(np.isfinite(virtual_mps), np.abs(virtual_mps),
+                            np.abs(rpm_mid) / RPM_PER_RAD_S * mps_per_rad_s)
+        bins.add("road_m", b, road_mps * dt)
         missing = ~np.isfinite(target)
         if missing.any():
             target = np.where(missing, target_from_command(mode, command, mc), target)
@@ -839,8 +856,7 @@ class _Analyser:
             if not sel.any():
                 continue
             if m == MODE_SLOPE:
-                mps_per_rad_s = mc["wheel_radius_m"] * mc["virtual_gear_ratio"] / mc["gear_ratio"]
-                err = rpm_mid[sel] / RPM_PER_RAD_S * mps_per_rad_s - virtual_mps[sel]
+                err = rpm_mid[sel] / RPM_PER_RAD_S * mps_per_rad_s[sel] - virtual_mps[sel]
             elif m == MODE_ERG:
                 err = p_brake[sel] - target[sel]
             elif m == MODE_ISOKINETIC:
@@ -940,6 +956,10 @@ class _Analyser:
                 out["mean_cadence_rpm"] = float(bins["rpm_dt"].sum() / dtot / mc["gear_ratio"])
             out["time_in_mode_s"] = {MODE_NAMES[m]: float(bins[f"mode_dt{m}"].sum()) for m in MODE_NAMES
                                      if bins[f"mode_dt{m}"].sum() > 0}
+            out["distance_m"] = float(bins["road_m"].sum())
+            if self.gear_first is not None:
+                out["virtual_gear"] = {"first": self.gear_first, "shifts": self.gear_shifts,
+                                       "min": self.gear_range[0], "max": self.gear_range[1]}
             out["tracking"] = tracking(bins, self.bin_s)
             out["erg_response"] = erg_response(bins, self.bin_s)
         first = {}
@@ -1024,7 +1044,7 @@ def series(data: SessionData, n_bins: int | None = None, points: int | None = PL
     dt = b["dt"]
     out = {"t": (np.arange(len(dt)) + 0.5) * width, "bin_s": width,
            "p_brake": _div(b["e_brake"], dt), "p_rider": _div(b["e_mech"], dt),
-           "torque": _div(b["tq_dt"], dt), "motor_rpm": _div(b["rpm_dt"], dt),
+           "torque": _div(b["tq_dt"], dt), "motor_rpm": _div(b["rpm_dt"], dt), "road_mps": _div(b["road_m"], dt),
            "vbus": _div(b["vbus_dt"], dt), "ocv": _div(b["ocv_dt"], dt), "soc": _div(b["soc_dt"], dt),
            "ibat": _div(b["ibat_dt"], dt),
            "bat_v": _div(b["bat_v"], b["bat_v_n"]), "bat_pct": _div(b["bat_pct"], b["bat_pct_n"]),
@@ -1175,6 +1195,10 @@ def format_summary(summary: dict) -> str:
     modes = s.get("time_in_mode_s") or {}
     if modes:
         lines.append("time in mode:          " + ", ".join(f"{k} {v:.2f} s" for k, v in modes.items()))
+    gear = s.get("virtual_gear")
+    if gear:
+        shifted = (f", {gear['shifts']} shift(s), {gear['min']:g} .. {gear['max']:g}" if gear["shifts"] else "")
+        lines.append(f"virtual gear:          {gear['first']:g}{shifted}; distance {s.get('distance_m', 0.0):.0f} m")
     for key, r in (s.get("tracking") or {}).items():
         lines.append(f"tracking {key + ':':<19} rms {_fmt(r.get('rms'), r['unit'], 3)}, max {_fmt(r.get('max_abs'), r['unit'], 3)}"
                      f" ({r['window_s']:g} s windows; per batch rms {_fmt(r.get('rms_batch'), '', 3)},"

@@ -15,6 +15,13 @@ Node name ``session`` (namespace ``/bike`` by default). Parameters:
 - ``config_path`` (string): the scenario config file, used to resolve the profile path and
   recorded verbatim in ``session_info``.
 
+Virtual shifting: every Command carries the gear of the profile segment in force
+(``gear:``, Profile.gear_at; 0 = the config's). A std_msgs/Int8 on ``shift`` (``/bike/shift``;
+``./bike shift N``) moves it N gears up (or -N down) through the config's ``modes.virtual_gears``
+from the next Command not yet sent, until a later segment gives a gear; at either end of the
+table the node logs how many gears it took. Commands sent again (a restarted plant, a re-published
+state) repeat the gear they were first sent with.
+
 Lockstep protocol (DESIGN.md): on every ``/clock`` value t the node publishes the Command
 for every tau_j = j * period_s with tau_j <= t + period_s that it has not published yet,
 stamped tau_j (so at t = 0 it sends tau_0 and tau_1). The command of a tau_j at or after the
@@ -23,6 +30,7 @@ Command of 0, then the node exits with code 0. A bad profile: one error line, ex
 """
 from __future__ import annotations
 
+import array
 import datetime as _dt
 import json
 import math
@@ -33,7 +41,7 @@ import subprocess
 import sys
 import time
 
-from bike_session.profiles import MODE_NAMES, Profile, ProfileError, load_profile
+from bike_session.profiles import MODE_NAMES, Profile, ProfileError, load_profile, shifted_gear
 
 NODE_NAME = "session"
 COMMAND_QOS_DEPTH = 100
@@ -115,6 +123,19 @@ def build_session_info(profile: Profile, profile_path: pathlib.Path, config_path
     }
 
 
+def _mode_params(config_path: str):
+    """The config's ``modes`` section (its virtual gear and gear table); the defaults without a
+    config or when the config is bad (the controller reports its problems and does not start)."""
+    from bike_controller.modes import ModeParams, mode_params_from_config
+    if config_path:
+        from bike_plant.config import ConfigError, load_config
+        try:
+            return mode_params_from_config(load_config(config_path))
+        except (ConfigError, ValueError):
+            pass
+    return ModeParams()
+
+
 def _units(config_path: str):
     """The bike's mode ranges for profile targets; None without a config or when the
     config does not give them (a profile that uses targets then gets its own clear error;
@@ -139,7 +160,7 @@ def _make_node_class():
     from bike_msgs.msg import Command, SessionStatus
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from rosgraph_msgs.msg import Clock
-    from std_msgs.msg import String
+    from std_msgs.msg import Int8, String
 
     any_type = ParameterDescriptor(dynamic_typing=True)
 
@@ -200,6 +221,15 @@ def _make_node_class():
             self.pub_info = self.create_publisher(String, "session_info", latched)
             self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
             self.sub_clock = self.create_subscription(Clock, "/clock", self._on_clock, clock_qos)
+            # virtual shifting: +n / -n gears through the config's modes.virtual_gears
+            modes = _mode_params(config_path)
+            self.config_gear = modes.virtual_gear_ratio
+            self.gear_table = tuple(modes.virtual_gears)
+            self.sub_shift = self.create_subscription(Int8, "shift", self._on_shift, 10)
+            self.live_gear = None        # the gear of the last shift, until a segment gives one
+            self.live_leaf = -1          # the profile leaf in force when it was shifted
+            self.sent_gears = array.array("d")   # the gear of each published tau index j
+            self.shifts = 0
 
             self.next_j = 0              # next tau index to publish
             self.last_status_k = -1      # last period index a status was published for
@@ -255,13 +285,56 @@ def _make_node_class():
                 cmd = 0.0
             return cmd, mode, index, label
 
+        def gear_for(self, j: int) -> float:
+            """The virtual gear of the Command at tau_j (0: the config's): the one it was sent
+            with, else the last shift's until a later profile segment gives a gear, else the
+            profile's (Profile.gear_at)."""
+            if j < len(self.sent_gears):
+                return self.sent_gears[j]
+            tau_s = j * self.period_s
+            if self.live_gear is not None:
+                seg = self.profile.segment_at(tau_s)
+                leaf = len(self.profile.segments) - 1 if seg is None else seg.index
+                if not any(i in self.profile.gears_given for i in range(self.live_leaf + 1, leaf + 1)):
+                    return self.live_gear
+                self.live_gear = None
+            return self.profile.gear_at(tau_s)
+
+        def _on_shift(self, msg) -> None:
+            """A shifter's press: ``msg.data`` gears up (> 0) or down, from the next Command
+            not yet sent (at most 2 session periods after the press)."""
+            steps = int(msg.data)
+            if steps == 0 or self.done:
+                return
+            j = self.next_j
+            current = self.gear_for(j) or self.config_gear
+            new, taken = shifted_gear(self.gear_table, current, steps)
+            t_s = j * self.period_s
+            if taken != steps:
+                end = "top" if steps > 0 else "bottom"
+                self.get_logger().warning(
+                    f"shift {steps:+d} at t = {t_s:g} s: {abs(taken)} gear(s) taken from {current:g}, the {end} of "
+                    f"the table (modes.virtual_gears: {len(self.gear_table)} gears, "
+                    f"{self.gear_table[0]:g} .. {self.gear_table[-1]:g})")
+            if taken == 0:
+                return
+            seg = self.profile.segment_at(t_s)
+            self.live_leaf = len(self.profile.segments) - 1 if seg is None else seg.index
+            self.live_gear = new
+            self.shifts += 1
+            self.get_logger().info(f"shift {taken:+d}: virtual gear {current:g} -> {new:g} from t = {t_s:g} s")
+
         def _publish_command(self, j: int) -> None:
             tau_ns = j * self.period_ns
             cmd, mode, _, _ = self.command_for(tau_ns)
+            gear = self.gear_for(j)
+            while len(self.sent_gears) <= j:          # re-sent Commands repeat their gear
+                self.sent_gears.append(gear)
             msg = self._Command()
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(tau_ns, 1_000_000_000)
             msg.command = float(cmd)
             msg.mode = int(mode)
+            msg.virtual_gear_ratio = float(gear)
             self.pub_command.publish(msg)
             self.commands_published += 1
             self.readers_at_publish = self.pub_command.get_subscription_count()

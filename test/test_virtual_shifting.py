@@ -1,0 +1,86 @@
+"""Virtual shifting in the node graph (separate processes, DDS, lockstep, recorded): the
+profile's gears and a shifter's presses on /bike/shift (std_msgs/Int8: +n up, -n down through
+modes.virtual_gears; `./bike shift N` sends one) reach the controller as the Commands' virtual_gear_ratio; the virtual
+bike keeps its road speed through a shift while the cadence drops; the report counts them."""
+import pathlib
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rosgraph_msgs.msg import Clock
+
+from conftest import bike_command
+
+from bike_session.bags import read_topic, stamp_s
+
+# a 5 % climb: 40 s (long enough for the test's node to discover a graph that runs at several
+# times real time, and for `./bike shift` to start, find the session and press) in gear 13 of the default table, then the profile shifts to gear 16
+PROFILE = """name: shifting_test
+mode: slope
+segments:
+  - {kind: step, duration_s: 40, target: 5, gear: 2.1189}
+  - {kind: step, duration_s: 4, target: 5, gear: 2.7471}
+"""
+
+
+@pytest.mark.slow
+def test_a_shifter_and_the_profile_shift_the_virtual_bike_in_the_node_graph(tmp_path, ros_domain):
+    done = {}
+    profile = tmp_path / "shifting_test.yaml"
+    profile.write_text(PROFILE)
+    record = tmp_path / "rec"
+    run = threading.Thread(target=lambda: done.update(r=bike_command(
+        "run", "--workout", str(profile), "--record", str(record))))
+    run.start()
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("test_shifter", context=context)
+    sim = [0.0]
+    node.create_subscription(Clock, "/clock", lambda m: sim.__setitem__(0, m.clock.sec + m.clock.nanosec * 1e-9), 10)
+    shift_readers = lambda: node.count_subscribers("/bike/shift")      # noqa: E731 - the session's
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        end = time.monotonic() + 200
+        while run.is_alive() and time.monotonic() < end and not (sim[0] >= 2.0 and shift_readers() > 0):
+            executor.spin_once(timeout_sec=0.01)
+        pressed_at = sim[0]
+        assert 2.0 <= pressed_at < 28.0, f"the run was not at 2..28 s of sim time when the shifter was ready: {pressed_at}"
+        # two gears up, in the middle of the first climb, as a user would from a shell
+        shift = bike_command("shift", "2", timeout=60)
+        assert shift.returncode == 0 and "shift +2 sent on /bike/shift" in shift.stdout, shift.stdout + shift.stderr
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        run.join(240)
+    result = done["r"]
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "shift +2: virtual gear 2.1189 -> 2.5193" in result.stdout, result.stdout[-3000:]
+    assert "virtual gear:          2.1189, 2 shift(s), 2.1189 .. 2.7471" in result.stdout, result.stdout[-3000:]
+    bag = next(p for p in record.iterdir() if p.is_dir())
+    commands = read_topic(bag, "command")
+    changes = [(stamp_s(c), c.virtual_gear_ratio) for i, c in enumerate(commands)
+               if i == 0 or c.virtual_gear_ratio != commands[i - 1].virtual_gear_ratio]
+    assert [g for _, g in changes] == [2.1189, 2.5193, 2.7471], changes
+    assert pressed_at <= changes[1][0] < 40.0, "the shift from the next Commands on"
+    assert changes[2][0] == pytest.approx(40.0), "the profile's gear from its segment's start"
+    status = read_topic(bag, "controller_status")
+    t = np.array([stamp_s(s) for s in status])
+    gear = np.array([s.virtual_gear_ratio for s in status])
+    for (t0, g), (t1, _) in zip(changes, changes[1:] + [(44.0, None)]):
+        inside = (t > t0 + 0.01) & (t < t1 - 0.01)
+        assert inside.any() and np.all(gear[inside] == g), (t0, g, np.unique(gear[inside]))
+    # the profile's upshift at 40 s: the virtual bike's road speed runs on, the cadence drops
+    speed = np.array([s.virtual_speed_mps for s in status])
+    before, after = (t > 39.8) & (t < 40.0), (t > 40.0) & (t < 40.2)
+    assert speed[after].mean() == pytest.approx(speed[before].mean(), rel=0.03)
+    states = read_topic(bag, "plant_state")
+    ts = np.array([stamp_s(m) for m in states])
+    rpm = np.array([m.speed_rad_s for m in states])
+    settled = (ts > 40.6) & (ts < 41.0)
+    chained = rpm[(ts > 39.6) & (ts < 40.0)].mean() * 2.5193 / 2.7471      # as a chain would at once
+    assert rpm[settled].mean() == pytest.approx(chained, rel=0.04)
