@@ -819,3 +819,29 @@ def test_plant_virtual_upshift_on_a_climb_drops_the_cadence_not_the_road_speed()
     p = -(r["torque_em_nm"] * w)
     assert p[t > 8.0].mean() > 1.1 * p[(t > 3.0) & (t < 4.0)].mean()
     assert ctrl.status()["virtual_gear_ratio"] == high
+
+
+def test_both_machines_and_a_drive_on_can_report_the_gear_in_force():
+    """The SPMSM's session law, the BLDC's, and the torque-only answer to a drive on CAN take
+    the Command's gear (SessionCommand.set_command) and report it in ControllerStatus; a bad
+    gear is refused and changes nothing."""
+    from bike_controller.session_control import ModedController
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant.config import load_config
+
+    root = pathlib.Path(__file__).resolve().parents[1] / "config"
+    for ctrl in (ModedSpmsmController(load_config(root / "spmsm_default.yaml")),
+                 ModedController(load_config(root / "bldc_default.yaml"))):
+        assert ctrl.status()["virtual_gear_ratio"] == 2.75
+        ctrl.set_command(0.6, MODE_SLOPE, 3.5615)
+        assert ctrl.status()["virtual_gear_ratio"] == 3.5615 and ctrl.law.mps_per_rad_s == pytest.approx(
+            ctrl.law.mp.wheel_radius_m * 3.5615 / ctrl.law.gear_ratio)
+        with pytest.raises(ValueError, match="outside"):
+            ctrl.set_command(0.6, MODE_SLOPE, 12.0)
+        assert ctrl.command_rejected and ctrl.law.virtual_gear_ratio == 3.5615
+        snapshot = {"measured_by_drive": True, "seq": 1, "stamp_ns": 1_000_000, "speed_rpm": 1500.0,
+                    "torque_em_nm": 0.0}
+        *_, status = ctrl.decide(snapshot)
+        assert status["virtual_gear_ratio"] == 3.5615
+        ctrl.set_command(0.6, MODE_SLOPE, 0.0)
+        assert ctrl.status()["virtual_gear_ratio"] == 2.75, "0: the config's gear"

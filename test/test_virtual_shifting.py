@@ -60,6 +60,7 @@ def test_a_shifter_and_the_profile_shift_the_virtual_bike_in_the_node_graph(tmp_
     result = done["r"]
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     assert "shift +2: virtual gear 2.1189 -> 2.5193" in result.stdout, result.stdout[-3000:]
+    assert "commands, 1 shift(s) on /bike/shift)" in result.stdout, result.stdout[-3000:]
     assert "virtual gear:          2.1189, 2 shift(s), 2.1189 .. 2.7471" in result.stdout, result.stdout[-3000:]
     bag = next(p for p in record.iterdir() if p.is_dir())
     commands = read_topic(bag, "command")

@@ -462,8 +462,9 @@ def _make_node_class():
                 self._publish_status(t_ns, SessionStatus.STATE_DONE)
                 self._publish_diag("done")
                 self.done = True
-                self.get_logger().info(f"session done at t = {t_ns * 1e-9:g} s "
-                                       f"({self.commands_published} commands)")
+                self.get_logger().info(f"session done at t = {t_ns * 1e-9:g} s ({self.commands_published} commands"
+                                       + (f", {self.shifts} shift(s) on {self.sub_shift.topic_name}" if self.shifts
+                                          else "") + ")")
                 return
             k = t_ns // self.period_ns
             if k > self.last_status_k:
