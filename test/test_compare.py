@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from test_report import CADENCE, CONFIG_TEXT, SQRT250, real_session, write_session_bag
+from test_report import CADENCE, CONFIG_TEXT, ROAD_MPS, SQRT250, real_session, write_session_bag
 
 from bike_session.compare import compare, main
 from bike_session.report import analyse
@@ -22,7 +22,8 @@ def test_same_bag_twice_all_deltas_zero(tmp_path, capsys):
     assert main([str(bag), str(bag), "--out", str(out)]) == 0
     text = capsys.readouterr().out
     r = json.loads((out / "compare.json").read_text())
-    assert len(r["metrics"]) == 9 + 3 * 4 + 4      # 9 session numbers + 4 per tracked mode + ERG response
+    assert len(r["metrics"]) == 10 + 3 * 4 + 4     # 10 session numbers + 4 per tracked mode + ERG response
+    assert metric(r, "distance_m")["a"] == pytest.approx(ROAD_MPS * 1.0, rel=1e-3), "1 s at the virtual speed"
     for m in r["metrics"]:
         if m["key"] in ("erg_response.median_s", "erg_response.max_s"):
             assert m["a"] is None and m["b"] is None, m      # its one step (90 -> 120 W) never settles

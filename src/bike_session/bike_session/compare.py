@@ -6,11 +6,13 @@ each recording: a 5 s and a 3 s session are compared on 0..3 s, and the text say
 
 Per session, over the overlap (definitions as in :mod:`bike_session.report`):
 
-- ``duration_s``, ``mean_braking_power_w``, ``mean_rider_power_w``, ``mean_cadence_rpm``
+- ``duration_s``, ``mean_braking_power_w``, ``mean_rider_power_w``, ``mean_cadence_rpm``,
+  ``distance_m`` (the virtual bike's road speed integrated: a gear or shifting change shows)
 - ``energy_battery_j``, ``energy_resistor_j``, ``energy_loss_j``, ``energy_mech_in_j``: ledger
   at the end of the overlap minus the ledger at the first PlantState
 - ``peak_phase_current_a``
-- ``tracking``: per mode (ERG power, isokinetic cadence, resistance torque against Eq. 3-4)
+- ``tracking``: per mode (ERG power, isokinetic cadence, resistance torque against Eq. 3-4,
+  slope: the flywheel's road speed against the virtual bike's)
   RMS and max |error| over 0.1 s windows, and per batch
 - ``erg_response``: ERG target steps, how many settled, median and max settle time
   (:func:`bike_session.report.erg_response`), when either session has a step
@@ -47,6 +49,7 @@ METRICS = (
     ("mean_braking_power_w", "mean braking power", "W", 2),
     ("mean_rider_power_w", "mean rider power", "W", 2),
     ("mean_cadence_rpm", "mean cadence", "rpm", 2),
+    ("distance_m", "distance (virtual bike)", "m", 1),
     ("energy_battery_j", "energy into battery", "J", 2),
     ("energy_resistor_j", "energy into resistor", "J", 2),
     ("energy_loss_j", "energy losses", "J", 2),
@@ -70,6 +73,7 @@ def range_metrics(d: SessionData, n: int) -> dict:
         out["mean_braking_power_w"] = float(b["e_brake"].sum() / dur)
         out["mean_rider_power_w"] = float(b["e_mech"].sum() / dur)
         out["mean_cadence_rpm"] = float(b["rpm_dt"].sum() / dur / d.machine["gear_ratio"])
+        out["distance_m"] = float(b["road_m"].sum())
     for key, col in (("energy_battery_j", "E_bat"), ("energy_resistor_j", "E_res"), ("energy_loss_j", "E_loss"),
                      ("energy_mech_in_j", "E_mech")):
         v = b[col][np.isfinite(b[col])]
@@ -168,7 +172,8 @@ def compare(bag_a, bag_b, progress: str | None = None) -> tuple[dict, SessionDat
                         "delta_pct": pct, "digits": digits})
     track = {}
     ta, tb = a["metrics"]["tracking"], b["metrics"]["tracking"]
-    for key in [k for k in ("erg_power", "isokinetic_cadence", "resistance_torque") if k in ta or k in tb]:
+    for key in [k for k in ("erg_power", "isokinetic_cadence", "resistance_torque", "slope_speed")
+                if k in ta or k in tb]:
         ra, rb = ta.get(key) or {}, tb.get(key) or {}
         unit = (ra or rb)["unit"]
         entry = {"unit": unit, "compares": (ra or rb)["compares"], "a": ra or None, "b": rb or None}
