@@ -77,6 +77,27 @@ class _Script(NodeSpec):
         return [sys.executable, "-c", self.code]
 
 
+# a node that ignores SIGINT and SIGTERM (the launcher has to SIGKILL it); says 'ready' first
+STUBBORN = ("import signal, time\nfor s in (signal.SIGINT, signal.SIGTERM): signal.signal(s, signal.SIG_IGN)\n"
+            "print('ready', flush=True)\ntime.sleep(60)")
+
+
+class _Sink:
+    """A launcher's stdout that keeps what it was given (the nodes' prefixed lines)."""
+
+    def __init__(self):
+        self.lines = []
+
+    def write(self, text):
+        self.lines.append(text)
+
+    def flush(self):
+        pass
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+
 def test_launcher_stops_all_when_shutdown_node_exits_and_forwards_sigint(tmp_path):
     marker = tmp_path / "got-sigint"
     waiter = (
@@ -84,30 +105,20 @@ def test_launcher_stops_all_when_shutdown_node_exits_and_forwards_sigint(tmp_pat
         f"def h(*a):\n    pathlib.Path({str(marker)!r}).write_text('x'); sys.exit(0)\n"
         "signal.signal(signal.SIGINT, h)\nprint('waiting', flush=True)\n"
         "while True: time.sleep(0.05)\n")
-    out = []
-
-    class Sink:
-        def write(self, text):
-            out.append(text)
-
-        def flush(self):
-            pass
-
+    out = _Sink()
     launch = Launcher([_Script("quick", "import time; time.sleep(0.5)", shutdown=True), _Script("waiter", waiter)],
-                      stdout=Sink())
+                      stdout=out)
     launch.start()
     start = time.monotonic()
     codes = launch.wait(timeout_s=20)
     assert time.monotonic() - start < 10
     assert codes == {"quick": 0, "waiter": 0}
     assert marker.exists(), "the other node must receive SIGINT, not SIGKILL"
-    assert "[waiter] waiting\n" in out
+    assert "[waiter] waiting\n" in out.lines
 
 
 def test_launcher_escalates_to_sigkill_for_a_node_that_ignores_signals():
-    stubborn = "import signal, time\nfor s in (signal.SIGINT, signal.SIGTERM): signal.signal(s, signal.SIG_IGN)\n" \
-               "time.sleep(60)"
-    launch = Launcher([_Script("stubborn", stubborn)], grace_s=0.5, stdout=open("/dev/null", "w"))
+    launch = Launcher([_Script("stubborn", STUBBORN)], grace_s=0.5, stdout=open("/dev/null", "w"))
     launch.start()
     time.sleep(0.3)
     codes = launch.shutdown()
@@ -115,10 +126,8 @@ def test_launcher_escalates_to_sigkill_for_a_node_that_ignores_signals():
 
 
 def test_a_node_stuck_after_a_normal_end_is_a_warning_but_a_killed_node_fails_the_run(capsys):
-    stubborn = "import signal, time\nfor s in (signal.SIGINT, signal.SIGTERM): signal.signal(s, signal.SIG_IGN)\n" \
-               "time.sleep(60)"
     # the run ends by itself (the shutdown node exits 0); the stubborn node is then SIGKILLed
-    launch = Launcher([_Script("plant", "import time; time.sleep(0.5)", shutdown=True), _Script("stubborn", stubborn)],
+    launch = Launcher([_Script("plant", "import time; time.sleep(0.5)", shutdown=True), _Script("stubborn", STUBBORN)],
                       grace_s=0.5, stdout=open("/dev/null", "w"))
     launch.start()
     codes = launch.wait(timeout_s=30)
@@ -137,22 +146,12 @@ def test_a_node_stuck_after_a_normal_end_is_a_warning_but_a_killed_node_fails_th
 def test_a_node_stuck_after_the_users_ctrl_c_is_named_and_a_warning(capsys):
     """The user stopped the run: it ends as interrupted (the caller's 130), also when a node
     had to be killed on the way out; the launcher says which node, and when."""
-    stubborn = "import signal, time\nfor s in (signal.SIGINT, signal.SIGTERM): signal.signal(s, signal.SIG_IGN)\n" \
-               "print('ready', flush=True)\ntime.sleep(60)"
-    out = []
-
-    class Sink:
-        def write(self, text):
-            out.append(text)
-
-        def flush(self):
-            pass
-
-    launch = Launcher([_Script("plant", "import time; time.sleep(60)", shutdown=True), _Script("stubborn", stubborn)],
-                      grace_s=0.5, stdout=Sink())
+    out = _Sink()
+    launch = Launcher([_Script("plant", "import time; time.sleep(60)", shutdown=True), _Script("stubborn", STUBBORN)],
+                      grace_s=0.5, stdout=out)
     launch.start()
     end = time.monotonic() + 30
-    while "[stubborn] ready\n" not in out and time.monotonic() < end:
+    while "[stubborn] ready\n" not in out.lines and time.monotonic() < end:
         time.sleep(0.05)
     launch.request_stop(signal.SIGINT)
     codes = launch.wait(timeout_s=30)
@@ -160,7 +159,7 @@ def test_a_node_stuck_after_the_users_ctrl_c_is_named_and_a_warning(capsys):
     assert launcher.failed_nodes(launch, codes) == {}
     assert "node 'stubborn' did not stop within 0.5 s of SIGINT when the run was stopped; it was stopped with " \
            "SIGKILL" in capsys.readouterr().err
-    assert "[launcher] still running 0.5 s after SIGINT: stubborn; stopping with SIGTERM" in "".join(out)
+    assert "[launcher] still running 0.5 s after SIGINT: stubborn; stopping with SIGTERM" in out.text()
 
 
 def test_a_project_node_left_running_after_sigint_prints_its_stacks(ros_domain, monkeypatch):
@@ -170,25 +169,17 @@ def test_a_project_node_left_running_after_sigint_prints_its_stacks(ros_domain, 
     from conftest import DEFAULT_CONFIG as CONFIG
 
     monkeypatch.setenv("ROS_DOMAIN_ID", str(ros_domain))
-    out = []
-
-    class Sink:
-        def write(self, text):
-            out.append(text)
-
-        def flush(self):
-            pass
-
+    out = _Sink()
     spec = NodeSpec(pkg="bike_session", exec="session_node", name="session", namespace="bike",
                     params_files=[str(CONFIG)], params={"duration_s": "5.0", "config_path": str(CONFIG)})
-    launch = Launcher([spec], grace_s=0.0, stdout=Sink())
+    launch = Launcher([spec], grace_s=0.0, stdout=out)
     launch.start()
     end = time.monotonic() + 120
-    while "[session] [INFO]" not in "".join(out) and time.monotonic() < end:
-        assert launch.procs["session"].poll() is None, "".join(out)
+    while "[session] [INFO]" not in out.text() and time.monotonic() < end:
+        assert launch.procs["session"].poll() is None, out.text()
         time.sleep(0.05)
     codes = launch.shutdown()
-    text = "".join(out)
+    text = out.text()
     assert "[launcher] still running 0 s after SIGINT: session; stopping with SIGTERM" in text, text
     assert "[session] Current thread" in text or "[session] Thread 0x" in text, text
     assert 'session_node.py", line' in text, text          # the main thread's frames, in the node's code

@@ -37,7 +37,7 @@ import numpy as np
 
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
-                    TorqueTrim, mode_params_from_config, virtual_gear_problem)
+                    TorqueTrim, mode_params_from_config)
 
 FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this module imports no ROS)
 FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
@@ -202,16 +202,13 @@ class SessionCommand:
         (:meth:`ModeLaw.set_virtual_gear`, 0: the config's gear). ValueError: nothing changes."""
         try:
             validate_session_command(command, mode)
-            problem = virtual_gear_problem(virtual_gear_ratio)
-            if problem:
-                raise ValueError(problem)
+            self.law.set_virtual_gear(virtual_gear_ratio)     # checks the gear; shifts only if it is good
         except ValueError:
             self.command_rejected = True
             raise
         self.command_rejected = False
         self.command = float(command)
         self.mode = int(mode)
-        self.law.set_virtual_gear(virtual_gear_ratio)
 
 
 class ModedController(SessionCommand):

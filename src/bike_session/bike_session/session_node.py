@@ -123,31 +123,40 @@ def build_session_info(profile: Profile, profile_path: pathlib.Path, config_path
     }
 
 
-def _mode_params(config_path: str):
+def _bike_config(config_path: str) -> dict | None:
+    """The loaded config, read once for the mode ranges and the gear table; None without a
+    config or when it is bad (the config's problems are the other nodes' to report: the
+    controller does not start)."""
+    if not config_path:
+        return None
+    from bike_plant.config import ConfigError, load_config
+    try:
+        return load_config(config_path)
+    except ConfigError:
+        return None
+
+
+def _mode_params(cfg: dict | None):
     """The config's ``modes`` section (its virtual gear and gear table); the defaults without a
-    config or when the config is bad (the controller reports its problems and does not start)."""
+    (good) config."""
     from bike_controller.modes import ModeParams, mode_params_from_config
-    if config_path:
-        from bike_plant.config import ConfigError, load_config
+    if cfg is not None:
         try:
-            return mode_params_from_config(load_config(config_path))
-        except (ConfigError, ValueError):
+            return mode_params_from_config(cfg)
+        except ValueError:
             pass
     return ModeParams()
 
 
-def _units(config_path: str):
+def _units(cfg: dict | None):
     """The bike's mode ranges for profile targets; None without a config or when the
-    config does not give them (a profile that uses targets then gets its own clear error;
-    the config's problems are the other nodes' to report)."""
-    if not config_path:
+    config does not give them (a profile that uses targets then gets its own clear error)."""
+    if cfg is None:
         return None
-    from bike_plant.config import ConfigError, load_config
-
     from bike_session.profiles import mode_units_from_config
     try:
-        return mode_units_from_config(load_config(config_path))
-    except (ConfigError, ValueError):
+        return mode_units_from_config(cfg)
+    except ValueError:
         return None
 
 
@@ -186,13 +195,14 @@ def _make_node_class():
                 raise SetupError("parameters session.profile and session.workout are empty: give a profile "
                                  "or workout file")
             config_path = p["config_path"]
+            cfg = _bike_config(config_path)
             if p["session.workout"]:
                 profile_path = pathlib.Path(os.path.expanduser(p["session.workout"])).resolve()
-                self.profile = self._load_workout(profile_path, config_path, p)
+                self.profile = self._load_workout(profile_path, config_path, p, _units(cfg))
             else:
                 profile_path = resolve_profile_path(p["session.profile"], config_path)
                 try:
-                    self.profile = load_profile(profile_path, units=_units(config_path))
+                    self.profile = load_profile(profile_path, units=_units(cfg))
                 except ProfileError as exc:
                     raise SetupError(f"bad profile: {exc}") from None
 
@@ -222,7 +232,7 @@ def _make_node_class():
             self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
             self.sub_clock = self.create_subscription(Clock, "/clock", self._on_clock, clock_qos)
             # virtual shifting: +n / -n gears through the config's modes.virtual_gears
-            modes = _mode_params(config_path)
+            modes = _mode_params(cfg)
             self.config_gear = modes.virtual_gear_ratio
             self.gear_table = tuple(modes.virtual_gears)
             self.sub_shift = self.create_subscription(Int8, "shift", self._on_shift, 10)
@@ -261,7 +271,7 @@ def _make_node_class():
                 f"profile {self.profile.name!r} ({self.profile.duration_s:g} s, {len(self.profile.segments)} segments) "
                 f"from {profile_path}; run {self.duration_s:g} s, period {self.period_s:g} s")
 
-        def _load_workout(self, path: pathlib.Path, config_path: str, p: dict) -> Profile:
+        def _load_workout(self, path: pathlib.Path, config_path: str, p: dict, units) -> Profile:
             import warnings
 
             from bike_plant.config import ConfigError, load_config
@@ -271,7 +281,7 @@ def _make_node_class():
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", WorkoutWarning)     # logged below, once each
                     profile = load_workout(path, ftp_w=p["session.ftp_w"] or None, pmax_w=pmax_w,
-                                           over_range=p["session.over_range"], units=_units(config_path))
+                                           over_range=p["session.over_range"], units=units)
             except (ProfileError, ConfigError) as exc:
                 raise SetupError(f"bad workout: {exc}") from None
             for text in getattr(profile, "warnings", []):
