@@ -16,5 +16,6 @@ setup(
     maintainer_email="maintainers@example.org",
     description="Session manager, recorder, launcher and CLI of the bike testbed",
     license="Apache-2.0",
-    entry_points={"console_scripts": ["session_node = bike_plant.entry:session_node", "recorder_node = bike_plant.entry:recorder_node"]},
+    entry_points={"console_scripts": ["session_node = bike_plant.entry:session_node", "recorder_node = bike_plant.entry:recorder_node",
+                                      "ftms_node = bike_plant.entry:ftms_node"]},
 )

@@ -47,3 +47,7 @@ def session_node():
 
 def recorder_node():
     return start("bike_session.recorder_node")
+
+
+def ftms_node():
+    return start("bike_session.ftms_node")

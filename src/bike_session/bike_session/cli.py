@@ -100,6 +100,12 @@ def _cmd_run(opts) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     workout = None
+    ftms_on = getattr(opts, "ftms", False)
+    if ftms_on and not opts.workout:
+        opts.workout = str(repo_root() / "config" / "profiles" / "app_ride.yaml")
+    if ftms_on and not 0 <= opts.ftms_port <= 65535:
+        print(f"error: --ftms-port must be 0..65535, got {opts.ftms_port}", file=sys.stderr)
+        return 2
     if opts.workout:
         workout = _load_workout_for_run(opts, cfg)
         if workout is None:
@@ -117,7 +123,10 @@ def _cmd_run(opts) -> int:
         # each node would otherwise die in rclpy.init with a traceback (an invalid remap rule)
         print(f"error: --namespace {opts.namespace!r}: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
-    args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": namespace}
+    args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": namespace,
+            "overrides": str(repo_root() / "config" / "launch" / "no_overrides.yaml")}
+    if ftms_on:
+        _ftms_run_args(opts, cfg, args)
     can_params = None
     if str(cfg.get("backend", "sim")) == "can":
         can_params = _can_run_args(cfg, args)
@@ -167,6 +176,26 @@ def _cmd_run(opts) -> int:
         print(f"error: the recorder wrote no bag at {bag_path}", file=sys.stderr)
         code = code or 1
     return code
+
+
+def _ftms_run_args(opts, cfg, args: dict) -> None:
+    """--ftms: the bridge node's launch arguments; an app rides on the wall clock, so a lockstep
+    config runs in real time (a parameter file every node takes after the config)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    args.update(ftms="true", ftms_host=opts.ftms_host, ftms_port=str(opts.ftms_port))
+    note = ""
+    if str(cfg.get("sync_mode", "lockstep")) != "realtime":
+        folder = tempfile.mkdtemp(prefix="bike-ftms-")
+        atexit.register(shutil.rmtree, folder, True)
+        path = pathlib.Path(folder) / "realtime.yaml"
+        path.write_text("/**:\n  ros__parameters:\n    sync_mode: realtime\n")
+        args["overrides"] = str(path)
+        note = "; sync_mode realtime (the config's lockstep overridden: an app rides on the wall clock)"
+    print(f"[bike] FTMS over DIRCON on {opts.ftms_host}:{opts.ftms_port}: connect a training app to it{note}",
+          flush=True)
 
 
 def _can_run_args(cfg, args: dict):
@@ -370,6 +399,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
     run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")
     run.add_argument("--launch", help="launch description (default config/launch/bike.launch.yaml)")
+    run.add_argument("--ftms", action="store_true",
+                     help="serve the bike as a smart trainer (Bluetooth FTMS over Wahoo Direct Connect, TCP) "
+                          "for a training app to ride in real time; without --workout the app rides "
+                          "config/profiles/app_ride.yaml (2 h, or Ctrl-C)")
+    run.add_argument("--ftms-host", default="127.0.0.1",
+                     help="address the FTMS bridge listens on (default 127.0.0.1, this host only; 0.0.0.0 for "
+                          "an app on the network)")
+    run.add_argument("--ftms-port", type=int, default=36866, help="its TCP port (default 36866, DIRCON's)")
     run.set_defaults(func=_cmd_run)
 
     rep = sub.add_parser("report", help="summarise a recorded bag: duration, power, energy, peak current, faults")

@@ -75,7 +75,8 @@ class NodeSpec:
 # (bike_plant.entry.start); any other program may die of it or use it (the drive emulator
 # injects a fault), so only these get it
 STACKS_ON_SIGUSR1 = {("bike_plant", "plant_node"), ("bike_controller", "controller_node"),
-                     ("bike_session", "session_node"), ("bike_session", "recorder_node")}
+                     ("bike_session", "session_node"), ("bike_session", "recorder_node"),
+                     ("bike_session", "ftms_node")}
 STACKS_WAIT_S = 0.5
 
 

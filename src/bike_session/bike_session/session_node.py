@@ -22,6 +22,11 @@ from the next Command not yet sent, until a later segment gives a gear; at eithe
 table the node logs how many gears it took. Commands sent again (a restarted plant, a re-published
 state) repeat the gear they were first sent with.
 
+Live Commands: a bike_msgs/Command on ``live_command`` (an app's target through the FTMS
+bridge, bike_session.ftms_node) replaces the profile's mode and value from the next Command
+not yet sent until the next live one or the run's end (a gear other than 0 is shifted to); a
+bad one is one warning. Re-sent Commands repeat what they were first sent with.
+
 Lockstep protocol (DESIGN.md): on every ``/clock`` value t the node publishes the Command
 for every tau_j = j * period_s with tau_j <= t + period_s that it has not published yet,
 stamped tau_j (so at t = 0 it sends tau_0 and tau_1). The command of a tau_j at or after the
@@ -31,6 +36,7 @@ Command of 0, then the node exits with code 0. A bad profile: one error line, ex
 from __future__ import annotations
 
 import array
+import bisect
 import datetime as _dt
 import json
 import math
@@ -240,6 +246,11 @@ def _make_node_class():
             self.live_leaf = -1          # the profile leaf in force when it was shifted
             self.sent_gears = array.array("d")   # the gear of each published tau index j
             self.shifts = 0
+            # live Commands (_on_live_command): from tau index live_from_j[k] on, live_targets[k]
+            self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, 10)
+            self.live_from_j: list[int] = []
+            self.live_targets: list[tuple[float, int, str]] = []
+            self.live_commands = 0
 
             self.next_j = 0              # next tau index to publish
             self.last_status_k = -1      # last period index a status was published for
@@ -291,9 +302,42 @@ def _make_node_class():
         # ---------------------------------------------------------------- timeline
         def command_for(self, tau_ns: int) -> tuple[float, int, int, str]:
             cmd, mode, index, label = self.profile.command_at(tau_ns * 1e-9)
+            k = bisect.bisect_right(self.live_from_j, tau_ns // self.period_ns)
+            if k:
+                cmd, mode, label = self.live_targets[k - 1]
             if tau_ns >= self.duration_ns:
                 cmd = 0.0
             return cmd, mode, index, label
+
+        def _on_live_command(self, msg) -> None:
+            """A live Command (an app's target through bike_session.ftms_node, or anything on
+            ``live_command``): its mode and value replace the profile's from the next Command
+            not yet sent until the next live Command or the run's end; a gear other than 0 is
+            shifted to as ``shift`` would. The header is not read. A bad one: one warning, nothing
+            changes."""
+            if self.done:
+                return
+            from bike_plant.msgconv import command_problem
+            problem = command_problem(msg)
+            if problem is not None:
+                text = f"live Command rejected: {problem}; the Commands go on unchanged"
+                self.get_logger().warning(text)
+                self._publish_diag(text, self._DiagnosticStatus.WARN)
+                return
+            j = self.next_j
+            label = f"live: {MODE_NAMES[int(msg.mode)]} {float(msg.command):.4g}"
+            if self.live_from_j and self.live_from_j[-1] == j:     # not sent yet: replaced
+                self.live_targets[-1] = (float(msg.command), int(msg.mode), label)
+            else:
+                self.live_from_j.append(j)
+                self.live_targets.append((float(msg.command), int(msg.mode), label))
+            if msg.virtual_gear_ratio > 0.0:
+                seg = self.profile.segment_at(j * self.period_s)
+                self.live_leaf = len(self.profile.segments) - 1 if seg is None else seg.index
+                self.live_gear = float(msg.virtual_gear_ratio)
+            self.live_commands += 1
+            self.get_logger().info(f"{label} from t = {j * self.period_s:g} s"
+                                   + (f", virtual gear {msg.virtual_gear_ratio:g}" if msg.virtual_gear_ratio else ""))
 
         def gear_for(self, j: int) -> float:
             """The virtual gear of the Command at tau_j (0: the config's): the one it was sent
@@ -474,7 +518,9 @@ def _make_node_class():
                 self.done = True
                 self.get_logger().info(f"session done at t = {t_ns * 1e-9:g} s ({self.commands_published} commands"
                                        + (f", {self.shifts} shift(s) on {self.sub_shift.topic_name}" if self.shifts
-                                          else "") + ")")
+                                          else "")
+                                       + (f", {self.live_commands} live Command(s) on {self.sub_live.topic_name}"
+                                          if self.live_commands else "") + ")")
                 return
             k = t_ns // self.period_ns
             if k > self.last_status_k:

@@ -1,0 +1,328 @@
+"""Fitness Machine Service (Bluetooth FTMS 1.0, service 0x1826) of an indoor bike: the bytes
+a training app reads, writes and is notified of, and what its control requests mean for
+this bike's Commands. No transport and no ROS here (bike_session.dircon carries it over
+TCP, bike_session.ftms_node joins it to the graph).
+
+Characteristics served (values little endian, as in BLE):
+
+- Fitness Machine Feature 0x2ACC (read): 32-bit machine features (cadence, total distance,
+  resistance level, elapsed time, power) and 32-bit target-setting features (inclination,
+  resistance, power, indoor bike simulation).
+- Indoor Bike Data 0x2AD2 (notify): speed 0.01 km/h, cadence 0.5 rpm, total distance m
+  (uint24), resistance level, power W, elapsed time s.
+- Supported Inclination / Resistance Level / Power Range 0x2AD5 / 0x2AD6 / 0x2AD8 (read):
+  the bike's Command ranges (bike_session.profiles.ModeUnits), so an app never has to guess.
+- Fitness Machine Control Point 0x2AD9 (write; its response [0x80, op, result] is notified,
+  BLE's indication) and Fitness Machine Status 0x2ADA (notify).
+
+What a control request does (:class:`FtmsControl`):
+
+| op | request | Command (mode, value) |
+|---|---|---|
+| 0x00 | Request Control | (none; needed before any other op, else result 5) |
+| 0x01 | Reset | resistance 0 (brake released), control given up |
+| 0x03 | Target Inclination, sint16 0.1 % | slope, grade mapped onto [grade_min, grade_max] |
+| 0x04 | Target Resistance Level, uint8 or sint16, 0.1 | resistance, level / 100 |
+| 0x05 | Target Power, sint16 W | erg, P / erg_power_max_w |
+| 0x07 / 0x08 | Start or Resume / Stop or Pause | the target before the stop again / resistance 0 |
+| 0x11 | Indoor Bike Simulation: wind 0.001 m/s, grade 0.01 %, Crr 1e-4, Cw 0.01 kg/m | slope at the grade |
+
+A target outside the advertised range is refused with result 3 (invalid parameter) and a
+message, except the simulation grade: apps send the road's grade as it comes, so a grade
+beyond the bike's range is ridden at the range's end, and said (the message names both).
+The simulation's wind, Crr and Cw are not applied (the config's road load stands, modes.*);
+a change of them is said once. Ops this bike does not do (target speed, heart rate, wheel
+circumference, spin down, targeted cadence, ...) get result 2 (not supported).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import struct
+
+from bike_session.profiles import MODES, ModeUnits
+
+# 16-bit UUIDs (Bluetooth SIG assigned numbers)
+FTMS_SERVICE = 0x1826
+FEATURE = 0x2ACC
+INDOOR_BIKE_DATA = 0x2AD2
+INCLINATION_RANGE = 0x2AD5
+RESISTANCE_RANGE = 0x2AD6
+POWER_RANGE = 0x2AD8
+CONTROL_POINT = 0x2AD9
+STATUS = 0x2ADA
+
+# Control Point op codes
+OP_REQUEST_CONTROL = 0x00
+OP_RESET = 0x01
+OP_TARGET_SPEED = 0x02
+OP_TARGET_INCLINATION = 0x03
+OP_TARGET_RESISTANCE = 0x04
+OP_TARGET_POWER = 0x05
+OP_TARGET_HEART_RATE = 0x06
+OP_START_RESUME = 0x07
+OP_STOP_PAUSE = 0x08
+OP_SIMULATION = 0x11
+OP_RESPONSE = 0x80
+
+# Control Point result codes
+RESULT_SUCCESS = 0x01
+RESULT_NOT_SUPPORTED = 0x02
+RESULT_INVALID_PARAMETER = 0x03
+RESULT_FAILED = 0x04
+RESULT_NOT_PERMITTED = 0x05
+
+# Fitness Machine Status op codes
+STATUS_RESET = 0x01
+STATUS_STOPPED_PAUSED = 0x02
+STATUS_STARTED_RESUMED = 0x04
+STATUS_INCLINE_CHANGED = 0x06
+STATUS_RESISTANCE_CHANGED = 0x07
+STATUS_POWER_CHANGED = 0x08
+STATUS_SIMULATION_CHANGED = 0x12
+STATUS_CONTROL_LOST = 0xFF
+
+OP_NAMES = {0x00: "request control", 0x01: "reset", 0x02: "target speed", 0x03: "target inclination",
+            0x04: "target resistance level", 0x05: "target power", 0x06: "target heart rate",
+            0x07: "start or resume", 0x08: "stop or pause", 0x09: "targeted expended energy",
+            0x0A: "targeted number of steps", 0x0B: "targeted number of strides", 0x0C: "targeted distance",
+            0x0D: "targeted training time", 0x0E: "targeted time in two heart rate zones",
+            0x0F: "targeted time in three heart rate zones", 0x10: "targeted time in five heart rate zones",
+            0x11: "indoor bike simulation parameters", 0x12: "wheel circumference", 0x13: "spin down control",
+            0x14: "targeted cadence"}
+
+# Feature bits (FTMS 1.0, 4.3.1.1 / 4.3.1.2)
+MACHINE_CADENCE = 1 << 1
+MACHINE_TOTAL_DISTANCE = 1 << 2
+MACHINE_RESISTANCE_LEVEL = 1 << 7
+MACHINE_ELAPSED_TIME = 1 << 12
+MACHINE_POWER = 1 << 14
+TARGET_INCLINATION = 1 << 1
+TARGET_RESISTANCE = 1 << 2
+TARGET_POWER = 1 << 3
+TARGET_SIMULATION = 1 << 13
+
+# Indoor Bike Data flags: bit 0 clear = instantaneous speed present
+IBD_CADENCE = 1 << 2
+IBD_DISTANCE = 1 << 4
+IBD_RESISTANCE = 1 << 5
+IBD_POWER = 1 << 6
+IBD_ELAPSED = 1 << 11
+
+RESISTANCE_LEVEL_MAX = 100.0    # levels 0..100 (0.1 steps) = resistance Command 0..1
+
+
+def encode_feature() -> bytes:
+    machine = MACHINE_CADENCE | MACHINE_TOTAL_DISTANCE | MACHINE_RESISTANCE_LEVEL | MACHINE_ELAPSED_TIME | MACHINE_POWER
+    target = TARGET_INCLINATION | TARGET_RESISTANCE | TARGET_POWER | TARGET_SIMULATION
+    return struct.pack("<II", machine, target)
+
+
+def _fit(value: float, lo: int, hi: int) -> int:
+    """A telemetry value in its field's integer range (the field's ends: a bike at 0 km/h
+    backwards, or past 16777 km, shows the end, as any trainer's display would)."""
+    if not math.isfinite(value):
+        return 0
+    return int(min(max(round(value), lo), hi))
+
+
+def encode_indoor_bike_data(*, speed_kmh: float, cadence_rpm: float, distance_m: float, resistance_level: float,
+                            power_w: float, elapsed_s: float) -> bytes:
+    """Indoor Bike Data (0x2AD2) with every field this bike measures."""
+    flags = IBD_CADENCE | IBD_DISTANCE | IBD_RESISTANCE | IBD_POWER | IBD_ELAPSED
+    distance = _fit(distance_m, 0, 0xFFFFFF)
+    return (struct.pack("<HHH", flags, _fit(speed_kmh * 100, 0, 0xFFFF), _fit(cadence_rpm * 2, 0, 0xFFFF))
+            + distance.to_bytes(3, "little")
+            + struct.pack("<hhH", _fit(resistance_level * 10, -32768, 32767), _fit(power_w, -32768, 32767),
+                          _fit(elapsed_s, 0, 0xFFFF)))
+
+
+@dataclasses.dataclass(frozen=True)
+class IndoorBikeData:
+    speed_kmh: float
+    cadence_rpm: float
+    distance_m: int
+    resistance_level: float
+    power_w: int
+    elapsed_s: int
+
+
+def decode_indoor_bike_data(data: bytes) -> IndoorBikeData:
+    """The fields :func:`encode_indoor_bike_data` writes (an app's view; ValueError otherwise)."""
+    if len(data) != 15 or struct.unpack_from("<H", data)[0] != (IBD_CADENCE | IBD_DISTANCE | IBD_RESISTANCE
+                                                                | IBD_POWER | IBD_ELAPSED):
+        raise ValueError(f"not this bike's Indoor Bike Data: {data.hex()}")
+    _, speed, cadence = struct.unpack_from("<HHH", data)
+    distance = int.from_bytes(data[6:9], "little")
+    level, power, elapsed = struct.unpack_from("<hhH", data, 9)
+    return IndoorBikeData(speed / 100, cadence / 2, distance, level / 10, power, elapsed)
+
+
+@dataclasses.dataclass(frozen=True)
+class Target:
+    """What the app asked for, as the session's live Command (bike_msgs/Command)."""
+
+    mode: int
+    command: float
+    text: str          # for the log, e.g. "target power 150 W"
+
+
+@dataclasses.dataclass
+class Reply:
+    """The outcome of one Control Point write."""
+
+    response: bytes                 # notified on the Control Point: [0x80, op, result]
+    status: bytes | None = None     # notified on Fitness Machine Status
+    target: Target | None = None    # a new Command for the session
+    message: str | None = None      # a line for the log (refusals and clamps: a warning)
+    warning: bool = False
+
+
+class FtmsControl:
+    """The Control Point of one bike: who has control and what it asked for."""
+
+    def __init__(self, units: ModeUnits):
+        self.units = units
+        self.controlled = False
+        self.running_target: Target | None = None    # the target a Stop keeps for a Resume
+        self.stopped = False
+        self.simulation_extra = None                  # (wind, crr, cw) last said
+
+    # ---- the read-only ranges
+    def encode_power_range(self) -> bytes:
+        return struct.pack("<hhH", 0, int(math.floor(self.units.erg_power_max_w)), 1)
+
+    def encode_inclination_range(self) -> bytes:
+        return struct.pack("<hhH", math.ceil(self.units.grade_min * 1000 - 1e-9),
+                           math.floor(self.units.grade_max * 1000 + 1e-9), 1)
+
+    def encode_resistance_range(self) -> bytes:
+        return struct.pack("<hhH", 0, int(RESISTANCE_LEVEL_MAX * 10), 1)
+
+    # ---- the Control Point
+    def write(self, data: bytes) -> Reply:
+        if not data:
+            return Reply(bytes([OP_RESPONSE, 0, RESULT_INVALID_PARAMETER]), message="empty Control Point write",
+                         warning=True)
+        op, param = data[0], bytes(data[1:])
+        name = OP_NAMES.get(op, f"op 0x{op:02x}")
+
+        def result(code: int, message: str | None = None, *, warning: bool = True, **kw) -> Reply:
+            return Reply(bytes([OP_RESPONSE, op, code]), message=message, warning=warning, **kw)
+
+        if op == OP_REQUEST_CONTROL:
+            self.controlled = True
+            return result(RESULT_SUCCESS, "control granted", warning=False)
+        if op not in OP_NAMES:
+            return result(RESULT_NOT_SUPPORTED, f"unknown Control Point op 0x{op:02x} ({len(param)} parameter bytes)")
+        if not self.controlled:
+            return result(RESULT_NOT_PERMITTED, f"{name} before Request Control: refused")
+        handler = {OP_RESET: self._reset, OP_TARGET_INCLINATION: self._inclination,
+                   OP_TARGET_RESISTANCE: self._resistance, OP_TARGET_POWER: self._power,
+                   OP_START_RESUME: self._start, OP_STOP_PAUSE: self._stop, OP_SIMULATION: self._simulation}.get(op)
+        if handler is None:
+            return result(RESULT_NOT_SUPPORTED, f"{name}: not supported by this bike")
+        return handler(op, name, param)
+
+    def _sized(self, op, name, param, sizes) -> Reply | None:
+        if len(param) not in sizes:
+            want = " or ".join(str(s) for s in sizes)
+            return Reply(bytes([OP_RESPONSE, op, RESULT_INVALID_PARAMETER]), warning=True,
+                         message=f"{name}: {len(param)} parameter bytes, expected {want}")
+        return None
+
+    def _set(self, op, target: Target, status: bytes, message: str | None = None, warning: bool = False) -> Reply:
+        self.running_target = target
+        if self.stopped:          # a new target while stopped is kept for the Resume
+            return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=status, message=message or
+                         f"{target.text} (kept: stopped until Start or Resume)", warning=warning)
+        return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=status, target=target,
+                     message=message or target.text, warning=warning)
+
+    def _refuse(self, op, message: str) -> Reply:
+        return Reply(bytes([OP_RESPONSE, op, RESULT_INVALID_PARAMETER]), message=message, warning=True)
+
+    def _power(self, op, name, param) -> Reply:
+        bad = self._sized(op, name, param, (2,))
+        if bad:
+            return bad
+        (watts,) = struct.unpack("<h", param)
+        try:
+            command, _ = self.units.to_command(MODES["erg"], float(watts))
+        except ValueError as exc:
+            return self._refuse(op, f"{name} {watts} W refused: {exc}")
+        return self._set(op, Target(MODES["erg"], command, f"target power {watts} W"),
+                         bytes([STATUS_POWER_CHANGED]) + param)
+
+    def _inclination(self, op, name, param) -> Reply:
+        bad = self._sized(op, name, param, (2,))
+        if bad:
+            return bad
+        (tenths,) = struct.unpack("<h", param)
+        try:
+            command, _ = self.units.to_command(MODES["slope"], tenths / 10)
+        except ValueError as exc:
+            return self._refuse(op, f"{name} {tenths / 10:g} % refused: {exc}")
+        return self._set(op, Target(MODES["slope"], command, f"target inclination {tenths / 10:g} %"),
+                         bytes([STATUS_INCLINE_CHANGED]) + param)
+
+    def _resistance(self, op, name, param) -> Reply:
+        # the spec's uint8 (0.1 steps, so at most 25.5); several apps write a sint16 instead
+        bad = self._sized(op, name, param, (1, 2))
+        if bad:
+            return bad
+        tenths = param[0] if len(param) == 1 else struct.unpack("<h", param)[0]
+        level = tenths / 10
+        if not 0.0 <= level <= RESISTANCE_LEVEL_MAX:
+            return self._refuse(op, f"{name} {level:g} refused: outside [0, {RESISTANCE_LEVEL_MAX:g}]")
+        return self._set(op, Target(MODES["resistance"], level / RESISTANCE_LEVEL_MAX,
+                                    f"target resistance level {level:g}"),
+                         bytes([STATUS_RESISTANCE_CHANGED, min(tenths, 255)]))
+
+    def _simulation(self, op, name, param) -> Reply:
+        bad = self._sized(op, name, param, (6,))
+        if bad:
+            return bad
+        wind_mm_s, grade_hundredths, crr, cw = struct.unpack("<hhBB", param)
+        grade_pct = grade_hundredths / 100
+        lo, hi = 100 * self.units.grade_min, 100 * self.units.grade_max
+        ridden = min(max(grade_pct, lo), hi)
+        notes = []
+        if ridden != grade_pct:
+            notes.append(f"grade {grade_pct:g} % is beyond this bike's [{lo:g}, {hi:g}] %: ridden at {ridden:g} %")
+        extra = (wind_mm_s, crr, cw)
+        if extra != self.simulation_extra:
+            self.simulation_extra = extra
+            notes.append(f"wind {wind_mm_s / 1000:g} m/s, Crr {crr / 1e4:g}, Cw {cw / 100:g} kg/m not applied: "
+                         "the config's road load (modes.*) stands")
+        command, _ = self.units.to_command(MODES["slope"], ridden)
+        target = Target(MODES["slope"], command, f"simulation grade {grade_pct:g} %")
+        message = target.text + ("; " + "; ".join(notes) if notes else "")
+        return self._set(op, target, bytes([STATUS_SIMULATION_CHANGED]) + param, message,
+                         warning=ridden != grade_pct)
+
+    def _reset(self, op, name, param) -> Reply:
+        self.controlled = False
+        self.stopped = False
+        self.running_target = None
+        target = Target(MODES["resistance"], 0.0, "reset: brake released, control given up")
+        return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=bytes([STATUS_RESET]), target=target,
+                     message=target.text)
+
+    def _stop(self, op, name, param) -> Reply:
+        bad = self._sized(op, name, param, (1,))
+        if bad:
+            return bad
+        if param[0] not in (1, 2):
+            return self._refuse(op, f"{name}: parameter {param[0]} (1 stop, 2 pause)")
+        self.stopped = True
+        word = "stop" if param[0] == 1 else "pause"
+        return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=bytes([STATUS_STOPPED_PAUSED, param[0]]),
+                     target=Target(MODES["resistance"], 0.0, f"{word}: brake released"),
+                     message=f"{word}: brake released")
+
+    def _start(self, op, name, param) -> Reply:
+        self.stopped = False
+        target = self.running_target
+        return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=bytes([STATUS_STARTED_RESUMED]),
+                     target=target, message="start or resume" + (f": {target.text}" if target else ""))

@@ -1,0 +1,268 @@
+"""FTMS bridge node ``ftms``: the bike as a smart trainer on the network, so that a training
+app (Zwift, FulGaz, Rouvy, Wahoo SYSTM, MyWhoosh, QZ, ...) rides it over Wahoo Direct Connect
+(bike_session.dircon: FTMS's GATT over TCP, port 36866).
+
+- The app's Control Point requests (bike_session.ftms.FtmsControl: target power, inclination,
+  resistance level, simulation grade, stop / resume, reset) become live Commands on
+  ``live_command``, which the session node puts in its timeline from the next Command not
+  yet sent (so one writer of ``command`` stays, and the bag and ``./bike replay`` have them).
+- Every ``ftms.notify_period_s`` wall seconds the app is notified of Indoor Bike Data from the
+  graph: power = the rider's mechanical power into the shaft over the interval (the plant's
+  energy ledger, energy_mech_in_j: exact, whatever the batch rate), cadence = flywheel speed
+  / load.gear_ratio, speed and distance = the virtual bike's (ControllerStatus.virtual_speed_mps,
+  which follows the virtual gear), elapsed = the session's.
+
+Parameters: ``config_path`` (the bike's ranges and gear), ``ftms.host`` (127.0.0.1: only this
+host, like DDS discovery; 0.0.0.0 to let an app on the network in), ``ftms.port`` (36866;
+0 = any free port, logged), ``ftms.notify_period_s`` (0.25).
+
+An app should ride in real time (``./bike run --ftms`` sets sync_mode realtime). Plant state
+and controller status come once per batch; they are taken serialized and only the latest
+is decoded, at notification time (bike_plant.cdr), so the bridge costs the graph little.
+"""
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+
+from bike_session import dircon, ftms
+
+NODE_NAME = "ftms"
+
+
+class SetupError(Exception):
+    """A start-up problem reported as one line on stderr (exit code 2)."""
+
+
+def services_for(control: ftms.FtmsControl, telemetry, on_control_point) -> dict:
+    """The GATT table served over DIRCON: the Fitness Machine Service."""
+    C, R, W, N = dircon.Characteristic, dircon.PROP_READ, dircon.PROP_WRITE, dircon.PROP_NOTIFY
+    return {ftms.FTMS_SERVICE: [
+        C(ftms.FEATURE, R, read=ftms.encode_feature),
+        C(ftms.INDOOR_BIKE_DATA, R | N, read=telemetry),
+        C(ftms.INCLINATION_RANGE, R, read=control.encode_inclination_range),
+        C(ftms.RESISTANCE_RANGE, R, read=control.encode_resistance_range),
+        C(ftms.POWER_RANGE, R, read=control.encode_power_range),
+        C(ftms.CONTROL_POINT, W | N, write=on_control_point),
+        C(ftms.STATUS, N),
+    ]}
+
+
+class Telemetry:
+    """Indoor Bike Data from the latest plant state, controller status and session status
+    (plain numbers in, so it is tested without ROS). Power is the rider's mean over the last
+    ``power_window_s`` of sim time (the energy ledger's difference): a crank torque pulses
+    twice a revolution, and a shorter window shows that pulse, not the effort, as a
+    trainer's own power figure (averaged over about a second or a revolution) does not."""
+
+    def __init__(self, gear_ratio: float, power_window_s: float = 1.0):
+        import collections
+        self.gear_ratio = gear_ratio
+        self.window_ns = int(power_window_s * 1e9)
+        self.samples: collections.deque = collections.deque()    # (stamp_ns, energy_mech_in_j)
+        self.power_w = 0.0
+        self.distance_m = 0.0
+        self.speed_mps = 0.0
+        self.cadence_rpm = 0.0
+        self.level = 0.0
+        self.elapsed_s = 0.0
+
+    def update(self, *, stamp_ns: int, energy_mech_in_j: float, speed_rpm: float, virtual_speed_mps: float,
+               resistance_level: float, elapsed_s: float) -> None:
+        speed = virtual_speed_mps if math.isfinite(virtual_speed_mps) else 0.0
+        if self.samples and stamp_ns < self.samples[-1][0]:
+            self.samples.clear()           # a new run of the plant (restarted): a new ride
+            self.distance_m = 0.0
+        if not self.samples or stamp_ns > self.samples[-1][0]:
+            if self.samples:
+                self.distance_m += 0.5 * (self.speed_mps + speed) * (stamp_ns - self.samples[-1][0]) * 1e-9
+            self.samples.append((stamp_ns, energy_mech_in_j))
+            while len(self.samples) > 2 and self.samples[1][0] <= stamp_ns - self.window_ns:
+                self.samples.popleft()
+            t0, e0 = self.samples[0]
+            if stamp_ns > t0:
+                self.power_w = (energy_mech_in_j - e0) / ((stamp_ns - t0) * 1e-9)
+        self.speed_mps = speed
+        self.cadence_rpm = speed_rpm / self.gear_ratio
+        self.level = resistance_level
+        self.elapsed_s = elapsed_s
+
+    def encode(self) -> bytes:
+        return ftms.encode_indoor_bike_data(speed_kmh=3.6 * self.speed_mps, cadence_rpm=self.cadence_rpm,
+                                            distance_m=self.distance_m, resistance_level=self.level,
+                                            power_w=self.power_w, elapsed_s=self.elapsed_s)
+
+
+def _bike_figures(config_path: str):
+    """(ModeUnits, gear ratio) of the config; SetupError names what is wrong."""
+    from bike_plant.config import ConfigError, load_config
+
+    from bike_controller.modes import machine_figures
+    from bike_session.profiles import mode_units_from_config
+    try:
+        cfg = load_config(config_path or None)
+        return mode_units_from_config(cfg), machine_figures(cfg).gear_ratio
+    except (ConfigError, ValueError) as exc:
+        raise SetupError(f"bad config: {exc}") from None
+
+
+def _make_node_class():
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.node import Node
+
+    from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus
+    from bike_plant.cdr import Codec, CdrError
+    from bike_plant.loop import REALTIME_QOS
+    from bike_plant.msgconv import PlantStateView
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    any_type = ParameterDescriptor(dynamic_typing=True)
+    status_codec = Codec(ControllerStatus)
+
+    class FtmsNode(Node):
+        def __init__(self, **kwargs):
+            super().__init__(NODE_NAME, **kwargs)
+            config_path = self.declare_parameter("config_path", "").value
+            host = self.declare_parameter("ftms.host", "127.0.0.1").value
+            port = self.declare_parameter("ftms.port", dircon.DEFAULT_PORT, any_type).value
+            period = self.declare_parameter("ftms.notify_period_s", 0.25, any_type).value
+            if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+                raise SetupError(f"parameter ftms.port must be an integer 0..65535, got {port!r}")
+            if isinstance(period, bool) or not isinstance(period, (int, float)) or not 0.02 <= period <= 10:
+                raise SetupError(f"parameter ftms.notify_period_s must be 0.02..10 s, got {period!r}")
+            units, gear_ratio = _bike_figures(config_path)
+            self.control = ftms.FtmsControl(units)
+            self.telemetry = Telemetry(gear_ratio)
+            self.pending_status: list[bytes] = []
+            self._Command = Command
+            self._Diag, self._DiagStatus, self._KeyValue = DiagnosticArray, DiagnosticStatus, KeyValue
+            self.pub_live = self.create_publisher(Command, "live_command", 10)
+            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            # once per batch from the plant and the controller: kept as bytes, the latest decoded
+            # when the app is notified (best effort, depth 1: only the newest matters here)
+            qos = REALTIME_QOS
+            self.plant_raw = self.status_raw = None
+            self.session_elapsed_s = 0.0
+            self.create_subscription(PlantState, "plant_state", self._keep_plant, qos, raw=True)
+            self.create_subscription(ControllerStatus, "controller_status", self._keep_status, qos, raw=True)
+            self.create_subscription(SessionStatus, "session_status", self._on_session, 10)
+            self._PlantStateView, self._status_codec, self._CdrError = PlantStateView, status_codec, CdrError
+            try:
+                self.server = dircon.DirconServer(host, int(port), services_for(
+                    self.control, self.telemetry.encode, self._on_control_point), self._log)
+            except OSError as exc:
+                raise SetupError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+            from rclpy.clock import Clock as RosClock
+            from rclpy.clock import ClockType
+            steady = RosClock(clock_type=ClockType.STEADY_TIME)
+            # wall-clock timers: the app lives on the wall clock, whatever sim time does
+            self.create_timer(0.01, self._poll, clock=steady)
+            self.create_timer(float(period), self._notify, clock=steady)
+            self.get_logger().info(f"FTMS over DIRCON on {self.server.host}:{self.server.port} "
+                                   f"(service {dircon.MDNS_SERVICE}); power 0..{units.erg_power_max_w:g} W, "
+                                   f"grade {100 * units.grade_min:g}..{100 * units.grade_max:g} %")
+            self._diag("listening", self._DiagStatus.OK)
+
+        # ---- ROS side
+        def _keep_plant(self, raw) -> None:
+            self.plant_raw = raw
+
+        def _keep_status(self, raw) -> None:
+            self.status_raw = raw
+
+        def _on_session(self, msg) -> None:
+            self.session_elapsed_s = float(msg.elapsed_s)
+
+        def _log(self, text: str, warning: bool) -> None:
+            if warning:      # one call site per severity (rclpy's logger insists)
+                self.get_logger().warning(text)
+                self._diag(text, self._DiagStatus.WARN)
+            else:
+                self.get_logger().info(text)
+
+        def _diag(self, message: str, level) -> None:
+            st = self._DiagStatus(level=level, name=self.get_fully_qualified_name(), message=message,
+                                  hardware_id=self.get_namespace())
+            st.values = [self._KeyValue(key="port", value=str(self.server.port if hasattr(self, "server") else "")),
+                         self._KeyValue(key="apps", value=str(len(self.server.conns) if hasattr(self, "server")
+                                                              else 0))]
+            self.pub_diag.publish(self._Diag(status=[st]))
+
+        # ---- app side
+        def _on_control_point(self, data: bytes) -> list:
+            reply = self.control.write(data)
+            if reply.message:
+                self._log(f"FTMS {reply.message}", reply.warning)
+            if reply.target is not None:
+                msg = self._Command()
+                msg.command = float(reply.target.command)
+                msg.mode = int(reply.target.mode)
+                self.pub_live.publish(msg)
+            if reply.status is not None:
+                self.pending_status.append(reply.status)
+            return [(ftms.CONTROL_POINT, reply.response)]
+
+        def _poll(self) -> None:
+            self.server.poll(0.0)
+            while self.pending_status:            # after the writer's response: to every app
+                self.server.broadcast(ftms.STATUS, self.pending_status.pop(0))
+
+        def _notify(self) -> None:
+            if self.plant_raw is None:
+                return
+            try:
+                view = self._PlantStateView(self.plant_raw)
+                st = self._status_codec.decode(self.status_raw)[3] if self.status_raw is not None else {}
+            except self._CdrError as exc:
+                self._log(f"a plant state or controller status that does not decode: {exc}", True)
+                return
+            state = view.snap
+            level = 100.0 * st.get("command", 0.0) if st.get("mode", 0) == 0 else 0.0
+            self.telemetry.update(stamp_ns=view.stamp_ns, energy_mech_in_j=float(state["energy_mech_in_j"]),
+                                  speed_rpm=float(state["speed_rpm"]),
+                                  virtual_speed_mps=float(st.get("virtual_speed_mps", 0.0)),
+                                  resistance_level=level, elapsed_s=self.session_elapsed_s)
+            self.server.broadcast(ftms.INDOOR_BIKE_DATA, self.telemetry.encode())
+
+    return FtmsNode
+
+
+def main(args=None) -> int:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    asked = {"signum": None}
+
+    def handler(signum, _frame):         # a flag, read between spins (as the other nodes)
+        asked["signum"] = signum
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    node = executor = None
+    rc = 0
+    try:
+        node = _make_node_class()()
+        executor = SingleThreadedExecutor(context=node.context)
+        executor.add_node(node)
+        while asked["signum"] is None and rclpy.ok(context=node.context):
+            executor.spin_once(timeout_sec=0.1)
+    except SetupError as exc:
+        print(f"ftms_node: error: {exc}", file=sys.stderr, flush=True)
+        rc = 2
+    finally:
+        if node is not None and hasattr(node, "server"):
+            node.server.close()
+        if executor is not None:
+            executor.remove_node(node)
+            executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,231 @@
+"""FTMS over DIRCON without ROS: the Control Point's meaning for this bike's Commands, the
+bytes of the characteristics, DIRCON framing and dispatch, the TCP server on real sockets
+(a broken stream closes only its own connection), and the telemetry an app is shown."""
+import socket
+import struct
+import time
+
+import pytest
+
+from bike_session import dircon, ftms
+from bike_session.ftms_node import Telemetry, services_for
+from bike_session.profiles import MODES, ModeUnits
+
+UNITS = ModeUnits(erg_power_max_w=1000.0, grade_min=-0.10, grade_max=0.20, cadence_min_rpm=20.0,
+                  cadence_max_rpm=120.0)
+
+
+def cp(op: int, fmt: str = "", *values) -> bytes:
+    return bytes([op]) + (struct.pack("<" + fmt, *values) if fmt else b"")
+
+
+def controlled() -> ftms.FtmsControl:
+    control = ftms.FtmsControl(UNITS)
+    assert control.write(cp(ftms.OP_REQUEST_CONTROL)).response == bytes([0x80, 0x00, ftms.RESULT_SUCCESS])
+    return control
+
+
+def test_nothing_but_request_control_is_taken_before_it():
+    control = ftms.FtmsControl(UNITS)
+    reply = control.write(cp(ftms.OP_TARGET_POWER, "h", 150))
+    assert reply.response == bytes([0x80, ftms.OP_TARGET_POWER, ftms.RESULT_NOT_PERMITTED])
+    assert reply.target is None and reply.warning and "Request Control" in reply.message
+
+
+def test_target_power_is_erg_at_its_share_of_the_bikes_maximum_and_beyond_it_is_refused():
+    control = controlled()
+    reply = control.write(cp(ftms.OP_TARGET_POWER, "h", 150))
+    assert reply.response == bytes([0x80, 0x05, 0x01])
+    assert reply.target.mode == MODES["erg"] and reply.target.command == pytest.approx(0.15)
+    assert reply.status == bytes([ftms.STATUS_POWER_CHANGED]) + struct.pack("<h", 150)
+    for watts in (1001, -5):
+        bad = control.write(cp(ftms.OP_TARGET_POWER, "h", watts))
+        assert bad.response[2] == ftms.RESULT_INVALID_PARAMETER and bad.target is None
+        assert f"{watts} W refused" in bad.message and "[0, 1000]" in bad.message
+    short = control.write(bytes([ftms.OP_TARGET_POWER, 0x96]))
+    assert short.response[2] == ftms.RESULT_INVALID_PARAMETER and "1 parameter bytes, expected 2" in short.message
+
+
+def test_inclination_and_resistance_map_onto_the_mode_ranges():
+    control = controlled()
+    incline = control.write(cp(ftms.OP_TARGET_INCLINATION, "h", 50))          # 5.0 %
+    assert incline.target.mode == MODES["slope"]
+    assert incline.target.command == pytest.approx((0.05 + 0.10) / 0.30)
+    assert control.write(cp(ftms.OP_TARGET_INCLINATION, "h", 250)).response[2] == ftms.RESULT_INVALID_PARAMETER
+    one_byte = control.write(bytes([ftms.OP_TARGET_RESISTANCE, 200]))         # uint8: 20.0
+    two_bytes = control.write(cp(ftms.OP_TARGET_RESISTANCE, "h", 455))       # sint16: 45.5
+    assert one_byte.target.mode == two_bytes.target.mode == MODES["resistance"]
+    assert one_byte.target.command == pytest.approx(0.200) and two_bytes.target.command == pytest.approx(0.455)
+    assert control.write(cp(ftms.OP_TARGET_RESISTANCE, "h", 1001)).response[2] == ftms.RESULT_INVALID_PARAMETER
+
+
+def test_a_simulation_grade_beyond_the_bike_is_ridden_at_its_end_and_said_and_road_terms_are_said_once():
+    control = controlled()
+    first = control.write(cp(ftms.OP_SIMULATION, "hhBB", 0, 300, 40, 51))     # 3 %, Crr 0.004, Cw 0.51
+    assert first.response[2] == ftms.RESULT_SUCCESS and not first.warning
+    assert first.target.command == pytest.approx((0.03 + 0.10) / 0.30)
+    assert "Crr 0.004" in first.message and "not applied" in first.message
+    steep = control.write(cp(ftms.OP_SIMULATION, "hhBB", 0, 2500, 40, 51))    # 25 %: beyond 20 %
+    assert steep.response[2] == ftms.RESULT_SUCCESS and steep.warning
+    assert steep.target.command == pytest.approx(1.0)
+    assert "25 % is beyond" in steep.message and "ridden at 20 %" in steep.message
+    assert "not applied" not in steep.message                                 # the same road terms
+    assert steep.status == bytes([ftms.STATUS_SIMULATION_CHANGED]) + struct.pack("<hhBB", 0, 2500, 40, 51)
+
+
+def test_stop_releases_the_brake_keeps_the_target_for_resume_and_reset_gives_up_control():
+    control = controlled()
+    control.write(cp(ftms.OP_TARGET_POWER, "h", 200))
+    stop = control.write(bytes([ftms.OP_STOP_PAUSE, 2]))
+    assert stop.target.mode == MODES["resistance"] and stop.target.command == 0.0
+    assert stop.status == bytes([ftms.STATUS_STOPPED_PAUSED, 2])
+    while_stopped = control.write(cp(ftms.OP_TARGET_POWER, "h", 250))
+    assert while_stopped.response[2] == ftms.RESULT_SUCCESS and while_stopped.target is None
+    resume = control.write(bytes([ftms.OP_START_RESUME]))
+    assert resume.target.mode == MODES["erg"] and resume.target.command == pytest.approx(0.25)
+    assert control.write(bytes([ftms.OP_STOP_PAUSE, 3])).response[2] == ftms.RESULT_INVALID_PARAMETER
+    reset = control.write(bytes([ftms.OP_RESET]))
+    assert reset.target == ftms.Target(MODES["resistance"], 0.0, reset.target.text)
+    assert control.write(cp(ftms.OP_TARGET_POWER, "h", 100)).response[2] == ftms.RESULT_NOT_PERMITTED
+
+
+def test_ops_this_bike_does_not_do_are_not_supported_and_an_empty_write_is_invalid():
+    control = controlled()
+    for op in (ftms.OP_TARGET_SPEED, ftms.OP_TARGET_HEART_RATE, 0x13, 0x14, 0x42):
+        reply = control.write(bytes([op, 0, 0]))
+        assert reply.response == bytes([0x80, op, ftms.RESULT_NOT_SUPPORTED]) and reply.target is None
+        assert reply.message
+    assert control.write(b"").response[2] == ftms.RESULT_INVALID_PARAMETER
+
+
+def test_characteristic_values_are_the_specs_bytes():
+    machine, target = struct.unpack("<II", ftms.encode_feature())
+    assert machine & ftms.MACHINE_POWER and machine & ftms.MACHINE_CADENCE and machine & ftms.MACHINE_TOTAL_DISTANCE
+    assert target & ftms.TARGET_POWER and target & ftms.TARGET_SIMULATION and target & ftms.TARGET_INCLINATION
+    control = ftms.FtmsControl(UNITS)
+    assert struct.unpack("<hhH", control.encode_power_range()) == (0, 1000, 1)
+    assert struct.unpack("<hhH", control.encode_inclination_range()) == (-100, 200, 1)      # 0.1 % steps
+    assert struct.unpack("<hhH", control.encode_resistance_range()) == (0, 1000, 1)
+    data = ftms.encode_indoor_bike_data(speed_kmh=31.456, cadence_rpm=88.6, distance_m=1234.4,
+                                        resistance_level=12.3, power_w=-20.4, elapsed_s=61.2)
+    # flags (speed present: bit 0 clear), speed 0.01 km/h, cadence 0.5 rpm, uint24 m, level 0.1, W, s
+    assert data[:2] == struct.pack("<H", 0x0874)
+    assert ftms.decode_indoor_bike_data(data) == ftms.IndoorBikeData(31.46, 88.5, 1234, 12.3, -20, 61)
+
+
+def test_telemetry_power_is_the_ledgers_mean_over_a_second_and_distance_the_virtual_speed():
+    tel = Telemetry(gear_ratio=35.0, power_window_s=1.0)
+    for k in range(9):                 # every 0.25 s: 200 J/s, plus a pulse the window averages out
+        t_ns = k * 250_000_000
+        tel.update(stamp_ns=t_ns, energy_mech_in_j=200.0 * k * 0.25 + (5.0 if k % 2 else 0.0),
+                   speed_rpm=3150.0, virtual_speed_mps=10.0, resistance_level=0.0, elapsed_s=k * 0.25)
+    assert tel.power_w == pytest.approx(200.0)
+    assert tel.cadence_rpm == pytest.approx(90.0)
+    assert tel.distance_m == pytest.approx(20.0)
+    assert ftms.decode_indoor_bike_data(tel.encode()).speed_kmh == pytest.approx(36.0)
+    tel.update(stamp_ns=0, energy_mech_in_j=0.0, speed_rpm=0.0, virtual_speed_mps=0.0, resistance_level=0.0,
+               elapsed_s=0.0)                                   # the plant started over
+    assert tel.distance_m == 0.0
+
+
+def _connection():
+    control = ftms.FtmsControl(UNITS)
+    tel = Telemetry(35.0)
+    return dircon.DirconConnection(services_for(control, tel.encode,
+                                                lambda data: [(ftms.CONTROL_POINT, control.write(data).response)]))
+
+
+def test_dircon_discovery_read_subscribe_and_a_write_answered_with_its_notification():
+    conn = _connection()
+    out = conn.feed(dircon.encode(dircon.MSG_DISCOVER_SERVICES, 7))
+    assert out == dircon.encode(dircon.MSG_DISCOVER_SERVICES, 7, dircon.uuid128(0x1826))
+    assert dircon.uuid128(0x1826).hex() == "0000182600001000800000805f9b34fb"
+    out = conn.feed(dircon.encode(dircon.MSG_DISCOVER_CHARACTERISTICS, 8, dircon.uuid128(0x1826)))
+    (msg,) = dircon.split_messages(bytearray(out))
+    records = msg.data[16:]
+    chars = {struct.unpack(">I", records[i:i + 4])[0]: records[i + 16] for i in range(0, len(records), 17)}
+    assert chars[ftms.CONTROL_POINT] == dircon.PROP_WRITE | dircon.PROP_NOTIFY
+    assert chars[ftms.POWER_RANGE] == dircon.PROP_READ
+    (msg,) = dircon.split_messages(bytearray(conn.feed(dircon.encode(dircon.MSG_READ, 9,
+                                                                     dircon.uuid128(ftms.POWER_RANGE)))))
+    assert msg.code == dircon.RESP_SUCCESS and struct.unpack("<hhH", msg.data[16:]) == (0, 1000, 1)
+    # without a subscription the write is answered, the Control Point response not notified
+    only = dircon.split_messages(bytearray(conn.feed(dircon.encode(
+        dircon.MSG_WRITE, 10, dircon.uuid128(ftms.CONTROL_POINT) + b"\x00"))))
+    assert [m.msg_type for m in only] == [dircon.MSG_WRITE]
+    conn.feed(dircon.encode(dircon.MSG_ENABLE_NOTIFICATIONS, 11, dircon.uuid128(ftms.CONTROL_POINT) + b"\x01"))
+    # sent a byte at a time: framing holds across reads
+    request = dircon.encode(dircon.MSG_WRITE, 12, dircon.uuid128(ftms.CONTROL_POINT) + cp(5, "h", 150))
+    out = b"".join(conn.feed(request[i:i + 1]) for i in range(len(request)))
+    write, note = dircon.split_messages(bytearray(out))
+    assert (write.msg_type, write.seq, write.code) == (dircon.MSG_WRITE, 12, dircon.RESP_SUCCESS)
+    assert (note.msg_type, note.seq) == (dircon.MSG_NOTIFICATION, 0)
+    assert note.data == dircon.uuid128(ftms.CONTROL_POINT) + bytes([0x80, 0x05, 0x01])
+
+
+@pytest.mark.parametrize("msg_type,data,code", [
+    (9, b"", dircon.RESP_UNKNOWN_TYPE),
+    (dircon.MSG_READ, b"\x00" * 5, dircon.RESP_GENERIC_ERROR),
+    (dircon.MSG_READ, dircon.uuid128(0x2A63), dircon.RESP_CHARACTERISTIC_NOT_FOUND),
+    (dircon.MSG_DISCOVER_CHARACTERISTICS, dircon.uuid128(0x1818), dircon.RESP_SERVICE_NOT_FOUND),
+    (dircon.MSG_READ, dircon.uuid128(ftms.STATUS), dircon.RESP_NOT_SUPPORTED),
+    (dircon.MSG_WRITE, dircon.uuid128(ftms.POWER_RANGE) + b"\x01", dircon.RESP_NOT_SUPPORTED),
+    (dircon.MSG_ENABLE_NOTIFICATIONS, dircon.uuid128(ftms.FEATURE) + b"\x01", dircon.RESP_NOT_SUPPORTED),
+    (dircon.MSG_ENABLE_NOTIFICATIONS, dircon.uuid128(ftms.STATUS) + b"\x07", dircon.RESP_GENERIC_ERROR),
+])
+def test_a_request_the_table_cannot_serve_gets_its_code_and_is_said(msg_type, data, code):
+    conn = _connection()
+    (msg,) = dircon.split_messages(bytearray(conn.feed(dircon.encode(msg_type, 3, data))))
+    assert (msg.msg_type, msg.seq, msg.code) == (msg_type, 3, code)
+    assert len(conn.log) == 1 and "refused" in conn.log[0]
+    # and the connection goes on
+    assert conn.feed(dircon.encode(dircon.MSG_DISCOVER_SERVICES, 4))
+
+
+@pytest.mark.parametrize("stream,why", [
+    (b"\x02\x01\x00\x00\x00\x00", "protocol version 2"),
+    (b"GET / HTTP/1.1\r\n\r\n", "protocol version 71"),
+    (b"\x01\x04\x01\x00\xff\xff", "65535 data bytes"),
+])
+def test_a_stream_that_is_not_dircon_cannot_be_framed(stream, why):
+    with pytest.raises(dircon.DirconError, match=why):
+        _connection().feed(stream)
+
+
+def test_the_server_closes_only_a_broken_connection_and_drops_an_app_that_reads_nothing():
+    logs = []
+    control = ftms.FtmsControl(UNITS)
+    tel = Telemetry(35.0)
+    server = dircon.DirconServer("127.0.0.1", 0, services_for(control, tel.encode, lambda d: []),
+                                 lambda text, warning: logs.append((text, warning)))
+    stop = [False]
+    import threading
+    pump = threading.Thread(target=lambda: [server.poll(0.01) for _ in iter(lambda: stop[0], True)])
+    pump.start()
+    try:
+        good = dircon.DirconClient("127.0.0.1", server.port)
+        assert good.request(dircon.MSG_DISCOVER_SERVICES).data == dircon.uuid128(0x1826)
+        bad = socket.create_connection(("127.0.0.1", server.port))
+        bad.sendall(b"\x07garbage")
+        bad.settimeout(5)
+        assert bad.recv(100) == b""                          # closed by the server
+        assert any("not a DIRCON stream" in t and w for t, w in logs)
+        assert good.read(ftms.POWER_RANGE) == control.encode_power_range()      # still served
+        good.subscribe(ftms.INDOOR_BIKE_DATA)
+        server.broadcast(ftms.INDOOR_BIKE_DATA, tel.encode())
+        assert good.wait_notification(ftms.INDOOR_BIKE_DATA) == tel.encode()
+        # an app that subscribes and never reads: dropped once its backlog passes the limit
+        deaf = dircon.DirconClient("127.0.0.1", server.port)
+        deaf.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        deaf.subscribe(ftms.INDOOR_BIKE_DATA)
+        end = time.monotonic() + 10
+        while not any("reads nothing" in t for t, _ in logs) and time.monotonic() < end:
+            server.broadcast(ftms.INDOOR_BIKE_DATA, tel.encode() * 30)
+            time.sleep(0.001)
+        assert any("reads nothing" in t and w for t, w in logs), logs
+        good.close()
+        deaf.close()
+    finally:
+        stop[0] = True
+        pump.join()
+        server.close()
