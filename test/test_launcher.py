@@ -1,4 +1,5 @@
 """The YAML launch subset: parsing, substitutions, conditions, errors, supervision."""
+import pathlib
 import signal
 import sys
 import time
@@ -22,12 +23,19 @@ def test_project_launch_file_parses_with_and_without_recorder(tmp_path):
     assert [n.name for n in nodes] == ["plant", "controller", "session"]
     plant = nodes[0]
     assert plant.shutdown_on_exit and plant.namespace == "bike"
-    assert plant.params_files == ["/abs/c.yaml"] and plant.params["duration_s"] == "5.0"
+    # the config, then the overrides every node takes after it (none unless `./bike run --ftms`)
+    assert plant.params_files[0] == "/abs/c.yaml" and plant.params["duration_s"] == "5.0"
+    assert plant.params_files[1].endswith("config/launch/no_overrides.yaml")
+    assert pathlib.Path(plant.params_files[1]).is_file()
     args = plant.arguments()
     assert args[:5] == ["--ros-args", "-r", "__node:=plant", "-r", "__ns:=/bike"]
     assert "--params-file" in args and "duration_s:=5.0" in args
     nodes = parse_launch(str(LAUNCH_FILE), {"config": "/c.yaml", "record": "true", "record_dir": str(tmp_path)})
     assert nodes[-1].name == "recorder" and nodes[-1].params["record_dir"] == str(tmp_path)
+    nodes = parse_launch(str(LAUNCH_FILE), {"config": "/c.yaml", "ftms": "true", "ftms_port": "0",
+                                            "overrides": "/o.yaml"})
+    assert nodes[-1].name == "ftms" and nodes[-1].params["ftms.port"] == "0"
+    assert all(n.params_files[-1] == "/o.yaml" for n in nodes if n.name in ("plant", "controller"))
 
 
 def test_substitutions_and_conditions(tmp_path, monkeypatch):

@@ -118,6 +118,8 @@ def _make_node_class():
     from bike_plant.msgconv import PlantStateView
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+    from bike_session.session_node import live_qos
+
     any_type = ParameterDescriptor(dynamic_typing=True)
     status_codec = Codec(ControllerStatus)
 
@@ -138,7 +140,9 @@ def _make_node_class():
             self.pending_status: list[bytes] = []
             self._Command = Command
             self._Diag, self._DiagStatus, self._KeyValue = DiagnosticArray, DiagnosticStatus, KeyValue
-            self.pub_live = self.create_publisher(Command, "live_command", 10)
+            # the app's latest target stays with the writer (transient local): a session that
+            # matches later (an app connected at start-up, a restarted session) still gets it
+            self.pub_live = self.create_publisher(Command, "live_command", live_qos())
             self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
             # once per batch from the plant and the controller: kept as bytes, the latest decoded
             # when the app is notified (best effort, depth 1: only the newest matters here)

@@ -166,6 +166,13 @@ def _units(cfg: dict | None):
         return None
 
 
+def live_qos():
+    """live_command's QoS: reliable, the latest target kept for a reader matched later."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 def _make_node_class():
     # rclpy is imported lazily so that the module's helpers import without ROS.
     from rcl_interfaces.msg import ParameterDescriptor
@@ -247,7 +254,7 @@ def _make_node_class():
             self.sent_gears = array.array("d")   # the gear of each published tau index j
             self.shifts = 0
             # live Commands (_on_live_command): from tau index live_from_j[k] on, live_targets[k]
-            self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, 10)
+            self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos())
             self.live_from_j: list[int] = []
             self.live_targets: list[tuple[float, int, str]] = []
             self.live_commands = 0

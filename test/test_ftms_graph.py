@@ -1,0 +1,112 @@
+"""A training app rides the bike over FTMS / DIRCON: `./bike run --ftms` starts the node
+graph (separate processes, DDS, real time, recorded) with the bridge node; this test is the app,
+on a real TCP connection. Its target power reaches the controller as live ERG Commands through
+the session (so they are in the bag), the Indoor Bike Data it is notified of come from the
+running plant, and a second connection that sends garbage is closed without harming the ride."""
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from conftest import bike_command
+
+from bike_session import dircon, ftms
+from bike_session.bags import plant_state_array, read_topic, stamp_s
+
+TARGET_W = 150
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _connect(port: int, run: threading.Thread, timeout_s: float = 120.0) -> dircon.DirconClient:
+    end = time.monotonic() + timeout_s
+    while True:
+        try:
+            return dircon.DirconClient("127.0.0.1", port)
+        except OSError:
+            if not run.is_alive() or time.monotonic() > end:
+                raise
+            time.sleep(0.2)
+
+
+@pytest.mark.slow
+def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain):
+    port = _free_port()
+    record = tmp_path / "rec"
+    done = {}
+    run = threading.Thread(target=lambda: done.update(r=bike_command(
+        "run", "--ftms", "--ftms-port", str(port), "--duration", "20", "--record", str(record))))
+    run.start()
+    readings = []
+    try:
+        app = _connect(port, run)
+        services = app.request(dircon.MSG_DISCOVER_SERVICES)
+        assert services.data == dircon.uuid128(ftms.FTMS_SERVICE)
+        lo_w, hi_w, _ = struct.unpack("<hhH", app.read(ftms.POWER_RANGE))
+        assert lo_w == 0 and hi_w > TARGET_W
+        for uuid in (ftms.INDOOR_BIKE_DATA, ftms.CONTROL_POINT, ftms.STATUS):
+            assert app.subscribe(uuid).code == dircon.RESP_SUCCESS
+        # as a rider would: pedalling (the session's free ride) before the app sets a target
+        first = ftms.decode_indoor_bike_data(app.wait_notification(ftms.INDOOR_BIKE_DATA, 30))
+        end = time.monotonic() + 30
+        while first.speed_kmh <= 0 and time.monotonic() < end:
+            first = ftms.decode_indoor_bike_data(app.wait_notification(ftms.INDOOR_BIKE_DATA, 30))
+        assert app.write(ftms.CONTROL_POINT, bytes([ftms.OP_REQUEST_CONTROL])).code == dircon.RESP_SUCCESS
+        assert app.wait_notification(ftms.CONTROL_POINT) == bytes([0x80, 0x00, 0x01])
+        assert app.write(ftms.CONTROL_POINT, bytes([ftms.OP_TARGET_POWER]) + struct.pack("<h", TARGET_W)).code == 0
+        assert app.wait_notification(ftms.CONTROL_POINT) == bytes([0x80, 0x05, 0x01])
+        assert app.wait_notification(ftms.STATUS) == bytes([ftms.STATUS_POWER_CHANGED]) + struct.pack("<h", TARGET_W)
+        set_at_s = first.elapsed_s
+        # a second connection that is not DIRCON: closed, the app rides on
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as junk:
+            junk.sendall(b"\xff" * 64)
+            assert junk.recv(16) == b""
+        app.notifications.clear()
+        end = time.monotonic() + 11
+        while time.monotonic() < end:
+            try:
+                readings.append(ftms.decode_indoor_bike_data(app.wait_notification(ftms.INDOOR_BIKE_DATA, 5)))
+            except (TimeoutError, ConnectionError):
+                break
+        app.close()
+    finally:
+        run.join(240)
+    result = done["r"]
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out[-5000:]
+    assert "sync_mode realtime" in out and "FTMS target power 150 W" in out
+    assert "not a DIRCON stream" in out
+    assert "Traceback" not in out
+    # the app was shown the ride: time and distance run on, a pedalling rider, the ERG's power
+    assert len(readings) >= 30, readings
+    assert readings[-1].elapsed_s > readings[0].elapsed_s >= set_at_s
+    assert readings[-1].distance_m > readings[0].distance_m > 0
+    assert all(r.speed_kmh > 5 and 40 < r.cadence_rpm < 140 for r in readings)
+    # ... whose power is the rider's, as the plant's energy ledger has it over the same time
+    # (elapsed is in whole seconds: the readings' mean of 1 s means against the bag's mean)
+    plant = plant_state_array(next(record.iterdir()), "/bike/plant_state")
+    t0, t1 = readings[0].elapsed_s, readings[-1].elapsed_s
+    energy = np.interp([t0 - 0.5, t1 + 0.5], plant["time_s"], plant["energy_mech_in_j"])
+    ledger_w = (energy[1] - energy[0]) / (t1 - t0 + 1.0)
+    shown_w = np.mean([r.power_w for r in readings])
+    assert abs(shown_w - ledger_w) < 0.1 * ledger_w + 5, (shown_w, ledger_w)
+    # and the brake held the app's target: ERG braking power -T_em w over the last 5 s
+    last = plant[plant["time_s"] > plant["time_s"][-1] - 5.0]
+    braking_w = np.mean(-last["torque_em_nm"] * last["speed_rad_s"])
+    assert abs(braking_w - TARGET_W) < 0.05 * TARGET_W, braking_w
+    # the live Commands are in the bag: ERG at 150 W from the period after the request on
+    bag = next(record.iterdir())
+    commands = read_topic(bag, "/bike/command")
+    erg = [(stamp_s(m), m.command) for m in commands if m.mode == 2 and stamp_s(m) < 20.0]   # not the final 0
+    assert erg, [(stamp_s(m), m.mode, m.command) for m in commands][:20]
+    pmax = hi_w          # the power range is 0 .. floor(erg_power_max_w)
+    assert all(abs(c * pmax - TARGET_W) < 1.0 for _, c in erg)
+    assert erg[0][0] >= set_at_s - 1.0
+    assert "live Command(s)" in out
