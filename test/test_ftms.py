@@ -229,3 +229,23 @@ def test_the_server_closes_only_a_broken_connection_and_drops_an_app_that_reads_
         stop[0] = True
         pump.join()
         server.close()
+
+
+def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer():
+    from zeroconf import IPVersion, Zeroconf
+    logs = []
+    adv = dircon.Advertiser("bike test", ["127.0.0.1"], 36999, "bike-36999", lambda t, w: logs.append((t, w)))
+    app = None
+    try:
+        assert adv.done.wait(20) and adv.error is None, logs
+        app = Zeroconf(interfaces=["127.0.0.1"], ip_version=IPVersion.V4Only)
+        info = app.get_service_info(dircon.MDNS_SERVICE, f"bike test.{dircon.MDNS_SERVICE}", timeout=5000)
+        assert info is not None and info.port == 36999 and info.parsed_addresses() == ["127.0.0.1"]
+        assert info.properties[b"ble-service-uuids"] == b"0x1826"
+    finally:
+        if app is not None:
+            app.close()
+        adv.close()
+    assert dircon.host_addresses("10.1.2.3") == ["10.1.2.3"]
+    assert all(not a.startswith("127.") for a in dircon.host_addresses("0.0.0.0")) or \
+        dircon.host_addresses("0.0.0.0") == ["127.0.0.1"]

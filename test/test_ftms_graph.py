@@ -42,7 +42,8 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
     record = tmp_path / "rec"
     done = {}
     run = threading.Thread(target=lambda: done.update(r=bike_command(
-        "run", "--ftms", "--ftms-port", str(port), "--duration", "20", "--record", str(record))))
+        "run", "--ftms", "--ftms-port", str(port), "--ftms-advertise", "true", "--duration", "20",
+        "--record", str(record))))
     run.start()
     readings = []
     try:
@@ -83,6 +84,7 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
     assert result.returncode == 0, out[-5000:]
     assert "sync_mode realtime" in out and "FTMS target power 150 W" in out
     assert "not a DIRCON stream" in out
+    assert "advertised as 'bike bike'" in out and "mDNS advertisement failed" not in out
     assert "Traceback" not in out
     # the app was shown the ride: time and distance run on, a pedalling rider, the ERG's power
     assert len(readings) >= 30, readings

@@ -185,7 +185,8 @@ def _ftms_run_args(opts, cfg, args: dict) -> None:
     import shutil
     import tempfile
 
-    args.update(ftms="true", ftms_host=opts.ftms_host, ftms_port=str(opts.ftms_port))
+    args.update(ftms="true", ftms_host=opts.ftms_host, ftms_port=str(opts.ftms_port),
+                ftms_advertise=opts.ftms_advertise)
     note = ""
     if str(cfg.get("sync_mode", "lockstep")) != "realtime":
         folder = tempfile.mkdtemp(prefix="bike-ftms-")
@@ -407,6 +408,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="address the FTMS bridge listens on (default 127.0.0.1, this host only; 0.0.0.0 for "
                           "an app on the network)")
     run.add_argument("--ftms-port", type=int, default=36866, help="its TCP port (default 36866, DIRCON's)")
+    run.add_argument("--ftms-advertise", choices=["auto", "true", "false"], default="auto",
+                     help="announce the bike by mDNS (_wahoo-fitness-tnp._tcp), as apps find DIRCON trainers; "
+                          "auto (default): when --ftms-host is not loopback")
     run.set_defaults(func=_cmd_run)
 
     rep = sub.add_parser("report", help="summarise a recorded bag: duration, power, energy, peak current, faults")

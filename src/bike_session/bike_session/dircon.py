@@ -292,6 +292,61 @@ class DirconServer:
         self.sel.close()
 
 
+class Advertiser:
+    """The mDNS record apps look for (python-zeroconf): ``<name>._wahoo-fitness-tnp._tcp.local.``
+    at ``address``:``port`` with the TXT keys a DIRCON trainer sends (ble-service-uuids,
+    mac-address, serial-number). Registration probes the network for about 2 s, so it runs in
+    a thread of its own; ``done`` holds None or the error text when it is over."""
+
+    def __init__(self, name: str, addresses: list[str], port: int, serial: str, log: Callable[[str, bool], None]):
+        import threading
+        self.name, self.addresses, self.port, self.serial, self.log = name, addresses, port, serial, log
+        self.zc = self.info = None
+        self.done = threading.Event()
+        self.error: str | None = None
+        self.thread = threading.Thread(target=self._register, name="mdns", daemon=True)
+        self.thread.start()
+
+    def _register(self) -> None:
+        import socket
+        try:
+            from zeroconf import IPVersion, ServiceInfo, Zeroconf
+            self.zc = Zeroconf(interfaces=self.addresses, ip_version=IPVersion.V4Only)
+            self.info = ServiceInfo(
+                MDNS_SERVICE, f"{self.name}.{MDNS_SERVICE}", port=self.port, server=f"{self.serial}.local.",
+                addresses=[socket.inet_aton(a) for a in self.addresses],
+                properties={"ble-service-uuids": "0x1826", "serial-number": self.serial,
+                            "mac-address": "-".join(f"{b:02X}" for b in (0x02, 0, 0, 0, 0x18, 0x26))})
+            # the type's 17-byte name is longer than RFC 6335's 15: DIRCON's own, not ours to fix
+            self.zc.register_service(self.info, strict=False)
+            self.log(f"advertised as {self.name!r} ({MDNS_SERVICE} on {', '.join(self.addresses)})", False)
+        except Exception as exc:  # noqa: BLE001 - no advert is a warning, the server still serves
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.log(f"mDNS advertisement failed ({self.error}); apps must be given the address", True)
+        finally:
+            self.done.set()
+
+    def close(self) -> None:
+        self.done.wait(5)
+        if self.zc is not None:
+            try:
+                if self.info is not None and self.error is None:
+                    self.zc.unregister_service(self.info)
+            finally:
+                self.zc.close()
+
+
+def host_addresses(host: str) -> list[str]:
+    """The IPv4 addresses to advertise for a server bound to ``host``: itself, or for 0.0.0.0
+    every address of this host but loopback's (ifaddr, which python-zeroconf brings)."""
+    if host not in ("0.0.0.0", ""):
+        return [host]
+    import ifaddr
+    found = [ip.ip for adapter in ifaddr.get_adapters() for ip in adapter.ips
+             if isinstance(ip.ip, str) and not ip.ip.startswith("127.")]
+    return found or ["127.0.0.1"]
+
+
 class DirconClient:
     """The app's end, blocking (tests, and a quick look at a bike: ``./bike ftms-probe``):
     requests answered in order; notifications that arrive meanwhile are kept in

@@ -14,7 +14,9 @@ app (Zwift, FulGaz, Rouvy, Wahoo SYSTM, MyWhoosh, QZ, ...) rides it over Wahoo D
 
 Parameters: ``config_path`` (the bike's ranges and gear), ``ftms.host`` (127.0.0.1: only this
 host, like DDS discovery; 0.0.0.0 to let an app on the network in), ``ftms.port`` (36866;
-0 = any free port, logged), ``ftms.notify_period_s`` (0.25).
+0 = any free port, logged), ``ftms.notify_period_s`` (0.25), ``ftms.advertise`` (auto | true |
+false: the mDNS record apps discover a DIRCON trainer by, ``_wahoo-fitness-tnp._tcp``; auto =
+when the host is not loopback), ``ftms.name`` (the advertised name; "" = "bike <namespace>").
 
 An app should ride in real time (``./bike run --ftms`` sets sync_mode realtime). Plant state
 and controller status come once per batch; they are taken serialized and only the latest
@@ -130,6 +132,11 @@ def _make_node_class():
             host = self.declare_parameter("ftms.host", "127.0.0.1").value
             port = self.declare_parameter("ftms.port", dircon.DEFAULT_PORT, any_type).value
             period = self.declare_parameter("ftms.notify_period_s", 0.25, any_type).value
+            # `-p ftms.advertise:=true` arrives as a bool, auto as a string
+            advertise = str(self.declare_parameter("ftms.advertise", "auto", any_type).value).lower()
+            name = self.declare_parameter("ftms.name", "").value
+            if advertise not in ("auto", "true", "false"):
+                raise SetupError(f"parameter ftms.advertise must be auto, true or false, got {advertise!r}")
             if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
                 raise SetupError(f"parameter ftms.port must be an integer 0..65535, got {port!r}")
             if isinstance(period, bool) or not isinstance(period, (int, float)) or not 0.02 <= period <= 10:
@@ -158,6 +165,12 @@ def _make_node_class():
                     self.control, self.telemetry.encode, self._on_control_point), self._log)
             except OSError as exc:
                 raise SetupError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+            # apps find a trainer by mDNS; on loopback only (the default) nobody else could reach it
+            self.advertiser = None
+            if advertise == "true" or (advertise == "auto" and not str(host).startswith("127.")):
+                self.advertiser = dircon.Advertiser(name or f"bike {self.get_namespace().strip('/') or 'sim'}",
+                                                    dircon.host_addresses(str(host)), self.server.port,
+                                                    f"bike-{self.server.port}", self._log)
             from rclpy.clock import Clock as RosClock
             from rclpy.clock import ClockType
             steady = RosClock(clock_type=ClockType.STEADY_TIME)
@@ -259,6 +272,8 @@ def main(args=None) -> int:
     finally:
         if node is not None and hasattr(node, "server"):
             node.server.close()
+        if node is not None and getattr(node, "advertiser", None) is not None:
+            node.advertiser.close()
         if executor is not None:
             executor.remove_node(node)
             executor.shutdown()
