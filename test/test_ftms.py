@@ -108,9 +108,17 @@ def test_characteristic_values_are_the_specs_bytes():
     assert struct.unpack("<hhH", control.encode_resistance_range()) == (0, 1000, 1)
     data = ftms.encode_indoor_bike_data(speed_kmh=31.456, cadence_rpm=88.6, distance_m=1234.4,
                                         resistance_level=12.3, power_w=-20.4, elapsed_s=61.2)
-    # flags (speed present: bit 0 clear), speed 0.01 km/h, cadence 0.5 rpm, uint24 m, level 0.1, W, s
+    # flags (speed present: bit 0 clear), speed 0.01 km/h, cadence 0.5 rpm, uint24 m, level 1, W, s
     assert data[:2] == struct.pack("<H", 0x0874)
-    assert ftms.decode_indoor_bike_data(data) == ftms.IndoorBikeData(31.46, 88.5, 1234, 12.3, -20, 61)
+    assert ftms.decode_indoor_bike_data(data) == ftms.IndoorBikeData(31.46, 88.5, 1234, 12, -20, 61)
+    # another trainer's field set (a KICKR-like speed, cadence, power; then average power, energy, HR)
+    other = struct.pack("<HHHh", 0x0044, 2510, 180, 201)
+    assert ftms.parse_indoor_bike_data(other) == {"speed_kmh": 25.1, "cadence_rpm": 90.0, "power_w": 201}
+    more = struct.pack("<HhhHHBB", 0x07C1, 180, 175, 512, 300, 6, 142) + b"\x32"
+    assert ftms.parse_indoor_bike_data(more) == {"power_w": 180, "average_power_w": 175, "energy_kcal": 512,
+                                                 "heart_rate_bpm": 142, "metabolic_equivalent": pytest.approx(5.0)}
+    with pytest.raises(ValueError, match="shorter than its flags say"):
+        ftms.parse_indoor_bike_data(other[:-1])
 
 
 def test_telemetry_power_is_the_ledgers_mean_over_a_second_and_distance_the_virtual_speed():

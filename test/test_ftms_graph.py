@@ -42,7 +42,7 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
     record = tmp_path / "rec"
     done = {}
     run = threading.Thread(target=lambda: done.update(r=bike_command(
-        "run", "--ftms", "--ftms-port", str(port), "--ftms-advertise", "true", "--duration", "20",
+        "run", "--ftms", "--ftms-port", str(port), "--ftms-advertise", "true", "--duration", "24",
         "--record", str(record))))
     run.start()
     readings = []
@@ -69,8 +69,16 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
         with socket.create_connection(("127.0.0.1", port), timeout=10) as junk:
             junk.sendall(b"\xff" * 64)
             assert junk.recv(16) == b""
+        # a second look from a shell while the app rides: `./bike trainer` (no target: it takes no control)
+        found = bike_command("trainer", "--find", "--seconds", "2", timeout=60)
+        assert found.returncode == 0 and f"bike bike: 127.0.0.1:{port} services 0x1826" in found.stdout, found
+        probe = bike_command("trainer", "--port", str(port), "--seconds", "2", timeout=60)
+        assert probe.returncode == 0, probe.stdout + probe.stderr
+        assert "service 0x1826" in probe.stdout and "characteristic 0x2ad9: write, notify" in probe.stdout
+        assert f"power range 0 .. {hi_w} W in steps of 1" in probe.stdout
+        assert probe.stdout.count("indoor bike data: speed_kmh") >= 1, probe.stdout
         app.notifications.clear()
-        end = time.monotonic() + 11
+        end = time.monotonic() + 8
         while time.monotonic() < end:
             try:
                 readings.append(ftms.decode_indoor_bike_data(app.wait_notification(ftms.INDOOR_BIKE_DATA, 5)))
@@ -106,7 +114,7 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
     # the live Commands are in the bag: ERG at 150 W from the period after the request on
     bag = next(record.iterdir())
     commands = read_topic(bag, "/bike/command")
-    erg = [(stamp_s(m), m.command) for m in commands if m.mode == 2 and stamp_s(m) < 20.0]   # not the final 0
+    erg = [(stamp_s(m), m.command) for m in commands if m.mode == 2 and stamp_s(m) < 24.0]   # not the final 0
     assert erg, [(stamp_s(m), m.mode, m.command) for m in commands][:20]
     pmax = hi_w          # the power range is 0 .. floor(erg_power_max_w)
     assert all(abs(c * pmax - TARGET_W) < 1.0 for _, c in erg)

@@ -2,6 +2,9 @@
 
     ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
           [--workout FILE.zwo|.erg|.mrc|.fit [--ftp W]]         ... riding a workout file
+          [--ftms [--ftms-host 0.0.0.0]]                        ... as a smart trainer a training app rides
+    ./bike shift N [--domain ID]                               press a running bike's virtual shifter
+    ./bike trainer [--find] [--host H] [--power W | --grade %] the app's end of FTMS / DIRCON: poke a trainer
     ./bike report BAG [--out DIR] [--fit FILE]                 summarise a recorded session
     ./bike compare BAG_A BAG_B [--out DIR]                     A/B report of two recorded sessions
     ./bike replay BAG [--config OTHER] [--record DIR]          ride a recorded session again
@@ -377,6 +380,17 @@ def _cmd_fleet(opts) -> int:
     return 0
 
 
+def _cmd_trainer(opts) -> int:
+    from bike_session import trainer_probe
+    opts.seconds_given = opts.seconds is not None
+    if opts.seconds is None:
+        opts.seconds = 5.0
+    if not (opts.seconds > 0 and math.isfinite(opts.seconds)):
+        print(f"error: --seconds must be a finite number > 0, got {opts.seconds}", file=sys.stderr)
+        return 2
+    return trainer_probe.main(opts)
+
+
 def _cmd_shift(opts) -> int:
     from bike_session.shifter import press
     return press(opts.gears, opts.namespace, opts.domain)
@@ -485,6 +499,18 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "default: $ROS_DOMAIN_ID)")
     shf.add_argument("--namespace", default="bike", help="namespace of the bike (default bike)")
     shf.set_defaults(func=_cmd_shift)
+
+    trn = sub.add_parser("trainer", help="the app's end of FTMS over DIRCON: find trainers on the network, show "
+                                         "what one serves, set a target, print its Indoor Bike Data")
+    trn.add_argument("--find", action="store_true", help="list the trainers announced by mDNS and stop")
+    trn.add_argument("--host", default="127.0.0.1", help="trainer address (default 127.0.0.1: ./bike run --ftms)")
+    trn.add_argument("--port", type=int, default=36866, help="its DIRCON port (default 36866)")
+    trn.add_argument("--seconds", type=float, help="how long to print Indoor Bike Data (default 5; --find: how "
+                                                   "long to listen, default 3)")
+    trn.add_argument("--power", type=float, metavar="W", help="take control and set ERG target power")
+    trn.add_argument("--grade", type=float, metavar="PCT", help="take control and set the simulation grade")
+    trn.add_argument("--level", type=float, metavar="L", help="take control and set the resistance level")
+    trn.set_defaults(func=_cmd_trainer)
     return parser
 
 

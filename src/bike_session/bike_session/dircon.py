@@ -348,7 +348,7 @@ def host_addresses(host: str) -> list[str]:
 
 
 class DirconClient:
-    """The app's end, blocking (tests, and a quick look at a bike: ``./bike ftms-probe``):
+    """The app's end, blocking (tests, and ``./bike trainer``, a quick look at a trainer):
     requests answered in order; notifications that arrive meanwhile are kept in
     :attr:`notifications` as (uuid, value)."""
 

@@ -9,7 +9,8 @@ Characteristics served (values little endian, as in BLE):
   resistance level, elapsed time, power) and 32-bit target-setting features (inclination,
   resistance, power, indoor bike simulation).
 - Indoor Bike Data 0x2AD2 (notify): speed 0.01 km/h, cadence 0.5 rpm, total distance m
-  (uint24), resistance level, power W, elapsed time s.
+  (uint24), resistance level (whole levels: this field has no decimal, unlike the Control
+  Point's and the range's 0.1), power W, elapsed time s.
 - Supported Inclination / Resistance Level / Power Range 0x2AD5 / 0x2AD6 / 0x2AD8 (read):
   the bike's Command ranges (bike_session.profiles.ModeUnits), so an app never has to guess.
 - Fitness Machine Control Point 0x2AD9 (write; its response [0x80, op, result] is notified,
@@ -133,8 +134,42 @@ def encode_indoor_bike_data(*, speed_kmh: float, cadence_rpm: float, distance_m:
     distance = _fit(distance_m, 0, 0xFFFFFF)
     return (struct.pack("<HHH", flags, _fit(speed_kmh * 100, 0, 0xFFFF), _fit(cadence_rpm * 2, 0, 0xFFFF))
             + distance.to_bytes(3, "little")
-            + struct.pack("<hhH", _fit(resistance_level * 10, -32768, 32767), _fit(power_w, -32768, 32767),
+            + struct.pack("<hhH", _fit(resistance_level, -32768, 32767), _fit(power_w, -32768, 32767),
                           _fit(elapsed_s, 0, 0xFFFF)))
+
+
+# Indoor Bike Data fields in their order: (flag bit, name, struct code, scale); bit 0 is
+# "more data", the instantaneous speed being present when it is clear
+_IBD_FIELDS = ((1, "average_speed_kmh", "H", 0.01), (2, "cadence_rpm", "H", 0.5),
+               (3, "average_cadence_rpm", "H", 0.5), (4, "distance_m", "u24", 1),
+               (5, "resistance_level", "h", 1), (6, "power_w", "h", 1), (7, "average_power_w", "h", 1),
+               (8, "energy_kcal", "HHB", 1), (9, "heart_rate_bpm", "B", 1), (10, "metabolic_equivalent", "B", 0.1),
+               (11, "elapsed_s", "H", 1), (12, "remaining_s", "H", 1))
+
+
+def parse_indoor_bike_data(data: bytes) -> dict:
+    """Every field any trainer's Indoor Bike Data carries, by its flags (FTMS 4.9); the
+    expended energy as its total kcal. ValueError: shorter than its flags say."""
+    try:
+        (flags,) = struct.unpack_from("<H", data)
+        out, pos = {}, 2
+        if not flags & 1:
+            out["speed_kmh"] = struct.unpack_from("<H", data, pos)[0] * 0.01
+            pos += 2
+        for bit, name, code, scale in _IBD_FIELDS:
+            if not flags & (1 << bit):
+                continue
+            if code == "u24":
+                if pos + 3 > len(data):
+                    raise struct.error("short")
+                out[name], pos = int.from_bytes(data[pos:pos + 3], "little"), pos + 3
+                continue
+            values = struct.unpack_from("<" + code, data, pos)
+            pos += struct.calcsize("<" + code)
+            out[name] = values[0] * scale
+    except struct.error:
+        raise ValueError(f"Indoor Bike Data shorter than its flags say: {bytes(data).hex()}") from None
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -152,10 +187,9 @@ def decode_indoor_bike_data(data: bytes) -> IndoorBikeData:
     if len(data) != 15 or struct.unpack_from("<H", data)[0] != (IBD_CADENCE | IBD_DISTANCE | IBD_RESISTANCE
                                                                 | IBD_POWER | IBD_ELAPSED):
         raise ValueError(f"not this bike's Indoor Bike Data: {data.hex()}")
-    _, speed, cadence = struct.unpack_from("<HHH", data)
-    distance = int.from_bytes(data[6:9], "little")
-    level, power, elapsed = struct.unpack_from("<hhH", data, 9)
-    return IndoorBikeData(speed / 100, cadence / 2, distance, level / 10, power, elapsed)
+    f = parse_indoor_bike_data(data)
+    return IndoorBikeData(round(f["speed_kmh"], 2), f["cadence_rpm"], f["distance_m"], f["resistance_level"],
+                          f["power_w"], f["elapsed_s"])
 
 
 @dataclasses.dataclass(frozen=True)
