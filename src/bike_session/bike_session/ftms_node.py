@@ -27,7 +27,6 @@ from __future__ import annotations
 import math
 import signal
 import sys
-import time
 
 from bike_session import dircon, ftms
 
@@ -202,9 +201,9 @@ def _make_node_class():
         def _diag(self, message: str, level) -> None:
             st = self._DiagStatus(level=level, name=self.get_fully_qualified_name(), message=message,
                                   hardware_id=self.get_namespace())
-            st.values = [self._KeyValue(key="port", value=str(self.server.port if hasattr(self, "server") else "")),
-                         self._KeyValue(key="apps", value=str(len(self.server.conns) if hasattr(self, "server")
-                                                              else 0))]
+            server = getattr(self, "server", None)      # None while it is being made
+            st.values = [self._KeyValue(key="port", value=str(server.port) if server else ""),
+                         self._KeyValue(key="apps", value=str(len(server.conns)) if server else "0")]
             self.pub_diag.publish(self._Diag(status=[st]))
 
         # ---- app side
