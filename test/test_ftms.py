@@ -257,3 +257,38 @@ def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer()
     assert dircon.host_addresses("10.1.2.3") == ["10.1.2.3"]
     assert all(not a.startswith("127.") for a in dircon.host_addresses("0.0.0.0")) or \
         dircon.host_addresses("0.0.0.0") == ["127.0.0.1"]
+
+
+def test_fuzzed_dircon_streams_and_control_point_writes_never_raise_anything_else():
+    """400 seeded random streams (valid headers with random bodies, and raw junk), and random
+    Control Point writes: a stream either frames into answered messages or raises DirconError
+    (its connection is closed); every write is answered [0x80, op, result], and a target it
+    gives is a valid Command."""
+    import random
+    rng = random.Random(20261205)
+    uuids = [dircon.uuid128(u) for u in (ftms.FTMS_SERVICE, ftms.CONTROL_POINT, ftms.STATUS, ftms.POWER_RANGE,
+                                         ftms.INDOOR_BIKE_DATA, 0x2A63)]
+    for k in range(400):
+        conn = _connection()
+        conn.feed(dircon.encode(dircon.MSG_DISCOVER_SERVICES, 1))
+        try:
+            if k % 2:      # well framed, random type / body
+                body = rng.choice(uuids + [b""]) + bytes(rng.randrange(256) for _ in range(rng.randrange(8)))
+                stream = dircon.encode(rng.randrange(9), rng.randrange(256), body)
+            else:
+                stream = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 64)))
+            out = conn.feed(stream)
+        except dircon.DirconError:
+            continue
+        for msg in dircon.split_messages(bytearray(out)):
+            assert msg.msg_type in range(9)
+    control = ftms.FtmsControl(UNITS)
+    for k in range(2000):
+        data = bytes([rng.choice([0, 1, 3, 4, 5, 7, 8, 0x11, 0x13, rng.randrange(256)])]) + \
+            bytes(rng.randrange(256) for _ in range(rng.randrange(8)))
+        reply = control.write(data)
+        assert reply.response[:2] == bytes([0x80, data[0]]) and 1 <= reply.response[2] <= 5
+        if reply.target is not None:
+            assert 0.0 <= reply.target.command <= 1.0 and reply.target.mode in MODES.values()
+        if reply.response[2] != ftms.RESULT_SUCCESS:
+            assert reply.message
