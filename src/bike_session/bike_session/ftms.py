@@ -276,29 +276,28 @@ class FtmsControl:
     def _refuse(self, op, message: str) -> Reply:
         return Reply(bytes([OP_RESPONSE, op, RESULT_INVALID_PARAMETER]), message=message, warning=True)
 
+    def _ranged(self, op, name, param, mode: int, value: float, text: str, status_op: int) -> Reply:
+        """A target in one of the bike's ranges (ModeUnits.to_command), or refused naming it."""
+        try:
+            command, _ = self.units.to_command(mode, value)
+        except ValueError as exc:
+            return self._refuse(op, f"{name} {text} refused: {exc}")
+        return self._set(op, Target(mode, command, f"{name} {text}"), bytes([status_op]) + param)
+
     def _power(self, op, name, param) -> Reply:
         bad = self._sized(op, name, param, (2,))
         if bad:
             return bad
         (watts,) = struct.unpack("<h", param)
-        try:
-            command, _ = self.units.to_command(MODES["erg"], float(watts))
-        except ValueError as exc:
-            return self._refuse(op, f"{name} {watts} W refused: {exc}")
-        return self._set(op, Target(MODES["erg"], command, f"target power {watts} W"),
-                         bytes([STATUS_POWER_CHANGED]) + param)
+        return self._ranged(op, name, param, MODES["erg"], float(watts), f"{watts} W", STATUS_POWER_CHANGED)
 
     def _inclination(self, op, name, param) -> Reply:
         bad = self._sized(op, name, param, (2,))
         if bad:
             return bad
         (tenths,) = struct.unpack("<h", param)
-        try:
-            command, _ = self.units.to_command(MODES["slope"], tenths / 10)
-        except ValueError as exc:
-            return self._refuse(op, f"{name} {tenths / 10:g} % refused: {exc}")
-        return self._set(op, Target(MODES["slope"], command, f"target inclination {tenths / 10:g} %"),
-                         bytes([STATUS_INCLINE_CHANGED]) + param)
+        return self._ranged(op, name, param, MODES["slope"], tenths / 10, f"{tenths / 10:g} %",
+                            STATUS_INCLINE_CHANGED)
 
     def _resistance(self, op, name, param) -> Reply:
         # the spec's uint8 (0.1 steps, so at most 25.5); several apps write a sint16 instead
