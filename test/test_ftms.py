@@ -250,6 +250,9 @@ def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer()
         info = app.get_service_info(dircon.MDNS_SERVICE, f"bike test.{dircon.MDNS_SERVICE}", timeout=5000)
         assert info is not None and info.port == 36999 and info.parsed_addresses() == ["127.0.0.1"]
         assert info.properties[b"ble-service-uuids"] == b"0x1826"
+        assert info.properties[b"mac-address"] == dircon.local_mac("bike-36999").encode()
+        assert dircon.local_mac("bike-36999") != dircon.local_mac("bike-36998")     # two bikes differ
+        assert dircon.local_mac("x").startswith("02-")
     finally:
         if app is not None:
             app.close()

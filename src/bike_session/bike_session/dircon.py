@@ -313,10 +313,11 @@ class Advertiser:
             from zeroconf import IPVersion, ServiceInfo, Zeroconf
             self.zc = Zeroconf(interfaces=self.addresses, ip_version=IPVersion.V4Only)
             self.info = ServiceInfo(
-                MDNS_SERVICE, f"{self.name}.{MDNS_SERVICE}", port=self.port, server=f"{self.serial}.local.",
+                MDNS_SERVICE, f"{self.name}.{MDNS_SERVICE}", port=self.port,
+                server=f"bike-{local_mac(self.serial).replace('-', '').lower()}.local.",
                 addresses=[socket.inet_aton(a) for a in self.addresses],
                 properties={"ble-service-uuids": "0x1826", "serial-number": self.serial,
-                            "mac-address": "-".join(f"{b:02X}" for b in (0x02, 0, 0, 0, 0x18, 0x26))})
+                            "mac-address": local_mac(self.serial)})
             # the type's 17-byte name is longer than RFC 6335's 15: DIRCON's own, not ours to fix
             self.zc.register_service(self.info, strict=False)
             self.log(f"advertised as {self.name!r} ({MDNS_SERVICE} on {', '.join(self.addresses)})", False)
@@ -334,6 +335,14 @@ class Advertiser:
                     self.zc.unregister_service(self.info)
             finally:
                 self.zc.close()
+
+
+def local_mac(serial: str) -> str:
+    """A locally administered MAC address (first byte 0x02) for the TXT record, fixed for a
+    serial number: apps tell trainers apart by it, so two bikes on one network must differ."""
+    import hashlib
+    tail = hashlib.sha1(serial.encode()).digest()[:5]
+    return "-".join(f"{b:02X}" for b in (0x02, *tail))
 
 
 def host_addresses(host: str) -> list[str]:

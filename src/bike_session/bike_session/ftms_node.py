@@ -169,7 +169,7 @@ def _make_node_class():
             if advertise == "true" or (advertise == "auto" and not str(host).startswith("127.")):
                 self.advertiser = dircon.Advertiser(name or f"bike {self.get_namespace().strip('/') or 'sim'}",
                                                     dircon.host_addresses(str(host)), self.server.port,
-                                                    f"bike-{self.server.port}", self._log)
+                                                    self._serial(), self._log)
             from rclpy.clock import Clock as RosClock
             from rclpy.clock import ClockType
             steady = RosClock(clock_type=ClockType.STEADY_TIME)
@@ -180,6 +180,11 @@ def _make_node_class():
                                    f"(service {dircon.MDNS_SERVICE}); power 0..{units.erg_power_max_w:g} W, "
                                    f"grade {100 * units.grade_min:g}..{100 * units.grade_max:g} %")
             self._diag("listening", self._DiagStatus.OK)
+
+        def _serial(self) -> str:
+            """This bike's serial number for the apps: host, namespace and port (unique per bike)."""
+            import socket
+            return f"{socket.gethostname()}{self.get_namespace().rstrip('/')}:{self.server.port}"
 
         # ---- ROS side
         def _keep_plant(self, raw) -> None:
