@@ -131,9 +131,14 @@ def test_telemetry_power_is_the_ledgers_mean_over_a_second_and_distance_the_virt
     assert tel.cadence_rpm == pytest.approx(90.0)
     assert tel.distance_m == pytest.approx(20.0)
     assert ftms.decode_indoor_bike_data(tel.encode()).speed_kmh == pytest.approx(36.0)
+    # 90 rpm for 2 s: 3 crank turns, the last at 2.0 s (1/1024 s units), in the Cycling Power Measurement
+    assert tel.crank_revs == pytest.approx(3.0) and tel.crank_event_s == pytest.approx(2.0)
+    assert ftms.decode_cps_measurement(tel.encode_cps()) == (200, 3, 2048)
     tel.update(stamp_ns=0, energy_mech_in_j=0.0, speed_rpm=0.0, virtual_speed_mps=0.0, resistance_level=0.0,
                elapsed_s=0.0)                                   # the plant started over
-    assert tel.distance_m == 0.0
+    assert tel.distance_m == 0.0 and tel.crank_revs == 0.0
+    # wrapping fields, as the spec has apps expect
+    assert ftms.decode_cps_measurement(ftms.encode_cps_measurement(150.4, 65537, 64.0 + 1 / 1024)) == (150, 1, 1)
 
 
 def _connection():
@@ -146,7 +151,7 @@ def _connection():
 def test_dircon_discovery_read_subscribe_and_a_write_answered_with_its_notification():
     conn = _connection()
     out = conn.feed(dircon.encode(dircon.MSG_DISCOVER_SERVICES, 7))
-    assert out == dircon.encode(dircon.MSG_DISCOVER_SERVICES, 7, dircon.uuid128(0x1826))
+    assert out == dircon.encode(dircon.MSG_DISCOVER_SERVICES, 7, dircon.uuid128(0x1826) + dircon.uuid128(0x1818))
     assert dircon.uuid128(0x1826).hex() == "0000182600001000800000805f9b34fb"
     out = conn.feed(dircon.encode(dircon.MSG_DISCOVER_CHARACTERISTICS, 8, dircon.uuid128(0x1826)))
     (msg,) = dircon.split_messages(bytearray(out))
@@ -174,8 +179,8 @@ def test_dircon_discovery_read_subscribe_and_a_write_answered_with_its_notificat
 @pytest.mark.parametrize("msg_type,data,code", [
     (9, b"", dircon.RESP_UNKNOWN_TYPE),
     (dircon.MSG_READ, b"\x00" * 5, dircon.RESP_GENERIC_ERROR),
-    (dircon.MSG_READ, dircon.uuid128(0x2A63), dircon.RESP_CHARACTERISTIC_NOT_FOUND),
-    (dircon.MSG_DISCOVER_CHARACTERISTICS, dircon.uuid128(0x1818), dircon.RESP_SERVICE_NOT_FOUND),
+    (dircon.MSG_READ, dircon.uuid128(0x2A37), dircon.RESP_CHARACTERISTIC_NOT_FOUND),
+    (dircon.MSG_DISCOVER_CHARACTERISTICS, dircon.uuid128(0x180D), dircon.RESP_SERVICE_NOT_FOUND),
     (dircon.MSG_READ, dircon.uuid128(ftms.STATUS), dircon.RESP_NOT_SUPPORTED),
     (dircon.MSG_WRITE, dircon.uuid128(ftms.POWER_RANGE) + b"\x01", dircon.RESP_NOT_SUPPORTED),
     (dircon.MSG_ENABLE_NOTIFICATIONS, dircon.uuid128(ftms.FEATURE) + b"\x01", dircon.RESP_NOT_SUPPORTED),
@@ -212,7 +217,7 @@ def test_the_server_closes_only_a_broken_connection_and_drops_an_app_that_reads_
     pump.start()
     try:
         good = dircon.DirconClient("127.0.0.1", server.port)
-        assert good.request(dircon.MSG_DISCOVER_SERVICES).data == dircon.uuid128(0x1826)
+        assert good.request(dircon.MSG_DISCOVER_SERVICES).data[:16] == dircon.uuid128(0x1826)
         bad = socket.create_connection(("127.0.0.1", server.port))
         bad.sendall(b"\x07garbage")
         bad.settimeout(5)
@@ -249,7 +254,7 @@ def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer()
         app = Zeroconf(interfaces=["127.0.0.1"], ip_version=IPVersion.V4Only)
         info = app.get_service_info(dircon.MDNS_SERVICE, f"bike test.{dircon.MDNS_SERVICE}", timeout=5000)
         assert info is not None and info.port == 36999 and info.parsed_addresses() == ["127.0.0.1"]
-        assert info.properties[b"ble-service-uuids"] == b"0x1826"
+        assert info.properties[b"ble-service-uuids"] == b"0x1826,0x1818"
         assert info.properties[b"mac-address"] == dircon.local_mac("bike-36999").encode()
         assert dircon.local_mac("bike-36999") != dircon.local_mac("bike-36998")     # two bikes differ
         assert dircon.local_mac("x").startswith("02-")

@@ -49,10 +49,10 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
     try:
         app = _connect(port, run)
         services = app.request(dircon.MSG_DISCOVER_SERVICES)
-        assert services.data == dircon.uuid128(ftms.FTMS_SERVICE)
+        assert services.data == dircon.uuid128(ftms.FTMS_SERVICE) + dircon.uuid128(ftms.CPS_SERVICE)
         lo_w, hi_w, _ = struct.unpack("<hhH", app.read(ftms.POWER_RANGE))
         assert lo_w == 0 and hi_w > TARGET_W
-        for uuid in (ftms.INDOOR_BIKE_DATA, ftms.CONTROL_POINT, ftms.STATUS):
+        for uuid in (ftms.INDOOR_BIKE_DATA, ftms.CONTROL_POINT, ftms.STATUS, ftms.CPS_MEASUREMENT):
             assert app.subscribe(uuid).code == dircon.RESP_SUCCESS
         # as a rider would: pedalling (the session's free ride) before the app sets a target
         first = ftms.decode_indoor_bike_data(app.wait_notification(ftms.INDOOR_BIKE_DATA, 30))
@@ -71,7 +71,7 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
             assert junk.recv(16) == b""
         # a second look from a shell while the app rides: `./bike trainer` (no target: it takes no control)
         found = bike_command("trainer", "--find", "--seconds", "2", timeout=60)
-        assert found.returncode == 0 and f"bike bike: 127.0.0.1:{port} services 0x1826" in found.stdout, found
+        assert found.returncode == 0 and f"bike bike: 127.0.0.1:{port} services 0x1826,0x1818" in found.stdout, found
         probe = bike_command("trainer", "--port", str(port), "--seconds", "2", timeout=60)
         assert probe.returncode == 0, probe.stdout + probe.stderr
         assert "service 0x1826" in probe.stdout and "characteristic 0x2ad9: write, notify" in probe.stdout
@@ -84,6 +84,10 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
                 readings.append(ftms.decode_indoor_bike_data(app.wait_notification(ftms.INDOOR_BIKE_DATA, 5)))
             except (TimeoutError, ConnectionError):
                 break
+        # the Cycling Power Measurement beside it: crank turns at the cadence shown
+        cps = [ftms.decode_cps_measurement(app.wait_notification(ftms.CPS_MEASUREMENT))]
+        time.sleep(3.0)
+        cps += [ftms.decode_cps_measurement(v) for u, v in app.notifications if u == ftms.CPS_MEASUREMENT]
         app.close()
     finally:
         run.join(240)
@@ -99,6 +103,9 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
     assert readings[-1].elapsed_s > readings[0].elapsed_s >= set_at_s
     assert readings[-1].distance_m > readings[0].distance_m > 0
     assert all(r.speed_kmh > 5 and 40 < r.cadence_rpm < 140 for r in readings)
+    (_, revs0, ev0), (_, revs1, ev1) = cps[0], cps[-1]
+    crank_rpm = 60.0 * ((revs1 - revs0) % 65536) / (((ev1 - ev0) % 65536) / 1024.0)
+    assert abs(crank_rpm - readings[-1].cadence_rpm) < 0.1 * readings[-1].cadence_rpm, (crank_rpm, readings[-1])
     # ... whose power is the rider's, as the plant's energy ledger has it over the same time
     # (elapsed is in whole seconds: the readings' mean of 1 s means against the bag's mean)
     plant = plant_state_array(next(record.iterdir()), "/bike/plant_state")

@@ -316,7 +316,7 @@ class Advertiser:
                 MDNS_SERVICE, f"{self.name}.{MDNS_SERVICE}", port=self.port,
                 server=f"bike-{local_mac(self.serial).replace('-', '').lower()}.local.",
                 addresses=[socket.inet_aton(a) for a in self.addresses],
-                properties={"ble-service-uuids": "0x1826", "serial-number": self.serial,
+                properties={"ble-service-uuids": "0x1826,0x1818", "serial-number": self.serial,
                             "mac-address": local_mac(self.serial)})
             # the type's 17-byte name is longer than RFC 6335's 15: DIRCON's own, not ours to fix
             self.zc.register_service(self.info, strict=False)

@@ -16,6 +16,9 @@ Characteristics served (values little endian, as in BLE):
 - Fitness Machine Control Point 0x2AD9 (write; its response [0x80, op, result] is notified,
   BLE's indication) and Fitness Machine Status 0x2ADA (notify).
 
+The Cycling Power Service 0x1818 is served beside it (Cycling Power Measurement 0x2A63 with
+crank revolution data, Feature 0x2A65, Sensor Location 0x2A5D), as trainers do.
+
 What a control request does (:class:`FtmsControl`):
 
 | op | request | Command (mode, value) |
@@ -190,6 +193,39 @@ def decode_indoor_bike_data(data: bytes) -> IndoorBikeData:
     f = parse_indoor_bike_data(data)
     return IndoorBikeData(round(f["speed_kmh"], 2), f["cadence_rpm"], f["distance_m"], f["resistance_level"],
                           f["power_w"], f["elapsed_s"])
+
+
+# ------------------------------------------------------------------ Cycling Power Service
+# Served beside FTMS, as trainers do (a KICKR announces both): several apps take power and
+# cadence from a "power meter" they pair on its own, and derive cadence from crank events.
+CPS_SERVICE = 0x1818
+CPS_MEASUREMENT = 0x2A63       # notify: flags, power W, crank revolution data
+CPS_FEATURE = 0x2A65           # read: uint32 feature bits
+SENSOR_LOCATION = 0x2A5D       # read: uint8
+CPS_FEATURE_CRANK_DATA = 1 << 3
+CPS_FLAG_CRANK_DATA = 1 << 5
+SENSOR_LOCATION_OTHER = 0      # a trainer's power is measured at its own brake, not on the bike
+
+
+def encode_cps_feature() -> bytes:
+    return struct.pack("<I", CPS_FEATURE_CRANK_DATA)
+
+
+def encode_cps_measurement(power_w: float, crank_revs: int, crank_event_s: float) -> bytes:
+    """Cycling Power Measurement: instantaneous power and the crank revolution data (cumulative
+    revolutions, uint16, and the time of the last one in 1/1024 s, uint16; both wrap, as the
+    spec has apps expect)."""
+    return struct.pack("<HhHH", CPS_FLAG_CRANK_DATA, _fit(power_w, -32768, 32767), int(crank_revs) & 0xFFFF,
+                       int(math.floor(crank_event_s * 1024.0)) & 0xFFFF if math.isfinite(crank_event_s) else 0)
+
+
+def decode_cps_measurement(data: bytes) -> tuple[int, int, int]:
+    """(power W, cumulative crank revolutions, last crank event in 1/1024 s) of this bike's
+    measurement; ValueError otherwise."""
+    if len(data) != 8 or struct.unpack_from("<H", data)[0] != CPS_FLAG_CRANK_DATA:
+        raise ValueError(f"not this bike's Cycling Power Measurement: {bytes(data).hex()}")
+    _, power, revs, event = struct.unpack("<HhHH", data)
+    return power, revs, event
 
 
 @dataclasses.dataclass(frozen=True)

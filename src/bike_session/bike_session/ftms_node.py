@@ -38,7 +38,8 @@ class SetupError(Exception):
 
 
 def services_for(control: ftms.FtmsControl, telemetry, on_control_point) -> dict:
-    """The GATT table served over DIRCON: the Fitness Machine Service."""
+    """The GATT table served over DIRCON: the Fitness Machine Service and the Cycling Power
+    Service."""
     C, R, W, N = dircon.Characteristic, dircon.PROP_READ, dircon.PROP_WRITE, dircon.PROP_NOTIFY
     return {ftms.FTMS_SERVICE: [
         C(ftms.FEATURE, R, read=ftms.encode_feature),
@@ -48,6 +49,10 @@ def services_for(control: ftms.FtmsControl, telemetry, on_control_point) -> dict
         C(ftms.POWER_RANGE, R, read=control.encode_power_range),
         C(ftms.CONTROL_POINT, W | N, write=on_control_point),
         C(ftms.STATUS, N),
+    ], ftms.CPS_SERVICE: [
+        C(ftms.CPS_MEASUREMENT, N),
+        C(ftms.CPS_FEATURE, R, read=ftms.encode_cps_feature),
+        C(ftms.SENSOR_LOCATION, R, read=lambda: bytes([ftms.SENSOR_LOCATION_OTHER])),
     ]}
 
 
@@ -69,16 +74,27 @@ class Telemetry:
         self.cadence_rpm = 0.0
         self.level = 0.0
         self.elapsed_s = 0.0
+        self.crank_revs = 0.0               # cumulative crank revolutions (the cadence integrated)
+        self.crank_event_s = 0.0            # sim time of the last whole revolution
 
     def update(self, *, stamp_ns: int, energy_mech_in_j: float, speed_rpm: float, virtual_speed_mps: float,
                resistance_level: float, elapsed_s: float) -> None:
         speed = virtual_speed_mps if math.isfinite(virtual_speed_mps) else 0.0
         if self.samples and stamp_ns < self.samples[-1][0]:
             self.samples.clear()           # a new run of the plant (restarted): a new ride
-            self.distance_m = 0.0
+            self.distance_m = self.crank_revs = self.crank_event_s = 0.0
         if not self.samples or stamp_ns > self.samples[-1][0]:
             if self.samples:
-                self.distance_m += 0.5 * (self.speed_mps + speed) * (stamp_ns - self.samples[-1][0]) * 1e-9
+                t_prev_s, dt_s = self.samples[-1][0] * 1e-9, (stamp_ns - self.samples[-1][0]) * 1e-9
+                self.distance_m += 0.5 * (self.speed_mps + speed) * dt_s
+                cadence = max(speed_rpm / self.gear_ratio, 0.0)      # a crank sensor counts forward turns
+                rate_prev, rate = max(self.cadence_rpm, 0.0) / 60.0, cadence / 60.0
+                revs = self.crank_revs + 0.5 * (rate_prev + rate) * dt_s
+                if math.floor(revs) > math.floor(self.crank_revs):
+                    # when the last whole turn was reached, on the interval's linear cadence
+                    k = math.floor(revs)
+                    self.crank_event_s = t_prev_s + dt_s * (k - self.crank_revs) / (revs - self.crank_revs)
+                self.crank_revs = revs
             self.samples.append((stamp_ns, energy_mech_in_j))
             while len(self.samples) > 2 and self.samples[1][0] <= stamp_ns - self.window_ns:
                 self.samples.popleft()
@@ -89,6 +105,9 @@ class Telemetry:
         self.cadence_rpm = speed_rpm / self.gear_ratio
         self.level = resistance_level
         self.elapsed_s = elapsed_s
+
+    def encode_cps(self) -> bytes:
+        return ftms.encode_cps_measurement(self.power_w, int(self.crank_revs), self.crank_event_s)
 
     def encode(self) -> bytes:
         return ftms.encode_indoor_bike_data(speed_kmh=3.6 * self.speed_mps, cadence_rpm=self.cadence_rpm,
@@ -246,6 +265,7 @@ def _make_node_class():
                                   virtual_speed_mps=float(st.get("virtual_speed_mps", 0.0)),
                                   resistance_level=level, elapsed_s=self.session_elapsed_s)
             self.server.broadcast(ftms.INDOOR_BIKE_DATA, self.telemetry.encode())
+            self.server.broadcast(ftms.CPS_MEASUREMENT, self.telemetry.encode_cps())
 
     return FtmsNode
 
