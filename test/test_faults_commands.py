@@ -12,7 +12,7 @@ import signal
 import time
 
 import pytest
-from node_harness import Collector, NodeProcess, domain  # noqa: F401
+from node_harness import CONFIG, Collector, NodeProcess, domain  # noqa: F401
 
 from bike_msgs.msg import Command  # noqa: E402
 from bike_plant import msgconv  # noqa: E402
@@ -85,4 +85,52 @@ def test_fuzzed_commands_one_diagnostic_each(domain):
         assert "Traceback" not in ctrl.output()
     finally:
         ctrl.stop()
+        col.close()
+
+
+def test_fuzzed_live_commands_to_the_session_one_warning_each_and_the_last_good_one_rides(domain):
+    """The session's live_command (what the FTMS bridge writes): every invalid one gets one WARN
+    diagnostic naming the problem and changes nothing; the last valid one before the first
+    /clock is in the Commands the session then sends."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    col = Collector(domain, {"/diagnostics": DiagnosticArray, "command": Command})
+    session = NodeProcess("bike_session", "session_node", domain, {"duration_s": 5.0, "config_path": str(CONFIG)})
+    try:
+        live = col.node.create_publisher(Command, "live_command", QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        clock = col.node.create_publisher(Clock, "/clock", 10)
+        col.wait_for(lambda: live.get_subscription_count() >= 1 and clock.get_subscription_count() >= 1, 30,
+                     "the session's subscriptions", [session])
+        time.sleep(0.3)
+        commands = _fuzzed_commands(seed=11, count=40)
+        for j, (value, mode, gear, _) in enumerate(commands):
+            live.publish(msgconv.command_msg(value, mode, 0, gear))
+            time.sleep(0.005)
+        bad = [c for c in commands if c[3] is not None or c[0] < 0]
+        good = [c for c in commands if c not in bad]
+        assert 10 < len(bad) < 40 and good
+
+        def rejections():
+            return [s.message for a in col.data["/diagnostics"] for s in a.status
+                    if s.name.endswith("session") and "live Command rejected" in s.message]
+        col.wait_for(lambda: len(rejections()) >= len(bad), 20, f"{len(bad)} rejections", [session])
+        time.sleep(0.5)
+        assert len(rejections()) == len(bad), "exactly one diagnostic per invalid live Command"
+        for (value, mode, gear, word), text in zip(bad, rejections()):
+            assert word is None or word in text, (value, mode, gear, text)
+        clock.publish(Clock())                    # t = 0: the session sends tau_0 and tau_1
+        col.wait_for(lambda: len(col.data["command"]) >= 2, 20, "the first Commands", [session])
+        value, mode, gear, _ = good[-1]
+        first = col.data["command"][0]
+        assert (first.command, first.mode) == (value, mode)
+        assert first.virtual_gear_ratio == (gear or first.virtual_gear_ratio)
+        assert session.alive()
+        session.signal(signal.SIGINT)
+        assert session.wait(10) == 0, session.output()
+        assert "Traceback" not in session.output()
+    finally:
+        session.stop()
         col.close()

@@ -166,10 +166,15 @@ def _units(cfg: dict | None):
         return None
 
 
-def live_qos():
-    """live_command's QoS: reliable, the latest target kept for a reader matched later."""
+def live_qos(depth: int = 1):
+    """live_command's QoS: reliable and transient local, so that a target written before the
+    session matched (an app connected at start-up, a restarted session) still reaches it; the
+    writer keeps its latest (depth 1), the session reads with depth 10 so that targets
+    written close together are all taken. A writer of its own must be transient local too
+    (`ros2 topic pub --qos-durability transient_local ...`): DDS does not match a volatile
+    writer with this reader."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
@@ -254,7 +259,7 @@ def _make_node_class():
             self.sent_gears = array.array("d")   # the gear of each published tau index j
             self.shifts = 0
             # live Commands (_on_live_command): from tau index live_from_j[k] on, live_targets[k]
-            self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos())
+            self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos(10))
             self.live_from_j: list[int] = []
             self.live_targets: list[tuple[float, int, str]] = []
             self.live_commands = 0
@@ -612,8 +617,12 @@ def main(args=None) -> int:
             executor = SingleThreadedExecutor(context=node.context)
             executor.add_node(node)
             # /clock comes every batch: taken straight from a wait set (bike_plant.loop.HotWait),
-            # the timer and parameter services through the executor
-            hot = HotWait(executor, [node.sub_clock], node.context, logger=node.get_logger())
+            # the timer and parameter services through the executor. The live Commands and the
+            # shifter too, before /clock: the executor would serve them one per turn (at most
+            # every 50 ms), and an app's targets written close together would wait or, past the
+            # reader's depth, be lost
+            hot = HotWait(executor, [node.sub_live, node.sub_shift, node.sub_clock], node.context,
+                          logger=node.get_logger())
             while (stop["signum"] is None and rclpy.ok(context=node.context) and not node.done
                    and not node.fresh_ports_wanted):
                 if hot.spin(0.1) and not node.done:
