@@ -13,6 +13,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rosgraph_msgs.msg import Clock
 
 from conftest import bike_command
+from node_harness import domain  # noqa: F401
 
 from bike_session.bags import read_topic, stamp_s
 
@@ -85,3 +86,71 @@ def test_a_shifter_and_the_profile_shift_the_virtual_bike_in_the_node_graph(tmp_
     settled = (ts > 40.6) & (ts < 41.0)
     chained = rpm[(ts > 39.6) & (ts < 40.0)].mean() * 2.5193 / 2.7471      # as a chain would at once
     assert rpm[settled].mean() == pytest.approx(chained, rel=0.04)
+
+
+ERG_PROFILE = """name: erg_shifting_test
+mode: erg
+segments:
+  - {kind: step, duration_s: 1, target: 200}
+  - {kind: step, duration_s: 1, target: 150}
+"""
+
+
+def test_in_erg_with_erg_shift_w_a_press_moves_the_target_until_the_next_segment(tmp_path, domain):
+    """modes.erg_shift_w: 5 -> `shift +2` in an ERG segment makes its target 210 W until the
+    profile's next segment (150 W again); a press past 0 W takes what fits and says so. The
+    session alone, on the test's /clock."""
+    import yaml
+    from node_harness import CONFIG, Collector, NodeProcess
+    from std_msgs.msg import Int8
+
+    from bike_msgs.msg import Command
+    from bike_session.profiles import mode_units_from_config
+    from bike_plant.config import load_config
+
+    (tmp_path / "erg.yaml").write_text(ERG_PROFILE)
+    doc = yaml.safe_load(CONFIG.read_text())
+    params = doc["/**"]["ros__parameters"]
+    params.setdefault("modes", {})["erg_shift_w"] = 5.0
+    params["session"]["profile"] = "erg.yaml"
+    config = tmp_path / "bike.yaml"
+    config.write_text(yaml.safe_dump(doc))
+    pmax_w = mode_units_from_config(load_config(config)).erg_power_max_w
+    col = Collector(domain, {"command": Command})
+    session = NodeProcess("bike_session", "session_node", domain, {"duration_s": 2.0, "config_path": str(config),
+                                                                   "session.profile": "erg.yaml"})
+    try:
+        shift = col.node.create_publisher(Int8, "shift", 10)
+        clock = col.node.create_publisher(Clock, "/clock", 10)
+        col.wait_for(lambda: shift.get_subscription_count() >= 1 and clock.get_subscription_count() >= 1, 30,
+                     "the session's subscriptions", [session])
+        time.sleep(0.3)
+        shift.publish(Int8(data=2))
+        time.sleep(0.5)
+
+        def tick(t_s):
+            msg = Clock()
+            msg.clock.sec, msg.clock.nanosec = int(t_s), int(round((t_s % 1) * 1e9))
+            clock.publish(msg)
+        for k in range(13):                       # t = 0 .. 1.2 s: Commands tau 0 .. 1.3 s
+            tick(0.1 * k)
+            time.sleep(0.02)
+        col.wait_for(lambda: len(col.data["command"]) >= 14, 20, "14 Commands", [session])
+        shift.publish(Int8(data=-100))            # in the 150 W segment: to 0 W, and said
+        time.sleep(0.5)
+        for k in range(13, 16):
+            tick(0.1 * k)
+            time.sleep(0.02)
+        col.wait_for(lambda: len(col.data["command"]) >= 17, 20, "17 Commands", [session])
+        watts = {round(c.header.stamp.sec + c.header.stamp.nanosec * 1e-9, 1): c.command * pmax_w
+                 for c in col.data["command"] if c.mode == Command.MODE_ERG}
+        assert all(abs(watts[round(0.1 * j, 1)] - 210.0) < 1e-6 for j in range(10)), watts
+        assert all(abs(watts[round(0.1 * j, 1)] - 150.0) < 1e-6 for j in range(10, 14)), watts
+        assert watts[1.5] == 0.0 and watts[1.6] == 0.0
+        assert all(c.virtual_gear_ratio == 0.0 for c in col.data["command"])      # the gear did not move
+        out = session.output()
+        assert "shift +2 in ERG: target 200 W -> 210 W" in out
+        assert "target 150 W -> 0 W, the bottom of the power range" in out
+    finally:
+        session.stop()
+        col.close()

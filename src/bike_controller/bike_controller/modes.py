@@ -105,6 +105,7 @@ class ModeParams:
     wheel_radius_m: float = 0.335
     virtual_gear_ratio: float = 2.75         # wheel turns per crank turn (e.g. 50/18); a Command may shift
     virtual_gears: tuple = DEFAULT_VIRTUAL_GEARS   # the session's shift buttons step through these
+    erg_shift_w: float = 0.0                 # > 0: in ERG a shift press moves the target this many W (not the gear)
     virtual_inertia: bool = True
     observer_tau_s: float = 0.005            # rider-torque observer low-pass
     assist_max_nm: float = 0.0               # 0 -> Tmax
@@ -121,7 +122,7 @@ class ModeParams:
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a number > 0, got {v!r}")
         for name in ("erg_power_max_w", "bike_mass_kg", "crr", "cda_m2", "air_density_kg_m3", "assist_max_nm",
-                     "assist_min_cadence_rpm", "isokinetic_cadence_min_rpm"):
+                     "assist_min_cadence_rpm", "isokinetic_cadence_min_rpm", "erg_shift_w"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {v!r}")

@@ -19,7 +19,9 @@ Virtual shifting: every Command carries the gear of the profile segment in force
 (``gear:``, Profile.gear_at; 0 = the config's). A std_msgs/Int8 on ``shift`` (``/bike/shift``;
 ``./bike shift N``) moves it N gears up (or -N down) through the config's ``modes.virtual_gears``
 from the next Command not yet sent, until a later segment gives a gear; at either end of the
-table the node logs how many gears it took. Commands sent again (a restarted plant, a re-published
+table the node logs how many gears it took. With ``modes.erg_shift_w`` > 0 a press while the
+Command is ERG moves the power target by that many watts instead (until the profile's next
+segment), as stand-alone trainer shifters do. Commands sent again (a restarted plant, a re-published
 state) repeat the gear they were first sent with.
 
 Live Commands: a bike_msgs/Command on ``live_command`` (an app's target through the FTMS
@@ -258,11 +260,16 @@ def _make_node_class():
             self.live_leaf = -1          # the profile leaf in force when it was shifted
             self.sent_gears = array.array("d")   # the gear of each published tau index j
             self.shifts = 0
-            # live Commands (_on_live_command): from tau index live_from_j[k] on, live_targets[k]
+            # live Commands (_on_live_command) and ERG bumps (_bump_erg): from tau index
+            # live_from_j[k] on, live_targets[k] = (command, mode, label, until tau index)
             self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos(10))
             self.live_from_j: list[int] = []
-            self.live_targets: list[tuple[float, int, str]] = []
+            self.live_targets: list[tuple[float, int, str, int]] = []
             self.live_commands = 0
+            self.erg_shift_w = modes.erg_shift_w
+            units = _units(cfg)
+            self.erg_max_w = units.erg_power_max_w if units is not None else 0.0
+            self.erg_bumps = 0
 
             self.next_j = 0              # next tau index to publish
             self.last_status_k = -1      # last period index a status was published for
@@ -314,12 +321,56 @@ def _make_node_class():
         # ---------------------------------------------------------------- timeline
         def command_for(self, tau_ns: int) -> tuple[float, int, int, str]:
             cmd, mode, index, label = self.profile.command_at(tau_ns * 1e-9)
-            k = bisect.bisect_right(self.live_from_j, tau_ns // self.period_ns)
-            if k:
-                cmd, mode, label = self.live_targets[k - 1]
+            j = tau_ns // self.period_ns
+            # the latest live target from before tau_j that has not ended (an ERG bump ends
+            # where the profile's next segment begins; the one it bumped then holds again)
+            for k in range(bisect.bisect_right(self.live_from_j, j) - 1, -1, -1):
+                live_cmd, live_mode, live_label, until_j = self.live_targets[k]
+                if j < until_j:
+                    cmd, mode, label = live_cmd, live_mode, live_label
+                    break
             if tau_ns >= self.duration_ns:
                 cmd = 0.0
             return cmd, mode, index, label
+
+        def _add_live(self, j: int, command: float, mode: int, label: str, until_j: int) -> None:
+            """A live target from tau index j (not sent yet) until until_j."""
+            if self.live_from_j and self.live_from_j[-1] == j:     # not sent yet: replaced
+                self.live_targets[-1] = (command, mode, label, until_j)
+            else:
+                self.live_from_j.append(j)
+                self.live_targets.append((command, mode, label, until_j))
+
+        def _segment_end_j(self, j: int) -> int:
+            """The first tau index of the profile leaf after the one in force at tau_j."""
+            seg = self.profile.segment_at(j * self.period_s)
+            if seg is None:
+                return 1 << 62
+            return math.ceil((seg.start_s + seg.duration_s) / self.period_s - 1e-9)
+
+        def _bump_erg(self, steps: int, j: int) -> bool:
+            """A shift press in ERG with modes.erg_shift_w > 0: the target moves steps x that
+            many W from tau_j until the profile's next segment (SmartSpin2k-style shifters);
+            within 0 .. erg_power_max_w, else the press takes what fits and says so. False
+            when the Command at tau_j is not ERG (the press shifts the gear)."""
+            cmd, mode, _, _ = self.command_for(j * self.period_ns)
+            if mode != self._Command.MODE_ERG or self.erg_shift_w <= 0.0 or self.erg_max_w <= 0.0:
+                return False
+            old_w = cmd * self.erg_max_w
+            new_w = min(max(old_w + steps * self.erg_shift_w, 0.0), self.erg_max_w)
+            t_s = j * self.period_s
+            if new_w != old_w + steps * self.erg_shift_w:
+                self.get_logger().warning(
+                    f"shift {steps:+d} in ERG at t = {t_s:g} s: target {old_w:.0f} W -> {new_w:.0f} W, the "
+                    f"{'top' if steps > 0 else 'bottom'} of the power range (0 .. {self.erg_max_w:g} W)")
+            if new_w == old_w:
+                return True
+            label = f"ERG {new_w:.0f} W (shifted {new_w - old_w:+.0f} W)"
+            self._add_live(j, new_w / self.erg_max_w, self._Command.MODE_ERG, label, self._segment_end_j(j))
+            self.erg_bumps += 1
+            self.get_logger().info(f"shift {steps:+d} in ERG: target {old_w:.0f} W -> {new_w:.0f} W from "
+                                   f"t = {t_s:g} s until the next profile segment")
+            return True
 
         def _on_live_command(self, msg) -> None:
             """A live Command (an app's target through bike_session.ftms_node, or anything on
@@ -338,11 +389,7 @@ def _make_node_class():
                 return
             j = self.next_j
             label = f"live: {MODE_NAMES[int(msg.mode)]} {float(msg.command):.4g}"
-            if self.live_from_j and self.live_from_j[-1] == j:     # not sent yet: replaced
-                self.live_targets[-1] = (float(msg.command), int(msg.mode), label)
-            else:
-                self.live_from_j.append(j)
-                self.live_targets.append((float(msg.command), int(msg.mode), label))
+            self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62)
             if msg.virtual_gear_ratio > 0.0:
                 seg = self.profile.segment_at(j * self.period_s)
                 self.live_leaf = len(self.profile.segments) - 1 if seg is None else seg.index
@@ -373,6 +420,8 @@ def _make_node_class():
             if steps == 0 or self.done:
                 return
             j = self.next_j
+            if self._bump_erg(steps, j):
+                return
             current = self.gear_for(j) or self.config_gear
             new, taken = shifted_gear(self.gear_table, current, steps)
             t_s = j * self.period_s
@@ -532,7 +581,8 @@ def _make_node_class():
                                        + (f", {self.shifts} shift(s) on {self.sub_shift.topic_name}" if self.shifts
                                           else "")
                                        + (f", {self.live_commands} live Command(s) on {self.sub_live.topic_name}"
-                                          if self.live_commands else "") + ")")
+                                          if self.live_commands else "")
+                                       + (f", {self.erg_bumps} ERG target shift(s)" if self.erg_bumps else "") + ")")
                 return
             k = t_ns // self.period_ns
             if k > self.last_status_k:
