@@ -300,3 +300,15 @@ def test_fuzzed_dircon_streams_and_control_point_writes_never_raise_anything_els
             assert 0.0 <= reply.target.command <= 1.0 and reply.target.mode in MODES.values()
         if reply.response[2] != ftms.RESULT_SUCCESS:
             assert reply.message
+
+
+def test_erg_steps_and_their_settle_times_by_the_reports_rule():
+    from bike_session.trainer_probe import erg_steps
+    t = [0.25 * k for k in range(40)]
+    target = [150.0] * 8 + [250.0] * 32
+    # the power reaches 250 W +- 5 % 2 s after the step, one excursion at 3 s restarts the hold
+    power = [150.0] * 8 + [200.0] * 8 + [245.0] * 4 + [200.0] + [252.0] * 19
+    ((at, to, settle),) = erg_steps(t, target, power)
+    assert (at, to) == (2.0, 250.0) and settle == pytest.approx(3.25)
+    assert erg_steps(t, target, [150.0] * 40)[0][2] is None          # never there: not settled
+    assert erg_steps(t, [150.0] * 40, power) == []                   # no step

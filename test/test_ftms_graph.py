@@ -127,3 +127,44 @@ def test_a_training_app_rides_the_bike_over_ftms_and_dircon(tmp_path, ros_domain
     assert all(abs(c * pmax - TARGET_W) < 1.0 for _, c in erg)
     assert erg[0][0] >= set_at_s - 1.0
     assert "live Command(s)" in out
+
+
+WORKOUT = """name: app_steps
+mode: erg
+segments:
+  - {kind: step, duration_s: 6, target: 150}
+  - {kind: step, duration_s: 10, target: 250}
+"""
+
+
+@pytest.mark.slow
+def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_it_followed(tmp_path, ros_domain):
+    """Both ends of the protocol: `./bike trainer --workout` (the app) against `./bike run --ftms`
+    (the trainer): the workout's targets are written, the trainer's data kept and judged."""
+    import csv
+
+    port = _free_port()
+    workout = tmp_path / "steps.yaml"
+    workout.write_text(WORKOUT)
+    done = {}
+    run = threading.Thread(target=lambda: done.update(r=bike_command(
+        "run", "--ftms", "--ftms-port", str(port), "--duration", "28")))
+    run.start()
+    try:
+        _connect(port, run).close()                       # the trainer is up
+        ride = bike_command("trainer", "--port", str(port), "--workout", str(workout), "--csv",
+                            str(tmp_path / "ride.csv"), timeout=90)
+    finally:
+        run.join(240)
+    out = ride.stdout + ride.stderr
+    assert ride.returncode == 0, out
+    assert "workout 'app_steps': 16 s" in out
+    assert "target power 150 W" in out and "target power 250 W" in out and "refused" not in out
+    assert "step to 250 W at" in out and "ERG:" in out
+    rows = list(csv.DictReader(open(tmp_path / "ride.csv")))
+    assert len(rows) > 40 and {"t_s", "target_w", "power_w", "cadence_rpm", "speed_kmh"} <= set(rows[0])
+    late = [float(r["power_w"]) for r in rows if float(r["t_s"]) > 12.0]
+    assert late and abs(sum(late) / len(late) - 250.0) < 0.2 * 250.0, late
+    bike = done["r"]
+    assert bike.returncode == 0, (bike.stdout + bike.stderr)[-4000:]
+    assert "FTMS target power 250 W" in bike.stdout + bike.stderr

@@ -382,6 +382,8 @@ def _cmd_fleet(opts) -> int:
 
 def _cmd_trainer(opts) -> int:
     from bike_session import trainer_probe
+    if opts.csv and not output_file_ok(opts.csv, "--csv"):
+        return 2
     opts.seconds_given = opts.seconds is not None
     if opts.seconds is None:
         opts.seconds = 5.0
@@ -510,6 +512,10 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--power", type=float, metavar="W", help="take control and set ERG target power")
     trn.add_argument("--grade", type=float, metavar="PCT", help="take control and set the simulation grade")
     trn.add_argument("--level", type=float, metavar="L", help="take control and set the resistance level")
+    trn.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc, .fit, profile .yaml) "
+                                                        "on the trainer as an app does, then print how it followed")
+    trn.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets")
+    trn.add_argument("--csv", metavar="FILE", help="with --workout: write every Indoor Bike Data sample here")
     trn.set_defaults(func=_cmd_trainer)
     return parser
 

@@ -7,6 +7,15 @@ take control and set a target, and print the Indoor Bike Data it notifies, once 
     ./bike trainer [--host H] [--port P]          # what the trainer at H:P serves, then 5 s of data
     ./bike trainer --power 200 --seconds 30       # ERG at 200 W (Request Control first)
     ./bike trainer --grade 4.5                    # simulation grade 4.5 %
+    ./bike trainer --workout FILE.zwo --ftp 250 --csv ride.csv   # ride a workout on the trainer
+
+``--workout`` rides a workout file (.zwo, .erg, .mrc, .fit, or a profile .yaml) on the trainer
+the way an app does: its targets, mapped through the trainer's own ranges (power, inclination,
+resistance level), are written to the Control Point when they change (at most once a second,
+as apps do), every Indoor Bike Data notification is kept (``--csv``), and at the end it prints
+how the trainer followed: power error and the ERG response to each target step, by the rule the
+report uses (settled within max(5 % of the target, 5 W) for 1 s; trainer reviews quote 3-5 s).
+Against ``./bike run --ftms`` it is a closed loop through both ends of the protocol.
 
 Exit codes: 0 done; 1 no trainer there, or it refused the target; 2 bad arguments.
 """
@@ -76,7 +85,8 @@ def describe(app: dircon.DirconClient, say) -> bool:
                                          (ftms.RESISTANCE_RANGE, "resistance level", 0.1, "")):
             try:
                 lo, hi, step = struct.unpack("<hhH", app.read(uuid)[:6])
-                say(f"{label} range {lo * scale:g} .. {hi * scale:g} {unit} in steps of {step * scale:g}".rstrip())
+                unit_text = f" {unit}" if unit else ""
+                say(f"{label} range {lo * scale:g} .. {hi * scale:g}{unit_text} in steps of {step * scale:g}")
             except (ValueError, struct.error):
                 say(f"{label} range: not served")
     return has_ftms
@@ -98,6 +108,135 @@ def control(app: dircon.DirconClient, op: int, param: bytes, what: str, say) -> 
     return True
 
 
+def _ranges(app: dircon.DirconClient):
+    """The trainer's Command ranges (ModeUnits) from its FTMS range characteristics."""
+    from bike_session.profiles import ModeUnits
+    lo_w, hi_w, _ = struct.unpack("<hhH", app.read(ftms.POWER_RANGE)[:6])
+    try:
+        lo_g, hi_g, _ = struct.unpack("<hhH", app.read(ftms.INCLINATION_RANGE)[:6])
+    except ValueError:
+        lo_g, hi_g = 0, 0
+    return ModeUnits(float(hi_w), lo_g / 1000.0, hi_g / 1000.0 if hi_g > lo_g else lo_g / 1000.0 + 1e-3, 0.0, 1.0)
+
+
+def _target_write(mode: int, command: float, units) -> tuple[int, bytes, str] | None:
+    """The Control Point write for a profile's Command (None: a mode FTMS cannot ask for)."""
+    from bike_session.profiles import MODES
+    if mode == MODES["erg"]:
+        watts = round(command * units.erg_power_max_w)
+        return ftms.OP_TARGET_POWER, struct.pack("<h", watts), f"target power {watts} W"
+    if mode == MODES["slope"]:
+        grade = units.grade_min + command * (units.grade_max - units.grade_min)
+        return (ftms.OP_SIMULATION, struct.pack("<hhBB", 0, round(grade * 10000), 40, 51),
+                f"simulation grade {100 * grade:.1f} %")
+    if mode == MODES["resistance"]:
+        level = round(command * ftms.RESISTANCE_LEVEL_MAX * 10)
+        return ftms.OP_TARGET_RESISTANCE, struct.pack("<h", level), f"resistance level {level / 10:g}"
+    return None
+
+
+def erg_steps(t_s, target_w, power_w, hold_s: float | None = None) -> list[tuple[float, float, float | None]]:
+    """(time, new target, settle time or None) of each ERG target step in a ride's samples: a
+    change of more than max(10 W, 5 %); settled from the first sample after which the power
+    stays within max(5 % of the target, 5 W) for ``hold_s`` (the report's rule, report.ERG_*)."""
+    from bike_session.report import ERG_HOLD_S, ERG_STEP_W, ERG_TOL, ERG_TOL_MIN_W
+    hold_s = ERG_HOLD_S if hold_s is None else hold_s
+    out = []
+    starts = [i for i in range(1, len(t_s)) if target_w[i] is not None and target_w[i - 1] is not None
+              and abs(target_w[i] - target_w[i - 1]) > max(ERG_STEP_W, ERG_TOL * abs(target_w[i - 1]))]
+    for n, i in enumerate(starts):
+        end = starts[n + 1] if n + 1 < len(starts) else len(t_s)
+        band = max(ERG_TOL * abs(target_w[i]), ERG_TOL_MIN_W)
+        settle = None
+        first_in = None
+        for k in range(i, end):
+            if abs(power_w[k] - target_w[i]) <= band:
+                first_in = k if first_in is None else first_in
+                if t_s[k] - t_s[first_in] >= hold_s:
+                    settle = t_s[first_in] - t_s[i]
+                    break
+            else:
+                first_in = None
+        out.append((t_s[i], target_w[i], settle))
+    return out
+
+
+def ride_workout(app: dircon.DirconClient, opts, say) -> int:
+    """Ride ``opts.workout`` on the trainer (see the module's docstring)."""
+    import csv
+
+    import warnings
+
+    from bike_session.profiles import MODE_NAMES, MODES, ProfileError
+    from bike_session.workouts import WorkoutWarning, load_workout
+
+    units = _ranges(app)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", WorkoutWarning)
+            profile = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=units.erg_power_max_w, units=units)
+    except ProfileError as exc:
+        print(f"error: bad workout: {exc}", file=sys.stderr)
+        return 2
+    for w in caught:
+        say(f"warning: {w.message}")
+    seconds = profile.duration_s if not opts.seconds_given else opts.seconds
+    say(f"workout {profile.name!r}: {profile.duration_s:g} s (riding {seconds:g} s) on a trainer of "
+        f"0 .. {units.erg_power_max_w:g} W")
+    if not control(app, ftms.OP_START_RESUME, b"", "start", say):
+        return 1
+    app.subscribe(ftms.INDOOR_BIKE_DATA)
+    rows = []
+    sent = None
+    next_write = 0.0
+    t0 = time.monotonic()
+    while True:
+        now = time.monotonic() - t0
+        if now >= seconds:
+            break
+        cmd, mode, _, label = profile.command_at(now)
+        target = _target_write(mode, cmd, units)
+        if target is None:
+            say(f"warning: t = {now:.0f} s: mode {MODE_NAMES.get(mode, mode)} has no FTMS target; not sent")
+        elif target[:2] != sent and now >= next_write:
+            reply = app.write(ftms.CONTROL_POINT, bytes([target[0]]) + target[1])
+            result = app.wait_notification(ftms.CONTROL_POINT)
+            ok = reply.code == dircon.RESP_SUCCESS and len(result) >= 3 and result[2] == ftms.RESULT_SUCCESS
+            say(f"t = {now:5.1f} s  {target[2]}" + ("" if ok else f": refused ({result.hex()})"))
+            sent, next_write = target[:2], now + 1.0
+        try:
+            value = app.wait_notification(ftms.INDOOR_BIKE_DATA, max(0.05, min(1.0, seconds - now)))
+        except TimeoutError:
+            continue
+        fields = ftms.parse_indoor_bike_data(value)
+        t = time.monotonic() - t0
+        cmd, mode, _, _ = profile.command_at(t)
+        target_w = cmd * units.erg_power_max_w if mode == MODES["erg"] else None
+        rows.append({"t_s": round(t, 3), "target_w": None if target_w is None else round(target_w, 1), **fields})
+    control(app, ftms.OP_STOP_PAUSE, b"\x01", "stop", say)
+    if opts.csv:
+        keys = sorted({k for r in rows for k in r}, key=lambda k: (k not in ("t_s", "target_w"), k))
+        with open(opts.csv, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=keys)
+            writer.writeheader()
+            writer.writerows(rows)
+        say(f"{len(rows)} Indoor Bike Data samples written to {opts.csv}")
+    erg = [r for r in rows if r["target_w"] is not None and "power_w" in r]
+    if erg:
+        err = [r["power_w"] - r["target_w"] for r in erg]
+        rms = (sum(e * e for e in err) / len(err)) ** 0.5
+        say(f"ERG: {len(erg)} samples, power - target mean {sum(err) / len(err):+.1f} W, rms {rms:.1f} W")
+        steps = erg_steps([r["t_s"] for r in erg], [r["target_w"] for r in erg], [r["power_w"] for r in erg])
+        for t, w, settle in steps:
+            say(f"  step to {w:.0f} W at {t:.1f} s: " + (f"settled in {settle:.1f} s" if settle is not None
+                                                        else "not settled"))
+        done = sorted(s for _, _, s in steps if s is not None)
+        if done:
+            say(f"ERG response: {len(steps)} steps, {len(done)} settled, median {done[len(done) // 2]:.1f} s, "
+                f"max {done[-1]:.1f} s (trainer reviews: 3-5 s)")
+    return 0
+
+
 def main(opts) -> int:
     def say(text: str) -> None:
         print(text, flush=True)
@@ -109,9 +248,12 @@ def main(opts) -> int:
         if not trainers:
             say("no DIRCON trainer announced (mDNS _wahoo-fitness-tnp._tcp) on this network")
         return 0
-    targets = [t for t in (opts.power, opts.grade, opts.level) if t is not None]
+    targets = [t for t in (opts.power, opts.grade, opts.level, opts.workout) if t is not None]
     if len(targets) > 1:
-        print("error: give one of --power, --grade, --level", file=sys.stderr)
+        print("error: give one of --power, --grade, --level, --workout", file=sys.stderr)
+        return 2
+    if opts.csv and not opts.workout:
+        print("error: --csv needs --workout", file=sys.stderr)
         return 2
     try:
         app = dircon.DirconClient(opts.host, opts.port)
@@ -122,6 +264,8 @@ def main(opts) -> int:
         if not describe(app, say):
             say("no Fitness Machine Service (0x1826) here: nothing to control")
             return 1
+        if opts.workout:
+            return ride_workout(app, opts, say)
         if opts.power is not None:
             ok = control(app, ftms.OP_TARGET_POWER, struct.pack("<h", round(opts.power)),
                          f"target power {round(opts.power)} W", say)
