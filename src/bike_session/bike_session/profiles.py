@@ -108,6 +108,21 @@ class ModeUnits:
         return min(max(c, 0.0), 1.0), unit
 
 
+def describe_command(mode: int, command: float, units: ModeUnits | None) -> str:
+    """A Command in its mode's unit where the bike's ranges are known ("erg 150 W",
+    "slope 5 %", "isokinetic 80 rpm"), else its value ("resistance 0.1")."""
+    name = MODE_NAMES.get(mode, str(mode))
+    if units is not None:
+        if mode == MODES["erg"]:
+            return f"{name} {command * units.erg_power_max_w:.0f} W"
+        if mode == MODES["slope"]:
+            return f"{name} {100 * (units.grade_min + command * (units.grade_max - units.grade_min)):.1f} %"
+        if mode == MODES["isokinetic"]:
+            rpm = units.cadence_min_rpm + command * (units.cadence_max_rpm - units.cadence_min_rpm)
+            return f"{name} {rpm:.0f} rpm"
+    return f"{name} {command:.4g}"
+
+
 def mode_units_from_config(cfg: Mapping) -> ModeUnits:
     """ModeUnits of a loaded config (bike_plant.config.load_config)."""
     from bike_controller.modes import machine_figures, mode_params_from_config

@@ -49,7 +49,7 @@ import subprocess
 import sys
 import time
 
-from bike_session.profiles import MODE_NAMES, Profile, ProfileError, load_profile, shifted_gear
+from bike_session.profiles import MODE_NAMES, Profile, ProfileError, describe_command, load_profile, shifted_gear
 
 NODE_NAME = "session"
 COMMAND_QOS_DEPTH = 100
@@ -267,7 +267,7 @@ def _make_node_class():
             self.live_targets: list[tuple[float, int, str, int]] = []
             self.live_commands = 0
             self.erg_shift_w = modes.erg_shift_w
-            units = _units(cfg)
+            self.units = units = _units(cfg)
             self.erg_max_w = units.erg_power_max_w if units is not None else 0.0
             self.erg_bumps = 0
 
@@ -388,7 +388,7 @@ def _make_node_class():
                 self._publish_diag(text, self._DiagnosticStatus.WARN)
                 return
             j = self.next_j
-            label = f"live: {MODE_NAMES[int(msg.mode)]} {float(msg.command):.4g}"
+            label = f"live: {describe_command(int(msg.mode), float(msg.command), self.units)}"
             self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62)
             if msg.virtual_gear_ratio > 0.0:
                 seg = self.profile.segment_at(j * self.period_s)
