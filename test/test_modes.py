@@ -845,3 +845,44 @@ def test_both_machines_and_a_drive_on_can_report_the_gear_in_force():
         assert status["virtual_gear_ratio"] == 3.5615
         ctrl.set_command(0.6, MODE_SLOPE, 0.0)
         assert ctrl.status()["virtual_gear_ratio"] == 2.75, "0: the config's gear"
+
+
+def test_erg_speed_from_power_is_the_flat_roads_and_does_not_follow_the_gear():
+    """modes.erg_speed_from_power: a rider holding 200 W in ERG rides the virtual bike to the
+    flat road's speed for 200 W, P = F_road(0, v) v (GoldenCheetah #3712), whatever the gear;
+    by default the virtual speed is the gear's (cadence x gear x wheel)."""
+    cadence = 80.0
+    w = cadence * GEAR / RPM_PER_RAD_S
+    m = law(erg_speed_from_power=True)
+    p_w = 200.0
+    m.rider_torque_nm = p_w / w                      # the rider's torque, as the observer has it
+    m._observe = lambda *a: None                     # held: this test is about the virtual bike
+    out = None
+    for _ in range(120_000):                         # 120 s: the 85 kg bike's time constant is ~20 s
+        out = m.step(p_w / PMAX, MODE_ERG, cadence * GEAR, DT)
+    v = out.virtual_speed_mps
+    assert m.road_force_n(0.0, v) * v == pytest.approx(p_w, rel=1e-3)
+    assert 8.0 < v < 12.0
+    m.set_virtual_gear(4.5)
+    assert m.step(p_w / PMAX, MODE_ERG, cadence * GEAR, DT).virtual_speed_mps == pytest.approx(v, rel=1e-3)
+    gear = law()                                                         # the default: the gear's speed
+    out = settle(gear, p_w / PMAX, MODE_ERG, cadence * GEAR, n=10)
+    assert out.virtual_speed_mps == pytest.approx(w * gear.mps_per_rad_s)
+    assert mode_params_from_config({"modes": {"erg_speed_from_power": True}}).erg_speed_from_power
+    with pytest.raises(ValueError, match="erg_speed_from_power must be true or false"):
+        mode_params_from_config({"modes": {"erg_speed_from_power": 1}})
+
+
+def test_plant_erg_speed_from_power_rides_the_same_distance_in_any_gear():
+    """The plant and its rider in ERG at 200 W for 8 s, in two virtual gears: with
+    erg_speed_from_power the virtual bike (and so the distance) is the same within 2 %, the
+    gear's speed differs by the gears' ratio."""
+    speeds = {}
+    for gear in (2.0, 4.0):
+        for from_power in (True, False):
+            r, ctrl = _ride_plant(lambda t: (200.0 / PMAX, MODE_ERG), 8.0,
+                                  {"erg_speed_from_power": from_power, "virtual_gear_ratio": gear})
+            speeds[gear, from_power] = ctrl.last_out.virtual_speed_mps
+    assert speeds[2.0, True] == pytest.approx(speeds[4.0, True], rel=0.02)
+    assert speeds[4.0, False] == pytest.approx(2.0 * speeds[2.0, False], rel=0.02)
+    assert speeds[2.0, True] > 1.0
