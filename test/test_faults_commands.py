@@ -53,6 +53,14 @@ def _fuzzed_commands(seed: int, count: int):
     return [c if len(c) == 4 else (c[0], c[1], 0.0, c[2]) for c in out]
 
 
+def _ends_cleanly_on_sigint(proc) -> None:
+    """Alive after the fuzzing, then a clean exit (code 0, no traceback) on SIGINT."""
+    assert proc.alive()
+    proc.signal(signal.SIGINT)
+    assert proc.wait(10) == 0, proc.output()
+    assert "Traceback" not in proc.output()
+
+
 def test_fuzzed_commands_one_diagnostic_each(domain):
     col = Collector(domain, {"/diagnostics": DiagnosticArray})
     ctrl = NodeProcess("bike_controller", "controller_node", domain, {"diagnostics_period_s": 1000.0})
@@ -79,10 +87,7 @@ def test_fuzzed_commands_one_diagnostic_each(domain):
         assert sum(c[3] == "gear" for c in bad) >= 3
         for (value, mode, gear, word), text in zip(bad, msgs):
             assert word is None or word in text, (value, mode, gear, text)
-        assert ctrl.alive()
-        ctrl.signal(signal.SIGINT)
-        assert ctrl.wait(10) == 0, ctrl.output()
-        assert "Traceback" not in ctrl.output()
+        _ends_cleanly_on_sigint(ctrl)
     finally:
         ctrl.stop()
         col.close()
@@ -127,10 +132,7 @@ def test_fuzzed_live_commands_to_the_session_one_warning_each_and_the_last_good_
         first = col.data["command"][0]
         assert (first.command, first.mode) == (value, mode)
         assert first.virtual_gear_ratio == (gear or first.virtual_gear_ratio)
-        assert session.alive()
-        session.signal(signal.SIGINT)
-        assert session.wait(10) == 0, session.output()
-        assert "Traceback" not in session.output()
+        _ends_cleanly_on_sigint(session)
     finally:
         session.stop()
         col.close()
