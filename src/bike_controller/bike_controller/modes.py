@@ -201,8 +201,7 @@ class ModeLaw:
         self.obs_tb = float(torque_nm)        # ... and low-passed applied braking torque
         self.rider_torque_nm = 0.0            # observer output
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
-        self.erg_ke_j = None                  # ERG with erg_speed_from_power: the virtual bike's kinetic energy
-        self.erg_entry_mps = None             # ... and its speed at the switch into ERG (None: the flat road's)
+        self.erg_ke_j = 0.0                   # ERG with erg_speed_from_power: the virtual bike's kinetic energy
 
     def _set_gear(self, ratio: float) -> None:
         self.virtual_gear_ratio = float(ratio)
@@ -251,22 +250,25 @@ class ModeLaw:
         return (self.m_total_kg * G_MPS2 * (math.sin(a) + mp.crr * math.cos(a))
                 + 0.5 * mp.air_density_kg_m3 * mp.cda_m2 * va * abs(va))
 
-    def _erg_speed_mps(self, w: float, v_gear_mps: float, dt_s: float) -> float:
+    def _erg_speed_mps(self, w: float, dt_s: float) -> float:
         """ERG with ``erg_speed_from_power``: the virtual bike's speed from the rider's power on a
         flat road, so that distance does not depend on the gear (GoldenCheetah #3712; in ERG the
         brake, not the road, sets the load). Kinetic energy integrated as GoldenCheetah's
         BicycleSim does (research notes section 3): d(1/2 m v^2)/dt = P_r - F_road(0, v) v, with
-        P_r = T_r w from the rider-torque observer. At the switch into ERG it starts from the
-        slope mode's virtual bike when that came before (the bike rolls on), else from the flat
-        road's steady speed for the rider's power then (not the gear's speed, which would put
-        the gear into the distance for the ~20 s the bike's mass takes to settle)."""
+        P_r = T_r w from the rider-torque observer. Its start at the switch into ERG:
+        :meth:`_start_erg_bike`."""
         p_rider_w = self.rider_torque_nm * w
-        if self.erg_ke_j is None:
-            v0 = self.erg_entry_mps if self.erg_entry_mps is not None else self._flat_speed_mps(p_rider_w)
-            self.erg_ke_j = 0.5 * self.m_total_kg * v0 * v0
         v = math.sqrt(2.0 * self.erg_ke_j / self.m_total_kg)
         self.erg_ke_j = max(self.erg_ke_j + (p_rider_w - self.road_force_n(0.0, v) * v) * dt_s, 0.0)
         return math.sqrt(2.0 * self.erg_ke_j / self.m_total_kg)
+
+    def _start_erg_bike(self, w: float, from_slope: bool) -> None:
+        """ERG's virtual bike at the switch into ERG: the slope mode's virtual bike rolls on when
+        that came before, else it starts at the flat road's steady speed for the rider's power
+        then (not the gear's speed, which would put the gear into the distance for the ~20 s the
+        bike's mass takes to settle)."""
+        v0 = self.virtual_w * self.mps_per_rad_s if from_slope else self._flat_speed_mps(self.rider_torque_nm * w)
+        self.erg_ke_j = 0.5 * self.m_total_kg * v0 * v0
 
     def _flat_speed_mps(self, p_w: float) -> float:
         """The speed at which ``p_w`` holds the flat road's load, F_road(0, v) v = p_w (bisection:
@@ -303,7 +305,7 @@ class ModeLaw:
             # at the envelope of the speed estimate, the duty followed the stroke and the
             # all_modes ERG 180 W braked 4.1-4.7 N m instead of 5.0-5.7
             if mp.erg_speed_from_power:
-                v = self._erg_speed_mps(w, v, dt_s)
+                v = self._erg_speed_mps(w, dt_s)
             return min(t, self.tmax_nm), p_w, v, t > self.brake_cap_nm(w)
         if mode == MODE_SLOPE:
             grade = mp.grade_min + command * (mp.grade_max - mp.grade_min)
@@ -380,10 +382,8 @@ class ModeLaw:
             elif mode == MODE_SLOPE:
                 self.integral_nm = 0.0              # the virtual bike starts at the real speed
                 self.virtual_w = w
-            elif mode == MODE_ERG:
-                # ERG's virtual bike rolls on from the slope mode's, else starts at the flat road's speed
-                self.erg_ke_j = None
-                self.erg_entry_mps = self.virtual_w * self.mps_per_rad_s if self.last_mode == MODE_SLOPE else None
+            elif mode == MODE_ERG and self.mp.erg_speed_from_power:
+                self._start_erg_bike(w, from_slope=self.last_mode == MODE_SLOPE)
         self.last_mode = mode
         wanted, target, v, sat = self._wanted(command, mode, w, dt_s)
         if switched:

@@ -107,20 +107,27 @@ class ModeUnits:
             raise ValueError(f"target {target!r} {unit} outside this bike's range [{lo:g}, {hi:g}] {unit}")
         return min(max(c, 0.0), 1.0), unit
 
+    def target_of(self, mode: int, command: float) -> tuple[float, str] | None:
+        """The inverse of :meth:`to_command`: (target, unit) of a Command ("W", "%" grade,
+        "rpm"); None for a mode without a target unit."""
+        if mode == MODES["erg"]:
+            return command * self.erg_power_max_w, "W"
+        if mode == MODES["slope"]:
+            return 100 * (self.grade_min + command * (self.grade_max - self.grade_min)), "%"
+        if mode == MODES["isokinetic"]:
+            return self.cadence_min_rpm + command * (self.cadence_max_rpm - self.cadence_min_rpm), "rpm"
+        return None
+
 
 def describe_command(mode: int, command: float, units: ModeUnits | None) -> str:
     """A Command in its mode's unit where the bike's ranges are known ("erg 150 W",
-    "slope 5 %", "isokinetic 80 rpm"), else its value ("resistance 0.1")."""
+    "slope 5.0 %", "isokinetic 80 rpm"), else its value ("resistance 0.1")."""
     name = MODE_NAMES.get(mode, str(mode))
-    if units is not None:
-        if mode == MODES["erg"]:
-            return f"{name} {command * units.erg_power_max_w:.0f} W"
-        if mode == MODES["slope"]:
-            return f"{name} {100 * (units.grade_min + command * (units.grade_max - units.grade_min)):.1f} %"
-        if mode == MODES["isokinetic"]:
-            rpm = units.cadence_min_rpm + command * (units.cadence_max_rpm - units.cadence_min_rpm)
-            return f"{name} {rpm:.0f} rpm"
-    return f"{name} {command:.4g}"
+    target = units.target_of(mode, command) if units is not None else None
+    if target is None:
+        return f"{name} {command:.4g}"
+    value, unit = target
+    return f"{name} {value:.1f} {unit}" if unit == "%" else f"{name} {value:.0f} {unit}"
 
 
 def mode_units_from_config(cfg: Mapping) -> ModeUnits:

@@ -346,7 +346,17 @@ def _make_node_class():
             seg = self.profile.segment_at(j * self.period_s)
             if seg is None:
                 return 1 << 62
-            return math.ceil((seg.start_s + seg.duration_s) / self.period_s - 1e-9)
+            return math.ceil(seg.end_s / self.period_s - 1e-9)
+
+        def _leaf_at(self, t_s: float) -> int:
+            """The profile leaf in force at t_s (the last one past the end)."""
+            seg = self.profile.segment_at(t_s)
+            return len(self.profile.segments) - 1 if seg is None else seg.index
+
+        def _set_live_gear(self, gear: float, t_s: float) -> None:
+            """A gear from t_s on, until a later profile leaf gives one (gear_for)."""
+            self.live_leaf = self._leaf_at(t_s)
+            self.live_gear = gear
 
         def _bump_erg(self, steps: int, j: int) -> bool:
             """A shift press in ERG with modes.erg_shift_w > 0: the target moves steps x that
@@ -391,9 +401,7 @@ def _make_node_class():
             label = f"live: {describe_command(int(msg.mode), float(msg.command), self.units)}"
             self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62)
             if msg.virtual_gear_ratio > 0.0:
-                seg = self.profile.segment_at(j * self.period_s)
-                self.live_leaf = len(self.profile.segments) - 1 if seg is None else seg.index
-                self.live_gear = float(msg.virtual_gear_ratio)
+                self._set_live_gear(float(msg.virtual_gear_ratio), j * self.period_s)
             self.live_commands += 1
             self.get_logger().info(f"{label} from t = {j * self.period_s:g} s"
                                    + (f", virtual gear {msg.virtual_gear_ratio:g}" if msg.virtual_gear_ratio else ""))
@@ -406,8 +414,7 @@ def _make_node_class():
                 return self.sent_gears[j]
             tau_s = j * self.period_s
             if self.live_gear is not None:
-                seg = self.profile.segment_at(tau_s)
-                leaf = len(self.profile.segments) - 1 if seg is None else seg.index
+                leaf = self._leaf_at(tau_s)
                 if not any(i in self.profile.gears_given for i in range(self.live_leaf + 1, leaf + 1)):
                     return self.live_gear
                 self.live_gear = None
@@ -433,9 +440,7 @@ def _make_node_class():
                     f"{self.gear_table[0]:g} .. {self.gear_table[-1]:g})")
             if taken == 0:
                 return
-            seg = self.profile.segment_at(t_s)
-            self.live_leaf = len(self.profile.segments) - 1 if seg is None else seg.index
-            self.live_gear = new
+            self._set_live_gear(new, t_s)
             self.shifts += 1
             self.get_logger().info(f"shift {taken:+d}: virtual gear {current:g} -> {new:g} from t = {t_s:g} s")
 
@@ -624,7 +629,7 @@ def _make_node_class():
     return SessionNode
 
 
-def _stop_on_signals() -> dict:
+def stop_on_signals() -> dict:
     """SIGINT / SIGTERM only ask the loop to stop (checked at least every 0.1 s), as in the
     loop nodes (bike_plant.node.install_signal_handlers) and the recorder. rclpy's own handlers
     (rclpy.init's default) shut the context down from their signal thread while this thread may
@@ -647,7 +652,7 @@ def main(args=None) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = _stop_on_signals()
+    stop = stop_on_signals()
     node = None
     executor = None
     rc = 0

@@ -123,12 +123,12 @@ def _target_write(mode: int, command: float, units) -> tuple[int, bytes, str] | 
     """The Control Point write for a profile's Command (None: a mode FTMS cannot ask for)."""
     from bike_session.profiles import MODES
     if mode == MODES["erg"]:
-        watts = round(command * units.erg_power_max_w)
+        watts = round(units.target_of(mode, command)[0])
         return ftms.OP_TARGET_POWER, struct.pack("<h", watts), f"target power {watts} W"
     if mode == MODES["slope"]:
-        grade = units.grade_min + command * (units.grade_max - units.grade_min)
-        return (ftms.OP_SIMULATION, struct.pack("<hhBB", 0, round(grade * 10000), 40, 51),
-                f"simulation grade {100 * grade:.1f} %")
+        grade_pct = units.target_of(mode, command)[0]
+        return (ftms.OP_SIMULATION, struct.pack("<hhBB", 0, round(grade_pct * 100), 40, 51),
+                f"simulation grade {grade_pct:.1f} %")
     if mode == MODES["resistance"]:
         level = round(command * ftms.RESISTANCE_LEVEL_MAX * 10)
         return ftms.OP_TARGET_RESISTANCE, struct.pack("<h", level), f"resistance level {level / 10:g}"
@@ -211,7 +211,7 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
         fields = ftms.parse_indoor_bike_data(value)
         t = time.monotonic() - t0
         cmd, mode, _, _ = profile.command_at(t)
-        target_w = cmd * units.erg_power_max_w if mode == MODES["erg"] else None
+        target_w = units.target_of(mode, cmd)[0] if mode == MODES["erg"] else None
         rows.append({"t_s": round(t, 3), "target_w": None if target_w is None else round(target_w, 1), **fields})
     control(app, ftms.OP_STOP_PAUSE, b"\x01", "stop", say)
     if opts.csv:
