@@ -270,6 +270,37 @@ def test_plant_erg_holds_the_target_power():
     assert p_brake == pytest.approx(200.0, rel=0.03)
 
 
+def test_the_rider_settles_an_erg_step_within_seconds_as_a_rider_does():
+    """150 -> 250 W: the brake takes the step at once, the rider's cadence dips and is back
+    within 2 rpm of 80 in 3 s, and the rider's power (whole crank turns) meets the brake's.
+    The gains once in the config (kp 0.05, ki 0.1) rang for ~15 s: 68-87 rpm."""
+    r, _ = _ride_plant(lambda t: ((150.0 if t < 6.0 else 250.0) / PMAX, MODE_ERG), 14.0)
+    t = r["time_s"]
+    cad = r["speed_rpm"] / GEAR
+    after = t >= 9.0
+    assert np.abs(cad[after] - 80.0).max() < 2.0, (cad[after].min(), cad[after].max())
+    assert cad[(t > 6.0) & (t < 9.0)].min() > 72.0, "the dip of the step is a few rpm, not a stall"
+    # rider power over 8 whole crank turns at 80 rpm (6 s): the torque's two peaks per turn average out
+    w = r["speed_rpm"] / RPM_PER_RAD_S
+    tail = t >= 14.0 - 6.0
+    p_rider = np.mean(r["load_torque_nm"][tail] * w[tail])
+    p_brake = np.mean(-r["torque_em_nm"][tail] * w[tail])
+    assert p_brake == pytest.approx(250.0, rel=0.03)
+    assert p_rider == pytest.approx(p_brake + np.mean(1e-4 * w[tail] ** 2), rel=0.02)
+
+
+def test_the_configs_rider_gains_are_the_derivation_for_their_drivetrain():
+    from bike_plant.config import load_config
+    from bike_plant.mechanics import rider_pi_gains
+    from bike_plant.params import plant_params_from_config
+    root = pathlib.Path(__file__).resolve().parents[1] / "config"
+    for name, damping, wn in (("bldc_default.yaml", 0.7, 2.0), ("bldc_can.yaml", 0.7, 2.0)):
+        p = plant_params_from_config(load_config(root / name))
+        j_crank = p.mech.inertia_kgm2 * p.load.gear_ratio ** 2
+        kp, ki = rider_pi_gains(j_crank, p.load, damping, wn)
+        assert (p.load.rider_kp, p.load.rider_ki) == (pytest.approx(kp, rel=0.01), pytest.approx(ki, rel=0.01)), name
+
+
 def test_plant_isokinetic_holds_cadence_against_a_rider_who_wants_80():
     r, ctrl = _ride_plant(lambda t: (0.4, MODE_ISOKINETIC), 5.0)     # 60 rpm
     m, w, _ = _tail(r, 3.0)

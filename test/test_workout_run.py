@@ -69,7 +69,9 @@ def test_every_mode_in_the_node_graph(tmp_path, ros_domain):
     assert modes[2][0].mode_target == pytest.approx(0.04)
     iso = window(states, 15, 16)
     assert np.mean([m.speed_rpm for m in iso]) / 35.0 == pytest.approx(70.0, abs=1.5)
-    assert not any(s.mode_saturated for w in modes for s in w)
+    # the rider wants 80 rpm: held at 70 he pushes to full effort within about a second, and a
+    # full-effort stroke's torque peaks pass the brake's envelope (flagged); nowhere else
+    assert not any(s.mode_saturated for k, w in enumerate(modes) if k != 3 for s in w)
     assert all(m.faults == 0 for m in states)
     # the summary's slope tracking: the flywheel follows the virtual bike (0.002 m/s measured)
     slope = re.search(r"tracking slope_speed:\s+rms ([0-9.]+) m/s", result.stdout)

@@ -4,7 +4,8 @@ Rider model (ARCHITECTURE.md, mechanical load): crank torque from a torque-caden
 with two torque peaks per crank turn (one per leg),
     T_crank = effort * T0 * (1 - cadence / cadence_max) * (1 + 0.5 cos(2 crank_angle)),
 seen by the motor through the gear ratio (motor / crank ~ 35): T_motor = T_crank / ratio.
-The rider holds a target cadence by adjusting effort (0..1) with a PI on the cadence error.
+The rider holds a target cadence by adjusting effort (0..1) with a PI on the cadence error
+(gains for a wanted cadence response: :func:`rider_pi_gains`).
 A prime mover (paper 000, section 5) holds the speed exactly and supplies any torque.
 """
 from __future__ import annotations
@@ -43,6 +44,25 @@ def rider_motor_torque_nm(effort: float, motor_speed_rad_s: float, crank_angle_r
     """The rider's torque on the motor shaft (through the gear)."""
     cadence_rpm = motor_speed_rad_s / load.gear_ratio * RPM_PER_RAD_S
     return rider_crank_torque_nm(effort, cadence_rpm, crank_angle_rad, load) / load.gear_ratio
+
+
+def rider_pi_gains(inertia_at_crank_kgm2: float, load: LoadParams, damping: float = 0.7,
+                   natural_rad_s: float = 2.0) -> tuple[float, float]:
+    """(rider_kp [1/(rad/s)], rider_ki [1/rad]) that give the rider's cadence loop the wanted
+    damping and natural frequency in ERG, the hardest case.
+
+    Why ERG: its load P / w falls with cadence exactly as steeply as the rider's torque line at
+    the power apex (c = Cmax / 2, the recreational preset's 80 rpm of 160), so the two slopes
+    cancel and the PI alone must damp the crank inertia J:
+        J dw = T0 (1 - c*/Cmax) (kp e + ki int e),  e = w* - w
+    is a second-order loop with wn^2 = ki K / J and 2 zeta wn = kp K / J, K = T0 (1 - c*/Cmax).
+    The defaults (zeta 0.7, wn 2 rad/s) put the cadence back within 2-3 s of an ERG step, as a
+    rider does; the gains once in the configs (0.05, 0.1) gave the BLDC bike's 12 kg m^2 at
+    the crank zeta 0.18 and a 9 s ring (+-20 % rider power after a step).
+    """
+    k_nm = load.rider_t0_nm * max(1.0 - load.rider_target_cadence_rpm / load.rider_cadence_max_rpm, 1e-3)
+    return (2.0 * damping * natural_rad_s * inertia_at_crank_kgm2 / k_nm,
+            natural_rad_s ** 2 * inertia_at_crank_kgm2 / k_nm)
 
 
 def prime_mover_torque_nm(torque_em_nm: float, friction_nms: float, speed_rad_s: float) -> float:

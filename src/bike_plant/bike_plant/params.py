@@ -123,8 +123,8 @@ class RiderParams:
     rider_t0_nm: float = 120.0
     rider_cadence_max_rpm: float = 160.0
     rider_target_cadence_rpm: float = 80.0
-    rider_kp: float = 0.05
-    rider_ki: float = 0.1
+    rider_kp: float = 0.57       # mechanics.rider_pi_gains for the BLDC bike's drivetrain
+    rider_ki: float = 0.82
     rider_effort0: float = 0.3
 
     def validate_rider(self) -> None:
