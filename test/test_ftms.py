@@ -1,6 +1,7 @@
 """FTMS over DIRCON without ROS: the Control Point's meaning for this bike's Commands, the
 bytes of the characteristics, DIRCON framing and dispatch, the TCP server on real sockets
 (a broken stream closes only its own connection), and the telemetry an app is shown."""
+import math
 import socket
 import struct
 import time
@@ -139,6 +140,50 @@ def test_telemetry_power_is_the_ledgers_mean_over_a_second_and_distance_the_virt
     assert tel.distance_m == 0.0 and tel.crank_revs == 0.0
     # wrapping fields, as the spec has apps expect
     assert ftms.decode_cps_measurement(ftms.encode_cps_measurement(150.4, 65537, 64.0 + 1 / 1024)) == (150, 1, 1)
+
+
+def _pedal(tel, seconds, cadence_rpm, power_w, t0_s=0.0, e0_j=0.0, notify=None):
+    """1 kHz plant states of a rider whose crank torque pulses twice a turn (1 + 0.5 cos 2 crank,
+    the plant's rider): energy = P t + (P / w) (0.25 sin 2 crank). Every 0.25 s: notify(t)."""
+    w = cadence_rpm * math.pi / 30.0
+    for k in range(int(round(seconds * 1000)) + 1):
+        t = t0_s + k * 1e-3
+        crank = w * (t - t0_s)
+        e = e0_j + power_w * (t - t0_s) + power_w / w * 0.25 * math.sin(2.0 * crank)
+        tel.add_sample(int(round(t * 1e9)), e, cadence_rpm * 35.0)
+        if notify is not None and k % 250 == 0 and k:
+            notify(int(round(t * 1e9)), e)
+    return e
+
+
+@pytest.mark.parametrize("cadence_rpm", [80.0, 73.0, 100.0])
+def test_telemetry_power_is_over_whole_crank_half_turns_so_the_pedal_pulse_cancels(cadence_rpm):
+    tel = Telemetry(gear_ratio=35.0, power_window_s=1.0)
+    shown, plain = [], []
+
+    def notify(t_ns, e):
+        tel.update(stamp_ns=t_ns, energy_mech_in_j=e, speed_rpm=cadence_rpm * 35.0, virtual_speed_mps=8.0,
+                   resistance_level=0.0, elapsed_s=t_ns * 1e-9)
+        if t_ns >= 2e9:
+            shown.append(tel.power_w)
+            # what a plain 1 s window of the same samples reads
+            t0, e0, _ = next(x for x in reversed(tel.samples) if x[0] <= t_ns - 1e9)
+            plain.append((e - e0) / ((t_ns - t0) * 1e-9))
+
+    _pedal(tel, 6.0, cadence_rpm, 258.0, notify=notify)
+    assert max(abs(p - 258.0) for p in shown) < 0.01 * 258.0, (min(shown), max(shown))
+    assert max(abs(p - 258.0) for p in plain) > 0.03 * 258.0, "the test's pulse shows in a plain window"
+    assert tel.crank_revs == pytest.approx(6.0 * cadence_rpm / 60.0, abs=1e-6)
+
+
+def test_telemetry_power_of_a_crank_that_barely_turns_takes_the_time_window():
+    tel = Telemetry(gear_ratio=35.0, power_window_s=1.0)
+    e = _pedal(tel, 2.0, 5.0, 20.0)                 # 5 rpm: a sixth of a turn in a second
+    tel.update(stamp_ns=2_000_000_000, energy_mech_in_j=e, speed_rpm=175.0, virtual_speed_mps=0.5,
+               resistance_level=0.0, elapsed_s=2.0)
+    t0, e0, _ = next(x for x in reversed(tel.samples) if x[0] <= 1_000_000_000)
+    assert tel.power_w == pytest.approx((e - e0) / 1.0)
+    assert len(tel.samples) <= 2 * Telemetry.HISTORY_S * 1000 + 1
 
 
 def _connection():
