@@ -22,7 +22,8 @@ pytestmark = pytest.mark.timeout(60)
 
 
 def _fuzzed_commands(seed: int, count: int):
-    """[(value, mode, virtual gear, expected problem word or None)], about one in three valid."""
+    """[(value, mode, virtual gear, expected problem word or None, road)], about one in three
+    valid; a road ((crr, cw_kg_m, wind_mps) or None), good or bad, on some otherwise valid ones."""
     rng = random.Random(seed)
     out = []
     for _ in range(count):
@@ -50,7 +51,19 @@ def _fuzzed_commands(seed: int, count: int):
             out.append((rng.choice([0.0, 1.0]), rng.randrange(5), None))
         else:
             out.append((-rng.random(), rng.randrange(5, 256), None))      # two problems: still one diagnostic
-    return [c if len(c) == 4 else (c[0], c[1], 0.0, c[2]) for c in out]
+    out = [c if len(c) == 4 else (c[0], c[1], 0.0, c[2]) for c in out]
+    roads = random.Random(seed + 1000)
+    with_road = []
+    for value, mode, gear, word in out:
+        road, kind = None, roads.randrange(10)
+        if word is None and value >= 0 and kind < 3:
+            road = roads.choice([(math.nan, 0.5, 0.0), (0.004, -1.0, 0.0), (0.004, 0.5, 99.0), (0.2, 0.5, 0.0),
+                                 (0.004, 0.5, math.inf)])
+            word = "road"
+        elif kind < 6:
+            road = (roads.uniform(0, 0.02), roads.uniform(0, 1.5), roads.uniform(-10, 10))
+        with_road.append((value, mode, gear, word, road))
+    return with_road
 
 
 def _ends_cleanly_on_sigint(proc) -> None:
@@ -69,8 +82,8 @@ def test_fuzzed_commands_one_diagnostic_each(domain):
         col.wait_for(lambda: pub.get_subscription_count() >= 1, 30, "controller's command subscription", [ctrl])
         time.sleep(0.3)                       # the controller's side of the match (volatile QoS)
         commands = _fuzzed_commands(seed=6, count=60)
-        for j, (value, mode, gear, _) in enumerate(commands):
-            pub.publish(msgconv.command_msg(value, mode, msgconv.seconds_to_ns(0.1 * j), gear))
+        for j, (value, mode, gear, _, road) in enumerate(commands):
+            pub.publish(msgconv.command_msg(value, mode, msgconv.seconds_to_ns(0.1 * j), gear, road))
             time.sleep(0.005)
         bad = [c for c in commands if c[3] is not None or c[0] < 0]
         assert 20 < len(bad) < 60
@@ -84,8 +97,8 @@ def test_fuzzed_commands_one_diagnostic_each(domain):
         assert len(msgs) == len(bad), "exactly one diagnostic per invalid Command"
         assert all(s.level == DiagnosticStatus.WARN for a in col.data["/diagnostics"] for s in a.status
                    if "Command rejected" in s.message)
-        assert sum(c[3] == "gear" for c in bad) >= 3
-        for (value, mode, gear, word), text in zip(bad, msgs):
+        assert sum(c[3] == "gear" for c in bad) >= 3 and sum(c[3] == "road" for c in bad) >= 3
+        for (value, mode, gear, word, _), text in zip(bad, msgs):
             assert word is None or word in text, (value, mode, gear, text)
         _ends_cleanly_on_sigint(ctrl)
     finally:
@@ -111,8 +124,8 @@ def test_fuzzed_live_commands_to_the_session_one_warning_each_and_the_last_good_
                      "the session's subscriptions", [session])
         time.sleep(0.3)
         commands = _fuzzed_commands(seed=11, count=40)
-        for j, (value, mode, gear, _) in enumerate(commands):
-            live.publish(msgconv.command_msg(value, mode, 0, gear))
+        for j, (value, mode, gear, _, road) in enumerate(commands):
+            live.publish(msgconv.command_msg(value, mode, 0, gear, road))
             time.sleep(0.005)
         bad = [c for c in commands if c[3] is not None or c[0] < 0]
         good = [c for c in commands if c not in bad]
@@ -124,14 +137,15 @@ def test_fuzzed_live_commands_to_the_session_one_warning_each_and_the_last_good_
         col.wait_for(lambda: len(rejections()) >= len(bad), 20, f"{len(bad)} rejections", [session])
         time.sleep(0.5)
         assert len(rejections()) == len(bad), "exactly one diagnostic per invalid live Command"
-        for (value, mode, gear, word), text in zip(bad, rejections()):
+        for (value, mode, gear, word, _), text in zip(bad, rejections()):
             assert word is None or word in text, (value, mode, gear, text)
         clock.publish(Clock())                    # t = 0: the session sends tau_0 and tau_1
         col.wait_for(lambda: len(col.data["command"]) >= 2, 20, "the first Commands", [session])
-        value, mode, gear, _ = good[-1]
+        value, mode, gear, _, road = good[-1]
         first = col.data["command"][0]
         assert (first.command, first.mode) == (value, mode)
         assert first.virtual_gear_ratio == (gear or first.virtual_gear_ratio)
+        assert msgconv.command_road(first) == road, "the live Command's road rides with it"
         _ends_cleanly_on_sigint(session)
     finally:
         session.stop()

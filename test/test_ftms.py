@@ -60,18 +60,26 @@ def test_inclination_and_resistance_map_onto_the_mode_ranges():
     assert control.write(cp(ftms.OP_TARGET_RESISTANCE, "h", 1001)).response[2] == ftms.RESULT_INVALID_PARAMETER
 
 
-def test_a_simulation_grade_beyond_the_bike_is_ridden_at_its_end_and_said_and_road_terms_are_said_once():
+def test_a_simulation_grade_beyond_the_bike_is_ridden_at_its_end_and_said_and_the_road_is_the_apps():
     control = controlled()
-    first = control.write(cp(ftms.OP_SIMULATION, "hhBB", 0, 300, 40, 51))     # 3 %, Crr 0.004, Cw 0.51
+    first = control.write(cp(ftms.OP_SIMULATION, "hhBB", -2500, 300, 40, 51))     # 3 %, Crr 0.004, Cw 0.51
     assert first.response[2] == ftms.RESULT_SUCCESS and not first.warning
     assert first.target.command == pytest.approx((0.03 + 0.10) / 0.30)
-    assert "Crr 0.004" in first.message and "not applied" in first.message
-    steep = control.write(cp(ftms.OP_SIMULATION, "hhBB", 0, 2500, 40, 51))    # 25 %: beyond 20 %
+    assert first.target.road == pytest.approx((0.004, 0.51, -2.5))              # a 2.5 m/s tail wind
+    assert "Crr 0.004" in first.message and "wind -2.5 m/s" in first.message
+    steep = control.write(cp(ftms.OP_SIMULATION, "hhBB", -2500, 2500, 40, 51))    # 25 %: beyond 20 %
     assert steep.response[2] == ftms.RESULT_SUCCESS and steep.warning
     assert steep.target.command == pytest.approx(1.0)
     assert "25 % is beyond" in steep.message and "ridden at 20 %" in steep.message
-    assert "not applied" not in steep.message                                 # the same road terms
-    assert steep.status == bytes([ftms.STATUS_SIMULATION_CHANGED]) + struct.pack("<hhBB", 0, 2500, 40, 51)
+    assert "Crr" not in steep.message and steep.target.road == first.target.road   # the same road: said once
+    assert steep.status == bytes([ftms.STATUS_SIMULATION_CHANGED]) + struct.pack("<hhBB", -2500, 2500, 40, 51)
+    # an app that sends only the grade: the config's road, said
+    bare = control.write(cp(ftms.OP_SIMULATION, "hhBB", 0, 100, 0, 0))
+    assert bare.target.road is None and "config's road" in bare.message
+    # a stop keeps the target and its road for the resume
+    control.write(cp(ftms.OP_SIMULATION, "hhBB", 1000, 100, 33, 40))
+    control.write(bytes([ftms.OP_STOP_PAUSE, 2]))
+    assert control.write(bytes([ftms.OP_START_RESUME])).target.road == pytest.approx((0.0033, 0.40, 1.0))
 
 
 def test_stop_releases_the_brake_keeps_the_target_for_resume_and_reset_gives_up_control():

@@ -13,6 +13,7 @@ import pytest
 
 from conftest import bike_command
 
+from bike_plant import msgconv
 from bike_session import dircon, ftms
 from bike_session.bags import plant_state_array, read_topic, stamp_s
 
@@ -134,13 +135,15 @@ mode: erg
 segments:
   - {kind: step, duration_s: 6, target: 150}
   - {kind: step, duration_s: 10, target: 250}
+  - {kind: step, duration_s: 5, target: 3, mode: slope}
 """
 
 
 @pytest.mark.slow
 def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_it_followed(tmp_path, ros_domain):
     """Both ends of the protocol: `./bike trainer --workout` (the app) against `./bike run --ftms`
-    (the trainer): the workout's targets are written, the trainer's data kept and judged."""
+    (the trainer): the workout's targets are written, the trainer's data kept and judged; the
+    road sent with the grade (Zwift's Crr and Cw, a head wind given) is the one the bike rides."""
     import csv
 
     port = _free_port()
@@ -148,23 +151,26 @@ def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_i
     workout.write_text(WORKOUT)
     done = {}
     run = threading.Thread(target=lambda: done.update(r=bike_command(
-        "run", "--ftms", "--ftms-port", str(port), "--duration", "28")))
+        "run", "--ftms", "--ftms-port", str(port), "--duration", "32", "--record", str(tmp_path / "rec"))))
     run.start()
     try:
         _connect(port, run).close()                       # the trainer is up
         ride = bike_command("trainer", "--port", str(port), "--workout", str(workout), "--csv",
-                            str(tmp_path / "ride.csv"), timeout=90)
+                            str(tmp_path / "ride.csv"), "--wind", "2", timeout=90)
     finally:
         run.join(240)
     out = ride.stdout + ride.stderr
     assert ride.returncode == 0, out
-    assert "workout 'app_steps': 16 s" in out
+    assert "workout 'app_steps': 21 s" in out
     assert "target power 150 W" in out and "target power 250 W" in out and "refused" not in out
     assert "step to 250 W at" in out and "ERG:" in out
     rows = list(csv.DictReader(open(tmp_path / "ride.csv")))
     assert len(rows) > 40 and {"t_s", "target_w", "power_w", "cadence_rpm", "speed_kmh"} <= set(rows[0])
-    late = [float(r["power_w"]) for r in rows if float(r["t_s"]) > 12.0]
+    late = [float(r["power_w"]) for r in rows if 12.0 < float(r["t_s"]) < 16.0]
     assert late and abs(sum(late) / len(late) - 250.0) < 0.2 * 250.0, late
     bike = done["r"]
     assert bike.returncode == 0, (bike.stdout + bike.stderr)[-4000:]
     assert "FTMS target power 250 W" in bike.stdout + bike.stderr
+    assert "road: wind 2 m/s, Crr 0.004, Cw 0.51 kg/m" in bike.stdout + bike.stderr
+    slope = [m for m in read_topic(next((tmp_path / "rec").iterdir()), "/bike/command") if m.mode == 3]
+    assert slope and all(msgconv.command_road(m) == pytest.approx((0.004, 0.51, 2.0)) for m in slope)

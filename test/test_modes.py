@@ -108,6 +108,46 @@ def ride(m: ModeLaw, command, mode, rider_fn, w0, seconds, delay_batches=0):
     return log
 
 
+def test_slope_rides_the_road_a_command_gives_and_the_configs_otherwise():
+    """A training app's road (Crr, Cw = 1/2 rho CdA, wind): the slope law's road load on it; None
+    gives the config's road back; a bad road is refused and changes nothing."""
+    m = law(virtual_inertia=False)
+    mp = m.mp
+    cadence = 80.0
+    w = cadence * GEAR / RPM_PER_RAD_S
+    v = w * mp.wheel_radius_m * mp.virtual_gear_ratio / GEAR
+    grade = 0.03
+    command = 0.5 + grade / 0.4
+    config_road = settle(m, command, MODE_SLOPE, cadence * GEAR).brake_torque_nm
+    m.set_road((0.006, 0.51, 4.0))                       # Zwift's Cw, a 4 m/s head wind
+    assert m.road_from_command
+    app = settle(m, command, MODE_SLOPE, cadence * GEAR).brake_torque_nm
+    a = math.atan(grade)
+    f_app = (mp.rider_mass_kg + mp.bike_mass_kg) * G_MPS2 * (math.sin(a) + 0.006 * math.cos(a)) + 0.51 * (v + 4.0) ** 2
+    assert app * w == pytest.approx(f_app * v, rel=1e-9)
+    assert app > config_road * 1.3
+    with pytest.raises(ValueError, match="crr"):
+        m.set_road((0.5, 0.51, 0.0))
+    with pytest.raises(ValueError, match="wind_mps"):
+        m.set_road((0.004, 0.51, float("nan")))
+    assert settle(m, command, MODE_SLOPE, cadence * GEAR).brake_torque_nm == pytest.approx(app)
+    m.set_road(None)
+    assert not m.road_from_command
+    assert settle(m, command, MODE_SLOPE, cadence * GEAR).brake_torque_nm == pytest.approx(config_road)
+
+
+def test_a_command_with_a_bad_road_is_rejected_whole():
+    from bike_controller.session_control import ModedController
+    from bike_plant.config import load_config
+    ctrl = ModedController(load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml"))
+    ctrl.set_command(0.6, MODE_SLOPE, 0.0, (0.004, 0.51, 2.0))
+    assert ctrl.law.road_from_command and ctrl.law.wind_mps == 2.0
+    with pytest.raises(ValueError, match="cw_kg_m"):
+        ctrl.set_command(0.7, MODE_SLOPE, 3.0, (0.004, -1.0, 2.0))
+    assert ctrl.command_rejected and ctrl.command == 0.6 and ctrl.law.virtual_gear_ratio != 3.0
+    assert ctrl.law.cw_kg_m == 0.51
+
+
 def test_slope_virtual_bike_feels_like_the_rider_mass():
     """A step of rider torque accelerates the flywheel like rider + bike mass (J_eq), not
     like the machine's own small flywheel J; the steady speed is the road-load equilibrium."""

@@ -293,6 +293,26 @@ def test_virtual_gears_stay_in_force_until_the_next_one_given():
     assert parse_profile({"segments": [{"kind": "step", "duration_s": 1, "command": 0.1}]}).gear_at(0.5) == 0.0
 
 
+def test_a_road_stays_in_force_until_the_next_one_and_bad_roads_are_named():
+    head = {"crr": 0.005, "cw_kg_m": 0.5, "wind_mps": 6}
+    p = parse_profile({"mode": "slope", "segments": [
+        {"kind": "step", "duration_s": 2, "command": 0.5},
+        {"kind": "step", "duration_s": 2, "command": 0.6, "road": head},
+        {"kind": "repeat", "repeat": 2, "road": {"crr": 0.004, "cw_kg_m": 0.3, "wind_mps": -3},
+         "segments": [{"kind": "step", "duration_s": 1, "command": 0.7}]},
+        {"kind": "step", "duration_s": 1, "command": 0.5, "road": "config"}]})
+    roads = [p.road_at(t + 0.5) for t in range(7)]
+    assert roads == [None, None, (0.005, 0.5, 6.0), (0.005, 0.5, 6.0), (0.004, 0.3, -3.0), (0.004, 0.3, -3.0), None]
+    assert p.command_at(4.5)[:2] == (0.7, MODES["slope"]), "roads change nothing else"
+    for bad, why in (({"crr": 0.005, "cw_kg_m": 0.5}, "exactly crr, cw_kg_m, wind_mps"),
+                     ({"crr": 0.5, "cw_kg_m": 0.5, "wind_mps": 0}, "road crr 0.5 outside"),
+                     ({"crr": 0.005, "cw_kg_m": "x", "wind_mps": 0}, "expected a number"),
+                     ("flat", "expected 'config' or a mapping")):
+        with pytest.raises(ProfileError, match=why) as info:
+            parse_profile({"segments": [{"kind": "step", "duration_s": 1, "command": 0.1, "road": bad}]})
+        assert "segments[0].road" in str(info.value)
+
+
 def test_shifted_gear_walks_the_table_and_says_how_far_it_got():
     table = (1.0, 1.5, 2.0, 3.0)
     assert shifted_gear(table, 1.5, 1) == (2.0, 1)

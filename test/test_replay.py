@@ -78,6 +78,20 @@ def test_replay_refuses_bad_input_with_one_error(tmp_path, ros_domain):
     assert res.returncode == 0 and "--config" in res.stdout and "--load" in res.stdout
 
 
+def test_a_replayed_timeline_keeps_the_road_a_training_app_gave():
+    from bike_session.profiles import parse_profile
+    from bike_session.replay import profile_from_timeline
+    s = 1_000_000_000
+    app = (0.004, 0.51, 2.5)
+    timeline = [(0, 0.6, 3, 0.0, None), (s, 0.6, 3, 0.0, app), (2 * s, 0.7, 3, 0.0, app), (3 * s, 0.7, 3, 0.0, None)]
+    doc = profile_from_timeline(timeline, 4.0, "r")
+    assert [seg.get("road") for seg in doc["segments"]] == [
+        None, {"crr": 0.004, "cw_kg_m": 0.51, "wind_mps": 2.5}, None, "config"]
+    p = parse_profile(doc)
+    for t, _c, _m, _g, r in timeline:
+        assert p.road_at(t * 1e-9) == r
+
+
 def test_a_replayed_timeline_keeps_its_virtual_gears():
     """profile_from_timeline: a step per change of command, mode or gear; a gear is given where
     it changes (and stays in force), 0 included; the final Command's gear (the run's end, as
@@ -93,3 +107,44 @@ def test_a_replayed_timeline_keeps_its_virtual_gears():
     for t, _c, _m, g in timeline:
         assert p.gear_at(t * 1e-9) == g
     assert [p.command_at(t * 1e-9)[0] for t, *_ in timeline[:-1]] == [c for _t, c, *_ in timeline[:-1]]
+
+
+@pytest.mark.slow
+def test_a_profiles_road_brakes_in_the_graph_is_recorded_and_replays(tmp_path, ros_domain):
+    """A slope at 3 % on the config's road, then on a road with Zwift's Cw and a 4 m/s head
+    wind (as a training app gives it): the brake follows each road's load, the Commands record
+    the road, and a replay rides the same timeline, bit for bit."""
+    import numpy as np
+
+    from bike_controller.session_control import ModedController
+    from bike_plant.config import load_config
+
+    road = (0.006, 0.51, 4.0)
+    prof = tmp_path / "windy.yaml"
+    prof.write_text(yaml.safe_dump({"name": "windy", "mode": "slope", "segments": [
+        {"kind": "step", "duration_s": 8, "target": 3},
+        {"kind": "step", "duration_s": 8, "target": 3, "road": dict(zip(("crr", "cw_kg_m", "wind_mps"), road))}]}))
+    res = bike_command("run", "--workout", str(prof), "--record", str(tmp_path / "orig"))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    orig = _bag_in(tmp_path / "orig")
+    timeline = command_timeline(orig)[0]
+    assert {r for t, *_, r in timeline if t < 8e9} == {None} and {r for t, *_, r in timeline if 8e9 <= t < 16e9} == {road}
+
+    law = ModedController(load_config(ROOT / "config/bldc_default.yaml")).law
+    states, status = read_topic(orig, "plant_state"), read_topic(orig, "controller_status")
+
+    def window(msgs, t0, t1):
+        return [m for m in msgs if t0 <= m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 < t1]
+    for t0, r in ((6.0, None), (14.0, road)):                # settled: the last 2 s of each
+        brake = np.mean([-m.torque_em_nm for m in window(states, t0, t0 + 2)])
+        v = np.mean([s.virtual_speed_mps for s in window(status, t0, t0 + 2)])
+        law.set_road(r)
+        expected = law.road_force_n(0.03, v) * law.mps_per_rad_s
+        assert brake == pytest.approx(expected, rel=0.1), (r, brake, expected)
+    assert law.road_force_n(0.03, 8.0) > 1.3 * ModedController(load_config(ROOT / "config/bldc_default.yaml")).law.road_force_n(0.03, 8.0)
+
+    res = bike_command("replay", str(orig), "--record", str(tmp_path / "same"))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    same = _bag_in(tmp_path / "same")
+    assert command_timeline(same)[0] == timeline
+    assert _values(same, "plant_state") == _values(orig, "plant_state")

@@ -42,6 +42,8 @@ Modes (``bike_msgs/Command``):
   isokinetic gains). Negative F (downhill)
   gives assist torque, at most ``assist_max_nm`` and only above ``assist_min_cadence_rpm``
   (the motor never starts turning the cranks of a rider who stopped).
+  The road (Crr, Cw = 1/2 rho CdA, wind) is the config's, or the Command's where it gives one
+  (``road_from_command``: a training app's Indoor Bike Simulation, :meth:`ModeLaw.set_road`).
   Virtual shifting: a Command may carry a ``virtual_gear_ratio`` (0: the config's). A shift
   keeps the virtual bike's road speed, v = w_v r_wheel gear_virtual / gear_ratio, so the
   virtual motor speed w_v jumps by gear_old / gear_new, and the flywheel is then made to follow
@@ -71,6 +73,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bike_plant.mechanics import VIRTUAL_GEAR_MAX, VIRTUAL_GEAR_MIN, virtual_gear_problem  # noqa: F401
+from bike_plant.mechanics import road_problem
 
 from .torque_command import RPM_PER_RAD_S, torque_command_nm
 
@@ -186,6 +189,7 @@ class ModeLaw:
         self.assist_max_nm = mp.assist_max_nm or self.tmax_nm
         self.m_total_kg = mp.rider_mass_kg + mp.bike_mass_kg
         self._set_gear(mp.virtual_gear_ratio)
+        self.set_road(None)
         wn = mp.isokinetic_bandwidth_rad_s
         self.kp = 2.0 * self.inertia_kgm2 * wn
         self.ki = self.inertia_kgm2 * wn * wn
@@ -222,6 +226,21 @@ class ModeLaw:
         self.virtual_w *= self.virtual_gear_ratio / new
         self._set_gear(new)
 
+    def set_road(self, road: tuple[float, float, float] | None) -> None:
+        """The road of the slope mode and of ERG's flat road: (crr, cw_kg_m, wind_mps) as a
+        Command gives it (Cw = 1/2 rho CdA, the FTMS Indoor Bike Simulation's figure), or None
+        for the config's (crr, 1/2 air_density_kg_m3 cda_m2, wind_mps). ValueError: unchanged."""
+        if road is None:
+            mp = self.mp
+            road = (mp.crr, 0.5 * mp.air_density_kg_m3 * mp.cda_m2, mp.wind_mps)
+            self.road_from_command = False
+        else:
+            problem = road_problem(*road)
+            if problem:
+                raise ValueError(problem)
+            self.road_from_command = True
+        self.crr, self.cw_kg_m, self.wind_mps = (float(x) for x in road)
+
     def _observe(self, w: float, dt_s: float, brake_nm: float) -> None:
         """Rider torque T_r = J dw/dt + T_brake + B w, all through one low-pass (the
         derivative as J (w - w_lp) / tau: no differentiation of the quantised estimate)."""
@@ -243,12 +262,12 @@ class ModeLaw:
 
     # ---------------------------------------------------------------- the laws
     def road_force_n(self, grade: float, v_mps: float) -> float:
-        """Road load of section 3 of the research notes (Gribble), drivetrain loss left out."""
-        mp = self.mp
+        """Road load of section 3 of the research notes (Gribble), drivetrain loss left out,
+        on the road in force (:meth:`set_road`)."""
         a = math.atan(grade)
-        va = v_mps + mp.wind_mps
-        return (self.m_total_kg * G_MPS2 * (math.sin(a) + mp.crr * math.cos(a))
-                + 0.5 * mp.air_density_kg_m3 * mp.cda_m2 * va * abs(va))
+        va = v_mps + self.wind_mps
+        return (self.m_total_kg * G_MPS2 * (math.sin(a) + self.crr * math.cos(a))
+                + self.cw_kg_m * va * abs(va))
 
     def _erg_speed_mps(self, w: float, dt_s: float) -> float:
         """ERG with ``erg_speed_from_power``: the virtual bike's speed from the rider's power on a

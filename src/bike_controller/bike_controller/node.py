@@ -137,6 +137,7 @@ class ControllerNode(Node):
         self.values = array.array("d")     # their command values
         self.modes = array.array("B")      # and modes
         self.gears = array.array("d")      # and virtual gears (0: the config's)
+        self.roads: list = []              # and roads ((crr, cw_kg_m, wind_mps); None: the config's)
         self.applied_index = -1            # timeline entry in force (-1: config command0/mode0)
         self.rejected = False              # last received Command was invalid
         self.reject_reason = ""
@@ -189,6 +190,7 @@ class ControllerNode(Node):
         if i > 0 and self.stamps[i - 1] == stamp:       # same stamp: the newer one replaces it
             self.values[i - 1], self.modes[i - 1] = float(msg.command), int(msg.mode)
             self.gears[i - 1] = float(msg.virtual_gear_ratio)
+            self.roads[i - 1] = msgconv.command_road(msg)
             if self.applied_index == i - 1:
                 self.applied_index = -2                  # force re-application
         else:
@@ -196,6 +198,7 @@ class ControllerNode(Node):
             self.values.insert(i, float(msg.command))
             self.modes.insert(i, int(msg.mode))
             self.gears.insert(i, float(msg.virtual_gear_ratio))
+            self.roads.insert(i, msgconv.command_road(msg))
             if self.applied_index >= i:
                 self.applied_index += 1
         self.no_session = False
@@ -369,7 +372,7 @@ class ControllerNode(Node):
             return
         value, mode = self.values[i], self.modes[i]
         try:
-            self.ctrl.set_command(value, mode, self.gears[i])
+            self.ctrl.set_command(value, mode, self.gears[i], self.roads[i])
         except ValueError as exc:                         # the law's own validation
             self.rejected = True
             self.reject_reason = str(exc)

@@ -35,6 +35,8 @@ import math
 
 import numpy as np
 
+from bike_plant.mechanics import road_problem
+
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
                     TorqueTrim, mode_params_from_config)
@@ -197,12 +199,19 @@ class SessionCommand:
     mode: int = MODE_RESISTANCE
     command_rejected: bool = False
 
-    def set_command(self, command: float, mode: int = MODE_RESISTANCE, virtual_gear_ratio: float = 0.0) -> None:
+    def set_command(self, command: float, mode: int = MODE_RESISTANCE, virtual_gear_ratio: float = 0.0,
+                    road: tuple[float, float, float] | None = None) -> None:
         """The Command in force; ``virtual_gear_ratio`` shifts the virtual bike
-        (:meth:`ModeLaw.set_virtual_gear`, 0: the config's gear). ValueError: nothing changes."""
+        (:meth:`ModeLaw.set_virtual_gear`, 0: the config's gear), ``road`` is its road
+        (:meth:`ModeLaw.set_road`, None: the config's). ValueError: nothing changes."""
         try:
             validate_session_command(command, mode)
+            if road is not None:
+                problem = road_problem(*road)
+                if problem:
+                    raise ValueError(problem)
             self.law.set_virtual_gear(virtual_gear_ratio)     # checks the gear; shifts only if it is good
+            self.law.set_road(road)
         except ValueError:
             self.command_rejected = True
             raise

@@ -34,6 +34,24 @@ def virtual_gear_problem(ratio, allow_default: bool = True) -> str | None:
     return None
 
 
+# a road a Command may give (FTMS Indoor Bike Simulation carries Crr in 1e-4 up to 0.0255, Cw
+# in 0.01 kg/m up to 2.55 and wind in mm/s up to 32.8 m/s; these bounds hold any real road)
+ROAD_CRR_MAX = 0.05
+ROAD_CW_MAX_KG_M = 3.0
+ROAD_WIND_MAX_MPS = 40.0
+
+
+def road_problem(crr, cw_kg_m, wind_mps) -> str | None:
+    """Why (crr, cw_kg_m, wind_mps) is not a road a Command may give (None if it is)."""
+    for name, value, lo, hi in (("crr", crr, 0.0, ROAD_CRR_MAX), ("cw_kg_m", cw_kg_m, 0.0, ROAD_CW_MAX_KG_M),
+                                ("wind_mps", wind_mps, -ROAD_WIND_MAX_MPS, ROAD_WIND_MAX_MPS)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return f"road {name} must be a finite number, got {value!r}"
+        if not lo <= value <= hi:
+            return f"road {name} {value!r} outside [{lo:g}, {hi:g}]"
+    return None
+
+
 def rider_crank_torque_nm(effort: float, cadence_rpm: float, crank_angle_rad: float, load: LoadParams) -> float:
     """Crank torque of the rider (>= 0: a rider pedals, never brakes)."""
     line = max(0.0, 1.0 - cadence_rpm / load.rider_cadence_max_rpm)

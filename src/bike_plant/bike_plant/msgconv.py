@@ -20,7 +20,7 @@ from builtin_interfaces.msg import Time
 from .cdr import CdrError as CdrError  # re-exported: the nodes catch it
 from .cdr import Codec
 from .jit import JIT_HOT
-from .mechanics import virtual_gear_problem
+from .mechanics import road_problem, virtual_gear_problem
 
 GATE_LIMIT = 64          # 6 gate bits: values 0..63
 
@@ -351,13 +351,30 @@ def command_problem(msg: Command) -> str | None:
     if msg.mode not in (Command.MODE_RESISTANCE, Command.MODE_MOTORING, Command.MODE_ERG, Command.MODE_SLOPE,
                         Command.MODE_ISOKINETIC):
         return f"unknown mode {msg.mode} (0 resistance, 1 motoring, 2 erg, 3 slope, 4 isokinetic)"
+    if msg.road_from_command:
+        problem = road_problem(msg.crr, msg.cw_kg_m, msg.wind_mps)
+        if problem is not None:
+            return problem
     return virtual_gear_problem(msg.virtual_gear_ratio)
 
 
-def command_msg(value: float, mode: int = 0, stamp: int = 0, virtual_gear_ratio: float = 0.0) -> Command:
+def command_road(msg: Command) -> tuple[float, float, float] | None:
+    """(crr, cw_kg_m, wind_mps) of a Command that gives its road, else None (the config's)."""
+    return (float(msg.crr), float(msg.cw_kg_m), float(msg.wind_mps)) if msg.road_from_command else None
+
+
+def set_command_road(msg: Command, road: tuple[float, float, float] | None) -> Command:
+    """Put ``road`` ((crr, cw_kg_m, wind_mps) or None: the config's) into ``msg``."""
+    msg.road_from_command = road is not None
+    msg.crr, msg.cw_kg_m, msg.wind_mps = (float(x) for x in road) if road is not None else (0.0, 0.0, 0.0)
+    return msg
+
+
+def command_msg(value: float, mode: int = 0, stamp: int = 0, virtual_gear_ratio: float = 0.0,
+                road: tuple[float, float, float] | None = None) -> Command:
     msg = Command()
     msg.header.stamp = time_msg(stamp)
     msg.command = float(value)
     msg.mode = int(mode)
     msg.virtual_gear_ratio = float(virtual_gear_ratio)
-    return msg
+    return set_command_road(msg, road)

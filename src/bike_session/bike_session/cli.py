@@ -512,6 +512,11 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--power", type=float, metavar="W", help="take control and set ERG target power")
     trn.add_argument("--grade", type=float, metavar="PCT", help="take control and set the simulation grade")
     trn.add_argument("--level", type=float, metavar="L", help="take control and set the resistance level")
+    trn.add_argument("--crr", type=float, default=0.004, help="the road sent with a grade: rolling resistance "
+                                                              "(default 0.004, as Zwift sends)")
+    trn.add_argument("--cw", type=float, default=0.51, metavar="KG_PER_M",
+                     help="... air resistance 1/2 rho CdA in kg/m (default 0.51, as Zwift sends)")
+    trn.add_argument("--wind", type=float, default=0.0, metavar="MPS", help="... head wind in m/s (default 0)")
     trn.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc, .fit, profile .yaml) "
                                                         "on the trainer as an app does, then print how it followed")
     trn.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets")

@@ -29,13 +29,15 @@ What a control request does (:class:`FtmsControl`):
 | 0x04 | Target Resistance Level, uint8 or sint16, 0.1 | resistance, level / 100 |
 | 0x05 | Target Power, sint16 W | erg, P / erg_power_max_w |
 | 0x07 / 0x08 | Start or Resume / Stop or Pause | the target before the stop again / resistance 0 |
-| 0x11 | Indoor Bike Simulation: wind 0.001 m/s, grade 0.01 %, Crr 1e-4, Cw 0.01 kg/m | slope at the grade |
+| 0x11 | Indoor Bike Simulation: wind 0.001 m/s, grade 0.01 %, Crr 1e-4, Cw 0.01 kg/m | slope at the grade, on the app's road |
 
 A target outside the advertised range is refused with result 3 (invalid parameter) and a
 message, except the simulation grade: apps send the road's grade as it comes, so a grade
 beyond the bike's range is ridden at the range's end, and said (the message names both).
-The simulation's wind, Crr and Cw are not applied (the config's road load stands, modes.*);
-a change of them is said once. Ops this bike does not do (target speed, heart rate, wheel
+The simulation's wind, Crr and Cw become the Command's road (bike_msgs/Command
+``road_from_command``: the slope mode's road load uses them in place of the config's modes.crr,
+cda_m2 and wind_mps), said once per change; all three zero, as apps that send only the grade
+do, keeps the config's road, and that is said. Ops this bike does not do (target speed, heart rate, wheel
 circumference, spin down, targeted cadence, ...) get result 2 (not supported).
 """
 from __future__ import annotations
@@ -235,6 +237,7 @@ class Target:
     mode: int
     command: float
     text: str          # for the log, e.g. "target power 150 W"
+    road: tuple[float, float, float] | None = None    # (crr, cw_kg_m, wind_mps); None: the config's
 
 
 @dataclasses.dataclass
@@ -360,12 +363,13 @@ class FtmsControl:
         if ridden != grade_pct:
             notes.append(f"grade {grade_pct:g} % is beyond this bike's [{lo:g}, {hi:g}] %: ridden at {ridden:g} %")
         extra = (wind_mm_s, crr, cw)
+        road = None if extra == (0, 0, 0) else (crr / 1e4, cw / 100, wind_mm_s / 1000)
         if extra != self.simulation_extra:
             self.simulation_extra = extra
-            notes.append(f"wind {wind_mm_s / 1000:g} m/s, Crr {crr / 1e4:g}, Cw {cw / 100:g} kg/m not applied: "
-                         "the config's road load (modes.*) stands")
+            notes.append("no wind, Crr or Cw given: the config's road (modes.*)" if road is None else
+                         f"road: wind {road[2]:g} m/s, Crr {road[0]:g}, Cw {road[1]:g} kg/m")
         command, _ = self.units.to_command(MODES["slope"], ridden)
-        target = Target(MODES["slope"], command, f"simulation grade {grade_pct:g} %")
+        target = Target(MODES["slope"], command, f"simulation grade {grade_pct:g} %", road)
         message = target.text + ("; " + "; ".join(notes) if notes else "")
         return self._set(op, target, bytes([STATUS_SIMULATION_CHANGED]) + param, message,
                          warning=ridden != grade_pct)

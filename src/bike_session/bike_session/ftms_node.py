@@ -191,7 +191,7 @@ def _make_node_class():
     from bike_plant.cdr import Codec, CdrError
     import rclpy
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-    from bike_plant.msgconv import PlantStateView
+    from bike_plant.msgconv import PlantStateView, set_command_road
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
     from bike_session.session_node import live_qos
@@ -239,6 +239,7 @@ def _make_node_class():
             self.session_elapsed_s = 0.0
             self.create_subscription(SessionStatus, "session_status", self._on_session, 10)
             self._PlantStateView, self._status_codec, self._CdrError = PlantStateView, status_codec, CdrError
+            self._set_road = set_command_road
             try:
                 self.server = dircon.DirconServer(host, int(port), services_for(
                     self.control, self.telemetry.encode, self._on_control_point), self._log)
@@ -294,6 +295,7 @@ def _make_node_class():
                 msg = self._Command()
                 msg.command = float(reply.target.command)
                 msg.mode = int(reply.target.mode)
+                self._set_road(msg, reply.target.road)
                 self.pub_live.publish(msg)
             if reply.status is not None:
                 self.pending_status.append(reply.status)

@@ -30,6 +30,12 @@ the children of ``intervals`` / ``repeat``; it stays in force until a later segm
 another (:meth:`Profile.gear_at`; 0 before any). It shapes slope mode's road load (virtual
 shifting, bike_controller.modes) and the virtual speed of every mode.
 
+Any segment may give ``road``: ``{crr: 0.004, cw_kg_m: 0.51, wind_mps: 3}`` (rolling resistance,
+air resistance 1/2 rho CdA in kg/m, head wind in m/s; all three) or ``config`` (the config's
+``modes`` road again), inherited and kept in force like ``gear`` (:meth:`Profile.road_at`; the
+config's before any). It shapes slope mode's road load (and ERG's flat road with
+``modes.erg_speed_from_power``); ``./bike replay`` writes the road a training app gave.
+
 Modes are names (``resistance``, ``motoring``, ``erg``, ``slope``, ``isokinetic``) mapped
 to the bike_msgs/Command constants by :data:`MODES`. Commands are in [0, 1]. Instead of a
 command, a step may give ``target`` and a ramp ``start_target`` / ``end_target`` in the
@@ -51,7 +57,7 @@ import pathlib
 from typing import Any, Mapping
 
 import yaml
-from bike_plant.mechanics import virtual_gear_problem
+from bike_plant.mechanics import road_problem, virtual_gear_problem
 
 # name -> bike_msgs/msg/Command mode constant (bike_controller.modes)
 MODES: dict[str, int] = {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4}
@@ -63,7 +69,8 @@ MAX_REPEAT = 10_000
 MAX_DEPTH = 16
 KINDS = ("step", "ramp", "intervals", "repeat")
 
-_COMMON = {"kind", "mode", "label", "gear"}
+_COMMON = {"kind", "mode", "label", "gear", "road"}
+ROAD_KEYS = ("crr", "cw_kg_m", "wind_mps")
 _KEYS = {
     "step": _COMMON | {"duration_s", "command", "target"},
     "ramp": _COMMON | {"duration_s", "start", "end", "start_target", "end_target"},
@@ -187,7 +194,7 @@ class Profile:
     """
 
     def __init__(self, name: str, segments: list[Segment], source: str = "<profile>", text: str = "",
-                 gears: Mapping[int, float] | None = None):
+                 gears: Mapping[int, float] | None = None, roads: Mapping[int, tuple | None] | None = None):
         if not segments:
             raise ProfileError("a profile needs at least one segment", source, "segments")
         self.name = name
@@ -203,6 +210,13 @@ class Profile:
         for seg in segments:
             gear = self.gears_given.get(seg.index, gear)
             self._gear_in_force.append(gear)
+        # the road in force in each leaf, the same way (None: the config's)
+        roads = dict(roads or {})
+        self._road_in_force = []
+        road = None
+        for seg in segments:
+            road = roads.get(seg.index, road)
+            self._road_in_force.append(road)
 
     def __repr__(self) -> str:
         return f"Profile({self.name!r}, {len(self.segments)} segments, {self.duration_s:g} s)"
@@ -230,6 +244,12 @@ class Profile:
         the last one."""
         seg = self.segment_at(t_s)
         return self._gear_in_force[-1 if seg is None else seg.index]
+
+    def road_at(self, t_s: float) -> tuple[float, float, float] | None:
+        """The road (crr, cw_kg_m, wind_mps) in force at ``t_s``, None for the config's; past the
+        end, the last one."""
+        seg = self.segment_at(t_s)
+        return self._road_in_force[-1 if seg is None else seg.index]
 
     def timeline(self, period_s: float, duration_s: float | None = None) -> list[tuple[float, float, int]]:
         """[(tau_j, command, mode)] for tau_j = j * period_s, j = 0 .. floor(duration / period)."""
@@ -308,7 +328,7 @@ def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "prof
     builder.segment_list(doc["segments"], "segments", mode, None, 0, "")
     if not builder.leaves:
         raise ProfileError("a profile needs at least one segment", source, "segments")
-    return Profile(name, builder.leaves, source=source, gears=builder.gears)
+    return Profile(name, builder.leaves, source=source, gears=builder.gears, roads=builder.roads)
 
 
 class _Builder:
@@ -317,20 +337,22 @@ class _Builder:
         self.units = units
         self.leaves: list[Segment] = []
         self.gears: dict[int, float] = {}      # leaf index -> the gear it gives (or inherits)
+        self.roads: dict[int, tuple | None] = {}   # ... and the road (None: the config's again)
         self.t = 0.0
 
     def err(self, where: str, message: str) -> ProfileError:
         return ProfileError(message, self.source, where)
 
-    def segment_list(self, items, where, mode, label, depth, rep, gear=None):
+    def segment_list(self, items, where, mode, label, depth, rep, gear=None, road=None):
         if not isinstance(items, list):
             raise self.err(where, f"expected a list of segments, got {_tname(items)}")
         if not items:
             raise self.err(where, "empty list of segments")
         for i, item in enumerate(items):
-            self.segment(item, f"{where}[{i}]", mode, label, depth, rep, gear=gear)
+            self.segment(item, f"{where}[{i}]", mode, label, depth, rep, gear=gear, road=road)
 
-    def segment(self, seg, where, mode, label, depth, rep, default_kind=None, gear=None):
+    def segment(self, seg, where, mode, label, depth, rep, default_kind=None, gear=None, road=None):
+        # road: None when not given; "config" or (crr, cw_kg_m, wind_mps) when given
         if depth > MAX_DEPTH:
             raise self.err(where, f"segments nested deeper than {MAX_DEPTH} levels")
         if not isinstance(seg, Mapping):
@@ -358,6 +380,8 @@ class _Builder:
             problem = virtual_gear_problem(gear)
             if problem:
                 raise self.err(f"{where}.gear", problem)
+        if "road" in seg:
+            road = self.road(seg["road"], f"{where}.road")
         if kind in ("step", "ramp"):
             duration = self.number(seg["duration_s"], f"{where}.duration_s")
             if duration <= 0:
@@ -371,6 +395,8 @@ class _Builder:
                 raise self.err(where, f"profile expands to more than {MAX_LEAF_SEGMENTS} segments")
             if gear is not None:
                 self.gears[len(self.leaves)] = gear
+            if road is not None:
+                self.roads[len(self.leaves)] = None if road == "config" else road
             self.leaves.append(Segment(len(self.leaves), where + rep, self.t, duration, start, end, mode,
                                        label if label is not None else kind))
             self.t += duration
@@ -385,12 +411,29 @@ class _Builder:
                     raise self.err(f"{where}.{part}.kind", f"must be step or ramp, got {body.get('kind')!r}")
             for r in range(count):
                 r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
-                self.segment(seg["on"], f"{where}.on", mode, label, depth + 1, r_tag, "step", gear=gear)
-                self.segment(seg["off"], f"{where}.off", mode, label, depth + 1, r_tag, "step", gear=gear)
+                self.segment(seg["on"], f"{where}.on", mode, label, depth + 1, r_tag, "step", gear=gear, road=road)
+                self.segment(seg["off"], f"{where}.off", mode, label, depth + 1, r_tag, "step", gear=gear,
+                             road=road)
         else:
             for r in range(count):
                 r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
-                self.segment_list(seg["segments"], f"{where}.segments", mode, label, depth + 1, r_tag, gear=gear)
+                self.segment_list(seg["segments"], f"{where}.segments", mode, label, depth + 1, r_tag, gear=gear,
+                                  road=road)
+
+    def road(self, value, where):
+        """A segment's ``road``: "config", or a mapping of exactly crr, cw_kg_m, wind_mps."""
+        if value == "config":
+            return "config"
+        if not isinstance(value, Mapping):
+            raise self.err(where, f"expected 'config' or a mapping of {', '.join(ROAD_KEYS)}, got {_tname(value)}")
+        keys = set(_yaml11_keys(value))
+        if keys != set(ROAD_KEYS):
+            raise self.err(where, f"a road gives exactly {', '.join(ROAD_KEYS)}; got {', '.join(sorted(map(str, keys)))}")
+        road = tuple(self.number(value[k], f"{where}.{k}") for k in ROAD_KEYS)
+        problem = road_problem(*road)
+        if problem:
+            raise self.err(where, problem)
+        return road
 
     def number(self, value, where) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):

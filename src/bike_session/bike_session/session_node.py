@@ -261,10 +261,10 @@ def _make_node_class():
             self.sent_gears = array.array("d")   # the gear of each published tau index j
             self.shifts = 0
             # live Commands (_on_live_command) and ERG bumps (_bump_erg): from tau index
-            # live_from_j[k] on, live_targets[k] = (command, mode, label, until tau index)
+            # live_from_j[k] on, live_targets[k] = (command, mode, label, until tau index, road)
             self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos(10))
             self.live_from_j: list[int] = []
-            self.live_targets: list[tuple[float, int, str, int]] = []
+            self.live_targets: list[tuple[float, int, str, int, tuple | None]] = []
             self.live_commands = 0
             self.erg_shift_w = modes.erg_shift_w
             self.units = units = _units(cfg)
@@ -321,25 +321,34 @@ def _make_node_class():
         # ---------------------------------------------------------------- timeline
         def command_for(self, tau_ns: int) -> tuple[float, int, int, str]:
             cmd, mode, index, label = self.profile.command_at(tau_ns * 1e-9)
-            j = tau_ns // self.period_ns
-            # the latest live target from before tau_j that has not ended (an ERG bump ends
-            # where the profile's next segment begins; the one it bumped then holds again)
-            for k in range(bisect.bisect_right(self.live_from_j, j) - 1, -1, -1):
-                live_cmd, live_mode, live_label, until_j = self.live_targets[k]
-                if j < until_j:
-                    cmd, mode, label = live_cmd, live_mode, live_label
-                    break
+            live = self._live_at(tau_ns // self.period_ns)
+            if live is not None:
+                cmd, mode, label = live[:3]
             if tau_ns >= self.duration_ns:
                 cmd = 0.0
             return cmd, mode, index, label
 
-        def _add_live(self, j: int, command: float, mode: int, label: str, until_j: int) -> None:
-            """A live target from tau index j (not sent yet) until until_j."""
+        def _live_at(self, j: int):
+            """The latest live target from before tau_j that has not ended (an ERG bump ends
+            where the profile's next segment begins; the one it bumped then holds again), or None."""
+            for k in range(bisect.bisect_right(self.live_from_j, j) - 1, -1, -1):
+                if j < self.live_targets[k][3]:
+                    return self.live_targets[k]
+            return None
+
+        def road_for(self, j: int):
+            """The road (crr, cw_kg_m, wind_mps) of the Command at tau_j: a live target's, else the
+            profile's; None: the config's."""
+            live = self._live_at(j)
+            return self.profile.road_at(j * self.period_s) if live is None else live[4]
+
+        def _add_live(self, j: int, command: float, mode: int, label: str, until_j: int, road=None) -> None:
+            """A live target from tau index j (not sent yet) until until_j, on ``road``."""
             if self.live_from_j and self.live_from_j[-1] == j:     # not sent yet: replaced
-                self.live_targets[-1] = (command, mode, label, until_j)
+                self.live_targets[-1] = (command, mode, label, until_j, road)
             else:
                 self.live_from_j.append(j)
-                self.live_targets.append((command, mode, label, until_j))
+                self.live_targets.append((command, mode, label, until_j, road))
 
         def _segment_end_j(self, j: int) -> int:
             """The first tau index of the profile leaf after the one in force at tau_j."""
@@ -376,7 +385,8 @@ def _make_node_class():
             if new_w == old_w:
                 return True
             label = f"ERG {new_w:.0f} W (shifted {new_w - old_w:+.0f} W)"
-            self._add_live(j, new_w / self.erg_max_w, self._Command.MODE_ERG, label, self._segment_end_j(j))
+            self._add_live(j, new_w / self.erg_max_w, self._Command.MODE_ERG, label, self._segment_end_j(j),
+                           self.road_for(j))
             self.erg_bumps += 1
             self.get_logger().info(f"shift {steps:+d} in ERG: target {old_w:.0f} W -> {new_w:.0f} W from "
                                    f"t = {t_s:g} s until the next profile segment")
@@ -390,7 +400,7 @@ def _make_node_class():
             changes."""
             if self.done:
                 return
-            from bike_plant.msgconv import command_problem
+            from bike_plant.msgconv import command_problem, command_road
             problem = command_problem(msg)
             if problem is not None:
                 text = f"live Command rejected: {problem}; the Commands go on unchanged"
@@ -399,12 +409,15 @@ def _make_node_class():
                 return
             j = self.next_j
             label = f"live: {describe_command(int(msg.mode), float(msg.command), self.units)}"
-            self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62)
+            road = command_road(msg)
+            self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62, road)
             if msg.virtual_gear_ratio > 0.0:
                 self._set_live_gear(float(msg.virtual_gear_ratio), j * self.period_s)
             self.live_commands += 1
             self.get_logger().info(f"{label} from t = {j * self.period_s:g} s"
-                                   + (f", virtual gear {msg.virtual_gear_ratio:g}" if msg.virtual_gear_ratio else ""))
+                                   + (f", virtual gear {msg.virtual_gear_ratio:g}" if msg.virtual_gear_ratio else "")
+                                   + (f", road Crr {road[0]:g}, Cw {road[1]:g} kg/m, wind {road[2]:g} m/s"
+                                      if road is not None else ""))
 
         def gear_for(self, j: int) -> float:
             """The virtual gear of the Command at tau_j (0: the config's): the one it was sent
@@ -455,6 +468,8 @@ def _make_node_class():
             msg.command = float(cmd)
             msg.mode = int(mode)
             msg.virtual_gear_ratio = float(gear)
+            from bike_plant.msgconv import set_command_road
+            set_command_road(msg, self.road_for(j))
             self.pub_command.publish(msg)
             self.commands_published += 1
             self.readers_at_publish = self.pub_command.get_subscription_count()

@@ -6,7 +6,7 @@ take control and set a target, and print the Indoor Bike Data it notifies, once 
     ./bike trainer --find                         # trainers announced on the network (3 s)
     ./bike trainer [--host H] [--port P]          # what the trainer at H:P serves, then 5 s of data
     ./bike trainer --power 200 --seconds 30       # ERG at 200 W (Request Control first)
-    ./bike trainer --grade 4.5                    # simulation grade 4.5 %
+    ./bike trainer --grade 4.5                    # simulation grade 4.5 % (road: --crr, --cw, --wind)
     ./bike trainer --workout FILE.zwo --ftp 250 --csv ride.csv   # ride a workout on the trainer
 
 ``--workout`` rides a workout file (.zwo, .erg, .mrc, .fit, or a profile .yaml) on the trainer
@@ -119,7 +119,27 @@ def _ranges(app: dircon.DirconClient):
     return ModeUnits(float(hi_w), lo_g / 1000.0, hi_g / 1000.0 if hi_g > lo_g else lo_g / 1000.0 + 1e-3, 0.0, 1.0)
 
 
-def _target_write(mode: int, command: float, units) -> tuple[int, bytes, str] | None:
+# the road an app sends with a grade unless told otherwise: Zwift's (Crr 0.004, Cw 0.51 kg/m, no wind)
+DEFAULT_ROAD = (0.004, 0.51, 0.0)
+
+
+def road_problem(road) -> str | None:
+    """Why (crr, cw_kg_m, wind_mps) does not fit the Indoor Bike Simulation's fields."""
+    crr, cw, wind = road
+    for name, value, lo, hi in (("--crr", crr, 0.0, 0.0255), ("--cw", cw, 0.0, 2.55),
+                                ("--wind", wind, -32.767, 32.767)):
+        if not lo <= value <= hi:          # also NaN
+            return f"{name} {value:g} outside [{lo:g}, {hi:g}] (the FTMS Indoor Bike Simulation's field)"
+    return None
+
+
+def simulation_param(grade_pct: float, road=DEFAULT_ROAD) -> bytes:
+    """Indoor Bike Simulation parameters: wind 0.001 m/s, grade 0.01 %, Crr 1e-4, Cw 0.01 kg/m."""
+    crr, cw, wind = road
+    return struct.pack("<hhBB", round(wind * 1000), round(grade_pct * 100), round(crr * 1e4), round(cw * 100))
+
+
+def _target_write(mode: int, command: float, units, road=DEFAULT_ROAD) -> tuple[int, bytes, str] | None:
     """The Control Point write for a profile's Command (None: a mode FTMS cannot ask for)."""
     from bike_session.profiles import MODES
     if mode == MODES["erg"]:
@@ -127,8 +147,8 @@ def _target_write(mode: int, command: float, units) -> tuple[int, bytes, str] | 
         return ftms.OP_TARGET_POWER, struct.pack("<h", watts), f"target power {watts} W"
     if mode == MODES["slope"]:
         grade_pct = units.target_of(mode, command)[0]
-        return (ftms.OP_SIMULATION, struct.pack("<hhBB", 0, round(grade_pct * 100), 40, 51),
-                f"simulation grade {grade_pct:.1f} %")
+        return (ftms.OP_SIMULATION, simulation_param(grade_pct, road),
+                f"simulation grade {grade_pct:.1f} % (Crr {road[0]:g}, Cw {road[1]:g} kg/m, wind {road[2]:g} m/s)")
     if mode == MODES["resistance"]:
         level = round(command * ftms.RESISTANCE_LEVEL_MAX * 10)
         return ftms.OP_TARGET_RESISTANCE, struct.pack("<h", level), f"resistance level {level / 10:g}"
@@ -195,7 +215,7 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
         if now >= seconds:
             break
         cmd, mode, _, label = profile.command_at(now)
-        target = _target_write(mode, cmd, units)
+        target = _target_write(mode, cmd, units, profile.road_at(now) or opts.road)
         if target is None:
             say(f"warning: t = {now:.0f} s: mode {MODE_NAMES.get(mode, mode)} has no FTMS target; not sent")
         elif target[:2] != sent and now >= next_write:
@@ -252,6 +272,11 @@ def main(opts) -> int:
     if len(targets) > 1:
         print("error: give one of --power, --grade, --level, --workout", file=sys.stderr)
         return 2
+    opts.road = (opts.crr, opts.cw, opts.wind)
+    problem = road_problem(opts.road)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     if opts.csv and not opts.workout:
         print("error: --csv needs --workout", file=sys.stderr)
         return 2
@@ -270,7 +295,7 @@ def main(opts) -> int:
             ok = control(app, ftms.OP_TARGET_POWER, struct.pack("<h", round(opts.power)),
                          f"target power {round(opts.power)} W", say)
         elif opts.grade is not None:
-            ok = control(app, ftms.OP_SIMULATION, struct.pack("<hhBB", 0, round(opts.grade * 100), 40, 51),
+            ok = control(app, ftms.OP_SIMULATION, simulation_param(opts.grade, opts.road),
                          f"simulation grade {opts.grade:g} %", say)
         elif opts.level is not None:
             ok = control(app, ftms.OP_TARGET_RESISTANCE, struct.pack("<h", round(opts.level * 10)),
