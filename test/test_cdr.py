@@ -209,3 +209,20 @@ def test_malformed_bytes_give_cdr_error_only():
 def msgconv_root():
     import pathlib
     return pathlib.Path(__file__).resolve().parents[1]
+
+
+def test_a_bad_rider_cadence_is_a_problem_of_the_drive_command_and_of_the_command():
+    import numpy as np
+    n = 4
+    for build, problem in ((msgconv.drive_command_cdr, msgconv.drive_command_problem),
+                           (msgconv.spmsm_drive_cdr, msgconv.spmsm_drive_problem)):
+        arrays = ((np.zeros(n, np.uint8), np.zeros(n, np.uint8), np.zeros(n, np.float32))
+                  if build is msgconv.drive_command_cdr else
+                  (np.full(3 * n, 0.5, np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32)))
+        good = msgconv.DriveCommandView(build(0, *arrays, 0, 0.0, 0.0, 95.0))
+        assert good.rider_cadence_rpm == 95.0 and problem(good, n) is None
+        for bad in (float("nan"), -5.0, 5.0, 300.0):
+            view = msgconv.DriveCommandView(build(0, *arrays, 0, 0.0, 0.0, bad))
+            assert "rider_cadence_rpm" in problem(view, n), bad
+    assert msgconv.command_problem(msgconv.command_msg(0.5, 2, cadence_rpm=95.0)) is None
+    assert "cadence target" in msgconv.command_problem(msgconv.command_msg(0.5, 2, cadence_rpm=400.0))

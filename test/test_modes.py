@@ -329,6 +329,52 @@ def test_the_rider_settles_an_erg_step_within_seconds_as_a_rider_does():
     assert p_rider == pytest.approx(p_brake + np.mean(1e-4 * w[tail] ** 2), rel=0.02)
 
 
+def test_the_rider_pedals_at_the_cadence_target_he_is_given_and_erg_holds_the_power():
+    """A workout's Cadence (the plant's set_rider_cadence): 95 rpm, then 65 rpm, then none (the
+    rider's own 80); ERG's brake holds 200 W through each change (the classic ERG test)."""
+    from bike_controller.closed_loop import run_offline
+    from bike_controller.session_control import ModedController
+    from bike_plant.config import load_config
+    from bike_plant.sim import BldcPlant
+    from bike_plant.params import plant_params_from_config
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml")
+    plant = BldcPlant(plant_params_from_config(cfg))
+    ctrl = ModedController(cfg)
+    for target, expect in ((95.0, 95.0), (65.0, 65.0), (0.0, 80.0)):
+        plant.set_rider_cadence(target)
+        r = run_offline(cfg, 5.0, lambda t: (200.0 / PMAX, MODE_ERG), plant=plant, controller=ctrl)
+        tail = r["time_s"] >= r["time_s"][0] + 3.0
+        assert np.mean(r["speed_rpm"][tail]) / GEAR == pytest.approx(expect, abs=1.5), target
+        w = r["speed_rpm"][tail] / RPM_PER_RAD_S
+        assert np.mean(-r["torque_em_nm"][tail] * w) == pytest.approx(200.0, rel=0.03), target
+
+
+def test_the_riders_effort_integral_holds_while_the_effort_is_pinned():
+    from bike_plant.mechanics import rider_effort_update
+    integ, effort = rider_effort_update(0.4, -3.0, 0.57, 0.82, 0.01)          # far too fast: stops pushing
+    assert (integ, effort) == (0.4, 0.0)
+    integ, effort = rider_effort_update(0.4, 3.0, 0.57, 0.82, 0.01)           # far too slow: full effort
+    assert (integ, effort) == (0.4, 1.0)
+    integ, effort = rider_effort_update(0.4, 0.1, 0.57, 0.82, 0.01)           # near: a plain PI
+    assert integ == pytest.approx(0.4 + 0.82 * 0.1 * 0.01) and effort == pytest.approx(0.057 + integ)
+
+
+def test_the_spmsm_rider_takes_a_cadence_target_too():
+    from bike_plant.config import load_config
+    from bike_plant.spmsm import RiderLoad, SpmsmPlant, plant_params_from_config
+    plant = SpmsmPlant(plant_params_from_config(load_config(
+        pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")))
+    assert isinstance(plant.load_hook, RiderLoad) and plant.load_hook.target_rpm == 80.0
+    plant.set_rider_cadence(95.0)
+    assert plant.load_hook.target_rpm == 95.0
+    w = 80.0 * plant.load_hook.params.gear_ratio / RPM_PER_RAD_S          # at 80 rpm he pushes to speed up
+    effort0 = plant.load_hook.effort
+    plant.load_hook(0.0, w, 1e-3)
+    assert plant.load_hook.effort > effort0
+    plant.set_rider_cadence(0.0)
+    assert plant.load_hook.target_rpm == 80.0
+
+
 def test_the_configs_rider_gains_are_the_derivation_for_their_drivetrain():
     from bike_plant.config import load_config
     from bike_plant.mechanics import rider_pi_gains

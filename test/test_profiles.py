@@ -313,6 +313,20 @@ def test_a_road_stays_in_force_until_the_next_one_and_bad_roads_are_named():
         assert "segments[0].road" in str(info.value)
 
 
+def test_a_cadence_target_is_its_segments_own_and_bad_ones_are_named():
+    p = parse_profile({"mode": "erg", "segments": [
+        {"kind": "step", "duration_s": 2, "command": 0.2, "cadence": 95},
+        {"kind": "step", "duration_s": 2, "command": 0.2},
+        {"kind": "intervals", "repeat": 1, "cadence": 60, "on": {"duration_s": 1, "command": 0.4},
+         "off": {"duration_s": 1, "command": 0.1, "cadence": 0}}]})
+    assert [p.cadence_at(t + 0.5) for t in range(6)] == [95.0, 95.0, None, None, 60.0, None]
+    assert p.cadence_at(100.0) is None
+    for bad, why in ((5, "outside"), (300, "outside"), ("fast", "expected a number")):
+        with pytest.raises(ProfileError, match=why) as info:
+            parse_profile({"segments": [{"kind": "step", "duration_s": 1, "command": 0.1, "cadence": bad}]})
+        assert "segments[0].cadence" in str(info.value)
+
+
 def test_shifted_gear_walks_the_table_and_says_how_far_it_got():
     table = (1.0, 1.5, 2.0, 3.0)
     assert shifted_gear(table, 1.5, 1) == (2.0, 1)

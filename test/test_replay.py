@@ -92,6 +92,19 @@ def test_a_replayed_timeline_keeps_the_road_a_training_app_gave():
         assert p.road_at(t * 1e-9) == r
 
 
+def test_a_replayed_timeline_keeps_the_riders_cadence_targets():
+    from bike_session.profiles import parse_profile
+    from bike_session.replay import profile_from_timeline
+    s = 1_000_000_000
+    timeline = [(0, 0.2, 2, 0.0, None, 95.0), (s, 0.2, 2, 0.0, None, 95.0), (2 * s, 0.2, 2, 0.0, None, 0.0),
+                (3 * s, 0.3, 2, 0.0, None, 60.0)]
+    doc = profile_from_timeline(timeline, 4.0, "r")
+    assert [seg.get("cadence") for seg in doc["segments"]] == [95.0, None, 60.0]
+    p = parse_profile(doc)
+    for t, *_, cad in timeline:
+        assert (p.cadence_at(t * 1e-9) or 0.0) == cad
+
+
 def test_a_replayed_timeline_keeps_its_virtual_gears():
     """profile_from_timeline: a step per change of command, mode or gear; a gear is given where
     it changes (and stays in force), 0 included; the final Command's gear (the run's end, as
@@ -128,7 +141,7 @@ def test_a_profiles_road_brakes_in_the_graph_is_recorded_and_replays(tmp_path, r
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     orig = _bag_in(tmp_path / "orig")
     timeline = command_timeline(orig)[0]
-    assert {r for t, *_, r in timeline if t < 8e9} == {None} and {r for t, *_, r in timeline if 8e9 <= t < 16e9} == {road}
+    assert {x[4] for x in timeline if x[0] < 8e9} == {None} and {x[4] for x in timeline if 8e9 <= x[0] < 16e9} == {road}
 
     law = ModedController(load_config(ROOT / "config/bldc_default.yaml")).law
     states, status = read_topic(orig, "plant_state"), read_topic(orig, "controller_status")

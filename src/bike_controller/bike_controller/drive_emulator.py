@@ -279,8 +279,8 @@ class AverageTorqueDrive(_DriveReadouts):
         load = self.params.load
         cadence_rad_s = omega_rad_s / load.gear_ratio
         err = load.rider_target_cadence_rpm / RPM_PER_RAD_S - cadence_rad_s
-        self.rider_integrator = min(max(self.rider_integrator + load.rider_ki * err * dt_s, -1.0), 1.0)
-        self.rider_effort = min(max(load.rider_kp * err + self.rider_integrator, 0.0), 1.0)
+        self.rider_integrator, self.rider_effort = mechanics.rider_effort_update(
+            self.rider_integrator, err, load.rider_kp, load.rider_ki, dt_s)
         t_crank = mechanics.rider_crank_torque_nm(self.rider_effort, cadence_rad_s * RPM_PER_RAD_S,
                                                   self.crank_angle_rad, load)
         self.crank_angle_rad = (self.crank_angle_rad + cadence_rad_s * dt_s) % TWO_PI

@@ -138,6 +138,8 @@ class ControllerNode(Node):
         self.modes = array.array("B")      # and modes
         self.gears = array.array("d")      # and virtual gears (0: the config's)
         self.roads: list = []              # and roads ((crr, cw_kg_m, wind_mps); None: the config's)
+        self.cadences = array.array("d")   # and the rider's cadence targets (0: none), for the plant's rider
+        self.rider_cadence_rpm = 0.0       # the one in force
         self.applied_index = -1            # timeline entry in force (-1: config command0/mode0)
         self.rejected = False              # last received Command was invalid
         self.reject_reason = ""
@@ -191,6 +193,7 @@ class ControllerNode(Node):
             self.values[i - 1], self.modes[i - 1] = float(msg.command), int(msg.mode)
             self.gears[i - 1] = float(msg.virtual_gear_ratio)
             self.roads[i - 1] = msgconv.command_road(msg)
+            self.cadences[i - 1] = float(msg.cadence_rpm)
             if self.applied_index == i - 1:
                 self.applied_index = -2                  # force re-application
         else:
@@ -199,6 +202,7 @@ class ControllerNode(Node):
             self.modes.insert(i, int(msg.mode))
             self.gears.insert(i, float(msg.virtual_gear_ratio))
             self.roads.insert(i, msgconv.command_road(msg))
+            self.cadences.insert(i, float(msg.cadence_rpm))
             if self.applied_index >= i:
                 self.applied_index += 1
         self.no_session = False
@@ -329,7 +333,7 @@ class ControllerNode(Node):
         if int(status.get("quadrant", 0)) == ControllerStatus.QUADRANT_GENERATING:
             torque = -torque                              # motoring positive, like torque_em_nm
         build = msgconv.spmsm_drive_cdr if self.machine == "spmsm" else msgconv.drive_command_cdr
-        drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)))
+        drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)), self.rider_cadence_rpm)
         self.pub_drive.publish(drive)
         # ControllerStatus is volatile: with no reader matched (the bare graph, no recorder) it
         # is neither built nor sent (about 20 us per batch)
@@ -373,6 +377,7 @@ class ControllerNode(Node):
         value, mode = self.values[i], self.modes[i]
         try:
             self.ctrl.set_command(value, mode, self.gears[i], self.roads[i])
+            self.rider_cadence_rpm = self.cadences[i]     # the plant's rider is told with each batch
         except ValueError as exc:                         # the law's own validation
             self.rejected = True
             self.reject_reason = str(exc)

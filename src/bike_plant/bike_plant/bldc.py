@@ -1217,8 +1217,13 @@ def _rider(state, p, c, omega, dt):
     err = p[P.P_RIDER_TARGET] - cad
     integ = state[S_RIDER_INT] + p[P.P_RIDER_KI] * err * dt
     integ = min(max(integ, -1.0), 1.0)
-    state[S_RIDER_INT] = integ
     effort = p[P.P_RIDER_KP] * err + integ
+    # conditional integration (bike_plant.mechanics.rider_effort_update): the integral holds while
+    # the effort is pinned and the error pushes it further
+    if (effort < 0.0 and err < 0.0) or (effort > 1.0 and err > 0.0):
+        integ = state[S_RIDER_INT]
+        effort = p[P.P_RIDER_KP] * err + integ
+    state[S_RIDER_INT] = integ
     effort = min(max(effort, 0.0), 1.0)
     state[S_EFFORT] = effort
     line = 1.0 - cad * c[KC_INV_CADMAX]

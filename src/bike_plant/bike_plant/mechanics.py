@@ -41,6 +41,22 @@ ROAD_CW_MAX_KG_M = 3.0
 ROAD_WIND_MAX_MPS = 40.0
 
 
+# a cadence target a Command may give the rider (0: none); workouts.MAX_CADENCE_RPM is the same top
+RIDER_CADENCE_MIN_RPM = 10.0
+RIDER_CADENCE_MAX_RPM = 250.0
+
+
+def rider_cadence_problem(cadence_rpm) -> str | None:
+    """Why ``cadence_rpm`` is not a rider's cadence target (None if it is): 0 (none) or a
+    finite number in [RIDER_CADENCE_MIN_RPM, RIDER_CADENCE_MAX_RPM]."""
+    if isinstance(cadence_rpm, bool) or not isinstance(cadence_rpm, (int, float)) or not math.isfinite(cadence_rpm):
+        return f"cadence target must be a finite number, got {cadence_rpm!r}"
+    if cadence_rpm != 0 and not RIDER_CADENCE_MIN_RPM <= cadence_rpm <= RIDER_CADENCE_MAX_RPM:
+        return (f"cadence target {cadence_rpm!r} rpm outside [{RIDER_CADENCE_MIN_RPM:g}, {RIDER_CADENCE_MAX_RPM:g}] "
+                "(0: none)")
+    return None
+
+
 def road_problem(crr, cw_kg_m, wind_mps) -> str | None:
     """Why (crr, cw_kg_m, wind_mps) is not a road a Command may give (None if it is)."""
     for name, value, lo, hi in (("crr", crr, 0.0, ROAD_CRR_MAX), ("cw_kg_m", cw_kg_m, 0.0, ROAD_CW_MAX_KG_M),
@@ -62,6 +78,20 @@ def rider_motor_torque_nm(effort: float, motor_speed_rad_s: float, crank_angle_r
     """The rider's torque on the motor shaft (through the gear)."""
     cadence_rpm = motor_speed_rad_s / load.gear_ratio * RPM_PER_RAD_S
     return rider_crank_torque_nm(effort, cadence_rpm, crank_angle_rad, load) / load.gear_ratio
+
+
+def rider_effort_update(integ: float, err_rad_s: float, kp: float, ki: float, dt_s: float) -> tuple[float, float]:
+    """One step of the rider's effort PI on the cadence error (target - cadence, crank rad/s):
+    (integral, effort in 0..1). Conditional integration: while the effort is pinned at 0 and the
+    cadence is still too high (or at 1 and still too low) the integral holds. Without it a rider
+    told to drop from 95 to 65 rpm banked the whole overspeed as negative effort, stopped pushing
+    for 2 s and sank to 53 rpm; a rider eases off, then pushes again. The BLDC kernel
+    (bike_plant.bldc._rider) does the same inline."""
+    new = min(max(integ + ki * err_rad_s * dt_s, -1.0), 1.0)
+    raw = kp * err_rad_s + new
+    if (raw < 0.0 and err_rad_s < 0.0) or (raw > 1.0 and err_rad_s > 0.0):
+        new = integ
+    return new, min(max(kp * err_rad_s + new, 0.0), 1.0)
 
 
 def rider_pi_gains(inertia_at_crank_kgm2: float, load: LoadParams, damping: float = 0.7,

@@ -20,7 +20,7 @@ from builtin_interfaces.msg import Time
 from .cdr import CdrError as CdrError  # re-exported: the nodes catch it
 from .cdr import Codec
 from .jit import JIT_HOT
-from .mechanics import road_problem, virtual_gear_problem
+from .mechanics import rider_cadence_problem, road_problem, virtual_gear_problem
 
 GATE_LIMIT = 64          # 6 gate bits: values 0..63
 
@@ -185,24 +185,26 @@ def clock_cdr(stamp: int) -> bytes:
     return _CLOCK_CDR.pack(b"\x00\x01\x00\x00", sec, nanosec)
 
 
-def _drive_cdr(seq: int, arrays: dict, stamp: int, torque_cmd_nm: float, current_cmd_a: float) -> bytes:
+def _drive_cdr(seq: int, arrays: dict, stamp: int, torque_cmd_nm: float, current_cmd_a: float,
+               rider_cadence_rpm: float) -> bytes:
     sec, nanosec = divmod(int(stamp), 1_000_000_000)
     return _DRIVE_CDR.encode({"seq": int(seq), **arrays, "torque_cmd_nm": float(torque_cmd_nm),
-                              "current_cmd_a": float(current_cmd_a)}, sec, nanosec)
+                              "current_cmd_a": float(current_cmd_a), "rider_cadence_rpm": float(rider_cadence_rpm)},
+                             sec, nanosec)
 
 
 def drive_command_cdr(seq: int, gates_a, gates_b, split, stamp: int, torque_cmd_nm: float = 0.0,
-                      current_cmd_a: float = 0.0) -> bytes:
+                      current_cmd_a: float = 0.0, rider_cadence_rpm: float = 0.0) -> bytes:
     """drive_command_msg(), serialized."""
     return _drive_cdr(seq, {"gates_a": gates_a, "gates_b": gates_b, "split": split}, stamp, torque_cmd_nm,
-                      current_cmd_a)
+                      current_cmd_a, rider_cadence_rpm)
 
 
 def spmsm_drive_cdr(seq: int, duties, relay, buck, stamp: int, torque_cmd_nm: float = 0.0,
-                    current_cmd_a: float = 0.0) -> bytes:
+                    current_cmd_a: float = 0.0, rider_cadence_rpm: float = 0.0) -> bytes:
     """spmsm_drive_msg(), serialized."""
     return _drive_cdr(seq, {"duty_abc": duties, "relay_request": relay, "buck_duty": buck}, stamp, torque_cmd_nm,
-                      current_cmd_a)
+                      current_cmd_a, rider_cadence_rpm)
 
 
 _STATUS_CDR = Codec(ControllerStatus)
@@ -287,6 +289,9 @@ def spmsm_drive_problem(msg: DriveCommand, batch_periods: int) -> str | None:
         for name in ("torque_cmd_nm", "current_cmd_a"):
             if not math.isfinite(getattr(msg, name)):
                 return f"{name} is not finite"
+        problem = rider_cadence_problem(float(msg.rider_cadence_rpm))
+        if problem is not None:
+            return f"rider_cadence_rpm: {problem}"
     except Exception as exc:  # a malformed message must never take the node down
         return f"unreadable DriveCommand ({exc})"
     return None
@@ -335,6 +340,9 @@ def drive_command_problem(msg: DriveCommand, batch_periods: int) -> str | None:
         for name in ("torque_cmd_nm", "current_cmd_a"):
             if not math.isfinite(getattr(msg, name)):
                 return f"{name} is not finite"
+        problem = rider_cadence_problem(float(msg.rider_cadence_rpm))
+        if problem is not None:
+            return f"rider_cadence_rpm: {problem}"
     except Exception as exc:  # a malformed message must never take the node down
         return f"unreadable DriveCommand ({exc})"
     return None
@@ -355,6 +363,9 @@ def command_problem(msg: Command) -> str | None:
         problem = road_problem(msg.crr, msg.cw_kg_m, msg.wind_mps)
         if problem is not None:
             return problem
+    problem = rider_cadence_problem(msg.cadence_rpm)
+    if problem is not None:
+        return problem
     return virtual_gear_problem(msg.virtual_gear_ratio)
 
 
@@ -371,10 +382,11 @@ def set_command_road(msg: Command, road: tuple[float, float, float] | None) -> C
 
 
 def command_msg(value: float, mode: int = 0, stamp: int = 0, virtual_gear_ratio: float = 0.0,
-                road: tuple[float, float, float] | None = None) -> Command:
+                road: tuple[float, float, float] | None = None, cadence_rpm: float = 0.0) -> Command:
     msg = Command()
     msg.header.stamp = time_msg(stamp)
     msg.command = float(value)
     msg.mode = int(mode)
     msg.virtual_gear_ratio = float(virtual_gear_ratio)
+    msg.cadence_rpm = float(cadence_rpm)
     return set_command_road(msg, road)

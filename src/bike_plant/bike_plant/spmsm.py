@@ -1615,6 +1615,7 @@ class RiderLoad:
 
     def __init__(self, load: SpmsmLoadParams):
         self.params = load.rider_load_params()
+        self.target_rpm = self.params.rider_target_cadence_rpm      # set_rider_cadence moves it
         self.effort = load.rider_effort0
         self.integ = load.rider_effort0
         self.crank_rad = 0.0
@@ -1622,9 +1623,8 @@ class RiderLoad:
     def __call__(self, t_s: float, speed_rad_s: float, dt_s: float) -> float:
         lp = self.params
         cad = speed_rad_s / lp.gear_ratio
-        err = lp.rider_target_cadence_rpm / RPM_PER_RAD_S - cad
-        self.integ = min(max(self.integ + lp.rider_ki * err * dt_s, -1.0), 1.0)
-        self.effort = min(max(lp.rider_kp * err + self.integ, 0.0), 1.0)
+        err = self.target_rpm / RPM_PER_RAD_S - cad
+        self.integ, self.effort = mechanics.rider_effort_update(self.integ, err, lp.rider_kp, lp.rider_ki, dt_s)
         torque = mechanics.rider_motor_torque_nm(self.effort, speed_rad_s, self.crank_rad, lp)
         self.crank_rad = (self.crank_rad + cad * dt_s) % TWO_PI
         return torque
@@ -1705,6 +1705,13 @@ class SpmsmPlant:
         nn = max(n, 1)
         return SpmsmBatchResult(float(sums[0] / nn), float(sums[1] / nn), float(sums[2] / nn), samples,
                                 int(self.state[S_FAULTS]))
+
+    def set_rider_cadence(self, cadence_rpm: float) -> None:
+        """The rider's cadence target from now on (a workout's; 0: the config's own); no rider
+        (another load): nothing to tell."""
+        if isinstance(self.load_hook, RiderLoad):
+            self.load_hook.target_rpm = (cadence_rpm if cadence_rpm > 0
+                                         else self.load_hook.params.rider_target_cadence_rpm)
 
     def set_safe_state(self) -> None:
         """Inverter gates off: the bridge becomes a diode rectifier into the battery."""

@@ -36,6 +36,11 @@ air resistance 1/2 rho CdA in kg/m, head wind in m/s; all three) or ``config`` (
 config's before any). It shapes slope mode's road load (and ERG's flat road with
 ``modes.erg_speed_from_power``); ``./bike replay`` writes the road a training app gave.
 
+Any segment may give ``cadence``: the rider's cadence target in rpm (10 .. 250; 0: none, the
+rider's own), for that segment only (the children of ``intervals`` / ``repeat`` inherit it), as a
+workout file's Cadence does (:meth:`Profile.cadence_at`). The Commands carry it; the simulated
+rider pedals at it.
+
 Modes are names (``resistance``, ``motoring``, ``erg``, ``slope``, ``isokinetic``) mapped
 to the bike_msgs/Command constants by :data:`MODES`. Commands are in [0, 1]. Instead of a
 command, a step may give ``target`` and a ramp ``start_target`` / ``end_target`` in the
@@ -57,7 +62,7 @@ import pathlib
 from typing import Any, Mapping
 
 import yaml
-from bike_plant.mechanics import road_problem, virtual_gear_problem
+from bike_plant.mechanics import rider_cadence_problem, road_problem, virtual_gear_problem
 
 # name -> bike_msgs/msg/Command mode constant (bike_controller.modes)
 MODES: dict[str, int] = {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4}
@@ -69,7 +74,7 @@ MAX_REPEAT = 10_000
 MAX_DEPTH = 16
 KINDS = ("step", "ramp", "intervals", "repeat")
 
-_COMMON = {"kind", "mode", "label", "gear", "road"}
+_COMMON = {"kind", "mode", "label", "gear", "road", "cadence"}
 ROAD_KEYS = ("crr", "cw_kg_m", "wind_mps")
 _KEYS = {
     "step": _COMMON | {"duration_s", "command", "target"},
@@ -194,7 +199,8 @@ class Profile:
     """
 
     def __init__(self, name: str, segments: list[Segment], source: str = "<profile>", text: str = "",
-                 gears: Mapping[int, float] | None = None, roads: Mapping[int, tuple | None] | None = None):
+                 gears: Mapping[int, float] | None = None, roads: Mapping[int, tuple | None] | None = None,
+                 cadences: Mapping[int, float] | None = None):
         if not segments:
             raise ProfileError("a profile needs at least one segment", source, "segments")
         self.name = name
@@ -210,6 +216,7 @@ class Profile:
         for seg in segments:
             gear = self.gears_given.get(seg.index, gear)
             self._gear_in_force.append(gear)
+        self._cadences = dict(cadences or {})     # leaf index -> the rider's cadence target
         # the road in force in each leaf, the same way (None: the config's)
         roads = dict(roads or {})
         self._road_in_force = []
@@ -244,6 +251,11 @@ class Profile:
         the last one."""
         seg = self.segment_at(t_s)
         return self._gear_in_force[-1 if seg is None else seg.index]
+
+    def cadence_at(self, t_s: float) -> float | None:
+        """The rider's cadence target [rpm] of the segment at ``t_s`` (None: none)."""
+        seg = self.segment_at(t_s)
+        return self._cadences.get(seg.index) if seg is not None else None
 
     def road_at(self, t_s: float) -> tuple[float, float, float] | None:
         """The road (crr, cw_kg_m, wind_mps) in force at ``t_s``, None for the config's; past the
@@ -328,7 +340,8 @@ def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "prof
     builder.segment_list(doc["segments"], "segments", mode, None, 0, "")
     if not builder.leaves:
         raise ProfileError("a profile needs at least one segment", source, "segments")
-    return Profile(name, builder.leaves, source=source, gears=builder.gears, roads=builder.roads)
+    return Profile(name, builder.leaves, source=source, gears=builder.gears, roads=builder.roads,
+                   cadences=builder.cadences)
 
 
 class _Builder:
@@ -338,20 +351,21 @@ class _Builder:
         self.leaves: list[Segment] = []
         self.gears: dict[int, float] = {}      # leaf index -> the gear it gives (or inherits)
         self.roads: dict[int, tuple | None] = {}   # ... and the road (None: the config's again)
+        self.cadences: dict[int, float] = {}       # ... and the rider's cadence target (> 0)
         self.t = 0.0
 
     def err(self, where: str, message: str) -> ProfileError:
         return ProfileError(message, self.source, where)
 
-    def segment_list(self, items, where, mode, label, depth, rep, gear=None, road=None):
+    def segment_list(self, items, where, mode, label, depth, rep, gear=None, road=None, cadence=None):
         if not isinstance(items, list):
             raise self.err(where, f"expected a list of segments, got {_tname(items)}")
         if not items:
             raise self.err(where, "empty list of segments")
         for i, item in enumerate(items):
-            self.segment(item, f"{where}[{i}]", mode, label, depth, rep, gear=gear, road=road)
+            self.segment(item, f"{where}[{i}]", mode, label, depth, rep, gear=gear, road=road, cadence=cadence)
 
-    def segment(self, seg, where, mode, label, depth, rep, default_kind=None, gear=None, road=None):
+    def segment(self, seg, where, mode, label, depth, rep, default_kind=None, gear=None, road=None, cadence=None):
         # road: None when not given; "config" or (crr, cw_kg_m, wind_mps) when given
         if depth > MAX_DEPTH:
             raise self.err(where, f"segments nested deeper than {MAX_DEPTH} levels")
@@ -382,6 +396,11 @@ class _Builder:
                 raise self.err(f"{where}.gear", problem)
         if "road" in seg:
             road = self.road(seg["road"], f"{where}.road")
+        if "cadence" in seg:
+            cadence = self.number(seg["cadence"], f"{where}.cadence")
+            problem = rider_cadence_problem(cadence)
+            if problem:
+                raise self.err(f"{where}.cadence", problem)
         if kind in ("step", "ramp"):
             duration = self.number(seg["duration_s"], f"{where}.duration_s")
             if duration <= 0:
@@ -397,6 +416,8 @@ class _Builder:
                 self.gears[len(self.leaves)] = gear
             if road is not None:
                 self.roads[len(self.leaves)] = None if road == "config" else road
+            if cadence:
+                self.cadences[len(self.leaves)] = cadence
             self.leaves.append(Segment(len(self.leaves), where + rep, self.t, duration, start, end, mode,
                                        label if label is not None else kind))
             self.t += duration
@@ -411,14 +432,15 @@ class _Builder:
                     raise self.err(f"{where}.{part}.kind", f"must be step or ramp, got {body.get('kind')!r}")
             for r in range(count):
                 r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
-                self.segment(seg["on"], f"{where}.on", mode, label, depth + 1, r_tag, "step", gear=gear, road=road)
+                self.segment(seg["on"], f"{where}.on", mode, label, depth + 1, r_tag, "step", gear=gear, road=road,
+                             cadence=cadence)
                 self.segment(seg["off"], f"{where}.off", mode, label, depth + 1, r_tag, "step", gear=gear,
-                             road=road)
+                             road=road, cadence=cadence)
         else:
             for r in range(count):
                 r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
                 self.segment_list(seg["segments"], f"{where}.segments", mode, label, depth + 1, r_tag, gear=gear,
-                                  road=road)
+                                  road=road, cadence=cadence)
 
     def road(self, value, where):
         """A segment's ``road``: "config", or a mapping of exactly crr, cw_kg_m, wind_mps."""

@@ -261,10 +261,10 @@ def _make_node_class():
             self.sent_gears = array.array("d")   # the gear of each published tau index j
             self.shifts = 0
             # live Commands (_on_live_command) and ERG bumps (_bump_erg): from tau index
-            # live_from_j[k] on, live_targets[k] = (command, mode, label, until tau index, road)
+            # live_from_j[k] on, live_targets[k] = (command, mode, label, until tau index, road, cadence)
             self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos(10))
             self.live_from_j: list[int] = []
-            self.live_targets: list[tuple[float, int, str, int, tuple | None]] = []
+            self.live_targets: list[tuple[float, int, str, int, tuple | None, float]] = []
             self.live_commands = 0
             self.erg_shift_w = modes.erg_shift_w
             self.units = units = _units(cfg)
@@ -342,13 +342,22 @@ def _make_node_class():
             live = self._live_at(j)
             return self.profile.road_at(j * self.period_s) if live is None else live[4]
 
-        def _add_live(self, j: int, command: float, mode: int, label: str, until_j: int, road=None) -> None:
-            """A live target from tau index j (not sent yet) until until_j, on ``road``."""
+        def cadence_for(self, j: int) -> float:
+            """The rider's cadence target of the Command at tau_j: a live target's, else the
+            profile's (a workout's Cadence); 0: none."""
+            live = self._live_at(j)
+            return (self.profile.cadence_at(j * self.period_s) or 0.0) if live is None else live[5]
+
+        def _add_live(self, j: int, command: float, mode: int, label: str, until_j: int, road=None,
+                      cadence_rpm: float = 0.0) -> None:
+            """A live target from tau index j (not sent yet) until until_j, on ``road``, with the
+            rider's cadence target."""
+            target = (command, mode, label, until_j, road, cadence_rpm)
             if self.live_from_j and self.live_from_j[-1] == j:     # not sent yet: replaced
-                self.live_targets[-1] = (command, mode, label, until_j, road)
+                self.live_targets[-1] = target
             else:
                 self.live_from_j.append(j)
-                self.live_targets.append((command, mode, label, until_j, road))
+                self.live_targets.append(target)
 
         def _segment_end_j(self, j: int) -> int:
             """The first tau index of the profile leaf after the one in force at tau_j."""
@@ -386,7 +395,7 @@ def _make_node_class():
                 return True
             label = f"ERG {new_w:.0f} W (shifted {new_w - old_w:+.0f} W)"
             self._add_live(j, new_w / self.erg_max_w, self._Command.MODE_ERG, label, self._segment_end_j(j),
-                           self.road_for(j))
+                           self.road_for(j), self.cadence_for(j))
             self.erg_bumps += 1
             self.get_logger().info(f"shift {steps:+d} in ERG: target {old_w:.0f} W -> {new_w:.0f} W from "
                                    f"t = {t_s:g} s until the next profile segment")
@@ -410,7 +419,7 @@ def _make_node_class():
             j = self.next_j
             label = f"live: {describe_command(int(msg.mode), float(msg.command), self.units)}"
             road = command_road(msg)
-            self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62, road)
+            self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62, road, float(msg.cadence_rpm))
             if msg.virtual_gear_ratio > 0.0:
                 self._set_live_gear(float(msg.virtual_gear_ratio), j * self.period_s)
             self.live_commands += 1
@@ -470,6 +479,7 @@ def _make_node_class():
             msg.virtual_gear_ratio = float(gear)
             from bike_plant.msgconv import set_command_road
             set_command_road(msg, self.road_for(j))
+            msg.cadence_rpm = float(self.cadence_for(j))
             self.pub_command.publish(msg)
             self.commands_published += 1
             self.readers_at_publish = self.pub_command.get_subscription_count()
