@@ -160,6 +160,12 @@ def _graph(col, domain, tmp_path, duration, plant_extra=None, ctrl_extra=None, r
     procs["controller"] = NodeProcess("bike_controller", "controller_node", domain,
                                       dict({"command_wait_s": 0.5, "recorder_window_batches": 50 if record else 0},
                                            **(ctrl_extra or {})))
+    if "controller_status" in col.subs:
+        # the run starts with the session's first Command: a test that reads the controller's
+        # (volatile) status must have matched it before then (CI, a 5 s lockstep run: over before
+        # the test's reader matched the controller, 2026-12-05)
+        col.wait_for(lambda: col.reads_from("controller_status", "controller"), 30,
+                     "the test's controller_status reader matched to the controller", list(procs.values()))
     procs["session"] = NodeProcess("bike_session", "session_node", domain,
                                    {"duration_s": duration, "config_path": str(CONFIG)})
     return procs
