@@ -82,6 +82,25 @@ def test_a_simulation_grade_beyond_the_bike_is_ridden_at_its_end_and_said_and_th
     assert control.write(bytes([ftms.OP_START_RESUME])).target.road == pytest.approx((0.0033, 0.40, 1.0))
 
 
+def test_a_targeted_cadence_rides_with_the_target_in_force_and_every_later_one():
+    control = controlled()
+    early = control.write(cp(ftms.OP_TARGETED_CADENCE, "H", 190))                 # 95 rpm before any target
+    assert early.response[2] == ftms.RESULT_SUCCESS and early.target is None
+    assert early.status == bytes([ftms.STATUS_CADENCE_CHANGED]) + struct.pack("<H", 190)
+    assert "first target" in early.message
+    first = control.write(cp(ftms.OP_TARGET_POWER, "h", 200))
+    assert first.target.cadence_rpm == 95.0 and first.target.mode == MODES["erg"]
+    drill = control.write(cp(ftms.OP_TARGETED_CADENCE, "H", 130))                 # 65 rpm: the 200 W again
+    assert drill.target.cadence_rpm == 65.0 and drill.target.command == first.target.command
+    assert control.write(cp(ftms.OP_TARGETED_CADENCE, "H", 10)).response[2] == ftms.RESULT_INVALID_PARAMETER
+    assert control.write(cp(ftms.OP_TARGETED_CADENCE, "H", 0)).target.cadence_rpm == 0.0      # the rider's own
+    control.write(cp(ftms.OP_TARGETED_CADENCE, "H", 180))
+    control.write(bytes([ftms.OP_RESET]))
+    control.write(bytes([ftms.OP_REQUEST_CONTROL]))
+    assert control.write(cp(ftms.OP_TARGET_POWER, "h", 150)).target.cadence_rpm == 0.0  # a reset clears it
+    assert struct.unpack("<II", ftms.encode_feature())[1] & ftms.TARGET_CADENCE
+
+
 def test_stop_releases_the_brake_keeps_the_target_for_resume_and_reset_gives_up_control():
     control = controlled()
     control.write(cp(ftms.OP_TARGET_POWER, "h", 200))
@@ -100,7 +119,7 @@ def test_stop_releases_the_brake_keeps_the_target_for_resume_and_reset_gives_up_
 
 def test_ops_this_bike_does_not_do_are_not_supported_and_an_empty_write_is_invalid():
     control = controlled()
-    for op in (ftms.OP_TARGET_SPEED, ftms.OP_TARGET_HEART_RATE, 0x13, 0x14, 0x42):
+    for op in (ftms.OP_TARGET_SPEED, ftms.OP_TARGET_HEART_RATE, 0x13, 0x12, 0x42):
         reply = control.write(bytes([op, 0, 0]))
         assert reply.response == bytes([0x80, op, ftms.RESULT_NOT_SUPPORTED]) and reply.target is None
         assert reply.message

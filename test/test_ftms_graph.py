@@ -134,7 +134,7 @@ WORKOUT = """name: app_steps
 mode: erg
 segments:
   - {kind: step, duration_s: 6, target: 150}
-  - {kind: step, duration_s: 10, target: 250}
+  - {kind: step, duration_s: 10, target: 250, cadence: 95}
   - {kind: step, duration_s: 5, target: 3, mode: slope}
 """
 
@@ -143,7 +143,8 @@ segments:
 def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_it_followed(tmp_path, ros_domain):
     """Both ends of the protocol: `./bike trainer --workout` (the app) against `./bike run --ftms`
     (the trainer): the workout's targets are written, the trainer's data kept and judged; the
-    road sent with the grade (Zwift's Crr and Cw, a head wind given) is the one the bike rides."""
+    road sent with the grade (Zwift's Crr and Cw, a head wind given) is the one the bike rides, and
+    the rider pedals at the cadence target sent with the 250 W."""
     import csv
 
     port = _free_port()
@@ -166,8 +167,10 @@ def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_i
     assert "step to 250 W at" in out and "ERG:" in out
     rows = list(csv.DictReader(open(tmp_path / "ride.csv")))
     assert len(rows) > 40 and {"t_s", "target_w", "power_w", "cadence_rpm", "speed_kmh"} <= set(rows[0])
-    late = [float(r["power_w"]) for r in rows if 12.0 < float(r["t_s"]) < 16.0]
-    assert late and abs(sum(late) / len(late) - 250.0) < 0.2 * 250.0, late
+    late = [r for r in rows if 12.0 < float(r["t_s"]) < 16.0]
+    assert late and abs(sum(float(r["power_w"]) for r in late) / len(late) - 250.0) < 0.2 * 250.0, late
+    assert all(abs(float(r["cadence_rpm"]) - 95.0) < 3.0 for r in late), [r["cadence_rpm"] for r in late]
+    assert "targeted cadence 95 rpm" in out
     bike = done["r"]
     assert bike.returncode == 0, (bike.stdout + bike.stderr)[-4000:]
     assert "FTMS target power 250 W" in bike.stdout + bike.stderr

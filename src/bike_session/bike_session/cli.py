@@ -512,6 +512,8 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--power", type=float, metavar="W", help="take control and set ERG target power")
     trn.add_argument("--grade", type=float, metavar="PCT", help="take control and set the simulation grade")
     trn.add_argument("--level", type=float, metavar="L", help="take control and set the resistance level")
+    trn.add_argument("--cadence", type=float, metavar="RPM", help="with a target: also set the rider's cadence "
+                                                                "target (FTMS Set Targeted Cadence)")
     trn.add_argument("--crr", type=float, default=0.004, help="the road sent with a grade: rolling resistance "
                                                               "(default 0.004, as Zwift sends)")
     trn.add_argument("--cw", type=float, default=0.51, metavar="KG_PER_M",

@@ -30,6 +30,7 @@ What a control request does (:class:`FtmsControl`):
 | 0x05 | Target Power, sint16 W | erg, P / erg_power_max_w |
 | 0x07 / 0x08 | Start or Resume / Stop or Pause | the target before the stop again / resistance 0 |
 | 0x11 | Indoor Bike Simulation: wind 0.001 m/s, grade 0.01 %, Crr 1e-4, Cw 0.01 kg/m | slope at the grade, on the app's road |
+| 0x14 | Set Targeted Cadence, uint16 0.5 rpm | the rider's cadence target (Command.cadence_rpm): the target in force again with it, and every later one; 0: none |
 
 A target outside the advertised range is refused with result 3 (invalid parameter) and a
 message, except the simulation grade: apps send the road's grade as it comes, so a grade
@@ -38,7 +39,7 @@ The simulation's wind, Crr and Cw become the Command's road (bike_msgs/Command
 ``road_from_command``: the slope mode's road load uses them in place of the config's modes.crr,
 cda_m2 and wind_mps), said once per change; all three zero, as apps that send only the grade
 do, keeps the config's road, and that is said. Ops this bike does not do (target speed, heart rate, wheel
-circumference, spin down, targeted cadence, ...) get result 2 (not supported).
+circumference, spin down, ...) get result 2 (not supported).
 """
 from __future__ import annotations
 
@@ -46,6 +47,7 @@ import dataclasses
 import math
 import struct
 
+from bike_plant.mechanics import rider_cadence_problem
 from bike_session.profiles import MODES, ModeUnits
 
 # 16-bit UUIDs (Bluetooth SIG assigned numbers)
@@ -69,6 +71,7 @@ OP_TARGET_HEART_RATE = 0x06
 OP_START_RESUME = 0x07
 OP_STOP_PAUSE = 0x08
 OP_SIMULATION = 0x11
+OP_TARGETED_CADENCE = 0x14
 OP_RESPONSE = 0x80
 
 # Control Point result codes
@@ -86,6 +89,7 @@ STATUS_INCLINE_CHANGED = 0x06
 STATUS_RESISTANCE_CHANGED = 0x07
 STATUS_POWER_CHANGED = 0x08
 STATUS_SIMULATION_CHANGED = 0x12
+STATUS_CADENCE_CHANGED = 0x15
 STATUS_CONTROL_LOST = 0xFF
 
 OP_NAMES = {0x00: "request control", 0x01: "reset", 0x02: "target speed", 0x03: "target inclination",
@@ -107,6 +111,7 @@ TARGET_INCLINATION = 1 << 1
 TARGET_RESISTANCE = 1 << 2
 TARGET_POWER = 1 << 3
 TARGET_SIMULATION = 1 << 13
+TARGET_CADENCE = 1 << 16
 
 # Indoor Bike Data flags: bit 0 clear = instantaneous speed present
 IBD_CADENCE = 1 << 2
@@ -120,7 +125,7 @@ RESISTANCE_LEVEL_MAX = 100.0    # levels 0..100 (0.1 steps) = resistance Command
 
 def encode_feature() -> bytes:
     machine = MACHINE_CADENCE | MACHINE_TOTAL_DISTANCE | MACHINE_RESISTANCE_LEVEL | MACHINE_ELAPSED_TIME | MACHINE_POWER
-    target = TARGET_INCLINATION | TARGET_RESISTANCE | TARGET_POWER | TARGET_SIMULATION
+    target = TARGET_INCLINATION | TARGET_RESISTANCE | TARGET_POWER | TARGET_SIMULATION | TARGET_CADENCE
     return struct.pack("<II", machine, target)
 
 
@@ -238,6 +243,7 @@ class Target:
     command: float
     text: str          # for the log, e.g. "target power 150 W"
     road: tuple[float, float, float] | None = None    # (crr, cw_kg_m, wind_mps); None: the config's
+    cadence_rpm: float = 0.0                          # the rider's cadence target; 0: none
 
 
 @dataclasses.dataclass
@@ -260,6 +266,7 @@ class FtmsControl:
         self.running_target: Target | None = None    # the target a Stop keeps for a Resume
         self.stopped = False
         self.simulation_extra = None                  # (wind, crr, cw) last said
+        self.cadence_rpm = 0.0                        # Set Targeted Cadence: rides with every target
 
     # ---- the read-only ranges
     def encode_power_range(self) -> bytes:
@@ -292,7 +299,8 @@ class FtmsControl:
             return result(RESULT_NOT_PERMITTED, f"{name} before Request Control: refused")
         handler = {OP_RESET: self._reset, OP_TARGET_INCLINATION: self._inclination,
                    OP_TARGET_RESISTANCE: self._resistance, OP_TARGET_POWER: self._power,
-                   OP_START_RESUME: self._start, OP_STOP_PAUSE: self._stop, OP_SIMULATION: self._simulation}.get(op)
+                   OP_START_RESUME: self._start, OP_STOP_PAUSE: self._stop, OP_SIMULATION: self._simulation,
+                   OP_TARGETED_CADENCE: self._cadence}.get(op)
         if handler is None:
             return result(RESULT_NOT_SUPPORTED, f"{name}: not supported by this bike")
         return handler(op, name, param)
@@ -305,6 +313,7 @@ class FtmsControl:
         return None
 
     def _set(self, op, target: Target, status: bytes, message: str | None = None, warning: bool = False) -> Reply:
+        target = dataclasses.replace(target, cadence_rpm=self.cadence_rpm)
         self.running_target = target
         if self.stopped:          # a new target while stopped is kept for the Resume
             return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=status, message=message or
@@ -374,8 +383,28 @@ class FtmsControl:
         return self._set(op, target, bytes([STATUS_SIMULATION_CHANGED]) + param, message,
                          warning=ridden != grade_pct)
 
+    def _cadence(self, op, name, param) -> Reply:
+        """The rider's cadence target: with the target in force (sent again with it) and every
+        later one; before any target it waits for the first."""
+        bad = self._sized(op, name, param, (2,))
+        if bad:
+            return bad
+        (halves,) = struct.unpack("<H", param)
+        rpm = halves / 2
+        problem = rider_cadence_problem(rpm)
+        if problem:
+            return self._refuse(op, f"{name} {rpm:g} rpm refused: {problem}")
+        self.cadence_rpm = rpm
+        status = bytes([STATUS_CADENCE_CHANGED]) + param
+        text = f"{name} {rpm:g} rpm" if rpm else f"{name} cleared (the rider's own)"
+        if self.running_target is None:
+            return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=status,
+                         message=f"{text}: rides with the first target")
+        return self._set(op, self.running_target, status, f"{text}, with {self.running_target.text}")
+
     def _reset(self, op, name, param) -> Reply:
         self.controlled = False
+        self.cadence_rpm = 0.0
         self.stopped = False
         self.running_target = None
         target = Target(MODES["resistance"], 0.0, "reset: brake released, control given up")

@@ -296,6 +296,7 @@ def _make_node_class():
                 msg.command = float(reply.target.command)
                 msg.mode = int(reply.target.mode)
                 self._set_road(msg, reply.target.road)
+                msg.cadence_rpm = float(reply.target.cadence_rpm)
                 self.pub_live.publish(msg)
             if reply.status is not None:
                 self.pending_status.append(reply.status)

@@ -7,6 +7,7 @@ take control and set a target, and print the Indoor Bike Data it notifies, once 
     ./bike trainer [--host H] [--port P]          # what the trainer at H:P serves, then 5 s of data
     ./bike trainer --power 200 --seconds 30       # ERG at 200 W (Request Control first)
     ./bike trainer --grade 4.5                    # simulation grade 4.5 % (road: --crr, --cw, --wind)
+    ./bike trainer --power 200 --cadence 95       # ... and the rider's cadence target (Set Targeted Cadence)
     ./bike trainer --workout FILE.zwo --ftp 250 --csv ride.csv   # ride a workout on the trainer
 
 ``--workout`` rides a workout file (.zwo, .erg, .mrc, .fit, or a profile .yaml) on the trainer
@@ -139,6 +140,11 @@ def simulation_param(grade_pct: float, road=DEFAULT_ROAD) -> bytes:
     return struct.pack("<hhBB", round(wind * 1000), round(grade_pct * 100), round(crr * 1e4), round(cw * 100))
 
 
+def cadence_param(cadence_rpm: float) -> bytes:
+    """Set Targeted Cadence's parameter: uint16 in 0.5 rpm."""
+    return struct.pack("<H", min(max(round(cadence_rpm * 2), 0), 0xFFFF))
+
+
 def _target_write(mode: int, command: float, units, road=DEFAULT_ROAD) -> tuple[int, bytes, str] | None:
     """The Control Point write for a profile's Command (None: a mode FTMS cannot ask for)."""
     from bike_session.profiles import MODES
@@ -208,6 +214,7 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
     app.subscribe(ftms.INDOOR_BIKE_DATA)
     rows = []
     sent = None
+    sent_cadence = 0.0
     next_write = 0.0
     t0 = time.monotonic()
     while True:
@@ -224,6 +231,14 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
             ok = reply.code == dircon.RESP_SUCCESS and len(result) >= 3 and result[2] == ftms.RESULT_SUCCESS
             say(f"t = {now:5.1f} s  {target[2]}" + ("" if ok else f": refused ({result.hex()})"))
             sent, next_write = target[:2], now + 1.0
+        cadence = profile.cadence_at(now) or 0.0
+        if sent is not None and cadence != sent_cadence:
+            # the step's cadence target, as apps show it (FTMS Set Targeted Cadence)
+            app.write(ftms.CONTROL_POINT, bytes([ftms.OP_TARGETED_CADENCE]) + cadence_param(cadence))
+            result = app.wait_notification(ftms.CONTROL_POINT)
+            ok = len(result) >= 3 and result[2] == ftms.RESULT_SUCCESS
+            say(f"t = {now:5.1f} s  targeted cadence {cadence:g} rpm" + ("" if ok else f": refused ({result.hex()})"))
+            sent_cadence = cadence
         try:
             value = app.wait_notification(ftms.INDOOR_BIKE_DATA, max(0.05, min(1.0, seconds - now)))
         except TimeoutError:
@@ -302,6 +317,9 @@ def main(opts) -> int:
                          f"resistance level {opts.level:g}", say)
         else:
             ok = True
+        if ok and opts.cadence is not None:
+            ok = control(app, ftms.OP_TARGETED_CADENCE, cadence_param(opts.cadence),
+                         f"targeted cadence {opts.cadence:g} rpm", say)
         if not ok:
             return 1
         app.subscribe(ftms.INDOOR_BIKE_DATA)
