@@ -153,3 +153,9 @@ def test_without_the_fit_sdk_a_fit_file_is_one_clear_error(monkeypatch):
     monkeypatch.setitem(__import__("sys").modules, "garmin_fit_sdk", None)      # import fails
     with pytest.raises(WorkoutError, match="pip install garmin-fit-sdk"):
         load_workout(DATA / "sweet_spot.fit", ftp_w=250, pmax_w=PMAX)
+
+
+def test_a_fit_cadence_range_is_its_mean_and_one_the_rider_cannot_take_is_none():
+    from bike_session.fit_workout import _cadence
+    assert _cadence(85, 95) == 90.0 and _cadence(5, 95) == 50.0 and _cadence(None, 90) == 90.0
+    assert _cadence(3, 5) is None and _cadence(0, 0) is None and _cadence(300, 400) is None

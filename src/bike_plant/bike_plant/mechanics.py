@@ -41,7 +41,7 @@ ROAD_CW_MAX_KG_M = 3.0
 ROAD_WIND_MAX_MPS = 40.0
 
 
-# a cadence target a Command may give the rider (0: none); workouts.MAX_CADENCE_RPM is the same top
+# a cadence target a Command may give the rider (0: none); the workout readers take the same rule
 RIDER_CADENCE_MIN_RPM = 10.0
 RIDER_CADENCE_MAX_RPM = 250.0
 

@@ -46,6 +46,7 @@ import dataclasses
 import math
 from typing import Any
 
+from bike_plant.mechanics import rider_cadence_problem
 from bike_session.profiles import MAX_LEAF_SEGMENTS, MAX_REPEAT
 from bike_session.workouts import (MAX_CADENCE_RPM, MAX_FTP_FRACTION, MAX_TEXT_EVENTS, TextEvent, Workout,
                                    WorkoutError, _Options, _Timeline)
@@ -255,7 +256,9 @@ def _watts(value: Any, ftp: float | None, err) -> float:
 
 def _cadence(lo: Any, hi: Any) -> float | None:
     values = [float(v) for v in (lo, hi) if isinstance(v, (int, float)) and 0 < v <= MAX_CADENCE_RPM]
-    return sum(values) / len(values) if values else None
+    mean = sum(values) / len(values) if values else None
+    # a target the Command could not carry to the rider (under 10 rpm) is no target
+    return mean if mean is not None and rider_cadence_problem(mean) is None else None
 
 
 def _summary(steps: list[dict]) -> str:

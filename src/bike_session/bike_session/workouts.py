@@ -83,6 +83,7 @@ import warnings
 from typing import Any, Iterable, Mapping
 from xml.parsers import expat
 
+from bike_plant.mechanics import RIDER_CADENCE_MAX_RPM, rider_cadence_problem
 from bike_session.profiles import (MAX_LEAF_SEGMENTS, MAX_REPEAT, MODES, Profile, ProfileError, Segment,
                                    load_profile)
 
@@ -93,7 +94,7 @@ MAX_TEXT_EVENTS = 10_000
 MAX_WORKOUT_S = 24 * 3600.0        # one day; anything longer is a broken file
 MAX_FTP_FRACTION = 5.0             # 500 % FTP: larger values are percent written as fractions
 MAX_FTP_W = 2000.0
-MAX_CADENCE_RPM = 250.0
+MAX_CADENCE_RPM = RIDER_CADENCE_MAX_RPM      # what a Command may give the rider (bike_plant.mechanics)
 DEFAULT_FREERIDE_COMMAND = 0.2
 DEFAULT_MAXEFFORT_COMMAND = 0.5
 
@@ -149,7 +150,8 @@ class Workout(Profile):
     def __init__(self, name: str, segments: list[WorkoutSegment], *, source: str, text: str, fmt: str,
                  ftp_w: float | None, file_ftp_w: float | None, pmax_w: float, mode: int,
                  events: list[TextEvent], warnings_: list[str], description: str = "", author: str = ""):
-        super().__init__(name, segments, source=source, text=text)
+        super().__init__(name, segments, source=source, text=text,
+                         cadences={seg.index: seg.cadence_rpm for seg in segments if seg.cadence_rpm})
         self.format = fmt
         self.ftp_w = ftp_w                  # FTP the relative targets were scaled with
         self.file_ftp_w = file_ftp_w        # FTP declared in the file (ERG FTP=, ZWO ftpOverride)
@@ -168,10 +170,6 @@ class Workout(Profile):
         """The file's power target in watts at ``t_s`` (None: free segment or past the end)."""
         seg = self.segment_at(t_s)
         return seg.target_w_at(t_s) if seg is not None else None
-
-    def cadence_at(self, t_s: float) -> float | None:
-        seg = self.segment_at(t_s)
-        return seg.cadence_rpm if seg is not None else None
 
     def events_between(self, t0_s: float, t1_s: float) -> list[TextEvent]:
         """Text events with t0 <= time < t1 (for logging them as the session passes them)."""
@@ -575,8 +573,11 @@ class _Zwo:
 
     def cadence(self, node: _Node, *names: str) -> float | None:
         value = self.num(node, *names)
-        if value is not None and value > MAX_CADENCE_RPM:
-            raise self.err(node, f"cadence must be <= {MAX_CADENCE_RPM:g} rpm, got {value:g}", names[0])
+        # the rule of the Command that carries it to the rider: a value the controller would
+        # refuse is refused here, naming the attribute, not ride by ride
+        problem = rider_cadence_problem(value) if value is not None else None
+        if problem:
+            raise self.err(node, problem, names[0])
         return value or None
 
     def block_cadence(self, node: _Node) -> float | None:
