@@ -384,3 +384,30 @@ def test_erg_steps_and_their_settle_times_by_the_reports_rule():
     assert (at, to) == (2.0, 250.0) and settle == pytest.approx(3.25)
     assert erg_steps(t, target, [150.0] * 40)[0][2] is None          # never there: not settled
     assert erg_steps(t, [150.0] * 40, power) == []                   # no step
+
+
+def test_bike_trainer_refuses_a_road_or_cadence_the_ftms_fields_cannot_carry(tmp_path, capsys):
+    """A road a profile may give (Crr up to 0.05) beyond the Simulation's field (0.0255): one
+    error before anything is sent, not a struct error mid-ride; the CLI's --crr / --cadence too."""
+    import types
+
+    from conftest import bike_command
+
+    from bike_session import trainer_probe
+
+    class Trainer:                                      # the two range reads ride_workout makes first
+        def read(self, uuid):
+            return struct.pack("<hhH", -200, 200, 1) if uuid == ftms.INCLINATION_RANGE else struct.pack("<hhH", 0, 1000, 1)
+
+    prof = tmp_path / "steep.yaml"
+    prof.write_text("mode: slope\nsegments:\n  - {kind: step, duration_s: 5, target: 3}\n"
+                    "  - {kind: step, duration_s: 5, target: 3, road: {crr: 0.03, cw_kg_m: 0.5, wind_mps: 0}}\n")
+    opts = types.SimpleNamespace(workout=str(prof), ftp=None, seconds_given=False, road=trainer_probe.DEFAULT_ROAD,
+                                 csv=None)
+    assert trainer_probe.ride_workout(Trainer(), opts, print) == 2
+    err = capsys.readouterr().err
+    assert "segments[1]: road crr 0.03 outside [0, 0.0255]" in err, err
+    for args, words in ((["--crr", "0.1"], "--crr 0.1 outside"), (["--cadence", "-5", "--power", "100"],
+                                                                    "--cadence -5 outside")):
+        result = bike_command("trainer", "--port", "1", *args, timeout=60)
+        assert result.returncode == 2 and words in result.stderr, result.stderr

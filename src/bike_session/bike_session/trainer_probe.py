@@ -124,14 +124,17 @@ def _ranges(app: dircon.DirconClient):
 DEFAULT_ROAD = (0.004, 0.51, 0.0)
 
 
-def road_problem(road) -> str | None:
-    """Why (crr, cw_kg_m, wind_mps) does not fit the Indoor Bike Simulation's fields."""
+def simulation_road_problem(road, prefix: str = "--") -> str | None:
+    """Why (crr, cw_kg_m, wind_mps) does not fit the Indoor Bike Simulation's fields (narrower
+    than what a Command may carry, bike_plant.mechanics.road_problem)."""
     crr, cw, wind = road
-    for name, value, lo, hi in (("--crr", crr, 0.0, 0.0255), ("--cw", cw, 0.0, 2.55),
-                                ("--wind", wind, -32.767, 32.767)):
+    for name, value, lo, hi in (("crr", crr, 0.0, 0.0255), ("cw", cw, 0.0, 2.55), ("wind", wind, -32.767, 32.767)):
         if not lo <= value <= hi:          # also NaN
-            return f"{name} {value:g} outside [{lo:g}, {hi:g}] (the FTMS Indoor Bike Simulation's field)"
+            return f"{prefix}{name} {value:g} outside [{lo:g}, {hi:g}] (the FTMS Indoor Bike Simulation's field)"
     return None
+
+
+CADENCE_FIELD_MAX_RPM = 0xFFFF / 2      # Set Targeted Cadence: uint16 in 0.5 rpm
 
 
 def simulation_param(grade_pct: float, road=DEFAULT_ROAD) -> bytes:
@@ -141,8 +144,8 @@ def simulation_param(grade_pct: float, road=DEFAULT_ROAD) -> bytes:
 
 
 def cadence_param(cadence_rpm: float) -> bytes:
-    """Set Targeted Cadence's parameter: uint16 in 0.5 rpm."""
-    return struct.pack("<H", min(max(round(cadence_rpm * 2), 0), 0xFFFF))
+    """Set Targeted Cadence's parameter: uint16 in 0.5 rpm (0 .. CADENCE_FIELD_MAX_RPM)."""
+    return struct.pack("<H", round(cadence_rpm * 2))
 
 
 def _target_write(mode: int, command: float, units, road=DEFAULT_ROAD) -> tuple[int, bytes, str] | None:
@@ -206,6 +209,11 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
         return 2
     for w in caught:
         say(f"warning: {w.message}")
+    for seg in profile.segments:            # a profile's road may lie beyond the FTMS fields
+        problem = simulation_road_problem(profile.road_at(seg.start_s) or opts.road, prefix="road ")
+        if problem:
+            print(f"error: bad workout: {seg.path}: {problem}", file=sys.stderr)
+            return 2
     seconds = profile.duration_s if not opts.seconds_given else opts.seconds
     say(f"workout {profile.name!r}: {profile.duration_s:g} s (riding {seconds:g} s) on a trainer of "
         f"0 .. {units.erg_power_max_w:g} W")
@@ -288,7 +296,9 @@ def main(opts) -> int:
         print("error: give one of --power, --grade, --level, --workout", file=sys.stderr)
         return 2
     opts.road = (opts.crr, opts.cw, opts.wind)
-    problem = road_problem(opts.road)
+    problem = simulation_road_problem(opts.road)
+    if problem is None and opts.cadence is not None and not 0.0 <= opts.cadence <= CADENCE_FIELD_MAX_RPM:
+        problem = f"--cadence {opts.cadence:g} outside [0, {CADENCE_FIELD_MAX_RPM:g}] (the FTMS field)"
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2
