@@ -146,6 +146,23 @@ class NodeProcess:
         return self.proc.wait(timeout)
 
 
+def mean_erg_power_w(states, config: pathlib.Path | str = ROOT / "config" / "bldc_default.yaml") -> float:
+    """Mean of the power ERG holds, the rider's (braking -T_em w + the bike's friction of
+    ``config``, bike_controller.modes.erg_power_w), over PlantStates (messages, or the arrays
+    of bags.plant_state_array)."""
+    import numpy as np
+
+    from bike_controller.modes import erg_power_w, friction_figures
+    from bike_plant.config import load_config
+    friction = friction_figures(load_config(config))
+    if isinstance(states, (list, tuple)):
+        tem = np.array([m.torque_em_nm for m in states])
+        w = np.array([m.speed_rad_s for m in states])
+    else:
+        tem, w = states["torque_em_nm"], states["speed_rad_s"]
+    return float(np.mean(erg_power_w(tem, w, friction)))
+
+
 def wait_for(predicate, timeout_s: float, interval_s: float = 0.05) -> bool:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:

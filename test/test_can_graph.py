@@ -22,7 +22,7 @@ import time
 import can
 import pytest
 import yaml
-from conftest import NodeProcess, bike_command
+from conftest import NodeProcess, bike_command, mean_erg_power_w
 from node_harness import Collector, stamp_ns
 
 from bike_msgs.msg import Command, DriveCommand, PlantState  # noqa: E402
@@ -292,9 +292,9 @@ def test_a_workout_through_the_can_path_end_to_end(tmp_path, ros_domain):
     asked = sum(s.torque_cmd_nm for s in res_cmd) / len(res_cmd)
     got = -sum(m.torque_em_nm for m in res) / len(res)
     assert 0.5 < asked < 1.6 and got == pytest.approx(asked, rel=0.05), (asked, got)
-    # ERG 150 W: the drive's braking power follows the target
+    # ERG 150 W: the drive's braking power + the bike's friction follows the target
     erg = [m for m in states if 4.0 < t(m) < 4.95 and not m.faults]
-    power = sum(-m.torque_em_nm * m.speed_rad_s for m in erg) / len(erg)
+    power = mean_erg_power_w(erg, config)
     assert power == pytest.approx(150.0, rel=0.08), power
     assert all(d.torque_cmd_nm < 0 for d in drive if 4.0 < t(d) < 4.95), "braking = negative torque (motoring +)"
     assert states[-1].energy_battery_j > 100 and states[-1].dc_bus_v > 40
@@ -491,9 +491,9 @@ def test_the_spmsm_bike_rides_a_workout_through_the_can_path(tmp_path, ros_domai
     assert not motoring, f"ERG brakes, never motors: negative torque (motoring +), got {motoring[:10]}"
     for lo, hi, watts in ((1.5, 2.95, 100.0), (4.5, 5.95, 150.0)):
         seg = [m for m in states if lo < t(m) < hi and not m.faults]
-        power = sum(-m.torque_em_nm * m.speed_rad_s for m in seg) / len(seg)
+        power = mean_erg_power_w(seg, config)
         cadence = sum(m.speed_rpm for m in seg) / len(seg) / 4.0
-        print(f"ERG {watts:.0f} W: drive brakes {power:.1f} W at {cadence:.1f} rpm cadence")
+        print(f"ERG {watts:.0f} W: drive brakes + friction {power:.1f} W at {cadence:.1f} rpm cadence")
         assert power == pytest.approx(watts, rel=0.1), (watts, power)
         assert 60.0 < cadence < 100.0, "the rider of the SPMSM config pedals the emulated bike"
     assert states[-1].energy_battery_j > 100 and 20.0 < states[-1].dc_bus_v < 30.0, "24 V SPMSM battery"
@@ -568,7 +568,7 @@ def test_a_stalled_emulator_neither_motors_nor_winds_up_the_erg_trim(tmp_path, r
     assert faults & LOST and int(can_stats["drive_lost"]) >= 1
     assert float(can_stats["heartbeat_gap_max_ms"]) > 250.0 or int(can_stats["drive_lost"]) >= 1
     seg = [m for m in states if 2.0 < t(m) < 6.9 and not m.faults]
-    power = sum(-m.torque_em_nm * m.speed_rad_s for m in seg) / len(seg)
+    power = mean_erg_power_w(seg, CAN_CONFIG)
     print(f"ERG 120 W through two stalls: {power:.1f} W")
     assert power == pytest.approx(120.0, rel=0.15)
 

@@ -209,6 +209,8 @@ CONFIG_TEXT = """/**:
       tmax_nm: 1.8
       base_speed_rpm: 3000.0
       pmax_w: 565.4866776461628
+    mechanics:
+      friction_nms: 0.0          # ERG power = braking power (test_erg_power_counts_the_bikes_friction)
 """
 PMAX = 565.4866776461628
 W = 100.0                      # motor speed [rad/s]
@@ -366,6 +368,21 @@ def test_modes_and_tracking_exact(tmp_path, storage):
     assert "mean cadence:          95.5 rpm  (gear ratio 10)" in text
 
 
+def test_erg_power_counts_the_bikes_friction(tmp_path):
+    """ERG holds the rider's power, so the report compares braking power + the bike's friction
+    (the recorded config's figures) with the target: B 5e-4 N m s at 100 rad/s adds 5 W to the
+    100 W brake, and the errors against 90 / 120 W become +15 / -15 W (+10 / -20 without it).
+    A config's modes.friction_nms (the trainer's own loss figure) wins over the machine's."""
+    from bike_session.report import analyse
+
+    config = CONFIG_TEXT.replace("friction_nms: 0.0", "friction_nms: 5.0e-4")
+    erg = analyse(write_session_bag(tmp_path / "a", config_text=config)).summary["tracking"]["erg_power"]
+    assert erg["rms"] == pytest.approx(15.0, rel=1e-9) and erg["mean"] == pytest.approx(0.0, abs=1e-9)
+    config += "    modes:\n      friction_nms: 1.0e-3\n"
+    erg = analyse(write_session_bag(tmp_path / "b", config_text=config)).summary["tracking"]["erg_power"]
+    assert erg["mean"] == pytest.approx(5.0, rel=1e-9)        # +20 / -10 W
+
+
 def test_tracking_from_commands_when_there_is_no_controller_status(tmp_path):
     """No ControllerStatus (or one without mode_target): the mode and command come from the
     Command topic and the target from the config, with the same numbers."""
@@ -488,7 +505,7 @@ def test_series_for_the_charts(tmp_path):
 
 
 def test_erg_response_times_each_target_step():
-    """0.1 s windows: ERG 100 W for 1 s, a step to 200 W that the braking power reaches within
+    """0.1 s windows: ERG 100 W for 1 s, a step to 200 W that the ERG power reaches within
     5 % after 0.3 s and holds, a step to 150 W at 3 s that it never reaches before ERG ends at
     3.5 s, then resistance mode."""
     from bike_session.report import MODE_ERG, MODE_RESISTANCE, erg_response, format_summary
@@ -498,7 +515,7 @@ def test_erg_response_times_each_target_step():
     power = np.r_[np.full(10, 100.0), [120.0, 150.0, 180.0, 195.0], np.full(16, 200.0), np.full(5, 200.0),
                   np.full(5, 50.0)]
     erg = np.isfinite(target)
-    bins = {"dt": np.full(n, 0.1), "e_brake": power * 0.1,
+    bins = {"dt": np.full(n, 0.1), "e_erg": power * 0.1,
             f"mode_dt{MODE_ERG}": np.where(erg, 0.1, 0.0), f"target_dt{MODE_ERG}": np.where(erg, target * 0.1, 0.0),
             f"mode_dt{MODE_RESISTANCE}": np.where(erg, 0.0, 0.1)}
     r = erg_response(bins, 0.1)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import bike_command
+from conftest import bike_command, mean_erg_power_w
 
 from bike_msgs.msg import PlantState
 from bike_session.bags import read_topic
@@ -60,7 +60,7 @@ def test_spmsm_session_in_the_node_graph_and_replay_with_pi(tmp_path, ros_domain
     assert np.mean([m.relay_state for m in _window(states, 1.0, 2.0)]) == pytest.approx(1.0)
     assert np.mean([m.relay_state for m in _window(states, 6.0, 7.0)]) == pytest.approx(0.0)
     erg = _window(states, 4.0, 5.0)
-    assert np.mean([-m.torque_em_nm * m.speed_rad_s for m in erg]) == pytest.approx(150.0, rel=0.08)
+    assert mean_erg_power_w(erg, cfg) == pytest.approx(150.0, rel=0.08)
     assert erg[-1].energy_battery_j > 0
     iso = [s for s in _window(status, 6.0, 7.0)]
     assert {s.mode for s in iso} == {4} and all(s.speed_ref_rpm == pytest.approx(240.0) for s in iso)

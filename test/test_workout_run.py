@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from conftest import bike_command
+from conftest import bike_command, mean_erg_power_w
 
 from bike_session.bags import read_topic
 
@@ -36,8 +36,8 @@ def test_ride_a_workout_file_in_the_node_graph(tmp_path, ros_domain, name, title
     late = [s for s in status if s.header.stamp.sec >= 2]
     assert all(s.mode == 2 and target_w[0] <= s.mode_target < target_w[1] for s in late)
     states = [m for m in read_topic(bag, "plant_state") if m.header.stamp.sec >= 2]
-    power = [-m.torque_em_nm * m.speed_rad_s for m in states]
-    assert np.mean(power) == pytest.approx(np.mean([s.mode_target for s in late]), rel=0.05), np.mean(power)
+    power = mean_erg_power_w(states)
+    assert power == pytest.approx(np.mean([s.mode_target for s in late]), rel=0.05), power
 
 
 @pytest.mark.parametrize("bad", ["bad_xml.zwo", "decreasing.erg", "entity_bomb.zwo", "workout.txt", "truncated.fit"])
@@ -65,7 +65,7 @@ def test_every_mode_in_the_node_graph(tmp_path, ros_domain):
     modes = [window(status, 4 * k + 3, 4 * k + 4) for k in range(5)]
     assert [{s.mode for s in w} for w in modes] == [{0}, {2}, {3}, {4}, {3}]
     erg = window(states, 7, 8)
-    assert np.mean([-m.torque_em_nm * m.speed_rad_s for m in erg]) == pytest.approx(180.0, rel=0.05)
+    assert mean_erg_power_w(erg) == pytest.approx(180.0, rel=0.05)
     assert modes[2][0].mode_target == pytest.approx(0.04)
     iso = window(states, 15, 16)
     assert np.mean([m.speed_rpm for m in iso]) / 35.0 == pytest.approx(70.0, abs=1.5)
@@ -90,7 +90,7 @@ def test_ride_a_zwift_file_in_the_node_graph(tmp_path, ros_domain):
     status = [s for s in read_topic(bag, "controller_status") if s.header.stamp.sec >= 1]
     target = np.mean([s.mode_target for s in status])
     states = [m for m in read_topic(bag, "plant_state") if m.header.stamp.sec >= 1]
-    assert np.mean([-m.torque_em_nm * m.speed_rad_s for m in states]) == pytest.approx(target, rel=0.1)
+    assert mean_erg_power_w(states) == pytest.approx(target, rel=0.1)
 
 
 def test_a_realtime_recording_starts_at_the_first_batch(tmp_path, ros_domain):
@@ -131,7 +131,7 @@ def test_the_rider_follows_a_zwift_files_cadence_and_erg_holds_the_power_and_a_r
     for t0, cadence in ((5.0, 95.0), (13.0, 65.0)):
         late = [m for m in states if t0 <= m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 < t0 + 3]
         assert np.mean([m.speed_rpm for m in late]) / 35.0 == pytest.approx(cadence, abs=1.5)
-        assert np.mean([-m.torque_em_nm * m.speed_rad_s for m in late]) == pytest.approx(200.0, rel=0.03)
+        assert mean_erg_power_w(late) == pytest.approx(200.0, rel=0.03)
     replay = bike_command("replay", str(bag), "--record", str(tmp_path / "same"))
     assert replay.returncode == 0, replay.stdout[-2000:] + replay.stderr[-3000:]
     same = next(p for p in (tmp_path / "same").iterdir() if p.is_dir())

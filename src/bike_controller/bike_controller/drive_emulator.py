@@ -24,7 +24,7 @@ can talk CAN without hardware. Three layers, each usable alone (no ROS imports):
   - ``average``: :class:`AverageTorqueDrive`, the light model for slow machines: average
     torque ``T_em = kt * iq`` with a first-order closed current loop
     ``iq' = (iq* - iq) / tau``, no voltage limit, driving the same shaft and load
-    (inertia + viscous friction; rider, prime mover, dynamometer profile or none;
+    (inertia + viscous and Coulomb friction; rider, prime mover, dynamometer profile or none;
     bike_plant.params.LoadParams and bike_plant.mechanics) and battery (+ brake resistor).
 * :class:`DriveFirmware` -- the axis logic of an ODrive: states IDLE(1) and
   CLOSED_LOOP_CONTROL(8), torque (1) and velocity (2) control, limits, error latching,
@@ -157,6 +157,8 @@ class DriveModelParams:
     undervoltage_v: float
     current_limit_a: float              # drive default (Set_Limits changes it at run time)
     current_tau_s: float = DEFAULT_CURRENT_TAU_S
+    dry_friction_nm: float = 0.0        # Coulomb friction (the SPMSM config's), next to the viscous B
+    dry_friction_speed_rpm: float = 1.0
 
     @classmethod
     def from_config(cls, cfg: dict, current_tau_s: float = DEFAULT_CURRENT_TAU_S) -> "DriveModelParams":
@@ -203,7 +205,8 @@ class DriveModelParams:
                        capacity_ah=bt.capacity_ah, soc0=bt.soc0, r_brake_ohm=0.0,
                        s0_on_v=math.inf, s0_off_v=math.inf, overvoltage_v=p.regen.link_max_v,
                        undervoltage_v=0.75 * bt.nominal_v,
-                       current_limit_a=float(ctrl.get("current_limit_a", 15.0)), current_tau_s=current_tau_s)
+                       current_limit_a=float(ctrl.get("current_limit_a", 15.0)), current_tau_s=current_tau_s,
+                       dry_friction_nm=m.dry_friction_nm, dry_friction_speed_rpm=m.dry_friction_speed_rpm)
         raise ConfigError(f"the drive emulator supports machine 'bldc' or 'spmsm', got {machine!r}", path, "machine")
 
 
@@ -286,6 +289,11 @@ class AverageTorqueDrive(_DriveReadouts):
         self.crank_angle_rad = (self.crank_angle_rad + cadence_rad_s * dt_s) % TWO_PI
         return t_crank / load.gear_ratio
 
+    def _friction_nm(self, omega: float) -> float:
+        p = self.params
+        return mechanics.friction_torque_nm(omega, p.friction_nms, p.dry_friction_nm,
+                                            p.dry_friction_speed_rpm / RPM_PER_RAD_S)
+
     # ------------------------------------------------------------ step
     def step(self, dt_s: float, iq_setpoint_a: float, enabled: bool = True, current_limit_a: float | None = None) -> None:
         """Advance dt_s with the current setpoint (the firmware already limited it; an
@@ -298,7 +306,7 @@ class AverageTorqueDrive(_DriveReadouts):
         kind = p.load_kind
         if kind == "prime_mover":
             # speed held exactly; the prime mover supplies whatever torque that takes
-            t_load = p.friction_nms * omega - t_em
+            t_load = self._friction_nm(omega) - t_em
             omega_new = self._scheduled_speed_rpm(self.time_s + dt_s) / RPM_PER_RAD_S
         else:
             if kind == "rider":
@@ -307,7 +315,7 @@ class AverageTorqueDrive(_DriveReadouts):
                 t_load = -self._dyno_torque_nm(self.time_s)
             else:
                 t_load = 0.0
-            omega_new = omega + dt_s * (t_em + t_load - p.friction_nms * omega) / p.inertia_kgm2
+            omega_new = omega + dt_s * (t_em + t_load - self._friction_nm(omega)) / p.inertia_kgm2
         omega_avg = 0.5 * (omega + omega_new)
         self.speed_rad_s = omega_new
         self.position_rev += omega_avg * dt_s / TWO_PI

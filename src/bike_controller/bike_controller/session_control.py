@@ -39,7 +39,7 @@ from bike_plant.mechanics import road_problem
 
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
-                    TorqueTrim, mode_params_from_config)
+                    TorqueTrim, friction_figures, mode_params_from_config)
 
 FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this module imports no ROS)
 FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
@@ -227,6 +227,7 @@ class ModedController(SessionCommand):
         self.inner = BatchController(cfg, nominal_params, batch_periods)
         try:
             mp = mode_params_from_config(cfg)
+            b_nms, dry_nm, dry_rpm = friction_figures(cfg)
         except ValueError as exc:
             from bike_plant.config import ConfigError
             raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
@@ -234,7 +235,7 @@ class ModedController(SessionCommand):
         self.law = ModeLaw(mp, gear_ratio=nominal.load.gear_ratio, inertia_kgm2=nominal.mech.inertia_kgm2,
                            tmax_nm=self.inner.cp.tmax_nm, pmax_w=self.inner.cp.pmax_w,
                            base_speed_rpm=self.inner.cp.base_speed_rpm,
-                           friction_nms=nominal.mech.friction_nms)
+                           friction_nms=b_nms, dry_friction_nm=dry_nm, dry_friction_speed_rpm=dry_rpm)
         self.kt = float(nominal.bldc.kt_nm_per_a)
         self.command = float(self.inner.cs[C_COMMAND])
         self.mode = int(self.inner.cs[C_MODE])

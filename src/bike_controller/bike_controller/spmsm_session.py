@@ -36,7 +36,7 @@ from bike_plant import spmsm as M
 from bike_plant.params import RPM_PER_RAD_S
 
 from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim,
-                    machine_figures, mode_params_from_config)
+                    friction_figures, machine_figures, mode_params_from_config)
 from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status
 from .spmsm_control import C_IQ_REF, SpmsmController, controller_params_from_config
 
@@ -153,9 +153,17 @@ class ModedSpmsmController(SessionCommand):
             from bike_plant.config import ConfigError
             raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
         self.gear = float(nominal.load.gear_ratio)
+        try:
+            b_nms, dry_nm, dry_rpm = friction_figures(cfg)
+        except ValueError as exc:
+            from bike_plant.config import ConfigError
+            raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
         self.law = ModeLaw(mp, gear_ratio=self.gear, inertia_kgm2=nominal.mech.inertia_kgm2, tmax_nm=tmax,
                            pmax_w=fig.pmax_w, base_speed_rpm=base,
-                           friction_nms=nominal.mech.friction_nms, brake_envelope=fig.brake_envelope)
+                           # the machine's friction with its Coulomb part (the predictor's
+                           # nominal model is the paper's ideal machine, without it)
+                           friction_nms=b_nms, dry_friction_nm=dry_nm, dry_friction_speed_rpm=dry_rpm,
+                           brake_envelope=fig.brake_envelope)
         # for the node's log at start-up
         self.startup_note = envelope_summary(fig.brake_envelope, self.gear) if fig.brake_envelope else ""
         self.family = cp.family

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from .params import RPM_PER_RAD_S, LoadParams
 
 
@@ -111,6 +113,19 @@ def rider_pi_gains(inertia_at_crank_kgm2: float, load: LoadParams, damping: floa
     k_nm = load.rider_t0_nm * max(1.0 - load.rider_target_cadence_rpm / load.rider_cadence_max_rpm, 1e-3)
     return (2.0 * damping * natural_rad_s * inertia_at_crank_kgm2 / k_nm,
             natural_rad_s ** 2 * inertia_at_crank_kgm2 / k_nm)
+
+
+def friction_torque_nm(speed_rad_s: float, friction_nms: float, dry_friction_nm: float = 0.0,
+                       dry_friction_speed_rad_s: float = 0.1) -> float:
+    """Friction opposing the rotation [N m]: viscous B w (paper 000 / 001, Eq. 3 of 001) plus
+    Coulomb Tc tanh(w / w_s), the plants' model (``spmsm.friction_torque`` is its numba twin;
+    the BLDC bike has no Coulomb term). The mode laws take it with the controller's nominal
+    figures, as a trainer's power meter models its own losses."""
+    f = friction_nms * speed_rad_s
+    if dry_friction_nm:
+        tanh = np.tanh if isinstance(speed_rad_s, np.ndarray) else math.tanh   # arrays: the report
+        f = f + dry_friction_nm * tanh(speed_rad_s / dry_friction_speed_rad_s)
+    return f
 
 
 def prime_mover_torque_nm(torque_em_nm: float, friction_nms: float, speed_rad_s: float) -> float:

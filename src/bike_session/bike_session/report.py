@@ -28,7 +28,9 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   in force for the batch t_{i-1}..t_i is the latest ControllerStatus stamped <= t_{i-1}
   (the Command topic when the bag has no ControllerStatus).
 - ``tracking``             per mode, how well the machine did what the mode asked:
-  ``erg_power`` braking power - mode_target [W]; ``isokinetic_cadence`` crank cadence
+  ``erg_power`` the power ERG holds, the rider's: braking power + the bike's friction
+  B w^2 + Tc w (the figures of the recorded config, as the controller models them:
+  bike_controller.modes.friction_figures) - mode_target [W]; ``isokinetic_cadence`` crank cadence
   (mean over the batch) - mode_target [rpm]; ``resistance_torque`` braking torque
   -T_em - Eq. 3-4 of paper 000 at the command in force and the batch's mean speed, with
   Tmax, wb, Pmax of the recorded config [N m]; ``slope_speed`` the road speed of the
@@ -40,7 +42,7 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   ``max_abs_batch`` over single batches. A mode_target missing from an older bag is derived
   from the command and the config.
 - ``erg_response``         ERG target steps (a change of more than 10 W and 5 % between
-  tracking windows) and the time from each until the braking power stays within
+  tracking windows) and the time from each until the ERG power (as ``erg_power``) stays within
   max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
 
 Long bags: messages are decoded straight from the CDR bytes into numpy blocks of
@@ -62,6 +64,7 @@ import sys
 
 import numpy as np
 
+from bike_controller.modes import erg_power_w
 from bike_session.bags import BagError, open_bag
 
 # PlantState.RELAY_INVERTER, RELAY_RECTIFIER: the connected paths (RELAY_SWITCHING = 2 between them)
@@ -84,7 +87,7 @@ MODE_NAMES = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinet
 MODE_RESISTANCE, MODE_MOTORING, MODE_ERG, MODE_SLOPE, MODE_ISOKINETIC = range(5)
 # tracked modes: (mode, key, unit, what is compared)
 TRACKED = (
-    (MODE_ERG, "erg_power", "W", "braking power vs mode_target"),
+    (MODE_ERG, "erg_power", "W", "rider's power (braking + friction) vs mode_target"),
     (MODE_ISOKINETIC, "isokinetic_cadence", "rpm", "crank cadence vs mode_target"),
     (MODE_RESISTANCE, "resistance_torque", "N m", "braking torque vs Eq. 3-4 at the command"),
     (MODE_SLOPE, "slope_speed", "m/s", "road speed from the cadence vs the virtual bike's speed"),
@@ -113,6 +116,8 @@ DEFAULT_MACHINE = {
     "wheel_radius_m": 0.335,
     "virtual_gear_ratio": 2.75,
     "brake_envelope": None,      # (motor r/min, N m) of a braking path weaker than Eq. 3-4 (SPMSM)
+    # the bike's friction as ERG models it (bike_controller.modes.friction_figures)
+    "friction": (1.0e-4, 0.0, 1.0),
 }
 MACHINE_KEYS = {
     "gear_ratio": "load.gear_ratio",
@@ -205,6 +210,13 @@ def machine_from_info(info: dict | None) -> dict:
         notes.append(f"load.gear_ratio {m['gear_ratio']:g} is not > 0: 35 assumed")
         m["gear_ratio"] = 35.0
     m["erg_power_max_w"] = m["erg_power_max_w"] or m["pmax_w"]
+    if params:
+        try:
+            from bike_controller.modes import friction_figures
+            from bike_plant.config import unflatten
+            m["friction"] = friction_figures(unflatten(params))
+        except Exception as exc:  # noqa: BLE001 - a report must still come out
+            notes.append(f"friction figures not derivable ({exc}): {m['friction']} assumed")
     m["source"] = "session_info config_text" if params else "defaults"
     m["kind"] = str(params.get("machine", "bldc"))
     m["notes"] = notes
@@ -457,7 +469,7 @@ def window_bins(bin_s: float) -> int:
     return max(1, int(round(max(WINDOW_S, bin_s) / bin_s)))
 
 
-BIN_SUMS = ["dt", "e_brake", "e_mech", "tq_dt", "rpm_dt", "road_m", "vbus_dt", "ocv_dt", "soc_dt", "ibat_dt",
+BIN_SUMS = ["dt", "e_brake", "e_erg", "e_mech", "tq_dt", "rpm_dt", "road_m", "vbus_dt", "ocv_dt", "soc_dt", "ibat_dt",
             "bat_v", "bat_v_n", "bat_pct", "bat_pct_n", "bat_i",
             *[f"mode_dt{m}" for m in MODE_NAMES], *[f"target_dt{m}" for m in MODE_NAMES],
             *[f"sat_dt{m}" for m in MODE_NAMES],
@@ -800,10 +812,13 @@ class _Analyser:
         rpm_mid = 0.5 * (q[:-1, C + P_RPM] + q[1:, C + P_RPM])
         t_brake = -q[1:, C + P_TEM]
         p_brake = t_brake * w_mid
+        # ERG holds the rider's power: the brake's plus the bike's friction (the controller's model)
+        p_erg = erg_power_w(-t_brake, w_mid, mc["friction"])
         self.e_brake += float(np.sum(p_brake * dt))
         b = bins.index(0.5 * (t0 + t1))
         bins.add("dt", b, dt)
         bins.add("e_brake", b, p_brake * dt)
+        bins.add("e_erg", b, p_erg * dt)
         bins.add("e_mech", b, q[1:, C + P_EMECH] - q[:-1, C + P_EMECH])
         bins.add("tq_dt", b, t_brake * dt)
         bins.add("rpm_dt", b, rpm_mid * dt)
@@ -858,7 +873,7 @@ class _Analyser:
             if m == MODE_SLOPE:
                 err = rpm_mid[sel] / RPM_PER_RAD_S * mps_per_rad_s[sel] - virtual_mps[sel]
             elif m == MODE_ERG:
-                err = p_brake[sel] - target[sel]
+                err = p_erg[sel] - target[sel]
             elif m == MODE_ISOKINETIC:
                 err = cadence_mid[sel] - target[sel]
             else:
@@ -1099,7 +1114,7 @@ def tracking(bins: dict, bin_s: float, n_bins: int | None = None) -> dict:
 
 
 ERG_STEP_W = 10.0             # a target change larger than this (and ERG_TOL of it) between windows is a step
-ERG_TOL = 0.05                # settled: braking power within this fraction of the target ...
+ERG_TOL = 0.05                # settled: ERG power within this fraction of the target ...
 ERG_TOL_MIN_W = 5.0           # ... or of this many watts, whichever is larger
 ERG_HOLD_S = 1.0              # ... for this long
 
@@ -1107,7 +1122,8 @@ ERG_HOLD_S = 1.0              # ... for this long
 def erg_response(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | None:
     """How fast ERG reaches a new power target (the figure trainer reviews quote: high-end
     trainers 3-5 s). On ``window_s`` windows wholly in ERG: a step is a target change of more
-    than ERG_STEP_W and ERG_TOL; it settles at the first window from which the braking power
+    than ERG_STEP_W and ERG_TOL; it settles at the first window from which the ERG power
+    (braking + the bike's friction, the rider's power that ERG holds)
     stays within max(ERG_TOL x target, ERG_TOL_MIN_W) for ERG_HOLD_S, before the next step
     or the end of ERG. ``settle_s`` per step from the first window at the new target (None:
     not settled). None when the session has no step."""
@@ -1118,7 +1134,7 @@ def erg_response(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | 
     mdt = _rebin(bins[f"mode_dt{MODE_ERG}"][:n], k, "sum")
     full = (mdt > 0) & (mdt >= dt * (1 - 1e-9))
     target = _div(_rebin(bins[f"target_dt{MODE_ERG}"][:n], k, "sum"), mdt)
-    power = _div(_rebin(bins["e_brake"][:n], k, "sum"), dt)
+    power = _div(_rebin(bins["e_erg"][:n], k, "sum"), dt)
     hold = max(1, int(round(ERG_HOLD_S / width)))
     steps = [i for i in range(1, len(dt)) if full[i] and full[i - 1]
              and abs(target[i] - target[i - 1]) > max(ERG_STEP_W, ERG_TOL * abs(target[i - 1]))]
@@ -1205,7 +1221,7 @@ def format_summary(summary: dict) -> str:
                      f" max {_fmt(r.get('max_abs_batch'), '', 3)}; saturated {100 * r['saturated_fraction']:.1f} %)")
     erg = s.get("erg_response")
     if erg:
-        lines.append(f"erg response:          {erg['steps']} target steps, {erg['settled']} settled (braking power "
+        lines.append(f"erg response:          {erg['steps']} target steps, {erg['settled']} settled (ERG power "
                      f"within {erg['tolerance']}) after median {_fmt(erg['median_s'], 's', 2)}, max "
                      f"{_fmt(erg['max_s'], 's', 2)} ({erg['window_s']:g} s windows; trainer reviews: 3-5 s)")
     if s.get("software_version"):
