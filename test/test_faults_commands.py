@@ -46,11 +46,11 @@ def _fuzzed_commands(seed: int, count: int):
         elif kind == 4:
             out.append((1.0 + rng.uniform(1e-6, 1e6), rng.randrange(5), "outside [0, 1]"))
         elif kind == 5:
-            out.append((rng.random(), rng.randrange(5, 256), "unknown mode"))
+            out.append((rng.random(), rng.randrange(6, 256), "unknown mode"))
         elif kind == 6:
             out.append((rng.choice([0.0, 1.0]), rng.randrange(5), None))
         else:
-            out.append((-rng.random(), rng.randrange(5, 256), None))      # two problems: still one diagnostic
+            out.append((-rng.random(), rng.randrange(6, 256), None))      # two problems: still one diagnostic
     out = [c if len(c) == 4 else (c[0], c[1], 0.0, c[2]) for c in out]
     roads = random.Random(seed + 1000)
     with_road = []

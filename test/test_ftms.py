@@ -1,6 +1,7 @@
 """FTMS over DIRCON without ROS: the Control Point's meaning for this bike's Commands, the
 bytes of the characteristics, DIRCON framing and dispatch, the TCP server on real sockets
 (a broken stream closes only its own connection), and the telemetry an app is shown."""
+import dataclasses
 import math
 import socket
 import struct
@@ -119,11 +120,40 @@ def test_stop_releases_the_brake_keeps_the_target_for_resume_and_reset_gives_up_
 
 def test_ops_this_bike_does_not_do_are_not_supported_and_an_empty_write_is_invalid():
     control = controlled()
-    for op in (ftms.OP_TARGET_SPEED, ftms.OP_TARGET_HEART_RATE, 0x13, 0x12, 0x42):
+    for op in (ftms.OP_TARGET_SPEED, ftms.OP_TARGET_HEART_RATE, 0x12, 0x42):
         reply = control.write(bytes([op, 0, 0]))
         assert reply.response == bytes([0x80, op, ftms.RESULT_NOT_SUPPORTED]) and reply.target is None
         assert reply.message
     assert control.write(b"").response[2] == ftms.RESULT_INVALID_PARAMETER
+
+
+def test_spin_down_control_starts_the_procedure_and_its_status_follows_the_controller():
+    """0x13 start: the spindown Command (brake released), the response with the target speeds
+    (uint16 0.01 km/h, low then high), the status "spin down requested"; then, as the
+    controller's statuses give the procedure's phase, "stop pedalling" at the coast and
+    "success" at the end, each once. 2 ignores; anything else is refused; before any request
+    the controller's phases are not reported."""
+    units = dataclasses.replace(UNITS, spindown_kmh=(20.5, 29.04))
+    control = ftms.FtmsControl(units)
+    assert control.spin_down_progress(MODES["spindown"], 2.0) is None
+    control.write(cp(ftms.OP_REQUEST_CONTROL))
+    reply = control.write(bytes([ftms.OP_SPIN_DOWN, 1]))
+    assert reply.response == bytes([0x80, 0x13, ftms.RESULT_SUCCESS]) + struct.pack("<HH", 2050, 2904)
+    assert reply.status == bytes([ftms.STATUS_SPIN_DOWN, ftms.SPIN_DOWN_REQUESTED])
+    assert reply.target.mode == MODES["spindown"] and "29.0 km/h" in reply.message
+    assert struct.unpack("<II", ftms.encode_feature())[1] & ftms.TARGET_SPIN_DOWN
+    assert control.spin_down_progress(MODES["erg"], 2.0) is None            # the live Command not in force yet
+    assert control.spin_down_progress(MODES["spindown"], 1.0) is None        # spinning up: said already
+    assert control.spin_down_progress(MODES["spindown"], 2.0) == bytes([0x14, ftms.SPIN_DOWN_STOP_PEDALLING])
+    assert control.spin_down_progress(MODES["spindown"], 2.0) is None
+    assert control.spin_down_progress(MODES["spindown"], 3.0) == bytes([0x14, ftms.SPIN_DOWN_SUCCESS])
+    assert control.spin_down_progress(MODES["spindown"], 3.0) is None        # done: said once
+    control.write(bytes([ftms.OP_SPIN_DOWN, 1]))
+    assert control.spin_down_progress(MODES["spindown"], 4.0) == bytes([0x14, ftms.SPIN_DOWN_ERROR])
+    ignore = control.write(bytes([ftms.OP_SPIN_DOWN, 2]))
+    assert ignore.response == bytes([0x80, 0x13, ftms.RESULT_SUCCESS]) and ignore.target is None
+    for bad in (bytes([ftms.OP_SPIN_DOWN, 3]), bytes([ftms.OP_SPIN_DOWN])):
+        assert control.write(bad).response == bytes([0x80, 0x13, ftms.RESULT_INVALID_PARAMETER])
 
 
 def test_characteristic_values_are_the_specs_bytes():

@@ -3,6 +3,7 @@ graph (separate processes, DDS, real time, recorded) with the bridge node; this 
 on a real TCP connection. Its target power reaches the controller as live ERG Commands through
 the session (so they are in the bag), the Indoor Bike Data it is notified of come from the
 running plant, and a second connection that sends garbage is closed without harming the ride."""
+import pathlib
 import socket
 import struct
 import threading
@@ -17,6 +18,7 @@ from bike_plant import msgconv
 from bike_session import dircon, ftms
 from bike_session.bags import plant_state_array, read_topic, stamp_s
 
+ROOT = pathlib.Path(__file__).resolve().parents[1]
 TARGET_W = 150
 
 
@@ -177,3 +179,38 @@ def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_i
     assert "road: wind 2 m/s, Crr 0.004, Cw 0.51 kg/m" in bike.stdout + bike.stderr
     slope = [m for m in read_topic(next((tmp_path / "rec").iterdir()), "/bike/command") if m.mode == 3]
     assert slope and all(msgconv.command_road(m) == pytest.approx((0.004, 0.51, 2.0)) for m in slope)
+
+
+@pytest.mark.slow
+def test_an_apps_spin_down_teaches_the_bike_its_friction(tmp_path, ros_domain):
+    """`./bike trainer --spindown` against `./bike run --ftms` on the SPMSM bike, whose controller
+    was told half its viscous friction and none of its Coulomb friction: Spin Down Control
+    starts the procedure, the app gets the target speeds, "stop pedalling" and "success" as
+    the controller goes through it, and the statuses in the bag carry the friction it found."""
+    import yaml
+    doc = yaml.safe_load((ROOT / "config" / "spmsm_default.yaml").read_text())
+    doc["/**"]["ros__parameters"].setdefault("modes", {}).update(friction_nms=0.0025, dry_friction_nm=0.0)
+    config = tmp_path / "spmsm.yaml"
+    config.write_text(yaml.safe_dump(doc, sort_keys=False))
+    port = _free_port()
+    record = tmp_path / "rec"
+    done = {}
+    run = threading.Thread(target=lambda: done.update(r=bike_command(
+        "run", "--config", str(config), "--ftms", "--ftms-port", str(port), "--duration", "14",
+        "--record", str(record))))
+    run.start()
+    try:
+        _connect(port, run).close()
+        app = bike_command("trainer", "--port", str(port), "--spindown", "--seconds", "10", timeout=60)
+    finally:
+        run.join(240)
+    out = app.stdout + app.stderr
+    assert app.returncode == 0, out
+    assert "spin down control: success" in out and "speed up past" in out, out
+    assert out.index("status: stop pedalling") < out.index("status: spin down success"), out
+    result = done["r"]
+    assert result.returncode == 0, (result.stdout + result.stderr)[-5000:]
+    status = read_topic(next(record.iterdir()), "/bike/controller_status")
+    assert (status[0].friction_nms, status[0].dry_friction_nm) == (0.0025, 0.0)
+    assert status[-1].friction_nms == pytest.approx(0.005, rel=0.05)
+    assert status[-1].dry_friction_nm == pytest.approx(0.1, rel=0.05)

@@ -20,7 +20,9 @@ def test_mode_table_matches_command_msg():
     msg = (ROOT / "src" / "bike_msgs" / "msg" / "Command.msg").read_text()
     for name, value in MODES.items():
         assert f"MODE_{name.upper()}={value}" in msg
-    assert MODES == {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4}
+    assert MODES == {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4, "spindown": 5}
+    from bike_session.report import MODE_NAMES as REPORT_MODES
+    assert REPORT_MODES == {v: k for k, v in MODES.items()}, "the report names every mode"
     from bike_controller.modes import MODE_NAMES as LAW_MODES
     assert LAW_MODES == {v: k for k, v in MODES.items()}, "the controller's modes are the session's"
 

@@ -231,12 +231,13 @@ def session_mode(k, erg_targets=(90.0, 120.0)):
 
 def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
                       status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None,
-                      modes=None, virtual_mps=None, segment=None):
+                      modes=None, virtual_mps=None, segment=None, friction=None):
     """A 1 kHz session of n PlantStates (t = i ms): 100 rad/s, 1 N m of braking (100 W),
     rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()
     (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given (else
     ROAD_MPS, what a controller reports for 100 rad/s on CONFIG_TEXT's bike);
-    with ``segment(k)``, a RUNNING SessionStatus every 100 ms in that profile segment."""
+    with ``segment(k)``, a RUNNING SessionStatus every 100 ms in that profile segment;
+    ``friction(k)``: the laws' (B, Tc) the statuses carry (else 0, 0)."""
     from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import BatteryState
@@ -286,8 +287,10 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
                 if status_type is not None:
                     sink.write(_full("controller_status"), t_ns, status_type(m.header.stamp, i, mode, command))
                 else:
+                    b_nms, dry_nm = friction(i) if friction else (0.0, 0.0)
                     s = ControllerStatus(seq=i, command=command, mode=mode, mode_target=target, mode_saturated=sat,
-                                         virtual_speed_mps=virtual_mps(i) if virtual_mps else ROAD_MPS)
+                                         virtual_speed_mps=virtual_mps(i) if virtual_mps else ROAD_MPS,
+                                         friction_nms=b_nms, dry_friction_nm=dry_nm)
                     s.header.stamp = m.header.stamp
                     sink.write(_full("controller_status"), t_ns, serialize_message(s))
         if segment is not None and i % 100 == 0 and i < n - 1:
@@ -372,14 +375,30 @@ def test_erg_power_counts_the_bikes_friction(tmp_path):
     """ERG holds the rider's power, so the report compares braking power + the bike's friction
     (the recorded config's figures) with the target: B 5e-4 N m s at 100 rad/s adds 5 W to the
     100 W brake, and the errors against 90 / 120 W become +15 / -15 W (+10 / -20 without it).
-    A config's modes.friction_nms (the trainer's own loss figure) wins over the machine's."""
+    The statuses carry the laws' figures (a spin-down changes them); an older bag's statuses
+    have none, and the config's modes.friction_nms (the trainer's own loss figure) wins over
+    the machine's."""
     from bike_session.report import analyse
 
-    config = CONFIG_TEXT.replace("friction_nms: 0.0", "friction_nms: 5.0e-4")
-    erg = analyse(write_session_bag(tmp_path / "a", config_text=config)).summary["tracking"]["erg_power"]
+    # the statuses say which friction the laws had (they win over the config's 0)
+    s = analyse(write_session_bag(tmp_path / "a", friction=lambda k: (5.0e-4, 0.0))).summary
+    erg = s["tracking"]["erg_power"]
     assert erg["rms"] == pytest.approx(15.0, rel=1e-9) and erg["mean"] == pytest.approx(0.0, abs=1e-9)
+    assert s["friction"] == [{"t": 0.0, "friction_nms": 5.0e-4, "dry_friction_nm": 0.0}]
+    # a spin-down at 0.2 s: B 0 -> 1e-3 (10 W at 100 rad/s): errors +10 W, then -20 + 10 W
+    s = analyse(write_session_bag(tmp_path / "b", friction=lambda k: (0.0, 0.0) if k < 200 else (1.0e-3, 0.02))).summary
+    erg = s["tracking"]["erg_power"]
+    tc_w = 0.02 * np.tanh(100.0 / (1.0 / RPM_PER_RAD_S)) * 100.0      # Tc w: 2 W
+    assert erg["mean"] == pytest.approx(0.5 * (10.0 + (-10.0 + tc_w)), rel=1e-9)
+    assert [f["t"] for f in s["friction"]] == [0.0, 0.2]
+    text = format_summary(s)
+    assert "friction (the laws'): B 0.000e+00 N m s, Tc 0.0000 N m; then B 1.000e-03 N m s, Tc 0.0200 N m from 0.2 s" in text
+    # an older bag's statuses have no friction: the config's figures, modes.friction_nms first
+    config = CONFIG_TEXT.replace("friction_nms: 0.0", "friction_nms: 5.0e-4")
+    erg = analyse(_old_status_bag(tmp_path / "c", config_text=config)).summary["tracking"]["erg_power"]
+    assert erg["rms"] == pytest.approx(15.0, rel=1e-9)
     config += "    modes:\n      friction_nms: 1.0e-3\n"
-    erg = analyse(write_session_bag(tmp_path / "b", config_text=config)).summary["tracking"]["erg_power"]
+    erg = analyse(_old_status_bag(tmp_path / "d", config_text=config)).summary["tracking"]["erg_power"]
     assert erg["mean"] == pytest.approx(5.0, rel=1e-9)        # +20 / -10 W
 
 
@@ -391,12 +410,12 @@ def test_tracking_from_commands_when_there_is_no_controller_status(tmp_path):
     check_modes_summary(s)
 
 
-def test_older_controller_status_without_mode_target(tmp_path):
-    """A bag recorded before ControllerStatus had mode_target: the embedded (older) definition
-    decodes, the missing fields get their defaults and the target comes from the config."""
+def _old_status_bag(path, **kw):
+    """write_session_bag with a ControllerStatus definition from before mode_target (and the
+    fields after it)."""
     from bike_session.recorder_node import bike_msgs_msg_dir
 
-    msg_dir = tmp_path / "msg"
+    msg_dir = path.parent / f"{path.name}_msg"
     msg_dir.mkdir()
     for f in bike_msgs_msg_dir().glob("*.msg"):
         text = f.read_text()
@@ -413,7 +432,13 @@ def test_older_controller_status_without_mode_target(tmp_path):
                   k_factor=0.8, ktg_nm_per_a=0.04, current_cmd_a=0.0, region=0, quadrant=2, prediction_error_a=0.0)
         return bytes(ts.serialize_cdr(msg, "bike_msgs/msg/ControllerStatus"))
 
-    bag = write_session_bag(tmp_path / "bag", typestore=ts, status_type=old_status)
+    return write_session_bag(path, typestore=ts, status_type=old_status, **kw)
+
+
+def test_older_controller_status_without_mode_target(tmp_path):
+    """A bag recorded before ControllerStatus had mode_target: the embedded (older) definition
+    decodes, the missing fields get their defaults and the target comes from the config."""
+    bag = _old_status_bag(tmp_path / "bag")
     with open_bag(bag) as b:
         assert "mode_target" not in b.typestore.types["bike_msgs/msg/ControllerStatus"].__dataclass_fields__
     s = summarise(bag)

@@ -137,3 +137,43 @@ def test_the_rider_follows_a_zwift_files_cadence_and_erg_holds_the_power_and_a_r
     same = next(p for p in (tmp_path / "same").iterdir() if p.is_dir())
     assert command_timeline(same)[0] == timeline
     assert [m.speed_rpm for m in read_topic(same, "plant_state")] == [m.speed_rpm for m in states]
+
+
+def test_a_spin_down_in_the_node_graph_teaches_the_bike_its_friction(tmp_path, ros_domain):
+    """A profile's `mode: spindown` segment ridden in the graph: the controller's friction figure
+    is half the flywheel's (modes.friction_nms 5e-5 against 1e-4), the plant's rider is told
+    through DriveCommand to spin up (he overshoots to ~94 rpm) and then to stop pedalling, the coast
+    (sampled 85 -> 75 rpm, about 23 s in all) gives
+    B within 1 %, and the ERG step after it holds the rider's 200 W; the report names the change."""
+    import yaml
+
+    from bike_session.report import format_summary, summarise
+    doc = yaml.safe_load((DATA.parents[2] / "config" / "bldc_default.yaml").read_text())
+    doc["/**"]["ros__parameters"].setdefault("modes", {}).update(friction_nms=5.0e-5, spindown_low_cadence_rpm=75.0)
+    config = tmp_path / "bike.yaml"
+    config.write_text(yaml.safe_dump(doc, sort_keys=False))
+    profile = tmp_path / "spindown.yaml"
+    profile.write_text("name: spin-down\nsegments:\n"
+                       "  - {kind: step, mode: erg, target: 200, duration_s: 3}\n"
+                       "  - {kind: step, mode: spindown, duration_s: 32}\n"
+                       "  - {kind: step, mode: erg, target: 200, duration_s: 6}\n")
+    result = bike_command("run", "--config", str(config), "--workout", str(profile), "--record", str(tmp_path / "runs"))
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    bag = next((tmp_path / "runs").iterdir())
+    status = read_topic(bag, "controller_status")
+    assert status[0].friction_nms == 5.0e-5
+    assert status[-1].friction_nms == pytest.approx(1.0e-4, rel=0.01), status[-1].friction_nms
+    drive = read_topic(bag, "drive_command")
+    stops = [d for d in drive if d.rider_stops_pedalling]
+    assert len(stops) > 5000, "the rider was told to stop pedalling for the coast"
+    states = read_topic(bag, "plant_state")
+    t = lambda m: m.header.stamp.sec + m.header.stamp.nanosec * 1e-9  # noqa: E731
+    coast = {d.seq for d in stops}
+    assert all(m.load_torque_nm == 0.0 for m in states if m.seq - 1 in coast), "the rider's torque during the coast"
+    # the rider's steady power: the brake's + the flywheel's true friction (the default config's 1e-4)
+    first = mean_erg_power_w([m for m in states if 1.0 <= t(m) < 3.0])
+    assert first == pytest.approx(204.3, abs=1.0), first
+    last = mean_erg_power_w([m for m in states if t(m) >= 37.0])
+    assert last == pytest.approx(200.0, abs=0.5), last
+    text = format_summary(summarise(bag))
+    assert "spindown 32.00 s" in text and "friction (the laws'): B 5.000e-05 N m s" in text

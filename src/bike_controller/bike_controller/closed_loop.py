@@ -48,6 +48,7 @@ def run_offline(cfg: dict, duration_s: float, command_fn: Callable[[float], tupl
     rec = {k: np.zeros(n_rec) for k in RECORD_KEYS}
     samples = np.zeros((n_batches * n, 3)) if record_samples else None
     last_cmd = None
+    instructed = False
     r = 0
     for b in range(n_batches):
         snap = plant.snapshot()
@@ -57,6 +58,11 @@ def run_offline(cfg: dict, duration_s: float, command_fn: Callable[[float], tupl
                 ctrl.set_command(*cmd)
                 last_cmd = cmd
         ga, gb, sp, status = ctrl.decide(snap)
+        rider = status.get("rider_instruction")
+        if rider is not None or instructed:
+            # a spin-down tells the rider what to do, as the controller node does through DriveCommand
+            plant.set_rider_cadence(*(rider or (0.0, False)))
+            instructed = rider is not None
         res = plant.step_batch(ga, gb, sp)
         if samples is not None:
             samples[b * n:(b + 1) * n] = res.current_samples_a

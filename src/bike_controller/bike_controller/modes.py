@@ -56,6 +56,11 @@ Modes (``bike_msgs/Command``):
   it: after an upshift on a climb the brake holds the cranks back until the cadence has fallen
   to the new gear's, as the chain would on a road bike (at most Tmax, flagged saturated where
   that binds); J_eq follows the gear squared. Other modes only report the new virtual speed.
+- SPINDOWN (5): spin-down calibration (:mod:`bike_controller.spindown`, FTMS op 0x13): the
+  brake lets go, the rider is asked to spin up past ``spindown_high_cadence_rpm`` and then to stop
+  pedalling; the coast down to ``spindown_low_cadence_rpm`` gives the bike's friction B, Tc,
+  which the laws take from then on (:meth:`ModeLaw.set_friction`). The Command's value is not
+  used; ``target`` is the procedure's phase (spindown.SPIN_UP .. FAILED), saturated when it failed.
 - ISOKINETIC (4): constant cadence c* = cadence_min + C*(cadence_max - cadence_min) by a
   PI speed loop (pole placement on J: both poles at -``isokinetic_bandwidth_rad_s``,
   kp = 2 J wn, ki = J wn^2), braking above c*, assisting below, with integrator clamping.
@@ -82,6 +87,7 @@ from bike_plant.mechanics import VIRTUAL_GEAR_MAX, VIRTUAL_GEAR_MIN, virtual_gea
 from bike_plant.mechanics import friction_torque_nm, road_problem
 from bike_plant.params import MechParams
 
+from .spindown import COAST, DONE, FAILED, SpinDown, SpinDownParams
 from .torque_command import RPM_PER_RAD_S, torque_command_nm
 
 MODE_RESISTANCE = 0
@@ -89,8 +95,9 @@ MODE_MOTORING = 1
 MODE_ERG = 2
 MODE_SLOPE = 3
 MODE_ISOKINETIC = 4
+MODE_SPINDOWN = 5
 MODE_NAMES = {MODE_RESISTANCE: "resistance", MODE_MOTORING: "motoring", MODE_ERG: "erg",
-              MODE_SLOPE: "slope", MODE_ISOKINETIC: "isokinetic"}
+              MODE_SLOPE: "slope", MODE_ISOKINETIC: "isokinetic", MODE_SPINDOWN: "spindown"}
 G_MPS2 = 9.80665
 BRAKE_ONLY_MODES = (MODE_RESISTANCE, MODE_ERG)   # laws whose torque is a brake by design (>= 0)
 _log = logging.getLogger(__name__)
@@ -132,6 +139,11 @@ class ModeParams:
     # spmsm.dry_friction_nm). Set to model a trainer whose loss figures are off
     friction_nms: float | None = None
     dry_friction_nm: float | None = None
+    # spin-down calibration (bike_controller.spindown): coast from / to these crank cadences
+    spindown_high_cadence_rpm: float = 85.0
+    spindown_low_cadence_rpm: float = 60.0
+    spindown_spin_up_timeout_s: float = 30.0
+    spindown_coast_timeout_s: float = 120.0
 
     def __post_init__(self):
         for name in ("torque_rate_nm_per_s", "erg_min_cadence_rpm", "rider_mass_kg", "wheel_radius_m",
@@ -155,6 +167,7 @@ class ModeParams:
             raise ValueError(f"need -1 <= grade_min < grade_max <= 1, got {self.grade_min!r}, {self.grade_max!r}")
         if not self.isokinetic_cadence_min_rpm < self.isokinetic_cadence_max_rpm:
             raise ValueError("isokinetic_cadence_min_rpm must be below isokinetic_cadence_max_rpm")
+        self.spindown_params()             # checks the spindown_* keys
         problem = virtual_gear_problem(self.virtual_gear_ratio, allow_default=False)
         if problem:
             raise ValueError(f"virtual_gear_ratio: {problem}")
@@ -167,6 +180,10 @@ class ModeParams:
                 raise ValueError(f"virtual_gears: {problem}")
         if any(b <= a for a, b in zip(gears, gears[1:])):
             raise ValueError(f"virtual_gears must rise from gear to gear, got {list(gears)!r}")
+
+    def spindown_params(self) -> SpinDownParams:
+        return SpinDownParams(self.spindown_high_cadence_rpm, self.spindown_low_cadence_rpm,
+                              self.spindown_spin_up_timeout_s, self.spindown_coast_timeout_s)
 
 
 @dataclass
@@ -215,6 +232,8 @@ class ModeLaw:
         self.kp = 2.0 * self.inertia_kgm2 * wn
         self.ki = self.inertia_kgm2 * wn * wn
         self.brake_only_holds = 0             # ramp steps of ERG / resistance held at 0 instead of motoring
+        self.spindown = SpinDown(mp.spindown_params(), self.inertia_kgm2, self.gear_ratio)
+        self.measured_em_torque_nm = 0.0      # of the batch that led to the speed in hand
         self.reset()
 
     def reset(self, torque_nm: float = 0.0) -> None:
@@ -273,6 +292,43 @@ class ModeLaw:
         self.obs_tb += a * (brake_nm - self.obs_tb)
         self.rider_torque_nm = (self.inertia_kgm2 * (w - self.obs_w) / tau + self.obs_tb
                                 + self.friction_nm(self.obs_w))
+
+    def set_friction(self, friction_nms: float, dry_friction_nm: float) -> None:
+        """The bike's friction from now on (a spin-down's figures); ValueError: unchanged."""
+        for name, v in (("friction_nms", friction_nms), ("dry_friction_nm", dry_friction_nm)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a number >= 0, got {v!r}")
+        self.friction_nms, self.dry_friction_nm = float(friction_nms), float(dry_friction_nm)
+
+    def rider_instruction(self) -> tuple[float, bool] | None:
+        """What the spin-down asks of the simulated rider, (cadence target [rpm], stop
+        pedalling), while it runs; None: the Command's cadence target holds."""
+        if self.last_mode == MODE_SPINDOWN and self.spindown.running:
+            return self.spindown.rider_instruction()
+        return None
+
+    def status_fields(self) -> dict:
+        """ControllerStatus fields of the law (friction in force) + the rider's instruction
+        (``rider_instruction``, not a field: the controller node puts it into DriveCommand)."""
+        return {"friction_nms": self.friction_nms, "dry_friction_nm": self.dry_friction_nm,
+                "rider_instruction": self.rider_instruction()}
+
+    def _spindown_step(self, w: float, dt_s: float) -> int:
+        sd = self.spindown
+        before = sd.phase
+        phase = sd.step(w, dt_s, self.measured_em_torque_nm, released=self.offset_nm == 0.0)
+        if phase != before and phase == DONE:
+            old = (self.friction_nms, self.dry_friction_nm)
+            r = sd.result
+            self.set_friction(r.friction_nms, r.dry_friction_nm)
+            _log.warning("spin-down done: %s; the laws' friction was B %.3e N m s, Tc %.4f N m",
+                         r.describe(self.gear_ratio), *old)
+        elif phase != before and phase == FAILED:
+            _log.warning("spin-down failed: %s; the laws' friction is unchanged", sd.reason)
+        elif phase != before and phase == COAST:
+            _log.warning("spin-down: %.1f rpm reached, the rider stops pedalling (coast to %g rpm)",
+                         w * RPM_PER_RAD_S / self.gear_ratio, sd.params.low_cadence_rpm)
+        return phase
 
     def friction_nm(self, w: float) -> float:
         """The machine's own friction at motor speed ``w`` [rad/s] (nominal figures)."""
@@ -384,6 +440,9 @@ class ModeLaw:
             if integral is not None and not sat:
                 self.integral_nm = integral     # conditional integration
             return t, grade, v, sat
+        if mode == MODE_SPINDOWN:
+            phase = self._spindown_step(w, dt_s)
+            return 0.0, float(phase), v, phase == FAILED
         if mode == MODE_ISOKINETIC:
             target_rpm = mp.isokinetic_cadence_min_rpm + command * (mp.isokinetic_cadence_max_rpm
                                                                     - mp.isokinetic_cadence_min_rpm)
@@ -419,10 +478,14 @@ class ModeLaw:
         if not speed_valid:
             return ModeOutput(self.torque_nm, self.torque_nm, command, 0.0, False, False)
         w = max(speed_rpm, 0.0) / RPM_PER_RAD_S
+        measured = measured_em_torque_nm is not None and math.isfinite(measured_em_torque_nm)
+        self.measured_em_torque_nm = float(measured_em_torque_nm) if measured else -self.torque_nm
         if dt_s > 0:
-            measured = measured_em_torque_nm is not None and math.isfinite(measured_em_torque_nm)
-            self._observe(w, dt_s, -float(measured_em_torque_nm) if measured else self.torque_nm)
+            self._observe(w, dt_s, -self.measured_em_torque_nm)
         switched = self.last_mode is not None and mode != self.last_mode
+        if switched and self.last_mode == MODE_SPINDOWN and self.spindown.running:
+            self.spindown.abandon(f"the Command changed to {MODE_NAMES[mode]} before it was done")
+            _log.warning("spin-down abandoned: %s; the laws' friction is unchanged", self.spindown.reason)
         if mode != self.last_mode:
             if mode == MODE_ISOKINETIC:
                 self.integral_nm = self.torque_nm   # bumpless entry from the torque in force
@@ -431,6 +494,10 @@ class ModeLaw:
                 self.virtual_w = w
             elif mode == MODE_ERG and self.mp.erg_speed_from_power:
                 self._start_erg_bike(w, from_slope=self.last_mode == MODE_SLOPE)
+            elif mode == MODE_SPINDOWN:
+                self.spindown.start()
+                _log.warning("spin-down: the brake lets go; the rider spins up past %g rpm",
+                             self.spindown.params.high_cadence_rpm)
         self.last_mode = mode
         wanted, target, v, sat = self._wanted(command, mode, w, dt_s)
         if switched:
@@ -590,15 +657,21 @@ class TorqueTrim:
         self.clamped = False
 
     def correct(self, brake_torque_nm: float, measured_em_torque_nm, dt_s: float, *, fresh: bool = True,
-                brake_only: bool = False, saturated: bool = False) -> float:
+                brake_only: bool = False, saturated: bool = False, released: bool = False) -> float:
         """The torque to request for ``brake_torque_nm``, given the measured mean
         electromagnetic torque of the last batch (motoring positive; None: unknown).
         ``fresh`` False: the measurement is stale (held), the trim holds. ``brake_only``:
         the result stays a brake (>= 0), see the class doc. ``saturated``: the law flagged the
         request (ModeOutput.saturated: at a limit, or beyond a braking envelope); the shortfall
         measured for it is no model error, so the trim holds on it (conditional integration: a
-        trim wound up there over-brakes once the speed lets the path deliver)."""
-        if (self.asked_nm is not None and measured_em_torque_nm is not None
+        trim wound up there over-brakes once the speed lets the path deliver). ``released``: the
+        law lets go of the machine (a spin-down): the trim starts afresh with the next brake."""
+        if released:
+            self.reset()
+            return brake_torque_nm
+        # a request of zero asks for no torque (a spin-down's free coast, a brake held at zero):
+        # what the machine makes then (diodes conducting) is not the law's error to trim
+        if (self.asked_nm and measured_em_torque_nm is not None
                 and math.isfinite(measured_em_torque_nm) and not self.asked_saturated):
             if fresh:
                 err = self.asked_nm - (-float(measured_em_torque_nm))

@@ -333,7 +333,9 @@ class ControllerNode(Node):
         if int(status.get("quadrant", 0)) == ControllerStatus.QUADRANT_GENERATING:
             torque = -torque                              # motoring positive, like torque_em_nm
         build = msgconv.spmsm_drive_cdr if self.machine == "spmsm" else msgconv.drive_command_cdr
-        drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)), self.rider_cadence_rpm)
+        # the rider is told the Command's cadence, or what a spin-down asks of him
+        rider = status.get("rider_instruction") or (self.rider_cadence_rpm, False)
+        drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)), *rider)
         self.pub_drive.publish(drive)
         # ControllerStatus is volatile: with no reader matched (the bare graph, no recorder) it
         # is neither built nor sent (about 20 us per batch)

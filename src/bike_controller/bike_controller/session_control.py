@@ -38,8 +38,8 @@ import numpy as np
 from bike_plant.mechanics import road_problem
 
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
-from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, ModeLaw, ModeOutput,
-                    TorqueTrim, friction_figures, mode_params_from_config)
+from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, MODE_SPINDOWN, ModeLaw,
+                    ModeOutput, TorqueTrim, friction_figures, mode_params_from_config)
 
 FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this module imports no ROS)
 FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
@@ -92,7 +92,7 @@ class EmptyPackGuard:
 
 
 def validate_session_command(command, mode) -> None:
-    """Command in [0, 1] and one of the five modes; ValueError otherwise."""
+    """Command in [0, 1] and one of the modes (MODE_NAMES); ValueError otherwise."""
     if isinstance(command, bool) or not isinstance(command, (int, float)) or not math.isfinite(command):
         raise ValueError(f"command must be a finite number, got {command!r}")
     if not 0.0 <= command <= 1.0:
@@ -156,8 +156,8 @@ class DriveTorqueLaw:
         measured = snapshot.get("torque_em_nm")
         out = self.law.step(command, mode, speed_rpm, 0.0 if flagged else dt, speed_valid=math.isfinite(speed_rpm),
                             measured_em_torque_nm=measured if fresh else None)
-        brake = self.trim.correct(out.brake_torque_nm, measured, dt, fresh=fresh,
-                                  brake_only=mode in BRAKE_ONLY_MODES, saturated=out.saturated)
+        brake = self.trim.correct(out.brake_torque_nm, measured, dt, fresh=fresh, brake_only=mode in BRAKE_ONLY_MODES,
+                                  saturated=out.saturated, released=mode == MODE_SPINDOWN)
         brake = self.pack.limit(brake, snapshot.get("battery_soc"))
         if (self.trim.clamped or self.pack.active) and not out.saturated:
             out = dataclasses.replace(out, saturated=True)
@@ -268,8 +268,8 @@ class ModedController(SessionCommand):
             inner.cs[C_IOVERRIDE] = -1.0                         # no override: Eq. 2-9 inside the batch
             inner.set_command(self.command, MODE_RESISTANCE)
             return
-        torque = self.trim.correct(out.brake_torque_nm, measured, dt_s,
-                                   brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated)
+        torque = self.trim.correct(out.brake_torque_nm, measured, dt_s, brake_only=self.mode in BRAKE_ONLY_MODES,
+                                   saturated=out.saturated, released=self.mode == MODE_SPINDOWN)
         torque = self.pack.limit(torque, snapshot.get("battery_soc"))
         if self.pack.active and not out.saturated:
             self.last_out = out = dataclasses.replace(out, saturated=True)
@@ -297,6 +297,7 @@ class ModedController(SessionCommand):
         base = {"seq": int(snapshot.get("seq", 0)), "command": self.command, "mode": self.mode,
                 "command_rejected": self.command_rejected, "virtual_gear_ratio": self.law.virtual_gear_ratio}
         status = drive_status(base, brake, out, speed, self.kt, self.inner.cp.base_speed_rpm, self.trim.trim_nm)
+        status.update(self.law.status_fields())
         empty = np.zeros(0, np.uint8)
         return empty, empty.copy(), np.zeros(0), status
 
@@ -316,6 +317,7 @@ class ModedController(SessionCommand):
         status["torque_trim_nm"] = float(self.trim.trim_nm)
         # the SPMSM's dq telemetry does not apply to this machine
         status.update(family="", speed_ref_rpm=0.0, id_a=0.0, iq_a=0.0, id_ref_a=0.0, iq_ref_a=0.0, vd_v=0.0, vq_v=0.0)
+        status.update(self.law.status_fields())
         return status
 
     def status(self, seq: int = 0, prediction_error_a: float = 0.0) -> dict:

@@ -35,7 +35,7 @@ import numpy as np
 from bike_plant import spmsm as M
 from bike_plant.params import RPM_PER_RAD_S
 
-from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, ModeLaw, ModeOutput, TorqueTrim,
+from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, MODE_SPINDOWN, ModeLaw, ModeOutput, TorqueTrim,
                     friction_figures, machine_figures, mode_params_from_config)
 from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status
 from .spmsm_control import C_IQ_REF, SpmsmController, controller_params_from_config
@@ -217,7 +217,8 @@ class ModedSpmsmController(SessionCommand):
         # ERG and resistance are brake-only: a trim wound up on a bad torque reading must not
         # turn their brake into assist (clamped, counted and logged by the trim)
         torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s,
-                                   brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated)
+                                   brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated,
+                                   released=self.mode == MODE_SPINDOWN)
         torque = self.pack.limit(torque, self.battery_soc)
         clipped = False
         if self.relay.choose(torque, dt_s):
@@ -280,6 +281,7 @@ class ModedSpmsmController(SessionCommand):
                 "command_rejected": self.command_rejected, "virtual_gear_ratio": self.law.virtual_gear_ratio}
         status = drive_status(base, brake, out, float(snapshot.get("speed_rpm", 0.0)), self.kt,
                               self.base_speed_rpm, self.trim.trim_nm)
+        status.update(self.law.status_fields())
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0), status
 
     def _status(self, st: dict) -> dict:
@@ -301,7 +303,7 @@ class ModedSpmsmController(SessionCommand):
             "torque_trim_nm": float(self.trim.trim_nm),
             "family": self.family, "speed_ref_rpm": st["speed_ref_rpm"], "id_a": st["id_a"], "iq_a": st["iq_a"],
             "id_ref_a": st["id_ref_a"], "iq_ref_a": st["iq_ref_a"], "vd_v": st["vd_v"], "vq_v": st["vq_v"],
-        }
+        } | self.law.status_fields()
 
     def status(self, seq: int = 0, prediction_error_a: float = 0.0) -> dict:  # noqa: ARG002
         st = self._status(self.inner.status())

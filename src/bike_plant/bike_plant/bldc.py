@@ -1214,6 +1214,14 @@ def _rider(state, p, c, omega, dt):
     Returns the load torque at the motor shaft (T_crank / gear)."""
     inv_gear = c[KC_INV_GEAR]
     cad = omega * inv_gear
+    if p[P.P_RIDER_TARGET] <= 0.0:
+        # stops pedalling (a spin-down's coast): no torque, the cranks turn on with the flywheel
+        state[S_EFFORT] = 0.0
+        crank = state[S_CRANK] + cad * dt
+        if not (0.0 <= crank < TWO_PI):
+            crank = _wrap_angle(crank)
+        state[S_CRANK] = crank
+        return 0.0
     err = p[P.P_RIDER_TARGET] - cad
     integ = state[S_RIDER_INT] + p[P.P_RIDER_KI] * err * dt
     integ = min(max(integ, -1.0), 1.0)

@@ -122,9 +122,10 @@ def friction_torque_nm(speed_rad_s: float, friction_nms: float, dry_friction_nm:
     the BLDC bike has no Coulomb term). The mode laws take it with the controller's nominal
     figures, as a trainer's power meter models its own losses."""
     f = friction_nms * speed_rad_s
+    if isinstance(speed_rad_s, np.ndarray) or isinstance(dry_friction_nm, np.ndarray):   # the report's arrays
+        return f + dry_friction_nm * np.tanh(speed_rad_s / dry_friction_speed_rad_s)
     if dry_friction_nm:
-        tanh = np.tanh if isinstance(speed_rad_s, np.ndarray) else math.tanh   # arrays: the report
-        f = f + dry_friction_nm * tanh(speed_rad_s / dry_friction_speed_rad_s)
+        f += dry_friction_nm * math.tanh(speed_rad_s / dry_friction_speed_rad_s)
     return f
 
 

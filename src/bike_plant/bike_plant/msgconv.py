@@ -186,25 +186,28 @@ def clock_cdr(stamp: int) -> bytes:
 
 
 def _drive_cdr(seq: int, arrays: dict, stamp: int, torque_cmd_nm: float, current_cmd_a: float,
-               rider_cadence_rpm: float) -> bytes:
+               rider_cadence_rpm: float, rider_stops_pedalling: bool) -> bytes:
     sec, nanosec = divmod(int(stamp), 1_000_000_000)
     return _DRIVE_CDR.encode({"seq": int(seq), **arrays, "torque_cmd_nm": float(torque_cmd_nm),
-                              "current_cmd_a": float(current_cmd_a), "rider_cadence_rpm": float(rider_cadence_rpm)},
+                              "current_cmd_a": float(current_cmd_a), "rider_cadence_rpm": float(rider_cadence_rpm),
+                              "rider_stops_pedalling": bool(rider_stops_pedalling)},
                              sec, nanosec)
 
 
 def drive_command_cdr(seq: int, gates_a, gates_b, split, stamp: int, torque_cmd_nm: float = 0.0,
-                      current_cmd_a: float = 0.0, rider_cadence_rpm: float = 0.0) -> bytes:
+                      current_cmd_a: float = 0.0, rider_cadence_rpm: float = 0.0,
+                      rider_stops_pedalling: bool = False) -> bytes:
     """drive_command_msg(), serialized."""
     return _drive_cdr(seq, {"gates_a": gates_a, "gates_b": gates_b, "split": split}, stamp, torque_cmd_nm,
-                      current_cmd_a, rider_cadence_rpm)
+                      current_cmd_a, rider_cadence_rpm, rider_stops_pedalling)
 
 
 def spmsm_drive_cdr(seq: int, duties, relay, buck, stamp: int, torque_cmd_nm: float = 0.0,
-                    current_cmd_a: float = 0.0, rider_cadence_rpm: float = 0.0) -> bytes:
+                    current_cmd_a: float = 0.0, rider_cadence_rpm: float = 0.0,
+                    rider_stops_pedalling: bool = False) -> bytes:
     """spmsm_drive_msg(), serialized."""
     return _drive_cdr(seq, {"duty_abc": duties, "relay_request": relay, "buck_duty": buck}, stamp, torque_cmd_nm,
-                      current_cmd_a, rider_cadence_rpm)
+                      current_cmd_a, rider_cadence_rpm, rider_stops_pedalling)
 
 
 _STATUS_CDR = Codec(ControllerStatus)
@@ -357,8 +360,8 @@ def command_problem(msg: Command) -> str | None:
     if value < 0.0 or value > 1.0:
         return f"command {value!r} outside [0, 1]"
     if msg.mode not in (Command.MODE_RESISTANCE, Command.MODE_MOTORING, Command.MODE_ERG, Command.MODE_SLOPE,
-                        Command.MODE_ISOKINETIC):
-        return f"unknown mode {msg.mode} (0 resistance, 1 motoring, 2 erg, 3 slope, 4 isokinetic)"
+                        Command.MODE_ISOKINETIC, Command.MODE_SPINDOWN):
+        return f"unknown mode {msg.mode} (0 resistance, 1 motoring, 2 erg, 3 slope, 4 isokinetic, 5 spindown)"
     if msg.road_from_command:
         problem = road_problem(msg.crr, msg.cw_kg_m, msg.wind_mps)
         if problem is not None:

@@ -132,10 +132,11 @@ class BldcPlant:
             interlock_blanked_in_batch=int(self.state[K.S_INTERLOCK]) - blanked0)
         return self._last
 
-    def set_rider_cadence(self, cadence_rpm: float) -> None:
-        """The rider's cadence target from now on (a workout's; 0: the config's own)."""
+    def set_rider_cadence(self, cadence_rpm: float, stop: bool = False) -> None:
+        """The rider's cadence target from now on (a workout's; 0: the config's own); ``stop``:
+        he stops pedalling (a spin-down's coast; the kernel's rider takes a target of 0 so)."""
         rpm = cadence_rpm if cadence_rpm > 0 else self.params.load.rider_target_cadence_rpm
-        self.p[P.P_RIDER_TARGET] = rpm / P.RPM_PER_RAD_S
+        self.p[P.P_RIDER_TARGET] = 0.0 if stop else rpm / P.RPM_PER_RAD_S
 
     def set_safe_state(self) -> None:
         """All gates off until :meth:`clear_safe_state`: the bridge becomes a diode rectifier."""

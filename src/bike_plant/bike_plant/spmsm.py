@@ -1616,6 +1616,7 @@ class RiderLoad:
     def __init__(self, load: SpmsmLoadParams):
         self.params = load.rider_load_params()
         self.target_rpm = self.params.rider_target_cadence_rpm      # set_rider_cadence moves it
+        self.stopped = False                                         # a spin-down's coast
         self.effort = load.rider_effort0
         self.integ = load.rider_effort0
         self.crank_rad = 0.0
@@ -1624,7 +1625,10 @@ class RiderLoad:
         lp = self.params
         cad = speed_rad_s / lp.gear_ratio
         err = self.target_rpm / RPM_PER_RAD_S - cad
-        self.integ, self.effort = mechanics.rider_effort_update(self.integ, err, lp.rider_kp, lp.rider_ki, dt_s)
+        if self.stopped:
+            self.effort = 0.0
+        else:
+            self.integ, self.effort = mechanics.rider_effort_update(self.integ, err, lp.rider_kp, lp.rider_ki, dt_s)
         torque = mechanics.rider_motor_torque_nm(self.effort, speed_rad_s, self.crank_rad, lp)
         self.crank_rad = (self.crank_rad + cad * dt_s) % TWO_PI
         return torque
@@ -1706,12 +1710,13 @@ class SpmsmPlant:
         return SpmsmBatchResult(float(sums[0] / nn), float(sums[1] / nn), float(sums[2] / nn), samples,
                                 int(self.state[S_FAULTS]))
 
-    def set_rider_cadence(self, cadence_rpm: float) -> None:
-        """The rider's cadence target from now on (a workout's; 0: the config's own); no rider
-        (another load): nothing to tell."""
+    def set_rider_cadence(self, cadence_rpm: float, stop: bool = False) -> None:
+        """The rider's cadence target from now on (a workout's; 0: the config's own); ``stop``:
+        he stops pedalling (a spin-down's coast); no rider (another load): nothing to tell."""
         if isinstance(self.load_hook, RiderLoad):
             self.load_hook.target_rpm = (cadence_rpm if cadence_rpm > 0
                                          else self.load_hook.params.rider_target_cadence_rpm)
+            self.load_hook.stopped = bool(stop)
 
     def set_safe_state(self) -> None:
         """Inverter gates off: the bridge becomes a diode rectifier into the battery."""

@@ -386,7 +386,7 @@ def _cmd_trainer(opts) -> int:
         return 2
     opts.seconds_given = opts.seconds is not None
     if opts.seconds is None:
-        opts.seconds = 5.0
+        opts.seconds = 120.0 if opts.spindown else 5.0
     if not (opts.seconds > 0 and math.isfinite(opts.seconds)):
         print(f"error: --seconds must be a finite number > 0, got {opts.seconds}", file=sys.stderr)
         return 2
@@ -521,6 +521,9 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--wind", type=float, default=0.0, metavar="MPS", help="... head wind in m/s (default 0)")
     trn.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc, .fit, profile .yaml) "
                                                         "on the trainer as an app does, then print how it followed")
+    trn.add_argument("--spindown", action="store_true",
+                     help="run the trainer's spin-down calibration (FTMS Spin Down Control) and print its "
+                          "progress until success or error (within --seconds, default 120)")
     trn.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets")
     trn.add_argument("--csv", metavar="FILE", help="with --workout: write every Indoor Bike Data sample here")
     trn.set_defaults(func=_cmd_trainer)

@@ -414,6 +414,12 @@ class DirconClient:
             if msg.msg_type == MSG_NOTIFICATION:
                 self._keep(msg)
 
+    def take_notifications(self, uuid: int) -> list[bytes]:
+        """The notifications of ``uuid`` kept so far (taken off the list; no wait)."""
+        taken = [value for u, value in self.notifications if u == uuid]
+        self.notifications = [(u, value) for u, value in self.notifications if u != uuid]
+        return taken
+
     def read(self, uuid: int) -> bytes:
         msg = self.request(MSG_READ, uuid128(uuid))
         if msg.code != RESP_SUCCESS:

@@ -7,7 +7,7 @@ Characteristics served (values little endian, as in BLE):
 
 - Fitness Machine Feature 0x2ACC (read): 32-bit machine features (cadence, total distance,
   resistance level, elapsed time, power) and 32-bit target-setting features (inclination,
-  resistance, power, indoor bike simulation).
+  resistance, power, indoor bike simulation, spin down, targeted cadence).
 - Indoor Bike Data 0x2AD2 (notify): speed 0.01 km/h, cadence 0.5 rpm, total distance m
   (uint24), resistance level (whole levels: this field has no decimal, unlike the Control
   Point's and the range's 0.1), power W, elapsed time s.
@@ -30,6 +30,7 @@ What a control request does (:class:`FtmsControl`):
 | 0x05 | Target Power, sint16 W | erg, P / erg_power_max_w |
 | 0x07 / 0x08 | Start or Resume / Stop or Pause | the target before the stop again / resistance 0 |
 | 0x11 | Indoor Bike Simulation: wind 0.001 m/s, grade 0.01 %, Crr 1e-4, Cw 0.01 kg/m | slope at the grade, on the app's road |
+| 0x13 | Spin Down Control, uint8 1 start / 2 ignore | spindown (brake released; the response carries the target speeds low / high, uint16 0.01 km/h; Status 0x14 then says stop pedalling, success or error as the controller's procedure goes) |
 | 0x14 | Set Targeted Cadence, uint16 0.5 rpm | the rider's cadence target (Command.cadence_rpm): the target in force again with it, and every later one; 0: none |
 
 A target outside the advertised range is refused with result 3 (invalid parameter) and a
@@ -39,7 +40,7 @@ The simulation's wind, Crr and Cw become the Command's road (bike_msgs/Command
 ``road_from_command``: the slope mode's road load uses them in place of the config's modes.crr,
 cda_m2 and wind_mps), said once per change; all three zero, as apps that send only the grade
 do, keeps the config's road, and that is said. Ops this bike does not do (target speed, heart rate, wheel
-circumference, spin down, ...) get result 2 (not supported).
+circumference, ...) get result 2 (not supported).
 """
 from __future__ import annotations
 
@@ -71,6 +72,7 @@ OP_TARGET_HEART_RATE = 0x06
 OP_START_RESUME = 0x07
 OP_STOP_PAUSE = 0x08
 OP_SIMULATION = 0x11
+OP_SPIN_DOWN = 0x13
 OP_TARGETED_CADENCE = 0x14
 OP_RESPONSE = 0x80
 
@@ -89,6 +91,10 @@ STATUS_INCLINE_CHANGED = 0x06
 STATUS_RESISTANCE_CHANGED = 0x07
 STATUS_POWER_CHANGED = 0x08
 STATUS_SIMULATION_CHANGED = 0x12
+STATUS_SPIN_DOWN = 0x14           # + uint8: SPIN_DOWN_*
+SPIN_DOWN_REQUESTED, SPIN_DOWN_SUCCESS, SPIN_DOWN_ERROR, SPIN_DOWN_STOP_PEDALLING = 1, 2, 3, 4
+SPIN_DOWN_NAMES = {1: "spin down requested (speed up)", 2: "spin down success", 3: "spin down error",
+                   4: "stop pedalling"}
 STATUS_CADENCE_CHANGED = 0x15
 STATUS_CONTROL_LOST = 0xFF
 
@@ -111,6 +117,7 @@ TARGET_INCLINATION = 1 << 1
 TARGET_RESISTANCE = 1 << 2
 TARGET_POWER = 1 << 3
 TARGET_SIMULATION = 1 << 13
+TARGET_SPIN_DOWN = 1 << 15
 TARGET_CADENCE = 1 << 16
 
 # Indoor Bike Data flags: bit 0 clear = instantaneous speed present
@@ -125,7 +132,8 @@ RESISTANCE_LEVEL_MAX = 100.0    # levels 0..100 (0.1 steps) = resistance Command
 
 def encode_feature() -> bytes:
     machine = MACHINE_CADENCE | MACHINE_TOTAL_DISTANCE | MACHINE_RESISTANCE_LEVEL | MACHINE_ELAPSED_TIME | MACHINE_POWER
-    target = TARGET_INCLINATION | TARGET_RESISTANCE | TARGET_POWER | TARGET_SIMULATION | TARGET_CADENCE
+    target = (TARGET_INCLINATION | TARGET_RESISTANCE | TARGET_POWER | TARGET_SIMULATION | TARGET_SPIN_DOWN
+              | TARGET_CADENCE)
     return struct.pack("<II", machine, target)
 
 
@@ -267,6 +275,7 @@ class FtmsControl:
         self.stopped = False
         self.simulation_extra = None                  # (wind, crr, cw) last said
         self.cadence_rpm = 0.0                        # Set Targeted Cadence: rides with every target
+        self.spindown_said: int | None = None         # the last spin-down status sent; None: none running
 
     # ---- the read-only ranges
     def encode_power_range(self) -> bytes:
@@ -300,7 +309,7 @@ class FtmsControl:
         handler = {OP_RESET: self._reset, OP_TARGET_INCLINATION: self._inclination,
                    OP_TARGET_RESISTANCE: self._resistance, OP_TARGET_POWER: self._power,
                    OP_START_RESUME: self._start, OP_STOP_PAUSE: self._stop, OP_SIMULATION: self._simulation,
-                   OP_TARGETED_CADENCE: self._cadence}.get(op)
+                   OP_TARGETED_CADENCE: self._cadence, OP_SPIN_DOWN: self._spin_down}.get(op)
         if handler is None:
             return result(RESULT_NOT_SUPPORTED, f"{name}: not supported by this bike")
         return handler(op, name, param)
@@ -401,6 +410,37 @@ class FtmsControl:
             return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=status,
                          message=f"{text}: rides with the first target")
         return self._set(op, self.running_target, status, f"{text}, with {self.running_target.text}")
+
+    def _spin_down(self, op, name, param) -> Reply:
+        """Start (1): the spin-down procedure of the controller (Command mode spindown); the
+        response carries the target speeds, the status says "speed up". Ignore (2): nothing."""
+        bad = self._sized(op, name, param, (1,))
+        if bad:
+            return bad
+        if param[0] == 2:
+            return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), message=f"{name}: ignore")
+        if param[0] != 1:
+            return self._refuse(op, f"{name}: parameter {param[0]} (1 start, 2 ignore)")
+        low, high = self.units.spindown_kmh
+        target = Target(MODES["spindown"], 0.0,
+                        f"spin down: brake released; speed up past {high:.1f} km/h, then stop pedalling "
+                        f"(coast to {low:.1f} km/h)")
+        reply = self._set(op, target, bytes([STATUS_SPIN_DOWN, SPIN_DOWN_REQUESTED]))
+        reply.response += struct.pack("<HH", _fit(low * 100, 0, 0xFFFF), _fit(high * 100, 0, 0xFFFF))
+        self.spindown_said = SPIN_DOWN_REQUESTED
+        return reply
+
+    def spin_down_progress(self, mode: int, phase: float) -> bytes | None:
+        """The Fitness Machine Status for the controller's spin-down (ControllerStatus: mode
+        spindown, mode_target its phase, bike_controller.spindown): "stop pedalling" at the
+        coast, then success or error; each once, and only after an app asked for it."""
+        if self.spindown_said is None or mode != MODES["spindown"]:
+            return None
+        value = {2: SPIN_DOWN_STOP_PEDALLING, 3: SPIN_DOWN_SUCCESS, 4: SPIN_DOWN_ERROR}.get(int(phase))
+        if value is None or value == self.spindown_said:
+            return None
+        self.spindown_said = None if value in (SPIN_DOWN_SUCCESS, SPIN_DOWN_ERROR) else value
+        return bytes([STATUS_SPIN_DOWN, value])
 
     def _reset(self, op, name, param) -> Reply:
         self.controlled = False

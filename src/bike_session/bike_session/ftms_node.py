@@ -329,6 +329,10 @@ def _make_node_class():
             except self._CdrError as exc:
                 self._log(f"a controller status that does not decode: {exc}", True)
                 st = {}
+            progress = self.control.spin_down_progress(int(st.get("mode", 0)), float(st.get("mode_target", 0.0)))
+            if progress is not None:                 # the controller's spin-down moved on: to every app
+                self._log(f"FTMS {ftms.SPIN_DOWN_NAMES[progress[1]]}", progress[1] == ftms.SPIN_DOWN_ERROR)
+                self.server.broadcast(ftms.STATUS, progress)
             view = self.plant_view
             state = view.snap
             level = 100.0 * st.get("command", 0.0) if st.get("mode", 0) == 0 else 0.0

@@ -41,7 +41,7 @@ rider's own), for that segment only (the children of ``intervals`` / ``repeat`` 
 workout file's Cadence does (:meth:`Profile.cadence_at`). The Commands carry it; the simulated
 rider pedals at it.
 
-Modes are names (``resistance``, ``motoring``, ``erg``, ``slope``, ``isokinetic``) mapped
+Modes are names (``resistance``, ``motoring``, ``erg``, ``slope``, ``isokinetic``, ``spindown``) mapped
 to the bike_msgs/Command constants by :data:`MODES`. Commands are in [0, 1]. Instead of a
 command, a step may give ``target`` and a ramp ``start_target`` / ``end_target`` in the
 mode's own unit: W (erg), grade in % (slope), crank rpm (isokinetic); they are turned
@@ -65,7 +65,7 @@ import yaml
 from bike_plant.mechanics import rider_cadence_problem, road_problem, virtual_gear_problem
 
 # name -> bike_msgs/msg/Command mode constant (bike_controller.modes)
-MODES: dict[str, int] = {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4}
+MODES: dict[str, int] = {"resistance": 0, "motoring": 1, "erg": 2, "slope": 3, "isokinetic": 4, "spindown": 5}
 MODE_NAMES: dict[int, str] = {v: k for k, v in MODES.items()}
 
 MAX_PROFILE_BYTES = 1 << 20   # a profile is a few kB; refuse absurd files before parsing
@@ -101,6 +101,9 @@ class ModeUnits:
     grade_max: float
     cadence_min_rpm: float
     cadence_max_rpm: float
+    # a spin-down's (low, high) road speeds in the config's virtual gear [km/h] (FTMS Spin Down
+    # Control's target speeds); (0, 0): not known
+    spindown_kmh: tuple[float, float] = (0.0, 0.0)
 
     def to_command(self, mode: int, target: float) -> tuple[float, str]:
         """(command, unit) for a target of ``mode``; ValueError when out of range."""
@@ -148,8 +151,10 @@ def mode_units_from_config(cfg: Mapping) -> ModeUnits:
 
     mp = mode_params_from_config(cfg)
     pmax = mp.erg_power_max_w or machine_figures(cfg).pmax_w
+    kmh_per_rpm = mp.virtual_gear_ratio * 2.0 * math.pi * mp.wheel_radius_m / 60.0 * 3.6
     return ModeUnits(pmax, mp.grade_min, mp.grade_max, mp.isokinetic_cadence_min_rpm,
-                     mp.isokinetic_cadence_max_rpm)
+                     mp.isokinetic_cadence_max_rpm,
+                     (mp.spindown_low_cadence_rpm * kmh_per_rpm, mp.spindown_high_cadence_rpm * kmh_per_rpm))
 
 
 class ProfileError(ValueError):
@@ -470,6 +475,8 @@ class _Builder:
             raise self.err(where, f"give either '{key}' or '{target_key}', not both")
         if key in seg:
             return self.command(seg[key], f"{where}.{key}")
+        if target_key not in seg and mode == MODES["spindown"]:
+            return 0.0                         # the spin-down takes no value
         if target_key not in seg:
             raise self.err(where, f"missing key '{key}' (command 0..1) or '{target_key}' (in the mode's unit)")
         target = self.number(seg[target_key], f"{where}.{target_key}")

@@ -24,9 +24,9 @@ import pathlib
 import yaml
 
 from bike_session.bags import BagError, open_bag
+from bike_session.profiles import MODE_NAMES as MODE_TO_NAME
 
 EARLY_NS = 1000
-MODE_TO_NAME = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinetic"}
 
 
 def command_timeline(bag_path) -> tuple[list[tuple[int, float, int, float, tuple | None, float]], dict]:

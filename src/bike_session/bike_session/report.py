@@ -41,6 +41,9 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   (error averaged over the window, which removes the commutation ripple); ``rms_batch`` /
   ``max_abs_batch`` over single batches. A mode_target missing from an older bag is derived
   from the command and the config.
+- ``friction``             the mode laws' friction in force, B [N m s] and Tc [N m] at the motor
+  (ControllerStatus.friction_nms / dry_friction_nm): its first value and every change, each
+  with the time it appeared (a spin-down, mode 5). Absent for older bags.
 - ``erg_response``         ERG target steps (a change of more than 10 W and 5 % between
   tracking windows) and the time from each until the ERG power (as ``erg_power``) stays within
   max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
@@ -83,8 +86,8 @@ FAULT_BITS = {
     "drive_stale": 1024,
 }
 SESSION_STATES = {0: "WAITING", 1: "RUNNING", 2: "DONE"}
-MODE_NAMES = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinetic"}
-MODE_RESISTANCE, MODE_MOTORING, MODE_ERG, MODE_SLOPE, MODE_ISOKINETIC = range(5)
+MODE_NAMES = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinetic", 5: "spindown"}
+MODE_RESISTANCE, MODE_MOTORING, MODE_ERG, MODE_SLOPE, MODE_ISOKINETIC, MODE_SPINDOWN = range(6)
 # tracked modes: (mode, key, unit, what is compared)
 TRACKED = (
     (MODE_ERG, "erg_power", "W", "rider's power (braking + friction) vs mode_target"),
@@ -444,8 +447,9 @@ PLANT_SPEC = (
  P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP, P_RELAY) = range(len(PLANT_SPEC))
 STATUS_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
                ("command", "value", NAN), ("mode_target", "value", NAN), ("mode_saturated", "value", False),
-               ("virtual_speed_mps", "value", NAN), ("virtual_gear_ratio", "value", NAN))
-STATUS_COLUMNS = 7            # t, mode, command, target, saturated, virtual speed, virtual gear
+               ("virtual_speed_mps", "value", NAN), ("virtual_gear_ratio", "value", NAN),
+               ("friction_nms", "value", NAN), ("dry_friction_nm", "value", NAN))
+STATUS_COLUMNS = 9            # t, mode, command, target, saturated, virtual speed, virtual gear, B, Tc
 COMMAND_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
                 ("command", "value", NAN), ("virtual_gear_ratio", "value", 0.0))
 BATTERY_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("voltage", "value", NAN),
@@ -610,6 +614,7 @@ class _Analyser:
         self.plant_carry = None
         self.status_carry = None
         self.gear_shifts = 0                      # changes of the virtual gear in force
+        self.friction_seen: list = []             # (t, B, Tc): the laws' friction, first and each change
         self.gear_first = None
         self.gear_range = (math.inf, -math.inf)
         self.machine = machine_from_info(None)
@@ -715,7 +720,8 @@ class _Analyser:
             block = np.column_stack([c[:, 0] + c[:, 1] * 1e-9, c[:, 2], c[:, 3]])
             self.command_blocks.append(block)
             if not self.use_status:
-                self.status_rows.extend((r[0], r[1], r[2], NAN, False, NAN, g) for r, g in zip(block, c[:, 4]))
+                self.status_rows.extend((r[0], r[1], r[2], NAN, False, NAN, g, NAN, NAN)
+                                        for r, g in zip(block, c[:, 4]))
         if self.battery_rows:
             b = np.array(self.battery_rows, dtype=float).reshape(-1, len(BATTERY_SPEC))
             self.battery_rows.clear()
@@ -770,7 +776,7 @@ class _Analyser:
                 -1, STATUS_COLUMNS if not self.use_status else len(STATUS_SPEC))
             self.status_rows.clear()
             if self.use_status:
-                s = np.column_stack([s[:, 0] + s[:, 1] * 1e-9, s[:, 2], s[:, 3], s[:, 4], s[:, 5], s[:, 6], s[:, 7]])
+                s = np.column_stack([s[:, 0] + s[:, 1] * 1e-9, s[:, 2:10]])
             if self.status_carry is not None:
                 s = np.vstack([self.status_carry, s])
             s = s[np.argsort(s[:, 0], kind="stable")]
@@ -779,9 +785,18 @@ class _Analyser:
             if self.status_carry is None:
                 self.gear_first = float(gear[0])
             self.gear_range = (min(self.gear_range[0], float(gear.min())), max(self.gear_range[1], float(gear.max())))
+            self._friction_changes(s)
             self.status_carry = s[-1:].copy()
             return s
         return self.status_carry if self.status_carry is not None else np.zeros((0, STATUS_COLUMNS))
+
+    def _friction_changes(self, s: np.ndarray) -> None:
+        """The laws' friction (B, Tc) as the statuses give it: its first value and each change
+        (a spin-down), as (t, B, Tc). Statuses of older bags have none."""
+        have = np.isfinite(s[:, 7]) & np.isfinite(s[:, 8])
+        for t, b, tc in s[have][:, [0, 7, 8]]:
+            if not self.friction_seen or (b, tc) != self.friction_seen[-1][1:]:
+                self.friction_seen.append((float(t), float(b), float(tc)))
 
     def _rows(self, r: np.ndarray) -> None:
         C = 1
@@ -812,13 +827,10 @@ class _Analyser:
         rpm_mid = 0.5 * (q[:-1, C + P_RPM] + q[1:, C + P_RPM])
         t_brake = -q[1:, C + P_TEM]
         p_brake = t_brake * w_mid
-        # ERG holds the rider's power: the brake's plus the bike's friction (the controller's model)
-        p_erg = erg_power_w(-t_brake, w_mid, mc["friction"])
         self.e_brake += float(np.sum(p_brake * dt))
         b = bins.index(0.5 * (t0 + t1))
         bins.add("dt", b, dt)
         bins.add("e_brake", b, p_brake * dt)
-        bins.add("e_erg", b, p_erg * dt)
         bins.add("e_mech", b, q[1:, C + P_EMECH] - q[:-1, C + P_EMECH])
         bins.add("tq_dt", b, t_brake * dt)
         bins.add("rpm_dt", b, rpm_mid * dt)
@@ -839,10 +851,18 @@ class _Analyser:
             sat = np.where(has, status[idx, 4], 0.0) > 0
             virtual_mps = np.where(has, status[idx, 5], np.nan)
             gear = np.where(has, status[idx, 6], np.nan)
+            b_nms = np.where(has, status[idx, 7], np.nan)
+            dry_nm = np.where(has, status[idx, 8], np.nan)
         else:
             mode = np.full(len(dt), -1, dtype=np.int64)
-            command = target = virtual_mps = gear = np.full(len(dt), np.nan)
+            command = target = virtual_mps = gear = b_nms = dry_nm = np.full(len(dt), np.nan)
             sat = np.zeros(len(dt), dtype=bool)
+        # ERG holds the rider's power: the brake's plus the bike's friction as the laws had it
+        # (the statuses' figures, which a spin-down changes; the config's for older bags)
+        cfg_b, cfg_dry, ws_rpm = mc["friction"]
+        friction = (np.where(np.isfinite(b_nms), b_nms, cfg_b), np.where(np.isfinite(dry_nm), dry_nm, cfg_dry), ws_rpm)
+        p_erg = erg_power_w(-t_brake, w_mid, friction)
+        bins.add("e_erg", b, p_erg * dt)
         # the road speed: the controller's virtual speed (in slope mode the virtual bike's, which
         # a shift does not change while the brake takes the flywheel to the new gear), else the
         # flywheel's through the gear in force (0 / NaN: the config's; an older bag has none)
@@ -977,6 +997,8 @@ class _Analyser:
                                        "min": self.gear_range[0], "max": self.gear_range[1]}
             out["tracking"] = tracking(bins, self.bin_s)
             out["erg_response"] = erg_response(bins, self.bin_s)
+            if self.friction_seen:
+                out["friction"] = [{"t": t, "friction_nms": b, "dry_friction_nm": tc} for t, b, tc in self.friction_seen]
         first = {}
         if self.first is not None:
             first = {"t": float(self.first[0]), "E_mech": float(self.first[C + P_EMECH]),
@@ -1215,6 +1237,12 @@ def format_summary(summary: dict) -> str:
     if gear:
         shifted = (f", {gear['shifts']} shift(s), {gear['min']:g} .. {gear['max']:g}" if gear["shifts"] else "")
         lines.append(f"virtual gear:          {gear['first']:g}{shifted}; distance {s.get('distance_m', 0.0):.0f} m")
+    friction = s.get("friction") or []
+    if len(friction) > 1:                       # a spin-down changed the laws' friction
+        changes = ", ".join(f"B {f['friction_nms']:.3e} N m s, Tc {f['dry_friction_nm']:.4f} N m from {f['t']:.1f} s"
+                            for f in friction[1:])
+        lines.append(f"friction (the laws'): B {friction[0]['friction_nms']:.3e} N m s, Tc "
+                     f"{friction[0]['dry_friction_nm']:.4f} N m; then {changes}")
     for key, r in (s.get("tracking") or {}).items():
         lines.append(f"tracking {key + ':':<19} rms {_fmt(r.get('rms'), r['unit'], 3)}, max {_fmt(r.get('max_abs'), r['unit'], 3)}"
                      f" ({r['window_s']:g} s windows; per batch rms {_fmt(r.get('rms_batch'), '', 3)},"

@@ -9,6 +9,7 @@ take control and set a target, and print the Indoor Bike Data it notifies, once 
     ./bike trainer --grade 4.5                    # simulation grade 4.5 % (road: --crr, --cw, --wind)
     ./bike trainer --power 200 --cadence 95       # ... and the rider's cadence target (Set Targeted Cadence)
     ./bike trainer --workout FILE.zwo --ftp 250 --csv ride.csv   # ride a workout on the trainer
+    ./bike trainer --spindown                     # its spin-down calibration (Spin Down Control)
 
 ``--workout`` rides a workout file (.zwo, .erg, .mrc, .fit, or a profile .yaml) on the trainer
 the way an app does: its targets, mapped through the trainer's own ranges (power, inclination,
@@ -18,7 +19,12 @@ how the trainer followed: power error and the ERG response to each target step, 
 report uses (settled within max(5 % of the target, 5 W) for 1 s; trainer reviews quote 3-5 s).
 Against ``./bike run --ftms`` it is a closed loop through both ends of the protocol.
 
-Exit codes: 0 done; 1 no trainer there, or it refused the target; 2 bad arguments.
+``--spindown`` starts the trainer's spin-down (FTMS op 0x13), prints the target speeds it answers
+with, then its Fitness Machine Status (speed up, stop pedalling, success or error) and its speed
+once a second, as an app's calibration screen does, until success or error.
+
+Exit codes: 0 done; 1 no trainer there, it refused the target, or the spin-down failed or did
+not finish within --seconds; 2 bad arguments.
 """
 from __future__ import annotations
 
@@ -107,6 +113,47 @@ def control(app: dircon.DirconClient, op: int, param: bytes, what: str, say) -> 
         if result != ftms.RESULT_SUCCESS:
             return False
     return True
+
+
+def spin_down(app: dircon.DirconClient, seconds: float, say) -> int:
+    """Spin Down Control: start, print the target speeds and the progress; 0 on success."""
+    for uuid in (ftms.CONTROL_POINT, ftms.STATUS, ftms.INDOOR_BIKE_DATA):
+        app.subscribe(uuid)
+    for code, param in ((ftms.OP_REQUEST_CONTROL, b""), (ftms.OP_SPIN_DOWN, b"\x01")):
+        reply = app.write(ftms.CONTROL_POINT, bytes([code]) + param)
+        if reply.code != dircon.RESP_SUCCESS:
+            say(f"error: the trainer refused the Control Point write (DIRCON code {reply.code})")
+            return 1
+        response = app.wait_notification(ftms.CONTROL_POINT)
+        result = response[2] if len(response) >= 3 else 0
+        say(f"{ftms.OP_NAMES[code]}: {RESULTS.get(result, f'result {result}')}")
+        if result != ftms.RESULT_SUCCESS:
+            return 1
+    if len(response) >= 7:
+        low, high = struct.unpack_from("<HH", response, 3)
+        say(f"spin down: speed up past {high / 100:g} km/h, then stop pedalling (coast to {low / 100:g} km/h)")
+    end = time.monotonic() + seconds
+    next_print = 0.0
+    while time.monotonic() < end:
+        for value in app.take_notifications(ftms.STATUS):
+            if len(value) >= 2 and value[0] == ftms.STATUS_SPIN_DOWN:
+                say(f"status: {ftms.SPIN_DOWN_NAMES.get(value[1], f'spin down status {value[1]}')}")
+                if value[1] in (ftms.SPIN_DOWN_SUCCESS, ftms.SPIN_DOWN_ERROR):
+                    return 0 if value[1] == ftms.SPIN_DOWN_SUCCESS else 1
+        try:
+            data = app.wait_notification(ftms.INDOOR_BIKE_DATA, max(0.1, min(1.0, end - time.monotonic())))
+        except TimeoutError:
+            continue
+        if time.monotonic() >= next_print:
+            next_print = time.monotonic() + 1.0
+            try:
+                fields = ftms.parse_indoor_bike_data(data)
+                say(f"speed {fields.get('speed_kmh', float('nan')):.1f} km/h, cadence "
+                    f"{fields.get('cadence_rpm', float('nan')):g} rpm")
+            except ValueError as exc:
+                say(f"indoor bike data: {exc}")
+    say(f"error: the spin-down did not finish within {seconds:g} s")
+    return 1
 
 
 def _ranges(app: dircon.DirconClient):
@@ -291,9 +338,9 @@ def main(opts) -> int:
         if not trainers:
             say("no DIRCON trainer announced (mDNS _wahoo-fitness-tnp._tcp) on this network")
         return 0
-    targets = [t for t in (opts.power, opts.grade, opts.level, opts.workout) if t is not None]
+    targets = [t for t in (opts.power, opts.grade, opts.level, opts.workout, opts.spindown or None) if t is not None]
     if len(targets) > 1:
-        print("error: give one of --power, --grade, --level, --workout", file=sys.stderr)
+        print("error: give one of --power, --grade, --level, --workout, --spindown", file=sys.stderr)
         return 2
     opts.road = (opts.crr, opts.cw, opts.wind)
     problem = simulation_road_problem(opts.road)
@@ -316,6 +363,8 @@ def main(opts) -> int:
             return 1
         if opts.workout:
             return ride_workout(app, opts, say)
+        if opts.spindown:
+            return spin_down(app, opts.seconds, say)
         if opts.power is not None:
             ok = control(app, ftms.OP_TARGET_POWER, struct.pack("<h", round(opts.power)),
                          f"target power {round(opts.power)} W", say)
