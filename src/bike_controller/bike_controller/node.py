@@ -57,7 +57,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from .modes import MODE_NAMES
+from .modes import MODE_NAMES, MODE_SPINDOWN
 
 CONTROLLER_DEFAULTS = {
     "sync_mode": "lockstep",
@@ -485,6 +485,8 @@ def warm_up_law(make_law, cfg: dict, machine: str, n: int, batches: int = 5) -> 
     # a drive on CAN: its states say measured_by_drive, and the law answers torque only
     measured = str(cfg.get("backend", "sim")) == "can"
     for mode in sorted(MODE_NAMES):
+        if mode == MODE_SPINDOWN:
+            continue                                  # no kernel of its own (a released brake), and it would log
         law = make_law()
         try:
             law.set_command(0.5, mode)
