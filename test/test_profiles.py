@@ -340,3 +340,11 @@ def test_shifted_gear_walks_the_table_and_says_how_far_it_got():
     assert shifted_gear(table, 1.7, 1) == (2.0, 1) and shifted_gear(table, 1.7, -1) == (1.5, -1), \
         "from a gear off the table: the next one in that direction"
     assert shifted_gear(table, 2.0 * (1 + 1e-9), 1) == (3.0, 1), "round-off is the same gear"
+
+
+def test_a_spindown_segment_needs_no_value_and_other_modes_still_do():
+    p = parse_profile_text("segments:\n  - {kind: step, mode: erg, command: 0.2, duration_s: 3}\n"
+                           "  - {kind: step, mode: spindown, duration_s: 60}\n")
+    assert [(s.mode, s.start) for s in p.segments] == [(MODES["erg"], 0.2), (MODES["spindown"], 0.0)]
+    with pytest.raises(ProfileError, match="missing key 'command'"):
+        parse_profile_text("segments:\n  - {kind: step, mode: erg, duration_s: 3}\n")

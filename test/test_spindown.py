@@ -145,3 +145,24 @@ def test_the_spmsm_bike_learns_viscous_and_coulomb_friction():
     assert ctrl.law.spindown.phase == DONE, ctrl.law.spindown.reason
     assert ctrl.law.friction_nms == pytest.approx(0.005, rel=0.03)
     assert ctrl.law.dry_friction_nm == pytest.approx(0.1, rel=0.03)
+
+
+def test_a_new_command_value_in_the_spindown_mode_starts_another_once_the_last_is_over():
+    """An app's retry: the spindown Command's value tags the request. The same value again (a
+    profile's Commands every period) starts nothing; a new one does, once the last is over."""
+    from bike_controller.modes import ModeLaw, ModeParams
+    law = ModeLaw(ModeParams(spindown_spin_up_timeout_s=0.05), gear_ratio=35.0, inertia_kgm2=0.01, tmax_nm=2.94,
+                  pmax_w=1016.68, base_speed_rpm=3300.0, friction_nms=1e-4)
+    rpm = 80.0 * 35.0
+    law.step(1.0, MODE_SPINDOWN, rpm, 1e-3)
+    assert law.spindown.phase == SPIN_UP
+    law.step(1.0, MODE_SPINDOWN, rpm, 0.1)
+    assert law.spindown.phase == FAILED and "did not reach" in law.spindown.reason
+    law.step(1.0, MODE_SPINDOWN, rpm, 1e-3)
+    assert law.spindown.phase == FAILED, "the same request again starts nothing"
+    law.step(0.0, MODE_SPINDOWN, rpm, 1e-3)
+    assert law.spindown.phase == SPIN_UP, "a new request (a retry) starts another"
+    law.step(1.0, MODE_SPINDOWN, rpm, 1e-3)
+    assert law.spindown.phase == SPIN_UP, "one running is not restarted"
+    law.step(0.3, MODE_ERG, rpm, 1e-3)
+    assert law.spindown.phase == FAILED and "changed to erg" in law.spindown.reason

@@ -56,15 +56,17 @@ Modes (``bike_msgs/Command``):
   it: after an upshift on a climb the brake holds the cranks back until the cadence has fallen
   to the new gear's, as the chain would on a road bike (at most Tmax, flagged saturated where
   that binds); J_eq follows the gear squared. Other modes only report the new virtual speed.
-- SPINDOWN (5): spin-down calibration (:mod:`bike_controller.spindown`, FTMS op 0x13): the
-  brake lets go, the rider is asked to spin up past ``spindown_high_cadence_rpm`` and then to stop
-  pedalling; the coast down to ``spindown_low_cadence_rpm`` gives the bike's friction B, Tc,
-  which the laws take from then on (:meth:`ModeLaw.set_friction`). The Command's value is not
-  used; ``target`` is the procedure's phase (spindown.SPIN_UP .. FAILED), saturated when it failed.
 - ISOKINETIC (4): constant cadence c* = cadence_min + C*(cadence_max - cadence_min) by a
   PI speed loop (pole placement on J: both poles at -``isokinetic_bandwidth_rad_s``,
   kp = 2 J wn, ki = J wn^2), braking above c*, assisting below, with integrator clamping.
   Clinical slow / intermediate / fast tests are Commands of this mode.
+- SPINDOWN (5): spin-down calibration (:mod:`bike_controller.spindown`, FTMS op 0x13): the
+  brake lets go, the rider is asked to spin up past ``spindown_high_cadence_rpm`` and then to stop
+  pedalling; the coast down to ``spindown_low_cadence_rpm`` gives the bike's friction B, Tc,
+  which the laws take from then on (:meth:`ModeLaw.set_friction`). The Command's value only
+  tags the request: a new value while in this mode starts another spin-down once the last one is
+  over (an app's retry); ``target`` is the procedure's phase (spindown.SPIN_UP .. FAILED),
+  saturated when it failed.
 
 Mode switches are smooth: at a switch the difference between the old torque and the new
 mode's torque becomes an offset that decays at ``torque_rate_nm_per_s`` (a ramp, never a
@@ -234,6 +236,7 @@ class ModeLaw:
         self.brake_only_holds = 0             # ramp steps of ERG / resistance held at 0 instead of motoring
         self.spindown = SpinDown(mp.spindown_params(), self.inertia_kgm2, self.gear_ratio)
         self.measured_em_torque_nm = 0.0      # of the batch that led to the speed in hand
+        self.spindown_command = None          # the value that tagged the last spin-down request
         self.reset()
 
     def reset(self, torque_nm: float = 0.0) -> None:
@@ -494,10 +497,12 @@ class ModeLaw:
                 self.virtual_w = w
             elif mode == MODE_ERG and self.mp.erg_speed_from_power:
                 self._start_erg_bike(w, from_slope=self.last_mode == MODE_SLOPE)
-            elif mode == MODE_SPINDOWN:
-                self.spindown.start()
-                _log.warning("spin-down: the brake lets go; the rider spins up past %g rpm",
-                             self.spindown.params.high_cadence_rpm)
+        if mode == MODE_SPINDOWN and (mode != self.last_mode or (command != self.spindown_command
+                                                                and not self.spindown.running)):
+            self.spindown.start()
+            _log.warning("spin-down: the brake lets go; the rider spins up past %g rpm",
+                         self.spindown.params.high_cadence_rpm)
+        self.spindown_command = command
         self.last_mode = mode
         wanted, target, v, sat = self._wanted(command, mode, w, dt_s)
         if switched:

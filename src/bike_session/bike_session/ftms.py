@@ -276,6 +276,7 @@ class FtmsControl:
         self.simulation_extra = None                  # (wind, crr, cw) last said
         self.cadence_rpm = 0.0                        # Set Targeted Cadence: rides with every target
         self.spindown_said: int | None = None         # the last spin-down status sent; None: none running
+        self.spindown_tag = 0.0                       # the spindown Command's value: a new one per request
 
     # ---- the read-only ranges
     def encode_power_range(self) -> bytes:
@@ -422,7 +423,10 @@ class FtmsControl:
         if param[0] != 1:
             return self._refuse(op, f"{name}: parameter {param[0]} (1 start, 2 ignore)")
         low, high = self.units.spindown_kmh
-        target = Target(MODES["spindown"], 0.0,
+        # the value tags the request: a retry while the last spin-down's Command is still in force
+        # starts a new one (bike_controller.modes, SPINDOWN)
+        self.spindown_tag = 1.0 - self.spindown_tag
+        target = Target(MODES["spindown"], self.spindown_tag,
                         f"spin down: brake released; speed up past {high:.1f} km/h, then stop pedalling "
                         f"(coast to {low:.1f} km/h)")
         reply = self._set(op, target, bytes([STATUS_SPIN_DOWN, SPIN_DOWN_REQUESTED]))
