@@ -529,6 +529,18 @@ def test_series_for_the_charts(tmp_path):
     assert coarse["E_bat"][-1] == pytest.approx(80.0) and np.allclose(coarse["p_brake"], 100.0)
 
 
+def test_power_accuracy_compares_the_trainers_estimate_with_the_riders_ledger(tmp_path):
+    """10 s at 100 rad/s: brake 100 W + modelled friction 5 W (B 5e-4) against the ledger's
+    150 W rider: -45 W, -30 % over the one 10 s window; a 1 s session has no window."""
+    from bike_session.report import analyse
+    s = analyse(write_session_bag(tmp_path / "a", n=10001, friction=lambda k: (5.0e-4, 0.0))).summary
+    acc = s["power_accuracy"]
+    assert acc["windows"] == 1 and acc["window_s"] == pytest.approx(10.0)
+    assert acc["mean_w"] == pytest.approx(-45.0, rel=1e-6) and acc["mean_pct"] == pytest.approx(-30.0, rel=1e-6)
+    assert "trainer power error:   mean -45.00 W (-30.00 %)" in format_summary(s)
+    assert analyse(write_session_bag(tmp_path / "b")).summary["power_accuracy"] is None
+
+
 def test_erg_response_times_each_target_step():
     """0.1 s windows: ERG 100 W for 1 s, a step to 200 W that the ERG power reaches within
     5 % after 0.3 s and holds, a step to 150 W at 3 s that it never reaches before ERG ends at

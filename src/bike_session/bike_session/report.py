@@ -44,6 +44,9 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
 - ``friction``             the mode laws' friction in force, B [N m s] and Tc [N m] at the motor
   (ControllerStatus.friction_nms / dry_friction_nm): its first value and every change, each
   with the time it appeared (a spin-down, mode 5). Absent for older bags.
+- ``power_accuracy``       the trainer's power estimate (braking power + the bike's friction as the
+  laws model it + d(1/2 J w^2)/dt, J of the config) - the rider's (ledger), over 10 s windows where the rider gives > 20 W:
+  mean / rms / max_abs [W], mean_pct (:func:`power_accuracy`); None without such a window.
 - ``erg_response``         ERG target steps (a change of more than 10 W and 5 % between
   tracking windows) and the time from each until the ERG power (as ``erg_power``) stays within
   max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
@@ -121,6 +124,7 @@ DEFAULT_MACHINE = {
     "brake_envelope": None,      # (motor r/min, N m) of a braking path weaker than Eq. 3-4 (SPMSM)
     # the bike's friction as ERG models it (bike_controller.modes.friction_figures)
     "friction": (1.0e-4, 0.0, 1.0),
+    "inertia_kgm2": 0.01,
 }
 MACHINE_KEYS = {
     "gear_ratio": "load.gear_ratio",
@@ -134,6 +138,7 @@ MACHINE_KEYS = {
     "grade_max": "modes.grade_max",
     "wheel_radius_m": "modes.wheel_radius_m",
     "virtual_gear_ratio": "modes.virtual_gear_ratio",
+    "inertia_kgm2": "mechanics.inertia_kgm2",
 }
 
 
@@ -473,7 +478,7 @@ def window_bins(bin_s: float) -> int:
     return max(1, int(round(max(WINDOW_S, bin_s) / bin_s)))
 
 
-BIN_SUMS = ["dt", "e_brake", "e_erg", "e_mech", "tq_dt", "rpm_dt", "road_m", "vbus_dt", "ocv_dt", "soc_dt", "ibat_dt",
+BIN_SUMS = ["dt", "e_brake", "e_erg", "e_est", "e_mech", "tq_dt", "rpm_dt", "road_m", "vbus_dt", "ocv_dt", "soc_dt", "ibat_dt",
             "bat_v", "bat_v_n", "bat_pct", "bat_pct_n", "bat_i",
             *[f"mode_dt{m}" for m in MODE_NAMES], *[f"target_dt{m}" for m in MODE_NAMES],
             *[f"sat_dt{m}" for m in MODE_NAMES],
@@ -863,6 +868,10 @@ class _Analyser:
         friction = (np.where(np.isfinite(b_nms), b_nms, cfg_b), np.where(np.isfinite(dry_nm), dry_nm, cfg_dry), ws_rpm)
         p_erg = erg_power_w(-t_brake, w_mid, friction)
         bins.add("e_erg", b, p_erg * dt)
+        # the trainer's estimate of the rider's power adds the flywheel's energy change (inertia
+        # compensated, as direct-drive trainers report it)
+        w0, w1 = q[:-1, C + P_W], q[1:, C + P_W]
+        bins.add("e_est", b, p_erg * dt + 0.5 * mc["inertia_kgm2"] * (w1 * w1 - w0 * w0))
         # the road speed: the controller's virtual speed (in slope mode the virtual bike's, which
         # a shift does not change while the brake takes the flywheel to the new gear), else the
         # flywheel's through the gear in force (0 / NaN: the config's; an older bag has none)
@@ -997,6 +1006,7 @@ class _Analyser:
                                        "min": self.gear_range[0], "max": self.gear_range[1]}
             out["tracking"] = tracking(bins, self.bin_s)
             out["erg_response"] = erg_response(bins, self.bin_s)
+            out["power_accuracy"] = power_accuracy(bins, self.bin_s)
             if self.friction_seen:
                 out["friction"] = [{"t": t, "friction_nms": b, "dry_friction_nm": tc} for t, b, tc in self.friction_seen]
         first = {}
@@ -1141,6 +1151,32 @@ ERG_TOL_MIN_W = 5.0           # ... or of this many watts, whichever is larger
 ERG_HOLD_S = 1.0              # ... for this long
 
 
+ACCURACY_WINDOW_S = 10.0      # power accuracy: windows long enough that the flywheel's energy swings average out
+ACCURACY_MIN_W = 20.0         # ... in which the rider pedals
+
+
+def power_accuracy(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | None:
+    """How well the trainer knows the rider's power: its estimate, braking power + the bike's
+    friction as the laws model it + the flywheel's energy change (1/2 J w^2 with the config's J,
+    inertia compensated as a direct-drive trainer reports it), against the rider's
+    own from the plant's ledger, over ACCURACY_WINDOW_S windows in which the rider gave more
+    than ACCURACY_MIN_W. A friction figure that is off (before a spin-down) shows here; trainers
+    state +-1..2 %. None without such a window."""
+    n = len(bins["dt"]) if n_bins is None else int(n_bins)
+    k = max(1, int(round(ACCURACY_WINDOW_S / bin_s)))
+    dt = _rebin(bins["dt"][:n], k, "sum")
+    full = dt >= 0.999 * k * bin_s
+    est = _div(_rebin(bins["e_est"][:n], k, "sum"), dt)
+    rider = _div(_rebin(bins["e_mech"][:n], k, "sum"), dt)
+    sel = full & np.isfinite(est) & np.isfinite(rider) & (rider > ACCURACY_MIN_W)
+    if not sel.any():
+        return None
+    err = est[sel] - rider[sel]
+    return {"windows": int(sel.sum()), "window_s": k * bin_s, "mean_w": float(err.mean()),
+            "rms_w": float(np.sqrt(np.mean(err ** 2))), "max_abs_w": float(np.abs(err).max()),
+            "mean_pct": float(100.0 * err.mean() / rider[sel].mean())}
+
+
 def erg_response(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | None:
     """How fast ERG reaches a new power target (the figure trainer reviews quote: high-end
     trainers 3-5 s). On ``window_s`` windows wholly in ERG: a step is a target change of more
@@ -1237,6 +1273,11 @@ def format_summary(summary: dict) -> str:
     if gear:
         shifted = (f", {gear['shifts']} shift(s), {gear['min']:g} .. {gear['max']:g}" if gear["shifts"] else "")
         lines.append(f"virtual gear:          {gear['first']:g}{shifted}; distance {s.get('distance_m', 0.0):.0f} m")
+    acc = s.get("power_accuracy")
+    if acc:
+        lines.append(f"trainer power error:   mean {acc['mean_w']:+.2f} W ({acc['mean_pct']:+.2f} %), rms "
+                     f"{acc['rms_w']:.2f} W over {acc['windows']} {acc['window_s']:g} s windows (brake + modelled "
+                     f"friction + flywheel energy, against the rider's ledger power)")
     friction = s.get("friction") or []
     if len(friction) > 1:                       # a spin-down changed the laws' friction
         changes = ", ".join(f"B {f['friction_nms']:.3e} N m s, Tc {f['dry_friction_nm']:.4f} N m from {f['t']:.1f} s"
