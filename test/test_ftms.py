@@ -438,6 +438,22 @@ def test_bike_trainer_refuses_a_road_or_cadence_the_ftms_fields_cannot_carry(tmp
     err = capsys.readouterr().err
     assert "segments[1]: road crr 0.03 outside [0, 0.0255]" in err, err
     for args, words in ((["--crr", "0.1"], "--crr 0.1 outside"), (["--cadence", "-5", "--power", "100"],
-                                                                    "--cadence -5 outside")):
+                                                                    "--cadence -5 outside"),
+                        (["--difficulty", "150", "--grade", "3"], "--difficulty 150 outside")):
         result = bike_command("trainer", "--port", "1", *args, timeout=60)
         assert result.returncode == 2 and words in result.stderr, result.stderr
+
+
+def test_bike_trainer_sends_grades_as_zwift_does_at_a_trainer_difficulty():
+    """Zwift's trainer difficulty (research notes, trainers.md section 3): the grade scaled by it,
+    descents halved again (-10 % -> -2.5 % at 50 %); none given: the grade as it is. A profile's
+    spindown segment is sent as Spin Down Control."""
+    from bike_session import trainer_probe
+    from bike_session.profiles import MODES
+    assert trainer_probe.sent_grade_pct(-10.0, 50.0) == -2.5 and trainer_probe.sent_grade_pct(8.0, 50.0) == 4.0
+    assert trainer_probe.sent_grade_pct(-10.0, None) == -10.0 and trainer_probe.sent_grade_pct(6.0, 100.0) == 6.0
+    units = ModeUnits(1000.0, -0.2, 0.2, 20.0, 120.0)
+    op, param, text = trainer_probe._target_write(MODES["slope"], 0.25, units, difficulty_pct=50.0)  # -10 %
+    assert op == ftms.OP_SIMULATION and struct.unpack("<hhBB", param)[1] == -250
+    assert "-2.50 % (-10.0 % at difficulty 50 %)" in text
+    assert trainer_probe._target_write(MODES["spindown"], 0.0, units)[:2] == (ftms.OP_SPIN_DOWN, b"\x01")

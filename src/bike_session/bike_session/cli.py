@@ -519,6 +519,9 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--cw", type=float, default=0.51, metavar="KG_PER_M",
                      help="... air resistance 1/2 rho CdA in kg/m (default 0.51, as Zwift sends)")
     trn.add_argument("--wind", type=float, default=0.0, metavar="MPS", help="... head wind in m/s (default 0)")
+    trn.add_argument("--difficulty", type=float, metavar="PCT",
+                     help="send grades as Zwift does at this trainer difficulty: scaled by it, descents halved "
+                          "again (Zwift's default 50; default: the grade as it is)")
     trn.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc, .fit, profile .yaml) "
                                                         "on the trainer as an app does, then print how it followed")
     trn.add_argument("--spindown", action="store_true",

@@ -7,6 +7,7 @@ take control and set a target, and print the Indoor Bike Data it notifies, once 
     ./bike trainer [--host H] [--port P]          # what the trainer at H:P serves, then 5 s of data
     ./bike trainer --power 200 --seconds 30       # ERG at 200 W (Request Control first)
     ./bike trainer --grade 4.5                    # simulation grade 4.5 % (road: --crr, --cw, --wind)
+    ./bike trainer --grade -10 --difficulty 50    # as Zwift sends it at trainer difficulty 50 %: -2.5 %
     ./bike trainer --power 200 --cadence 95       # ... and the rider's cadence target (Set Targeted Cadence)
     ./bike trainer --workout FILE.zwo --ftp 250 --csv ride.csv   # ride a workout on the trainer
     ./bike trainer --spindown                     # its spin-down calibration (Spin Down Control)
@@ -195,7 +196,18 @@ def cadence_param(cadence_rpm: float) -> bytes:
     return struct.pack("<H", round(cadence_rpm * 2))
 
 
-def _target_write(mode: int, command: float, units, road=DEFAULT_ROAD) -> tuple[int, bytes, str] | None:
+def sent_grade_pct(grade_pct: float, difficulty_pct: float | None) -> float:
+    """The grade an app sends for a road's ``grade_pct``: as it is, or, with Zwift's trainer
+    difficulty, scaled by it and halved again downhill (research notes, trainers.md section 3:
+    -10 % in game is sent as -2.5 % at the default 50 %)."""
+    if difficulty_pct is None:
+        return grade_pct
+    scaled = grade_pct * difficulty_pct / 100.0
+    return 0.5 * scaled if scaled < 0.0 else scaled
+
+
+def _target_write(mode: int, command: float, units, road=DEFAULT_ROAD,
+                  difficulty_pct: float | None = None) -> tuple[int, bytes, str] | None:
     """The Control Point write for a profile's Command (None: a mode FTMS cannot ask for)."""
     from bike_session.profiles import MODES
     if mode == MODES["erg"]:
@@ -203,8 +215,13 @@ def _target_write(mode: int, command: float, units, road=DEFAULT_ROAD) -> tuple[
         return ftms.OP_TARGET_POWER, struct.pack("<h", watts), f"target power {watts} W"
     if mode == MODES["slope"]:
         grade_pct = units.target_of(mode, command)[0]
-        return (ftms.OP_SIMULATION, simulation_param(grade_pct, road),
-                f"simulation grade {grade_pct:.1f} % (Crr {road[0]:g}, Cw {road[1]:g} kg/m, wind {road[2]:g} m/s)")
+        sent = sent_grade_pct(grade_pct, difficulty_pct)
+        said = f"{sent:.1f} %" if difficulty_pct is None else f"{sent:.2f} % ({grade_pct:.1f} % at difficulty " \
+                                                             f"{difficulty_pct:g} %)"
+        return (ftms.OP_SIMULATION, simulation_param(sent, road),
+                f"simulation grade {said} (Crr {road[0]:g}, Cw {road[1]:g} kg/m, wind {road[2]:g} m/s)")
+    if mode == MODES["spindown"]:
+        return ftms.OP_SPIN_DOWN, b"\x01", "spin down control: start"
     if mode == MODES["resistance"]:
         level = round(command * ftms.RESISTANCE_LEVEL_MAX * 10)
         return ftms.OP_TARGET_RESISTANCE, struct.pack("<h", level), f"resistance level {level / 10:g}"
@@ -277,7 +294,7 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
         if now >= seconds:
             break
         cmd, mode, _, label = profile.command_at(now)
-        target = _target_write(mode, cmd, units, profile.road_at(now) or opts.road)
+        target = _target_write(mode, cmd, units, profile.road_at(now) or opts.road, opts.difficulty)
         if target is None:
             say(f"warning: t = {now:.0f} s: mode {MODE_NAMES.get(mode, mode)} has no FTMS target; not sent")
         elif target[:2] != sent and now >= next_write:
@@ -344,6 +361,8 @@ def main(opts) -> int:
         return 2
     opts.road = (opts.crr, opts.cw, opts.wind)
     problem = simulation_road_problem(opts.road)
+    if problem is None and opts.difficulty is not None and not 0.0 <= opts.difficulty <= 100.0:
+        problem = f"--difficulty {opts.difficulty:g} outside [0, 100] %"
     if problem is None and opts.cadence is not None and not 0.0 <= opts.cadence <= CADENCE_FIELD_MAX_RPM:
         problem = f"--cadence {opts.cadence:g} outside [0, {CADENCE_FIELD_MAX_RPM:g}] (the FTMS field)"
     if problem:
@@ -369,8 +388,11 @@ def main(opts) -> int:
             ok = control(app, ftms.OP_TARGET_POWER, struct.pack("<h", round(opts.power)),
                          f"target power {round(opts.power)} W", say)
         elif opts.grade is not None:
-            ok = control(app, ftms.OP_SIMULATION, simulation_param(opts.grade, opts.road),
-                         f"simulation grade {opts.grade:g} %", say)
+            sent = sent_grade_pct(opts.grade, opts.difficulty)
+            ok = control(app, ftms.OP_SIMULATION, simulation_param(sent, opts.road),
+                         f"simulation grade {sent:g} %" + ("" if opts.difficulty is None else
+                                                          f" ({opts.grade:g} % at difficulty {opts.difficulty:g} %)"),
+                         say)
         elif opts.level is not None:
             ok = control(app, ftms.OP_TARGET_RESISTANCE, struct.pack("<h", round(opts.level * 10)),
                          f"resistance level {opts.level:g}", say)
