@@ -231,13 +231,14 @@ def session_mode(k, erg_targets=(90.0, 120.0)):
 
 def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
                       status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None,
-                      modes=None, virtual_mps=None, segment=None, friction=None):
+                      modes=None, virtual_mps=None, segment=None, friction=None, cadence=None):
     """A 1 kHz session of n PlantStates (t = i ms): 100 rad/s, 1 N m of braking (100 W),
     rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()
     (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given (else
     ROAD_MPS, what a controller reports for 100 rad/s on CONFIG_TEXT's bike);
     with ``segment(k)``, a RUNNING SessionStatus every 100 ms in that profile segment;
-    ``friction(k)``: the laws' (B, Tc) the statuses carry (else 0, 0)."""
+    ``friction(k)``: the laws' (B, Tc) the statuses carry (else 0, 0); ``cadence(k)``: the
+    Commands' rider cadence target (else 0)."""
     from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import BatteryState
@@ -280,7 +281,7 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
         if i < n - 1:
             mode, command, target, sat = modes(i) if modes else session_mode(i, erg_targets)
             if i % 100 == 0:
-                c = Command(command=command, mode=mode)
+                c = Command(command=command, mode=mode, cadence_rpm=cadence(i) if cadence else 0.0)
                 c.header.stamp = m.header.stamp
                 sink.write(_full("command"), t_ns, serialize_message(c))
             if status:
@@ -527,6 +528,18 @@ def test_series_for_the_charts(tmp_path):
     coarse = series(d, points=10)
     assert len(coarse["t"]) == 10 and np.allclose(coarse["erg_target"][:2], 90.0)
     assert coarse["E_bat"][-1] == pytest.approx(80.0) and np.allclose(coarse["p_brake"], 100.0)
+
+
+def test_cadence_target_tracking_wherever_a_command_carries_one(tmp_path):
+    """The Commands carry a cadence target of 90 rpm for the first 0.5 s, then none; the crank
+    turns at 95.49 rpm (100 rad/s, gear 10): +5.49 rpm over 0.5 s, in any mode."""
+    from bike_session.report import analyse
+    s = analyse(write_session_bag(tmp_path / "a", cadence=lambda k: 90.0 if k < 500 else 0.0)).summary
+    cad = s["tracking"]["cadence_target"]
+    assert cad["time_s"] == pytest.approx(0.5) and cad["windows"] == 5
+    assert cad["mean"] == pytest.approx(CADENCE - 90.0, rel=1e-9) and cad["mean_target"] == pytest.approx(90.0)
+    assert "tracking cadence_target:" in format_summary(s)
+    assert "cadence_target" not in analyse(write_session_bag(tmp_path / "b")).summary["tracking"]
 
 
 def test_power_accuracy_compares_the_trainers_estimate_with_the_riders_ledger(tmp_path):

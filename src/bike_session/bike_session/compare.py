@@ -172,7 +172,7 @@ def compare(bag_a, bag_b, progress: str | None = None) -> tuple[dict, SessionDat
                         "delta_pct": pct, "digits": digits})
     track = {}
     ta, tb = a["metrics"]["tracking"], b["metrics"]["tracking"]
-    for key in [k for k in ("erg_power", "isokinetic_cadence", "resistance_torque", "slope_speed")
+    for key in [k for k in ("erg_power", "isokinetic_cadence", "resistance_torque", "slope_speed", "cadence_target")
                 if k in ta or k in tb]:
         ra, rb = ta.get(key) or {}, tb.get(key) or {}
         unit = (ra or rb)["unit"]

@@ -36,7 +36,9 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   Tmax, wb, Pmax of the recorded config [N m]; ``slope_speed`` the road speed of the
   batch's mean cadence (wheel radius and virtual gear of the config) - the virtual bike's
   speed (ControllerStatus.virtual_speed_mps) [m/s]: how closely the flywheel followed the
-  virtual bike (statuses without a virtual speed, from older bags, are left out).
+  virtual bike (statuses without a virtual speed, from older bags, are left out);
+  ``cadence_target`` (any mode, wherever a Command carries the rider's cadence target
+  cadence_rpm > 0) crank cadence - that target [rpm].
   ``rms`` / ``max_abs`` / ``mean`` are over ``window_s`` windows that lie wholly in the mode
   (error averaged over the window, which removes the commutation ripple); ``rms_batch`` /
   ``max_abs_batch`` over single batches. A mode_target missing from an older bag is derived
@@ -91,12 +93,15 @@ FAULT_BITS = {
 SESSION_STATES = {0: "WAITING", 1: "RUNNING", 2: "DONE"}
 MODE_NAMES = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinetic", 5: "spindown"}
 MODE_RESISTANCE, MODE_MOTORING, MODE_ERG, MODE_SLOPE, MODE_ISOKINETIC, MODE_SPINDOWN = range(6)
+CADENCE_TARGET = 100          # the bins of the cadence-target tracking (in force in any mode)
 # tracked modes: (mode, key, unit, what is compared)
 TRACKED = (
     (MODE_ERG, "erg_power", "W", "rider's power (braking + friction) vs mode_target"),
     (MODE_ISOKINETIC, "isokinetic_cadence", "rpm", "crank cadence vs mode_target"),
     (MODE_RESISTANCE, "resistance_torque", "N m", "braking torque vs Eq. 3-4 at the command"),
     (MODE_SLOPE, "slope_speed", "m/s", "road speed from the cadence vs the virtual bike's speed"),
+    # not a mode: the rider's cadence target (Command.cadence_rpm) wherever one is in force
+    (CADENCE_TARGET, "cadence_target", "rpm", "crank cadence vs the rider's cadence target"),
 )
 RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 CHUNK = 16384                 # PlantStates decoded per numpy block
@@ -456,7 +461,7 @@ STATUS_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value
                ("friction_nms", "value", NAN), ("dry_friction_nm", "value", NAN))
 STATUS_COLUMNS = 9            # t, mode, command, target, saturated, virtual speed, virtual gear, B, Tc
 COMMAND_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
-                ("command", "value", NAN), ("virtual_gear_ratio", "value", 0.0))
+                ("command", "value", NAN), ("virtual_gear_ratio", "value", 0.0), ("cadence_rpm", "value", 0.0))
 BATTERY_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("voltage", "value", NAN),
                 ("current", "value", NAN), ("percentage", "value", NAN))
 
@@ -480,8 +485,9 @@ def window_bins(bin_s: float) -> int:
 
 BIN_SUMS = ["dt", "e_brake", "e_erg", "e_est", "e_mech", "tq_dt", "rpm_dt", "road_m", "vbus_dt", "ocv_dt", "soc_dt", "ibat_dt",
             "bat_v", "bat_v_n", "bat_pct", "bat_pct_n", "bat_i",
-            *[f"mode_dt{m}" for m in MODE_NAMES], *[f"target_dt{m}" for m in MODE_NAMES],
-            *[f"sat_dt{m}" for m in MODE_NAMES],
+            *[f"mode_dt{m}" for m in (*MODE_NAMES, CADENCE_TARGET)],
+            *[f"target_dt{m}" for m in (*MODE_NAMES, CADENCE_TARGET)],
+            *[f"sat_dt{m}" for m in (*MODE_NAMES, CADENCE_TARGET)],
             *[f"trk_dt{m}" for m, *_ in TRACKED], *[f"err_dt{m}" for m, *_ in TRACKED],
             *[f"err2_dt{m}" for m, *_ in TRACKED]]
 BIN_LAST = ["E_mech", "E_bat", "E_res", "E_loss"]
@@ -616,6 +622,7 @@ class _Analyser:
         self.command_rows: list = []
         self.battery_rows: list = []
         self.command_blocks: list = []
+        self.cadence_blocks: list = []            # (t, the rider's cadence target; 0: none) per Command
         self.plant_carry = None
         self.status_carry = None
         self.gear_shifts = 0                      # changes of the virtual gear in force
@@ -724,6 +731,7 @@ class _Analyser:
             self.command_rows.clear()
             block = np.column_stack([c[:, 0] + c[:, 1] * 1e-9, c[:, 2], c[:, 3]])
             self.command_blocks.append(block)
+            self.cadence_blocks.append(np.column_stack([block[:, 0], c[:, 5]]))
             if not self.use_status:
                 self.status_rows.extend((r[0], r[1], r[2], NAN, False, NAN, g, NAN, NAN)
                                         for r, g in zip(block, c[:, 4]))
@@ -794,6 +802,19 @@ class _Analyser:
             self.status_carry = s[-1:].copy()
             return s
         return self.status_carry if self.status_carry is not None else np.zeros((0, STATUS_COLUMNS))
+
+    def _cadence_targets(self, t0: np.ndarray) -> np.ndarray:
+        """The rider's cadence target in force at each t0 (the latest Command stamped <= t0; 0:
+        none, or no Command yet). Commands are stamped ahead of the batches they rule."""
+        if len(self.cadence_blocks) > 1:
+            self.cadence_blocks = [np.vstack(self.cadence_blocks)]
+        if not self.cadence_blocks or not len(self.cadence_blocks[0]):
+            return np.zeros(len(t0))
+        c = self.cadence_blocks[0]
+        if np.any(np.diff(c[:, 0]) < 0):
+            c = self.cadence_blocks[0] = c[np.argsort(c[:, 0], kind="stable")]
+        idx = np.searchsorted(c[:, 0], t0, side="right") - 1
+        return np.where(idx >= 0, c[np.maximum(idx, 0), 1], 0.0)
 
     def _friction_changes(self, s: np.ndarray) -> None:
         """The laws' friction (B, Tc) as the statuses give it: its first value and each change
@@ -884,6 +905,11 @@ class _Analyser:
         if missing.any():
             target = np.where(missing, target_from_command(mode, command, mc), target)
         cadence_mid = rpm_mid / mc["gear_ratio"]
+        cad_target = self._cadence_targets(t0)
+        has_cad = cad_target > 0
+        if has_cad.any():
+            bins.add(f"mode_dt{CADENCE_TARGET}", b[has_cad], dt[has_cad])
+            bins.add(f"target_dt{CADENCE_TARGET}", b[has_cad], cad_target[has_cad] * dt[has_cad])
         for m in MODE_NAMES:
             sel = mode == m
             if not sel.any():
@@ -894,7 +920,7 @@ class _Analyser:
                 s2 = sel & sat
                 bins.add(f"sat_dt{m}", b[s2], dt[s2])
         for m, *_ in TRACKED:
-            sel = (mode == m) & np.isfinite(target)
+            sel = has_cad if m == CADENCE_TARGET else (mode == m) & np.isfinite(target)
             if m == MODE_SLOPE:
                 sel &= np.isfinite(virtual_mps)
             if not sel.any():
@@ -905,6 +931,8 @@ class _Analyser:
                 err = p_erg[sel] - target[sel]
             elif m == MODE_ISOKINETIC:
                 err = cadence_mid[sel] - target[sel]
+            elif m == CADENCE_TARGET:
+                err = cadence_mid[sel] - cad_target[sel]
             else:
                 err = t_brake[sel] - resistance_torque_nm(command[sel], rpm_mid[sel], mc)
                 cmds, inv = np.unique(np.round(command[sel], 4), return_inverse=True)
@@ -1411,7 +1439,7 @@ def plot_session(data: SessionData, out: pathlib.Path) -> list[pathlib.Path]:
         ax2.step(tc, c[:, 1], where="post", color="tab:gray", lw=0.8, alpha=0.7, label="mode (right axis)")
         ax2.legend(loc="upper left", fontsize=8)
         ax2.set_yticks(list(MODE_NAMES), [MODE_NAMES[m] for m in MODE_NAMES], fontsize=7)
-        ax2.set_ylim(-0.5, 4.5)
+        ax2.set_ylim(-0.5, max(MODE_NAMES) + 0.5)
     axes[0].set(ylabel="command [0..1]", title=f"Session - {title}")
     axes[1].plot(t, s["p_brake"], label="braking", color="tab:blue")
     axes[1].plot(t, s["p_rider"], label="rider", color="tab:green", alpha=0.8)
