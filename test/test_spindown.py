@@ -117,7 +117,7 @@ def test_the_bldc_bike_learns_its_friction_and_erg_then_holds_the_riders_power(c
     assert ctrl.law.friction_nms == pytest.approx(1e-4, rel=0.01) and ctrl.law.dry_friction_nm < 1e-3
     assert ctrl.status()["friction_nms"] == ctrl.law.friction_nms
     assert any("spin-down done" in r.message for r in caplog.records)
-    assert ctrl.status()["rider_instruction"] is None, "the rider pedals on his own again"
+    assert ctrl.law.rider_instruction() is None, "the rider pedals on his own again"
     after = run_offline(cfg, 8.0, lambda t: (200.0 / pmax, MODE_ERG), plant=before["plant"], controller=ctrl)
     t0 = after["time_s"][0]
     assert rider_w(after, t0 + 2.0, t0 + 8.0) == pytest.approx(200.0, abs=1.0)
@@ -138,7 +138,7 @@ def test_the_spmsm_bike_learns_viscous_and_coulomb_friction():
         snap = plant.snapshot()
         snap.update(batch_periods=ctrl.batch_periods)
         duties, relay, buck, status = ctrl.decide(snap)
-        plant.set_rider_cadence(*(status.get("rider_instruction") or (0.0, False)))
+        plant.set_rider_cadence(*(ctrl.law.rider_instruction() or (0.0, False)))
         plant.step_batch(duties, relay, buck)
         if ctrl.law.spindown.phase in (DONE, FAILED):
             break

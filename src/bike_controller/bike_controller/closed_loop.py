@@ -58,7 +58,8 @@ def run_offline(cfg: dict, duration_s: float, command_fn: Callable[[float], tupl
                 ctrl.set_command(*cmd)
                 last_cmd = cmd
         ga, gb, sp, status = ctrl.decide(snap)
-        rider = status.get("rider_instruction")
+        law = getattr(ctrl, "law", None)         # a moded controller (a bare BatchController has no modes)
+        rider = law.rider_instruction() if law is not None else None
         if rider is not None or instructed:
             # a spin-down tells the rider what to do, as the controller node does through DriveCommand
             plant.set_rider_cadence(*(rider or (0.0, False)))

@@ -311,10 +311,8 @@ class ModeLaw:
         return None
 
     def status_fields(self) -> dict:
-        """ControllerStatus fields of the law (friction in force) + the rider's instruction
-        (``rider_instruction``, not a field: the controller node puts it into DriveCommand)."""
-        return {"friction_nms": self.friction_nms, "dry_friction_nm": self.dry_friction_nm,
-                "rider_instruction": self.rider_instruction()}
+        """ControllerStatus fields of the law: the friction in force."""
+        return {"friction_nms": self.friction_nms, "dry_friction_nm": self.dry_friction_nm}
 
     def _spindown_step(self, w: float, dt_s: float) -> int:
         sd = self.spindown

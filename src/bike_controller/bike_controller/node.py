@@ -334,7 +334,7 @@ class ControllerNode(Node):
             torque = -torque                              # motoring positive, like torque_em_nm
         build = msgconv.spmsm_drive_cdr if self.machine == "spmsm" else msgconv.drive_command_cdr
         # the rider is told the Command's cadence, or what a spin-down asks of him
-        rider = status.get("rider_instruction") or (self.rider_cadence_rpm, False)
+        rider = self.ctrl.law.rider_instruction() or (self.rider_cadence_rpm, False)
         drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)), *rider)
         self.pub_drive.publish(drive)
         # ControllerStatus is volatile: with no reader matched (the bare graph, no recorder) it
