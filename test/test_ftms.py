@@ -457,3 +457,21 @@ def test_bike_trainer_sends_grades_as_zwift_does_at_a_trainer_difficulty():
     assert op == ftms.OP_SIMULATION and struct.unpack("<hhBB", param)[1] == -250
     assert "-2.50 % (-10.0 % at difficulty 50 %)" in text
     assert trainer_probe._target_write(MODES["spindown"], 0.0, units)[:2] == (ftms.OP_SPIN_DOWN, b"\x01")
+
+
+def test_the_trainers_power_meter_counts_brake_friction_and_flywheel():
+    """E = int (-T_em w + (B w + Tc) w) dt + 1/2 J w^2: a 100 W brake at 100 rad/s with B 1e-3
+    (10 W) for 1 s is 110 J; spinning up to 110 rad/s adds 1/2 J (110^2 - 100^2) = 10.5 J; a
+    spin-down's new figure counts from then on; a stamp going back (a new run) adds nothing."""
+    from bike_session.ftms_node import TrainerPowerMeter
+    meter = TrainerPowerMeter(0.01, (1e-3, 0.0, 1.0))
+    for k in range(1001):
+        e = meter.add(k * 1_000_000, -1.0, 100.0)
+    assert e == pytest.approx(110.0, rel=1e-9)
+    e0 = e
+    e = meter.add(1_001_000_000, 0.0, 110.0)
+    assert e - e0 == pytest.approx(0.5 * 0.01 * (110.0 ** 2 - 100.0 ** 2) + 1e-3 * 105.0 ** 2 * 1e-3, rel=1e-9)
+    meter.set_friction(2e-3, 0.0)
+    e1 = meter.add(1_002_000_000, 0.0, 110.0)
+    assert e1 - e == pytest.approx(2e-3 * 110.0 ** 2 * 1e-3, rel=1e-9)
+    assert meter.add(5_000_000, -1.0, 50.0) == e1 and meter.add(5_000_000, math.nan, 50.0) == e1

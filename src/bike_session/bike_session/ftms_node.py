@@ -7,8 +7,10 @@ app (Zwift, FulGaz, Rouvy, Wahoo SYSTM, MyWhoosh, QZ, ...) rides it over Wahoo D
   ``live_command``, which the session node puts in its timeline from the next Command not
   yet sent (so one writer of ``command`` stays, and the bag and ``./bike replay`` have them).
 - Every ``ftms.notify_period_s`` wall seconds the app is notified of Indoor Bike Data from the
-  graph: power = the rider's mechanical power into the shaft over the interval (the plant's
-  energy ledger, energy_mech_in_j: exact, whatever the batch rate), cadence = flywheel speed
+  graph: power = the trainer's own estimate of the rider's power, as a trainer reports it
+  (:class:`TrainerPowerMeter`: braking power + the bike's friction as the controller models it
+  + the flywheel's energy change; exact when that model is, off when its friction figure is,
+  until a spin-down), cadence = flywheel speed
   / load.gear_ratio, speed and distance = the virtual bike's (ControllerStatus.virtual_speed_mps,
   which follows the virtual gear), elapsed = the session's.
 
@@ -57,12 +59,45 @@ def services_for(control: ftms.FtmsControl, telemetry, on_control_point) -> dict
     ]}
 
 
+class TrainerPowerMeter:
+    """What a trainer knows of the rider's energy: its brake's, its modelled losses and its
+    flywheel's kinetic energy, E = int (-T_em w + T_f(w) w) dt + 1/2 J w^2 (T_f: the friction
+    the controller's laws use, bike_controller.modes.erg_power_w; J: the config's inertia). The
+    rider's own is the plant's ledger (energy_mech_in_j); the report's trainer power error
+    compares the two. Plain numbers in (tested without ROS)."""
+
+    def __init__(self, inertia_kgm2: float, friction: tuple[float, float, float]):
+        self.inertia_kgm2 = float(inertia_kgm2)
+        self.friction = friction             # (B, Tc, w_s [r/min]): set_friction follows the controller
+        self.energy_j = 0.0
+        self.last: tuple[int, float, float] | None = None    # (stamp_ns, T_em, w) of the last state
+
+    def set_friction(self, friction_nms: float, dry_friction_nm: float) -> None:
+        self.friction = (float(friction_nms), float(dry_friction_nm), self.friction[2])
+
+    def add(self, stamp_ns: int, torque_em_nm: float, speed_rad_s: float) -> float:
+        """One plant state (in order; T_em the mean over the batch ending at it): the cumulative
+        estimate [J]. A stamp going back (a new run) starts again from there."""
+        from bike_controller.modes import erg_power_w
+        if not (math.isfinite(torque_em_nm) and math.isfinite(speed_rad_s)):
+            return self.energy_j
+        if self.last is not None and stamp_ns > self.last[0]:
+            t0, _, w0 = self.last
+            w_mid = 0.5 * (w0 + speed_rad_s)
+            self.energy_j += (float(erg_power_w(torque_em_nm, w_mid, self.friction)) * (stamp_ns - t0) * 1e-9
+                              + 0.5 * self.inertia_kgm2 * (speed_rad_s * speed_rad_s - w0 * w0))
+        if self.last is None or stamp_ns != self.last[0]:
+            self.last = (stamp_ns, torque_em_nm, speed_rad_s)
+        return self.energy_j
+
+
 class Telemetry:
     """Indoor Bike Data from the plant states, controller status and session status (plain
     numbers in, so it is tested without ROS).
 
-    Power is the rider's mean over whole crank half-turns, the fewest that span
-    ``power_window_s`` of sim time (the energy ledger's difference): the crank torque pulses
+    Power is the mean over whole crank half-turns, the fewest that span ``power_window_s`` of
+    sim time, of the energy it is given (the trainer's estimate of the rider's, from
+    :class:`TrainerPowerMeter`; the plant's ledger would do as well): the crank torque pulses
     twice a turn, and a window of any other length catches part of a pulse (a 1 s window at
     80 rpm holds 2.67 pulses and read 251-273 W for a steady 258 W). Power meters average over
     whole turns for the same reason. The turns are the cadence integrated over every plant
@@ -156,15 +191,17 @@ class Telemetry:
 
 
 def _bike_figures(config_path: str):
-    """(ModeUnits, gear ratio) of the config; SetupError names what is wrong."""
+    """(ModeUnits, gear ratio, TrainerPowerMeter) of the config; SetupError names what is wrong."""
     from bike_plant.config import ConfigError, load_config
 
-    from bike_controller.modes import machine_figures
+    from bike_controller.modes import friction_figures, machine_figures
     from bike_session.profiles import mode_units_from_config
     try:
         cfg = load_config(config_path or None)
-        return mode_units_from_config(cfg), machine_figures(cfg).gear_ratio
-    except (ConfigError, ValueError) as exc:
+        inertia = float((cfg.get("mechanics") or {}).get("inertia_kgm2", 0.01))
+        return (mode_units_from_config(cfg), machine_figures(cfg).gear_ratio,
+                TrainerPowerMeter(inertia, friction_figures(cfg)))
+    except (ConfigError, ValueError, TypeError) as exc:
         raise SetupError(f"bad config: {exc}") from None
 
 
@@ -215,7 +252,7 @@ def _make_node_class():
                 raise SetupError(f"parameter ftms.port must be an integer 0..65535, got {port!r}")
             if isinstance(period, bool) or not isinstance(period, (int, float)) or not 0.02 <= period <= 10:
                 raise SetupError(f"parameter ftms.notify_period_s must be 0.02..10 s, got {period!r}")
-            units, gear_ratio = _bike_figures(config_path)
+            units, gear_ratio, self.meter = _bike_figures(config_path)
             self.control = ftms.FtmsControl(units)
             self.telemetry = Telemetry(gear_ratio)
             self.pending_status: list[bytes] = []
@@ -310,6 +347,13 @@ def _make_node_class():
         def _notify(self) -> None:
             states = _take_all(self.sub_plant)
             self.status_raw = (_take_all(self.sub_status) or [self.status_raw])[-1]
+            try:
+                st = self._status_codec.decode(self.status_raw)[3] if self.status_raw is not None else {}
+            except self._CdrError as exc:
+                self._log(f"a controller status that does not decode: {exc}", True)
+                st = {}
+            if "friction_nms" in st:              # the laws' friction in force (a spin-down moves it)
+                self.meter.set_friction(float(st["friction_nms"]), float(st.get("dry_friction_nm", 0.0)))
             bad = None
             for raw in states:
                 try:
@@ -317,18 +361,14 @@ def _make_node_class():
                 except self._CdrError as exc:
                     bad = exc
                     continue
-                self.telemetry.add_sample(view.stamp_ns, float(view.snap["energy_mech_in_j"]),
-                                          float(view.snap["speed_rpm"]))
+                energy = self.meter.add(view.stamp_ns, float(view.snap["torque_em_nm"]),
+                                        float(view.snap["speed_rad_s"]))
+                self.telemetry.add_sample(view.stamp_ns, energy, float(view.snap["speed_rpm"]))
                 self.plant_view = view
             if bad is not None:
                 self._log(f"a plant state that does not decode: {bad}", True)
             if self.plant_view is None:
                 return
-            try:
-                st = self._status_codec.decode(self.status_raw)[3] if self.status_raw is not None else {}
-            except self._CdrError as exc:
-                self._log(f"a controller status that does not decode: {exc}", True)
-                st = {}
             progress = self.control.spin_down_progress(int(st.get("mode", 0)), float(st.get("mode_target", 0.0)))
             if progress is not None:                 # the controller's spin-down moved on: to every app
                 self._log(f"FTMS {ftms.SPIN_DOWN_NAMES[progress[1]]}", progress[1] == ftms.SPIN_DOWN_ERROR)
@@ -336,7 +376,7 @@ def _make_node_class():
             view = self.plant_view
             state = view.snap
             level = 100.0 * st.get("command", 0.0) if st.get("mode", 0) == 0 else 0.0
-            self.telemetry.update(stamp_ns=view.stamp_ns, energy_mech_in_j=float(state["energy_mech_in_j"]),
+            self.telemetry.update(stamp_ns=view.stamp_ns, energy_mech_in_j=self.meter.energy_j,
                                   speed_rpm=float(state["speed_rpm"]),
                                   virtual_speed_mps=float(st.get("virtual_speed_mps", 0.0)),
                                   resistance_level=level, elapsed_s=self.session_elapsed_s)
