@@ -394,6 +394,7 @@ def test_erg_power_counts_the_bikes_friction(tmp_path):
     assert [f["t"] for f in s["friction"]] == [0.0, 0.2]
     text = format_summary(s)
     assert "friction (the laws'): B 0.000e+00 N m s, Tc 0.0000 N m; then B 1.000e-03 N m s, Tc 0.0200 N m from 0.2 s" in text
+    assert "(to keep it, in the config: modes: {friction_nms: 0.001, dry_friction_nm: 0.02})" in text
     # an older bag's statuses have no friction: the config's figures, modes.friction_nms first
     config = CONFIG_TEXT.replace("friction_nms: 0.0", "friction_nms: 5.0e-4")
     erg = analyse(_old_status_bag(tmp_path / "c", config_text=config)).summary["tracking"]["erg_power"]

@@ -1312,6 +1312,10 @@ def format_summary(summary: dict) -> str:
                             for f in friction[1:])
         lines.append(f"friction (the laws'): B {friction[0]['friction_nms']:.3e} N m s, Tc "
                      f"{friction[0]['dry_friction_nm']:.4f} N m; then {changes}")
+        last = friction[-1]
+        # the controller forgets a spin-down when it stops: a config keeps it
+        lines.append(f"  (to keep it, in the config: modes: {{friction_nms: {last['friction_nms']:.4g}, "
+                     f"dry_friction_nm: {last['dry_friction_nm']:.4g}}})")
     for key, r in (s.get("tracking") or {}).items():
         lines.append(f"tracking {key + ':':<19} rms {_fmt(r.get('rms'), r['unit'], 3)}, max {_fmt(r.get('max_abs'), r['unit'], 3)}"
                      f" ({r['window_s']:g} s windows; per batch rms {_fmt(r.get('rms_batch'), '', 3)},"
