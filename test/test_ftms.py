@@ -135,21 +135,25 @@ def test_spin_down_control_starts_the_procedure_and_its_status_follows_the_contr
     the controller's phases are not reported."""
     units = dataclasses.replace(UNITS, spindown_kmh=(20.5, 29.04))
     control = ftms.FtmsControl(units)
-    assert control.spin_down_progress(MODES["spindown"], 2.0) is None
+    assert control.spin_down_progress(MODES["spindown"], 2.0) == []
     control.write(cp(ftms.OP_REQUEST_CONTROL))
     reply = control.write(bytes([ftms.OP_SPIN_DOWN, 1]))
     assert reply.response == bytes([0x80, 0x13, ftms.RESULT_SUCCESS]) + struct.pack("<HH", 2050, 2904)
     assert reply.status == bytes([ftms.STATUS_SPIN_DOWN, ftms.SPIN_DOWN_REQUESTED])
     assert reply.target.mode == MODES["spindown"] and "29.0 km/h" in reply.message
     assert struct.unpack("<II", ftms.encode_feature())[1] & ftms.TARGET_SPIN_DOWN
-    assert control.spin_down_progress(MODES["erg"], 2.0) is None            # the live Command not in force yet
-    assert control.spin_down_progress(MODES["spindown"], 1.0) is None        # spinning up: said already
-    assert control.spin_down_progress(MODES["spindown"], 2.0) == bytes([0x14, ftms.SPIN_DOWN_STOP_PEDALLING])
-    assert control.spin_down_progress(MODES["spindown"], 2.0) is None
-    assert control.spin_down_progress(MODES["spindown"], 3.0) == bytes([0x14, ftms.SPIN_DOWN_SUCCESS])
-    assert control.spin_down_progress(MODES["spindown"], 3.0) is None        # done: said once
+    assert control.spin_down_progress(MODES["erg"], 2.0) == []              # the live Command not in force yet
+    assert control.spin_down_progress(MODES["spindown"], 1.0) == []          # spinning up: said already
+    assert control.spin_down_progress(MODES["spindown"], 2.0) == [bytes([0x14, ftms.SPIN_DOWN_STOP_PEDALLING])]
+    assert control.spin_down_progress(MODES["spindown"], 2.0) == []
+    assert control.spin_down_progress(MODES["spindown"], 3.0) == [bytes([0x14, ftms.SPIN_DOWN_SUCCESS])]
+    assert control.spin_down_progress(MODES["spindown"], 3.0) == []          # done: said once
     control.write(bytes([ftms.OP_SPIN_DOWN, 1]))
-    assert control.spin_down_progress(MODES["spindown"], 4.0) == bytes([0x14, ftms.SPIN_DOWN_ERROR])
+    assert control.spin_down_progress(MODES["spindown"], 4.0) == [bytes([0x14, ftms.SPIN_DOWN_ERROR])]
+    # a coast between two notifications: "stop pedalling" still comes before the success
+    control.write(bytes([ftms.OP_SPIN_DOWN, 1]))
+    assert control.spin_down_progress(MODES["spindown"], 3.0) == [bytes([0x14, ftms.SPIN_DOWN_STOP_PEDALLING]),
+                                                                  bytes([0x14, ftms.SPIN_DOWN_SUCCESS])]
     ignore = control.write(bytes([ftms.OP_SPIN_DOWN, 2]))
     assert ignore.response == bytes([0x80, 0x13, ftms.RESULT_SUCCESS]) and ignore.target is None
     for bad in (bytes([ftms.OP_SPIN_DOWN, 3]), bytes([ftms.OP_SPIN_DOWN])):

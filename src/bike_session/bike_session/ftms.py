@@ -434,17 +434,22 @@ class FtmsControl:
         self.spindown_said = SPIN_DOWN_REQUESTED
         return reply
 
-    def spin_down_progress(self, mode: int, phase: float) -> bytes | None:
-        """The Fitness Machine Status for the controller's spin-down (ControllerStatus: mode
-        spindown, mode_target its phase, bike_controller.spindown): "stop pedalling" at the
-        coast, then success or error; each once, and only after an app asked for it."""
+    def spin_down_progress(self, mode: int, phase: float) -> list[bytes]:
+        """The Fitness Machine Status notifications for the controller's spin-down
+        (ControllerStatus: mode spindown, mode_target its phase, bike_controller.spindown):
+        "stop pedalling" at the coast, then success or error; each once, and only after an app
+        asked for it. A coast shorter than the notification period (the SPMSM bike's 0.4 s)
+        still gets its "stop pedalling" before the success."""
         if self.spindown_said is None or mode != MODES["spindown"]:
-            return None
+            return []
         value = {2: SPIN_DOWN_STOP_PEDALLING, 3: SPIN_DOWN_SUCCESS, 4: SPIN_DOWN_ERROR}.get(int(phase))
         if value is None or value == self.spindown_said:
-            return None
+            return []
+        out = []
+        if value == SPIN_DOWN_SUCCESS and self.spindown_said != SPIN_DOWN_STOP_PEDALLING:
+            out.append(bytes([STATUS_SPIN_DOWN, SPIN_DOWN_STOP_PEDALLING]))
         self.spindown_said = None if value in (SPIN_DOWN_SUCCESS, SPIN_DOWN_ERROR) else value
-        return bytes([STATUS_SPIN_DOWN, value])
+        return out + [bytes([STATUS_SPIN_DOWN, value])]
 
     def _reset(self, op, name, param) -> Reply:
         self.controlled = False

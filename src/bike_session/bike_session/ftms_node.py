@@ -369,8 +369,8 @@ def _make_node_class():
                 self._log(f"a plant state that does not decode: {bad}", True)
             if self.plant_view is None:
                 return
-            progress = self.control.spin_down_progress(int(st.get("mode", 0)), float(st.get("mode_target", 0.0)))
-            if progress is not None:                 # the controller's spin-down moved on: to every app
+            # the controller's spin-down moved on: to every app
+            for progress in self.control.spin_down_progress(int(st.get("mode", 0)), float(st.get("mode_target", 0.0))):
                 self._log(f"FTMS {ftms.SPIN_DOWN_NAMES[progress[1]]}", progress[1] == ftms.SPIN_DOWN_ERROR)
                 self.server.broadcast(ftms.STATUS, progress)
             view = self.plant_view
