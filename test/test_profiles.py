@@ -348,3 +348,19 @@ def test_a_spindown_segment_needs_no_value_and_other_modes_still_do():
     assert [(s.mode, s.start) for s in p.segments] == [(MODES["erg"], 0.2), (MODES["spindown"], 0.0)]
     with pytest.raises(ProfileError, match="missing key 'command'"):
         parse_profile_text("segments:\n  - {kind: step, mode: erg, duration_s: 3}\n")
+
+
+def test_every_profile_in_config_loads_on_its_bike():
+    """The example profiles users start from load with the default bike's ranges (targets in
+    W / % / rpm need them); the spin-down example gives the coast room (50 s: ~35 s on the BLDC
+    flywheel from 94 to 60 rpm)."""
+    from bike_plant.config import load_config
+    from bike_session.profiles import mode_units_from_config
+    units = mode_units_from_config(load_config(ROOT / "config" / "bldc_default.yaml"))
+    names = sorted(p.name for p in (ROOT / "config" / "profiles").glob("*.yaml"))
+    assert "spindown.yaml" in names
+    for name in names:
+        assert load_profile(ROOT / "config" / "profiles" / name, units=units).duration_s > 0, name
+    spin = load_profile(ROOT / "config" / "profiles" / "spindown.yaml", units=units)
+    assert [s.mode for s in spin.segments] == [MODES["erg"], MODES["spindown"], MODES["erg"]]
+    assert spin.segments[1].duration_s >= 50.0
