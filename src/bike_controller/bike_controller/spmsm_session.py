@@ -149,15 +149,11 @@ class ModedSpmsmController(SessionCommand):
         tmax, base = fig.tmax_nm, fig.base_speed_rpm
         try:
             mp = mode_params_from_config(cfg)
-        except ValueError as exc:
-            from bike_plant.config import ConfigError
-            raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
-        self.gear = float(nominal.load.gear_ratio)
-        try:
             b_nms, dry_nm, dry_rpm = friction_figures(cfg)
         except ValueError as exc:
             from bike_plant.config import ConfigError
             raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
+        self.gear = float(nominal.load.gear_ratio)
         self.law = ModeLaw(mp, gear_ratio=self.gear, inertia_kgm2=nominal.mech.inertia_kgm2, tmax_nm=tmax,
                            pmax_w=fig.pmax_w, base_speed_rpm=base,
                            # the machine's friction with its Coulomb part (the predictor's

@@ -1215,24 +1215,20 @@ def _rider(state, p, c, omega, dt):
     inv_gear = c[KC_INV_GEAR]
     cad = omega * inv_gear
     if p[P.P_RIDER_TARGET] <= 0.0:
-        # stops pedalling (a spin-down's coast): no torque, the cranks turn on with the flywheel
-        state[S_EFFORT] = 0.0
-        crank = state[S_CRANK] + cad * dt
-        if not (0.0 <= crank < TWO_PI):
-            crank = _wrap_angle(crank)
-        state[S_CRANK] = crank
-        return 0.0
-    err = p[P.P_RIDER_TARGET] - cad
-    integ = state[S_RIDER_INT] + p[P.P_RIDER_KI] * err * dt
-    integ = min(max(integ, -1.0), 1.0)
-    effort = p[P.P_RIDER_KP] * err + integ
-    # conditional integration (bike_plant.mechanics.rider_effort_update): the integral holds while
-    # the effort is pinned and the error pushes it further
-    if (effort < 0.0 and err < 0.0) or (effort > 1.0 and err > 0.0):
-        integ = state[S_RIDER_INT]
+        # stops pedalling (a spin-down's coast): no effort, the integral holds, the cranks turn on
+        effort = 0.0
+    else:
+        err = p[P.P_RIDER_TARGET] - cad
+        integ = state[S_RIDER_INT] + p[P.P_RIDER_KI] * err * dt
+        integ = min(max(integ, -1.0), 1.0)
         effort = p[P.P_RIDER_KP] * err + integ
-    state[S_RIDER_INT] = integ
-    effort = min(max(effort, 0.0), 1.0)
+        # conditional integration (bike_plant.mechanics.rider_effort_update): the integral holds
+        # while the effort is pinned and the error pushes it further
+        if (effort < 0.0 and err < 0.0) or (effort > 1.0 and err > 0.0):
+            integ = state[S_RIDER_INT]
+            effort = p[P.P_RIDER_KP] * err + integ
+        state[S_RIDER_INT] = integ
+        effort = min(max(effort, 0.0), 1.0)
     state[S_EFFORT] = effort
     line = 1.0 - cad * c[KC_INV_CADMAX]
     if line < 0.0:

@@ -289,14 +289,20 @@ def spmsm_drive_problem(msg: DriveCommand, batch_periods: int) -> str | None:
                 return f"{name} holds a non-finite value"
             if a.size and (float(a.min()) < 0.0 or float(a.max()) > 1.0):
                 return f"{name} outside [0, 1] ({float(a.min())} .. {float(a.max())})"
-        for name in ("torque_cmd_nm", "current_cmd_a"):
-            if not math.isfinite(getattr(msg, name)):
-                return f"{name} is not finite"
-        problem = rider_cadence_problem(float(msg.rider_cadence_rpm))
-        if problem is not None:
-            return f"rider_cadence_rpm: {problem}"
+        return _drive_scalars_problem(msg)
     except Exception as exc:  # a malformed message must never take the node down
         return f"unreadable DriveCommand ({exc})"
+
+
+def _drive_scalars_problem(msg) -> str | None:
+    """The scalar fields every DriveCommand carries (either machine's): finite setpoints and a
+    rider's cadence target (bike_plant.mechanics.rider_cadence_problem)."""
+    for name in ("torque_cmd_nm", "current_cmd_a"):
+        if not math.isfinite(getattr(msg, name)):
+            return f"{name} is not finite"
+    problem = rider_cadence_problem(float(msg.rider_cadence_rpm))
+    if problem is not None:
+        return f"rider_cadence_rpm: {problem}"
     return None
 
 
@@ -340,15 +346,9 @@ def drive_command_problem(msg: DriveCommand, batch_periods: int) -> str | None:
             return "split holds a non-finite value"
         if code == 4:
             return f"split outside [0, 1] ({float(sp.min())} .. {float(sp.max())})"
-        for name in ("torque_cmd_nm", "current_cmd_a"):
-            if not math.isfinite(getattr(msg, name)):
-                return f"{name} is not finite"
-        problem = rider_cadence_problem(float(msg.rider_cadence_rpm))
-        if problem is not None:
-            return f"rider_cadence_rpm: {problem}"
+        return _drive_scalars_problem(msg)
     except Exception as exc:  # a malformed message must never take the node down
         return f"unreadable DriveCommand ({exc})"
-    return None
 
 
 # ---------------------------------------------------------------- user commands

@@ -161,7 +161,7 @@ class SimBackend:
 
     def apply(self, msg) -> None:
         """A DriveCommand that passed problem(): its arrays go to the kernel as they are."""
-        self.plant.set_rider_cadence(msg.rider_cadence_rpm, stop=bool(getattr(msg, "rider_stops_pedalling", False)))
+        self.plant.set_rider_cadence(msg.rider_cadence_rpm, stop=bool(msg.rider_stops_pedalling))
         self.plant.step_batch(*msgconv.drive_arrays(msg), checked=True)
 
     def __init__(self, cfg: dict, seed: int):
@@ -229,7 +229,7 @@ class SpmsmSimBackend:
 
     def apply(self, msg) -> None:
         duties, relay, buck = msgconv.spmsm_drive_arrays(msg)
-        self.plant.set_rider_cadence(msg.rider_cadence_rpm, stop=bool(getattr(msg, "rider_stops_pedalling", False)))
+        self.plant.set_rider_cadence(msg.rider_cadence_rpm, stop=bool(msg.rider_stops_pedalling))
         self.plant.step_batch(duties, relay, buck)
 
     def safe_batch(self, n: int) -> None:

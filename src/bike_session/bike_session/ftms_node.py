@@ -67,6 +67,8 @@ class TrainerPowerMeter:
     compares the two. Plain numbers in (tested without ROS)."""
 
     def __init__(self, inertia_kgm2: float, friction: tuple[float, float, float]):
+        from bike_controller.modes import erg_power_w
+        self._erg_power_w = erg_power_w          # once, not per plant state (1 kHz)
         self.inertia_kgm2 = float(inertia_kgm2)
         self.friction = friction             # (B, Tc, w_s [r/min]): set_friction follows the controller
         self.energy_j = 0.0
@@ -78,13 +80,12 @@ class TrainerPowerMeter:
     def add(self, stamp_ns: int, torque_em_nm: float, speed_rad_s: float) -> float:
         """One plant state (in order; T_em the mean over the batch ending at it): the cumulative
         estimate [J]. A stamp going back (a new run) starts again from there."""
-        from bike_controller.modes import erg_power_w
         if not (math.isfinite(torque_em_nm) and math.isfinite(speed_rad_s)):
             return self.energy_j
         if self.last is not None and stamp_ns > self.last[0]:
             t0, _, w0 = self.last
             w_mid = 0.5 * (w0 + speed_rad_s)
-            self.energy_j += (float(erg_power_w(torque_em_nm, w_mid, self.friction)) * (stamp_ns - t0) * 1e-9
+            self.energy_j += (float(self._erg_power_w(torque_em_nm, w_mid, self.friction)) * (stamp_ns - t0) * 1e-9
                               + 0.5 * self.inertia_kgm2 * (speed_rad_s * speed_rad_s - w0 * w0))
         if self.last is None or stamp_ns != self.last[0]:
             self.last = (stamp_ns, torque_em_nm, speed_rad_s)
