@@ -3,6 +3,7 @@ graph (separate processes, DDS, real time, recorded) with the bridge node; this 
 on a real TCP connection. Its target power reaches the controller as live ERG Commands through
 the session (so they are in the bag), the Indoor Bike Data it is notified of come from the
 running plant, and a second connection that sends garbage is closed without harming the ride."""
+import json
 import pathlib
 import socket
 import struct
@@ -186,18 +187,23 @@ def test_an_apps_spin_down_teaches_the_bike_its_friction(tmp_path, ros_domain):
     """`./bike trainer --spindown` against `./bike run --ftms` on the SPMSM bike, whose controller
     was told half its viscous friction and none of its Coulomb friction: Spin Down Control
     starts the procedure, the app gets the target speeds, "stop pedalling" and "success" as
-    the controller goes through it, and the statuses in the bag carry the friction it found."""
+    the controller goes through it, and the statuses in the bag carry the friction it found.
+    The controller keeps it in the --calibration file, and the next run rides with it from its
+    first batch (the recorded config carries it) while the plant's true friction is untouched."""
     import yaml
     doc = yaml.safe_load((ROOT / "config" / "spmsm_default.yaml").read_text())
     doc["/**"]["ros__parameters"].setdefault("modes", {}).update(friction_nms=0.0025, dry_friction_nm=0.0)
+    session = doc["/**"]["ros__parameters"]["session"]
+    session["profile"] = str(ROOT / "config" / session["profile"])      # the copy's own profile
     config = tmp_path / "spmsm.yaml"
     config.write_text(yaml.safe_dump(doc, sort_keys=False))
     port = _free_port()
     record = tmp_path / "rec"
+    calibration = tmp_path / "trainer" / "calibration.yaml"
     done = {}
     run = threading.Thread(target=lambda: done.update(r=bike_command(
         "run", "--config", str(config), "--ftms", "--ftms-port", str(port), "--duration", "14",
-        "--record", str(record))))
+        "--record", str(record), "--calibration", str(calibration))))
     run.start()
     try:
         _connect(port, run).close()
@@ -214,3 +220,20 @@ def test_an_apps_spin_down_teaches_the_bike_its_friction(tmp_path, ros_domain):
     assert (status[0].friction_nms, status[0].dry_friction_nm) == (0.0025, 0.0)
     assert status[-1].friction_nms == pytest.approx(0.005, rel=0.05)
     assert status[-1].dry_friction_nm == pytest.approx(0.1, rel=0.05)
+    assert "no calibration in" in result.stdout and "spin-down calibration saved to" in result.stderr + result.stdout
+    saved = yaml.safe_load(calibration.read_text())
+    assert (saved["machine"], saved["modes"]) == ("spmsm", {"friction_nms": status[-1].friction_nms,
+                                                           "dry_friction_nm": status[-1].dry_friction_nm})
+    # the next run: the calibration's figures from the start
+    again = bike_command("run", "--config", str(config), "--duration", "1", "--record", str(tmp_path / "rec2"),
+                         "--calibration", str(calibration))
+    assert again.returncode == 0, (again.stdout + again.stderr)[-5000:]
+    assert "friction from the calibration" in again.stdout, again.stdout[-3000:]
+    bag2 = next((tmp_path / "rec2").iterdir())
+    status2 = read_topic(bag2, "/bike/controller_status")
+    assert {(s.friction_nms, s.dry_friction_nm) for s in status2} == {(saved["modes"]["friction_nms"],
+                                                                     saved["modes"]["dry_friction_nm"])}
+    info = json.loads(read_topic(bag2, "/bike/session_info")[0].data)
+    params = yaml.safe_load(info["config_text"])["/**"]["ros__parameters"]
+    assert params["modes"]["friction_nms"] == saved["modes"]["friction_nms"]
+    assert params["spmsm"] == doc["/**"]["ros__parameters"]["spmsm"]          # the plant's truth untouched

@@ -236,6 +236,7 @@ class ModeLaw:
         self.brake_only_holds = 0             # ramp steps of ERG / resistance held at 0 instead of motoring
         self.spindown = SpinDown(mp.spindown_params(), self.inertia_kgm2, self.gear_ratio)
         self.measured_em_torque_nm = 0.0      # of the batch that led to the speed in hand
+        self.sensor_sample = None             # (time, speed) of the machine's speed sensor, that batch
         self.spindown_command = None          # the value that tagged the last spin-down request
         self.reset()
 
@@ -317,7 +318,8 @@ class ModeLaw:
     def _spindown_step(self, w: float, dt_s: float) -> int:
         sd = self.spindown
         before = sd.phase
-        phase = sd.step(w, dt_s, self.measured_em_torque_nm, released=self.offset_nm == 0.0)
+        phase = sd.step(w, dt_s, self.measured_em_torque_nm, released=self.offset_nm == 0.0,
+                        sample=self.sensor_sample)
         if phase != before and phase == DONE:
             old = (self.friction_nms, self.dry_friction_nm)
             r = sd.result
@@ -462,7 +464,8 @@ class ModeLaw:
         raise ValueError(f"unknown mode {mode!r}")
 
     def step(self, command: float, mode: int, speed_rpm: float, dt_s: float,
-             speed_valid: bool = True, measured_em_torque_nm: float | None = None) -> ModeOutput:
+             speed_valid: bool = True, measured_em_torque_nm: float | None = None,
+             sensor_sample: tuple[float, float] | None = None) -> ModeOutput:
         """One batch: the torque for the next ``dt_s`` seconds from the speed estimate.
 
         ``speed_valid`` False (no speed estimate yet, e.g. before the second Hall edge):
@@ -471,7 +474,9 @@ class ModeLaw:
         measured over the batch that led to ``speed_rpm`` (PlantState.torque_em_nm, motoring
         positive, as :meth:`TorqueTrim.correct` takes it); the virtual bike's rider-torque
         observer brakes with its negative, so a brake the machine could not give is not taken
-        for the rider's torque. None (or not finite): the law's own last output."""
+        for the rider's torque. None (or not finite): the law's own last output.
+        ``sensor_sample``: (time [s], motor speed [rad/s]) measured by the machine's speed sensor
+        over the batch (spindown.EncoderSpeed), which the spin-down's fit takes when given."""
         if not (math.isfinite(command) and 0.0 <= command <= 1.0):
             raise ValueError(f"command must be in [0, 1], got {command!r}")
         if mode not in MODE_NAMES:
@@ -481,6 +486,7 @@ class ModeLaw:
         w = max(speed_rpm, 0.0) / RPM_PER_RAD_S
         measured = measured_em_torque_nm is not None and math.isfinite(measured_em_torque_nm)
         self.measured_em_torque_nm = float(measured_em_torque_nm) if measured else -self.torque_nm
+        self.sensor_sample = sensor_sample
         if dt_s > 0:
             self._observe(w, dt_s, -self.measured_em_torque_nm)
         switched = self.last_mode is not None and mode != self.last_mode

@@ -68,11 +68,14 @@ CONTROLLER_DEFAULTS = {
     "session": {"period_s": 0.1},
     "recorder_window_batches": 0,
     "busy_wait_s": LOCKSTEP_BUSY_WAIT_S,
+    "calibration_file": "",
 }
 CONTROLLER_DESCRIPTIONS = {
     "busy_wait_s": ("lockstep: poll for the next PlantState this many wall seconds before blocking (0 = block at once; "
                     "held at 0 while a third node reads drive_command or controller_status)"),
     "diagnostics_period_s": "publish an OK diagnostic at least this often [wall s]",
+    "calibration_file": ("write a successful spin-down's friction into this file (bike_controller.calibration; "
+                         "./bike run --calibration); empty: nowhere"),
     "recorder_window_batches": "lockstep, > 0 while recording (./bike run --record): the first answer waits until the "
                                "recorder's readers of drive_command and controller_status are matched",
 }
@@ -99,6 +102,8 @@ class ControllerNode(Node):
         self.diag_period_s = _positive(cfg.get("diagnostics_period_s"), "diagnostics_period_s", path)
         busy = number_param(cfg, "busy_wait_s", float, 0.0, path)
         self.busy_wait_s = busy if self.sync_mode == "lockstep" else 0.0     # realtime never polls
+        self.calibration_file = str(cfg.get("calibration_file") or "")
+        self.saved_spindown = None         # the spin-down result last written there
         self.machine = str(cfg.get("machine", "bldc"))
         if self.machine == "spmsm":
             from .spmsm_session import ModedSpmsmController
@@ -345,6 +350,8 @@ class ControllerNode(Node):
             self.pub_status.publish(stat)
         self.cached = (int(msg.seq), drive, stat)
         self.last_seq = int(msg.seq)
+        if self.calibration_file and self.ctrl.law.spindown.result is not self.saved_spindown:
+            self._save_calibration(t_ns)
         self.pending = None
         self.stats["answered"] += 1
         now = time.monotonic()
@@ -355,6 +362,25 @@ class ControllerNode(Node):
                 # repeated while it lasts: a monitor that matched after the one-off warning sees it too
                 level, text = DiagnosticStatus.WARN, "session silent: no Command received; riding on command0 / mode0"
             self._publish_diag(level, text, t_ns)
+
+    def _save_calibration(self, t_ns: int) -> None:
+        """A spin-down just succeeded: keep its friction for the next run, as a trainer does. A
+        file that cannot be written is said (ERROR log, WARN diagnostic); the ride goes on."""
+        from .calibration import write_calibration
+
+        result = self.saved_spindown = self.ctrl.law.spindown.result
+        if result is None:                # a new procedure started: nothing learnt yet
+            return
+        try:
+            path = write_calibration(self.calibration_file, self.machine, result, sim_time_s=t_ns * 1e-9,
+                                     config_path=str(self.cfg.get("_config_path") or ""))
+        except OSError as exc:
+            text = f"spin-down calibration not saved to {self.calibration_file}: {exc.strerror or exc}"
+            self.get_logger().error(text)
+            self._publish_diag(DiagnosticStatus.WARN, text, t_ns)
+            return
+        self.get_logger().info(f"spin-down calibration saved to {path} (B {result.friction_nms:.4g} N m s, "
+                               f"Tc {result.dry_friction_nm:.4g} N m): ./bike run --calibration {path} rides with it")
 
     def _say_t0_held(self, t_ns: int) -> None:
         """Realtime, no Command at all: the plant re-publishes the held t = 0 every 0.1 s, and

@@ -18,7 +18,11 @@ and 5: ~10 % error on magnetic trainers without it). The procedure, batch by bat
    linear in (w_0, B, Tc): integrals of the measured speed, no differentiation of a quantised
    estimate, and a speed estimate's constant lag scales w_0 and the integral alike. J is the
    controller's nominal inertia. A negative coefficient (noise on a bike without Coulomb
-   friction) is refitted as 0.
+   friction) is refitted as 0. The samples are the machine's speed sensor where the law has
+   one (:class:`EncoderSpeed`: the SPMSM bike's encoder), not its speed observer: an observer
+   lags a torque it does not model, and the rider's stopping is one (the SPMSM's 5 Hz observer
+   read 1 % high for 0.15 s after it, and a coast that began 0.1 s later gave B 57 % high and
+   Tc 81 % low). The BLDC bike's Hall-edge estimate is itself such a measurement.
    FAILED: the rider did not reach the top cadence within ``spin_up_timeout_s``, the coast
    took longer than ``coast_timeout_s``, or the flywheel sped up while coasting (the rider
    pedalled): nothing is learnt, and the reason is given.
@@ -109,6 +113,30 @@ def fit_coast(time_s, speed_rad_s, torque_em_nm, inertia_kgm2: float) -> SpinDow
                           float(t_rel[-1]), int(t.size), rms)
 
 
+class EncoderSpeed:
+    """The M/T speed of an incremental encoder, batch to batch: the counts between the last
+    edge of this batch and the last edge before it, over their capture-timer times (the
+    drive's own clock, bike_plant.spmsm's ``encoder_edge_ticks``). A measurement (to the
+    timer's tick), dated at the middle of its interval, for the spin-down's fit."""
+
+    def __init__(self, counts_per_rev: int, capture_timer_hz: float):
+        self.rad_per_count = 2.0 * math.pi / counts_per_rev
+        self.capture_timer_hz = float(capture_timer_hz)
+        self.ref: tuple[int, int] | None = None      # (count, ticks) of the last edge used
+
+    def sample(self, count: int, edge_ticks: int) -> tuple[float, float] | None:
+        """(time [s] on the timer's clock, mean speed [rad/s]) since the last edge used; None
+        for the first call and for a batch without a new edge."""
+        ref, self.ref = self.ref, (count, edge_ticks)
+        if ref is None:
+            return None
+        if count == ref[0] or edge_ticks <= ref[1]:
+            self.ref = ref                           # no new edge: keep the old one
+            return None
+        span_s = (edge_ticks - ref[1]) / self.capture_timer_hz
+        return 0.5 * (edge_ticks + ref[1]) / self.capture_timer_hz, (count - ref[0]) * self.rad_per_count / span_s
+
+
 class SpinDown:
     """The procedure's state machine at batch rate (module docstring); :meth:`step` per batch."""
 
@@ -130,6 +158,7 @@ class SpinDown:
         self.tem: list[float] = []
         self.min_cadence_rpm = math.inf
         self.above_s = 0.0
+        self.sensed = False           # the coast is sampled by a speed sensor (:meth:`step`'s sample)
 
     @property
     def running(self) -> bool:
@@ -152,10 +181,14 @@ class SpinDown:
         self.phase, self.reason = FAILED, reason
         return self.phase
 
-    def step(self, speed_rad_s: float, dt_s: float, torque_em_nm: float = 0.0, released: bool = True) -> int:
+    def step(self, speed_rad_s: float, dt_s: float, torque_em_nm: float = 0.0, released: bool = True,
+             sample: tuple[float, float] | None = None) -> int:
         """One batch: the motor speed estimate and the mean electromagnetic torque (motoring
         positive) of the batch that led to it; ``released``: the brake has let go (no ramp
-        left). Returns the phase."""
+        left); ``sample``: (time [s], motor speed [rad/s]) from a speed sensor
+        (:class:`EncoderSpeed`), which the coast then takes instead of the estimate and the
+        procedure's clock; once a run had one, a batch without one adds no sample. Returns the
+        phase."""
         if not self.running:
             return self.phase
         p = self.params
@@ -174,15 +207,21 @@ class SpinDown:
                                   f"{p.spin_up_timeout_s:g} s (he rode at {cadence_rpm:.1f} rpm)")
             return self.phase
         # COAST: samples from the top cadence down to the bottom one
+        t_s = self.elapsed_s
+        if sample is not None:
+            self.sensed = True
+            t_s, speed_rad_s = sample
+            cadence_rpm = speed_rad_s * RPM_PER_RAD_S / self.gear_ratio
+        elif self.sensed:
+            return self._coast_timeout(cadence_rpm) or self.phase
         if cadence_rpm > self.min_cadence_rpm + SPED_UP_RPM:
             return self._fail(f"the flywheel sped up while coasting ({self.min_cadence_rpm:.1f} -> "
                               f"{cadence_rpm:.1f} rpm): the rider pedalled")
-        if self.phase_s > p.coast_timeout_s:
-            return self._fail(f"the coast from {p.high_cadence_rpm:g} to {p.low_cadence_rpm:g} rpm took "
-                              f"more than {p.coast_timeout_s:g} s (at {cadence_rpm:.1f} rpm)")
+        if self._coast_timeout(cadence_rpm):
+            return self.phase
         if cadence_rpm <= p.high_cadence_rpm:
             self.min_cadence_rpm = min(self.min_cadence_rpm, cadence_rpm)
-            self.t.append(self.elapsed_s)
+            self.t.append(t_s)
             self.w.append(speed_rad_s)
             self.tem.append(torque_em_nm)
         if cadence_rpm <= p.low_cadence_rpm:
@@ -192,3 +231,11 @@ class SpinDown:
                 return self._fail(str(exc))
             self.phase = DONE
         return self.phase
+
+    def _coast_timeout(self, cadence_rpm: float) -> int:
+        """FAILED when the coast has lasted too long, else 0."""
+        p = self.params
+        if self.phase_s > p.coast_timeout_s:
+            return self._fail(f"the coast from {p.high_cadence_rpm:g} to {p.low_cadence_rpm:g} rpm took "
+                              f"more than {p.coast_timeout_s:g} s (at {cadence_rpm:.1f} rpm)")
+        return 0

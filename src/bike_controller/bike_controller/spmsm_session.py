@@ -39,6 +39,7 @@ from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, MODE_SPI
                     friction_figures, machine_figures, mode_params_from_config)
 from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status
 from .spmsm_control import C_IQ_REF, SpmsmController, controller_params_from_config
+from .spindown import EncoderSpeed
 
 _log = logging.getLogger(__name__)
 
@@ -160,6 +161,8 @@ class ModedSpmsmController(SessionCommand):
                            # nominal model is the paper's ideal machine, without it)
                            friction_nms=b_nms, dry_friction_nm=dry_nm, dry_friction_speed_rpm=dry_rpm,
                            brake_envelope=fig.brake_envelope)
+        # the encoder as the spin-down's speed sensor (its fit must not see the observer's lag)
+        self.encoder_speed = EncoderSpeed(nominal.encoder.counts_per_rev, nominal.encoder.capture_timer_hz)
         # for the node's log at start-up
         self.startup_note = envelope_summary(fig.brake_envelope, self.gear) if fig.brake_envelope else ""
         self.family = cp.family
@@ -188,9 +191,10 @@ class ModedSpmsmController(SessionCommand):
     def batch_periods(self) -> int:
         return self.inner.batch_periods
 
-    def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm) -> None:
+    def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm, sensor_sample=None) -> None:
         inner = self.inner
-        out = self.law.step(self.command, self.mode, speed_rpm, dt_s, measured_em_torque_nm=measured_em_torque_nm)
+        out = self.law.step(self.command, self.mode, speed_rpm, dt_s, measured_em_torque_nm=measured_em_torque_nm,
+                            sensor_sample=sensor_sample)
         self.last_out = out
         inner.set_no_assist(self.pack.empty(self.battery_soc))
         full = self._pack_full()
@@ -265,7 +269,8 @@ class ModedSpmsmController(SessionCommand):
             self.started = True
         speed_rpm = float(inner.status()["speed_est_rpm"])
         self.battery_soc = snapshot.get("battery_soc")
-        self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"))
+        sample = self.encoder_speed.sample(snapshot.get("encoder_count", 0), snapshot.get("encoder_edge_ticks", 0))
+        self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"), sample)
         duties, relay, buck, status = inner.decide(model, n_eff)
         return duties, relay, buck, self._status(status)
 

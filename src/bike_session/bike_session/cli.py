@@ -128,6 +128,11 @@ def _cmd_run(opts) -> int:
         return 2
     args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": namespace,
             "overrides": str(repo_root() / "config" / "launch" / "no_overrides.yaml")}
+    if getattr(opts, "calibration", None):
+        calibrated = _calibration_run_args(opts.calibration, config, cfg, args)
+        if calibrated is None:
+            return 2
+        config, cfg = calibrated
     if ftms_on:
         _ftms_run_args(opts, cfg, args)
     can_params = None
@@ -179,6 +184,54 @@ def _cmd_run(opts) -> int:
         print(f"error: the recorder wrote no bag at {bag_path}", file=sys.stderr)
         code = code or 1
     return code
+
+
+def _calibration_run_args(path_text: str, config: pathlib.Path, cfg: dict, args: dict):
+    """--calibration FILE: ride with the friction of the bike's last spin-down (FILE, when it
+    exists) and let the controller write a new one there. The figures go into a copy of the
+    config (bike_controller.calibration), so the recorded config carries them. Returns
+    (config path, loaded config) or None after one error."""
+    import atexit
+    import shutil
+    import tempfile
+
+    import yaml
+    from bike_plant.config import ConfigError, load_config
+
+    from bike_controller.calibration import CalibrationError, apply_calibration, read_calibration
+    from bike_controller.modes import friction_figures
+
+    path = pathlib.Path(path_text).resolve()
+    if not output_file_ok(path, "--calibration"):
+        return None
+    machine = str(cfg.get("machine", "bldc"))
+    try:
+        old = friction_figures(cfg)
+    except ValueError as exc:
+        print(f"error: {config}: {exc}", file=sys.stderr)
+        return None
+    args["calibration"] = str(path)
+    if not path.exists() or path.stat().st_size == 0:
+        print(f"[bike] no calibration in {path} yet: the config's friction (B {old[0]:.4g} N m s, Tc {old[1]:.4g} N m);"
+              " a spin-down writes one there", flush=True)
+        return config, cfg
+    try:
+        calibration = read_calibration(path, machine)
+        doc = apply_calibration(yaml.safe_load(config.read_text()), calibration, config.parent)
+        folder = tempfile.mkdtemp(prefix="bike-calibrated-")
+        atexit.register(shutil.rmtree, folder, True)
+        calibrated = pathlib.Path(folder) / config.name
+        calibrated.write_text(f"# {config} with the spin-down calibration of {path}; written by ./bike run\n"
+                              + yaml.safe_dump(doc, sort_keys=False))
+        calibrated_cfg = load_config(calibrated)
+        friction_figures(calibrated_cfg)
+    except (CalibrationError, ConfigError, ValueError, OSError) as exc:
+        print(f"error: --calibration: {exc}", file=sys.stderr)
+        return None
+    print(f"[bike] friction from the calibration {path}: {calibration.describe()}; the config's: "
+          f"B {old[0]:.4g} N m s, Tc {old[1]:.4g} N m. A new spin-down replaces it", flush=True)
+    args["config"] = str(calibrated)
+    return calibrated, calibrated_cfg
 
 
 def _ftms_run_args(opts, cfg, args: dict) -> None:
@@ -416,6 +469,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
     run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")
     run.add_argument("--launch", help="launch description (default config/launch/bike.launch.yaml)")
+    run.add_argument("--calibration", metavar="FILE",
+                     help="ride with the friction of the bike's last spin-down, kept in FILE, and write the next "
+                          "successful spin-down there (as a trainer keeps its calibration)")
     run.add_argument("--ftms", action="store_true",
                      help="serve the bike as a smart trainer (Bluetooth FTMS over Wahoo Direct Connect, TCP) "
                           "for a training app to ride in real time; without --workout the app rides "

@@ -1,0 +1,130 @@
+"""Spin-down calibration kept between runs (bike_controller.calibration, ./bike run --calibration):
+the file the controller writes, what a run reads from it, and bad files refused with one error.
+The node graph's side (a spin-down writes the file, the next run rides with it) is in
+test_ftms_graph.py."""
+from __future__ import annotations
+
+import os
+import pathlib
+import random
+import subprocess
+
+import pytest
+import yaml
+
+from bike_controller import calibration as cal
+from bike_controller.calibration import CalibrationError, apply_calibration, read_calibration, write_calibration
+from bike_controller.modes import friction_figures
+from bike_controller.spindown import SpinDownResult
+from bike_plant.config import load_config
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+RESULT = SpinDownResult(friction_nms=9.87e-5, dry_friction_nm=0.0123, coast_s=34.9, samples=349,
+                        rms_residual_rpm=0.4)
+
+
+def test_the_file_written_after_a_spin_down_reads_back_the_same_figures(tmp_path):
+    path = write_calibration(tmp_path / "cal.yaml", "bldc", RESULT, sim_time_s=45.25, config_path="/x/bike.yaml")
+    text = path.read_text()
+    assert text.startswith("# Spin-down calibration") and "--calibration" in text
+    c = read_calibration(path, "bldc")
+    assert (c.machine, c.friction_nms, c.dry_friction_nm, c.coast_s) == ("bldc", 9.87e-5, 0.0123, 34.9)
+    assert c.written_utc.endswith("Z") and "9.87e-05" in c.describe() and "34.9 s coast" in c.describe()
+    assert yaml.safe_load(text)["sim_time_s"] == 45.25
+    assert os.listdir(tmp_path) == ["cal.yaml"]                    # no temporary file left beside it
+
+
+def test_a_write_that_fails_leaves_the_previous_calibration_whole(tmp_path, monkeypatch):
+    path = write_calibration(tmp_path / "cal.yaml", "bldc", RESULT, sim_time_s=1.0)
+    before = path.read_text()
+
+    def disk_full(*_a, **_k):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(cal.os, "fsync", disk_full)
+    with pytest.raises(OSError):
+        write_calibration(path, "bldc", SpinDownResult(1.0, 1.0, 1.0, 20, 0.0), sim_time_s=2.0)
+    assert path.read_text() == before and os.listdir(tmp_path) == ["cal.yaml"]
+    with pytest.raises(OSError):
+        write_calibration(tmp_path / "no_such_dir" / "cal.yaml", "bldc", RESULT, sim_time_s=1.0)
+
+
+BAD_FILES = [
+    ("modes: [1, 2\n", "not valid YAML at line"),
+    ("- 1\n- 2\n", "expected a mapping with a 'modes:'"),
+    ("machine: bldc\n", "expected a mapping with a 'modes:'"),
+    ("machine: spmsm\nmodes: {friction_nms: 0.005, dry_friction_nm: 0.1}\n", "'spmsm' bike's calibration"),
+    ("modes: {friction_nms: 1.0e-4, dry_friction_nm: 0.0}\n", "None bike's calibration"),
+    ("machine: bldc\nmodes: {friction_nms: -1.0e-4, dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
+    ("machine: bldc\nmodes: {friction_nms: .nan, dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
+    ("machine: bldc\nmodes: {friction_nms: 1.0e-4, dry_friction_nm: .inf}\n", "modes.dry_friction_nm must be"),
+    ("machine: bldc\nmodes: {friction_nms: true, dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
+    ("machine: bldc\nmodes: {friction_nms: '1e-4', dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
+    ("machine: bldc\nmodes: {friction_nms: 1.0e-4}\n", "modes.dry_friction_nm must be"),
+    ("machine: bldc\nmodes: {friction_nms: 1.0e-4, dry_friction_nm: 0, erg_power_max_w: 9}\n", "unknown key"),
+    ("machine: bldc\nmodes: !!python/object/apply:os.system ['true']\n", "not valid YAML"),
+]
+
+
+@pytest.mark.parametrize("text,words", BAD_FILES)
+def test_a_bad_calibration_file_is_one_error_naming_the_problem(tmp_path, text, words):
+    path = tmp_path / "cal.yaml"
+    path.write_text(text)
+    with pytest.raises(CalibrationError) as err:
+        read_calibration(path, "bldc")
+    assert words in str(err.value) and str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_unreadable_binary_and_huge_files_are_refused_unparsed(tmp_path):
+    cases = {"missing": None, "binary": bytes(random.Random(3).randrange(256) for _ in range(512)),
+             "huge": b"#" * (cal.MAX_CALIBRATION_BYTES + 1)}
+    words = {"missing": "cannot read it", "binary": "", "huge": "file too large"}
+    for name, data in cases.items():
+        path = tmp_path / name
+        if data is not None:
+            path.write_bytes(data)
+        with pytest.raises(CalibrationError) as err:
+            read_calibration(path, "bldc")
+        assert words[name] in str(err.value), (name, err.value)
+
+
+def test_a_calibration_becomes_the_configs_modes_friction_and_the_profile_stays_found(tmp_path):
+    """Every section that sets the figures takes the calibration (a node's own section wins
+    over the wildcard's), the plant's true friction is untouched, and the relative profile
+    path of the default config still points at its file from the copy's new folder."""
+    config = ROOT / "config" / "bldc_default.yaml"
+    doc = yaml.safe_load(config.read_text())
+    doc["controller"] = {"ros__parameters": {"modes": {"friction_nms": 5.0e-5}}}
+    c = cal.Calibration("bldc", 9.87e-5, 0.0123)
+    out = apply_calibration(doc, c, config.parent)
+    copy_path = tmp_path / "bike.yaml"
+    copy_path.write_text(yaml.safe_dump(out))
+    for node in (None, "controller"):
+        loaded = load_config(copy_path, node)
+        b, tc, _ = friction_figures(loaded)
+        assert (b, tc) == (9.87e-5, 0.0123), node
+        assert loaded["mechanics"] == load_config(config)["mechanics"]
+    profile = pathlib.Path(out["/**"]["ros__parameters"]["session"]["profile"])
+    assert profile.is_absolute() and profile.exists()
+
+
+def _bike(*args):
+    return subprocess.run([str(ROOT / "bike"), *args], capture_output=True, text=True, timeout=60,
+                          env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
+
+
+def test_run_refuses_a_bad_or_foreign_calibration_before_anything_starts(tmp_path):
+    """One error naming the option and the file, exit 2, nothing started; the file is kept."""
+    foreign = write_calibration(tmp_path / "spmsm_cal.yaml", "spmsm", RESULT, sim_time_s=1.0)
+    before = foreign.read_text()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("machine: bldc\nmodes: {friction_nms: -1, dry_friction_nm: 0}\n")
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    for path, words in ((foreign, "'spmsm' bike's calibration"), (bad, "modes.friction_nms must be"),
+                        (blocker / "cal.yaml", "cannot")):
+        run = _bike("run", "--duration", "1", "--calibration", str(path))
+        assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr[-2000:]
+        lines = [line for line in run.stderr.splitlines() if line.strip()]
+        assert len(lines) == 1 and "--calibration" in lines[0] and words in lines[0], run.stderr
+        assert run.stdout == "", run.stdout[-2000:]
+    assert foreign.read_text() == before
