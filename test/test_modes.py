@@ -1075,3 +1075,71 @@ def test_plant_erg_speed_from_power_rides_the_same_distance_in_any_gear():
     assert speeds[2.0, True] == pytest.approx(speeds[4.0, True], rel=0.02)
     assert speeds[4.0, False] == pytest.approx(2.0 * speeds[2.0, False], rel=0.02)
     assert speeds[2.0, True] > 1.0
+
+
+def test_auto_shift_steps_one_gear_after_the_hold_and_leaves_other_modes_alone():
+    """The slope mode with ``auto_shift``: a cadence below the band for auto_shift_hold_s shifts
+    one table gear down from the nearest table gear (the config's 2.75 lies by 2.7471), above it
+    one up, and the hold starts again after each shift; inside the band, below 20 rpm (a rider
+    who stopped) and in ERG nothing shifts; at the table's end it stays. A Command that repeats
+    its gear does not undo the automatic gear; a new Command gear wins."""
+    m = law(auto_shift=True, auto_shift_hold_s=0.5)
+    gears = m.mp.virtual_gears
+    c = 0.5
+    settle(m, c, MODE_SLOPE, 80 * GEAR, n=2000)                  # in the band: no shift
+    assert (m.virtual_gear_ratio, m.auto_shifts) == (2.75, 0)
+    settle(m, c, MODE_SLOPE, 60 * GEAR, n=499)
+    assert m.virtual_gear_ratio == 2.75                            # not yet: 0.499 s
+    m.step(c, MODE_SLOPE, 60 * GEAR, DT)
+    assert m.virtual_gear_ratio == gears[gears.index(2.7471) - 1] and m.auto_shifts == 1
+    settle(m, c, MODE_SLOPE, 60 * GEAR, n=500)                     # the hold again, then the next gear
+    assert m.virtual_gear_ratio == gears[gears.index(2.7471) - 2] and m.auto_shifts == 2
+    m.set_virtual_gear(0.0)                                        # the Commands' gear, repeated
+    assert m.virtual_gear_ratio == gears[gears.index(2.7471) - 2]
+    m.set_virtual_gear(4.0)                                        # a press of the shifter
+    assert m.virtual_gear_ratio == 4.0
+    settle(m, c, MODE_SLOPE, 100 * GEAR, n=500)                    # above: up from 4.0's neighbour
+    k = int(np.argmin([abs(math.log(g / 4.0)) for g in gears]))
+    assert m.virtual_gear_ratio == gears[k + 1]
+    for cadence, mode in ((10.0, MODE_SLOPE), (60.0, MODE_ERG)):
+        before = m.auto_shifts
+        settle(m, 0.2, mode, cadence * GEAR, n=2000)
+        assert m.auto_shifts == before, (cadence, mode)
+    top = law(auto_shift=True, auto_shift_hold_s=0.5, virtual_gear_ratio=gears[-1])
+    settle(top, c, MODE_SLOPE, 120 * GEAR, n=3000)
+    assert (top.virtual_gear_ratio, top.auto_shifts) == (gears[-1], 0)
+    with pytest.raises(ValueError, match="widest virtual_gears step"):
+        ModeParams(auto_shift=True, auto_shift_low_cadence_rpm=80.0, auto_shift_high_cadence_rpm=85.0)
+    with pytest.raises(ValueError, match="auto_shift must be true or false"):
+        mode_params_from_config({"modes": {"auto_shift": 1}})
+
+
+@pytest.mark.parametrize("grade", [0.11, -0.06])
+def test_plant_auto_shift_keeps_the_riders_cadence_in_the_band_on_a_climb_and_a_descent(grade):
+    """The BLDC plant and its rider (who holds 80 rpm while he can), 5 s on the flat and then an
+    11 % climb or a 6 % descent: in the config's gear he grinds at ~43 rpm on the climb and spins
+    out to ~144 rpm downhill; with auto_shift the bike shifts (3 gears down on the climb, 7 up
+    on the descent) until his cadence is back in the 70 .. 95 rpm band (73.9 rpm; 88.7 .. 96.8)."""
+    import copy
+
+    from bike_controller.closed_loop import run_offline
+    from bike_controller.session_control import ModedController
+    from bike_plant.config import load_config
+    c = (grade + 0.2) / 0.4
+    fixed, _ = _ride_plant(lambda t: (0.5 if t < 5.0 else c, MODE_SLOPE), 30.0)
+    cfg = copy.deepcopy(load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml"))
+    cfg["modes"] = dict(cfg.get("modes") or {}, auto_shift=True)
+    ctrl = ModedController(cfg)
+    flat = run_offline(cfg, 5.0, lambda t: (0.5, MODE_SLOPE), controller=ctrl)
+    on_the_flat = ctrl.law.virtual_gear_ratio         # (the start at 57 rpm may already have shifted down)
+    auto = run_offline(cfg, 25.0, lambda t: (c, MODE_SLOPE), controller=ctrl, plant=flat["plant"])
+    late = lambda r, t0: r["speed_rpm"][r["time_s"] > t0] / GEAR   # noqa: E731
+    assert 75.0 <= late(flat, 4.0).min() and late(flat, 4.0).max() <= 85.0
+    if grade > 0:
+        assert late(fixed, 25.0).mean() < 67.0 and ctrl.law.virtual_gear_ratio < on_the_flat
+    else:
+        assert late(fixed, 25.0).mean() > 130.0 and ctrl.law.virtual_gear_ratio > on_the_flat
+    # (downhill the bike still gathers speed: the cadence rises past 95 rpm for a hold, 1.5 s,
+    # before each shift takes it 9 % down)
+    assert 70.0 <= late(auto, 25.0).min() and late(auto, 25.0).max() <= 100.0
+    assert ctrl.status()["virtual_gear_ratio"] == ctrl.law.virtual_gear_ratio

@@ -154,3 +154,43 @@ def test_in_erg_with_erg_shift_w_a_press_moves_the_target_until_the_next_segment
     finally:
         session.stop()
         col.close()
+
+
+CLIMB_PROFILE = """name: auto_shift_test
+mode: slope
+segments:
+  - {kind: step, duration_s: 4, target: 0}
+  - {kind: step, duration_s: 16, target: 11}
+"""
+
+
+def test_auto_shift_in_the_node_graph_shifts_down_on_a_climb_and_the_report_counts_it(tmp_path, ros_domain):
+    """modes.auto_shift on the default bike in the node graph: an 11 % climb after 4 s on the flat;
+    the Commands keep the config's gear, the controller shifts down (ControllerStatus' gear falls
+    step by step through modes.virtual_gears, never up) and the rider's cadence ends back in the
+    70 .. 95 rpm band; the report counts the shifts."""
+    import yaml
+
+    from bike_controller.modes import DEFAULT_VIRTUAL_GEARS
+    root = pathlib.Path(__file__).resolve().parents[1]
+    doc = yaml.safe_load((root / "config" / "bldc_default.yaml").read_text())
+    params = doc["/**"]["ros__parameters"]
+    params.setdefault("modes", {})["auto_shift"] = True
+    params["session"]["profile"] = str(root / "config" / params["session"]["profile"])
+    config = tmp_path / "auto_shift.yaml"
+    config.write_text(yaml.safe_dump(doc, sort_keys=False))
+    profile = tmp_path / "climb.yaml"
+    profile.write_text(CLIMB_PROFILE)
+    result = bike_command("run", "--config", str(config), "--workout", str(profile), "--record", str(tmp_path / "rec"))
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    bag = next((tmp_path / "rec").iterdir())
+    assert {c.virtual_gear_ratio for c in read_topic(bag, "command")} == {0.0}
+    status = read_topic(bag, "controller_status")
+    gears = [status[0].virtual_gear_ratio] + [s.virtual_gear_ratio for a, s in zip(status, status[1:])
+                                               if s.virtual_gear_ratio != a.virtual_gear_ratio]
+    assert len(gears) >= 3 and all(b < a for a, b in zip(gears, gears[1:])), gears
+    assert set(gears[1:]) <= set(DEFAULT_VIRTUAL_GEARS), gears
+    states = read_topic(bag, "plant_state")
+    cadence = np.array([m.speed_rad_s * 60.0 / (2.0 * np.pi) / 35.0 for m in states if stamp_s(m) > 18.0])
+    assert 70.0 <= cadence.min() and cadence.max() <= 95.0, (cadence.min(), cadence.max())
+    assert f"{len(gears) - 1} shift(s)" in result.stdout, result.stdout[-3000:]

@@ -56,6 +56,10 @@ Modes (``bike_msgs/Command``):
   it: after an upshift on a climb the brake holds the cranks back until the cadence has fallen
   to the new gear's, as the chain would on a road bike (at most Tmax, flagged saturated where
   that binds); J_eq follows the gear squared. Other modes only report the new virtual speed.
+  Automatic shifting (``auto_shift``, research notes section 5: QZ #2236): a cadence outside
+  ``auto_shift_low_cadence_rpm`` .. ``auto_shift_high_cadence_rpm`` for ``auto_shift_hold_s``
+  shifts one gear of ``virtual_gears`` down or up the same way (:meth:`ModeLaw._auto_shift`);
+  a new gear in the Commands (the shifter) wins, and the automatic shifting goes on from it.
 - ISOKINETIC (4): constant cadence c* = cadence_min + C*(cadence_max - cadence_min) by a
   PI speed loop (pole placement on J: both poles at -``isokinetic_bandwidth_rad_s``,
   kp = 2 J wn, ki = J wn^2), braking above c*, assisting below, with integrator clamping.
@@ -102,6 +106,7 @@ MODE_NAMES = {MODE_RESISTANCE: "resistance", MODE_MOTORING: "motoring", MODE_ERG
               MODE_SLOPE: "slope", MODE_ISOKINETIC: "isokinetic", MODE_SPINDOWN: "spindown"}
 G_MPS2 = 9.80665
 BRAKE_ONLY_MODES = (MODE_RESISTANCE, MODE_ERG)   # laws whose torque is a brake by design (>= 0)
+AUTO_SHIFT_MIN_CADENCE_RPM = 20.0   # below: the rider has stopped pedalling, the auto shifting waits
 _log = logging.getLogger(__name__)
 
 # the default table of the session's shift buttons: 24 gears in equal steps (x 1.0904) over
@@ -129,6 +134,12 @@ class ModeParams:
     virtual_gears: tuple = DEFAULT_VIRTUAL_GEARS   # the session's shift buttons step through these
     erg_shift_w: float = 0.0                 # > 0: in ERG a shift press moves the target this many W (not the gear)
     erg_speed_from_power: bool = False       # ERG's virtual speed from the rider's power on the flat, not the gear
+    # automatic virtual shifting in the slope mode: a cadence outside the band for hold_s moves
+    # the gear one step of virtual_gears (down below the band, up above it)
+    auto_shift: bool = False
+    auto_shift_low_cadence_rpm: float = 70.0
+    auto_shift_high_cadence_rpm: float = 95.0
+    auto_shift_hold_s: float = 1.5
     virtual_inertia: bool = True
     observer_tau_s: float = 0.005            # rider-torque observer low-pass
     assist_max_nm: float = 0.0               # 0 -> Tmax
@@ -150,7 +161,8 @@ class ModeParams:
     def __post_init__(self):
         for name in ("torque_rate_nm_per_s", "erg_min_cadence_rpm", "rider_mass_kg", "wheel_radius_m",
                      "virtual_gear_ratio", "observer_tau_s", "isokinetic_bandwidth_rad_s",
-                     "isokinetic_cadence_max_rpm"):
+                     "isokinetic_cadence_max_rpm", "auto_shift_low_cadence_rpm", "auto_shift_high_cadence_rpm",
+                     "auto_shift_hold_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a number > 0, got {v!r}")
@@ -182,6 +194,15 @@ class ModeParams:
                 raise ValueError(f"virtual_gears: {problem}")
         if any(b <= a for a, b in zip(gears, gears[1:])):
             raise ValueError(f"virtual_gears must rise from gear to gear, got {list(gears)!r}")
+        if not isinstance(self.auto_shift, bool):
+            raise ValueError(f"auto_shift must be true or false, got {self.auto_shift!r}")
+        # one shift changes the cadence by the gear step: a band narrower than the widest step
+        # would shift back and forth across it
+        step = max(b / a for a, b in zip(gears, gears[1:]))
+        if self.auto_shift and self.auto_shift_high_cadence_rpm < step * self.auto_shift_low_cadence_rpm:
+            raise ValueError(f"auto_shift_high_cadence_rpm must be at least the widest virtual_gears step ({step:.4g}) "
+                             f"times auto_shift_low_cadence_rpm ({self.auto_shift_low_cadence_rpm:g} rpm), got "
+                             f"{self.auto_shift_high_cadence_rpm:g} rpm")
 
     def spindown_params(self) -> SpinDownParams:
         return SpinDownParams(self.spindown_high_cadence_rpm, self.spindown_low_cadence_rpm,
@@ -229,6 +250,9 @@ class ModeLaw:
         self.assist_max_nm = mp.assist_max_nm or self.tmax_nm
         self.m_total_kg = mp.rider_mass_kg + mp.bike_mass_kg
         self._set_gear(mp.virtual_gear_ratio)
+        self.commanded_gear = self.virtual_gear_ratio   # the Commands' gear (auto shifting leaves it)
+        self.auto_low_s = self.auto_high_s = 0.0        # time below / above the auto-shift band
+        self.auto_shifts = 0
         self.set_road(None)
         wn = mp.isokinetic_bandwidth_rad_s
         self.kp = 2.0 * self.inertia_kgm2 * wn
@@ -265,10 +289,44 @@ class ModeLaw:
         if problem:
             raise ValueError(problem)
         new = float(ratio) or self.mp.virtual_gear_ratio
+        # every Command carries its gear: only a change is a shift (so it does not undo the
+        # automatic shifts; a press of the shifter, a new Command gear, wins over them)
+        if new == self.commanded_gear:
+            return
+        self.commanded_gear = new
+        self._shift_to(new)
+
+    def _shift_to(self, new: float) -> None:
         if new == self.virtual_gear_ratio:
             return
         self.virtual_w *= self.virtual_gear_ratio / new
         self._set_gear(new)
+        self.auto_low_s = self.auto_high_s = 0.0
+
+    def _auto_shift(self, w: float, dt_s: float) -> None:
+        """Automatic virtual shifting (slope mode, ``auto_shift``): a crank cadence below
+        ``auto_shift_low_cadence_rpm`` for ``auto_shift_hold_s`` shifts one gear of
+        ``virtual_gears`` down (an easier gear), above ``auto_shift_high_cadence_rpm`` one up,
+        as a rider keeps his cadence on a climb and a descent; the hold starts again after
+        every shift. A rider below AUTO_SHIFT_MIN_CADENCE_RPM has stopped: no shift."""
+        mp = self.mp
+        cadence_rpm = w * RPM_PER_RAD_S / self.gear_ratio
+        low = AUTO_SHIFT_MIN_CADENCE_RPM <= cadence_rpm < mp.auto_shift_low_cadence_rpm
+        high = cadence_rpm > mp.auto_shift_high_cadence_rpm
+        self.auto_low_s = self.auto_low_s + dt_s if low else 0.0
+        self.auto_high_s = self.auto_high_s + dt_s if high else 0.0
+        if max(self.auto_low_s, self.auto_high_s) < mp.auto_shift_hold_s:
+            return
+        # one step from the table's gear nearest the one in force (which a Command may have
+        # set off the table, like the config's 2.75 between 2.747 and 2.995)
+        gears = mp.virtual_gears
+        k = min(range(len(gears)), key=lambda i: abs(math.log(gears[i] / self.virtual_gear_ratio)))
+        k += -1 if low else 1
+        if not 0 <= k < len(gears):          # at the table's end: stay, and wait another hold
+            self.auto_low_s = self.auto_high_s = 0.0
+            return
+        self._shift_to(gears[k])
+        self.auto_shifts += 1
 
     def set_road(self, road: tuple[float, float, float] | None) -> None:
         """The road of the slope mode and of ERG's flat road: (crr, cw_kg_m, wind_mps) as a
@@ -507,6 +565,10 @@ class ModeLaw:
             _log.warning("spin-down: the brake lets go; the rider spins up past %g rpm",
                          self.spindown.params.high_cadence_rpm)
         self.spindown_command = command
+        if mode == MODE_SLOPE and self.mp.auto_shift:
+            if mode != self.last_mode:
+                self.auto_low_s = self.auto_high_s = 0.0
+            self._auto_shift(w, dt_s)
         self.last_mode = mode
         wanted, target, v, sat = self._wanted(command, mode, w, dt_s)
         if switched:
