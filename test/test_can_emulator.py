@@ -66,6 +66,36 @@ def test_velocity_control_reaches_its_setpoint(params):
     assert fw.armed and fw.model.speed_rev_s == pytest.approx(20.0, rel=0.01)
 
 
+@pytest.mark.parametrize("physics", ["average", "plant"])
+def test_the_emulated_rider_takes_a_cadence_target_and_stops_when_told(params, physics):
+    """What --rider-topic passes on (RiderDisplay -> set_rider_instruction): the rider of either
+    physics pedals up to a cadence target (95 rpm against his own 80) and stops pedalling on a
+    spin-down's word (no rider torque; the flywheel coasts), then pedals again (no brake here: the
+    drive is not armed)."""
+    cfg = load_config(CONFIG)
+    model = model_with(params) if physics == "average" else make_drive_model(cfg, "plant")
+    fw = DriveFirmware(model, watchdog_timeout_s=0.0)
+    cadence = lambda: model.speed_rev_s * 60.0 / model.params.load.gear_ratio   # noqa: E731
+
+    def ride(seconds):
+        for _ in range(int(seconds / 1e-3)):
+            fw.step(1e-3)
+    ride(6.0)
+    assert cadence() == pytest.approx(80.0, abs=3.0)
+    model.set_rider_instruction(95.0, False)
+    ride(8.0)
+    assert cadence() == pytest.approx(95.0, abs=3.0)
+    model.set_rider_instruction(0.0, True)
+    ride(1.0)
+    before = cadence()
+    ride(2.0)
+    assert abs(model.load_torque_nm) < 1e-9 and cadence() < before
+    model.set_rider_instruction(100.0, False)
+    coasted = cadence()
+    ride(2.0)
+    assert model.load_torque_nm > 0.0 and cadence() > coasted
+
+
 def test_bus_sags_when_motoring_and_rises_when_braking(params):
     for torque_nm, sign in ((2.0, 1.0), (-2.0, -1.0)):
         fw = DriveFirmware(model_with(params, load_kind="prime_mover"), watchdog_timeout_s=0.0)

@@ -248,6 +248,8 @@ class AverageTorqueDrive(_DriveReadouts):
         self.crank_angle_rad = 0.0
         self.rider_effort = load.rider_effort0
         self.rider_integrator = load.rider_effort0
+        self.rider_target_rpm = load.rider_target_cadence_rpm   # set_rider_instruction moves it
+        self.rider_stopped = False
         self.torque_em_nm = 0.0
         self.load_torque_nm = 0.0
         self.mechanical_power_w = 0.0
@@ -281,13 +283,21 @@ class AverageTorqueDrive(_DriveReadouts):
         torque from bike_plant.mechanics, seen at the motor through the gear."""
         load = self.params.load
         cadence_rad_s = omega_rad_s / load.gear_ratio
-        err = load.rider_target_cadence_rpm / RPM_PER_RAD_S - cadence_rad_s
-        self.rider_integrator, self.rider_effort = mechanics.rider_effort_update(
-            self.rider_integrator, err, load.rider_kp, load.rider_ki, dt_s)
+        err = self.rider_target_rpm / RPM_PER_RAD_S - cadence_rad_s
+        if self.rider_stopped:
+            self.rider_effort = 0.0
+        else:
+            self.rider_integrator, self.rider_effort = mechanics.rider_effort_update(
+                self.rider_integrator, err, load.rider_kp, load.rider_ki, dt_s)
         t_crank = mechanics.rider_crank_torque_nm(self.rider_effort, cadence_rad_s * RPM_PER_RAD_S,
                                                   self.crank_angle_rad, load)
         self.crank_angle_rad = (self.crank_angle_rad + cadence_rad_s * dt_s) % TWO_PI
         return t_crank / load.gear_ratio
+
+    def set_rider_instruction(self, cadence_rpm: float, stop: bool) -> None:
+        """What the rider is told (a workout's cadence, 0: his own; a spin-down's stop)."""
+        self.rider_target_rpm = cadence_rpm if cadence_rpm > 0 else self.params.load.rider_target_cadence_rpm
+        self.rider_stopped = bool(stop)
 
     def _friction_nm(self, omega: float) -> float:
         p = self.params
@@ -429,6 +439,10 @@ class _PlantDrive(_DriveReadouts):
         self.position_rev = 0.0
         self.enabled = False
         self.current_limit_a = params.current_limit_a
+
+    def set_rider_instruction(self, cadence_rpm: float, stop: bool) -> None:
+        """What the rider is told (a workout's cadence, 0: his own; a spin-down's stop)."""
+        self.plant.set_rider_cadence(cadence_rpm, stop=stop)
 
     @property
     def time_s(self) -> float:
@@ -822,6 +836,54 @@ class DriveFirmware:
         raise KeyError(name)
 
 
+class RiderDisplay:
+    """The emulated rider's view of what the trainer tells him (``--rider-topic``): the
+    controller's DriveCommand carries it for the simulated plant's rider (a workout's cadence
+    target, a spin-down's "stop pedalling"), and a drive on CAN never sees it -- a real rider
+    reads it off a screen. This reads it off the ROS topic, in a thread of its own (rclpy only
+    here, imported on use); :attr:`latest` is (cadence target [rpm], 0 = his own; stop)."""
+
+    def __init__(self, topic: str):
+        import rclpy
+        from bike_msgs.msg import DriveCommand
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
+
+        self.latest = (0.0, False)
+        self.context = rclpy.Context()
+        # the emulator's own SIGINT / SIGTERM handlers stay in charge
+        rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node("drive_emulator_rider", context=self.context)
+        self.node.create_subscription(DriveCommand, topic, self._on_drive,
+                                      QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self._spin, name="rider-display", daemon=True)
+        self.thread.start()
+
+    def _on_drive(self, msg) -> None:
+        cadence = float(msg.rider_cadence_rpm)
+        if math.isfinite(cadence) and cadence >= 0.0:        # the controller checked it; a bad one is ignored
+            self.latest = (cadence, bool(msg.rider_stops_pedalling))
+
+    def _spin(self) -> None:
+        try:
+            while self.context.ok():
+                self.executor.spin_once(timeout_sec=0.1)
+        except Exception:  # noqa: BLE001 -- the context shut down under it
+            pass
+
+    def close(self) -> None:
+        """Shut the context down (which ends the spinning thread), then join it before the
+        node goes: a thread still in rcl at exit aborts the process."""
+        import rclpy
+        rclpy.try_shutdown(context=self.context)
+        self.thread.join(timeout=2.0)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+
+
 # =======================================================================================
 # CAN side
 class DriveEmulator:
@@ -836,12 +898,14 @@ class DriveEmulator:
                  cyclic_s: dict[str, float] | None = None, tick_s: float = 1.0e-3, substeps: int = 4,
                  silent_after_s: float | None = None, garbage_rate_hz: float = 0.0, seed: int = 0,
                  fault_at_s: list[float] | tuple[float, ...] = (), fault_error: int = int(ODriveError.DRV_FAULT),
-                 fault_persist: int = 0,
+                 fault_persist: int = 0, rider: "RiderDisplay | None" = None,
                  clock: Callable[[], float] = time.monotonic, log: Callable[[str], None] | None = None):
         if not tick_s > 0 or substeps < 1:
             raise ValueError("tick_s must be > 0 and substeps >= 1")
         self.bus = bus
         self.firmware = firmware
+        self.rider = rider                  # what the controller tells the rider (None: nothing)
+        self.rider_told = (0.0, False)
         self.codec = OdriveCanSimpleCodec(node_id)
         self.node_id = node_id
         cyclic = {"Heartbeat": 0.1, "Get_Encoder_Estimates": 0.01} if cyclic_s is None else dict(cyclic_s)
@@ -985,6 +1049,10 @@ class DriveEmulator:
         if lag > self.physics_lag_max_s:
             self.physics_lag_max_s = lag
         n = int(lag / q + 1e-9)
+        if self.rider is not None and self.rider.latest != self.rider_told:
+            self.rider_told = self.rider.latest
+            fw.model.set_rider_instruction(*self.rider_told)
+            self._count("rider_instructions")
         max_steps = int(round(0.1 / q))      # at most 100 ms of catch-up per tick
         if n > max_steps:
             self._count("physics_skipped_ms", int((n - max_steps) * q * 1000))
@@ -1190,6 +1258,9 @@ def build_arg_parser() -> argparse.ArgumentParser:
                             "disarms with it latched) or IDLE (drop to IDLE without an error). Default DRV_FAULT")
     fault.add_argument("--fault-persist", type=int, default=0, metavar="N",
                        help="the injected error survives the next N Clear_Errors (-1: all of them; default 0)")
+    ap.add_argument("--rider-topic", default=None, metavar="TOPIC",
+                    help="let the emulated rider follow the trainer's instructions on this DriveCommand topic "
+                         "(e.g. /bike/drive_command: a workout's cadence, a spin-down's stop; ./bike run sets it)")
     ap.add_argument("--duration-s", type=float, default=None, help="exit 0 after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="no event log on stderr")
     return ap
@@ -1288,12 +1359,15 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001 -- report any interface problem as a usage error
         print(f"bike-drive-emulator: cannot open bus {_bus_kwargs(args)}: {exc}", file=sys.stderr)
         return 2
+    rider = None
     try:
+        if args.rider_topic:
+            rider = RiderDisplay(args.rider_topic)
         emu = DriveEmulator(bus, firmware, args.node_id, cyclic_s={k: v / 1000.0 for k, v in cyclic.items()},
                             tick_s=1.0 / args.physics_hz, substeps=args.substeps,
                             silent_after_s=args.silent_after_s, garbage_rate_hz=args.garbage_rate,
                             seed=args.seed, fault_at_s=args.fault_at_s, fault_error=fault_error,
-                            fault_persist=args.fault_persist, log=log)
+                            fault_persist=args.fault_persist, rider=rider, log=log)
         signal.signal(signal.SIGUSR1, lambda signum, frame: emu.inject_fault_soon())
         channel = _bus_kwargs(args).get("channel", "default")
         print(f"bike-drive-emulator ready: node_id={args.node_id} interface={args.interface} channel={channel} "
@@ -1311,6 +1385,8 @@ def main(argv: list[str] | None = None) -> int:
             bus.shutdown()
         except Exception:  # noqa: BLE001
             pass
+        if rider is not None:
+            rider.close()
     summary = dict(sorted(emu.counters.items()))
     summary["axis_state"] = firmware.axis_state
     summary["active_errors"] = firmware.active_errors

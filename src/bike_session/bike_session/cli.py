@@ -268,7 +268,10 @@ def _can_run_args(cfg, args: dict):
         print(f"error: {exc}", file=sys.stderr)
         return None
     if params.emulator:
-        args.update(emulator="true", emulator_args=" ".join(shlex.quote(a) for a in emulator_args_from_config(cfg)))
+        # its rider follows what the controller tells the plant's rider (a real one reads a screen)
+        rider = ["--rider-topic", "/" + "/".join(x for x in (args.get("namespace", ""), "drive_command") if x)]
+        args.update(emulator="true",
+                    emulator_args=" ".join(shlex.quote(a) for a in emulator_args_from_config(cfg) + rider))
     print(f"[bike] drive on CAN: {params.describe()}"
           + (", started here as bike-drive-emulator" if params.emulator else ", a real drive (can.emulator false)")
           + "; sim time pauses while the drive is not armed", flush=True)
