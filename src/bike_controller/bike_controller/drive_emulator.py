@@ -1,7 +1,8 @@
 """bike-drive-emulator: an ODrive-like drive (CANSimple 0.6.x) on any python-can bus.
 
 It stands in for a real drive so the plant node's ``backend: can``, a script or a test
-can talk CAN without hardware. Three layers, each usable alone (no ROS imports):
+can talk CAN without hardware. Three layers, each usable alone (no ROS imports but the optional
+rider display below):
 
 * physics of the bike from a config file (config/bldc_default.yaml by default), chosen
   with ``--physics``:
@@ -35,6 +36,9 @@ can talk CAN without hardware. Three layers, each usable alone (no ROS imports):
   time (a 1 kHz tick; plant physics: the control periods due, in one compiled batch;
   average physics: sub-steps). Its exit summary reports the real-time margin
   (physics_realtime_factor = simulated / wall time spent on physics, physics_lag_max_ms).
+  The rider (plant physics' or the average model's) follows what the trainer tells him with
+  ``--rider-topic`` (:class:`RiderDisplay`, the only rclpy use, imported then): a workout's
+  cadence target, a spin-down's "stop pedalling", from the controller's DriveCommand.
   Fault injection: --silent-after-s, --garbage-rate,
   --fault-at-s / SIGUSR1 with --fault (an error that disarms the axis, or IDLE) and
   --fault-persist (Clear_Errors that do not clear it).
