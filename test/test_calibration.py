@@ -87,23 +87,23 @@ def test_unreadable_binary_and_huge_files_are_refused_unparsed(tmp_path):
         assert words[name] in str(err.value), (name, err.value)
 
 
-def test_a_calibration_becomes_the_configs_modes_friction_and_the_profile_stays_found(tmp_path):
+def test_a_calibration_becomes_the_configs_modes_friction_and_the_profile_stays_found():
     """Every section that sets the figures takes the calibration (a node's own section wins
-    over the wildcard's), the plant's true friction is untouched, and the relative profile
-    path of the default config still points at its file from the copy's new folder."""
+    over the wildcard's), the plant's true friction is untouched, and the run's copy of the
+    default config (./bike run's, in a folder of its own) still finds its relative profile."""
+    from bike_session.cli import _config_copy
     config = ROOT / "config" / "bldc_default.yaml"
     doc = yaml.safe_load(config.read_text())
     doc["controller"] = {"ros__parameters": {"modes": {"friction_nms": 5.0e-5}}}
-    c = cal.Calibration("bldc", 9.87e-5, 0.0123)
-    out = apply_calibration(doc, c, config.parent)
-    copy_path = tmp_path / "bike.yaml"
-    copy_path.write_text(yaml.safe_dump(out))
+    out = apply_calibration(doc, cal.Calibration("bldc", 9.87e-5, 0.0123))
+    copy_path, _ = _config_copy(config, out, "with a calibration")
+    assert copy_path.parent != config.parent
     for node in (None, "controller"):
         loaded = load_config(copy_path, node)
         b, tc, _ = friction_figures(loaded)
         assert (b, tc) == (9.87e-5, 0.0123), node
         assert loaded["mechanics"] == load_config(config)["mechanics"]
-    profile = pathlib.Path(out["/**"]["ros__parameters"]["session"]["profile"])
+    profile = pathlib.Path(load_config(copy_path)["session"]["profile"])
     assert profile.is_absolute() and profile.exists()
 
 
@@ -128,3 +128,31 @@ def test_run_refuses_a_bad_or_foreign_calibration_before_anything_starts(tmp_pat
         assert len(lines) == 1 and "--calibration" in lines[0] and words in lines[0], run.stderr
         assert run.stdout == "", run.stdout[-2000:]
     assert foreign.read_text() == before
+
+
+def test_set_changes_config_values_for_one_run_and_refuses_bad_ones(capsys):
+    """`./bike run --set KEY=VALUE`: dotted keys under the wildcard section, values read as YAML,
+    a copy of the config that still finds its profile; a malformed item, a value where a
+    section is, or a value the bike refuses is one error naming --set and nothing runs."""
+    from bike_session.cli import _set_run_config
+    config = ROOT / "config" / "bldc_default.yaml"
+    path, cfg = _set_run_config(["modes.auto_shift=true", "load.rider_target_cadence_rpm=90",
+                                 "modes.virtual_gears=[1.0, 1.2, 1.4]", "modes.friction_nms=1e-4",
+                                 "load.kind=rider"], config)
+    assert cfg["modes"]["auto_shift"] is True and cfg["load"]["rider_target_cadence_rpm"] == 90
+    assert cfg["modes"]["friction_nms"] == 1e-4 and cfg["load"]["kind"] == "rider"
+    assert cfg["modes"]["virtual_gears"] == [1.0, 1.2, 1.4]
+    assert cfg["battery"] == load_config(config)["battery"]
+    assert pathlib.Path(cfg["session"]["profile"]).exists()
+    assert "--set modes.auto_shift=true" in path.read_text().splitlines()[0]
+    capsys.readouterr()
+    bad = {"modes.auto_shift": "expected KEY=VALUE", "=3": "expected KEY=VALUE", "modes..x=1": "expected KEY=VALUE",
+           "battery.soc0.x=1": "battery.soc0 is a value, not a section",
+           "modes.grade_min=[1": "not valid YAML", "modes.crr=": "give one value",
+           "modes.auto_shift=1": "auto_shift must be true or false", "modes.nope=1": "unknown key(s) nope",
+           "modes.crr=nan": "crr must be", "load.kind=dragon": "dragon",
+           "bldc.inductance_h=-1": "inductance_h", "modes.friction_nms=-1": "friction_nms"}
+    for item, words in bad.items():
+        assert _set_run_config([item], config) is None, item
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: --set") and words in err[0], (item, err)

@@ -86,6 +86,10 @@ def test_a_shifter_and_the_profile_shift_the_virtual_bike_in_the_node_graph(tmp_
     settled = (ts > 40.6) & (ts < 41.0)
     chained = rpm[(ts > 39.6) & (ts < 40.0)].mean() * 2.5193 / 2.7471      # as a chain would at once
     assert rpm[settled].mean() == pytest.approx(chained, rel=0.04)
+    # the report times both shifts: felt at the cranks (within 5 % of the chained cadence) in < 1 s
+    from bike_session.report import summarise
+    response = summarise(bag)["shift_response"]
+    assert response["shifts"] == 2 and response["settled"] == 2 and response["max_s"] < 1.0, response
 
 
 ERG_PROFILE = """name: erg_shifting_test
@@ -165,23 +169,20 @@ segments:
 
 
 def test_auto_shift_in_the_node_graph_shifts_down_on_a_climb_and_the_report_counts_it(tmp_path, ros_domain):
-    """modes.auto_shift on the default bike in the node graph: an 11 % climb after 4 s on the flat;
+    """`./bike run --set modes.auto_shift=true` on the default bike in the node graph: an 11 % climb
+    after 4 s on the flat;
     the Commands keep the config's gear, the controller shifts down (ControllerStatus' gear falls
     step by step through modes.virtual_gears, never up) and the rider's cadence ends back in the
     70 .. 95 rpm band; the report counts the shifts."""
+    import json
+
     import yaml
 
     from bike_controller.modes import DEFAULT_VIRTUAL_GEARS
-    root = pathlib.Path(__file__).resolve().parents[1]
-    doc = yaml.safe_load((root / "config" / "bldc_default.yaml").read_text())
-    params = doc["/**"]["ros__parameters"]
-    params.setdefault("modes", {})["auto_shift"] = True
-    params["session"]["profile"] = str(root / "config" / params["session"]["profile"])
-    config = tmp_path / "auto_shift.yaml"
-    config.write_text(yaml.safe_dump(doc, sort_keys=False))
     profile = tmp_path / "climb.yaml"
     profile.write_text(CLIMB_PROFILE)
-    result = bike_command("run", "--config", str(config), "--workout", str(profile), "--record", str(tmp_path / "rec"))
+    result = bike_command("run", "--set", "modes.auto_shift=true", "--workout", str(profile),
+                          "--record", str(tmp_path / "rec"))
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     bag = next((tmp_path / "rec").iterdir())
     assert {c.virtual_gear_ratio for c in read_topic(bag, "command")} == {0.0}
@@ -194,3 +195,7 @@ def test_auto_shift_in_the_node_graph_shifts_down_on_a_climb_and_the_report_coun
     cadence = np.array([m.speed_rad_s * 60.0 / (2.0 * np.pi) / 35.0 for m in states if stamp_s(m) > 18.0])
     assert 70.0 <= cadence.min() and cadence.max() <= 95.0, (cadence.min(), cadence.max())
     assert f"{len(gears) - 1} shift(s)" in result.stdout, result.stdout[-3000:]
+    assert f"shift response:        {len(gears) - 1} slope shifts, {len(gears) - 1} felt" in result.stdout
+    # --set: the bag records the changed config, so the report and a replay ride the same bike
+    info = json.loads(read_topic(bag, "session_info")[0].data)
+    assert yaml.safe_load(info["config_text"])["/**"]["ros__parameters"]["modes"]["auto_shift"] is True

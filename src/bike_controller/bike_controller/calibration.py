@@ -119,11 +119,10 @@ def read_calibration(path, machine: str) -> Calibration:
                        str(doc.get("written_utc") or ""), coast)
 
 
-def apply_calibration(doc: dict, calibration: Calibration, base_dir) -> dict:
-    """The parameter file ``doc`` (as read from ``base_dir``) with the calibration as every
-    section's ``modes.friction_nms`` / ``dry_friction_nm`` (a node's own section would
-    otherwise win over the wildcard's), and ``session.profile`` made absolute so the file can
-    be written elsewhere. ``doc`` is modified and returned."""
+def apply_calibration(doc: dict, calibration: Calibration) -> dict:
+    """The parameter file ``doc`` with the calibration as every section's
+    ``modes.friction_nms`` / ``dry_friction_nm`` (a node's own section would otherwise win over
+    the wildcard's). ``doc`` is modified and returned."""
     figures = {"friction_nms": calibration.friction_nms, "dry_friction_nm": calibration.dry_friction_nm}
     for name, body in doc.items():
         params = body.get("ros__parameters") if isinstance(body, dict) else None
@@ -134,8 +133,4 @@ def apply_calibration(doc: dict, calibration: Calibration, base_dir) -> dict:
             params["modes"] = dict(figures)
         elif isinstance(modes, dict) and (name == "/**" or any(k in modes for k in FIGURES)):
             modes.update(figures)          # (a modes: that is no mapping is the config check's to name)
-        session = params.get("session")
-        profile = session.get("profile") if isinstance(session, dict) else None
-        if isinstance(profile, str) and profile and not os.path.isabs(os.path.expanduser(profile)):
-            session["profile"] = str((pathlib.Path(base_dir) / profile).resolve())
     return doc

@@ -102,6 +102,12 @@ def _cmd_run(opts) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    source_config = config
+    if getattr(opts, "set", None):
+        changed = _set_run_config(opts.set, config)
+        if changed is None:
+            return 2
+        config, cfg = changed
     workout = None
     ftms_on = getattr(opts, "ftms", False)
     if ftms_on and not opts.workout:
@@ -162,7 +168,8 @@ def _cmd_run(opts) -> int:
     # commands (an explicit ROS_DOMAIN_ID is always respected)
     from bike_session import domains
     domains.ensure_private_domain("run")
-    print(f"[bike] config {config}, {duration_s:g} s simulated, namespace /{namespace}"
+    copy = f" (this run's copy: {config})" if config != source_config else ""
+    print(f"[bike] config {source_config}{copy}, {duration_s:g} s simulated, namespace /{namespace}"
           + (f", recording to {bag_path}" if bag_path else ""), flush=True)
     try:
         code = launcher.run(str(opts.launch or default_launch_file()), args)
@@ -186,17 +193,94 @@ def _cmd_run(opts) -> int:
     return code
 
 
-def _calibration_run_args(path_text: str, config: pathlib.Path, cfg: dict, args: dict):
-    """--calibration FILE: ride with the friction of the bike's last spin-down (FILE, when it
-    exists) and let the controller write a new one there. The figures go into a copy of the
-    config (bike_controller.calibration), so the recorded config carries them. Returns
-    (config path, loaded config) or None after one error."""
+def _config_copy(config: pathlib.Path, doc: dict, note: str):
+    """Write ``doc`` (the parameter file of ``config``, changed) as this run's config: a copy in
+    a temporary folder (the bag records its text), with a relative ``session.profile`` made
+    absolute so it is still found. Returns (path, loaded config); ConfigError / ValueError /
+    OSError when the copy is not a config the bike takes (checked as far as it can be without
+    starting a node: structure, the modes section, the machine's parameters)."""
     import atexit
     import shutil
     import tempfile
 
     import yaml
-    from bike_plant.config import ConfigError, load_config
+    from bike_plant.config import load_config
+
+    for body in doc.values():
+        params = body.get("ros__parameters") if isinstance(body, dict) else None
+        session = params.get("session") if isinstance(params, dict) else None
+        profile = session.get("profile") if isinstance(session, dict) else None
+        if isinstance(profile, str) and profile and not os.path.isabs(os.path.expanduser(profile)):
+            session["profile"] = str((config.parent / profile).resolve())
+    folder = tempfile.mkdtemp(prefix="bike-config-")
+    atexit.register(shutil.rmtree, folder, True)
+    path = pathlib.Path(folder) / config.name
+    path.write_text(f"# {config} {note}; written by ./bike run\n" + yaml.safe_dump(doc, sort_keys=False))
+    cfg = load_config(path)
+    _check_config(cfg)
+    return path, cfg
+
+
+def _check_config(cfg: dict) -> None:
+    """What the nodes build first from a config, without building them: ValueError naming the
+    key (the modes section, the friction figures, the machine's plant parameters)."""
+    from bike_controller.modes import friction_figures, mode_params_from_config
+
+    mode_params_from_config(cfg)
+    friction_figures(cfg)
+    if str(cfg.get("machine", "bldc")) == "spmsm":
+        from bike_plant.spmsm import plant_params_from_config
+    else:
+        from bike_plant.params import plant_params_from_config
+    plant_params_from_config(cfg)
+
+
+def _set_run_config(sets: list[str], config: pathlib.Path):
+    """--set KEY=VALUE ...: this run's config with each dotted KEY under the wildcard section's
+    ros__parameters set to VALUE (read as YAML: numbers, true / false, lists, text). Returns
+    (config path, loaded config) or None after one error."""
+    import yaml
+    from bike_plant.config import ConfigError
+
+    try:
+        doc = yaml.safe_load(config.read_text())
+        params = doc["/**"]["ros__parameters"]
+        for item in sets:
+            key, eq, text = item.partition("=")
+            parts = key.strip().split(".")
+            if not eq or not all(part.strip() for part in parts):
+                raise ValueError(f"{item!r}: expected KEY=VALUE with a dotted KEY, e.g. modes.auto_shift=true")
+            try:
+                value = yaml.safe_load(text)
+            except yaml.YAMLError:
+                raise ValueError(f"{item!r}: the value is not valid YAML") from None
+            if value is None or isinstance(value, dict):
+                raise ValueError(f"{item!r}: give one value (a number, true / false, a list or text)")
+            if isinstance(value, str):
+                try:
+                    value = float(text)      # YAML 1.1 reads 1e-4 (no dot) as text
+                except ValueError:
+                    pass
+            node = params
+            for i, part in enumerate(parts[:-1]):
+                node = node.setdefault(part, {})
+                if not isinstance(node, dict):
+                    raise ValueError(f"{item!r}: {'.'.join(parts[:i + 1])} is a value, not a section")
+            node[parts[-1]] = value
+        changed = ", ".join(sets)
+        return _config_copy(config, doc, f"with --set {changed}")
+    except (ConfigError, ValueError, OSError, KeyError, TypeError) as exc:
+        print(f"error: --set: {exc}", file=sys.stderr)
+        return None
+
+
+def _calibration_run_args(path_text: str, config: pathlib.Path, cfg: dict, args: dict):
+    """--calibration FILE: ride with the friction of the bike's last spin-down (FILE, when it
+    exists) and let the controller write a new one there. The figures go into a copy of the
+    config (bike_controller.calibration), so the recorded config carries them. Returns
+    (config path, loaded config) or None after one error."""
+    import yaml
+    from bike_plant.config import ConfigError
 
     from bike_controller.calibration import CalibrationError, apply_calibration, read_calibration
     from bike_controller.modes import friction_figures
@@ -217,14 +301,8 @@ def _calibration_run_args(path_text: str, config: pathlib.Path, cfg: dict, args:
         return config, cfg
     try:
         calibration = read_calibration(path, machine)
-        doc = apply_calibration(yaml.safe_load(config.read_text()), calibration, config.parent)
-        folder = tempfile.mkdtemp(prefix="bike-calibrated-")
-        atexit.register(shutil.rmtree, folder, True)
-        calibrated = pathlib.Path(folder) / config.name
-        calibrated.write_text(f"# {config} with the spin-down calibration of {path}; written by ./bike run\n"
-                              + yaml.safe_dump(doc, sort_keys=False))
-        calibrated_cfg = load_config(calibrated)
-        friction_figures(calibrated_cfg)
+        doc = apply_calibration(yaml.safe_load(config.read_text()), calibration)
+        calibrated, calibrated_cfg = _config_copy(config, doc, f"with the spin-down calibration of {path}")
     except (CalibrationError, ConfigError, ValueError, OSError) as exc:
         print(f"error: --calibration: {exc}", file=sys.stderr)
         return None
@@ -472,6 +550,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
     run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")
     run.add_argument("--launch", help="launch description (default config/launch/bike.launch.yaml)")
+    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                     help="change one config value for this run (repeatable), e.g. --set modes.auto_shift=true or "
+                          "--set load.rider_target_cadence_rpm=90: a dotted key under the config's ros__parameters, "
+                          "the value read as YAML; the bag records the changed config")
     run.add_argument("--calibration", metavar="FILE",
                      help="ride with the friction of the bike's last spin-down, kept in FILE, and write the next "
                           "successful spin-down there (as a trainer keeps its calibration)")

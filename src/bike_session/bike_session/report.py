@@ -52,6 +52,11 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
 - ``erg_response``         ERG target steps (a change of more than 10 W and 5 % between
   tracking windows) and the time from each until the ERG power (as ``erg_power``) stays within
   max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
+- ``shift_response``       virtual shifts in the slope mode (ControllerStatus' gear changing, a
+  press or an automatic shift): the time from each until the crank cadence is first within 5 %
+  of the one a chain gives at once (the cadence of the 0.2 s before x old / new gear), and how far
+  it went past that within 1 s, in % of the change (:func:`shift_response`; trainer users
+  complain of shifts felt late or bouncing); None without a shift.
 
 Long bags: messages are decoded straight from the CDR bytes into numpy blocks of
 ``CHUNK`` PlantStates; only per-bin sums (``bin_s``, 10 ms for short sessions, at most
@@ -626,6 +631,7 @@ class _Analyser:
         self.plant_carry = None
         self.status_carry = None
         self.gear_shifts = 0                      # changes of the virtual gear in force
+        self.shift_events: list = []              # (t, old gear, new gear, mode) of each
         self.friction_seen: list = []             # (t, B, Tc): the laws' friction, first and each change
         self.gear_first = None
         self.gear_range = (math.inf, -math.inf)
@@ -794,7 +800,10 @@ class _Analyser:
                 s = np.vstack([self.status_carry, s])
             s = s[np.argsort(s[:, 0], kind="stable")]
             gear = np.where(np.isfinite(s[:, 6]) & (s[:, 6] > 0), s[:, 6], self.machine["virtual_gear_ratio"])
-            self.gear_shifts += int(np.count_nonzero(np.diff(gear)))
+            changed = np.nonzero(np.diff(gear))[0]
+            self.gear_shifts += int(changed.size)
+            self.shift_events += [(float(s[i + 1, 0]), float(gear[i]), float(gear[i + 1]), int(s[i + 1, 1]))
+                                  for i in changed]
             if self.status_carry is None:
                 self.gear_first = float(gear[0])
             self.gear_range = (min(self.gear_range[0], float(gear.min())), max(self.gear_range[1], float(gear.max())))
@@ -1039,6 +1048,8 @@ class _Analyser:
                                        "min": self.gear_range[0], "max": self.gear_range[1]}
             out["tracking"] = tracking(bins, self.bin_s)
             out["erg_response"] = erg_response(bins, self.bin_s)
+            out["shift_response"] = shift_response(bins, self.origin_s, self.bin_s, mc["gear_ratio"],
+                                                   [e for e in self.shift_events if e[3] == MODE_SLOPE])
             out["power_accuracy"] = power_accuracy(bins, self.bin_s)
             if self.friction_seen:
                 out["friction"] = [{"t": t, "friction_nms": b, "dry_friction_nm": tc} for t, b, tc in self.friction_seen]
@@ -1248,6 +1259,49 @@ def erg_response(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | 
             "tolerance": f"max({100 * ERG_TOL:g} % of the target, {ERG_TOL_MIN_W:g} W) for {ERG_HOLD_S:g} s"}
 
 
+SHIFT_TOL = 0.05              # a shift is felt: the cadence within this fraction of the chained one
+SHIFT_BEFORE_S = 0.2          # the cadence before a shift: its mean over this long
+SHIFT_WITHIN_S = 3.0          # ... and it must be felt within this long
+SHIFT_OVERSHOOT_S = 1.0       # how far past the chained cadence it went, over this long
+
+
+def shift_response(bins: dict, origin_s: float, bin_s: float, gear_ratio: float, shifts: list) -> dict | None:
+    """How fast a virtual shift reaches the cranks (trainer users: resistance changing up to
+    ~20 s late, shifts that bounce; research notes section 5). ``shifts``: (t, old gear, new
+    gear, mode). A chain changes the cadence at once to c0 x old / new at the same road speed
+    (c0: the mean cadence over SHIFT_BEFORE_S before the shift); ``settle_s`` per shift is the
+    time until the bins' mean cadence is first within SHIFT_TOL of that (None: not within
+    SHIFT_WITHIN_S), ``overshoot_pct`` how far it went past it, in the shift's direction,
+    within SHIFT_OVERSHOOT_S, in % of the change. None without a shift."""
+    if not shifts:
+        return None
+    dt = bins["dt"]
+    cadence = _div(bins["rpm_dt"], dt) / gear_ratio
+    t = origin_s + (np.arange(len(dt)) + 0.5) * bin_s
+    ok = np.isfinite(cadence)
+    settle: list[float | None] = []
+    overshoot: list[float] = []
+    for t_s, g_old, g_new, _mode in shifts:
+        before = ok & (t >= t_s - SHIFT_BEFORE_S) & (t < t_s)
+        if not before.any():
+            settle.append(None)
+            continue
+        c0 = float(cadence[before].mean())
+        chained = c0 * g_old / g_new
+        after = ok & (t >= t_s) & (t < t_s + SHIFT_WITHIN_S)
+        near = np.abs(cadence[after] - chained) <= SHIFT_TOL * chained
+        settle.append(float(t[after][np.argmax(near)] - t_s) if near.any() else None)
+        soon = ok & (t >= t_s) & (t < t_s + SHIFT_OVERSHOOT_S)
+        past = np.sign(chained - c0) * (cadence[soon] - chained)
+        if past.size and chained != c0:
+            overshoot.append(100.0 * max(float(past.max()), 0.0) / abs(chained - c0))
+    done = [x for x in settle if x is not None]
+    return {"shifts": len(shifts), "settled": len(done), "settle_s": settle,
+            "median_s": float(np.median(done)) if done else None, "max_s": float(max(done)) if done else None,
+            "overshoot_pct_max": max(overshoot) if overshoot else None,
+            "tolerance": f"{100 * SHIFT_TOL:g} % of the chained cadence within {SHIFT_WITHIN_S:g} s"}
+
+
 # ============================================================================ text
 
 def _fmt(value, unit: str = "", digits: int = 3) -> str:
@@ -1330,6 +1384,12 @@ def format_summary(summary: dict) -> str:
         lines.append(f"erg response:          {erg['steps']} target steps, {erg['settled']} settled (ERG power "
                      f"within {erg['tolerance']}) after median {_fmt(erg['median_s'], 's', 2)}, max "
                      f"{_fmt(erg['max_s'], 's', 2)} ({erg['window_s']:g} s windows; trainer reviews: 3-5 s)")
+    shift = s.get("shift_response")
+    if shift:
+        lines.append(f"shift response:        {shift['shifts']} slope shifts, {shift['settled']} felt (cadence within "
+                     f"{shift['tolerance']}) after median {_fmt(shift['median_s'], 's', 2)}, max "
+                     f"{_fmt(shift['max_s'], 's', 2)}; past it by at most "
+                     f"{_fmt(shift['overshoot_pct_max'], '%', 0)} of the change")
     if s.get("software_version"):
         lines.append(f"software:              {s['software_version']}")
     for w in s.get("warnings") or []:
