@@ -90,6 +90,11 @@ def test_a_shifter_and_the_profile_shift_the_virtual_bike_in_the_node_graph(tmp_
     from bike_session.report import summarise
     response = summarise(bag)["shift_response"]
     assert response["shifts"] == 2 and response["settled"] == 2 and response["max_s"] < 1.0, response
+    # ... and the A/B comparison shows it (the same bag twice: no delta)
+    from bike_session.compare import compare
+    result, *_ = compare(bag, bag)
+    felt = next(m for m in result["metrics"] if m["key"] == "shift_response.settled")
+    assert (felt["a"], felt["b"], felt["delta"]) == (2, 2, 0)
 
 
 ERG_PROFILE = """name: erg_shifting_test

@@ -16,6 +16,8 @@ Per session, over the overlap (definitions as in :mod:`bike_session.report`):
   RMS and max |error| over 0.1 s windows, and per batch
 - ``erg_response``: ERG target steps, how many settled, median and max settle time
   (:func:`bike_session.report.erg_response`), when either session has a step
+- ``shift_response``: slope-mode shifts, how many were felt at the cranks, median and max time,
+  the largest overshoot (:func:`bike_session.report.shift_response`), when either session shifted
 
 ``delta`` = B - A (``delta_pct`` relative to |A|). Same bag twice: every delta is 0.
 The controller / config differences are the parameters that differ between the two
@@ -39,7 +41,7 @@ import numpy as np
 
 from bike_session.bags import BagError, open_bag
 from bike_session.report import (PLOT_POINTS, SessionData, analyse, auto_bin_s, config_params,
-                                  erg_response, img_tag, series, time_axis, tracking, write_html)
+                                  erg_response, img_tag, series, shift_response, time_axis, tracking, write_html)
 
 COLORS = {"A": "tab:blue", "B": "tab:orange"}
 DIFF_LINES = 60
@@ -61,6 +63,10 @@ TRACK_FIELDS = (("rms", "RMS error", 3), ("max_abs", "max |error|", 3), ("rms_ba
 # (field of report.erg_response, label, unit, digits)
 ERG_FIELDS = (("steps", "ERG target steps", "count", 0), ("settled", "ERG steps settled", "count", 0),
               ("median_s", "ERG settle time, median", "s", 2), ("max_s", "ERG settle time, max", "s", 2))
+# (field of report.shift_response, label, unit, digits)
+SHIFT_FIELDS = (("shifts", "slope shifts", "count", 0), ("settled", "shifts felt", "count", 0),
+                ("median_s", "shift felt after, median", "s", 2), ("max_s", "shift felt after, max", "s", 2),
+                ("overshoot_pct_max", "shift overshoot, max", "%", 0))
 
 
 def range_metrics(d: SessionData, n: int) -> dict:
@@ -83,6 +89,7 @@ def range_metrics(d: SessionData, n: int) -> dict:
     out["peak_phase_current_a"] = float(ipk.max()) if ipk.size else None
     out["tracking"] = tracking(d.bins, d.bin_s, n)
     out["erg_response"] = erg_response(d.bins, d.bin_s, n)
+    out["shift_response"] = shift_response(d.bins, d.origin_s, d.bin_s, d.machine["gear_ratio"], d.shifts, n)
     return out
 
 
@@ -184,14 +191,16 @@ def compare(bag_a, bag_b, progress: str | None = None) -> tuple[dict, SessionDat
                             "unit": "s" if field == "time_s" else unit, "a": ra.get(field), "b": rb.get(field),
                             "delta": delta, "delta_pct": pct, "digits": digits})
         track[key] = entry
-    ea, eb = a["metrics"]["erg_response"], b["metrics"]["erg_response"]
-    if ea or eb:
-        for field, label, unit, digits in ERG_FIELDS:
-            # a side without a target step: 0 steps, no settle time
+    for name, fields in (("erg_response", ERG_FIELDS), ("shift_response", SHIFT_FIELDS)):
+        ea, eb = a["metrics"][name], b["metrics"][name]
+        if not (ea or eb):
+            continue
+        for field, label, unit, digits in fields:
+            # a side without a step / shift: 0 of them, no time
             va = (ea or {}).get(field, 0 if unit == "count" else None)
             vb = (eb or {}).get(field, 0 if unit == "count" else None)
             delta, pct = _delta(va, vb)
-            metrics.append({"key": f"erg_response.{field}", "label": label, "unit": unit, "a": va, "b": vb,
+            metrics.append({"key": f"{name}.{field}", "label": label, "unit": unit, "a": va, "b": vb,
                             "delta": delta, "delta_pct": pct, "digits": digits})
     result = {
         "a": a, "b": b, "overlap": overlap, "metrics": metrics, "tracking": track,

@@ -563,7 +563,8 @@ class SessionData:
     """Everything the report and the A/B comparison draw on, from one pass over a bag."""
 
     def __init__(self, path, summary: dict, bins: dict, bin_s: float, origin_s: float, machine: dict,
-                 info: dict, scatter: dict, res_commands: dict, commands: np.ndarray, first: dict):
+                 info: dict, scatter: dict, res_commands: dict, commands: np.ndarray, first: dict,
+                 shifts: list | None = None):
         self.path = path
         self.summary = summary
         self.bins = bins
@@ -575,6 +576,7 @@ class SessionData:
         self.res_commands = res_commands
         self.commands = commands          # (n, 3): t_s, mode, command
         self.first = first                # ledger values of the first PlantState
+        self.shifts = shifts or []        # slope-mode shifts (t, old gear, new gear, mode): shift_response
 
     @property
     def n_bins(self) -> int:
@@ -1049,7 +1051,7 @@ class _Analyser:
             out["tracking"] = tracking(bins, self.bin_s)
             out["erg_response"] = erg_response(bins, self.bin_s)
             out["shift_response"] = shift_response(bins, self.origin_s, self.bin_s, mc["gear_ratio"],
-                                                   [e for e in self.shift_events if e[3] == MODE_SLOPE])
+                                                   self.slope_shifts())
             out["power_accuracy"] = power_accuracy(bins, self.bin_s)
             if self.friction_seen:
                 out["friction"] = [{"t": t, "friction_nms": b, "dry_friction_nm": tc} for t, b, tc in self.friction_seen]
@@ -1062,7 +1064,10 @@ class _Analyser:
         scatter["stride"] = int(self.stride)
         commands = np.vstack(self.command_blocks) if self.command_blocks else np.zeros((0, 3))
         return SessionData(bag_path, out, bins, self.bin_s, self.origin_s, mc, info, scatter,
-                           dict(sorted(self.res_commands.items())), commands, first)
+                           dict(sorted(self.res_commands.items())), commands, first, self.slope_shifts())
+
+    def slope_shifts(self) -> list:
+        return [e for e in self.shift_events if e[3] == MODE_SLOPE]
 
 
 def analyse(bag_path, bin_s: float | None = None, progress: str | None = None) -> SessionData:
@@ -1265,7 +1270,8 @@ SHIFT_WITHIN_S = 3.0          # ... and it must be felt within this long
 SHIFT_OVERSHOOT_S = 1.0       # how far past the chained cadence it went, over this long
 
 
-def shift_response(bins: dict, origin_s: float, bin_s: float, gear_ratio: float, shifts: list) -> dict | None:
+def shift_response(bins: dict, origin_s: float, bin_s: float, gear_ratio: float, shifts: list,
+                   n_bins: int | None = None) -> dict | None:
     """How fast a virtual shift reaches the cranks (trainer users: resistance changing up to
     ~20 s late, shifts that bounce; research notes section 5). ``shifts``: (t, old gear, new
     gear, mode). A chain changes the cadence at once to c0 x old / new at the same road speed
@@ -1273,10 +1279,12 @@ def shift_response(bins: dict, origin_s: float, bin_s: float, gear_ratio: float,
     time until the bins' mean cadence is first within SHIFT_TOL of that (None: not within
     SHIFT_WITHIN_S), ``overshoot_pct`` how far it went past it, in the shift's direction,
     within SHIFT_OVERSHOOT_S, in % of the change. None without a shift."""
+    n = len(bins["dt"]) if n_bins is None else int(n_bins)
+    shifts = [e for e in shifts if e[0] < origin_s + n * bin_s]          # (bins 0..n-1 only)
     if not shifts:
         return None
-    dt = bins["dt"]
-    cadence = _div(bins["rpm_dt"], dt) / gear_ratio
+    dt = bins["dt"][:n]
+    cadence = _div(bins["rpm_dt"][:n], dt) / gear_ratio
     t = origin_s + (np.arange(len(dt)) + 0.5) * bin_s
     ok = np.isfinite(cadence)
     settle: list[float | None] = []
