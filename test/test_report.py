@@ -638,18 +638,21 @@ def test_report_of_a_real_session(tmp_path):
         assert (out / name).stat().st_size > 5000, name
 
 
-def test_shift_response_times_the_cadence_reaching_the_chained_one_and_its_overshoot():
-    """A synthetic ride: 80 rpm, then at t = 1 s an upshift 2.0 -> 2.5 (a chain: 64 rpm at once);
-    the cadence falls as 60 + 20 exp(-(t - 1) / 0.1) (within 5 % of 64, 67.2 rpm, after
-    0.1 ln(20 / 7.2) = 0.102 s) and undershoots to 60 (4 rpm past 64: 25 % of the 16 rpm change);
-    a downshift back at t = 3 s from 60 rpm is never felt (the cadence stays)."""
-    from bike_session.report import shift_response
+def test_shift_response_times_the_flywheel_reaching_the_new_gear_and_its_overshoot():
+    """A synthetic slope ride at 8 m/s: at t = 1 s an upshift 2.0 -> 2.5, so the slope tracking
+    error jumps by 8 x (2.5 / 2.0 - 1) = 2 m/s and then runs as 2.4 exp(-x / 0.1) - 0.4: within
+    5 % of the jump (0.1 m/s) after 0.1 ln(4.8) = 0.157 s, and 0.4 m/s past zero (20 % of the
+    jump); a downshift at t = 3 s whose error stays at its jump (-1.6 m/s) is never felt."""
+    from bike_session.report import MODE_SLOPE, shift_response
     bin_s = 0.01
     t = (np.arange(500) + 0.5) * bin_s
-    cadence = np.where(t < 1.0, 80.0, 60.0 + 20.0 * np.exp(-(t - 1.0) / 0.1))
-    bins = {"dt": np.full(t.size, bin_s), "rpm_dt": cadence * 35.0 * bin_s}
-    r = shift_response(bins, 0.0, bin_s, 35.0, [(1.0, 2.0, 2.5, 3), (3.0, 2.5, 2.0, 3)])
+    x = t - 1.0
+    err = np.where(t < 1.0, 0.0, np.where(t < 3.0, 2.4 * np.exp(-x / 0.1) - 0.4, -1.6))
+    dt = np.full(t.size, bin_s)
+    bins = {"dt": dt, "road_m": 8.0 * dt, f"err_dt{MODE_SLOPE}": err * dt, f"trk_dt{MODE_SLOPE}": dt}
+    r = shift_response(bins, 0.0, bin_s, [(1.0, 2.0, 2.5, 3), (3.0, 2.5, 2.0, 3)])
     assert r["shifts"] == 2 and r["settled"] == 1 and r["settle_s"][1] is None
-    assert r["settle_s"][0] == pytest.approx(0.1 * np.log(20 / 7.2), abs=bin_s)
-    assert r["overshoot_pct_max"] == pytest.approx(25.0, abs=1.0)
-    assert shift_response(bins, 0.0, bin_s, 35.0, []) is None
+    assert r["settle_s"][0] == pytest.approx(0.1 * np.log(4.8), abs=bin_s)
+    assert r["overshoot_pct_max"] == pytest.approx(20.0, abs=0.5)
+    assert shift_response(bins, 0.0, bin_s, []) is None
+    assert shift_response(bins, 0.0, bin_s, [(4.5, 2.0, 2.5, 3)], n_bins=300) is None    # beyond the range

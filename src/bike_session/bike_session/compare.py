@@ -89,7 +89,7 @@ def range_metrics(d: SessionData, n: int) -> dict:
     out["peak_phase_current_a"] = float(ipk.max()) if ipk.size else None
     out["tracking"] = tracking(d.bins, d.bin_s, n)
     out["erg_response"] = erg_response(d.bins, d.bin_s, n)
-    out["shift_response"] = shift_response(d.bins, d.origin_s, d.bin_s, d.machine["gear_ratio"], d.shifts, n)
+    out["shift_response"] = shift_response(d.bins, d.origin_s, d.bin_s, d.shifts, n)
     return out
 
 

@@ -53,10 +53,10 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   tracking windows) and the time from each until the ERG power (as ``erg_power``) stays within
   max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
 - ``shift_response``       virtual shifts in the slope mode (ControllerStatus' gear changing, a
-  press or an automatic shift): the time from each until the crank cadence is first within 5 %
-  of the one a chain gives at once (the cadence of the 0.2 s before x old / new gear), and how far
-  it went past that within 1 s, in % of the change (:func:`shift_response`; trainer users
-  complain of shifts felt late or bouncing); None without a shift.
+  press or an automatic shift): the slope tracking error jumps at each (the flywheel still at the
+  old gear's speed); the time until it is back within max(5 % of the jump, 0.02 m/s), and how far
+  it went past zero within 1 s, in % of the jump (:func:`shift_response`; trainer users complain
+  of shifts felt late or bouncing); None without a shift.
 
 Long bags: messages are decoded straight from the CDR bytes into numpy blocks of
 ``CHUNK`` PlantStates; only per-bin sums (``bin_s``, 10 ms for short sessions, at most
@@ -1050,8 +1050,7 @@ class _Analyser:
                                        "min": self.gear_range[0], "max": self.gear_range[1]}
             out["tracking"] = tracking(bins, self.bin_s)
             out["erg_response"] = erg_response(bins, self.bin_s)
-            out["shift_response"] = shift_response(bins, self.origin_s, self.bin_s, mc["gear_ratio"],
-                                                   self.slope_shifts())
+            out["shift_response"] = shift_response(bins, self.origin_s, self.bin_s, self.slope_shifts())
             out["power_accuracy"] = power_accuracy(bins, self.bin_s)
             if self.friction_seen:
                 out["friction"] = [{"t": t, "friction_nms": b, "dry_friction_nm": tc} for t, b, tc in self.friction_seen]
@@ -1264,50 +1263,51 @@ def erg_response(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | 
             "tolerance": f"max({100 * ERG_TOL:g} % of the target, {ERG_TOL_MIN_W:g} W) for {ERG_HOLD_S:g} s"}
 
 
-SHIFT_TOL = 0.05              # a shift is felt: the cadence within this fraction of the chained one
-SHIFT_BEFORE_S = 0.2          # the cadence before a shift: its mean over this long
+SHIFT_TOL = 0.05              # a shift is felt: the flywheel within this fraction of the gear change ...
+SHIFT_TOL_MIN_MPS = 0.02      # ... or of this road speed, whichever is larger
+SHIFT_BEFORE_S = 0.2          # the road speed before a shift: its mean over this long
 SHIFT_WITHIN_S = 3.0          # ... and it must be felt within this long
-SHIFT_OVERSHOOT_S = 1.0       # how far past the chained cadence it went, over this long
+SHIFT_OVERSHOOT_S = 1.0       # how far the flywheel went past the new gear's speed, over this long
 
 
-def shift_response(bins: dict, origin_s: float, bin_s: float, gear_ratio: float, shifts: list,
-                   n_bins: int | None = None) -> dict | None:
+def shift_response(bins: dict, origin_s: float, bin_s: float, shifts: list, n_bins: int | None = None) -> dict | None:
     """How fast a virtual shift reaches the cranks (trainer users: resistance changing up to
     ~20 s late, shifts that bounce; research notes section 5). ``shifts``: (t, old gear, new
-    gear, mode). A chain changes the cadence at once to c0 x old / new at the same road speed
-    (c0: the mean cadence over SHIFT_BEFORE_S before the shift); ``settle_s`` per shift is the
-    time until the bins' mean cadence is first within SHIFT_TOL of that (None: not within
-    SHIFT_WITHIN_S), ``overshoot_pct`` how far it went past it, in the shift's direction,
-    within SHIFT_OVERSHOOT_S, in % of the change. None without a shift."""
+    gear, mode). A shift keeps the virtual bike's road speed v, and the flywheel, still turning
+    at the old gear's speed, reads v x new / old in the new gear: the slope tracking error
+    (``slope_speed``: the flywheel's road speed - the virtual bike's) jumps by
+    v (new / old - 1), as a chain's cadence would jump the other way. ``settle_s`` per shift: the
+    time until that error is first within max(SHIFT_TOL of the jump, SHIFT_TOL_MIN_MPS) (None:
+    not within SHIFT_WITHIN_S); ``overshoot_pct``: how far it went past zero, away from the
+    jump, within SHIFT_OVERSHOOT_S, in % of the jump. The rider's own answer to the new gear
+    (he pedals on at his effort) is not in it. None without a shift (in bins 0..``n_bins`` - 1)."""
     n = len(bins["dt"]) if n_bins is None else int(n_bins)
-    shifts = [e for e in shifts if e[0] < origin_s + n * bin_s]          # (bins 0..n-1 only)
+    shifts = [e for e in shifts if e[0] < origin_s + n * bin_s]
     if not shifts:
         return None
     dt = bins["dt"][:n]
-    cadence = _div(bins["rpm_dt"][:n], dt) / gear_ratio
-    t = origin_s + (np.arange(len(dt)) + 0.5) * bin_s
-    ok = np.isfinite(cadence)
+    t = origin_s + (np.arange(n) + 0.5) * bin_s
+    road = _div(bins["road_m"][:n], dt)
+    err = _div(bins[f"err_dt{MODE_SLOPE}"][:n], bins[f"trk_dt{MODE_SLOPE}"][:n])
     settle: list[float | None] = []
     overshoot: list[float] = []
     for t_s, g_old, g_new, _mode in shifts:
-        before = ok & (t >= t_s - SHIFT_BEFORE_S) & (t < t_s)
-        if not before.any():
+        before = np.isfinite(road) & (t >= t_s - SHIFT_BEFORE_S) & (t < t_s)
+        after = np.isfinite(err) & (t > t_s) & (t < t_s + SHIFT_WITHIN_S)
+        if not before.any() or not after.any():
             settle.append(None)
             continue
-        c0 = float(cadence[before].mean())
-        chained = c0 * g_old / g_new
-        after = ok & (t >= t_s) & (t < t_s + SHIFT_WITHIN_S)
-        near = np.abs(cadence[after] - chained) <= SHIFT_TOL * chained
+        jump = float(road[before].mean()) * (g_new / g_old - 1.0)
+        near = np.abs(err[after]) <= max(SHIFT_TOL * abs(jump), SHIFT_TOL_MIN_MPS)
         settle.append(float(t[after][np.argmax(near)] - t_s) if near.any() else None)
-        soon = ok & (t >= t_s) & (t < t_s + SHIFT_OVERSHOOT_S)
-        past = np.sign(chained - c0) * (cadence[soon] - chained)
-        if past.size and chained != c0:
-            overshoot.append(100.0 * max(float(past.max()), 0.0) / abs(chained - c0))
+        soon = after & (t < t_s + SHIFT_OVERSHOOT_S)
+        if jump != 0.0 and soon.any():
+            overshoot.append(100.0 * max(float((-np.sign(jump) * err[soon]).max()), 0.0) / abs(jump))
     done = [x for x in settle if x is not None]
     return {"shifts": len(shifts), "settled": len(done), "settle_s": settle,
             "median_s": float(np.median(done)) if done else None, "max_s": float(max(done)) if done else None,
             "overshoot_pct_max": max(overshoot) if overshoot else None,
-            "tolerance": f"{100 * SHIFT_TOL:g} % of the chained cadence within {SHIFT_WITHIN_S:g} s"}
+            "tolerance": f"max({100 * SHIFT_TOL:g} % of the jump, {SHIFT_TOL_MIN_MPS:g} m/s) within {SHIFT_WITHIN_S:g} s"}
 
 
 # ============================================================================ text
@@ -1394,10 +1394,10 @@ def format_summary(summary: dict) -> str:
                      f"{_fmt(erg['max_s'], 's', 2)} ({erg['window_s']:g} s windows; trainer reviews: 3-5 s)")
     shift = s.get("shift_response")
     if shift:
-        lines.append(f"shift response:        {shift['shifts']} slope shifts, {shift['settled']} felt (cadence within "
-                     f"{shift['tolerance']}) after median {_fmt(shift['median_s'], 's', 2)}, max "
-                     f"{_fmt(shift['max_s'], 's', 2)}; past it by at most "
-                     f"{_fmt(shift['overshoot_pct_max'], '%', 0)} of the change")
+        lines.append(f"shift response:        {shift['shifts']} slope shifts, {shift['settled']} felt (the flywheel at "
+                     f"the new gear's speed, {shift['tolerance']}) after median {_fmt(shift['median_s'], 's', 2)}, "
+                     f"max {_fmt(shift['max_s'], 's', 2)}; past it by at most "
+                     f"{_fmt(shift['overshoot_pct_max'], '%', 0)} of the jump")
     if s.get("software_version"):
         lines.append(f"software:              {s['software_version']}")
     for w in s.get("warnings") or []:
