@@ -599,3 +599,25 @@ def test_spmsm_plant_physics_over_the_bus_with_its_realtime_margin(emulator_fact
     assert "machine=spmsm physics=average" in avg.out_path.read_text()
     rc, summary = avg.stop()
     assert rc == 0 and summary["tx:Heartbeat"] >= 1
+
+
+@pytest.mark.parametrize("args,words", [(["--rider-topic", "bad topic!"], "--rider-topic 'bad topic!': Invalid topic"),
+                                        (["--node-id", "64"], "--node-id must be in 0..63")])
+def test_a_bad_option_is_one_error_and_exit_2(args, words):
+    """Bad options are one line naming the option, exit 2, no traceback (before any bus work)."""
+    import contextlib
+    import io
+    import signal
+
+    from bike_controller.drive_emulator import main
+    err = io.StringIO()
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)}
+    try:
+        with contextlib.redirect_stderr(err):
+            code = main(["--interface", "virtual", "--channel", f"bad-{uuid.uuid4().hex}", "--quiet",
+                         "--duration-s", "0.1", *args])
+    finally:
+        for sig, handler in handlers.items():      # main() installs the emulator's own
+            signal.signal(sig, handler)
+    lines = [line for line in err.getvalue().splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and words in lines[0], err.getvalue()

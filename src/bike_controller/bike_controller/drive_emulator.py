@@ -1364,9 +1364,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bike-drive-emulator: cannot open bus {_bus_kwargs(args)}: {exc}", file=sys.stderr)
         return 2
     rider = None
-    try:
-        if args.rider_topic:
+    if args.rider_topic:
+        try:
             rider = RiderDisplay(args.rider_topic)
+        except Exception as exc:  # noqa: BLE001 -- rclpy's error for a bad topic name or an init failure
+            print(f"bike-drive-emulator: --rider-topic {args.rider_topic!r}: {str(exc).splitlines()[0]}",
+                  file=sys.stderr)
+            bus.shutdown()
+            return 2
+    try:
         emu = DriveEmulator(bus, firmware, args.node_id, cyclic_s={k: v / 1000.0 for k, v in cyclic.items()},
                             tick_s=1.0 / args.physics_hz, substeps=args.substeps,
                             silent_after_s=args.silent_after_s, garbage_rate_hz=args.garbage_rate,
