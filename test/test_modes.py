@@ -1082,7 +1082,8 @@ def test_auto_shift_steps_one_gear_after_the_hold_and_leaves_other_modes_alone()
     one table gear down from the nearest table gear (the config's 2.75 lies by 2.7471), above it
     one up, and the hold starts again after each shift; inside the band, below 20 rpm (a rider
     who stopped) and in ERG nothing shifts; at the table's end it stays. A Command that repeats
-    its gear does not undo the automatic gear; a new Command gear wins."""
+    its gear does not undo the automatic gear; a new Command gear (a press) moves the gear in
+    force by as many table steps as the Commands' gear moved."""
     m = law(auto_shift=True, auto_shift_hold_s=0.5)
     gears = m.mp.virtual_gears
     c = 0.5
@@ -1094,13 +1095,16 @@ def test_auto_shift_steps_one_gear_after_the_hold_and_leaves_other_modes_alone()
     assert m.virtual_gear_ratio == gears[gears.index(2.7471) - 1] and m.auto_shifts == 1
     settle(m, c, MODE_SLOPE, 60 * GEAR, n=500)                     # the hold again, then the next gear
     assert m.virtual_gear_ratio == gears[gears.index(2.7471) - 2] and m.auto_shifts == 2
+    k = gears.index(2.7471) - 2
     m.set_virtual_gear(0.0)                                        # the Commands' gear, repeated
-    assert m.virtual_gear_ratio == gears[gears.index(2.7471) - 2]
-    m.set_virtual_gear(4.0)                                        # a press of the shifter
-    assert m.virtual_gear_ratio == 4.0
-    settle(m, c, MODE_SLOPE, 100 * GEAR, n=500)                    # above: up from 4.0's neighbour
-    k = int(np.argmin([abs(math.log(g / 4.0)) for g in gears]))
-    assert m.virtual_gear_ratio == gears[k + 1]
+    assert m.virtual_gear_ratio == gears[k]
+    m.set_virtual_gear(gears[gears.index(2.7471) + 1])             # a press: the session's gear + 1
+    assert m.virtual_gear_ratio == gears[k + 1]                    # ... one up from the gear in force
+    m.set_virtual_gear(gears[gears.index(2.7471) + 1])             # (repeated: nothing)
+    m.set_virtual_gear(gears[0])                                   # 16 down: held at the first gear
+    assert m.virtual_gear_ratio == gears[0]
+    settle(m, c, MODE_SLOPE, 100 * GEAR, n=500)                    # above: one up
+    assert m.virtual_gear_ratio == gears[1]
     for cadence, mode in ((10.0, MODE_SLOPE), (60.0, MODE_ERG)):
         before = m.auto_shifts
         settle(m, 0.2, mode, cadence * GEAR, n=2000)

@@ -59,7 +59,8 @@ Modes (``bike_msgs/Command``):
   Automatic shifting (``auto_shift``, research notes section 5: QZ #2236): a cadence outside
   ``auto_shift_low_cadence_rpm`` .. ``auto_shift_high_cadence_rpm`` for ``auto_shift_hold_s``
   shifts one gear of ``virtual_gears`` down or up the same way (:meth:`ModeLaw._auto_shift`);
-  a new gear in the Commands (the shifter) wins, and the automatic shifting goes on from it.
+  a new gear in the Commands (the shifter's press) then moves the gear in force by as many
+  table steps as it moved the Commands' gear, and the automatic shifting goes on from there.
 - ISOKINETIC (4): constant cadence c* = cadence_min + C*(cadence_max - cadence_min) by a
   PI speed loop (pole placement on J: both poles at -``isokinetic_bandwidth_rad_s``,
   kp = 2 J wn, ki = J wn^2), braking above c*, assisting below, with integrator clamping.
@@ -209,6 +210,11 @@ class ModeParams:
                               self.spindown_spin_up_timeout_s, self.spindown_coast_timeout_s)
 
 
+def _nearest_gear(gears, ratio: float) -> int:
+    """Index of the table gear nearest ``ratio`` (by ratio, i.e. in cadence)."""
+    return min(range(len(gears)), key=lambda i: abs(math.log(gears[i] / ratio)))
+
+
 @dataclass
 class ModeOutput:
     brake_torque_nm: float     # to the current loop (after the rate limit); > 0 brakes, < 0 assists
@@ -290,10 +296,18 @@ class ModeLaw:
             raise ValueError(problem)
         new = float(ratio) or self.mp.virtual_gear_ratio
         # every Command carries its gear: only a change is a shift (so it does not undo the
-        # automatic shifts; a press of the shifter, a new Command gear, wins over them)
+        # automatic shifts)
         if new == self.commanded_gear:
             return
-        self.commanded_gear = new
+        old, self.commanded_gear = self.commanded_gear, new
+        if self.mp.auto_shift:
+            # the automatic shifting owns the gear: a press (a new Command gear) moves it by as
+            # many table steps as it moved the Commands' gear, from the gear in force
+            gears = self.mp.virtual_gears
+            steps = _nearest_gear(gears, new) - _nearest_gear(gears, old)
+            if steps == 0:
+                return
+            new = gears[min(max(_nearest_gear(gears, self.virtual_gear_ratio) + steps, 0), len(gears) - 1)]
         self._shift_to(new)
 
     def _shift_to(self, new: float) -> None:
@@ -320,8 +334,7 @@ class ModeLaw:
         # one step from the table's gear nearest the one in force (which a Command may have
         # set off the table, like the config's 2.75 between 2.747 and 2.995)
         gears = mp.virtual_gears
-        k = min(range(len(gears)), key=lambda i: abs(math.log(gears[i] / self.virtual_gear_ratio)))
-        k += -1 if low else 1
+        k = _nearest_gear(gears, self.virtual_gear_ratio) + (-1 if low else 1)
         if not 0 <= k < len(gears):          # at the table's end: stay, and wait another hold
             self.auto_low_s = self.auto_high_s = 0.0
             return
