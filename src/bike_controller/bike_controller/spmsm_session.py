@@ -269,7 +269,11 @@ class ModedSpmsmController(SessionCommand):
             self.started = True
         speed_rpm = float(inner.status()["speed_est_rpm"])
         self.battery_soc = snapshot.get("battery_soc")
-        sample = self.encoder_speed.sample(snapshot.get("encoder_count", 0), snapshot.get("encoder_edge_ticks", 0))
+        sample = None
+        if self.mode == MODE_SPINDOWN:         # only the spin-down's fit takes the encoder's speed
+            sample = self.encoder_speed.sample(snapshot.get("encoder_count", 0), snapshot.get("encoder_edge_ticks", 0))
+        else:
+            self.encoder_speed.ref = None      # its next spin-down starts from a fresh edge
         self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"), sample)
         duties, relay, buck, status = inner.decide(model, n_eff)
         return duties, relay, buck, self._status(status)

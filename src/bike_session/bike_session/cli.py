@@ -206,12 +206,15 @@ def _config_copy(config: pathlib.Path, doc: dict, note: str):
     import yaml
     from bike_plant.config import load_config
 
+    from bike_session.session_node import resolve_profile_path
+
     for body in doc.values():
         params = body.get("ros__parameters") if isinstance(body, dict) else None
         session = params.get("session") if isinstance(params, dict) else None
         profile = session.get("profile") if isinstance(session, dict) else None
-        if isinstance(profile, str) and profile and not os.path.isabs(os.path.expanduser(profile)):
-            session["profile"] = str((config.parent / profile).resolve())
+        if isinstance(profile, str) and profile:
+            # as the session node resolves it against the original's folder
+            session["profile"] = str(resolve_profile_path(profile, str(config)))
     folder = tempfile.mkdtemp(prefix="bike-config-")
     atexit.register(shutil.rmtree, folder, True)
     path = pathlib.Path(folder) / config.name
