@@ -24,6 +24,26 @@ SWEET_SPOT = [
          intensity="cooldown"),
 ]
 
+# FIT workout_hr: > 100 bpm + 100, 1..100 percent of the rider's maximum heart rate
+HEART_RATE_ERG = [
+    dict(wkt_step_name="Warm up", duration_type="time", duration_value=300_000, target_type="power", target_value=0,
+         custom_target_value_low=1120, custom_target_value_high=1120, intensity="warmup"),
+    dict(wkt_step_name="Zone 2", duration_type="time", duration_value=1_200_000, target_type="heart_rate",
+         target_value=0, custom_target_value_low=230, custom_target_value_high=240, intensity="active",
+         secondary_target_type="cadence", secondary_custom_target_value_low=85,
+         secondary_custom_target_value_high=95),
+    dict(wkt_step_name="Tempo", duration_type="time", duration_value=600_000, target_type="heart_rate",
+         target_value=0, custom_target_value_low=80, custom_target_value_high=84, intensity="active"),
+    dict(wkt_step_name="Cool down", duration_type="time", duration_value=300_000, target_type="open",
+         intensity="cooldown"),
+]
+
+
+def heart_rate_step(seconds: float, lo: int, hi: int | None = None, **extra) -> dict:
+    """A time step with a custom heart-rate range (FIT workout_hr values: bpm + 100 or % of max)."""
+    return dict(duration_type="time", duration_value=int(seconds * 1000), target_type="heart_rate", target_value=0,
+                custom_target_value_low=lo, custom_target_value_high=lo if hi is None else hi, **extra)
+
 
 def fit_workout_bytes(steps: list[dict], *, name: str = "Test workout", sport: str = "cycling",
                       file_type: str = "workout", with_index: bool = True) -> bytes:

@@ -82,6 +82,11 @@ def test_the_emulated_rider_takes_a_cadence_target_and_stops_when_told(params, p
             fw.step(1e-3)
     ride(6.0)
     assert cadence() == pytest.approx(80.0, abs=3.0)
+    # his heart (what --heart-rate-topic sends) beats faster as he pedals; the plant physics'
+    # is the plant's own, stepped with the drive's batches
+    assert model.heart_rate_bpm > model.params.load.rider_rest_hr_bpm + 1.0
+    if physics == "plant":
+        assert model.plant.heart.time_s == pytest.approx(model.plant.time_s) == pytest.approx(6.0, abs=0.01)
     model.set_rider_instruction(95.0, False)
     ride(8.0)
     assert cadence() == pytest.approx(95.0, abs=3.0)

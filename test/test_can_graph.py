@@ -511,7 +511,8 @@ def test_the_spmsm_bike_rides_a_workout_through_the_can_path(tmp_path, ros_domai
 
 
 def test_the_emulated_rider_follows_the_trainers_instructions_and_a_spin_down_works_over_can(tmp_path, ros_domain):
-    """`./bike run` on the SPMSM CAN config starts the emulator with --rider-topic: its rider reads
+    """`./bike run` on the SPMSM CAN config starts the emulator with --rider-topic and
+    --heart-rate-topic: its rider reads
     the controller's instructions (DriveCommand's rider fields, which a drive never sees; a real
     rider reads a screen). He pedals at an ERG segment's cadence target (95 rpm, his own is 80)
     and does a spin-down: spins up, stops pedalling, and the controller, told half the viscous
@@ -542,6 +543,11 @@ def test_the_emulated_rider_follows_the_trainers_instructions_and_a_spin_down_wo
     assert sum(cadence) / len(cadence) == pytest.approx(95.0, abs=4.0)
     stops = [m for m in read_topic(bag, "drive_command") if m.rider_stops_pedalling]
     assert stops and all(3.0 < t(m) < 9.0 for m in stops)
+    # his chest strap (--heart-rate-topic, once a second) reaches the PlantState through the plant
+    # node: a heart rate from the first seconds on, above rest, and higher at the end
+    beats = [(t(m), m.heart_rate_bpm) for m in states if m.heart_rate_bpm > 0.0]
+    assert beats and beats[0][0] < 2.5, beats[:3]
+    assert min(b for _, b in beats) > 60.0 and beats[-1][1] > beats[0][1] + 1.0, (beats[0], beats[-1])
     status = read_topic(bag, "controller_status")
     w = 80.0 * 4.0 / (60.0 / (2.0 * 3.141592653589793))        # 80 rpm at the crank, motor rad/s
     learnt = status[-1].friction_nms * w + status[-1].dry_friction_nm

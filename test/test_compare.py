@@ -4,7 +4,8 @@ import json
 
 import pytest
 
-from test_report import CADENCE, CONFIG_TEXT, ROAD_MPS, SQRT250, real_session, write_session_bag
+from test_report import (CADENCE, CONFIG_TEXT, ROAD_MPS, SQRT250, hr_erg_ride, real_session,
+                         write_session_bag)
 
 from bike_session.compare import compare, main
 from bike_session.report import analyse
@@ -109,6 +110,34 @@ def test_bad_input_is_one_error(tmp_path, capsys):
     assert main([str(good), str(good), "--out", str(blocker / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("bike compare: error: cannot write") and err.count("\n") == 1
+
+
+def test_heart_rate_and_heart_rate_erg_side_by_side_on_the_overlap(tmp_path, capsys):
+    """A: the report's heart-rate ride (3 s; at 150 bpm: 149 from 0.8 s, 152 from 1.5 s). B:
+    1.6 s, 100 bpm until 1.0 s, then 150. Compared on 0-1.6 s: one stretch each (A's 120 bpm
+    stretch starts at 2.0 s), settled 0.3 s / 0.5 s after its start."""
+    a = hr_erg_ride(tmp_path / "a")
+    b = hr_erg_ride(tmp_path / "b", n=1601, heart=lambda k: 0.0 if k < 300 else (100.0 if k < 1000 else 150.0))
+    r, *_ = compare(a, b)
+    mean = metric(r, "mean_heart_rate_bpm")
+    # batches with a heart rate at both ends, 0.3-1.6 s; a step's batch at its ends' mean
+    assert mean["a"] == pytest.approx((499 * 100 + 124.5 + 699 * 149 + 150.5 + 100 * 152) / 1300, rel=1e-9)
+    assert mean["b"] == pytest.approx((699 * 100 + 125 + 600 * 150) / 1300, rel=1e-9)
+    assert (metric(r, "max_heart_rate_bpm")["a"], metric(r, "max_heart_rate_bpm")["b"]) == (152.0, 150.0)
+    assert (metric(r, "heart_rate_erg.stretches")["a"], metric(r, "heart_rate_erg.stretches")["b"]) == (1, 1)
+    settle = metric(r, "heart_rate_erg.median_settle_s")
+    assert settle["a"] == pytest.approx(0.3) and settle["b"] == pytest.approx(0.5)
+    assert settle["delta"] == pytest.approx(0.2)
+    mae = metric(r, "heart_rate_erg.mae_bpm")
+    assert mae["a"] == pytest.approx((69 * 1.0 + 0.85 + 10 * 2.0) / 80, rel=1e-9) and mae["b"] == pytest.approx(0.0)
+    assert metric(r, "heart_rate_erg.max_abs_bpm")["a"] == pytest.approx(2.0)
+    assert main([str(a), str(b)]) == 0
+    text = capsys.readouterr().out
+    assert "mean heart rate [bpm]" in text and "HR ERG settle time, median [s]" in text
+    # no heart rate on either side: no rows
+    plain = write_session_bag(tmp_path / "plain")
+    r, *_ = compare(plain, plain)
+    assert not [m for m in r["metrics"] if "heart" in m["key"]]
 
 
 @pytest.mark.slow

@@ -265,7 +265,7 @@ def _small_bag(path: pathlib.Path, storage: str) -> None:
     for k in range(200):
         msg = Command(header=Header(stamp=Time(sec=0, nanosec=k * 1000), frame_id=""), command=0.5, mode=0,
                       virtual_gear_ratio=0.0, road_from_command=False, crr=0.0, cw_kg_m=0.0, wind_mps=0.0,
-                      cadence_rpm=0.0)
+                      cadence_rpm=0.0, heart_rate_bpm=0.0)
         sink.write("/bike/command", k * 1000, ts.serialize_cdr(msg, "bike_msgs/msg/Command"))
     sink.close()
 

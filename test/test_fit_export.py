@@ -48,6 +48,27 @@ def test_a_session_becomes_per_second_records_and_totals(tmp_path):
     assert [e["event_type"] for e in m["event_mesgs"]] == ["start", "stop_all"]
 
 
+def test_heart_rate_in_the_records_that_have_one_and_in_the_totals(tmp_path):
+    """No heart rate in the first second (a strap put on at 1 s), 140 bpm in the second, 150 in
+    the third: the first record has no heart_rate field, the others the second's mean; the lap
+    and the session their mean and max. Without a heart rate (test above) no record has one."""
+    bag = write_session_bag(tmp_path / "bag", n=3001,
+                            heart=lambda k: 0.0 if k < 1000 else (140.0 if k < 2000 else 150.0))
+    totals = export_fit(bag, tmp_path / "ride.fit")
+    m = _decode(tmp_path / "ride.fit")
+    rec = m["record_mesgs"]
+    assert [r.get("heart_rate") for r in rec] == [None, 140, 150]
+    assert [r["power"] for r in rec] == [150, 150, 150], "the other fields as without a heart rate"
+    for lap_or_session in (m["lap_mesgs"][0], m["session_mesgs"][0]):
+        assert lap_or_session["avg_heart_rate"] == 145 and lap_or_session["max_heart_rate"] == 150
+    assert totals["max_heart_rate_bpm"] == pytest.approx(150.0)
+    plain = write_session_bag(tmp_path / "plain", n=2001)
+    export_fit(plain, tmp_path / "plain.fit")
+    m = _decode(tmp_path / "plain.fit")
+    assert not any("heart_rate" in r for r in m["record_mesgs"])
+    assert "avg_heart_rate" not in m["session_mesgs"][0]
+
+
 def test_a_lap_per_workout_segment(tmp_path):
     """Segments 0 (0-2 s), 1 (2-3 s), 2 (3-5 s) of the session: three laps, as a head unit
     running the workout would record them, with their own totals."""

@@ -85,8 +85,8 @@ def test_percent_targets_need_the_riders_ftp(tmp_path):
 def test_open_steps_and_unmodelled_targets_ride_free_and_say_so(tmp_path):
     steps = [dict(duration_type="open", target_type="power", target_value=0, custom_target_value_low=1100,
                   custom_target_value_high=1100),
-             dict(duration_type="time", duration_value=60_000, target_type="heart_rate", target_value=0,
-                  custom_target_value_low=240, custom_target_value_high=250),
+             dict(duration_type="time", duration_value=60_000, target_type="speed", target_value=0,
+                  custom_target_value_low=8000, custom_target_value_high=9000),
              dict(duration_type="time", duration_value=30_000, target_type="cadence", target_value=0,
                   custom_target_value_low=100, custom_target_value_high=110)]
     with warnings.catch_warnings(record=True) as caught:
@@ -99,7 +99,7 @@ def test_open_steps_and_unmodelled_targets_ride_free_and_say_so(tmp_path):
     texts = [str(c.message) for c in caught if issubclass(c.category, WorkoutWarning)]
     assert len(texts) == 2 and texts == w.warnings
     assert any("step 0" in t and "lap button" in t for t in texts)
-    assert any("step 1" in t and "'heart_rate' targets are not ridden" in t for t in texts)
+    assert any("step 1" in t and "'speed' targets are not ridden" in t for t in texts)
 
 
 @pytest.mark.parametrize("steps, kw, match", [

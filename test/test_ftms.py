@@ -183,6 +183,35 @@ def test_characteristic_values_are_the_specs_bytes():
         ftms.parse_indoor_bike_data(other[:-1])
 
 
+def test_indoor_bike_data_carries_the_heart_rate_when_there_is_one():
+    """Flags bit 9 and a uint8 bpm after the power (no energy fields here), before the elapsed
+    time (FTMS 4.9.1); left out at 0 (no rider's heart) and for what is no heart rate."""
+    base = dict(speed_kmh=30.0, cadence_rpm=90.0, distance_m=1000.0, resistance_level=0.0, power_w=200.0,
+                elapsed_s=60.0)
+    data = ftms.encode_indoor_bike_data(**base, heart_rate_bpm=142.4)
+    assert struct.unpack_from("<H", data)[0] == 0x0874 | ftms.IBD_HEART_RATE == 0x0A74
+    assert len(data) == 16 and data[13] == 142 and struct.unpack_from("<H", data, 14)[0] == 60
+    assert struct.unpack_from("<h", data, 11)[0] == 200, "power just before the heart rate"
+    assert ftms.parse_indoor_bike_data(data)["heart_rate_bpm"] == 142
+    assert ftms.decode_indoor_bike_data(data) == ftms.IndoorBikeData(30.0, 90.0, 1000, 0, 200, 60, 142)
+    for none in (0.0, 0.4, -5.0, float("nan")):
+        plain = ftms.encode_indoor_bike_data(**base, heart_rate_bpm=none)
+        assert plain == ftms.encode_indoor_bike_data(**base) and len(plain) == 15
+        assert ftms.decode_indoor_bike_data(plain).heart_rate_bpm == 0
+    assert ftms.encode_indoor_bike_data(**base, heart_rate_bpm=300.0)[13] == 255       # the field's end
+    machine, _ = struct.unpack("<II", ftms.encode_feature())
+    assert machine & ftms.MACHINE_HEART_RATE == 1 << 10
+    with pytest.raises(ValueError, match="not this bike's"):
+        ftms.decode_indoor_bike_data(data[:-1])
+    tel = Telemetry(gear_ratio=35.0)
+    tel.update(stamp_ns=0, energy_mech_in_j=0.0, speed_rpm=3150.0, virtual_speed_mps=8.0, resistance_level=0.0,
+               elapsed_s=1.0, heart_rate_bpm=131.0)
+    assert ftms.decode_indoor_bike_data(tel.encode()).heart_rate_bpm == 131
+    tel.update(stamp_ns=1, energy_mech_in_j=0.0, speed_rpm=3150.0, virtual_speed_mps=8.0, resistance_level=0.0,
+               elapsed_s=1.0)                                   # a prime mover: no heart rate
+    assert len(tel.encode()) == 15
+
+
 def test_telemetry_power_is_the_ledgers_mean_over_a_second_and_distance_the_virtual_speed():
     tel = Telemetry(gear_ratio=35.0, power_window_s=1.0)
     for k in range(9):                 # every 0.25 s: 200 J/s, plus a pulse the window averages out

@@ -32,7 +32,7 @@ WRITER = textwrap.dedent("""
         t_ns = k * 1_000_000
         msg = Command(header=Header(stamp=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id=""),
                       command=0.5, mode=0, virtual_gear_ratio=0.0, road_from_command=False, crr=0.0,
-                      cw_kg_m=0.0, wind_mps=0.0, cadence_rpm=0.0)
+                      cw_kg_m=0.0, wind_mps=0.0, cadence_rpm=0.0, heart_rate_bpm=0.0)
         sink.write("/bike/command", t_ns, ts.serialize_cdr(msg, "bike_msgs/msg/Command"))
         print(t_ns, flush=True)
         time.sleep(0.0005)

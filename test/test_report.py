@@ -1,6 +1,7 @@
 """Bag reading and the session summary, on bags written here with rosbags (no DDS)."""
 import atexit
 import json
+import math
 import os
 import pathlib
 import shutil
@@ -231,14 +232,16 @@ def session_mode(k, erg_targets=(90.0, 120.0)):
 
 def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
                       status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None,
-                      modes=None, virtual_mps=None, segment=None, friction=None, cadence=None):
+                      modes=None, virtual_mps=None, segment=None, friction=None, cadence=None, heart=None,
+                      hr_target=None):
     """A 1 kHz session of n PlantStates (t = i ms): 100 rad/s, 1 N m of braking (100 W),
     rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()
     (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given (else
     ROAD_MPS, what a controller reports for 100 rad/s on CONFIG_TEXT's bike);
     with ``segment(k)``, a RUNNING SessionStatus every 100 ms in that profile segment;
     ``friction(k)``: the laws' (B, Tc) the statuses carry (else 0, 0); ``cadence(k)``: the
-    Commands' rider cadence target (else 0)."""
+    Commands' rider cadence target (else 0); ``heart(k)``: the PlantStates' heart rate and
+    ``hr_target(k)`` the Commands' heart-rate target (else 0, none)."""
     from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import BatteryState
@@ -271,6 +274,7 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
         m.energy_mech_in_j, m.energy_battery_j = 150.0 * t, 80.0 * t
         m.energy_resistor_j, m.energy_loss_j = 5.0 * t, 15.0 * t
         m.faults = 2 if i in (3, 4) else 0
+        m.heart_rate_bpm = float(heart(i)) if heart else 0.0
         data = serialize_message(m)
         sink.write(_full("plant_state"), t_ns, data)
         if plant_dups:
@@ -281,7 +285,8 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
         if i < n - 1:
             mode, command, target, sat = modes(i) if modes else session_mode(i, erg_targets)
             if i % 100 == 0:
-                c = Command(command=command, mode=mode, cadence_rpm=cadence(i) if cadence else 0.0)
+                c = Command(command=command, mode=mode, cadence_rpm=cadence(i) if cadence else 0.0,
+                            heart_rate_bpm=float(hr_target(i)) if hr_target else 0.0)
                 c.header.stamp = m.header.stamp
                 sink.write(_full("command"), t_ns, serialize_message(c))
             if status:
@@ -576,6 +581,117 @@ def test_erg_response_times_each_target_step():
     assert "erg response:          2 target steps, 1 settled" in format_summary({"erg_response": r})
     bins[f"target_dt{MODE_ERG}"] = np.where(erg, 100.0 * 0.1, 0.0)        # no step: nothing to say
     assert erg_response(bins, 0.1) is None
+
+
+# ---------------------------------------------------------------- heart rate
+
+def hr_ride(k):
+    """The rider's heart rate at t = k ms: none (a strap not yet on) until 0.3 s, 100 bpm until
+    0.8 s, 149 until 1.5 s, then 152."""
+    return 0.0 if k < 300 else (100.0 if k < 800 else (149.0 if k < 1500 else 152.0))
+
+
+def hr_erg_ride(path, n=3001, heart=hr_ride, **kw):
+    """3 s in ERG: no heart-rate target until 0.5 s, 150 bpm until 2.0 s (15 Commands, one
+    stretch), then 120 bpm; the heart as hr_ride()."""
+    return write_session_bag(path, n=n, modes=lambda k: (2, 0.2, 0.2 * PMAX, False), heart=heart,
+                             hr_target=lambda k: 0.0 if k < 500 else (150.0 if k < 2000 else 120.0), **kw)
+
+
+# the 10 ms bins of the 150 bpm stretch (0.5-2.0 s) from the first within 3 bpm (0.8 s): 69 bins
+# 1 bpm off, the bin with the step to 152 (its last batch at (149 + 152) / 2) 0.85, 50 bins 2 off
+HR_MAE_BPM = (69 * 1.0 + 0.85 + 50 * 2.0) / 120
+
+
+def test_heart_rate_and_heart_rate_erg_stretches(tmp_path):
+    from bike_session.report import analyse, series
+
+    d = analyse(hr_erg_ride(tmp_path / "bag"))
+    s = d.summary
+    # the batches with a heart rate at both ends: 0.3-3.0 s, the steps' batches at their mean
+    mean_bpm = (499 * 100.0 + 124.5 + 699 * 149.0 + 150.5 + 1500 * 152.0) / 2700
+    assert s["mean_heart_rate_bpm"] == pytest.approx(mean_bpm, rel=1e-9) and s["max_heart_rate_bpm"] == 152.0
+    assert d.hr_stretches == [(0.5, 2.0, 150.0), (2.0, math.inf, 120.0)]
+    r = s["heart_rate_erg"]
+    assert r["stretches"] == 2 and r["settled"] == 1 and r["tolerance_bpm"] == 3.0
+    first, second = r["per_stretch"]
+    assert first["target_bpm"] == 150.0 and first["start_s"] == pytest.approx(0.5)
+    assert first["duration_s"] == pytest.approx(1.5) and first["hr_time_s"] == pytest.approx(1.5)
+    assert first["settle_s"] == pytest.approx(0.3)
+    assert first["mae_bpm"] == pytest.approx(HR_MAE_BPM, rel=1e-9) and first["max_abs_bpm"] == pytest.approx(2.0)
+    assert second["target_bpm"] == 120.0 and second["duration_s"] == pytest.approx(1.0)
+    assert second["settle_s"] is None and second["mae_bpm"] is None and second["max_abs_bpm"] is None
+    assert r["median_settle_s"] == pytest.approx(0.3) and r["max_settle_s"] == pytest.approx(0.3)
+    assert r["mae_bpm"] == pytest.approx(HR_MAE_BPM, rel=1e-9) and r["max_abs_bpm"] == pytest.approx(2.0)
+    text = format_summary(s)
+    assert f"heart rate:            mean {mean_bpm:.1f} bpm, max 152.0 bpm" in text
+    assert "heart-rate ERG:        2 target stretch(es), 1 settled (within 3 bpm) after median 0.3 s" in text
+    assert "  150 bpm from 0.5 s (1.5 s): settled after 0.3 s, then mean |error| 1.4 bpm, max 2.0 bpm" in text
+    assert "  120 bpm from 2.0 s (1.0 s): never within 3 bpm" in text
+    hr = series(d, points=None)["heart_rate"]
+    assert np.isnan(hr[:30]).all() and np.allclose(hr[31:79], 100.0) and np.allclose(hr[150:], 152.0)
+    json.dumps(s, allow_nan=False)                  # summary.json stays plain JSON
+
+
+def test_heart_rate_part_absent_without_data_and_targets_only_in_erg(tmp_path):
+    """No heart rate and no target: both figures None, nothing printed. A target in a mode other
+    than ERG rules nothing (bike_msgs/Command); a target without a heart rate says so."""
+    from bike_session.report import analyse
+
+    s = analyse(write_session_bag(tmp_path / "a")).summary
+    assert s["mean_heart_rate_bpm"] is None and s["max_heart_rate_bpm"] is None and s["heart_rate_erg"] is None
+    assert "heart rate:" not in format_summary(s) and "heart-rate ERG" not in format_summary(s)
+    s = analyse(write_session_bag(tmp_path / "b", hr_target=lambda k: 140.0)).summary      # ERG only until 0.4 s
+    r = s["heart_rate_erg"]
+    assert r["stretches"] == 1 and r["per_stretch"][0]["duration_s"] == pytest.approx(0.4)
+    assert r["settled"] == 0 and r["per_stretch"][0]["hr_time_s"] == 0.0
+    text = format_summary(s)
+    assert "(no heart rate in the bag)" in text and "  140 bpm from 0.0 s (0.4 s): no heart rate" in text
+
+
+def _without_heart_rate(src, dst):
+    """The bag ``src`` rewritten as recorded before PlantState and Command had heart_rate_bpm:
+    their embedded definitions lack the field, and so do the messages."""
+    from bike_session.recorder_node import bike_msgs_msg_dir
+
+    msg_dir = dst.parent / f"{dst.name}_msg"
+    msg_dir.mkdir()
+    for f in bike_msgs_msg_dir().glob("*.msg"):
+        lines = f.read_text().splitlines(keepends=True)
+        if f.stem in ("PlantState", "Command"):
+            lines = [ln for ln in lines if not ln.startswith("float64 heart_rate_bpm")]
+        (msg_dir / f.name).write_text("".join(lines))
+    old = build_typestore(msg_dir)
+    topics = [(_full(t), m, h, t == "session_info") for t, m, h in TOPICS]
+    sink = BagSink(dst, "mcap", old, topics)
+    with open_bag(src) as bag:
+        for topic, t_ns, raw in bag.messages(raw=True):
+            msgtype = bag.topics[topic][0]
+            if msgtype in ("bike_msgs/msg/PlantState", "bike_msgs/msg/Command"):
+                msg = bag.typestore.deserialize_cdr(raw, msgtype)
+                cls = old.types[msgtype]
+                fields = {k: getattr(msg, k) for k in cls.__dataclass_fields__ if k != "__msgtype__"
+                          and not k.isupper()}
+                raw = old.serialize_cdr(cls(**fields), msgtype)
+            sink.write(topic, t_ns, raw)
+    sink.close()
+    return dst
+
+
+def test_older_bag_without_heart_rate_fields(tmp_path):
+    """A bag recorded before heart_rate_bpm: its definitions decode, the report has no heart-rate
+    part (the fields' default 0 is "none") and every other number is as before."""
+    from bike_session.report import analyse
+
+    bag = _without_heart_rate(hr_erg_ride(tmp_path / "new"), tmp_path / "old")
+    with open_bag(bag) as b:
+        for name in ("PlantState", "Command"):
+            assert "heart_rate_bpm" not in b.typestore.types[f"bike_msgs/msg/{name}"].__dataclass_fields__
+    d = analyse(bag)
+    assert d.summary["mean_heart_rate_bpm"] is None and d.summary["heart_rate_erg"] is None
+    assert d.hr_stretches == []
+    assert d.summary["mean_rider_power_w"] == pytest.approx(150.0, rel=1e-9)
+    assert "heart rate:" not in format_summary(d.summary) and "heart-rate ERG" not in format_summary(d.summary)
 
 
 # ---------------------------------------------------------------- a real recorded session

@@ -38,7 +38,9 @@ rider display below):
   (physics_realtime_factor = simulated / wall time spent on physics, physics_lag_max_ms).
   The rider (plant physics' or the average model's) follows what the trainer tells him with
   ``--rider-topic`` (:class:`RiderDisplay`, the only rclpy use, imported then): a workout's
-  cadence target, a spin-down's "stop pedalling", from the controller's DriveCommand.
+  cadence target, a spin-down's "stop pedalling", from the controller's DriveCommand; and
+  with ``--heart-rate-topic`` his heart rate (bike_plant.heart) goes out once a second as a
+  chest strap's would (bike_msgs/HeartRate), which the plant node puts into the PlantState.
   Fault injection: --silent-after-s, --garbage-rate,
   --fault-at-s / SIGUSR1 with --fault (an error that disarms the axis, or IDLE) and
   --fault-persist (Clear_Errors that do not clear it).
@@ -112,6 +114,7 @@ from bike_plant.can.protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REA
                                      InputMode, ODriveError, OdriveCanSimpleCodec, ProcedureResult, _EchoFilter,
                                      error_names)
 from bike_plant.config import ConfigError, load_config, section
+from bike_plant.heart import RiderHeart
 from bike_plant.memory import release_clean_library_pages
 from bike_plant.params import RPM_PER_RAD_S, TWO_PI, LoadParams
 from bike_plant.sim import BldcPlant
@@ -132,6 +135,7 @@ LOAD_KINDS = ("rider", "prime_mover", "dynamometer", "none")
 PHYSICS = ("plant", "average")     # --physics: the bike_plant kernels | the average-torque model
 DEFAULT_SPEED_OBSERVER_HZ = 160.0  # SPMSM drive's speed observer pole (~ ODrive encoder bandwidth 1000 rad/s)
 CURRENT_LOOPS = ("pi", "predictive")   # SPMSM current-loop family (bike_controller.spmsm_control)
+HEART_RATE_PERIOD_S = 1.0         # the emulated rider's chest strap: one reading a second
 
 
 # =======================================================================================
@@ -254,6 +258,8 @@ class AverageTorqueDrive(_DriveReadouts):
         self.rider_integrator = load.rider_effort0
         self.rider_target_rpm = load.rider_target_cadence_rpm   # set_rider_instruction moves it
         self.rider_stopped = False
+        self.heart = RiderHeart(load.heart_params()) if p.load_kind == "rider" else None
+        self.rider_energy_j = 0.0
         self.torque_em_nm = 0.0
         self.load_torque_nm = 0.0
         self.mechanical_power_w = 0.0
@@ -339,6 +345,14 @@ class AverageTorqueDrive(_DriveReadouts):
         self.electrical_power_w = self.mechanical_power_w + p.copper_resistance_ohm * self.iq_a ** 2
         self._dc_bus(dt_s)
         self.time_s += dt_s
+        if self.heart is not None:
+            self.rider_energy_j += t_load * omega_avg * dt_s
+            self.heart.advance(self.rider_energy_j, self.time_s)
+
+    @property
+    def heart_rate_bpm(self) -> float:
+        """The rider's heart rate (0: no rider)."""
+        return self.heart.bpm if self.heart is not None else 0.0
 
     def _dc_bus(self, dt_s: float) -> None:
         """Battery (OCV, R_int) || brake resistor feeding the drive's power P:
@@ -475,6 +489,14 @@ class _PlantDrive(_DriveReadouts):
         self.bus_current_a = -float(a[A_IBATT])
         self.electrical_power_w = float(a[A_VDC]) * self.bus_current_a
         self.position_rev = self._position_rev(float(a[A_OMEGA]) * n * self.period_s)
+        heart = self.plant.heart
+        if heart is not None:      # the kernels step the plant's state, not its step_batch
+            heart.advance(self.plant.state[self._s_e_mech], self.plant.time_s)
+
+    @property
+    def heart_rate_bpm(self) -> float:
+        """The rider's heart rate (the plant's own rider; 0: no rider)."""
+        return self.plant.heart.bpm if self.plant.heart is not None else 0.0
 
     def _position_rev(self, dtheta_rad: float) -> float:
         return self.position_rev + dtheta_rad / TWO_PI
@@ -489,6 +511,8 @@ class SpmsmPlantDrive(_PlantDrive):
     :func:`spmsm_drive_batch`. The torque setpoint reaches the current loop as its iq
     demand (iq* = T / kt), limited by the region logic to the drive's current limit and
     the voltage the 24 V inverter can make at the present speed (flux weakening, MTPV)."""
+
+    _s_e_mech = M.S_E_MECH      # the ledger's rider energy in the plant's state
 
     def __init__(self, cfg: dict, params: DriveModelParams, *, current_loop: str = "pi", load_kind: str | None = None,
                  speed_observer_hz: float = DEFAULT_SPEED_OBSERVER_HZ):
@@ -561,6 +585,8 @@ class BldcPlantDrive(_PlantDrive):
     generating (its lower switch: the winding boosts into the battery; forward rotation
     only, as the paper's quadrants I and II -- at standstill or backwards no braking
     current is commanded). The hysteresis band is controller.hysteresis_a."""
+
+    _s_e_mech = K.S_E_MECH      # the ledger's rider energy in the plant's state
 
     def __init__(self, cfg: dict, params: DriveModelParams, *, load_kind: str | None = None):
         pp = P.plant_params_from_config(cfg)
@@ -845,11 +871,12 @@ class RiderDisplay:
     controller's DriveCommand carries it for the simulated plant's rider (a workout's cadence
     target, a spin-down's "stop pedalling"), and a drive on CAN never sees it -- a real rider
     reads it off a screen. This reads it off the ROS topic, in a thread of its own (rclpy only
-    here, imported on use); :attr:`latest` is (cadence target [rpm], 0 = his own; stop)."""
+    here, imported on use); :attr:`latest` is (cadence target [rpm], 0 = his own; stop).
+    ``heart_rate_topic``: his chest strap, :meth:`publish_heart_rate` (either topic may be None)."""
 
-    def __init__(self, topic: str):
+    def __init__(self, topic: str | None, heart_rate_topic: str | None = None):
         import rclpy
-        from bike_msgs.msg import DriveCommand
+        from bike_msgs.msg import DriveCommand, HeartRate
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from rclpy.signals import SignalHandlerOptions
@@ -859,8 +886,12 @@ class RiderDisplay:
         # the emulator's own SIGINT / SIGTERM handlers stay in charge
         rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node("drive_emulator_rider", context=self.context)
-        self.node.create_subscription(DriveCommand, topic, self._on_drive,
-                                      QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        if topic:
+            self.node.create_subscription(DriveCommand, topic, self._on_drive,
+                                          QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        self._heart_rate_msg = HeartRate
+        self.heart_rate_pub = (self.node.create_publisher(HeartRate, heart_rate_topic, 10)
+                               if heart_rate_topic else None)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, name="rider-display", daemon=True)
@@ -870,6 +901,15 @@ class RiderDisplay:
         cadence = float(msg.rider_cadence_rpm)
         if math.isfinite(cadence) and cadence >= 0.0:        # the controller checked it; a bad one is ignored
             self.latest = (cadence, bool(msg.rider_stops_pedalling))
+
+    def publish_heart_rate(self, bpm: float) -> None:
+        """One strap reading (a no-op without ``heart_rate_topic``)."""
+        if self.heart_rate_pub is None:
+            return
+        msg = self._heart_rate_msg()
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        msg.heart_rate_bpm = float(bpm)
+        self.heart_rate_pub.publish(msg)
 
     def _spin(self) -> None:
         try:
@@ -910,6 +950,7 @@ class DriveEmulator:
         self.firmware = firmware
         self.rider = rider                  # what the controller tells the rider (None: nothing)
         self.rider_told = (0.0, False)
+        self.next_heart_rate_s = 0.0        # physics time of the rider's next strap reading
         self.codec = OdriveCanSimpleCodec(node_id)
         self.node_id = node_id
         cyclic = {"Heartbeat": 0.1, "Get_Encoder_Estimates": 0.01} if cyclic_s is None else dict(cyclic_s)
@@ -1057,6 +1098,10 @@ class DriveEmulator:
             self.rider_told = self.rider.latest
             fw.model.set_rider_instruction(*self.rider_told)
             self._count("rider_instructions")
+        if self.rider is not None and self.physics_s >= self.next_heart_rate_s:
+            # a chest strap sends about once a second
+            self.rider.publish_heart_rate(fw.model.heart_rate_bpm)
+            self.next_heart_rate_s = self.physics_s + HEART_RATE_PERIOD_S
         max_steps = int(round(0.1 / q))      # at most 100 ms of catch-up per tick
         if n > max_steps:
             self._count("physics_skipped_ms", int((n - max_steps) * q * 1000))
@@ -1265,6 +1310,10 @@ def build_arg_parser() -> argparse.ArgumentParser:
     ap.add_argument("--rider-topic", default=None, metavar="TOPIC",
                     help="let the emulated rider follow the trainer's instructions on this DriveCommand topic "
                          "(e.g. /bike/drive_command: a workout's cadence, a spin-down's stop; ./bike run sets it)")
+    ap.add_argument("--heart-rate-topic", default=None, metavar="TOPIC",
+                    help="publish the emulated rider's heart rate (bike_msgs/HeartRate, once a second, as a chest "
+                         "strap) on this topic (e.g. /bike/heart_rate, where the plant node reads it; ./bike run "
+                         "sets it)")
     ap.add_argument("--duration-s", type=float, default=None, help="exit 0 after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="no event log on stderr")
     return ap
@@ -1364,12 +1413,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bike-drive-emulator: cannot open bus {_bus_kwargs(args)}: {exc}", file=sys.stderr)
         return 2
     rider = None
-    if args.rider_topic:
+    if args.rider_topic or args.heart_rate_topic:
         try:
-            rider = RiderDisplay(args.rider_topic)
+            rider = RiderDisplay(args.rider_topic, args.heart_rate_topic)
         except Exception as exc:  # noqa: BLE001 -- rclpy's error for a bad topic name or an init failure
-            print(f"bike-drive-emulator: --rider-topic {args.rider_topic!r}: {str(exc).splitlines()[0]}",
-                  file=sys.stderr)
+            given = " / ".join(f"{name} {value!r}" for name, value in (("--rider-topic", args.rider_topic),
+                                                                      ("--heart-rate-topic", args.heart_rate_topic))
+                               if value)
+            print(f"bike-drive-emulator: {given}: {str(exc).splitlines()[0]}", file=sys.stderr)
             bus.shutdown()
             return 2
     try:

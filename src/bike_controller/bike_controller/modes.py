@@ -29,7 +29,11 @@ Modes (``bike_msgs/Command``):
   (``saturated``), the target is not met silently. Its virtual speed is the gear's
   (cadence x gear x wheel) unless ``erg_speed_from_power``: then a virtual bike on the flat
   driven by the rider's power (:meth:`ModeLaw._erg_speed_mps`), so distance does not depend
-  on the gear.
+  on the gear. Heart-rate ERG: a Command with ``heart_rate_bpm`` > 0 holds the rider's heart
+  rate there instead; P* is then the output of a slow PI on the PlantState's heart rate
+  (:mod:`bike_controller.heart_erg`, tuned on ``hr_gain_bpm_per_w``, ``hr_time_constant_s``,
+  ``hr_closed_loop_s``), starting from C * ``erg_power_max_w`` (C = 0: the rider's power then);
+  flagged ``saturated`` at 0 W or the top, and while there is no heart rate to follow.
 - SLOPE (3): virtual terrain. Grade G = grade_min + C*(grade_max - grade_min) (C = 0.5
   is flat with the default +-20 %). Road load at the virtual speed v (from cadence,
   virtual gear and wheel radius):
@@ -91,9 +95,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from bike_plant.mechanics import VIRTUAL_GEAR_MAX, VIRTUAL_GEAR_MIN, virtual_gear_problem  # noqa: F401
+from bike_plant.heart import HeartParams, heart_rate_target_problem
 from bike_plant.mechanics import friction_torque_nm, road_problem
 from bike_plant.params import MechParams
 
+from .heart_erg import HeartRateErg
 from .spindown import COAST, DONE, FAILED, SpinDown, SpinDownParams
 from .torque_command import RPM_PER_RAD_S, torque_command_nm
 
@@ -108,6 +114,7 @@ MODE_NAMES = {MODE_RESISTANCE: "resistance", MODE_MOTORING: "motoring", MODE_ERG
 G_MPS2 = 9.80665
 BRAKE_ONLY_MODES = (MODE_RESISTANCE, MODE_ERG)   # laws whose torque is a brake by design (>= 0)
 AUTO_SHIFT_MIN_CADENCE_RPM = 20.0   # below: the rider has stopped pedalling, the auto shifting waits
+RIDER_POWER_AVG_S = 2.0            # the rider's averaged power (heart-rate ERG start): a few pedal strokes
 _log = logging.getLogger(__name__)
 
 # the default table of the session's shift buttons: 24 gears in equal steps (x 1.0904) over
@@ -158,12 +165,17 @@ class ModeParams:
     spindown_low_cadence_rpm: float = 60.0
     spindown_spin_up_timeout_s: float = 30.0
     spindown_coast_timeout_s: float = 120.0
+    # heart-rate ERG (bike_controller.heart_erg): the rider's heart as the trainer assumes it
+    # (bike_plant.heart's model, its nominal figures) and the closed loop's time constant
+    hr_gain_bpm_per_w: float = 0.5
+    hr_time_constant_s: float = 68.7
+    hr_closed_loop_s: float = 60.0
 
     def __post_init__(self):
         for name in ("torque_rate_nm_per_s", "erg_min_cadence_rpm", "rider_mass_kg", "wheel_radius_m",
                      "virtual_gear_ratio", "observer_tau_s", "isokinetic_bandwidth_rad_s",
                      "isokinetic_cadence_max_rpm", "auto_shift_low_cadence_rpm", "auto_shift_high_cadence_rpm",
-                     "auto_shift_hold_s"):
+                     "auto_shift_hold_s", "hr_gain_bpm_per_w", "hr_time_constant_s", "hr_closed_loop_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a number > 0, got {v!r}")
@@ -204,6 +216,10 @@ class ModeParams:
             raise ValueError(f"auto_shift_high_cadence_rpm must be at least the widest virtual_gears step ({step:.4g}) "
                              f"times auto_shift_low_cadence_rpm ({self.auto_shift_low_cadence_rpm:g} rpm), got "
                              f"{self.auto_shift_high_cadence_rpm:g} rpm")
+
+    def heart_params(self) -> HeartParams:
+        """The nominal heart the heart-rate ERG is tuned on (rest and max do not enter the PI)."""
+        return HeartParams(gain_bpm_per_w=self.hr_gain_bpm_per_w, time_constant_s=self.hr_time_constant_s)
 
     def spindown_params(self) -> SpinDownParams:
         return SpinDownParams(self.spindown_high_cadence_rpm, self.spindown_low_cadence_rpm,
@@ -268,6 +284,9 @@ class ModeLaw:
         self.measured_em_torque_nm = 0.0      # of the batch that led to the speed in hand
         self.sensor_sample = None             # (time, speed) of the machine's speed sensor, that batch
         self.spindown_command = None          # the value that tagged the last spin-down request
+        self.hr_erg = HeartRateErg(mp.heart_params(), mp.hr_closed_loop_s, self.erg_power_max_w)
+        self.heart_rate_target_bpm = 0.0      # the Command's (0: plain ERG)
+        self.heart_rate_bpm = 0.0             # the rider's, measured with the batch's speed
         self.reset()
 
     def reset(self, torque_nm: float = 0.0) -> None:
@@ -278,8 +297,18 @@ class ModeLaw:
         self.obs_w = None                     # observer: low-passed speed ...
         self.obs_tb = float(torque_nm)        # ... and low-passed applied braking torque
         self.rider_torque_nm = 0.0            # observer output
+        self.rider_power_avg_w = 0.0          # its power, averaged over RIDER_POWER_AVG_S
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
         self.erg_ke_j = 0.0                   # ERG with erg_speed_from_power: the virtual bike's kinetic energy
+        self.hr_erg.started = False           # the heart-rate ERG starts again from the Command's power
+
+    def set_heart_rate_target(self, bpm: float) -> None:
+        """The Command's heart-rate target (ERG; 0: none, plain ERG). A new target keeps the
+        power in force (the PI goes on from it); ValueError: unchanged."""
+        problem = heart_rate_target_problem(bpm)
+        if problem:
+            raise ValueError(problem)
+        self.heart_rate_target_bpm = float(bpm)
 
     def _set_gear(self, ratio: float) -> None:
         self.virtual_gear_ratio = float(ratio)
@@ -367,6 +396,10 @@ class ModeLaw:
         self.obs_tb += a * (brake_nm - self.obs_tb)
         self.rider_torque_nm = (self.inertia_kgm2 * (w - self.obs_w) / tau + self.obs_tb
                                 + self.friction_nm(self.obs_w))
+        # his power over a few pedal strokes (the torque swings +-50 % within one): where a
+        # heart-rate ERG without a power of its own starts
+        self.rider_power_avg_w += dt_s / (RIDER_POWER_AVG_S + dt_s) * (self.rider_torque_nm * w
+                                                                       - self.rider_power_avg_w)
 
     def set_friction(self, friction_nms: float, dry_friction_nm: float) -> None:
         """The bike's friction from now on (a spin-down's figures); ValueError: unchanged."""
@@ -472,6 +505,14 @@ class ModeLaw:
             return -command * self.tmax_nm, command, v, False
         if mode == MODE_ERG:
             p_w = command * self.erg_power_max_w
+            hr_sat = False
+            if self.heart_rate_target_bpm > 0.0:
+                if not self.hr_erg.started:
+                    self.hr_erg.start(p_w if p_w > 0.0 else self.rider_power_avg_w)
+                p_w = self.hr_erg.step(self.heart_rate_target_bpm, self.heart_rate_bpm, dt_s)
+                hr_sat = self.hr_erg.saturated
+            else:
+                self.hr_erg.started = False
             w_min = mp.erg_min_cadence_rpm * self.gear_ratio / RPM_PER_RAD_S
             t_rider = p_w / max(w, w_min)          # the crank torque (at the motor) that gives P*
             t = t_rider - self.friction_nm(w)       # the bike's friction takes its share
@@ -483,7 +524,7 @@ class ModeLaw:
             # all_modes ERG 180 W braked 4.1-4.7 N m instead of 5.0-5.7
             if mp.erg_speed_from_power:
                 v = self._erg_speed_mps(w, dt_s)
-            return min(t, self.tmax_nm), p_w, v, t > self.brake_cap_nm(w) or below_friction
+            return min(t, self.tmax_nm), p_w, v, t > self.brake_cap_nm(w) or below_friction or hr_sat
         if mode == MODE_SLOPE:
             grade = mp.grade_min + command * (mp.grade_max - mp.grade_min)
             k = self.mps_per_rad_s
@@ -536,7 +577,7 @@ class ModeLaw:
 
     def step(self, command: float, mode: int, speed_rpm: float, dt_s: float,
              speed_valid: bool = True, measured_em_torque_nm: float | None = None,
-             sensor_sample: tuple[float, float] | None = None) -> ModeOutput:
+             sensor_sample: tuple[float, float] | None = None, heart_rate_bpm: float = 0.0) -> ModeOutput:
         """One batch: the torque for the next ``dt_s`` seconds from the speed estimate.
 
         ``speed_valid`` False (no speed estimate yet, e.g. before the second Hall edge):
@@ -547,7 +588,9 @@ class ModeLaw:
         observer brakes with its negative, so a brake the machine could not give is not taken
         for the rider's torque. None (or not finite): the law's own last output.
         ``sensor_sample``: (time [s], motor speed [rad/s]) measured by the machine's speed sensor
-        over the batch (spindown.EncoderSpeed), which the spin-down's fit takes when given."""
+        over the batch (spindown.EncoderSpeed), which the spin-down's fit takes when given.
+        ``heart_rate_bpm``: the rider's heart rate (PlantState.heart_rate_bpm; 0: none), which
+        the heart-rate ERG follows."""
         if not (math.isfinite(command) and 0.0 <= command <= 1.0):
             raise ValueError(f"command must be in [0, 1], got {command!r}")
         if mode not in MODE_NAMES:
@@ -558,6 +601,7 @@ class ModeLaw:
         measured = measured_em_torque_nm is not None and math.isfinite(measured_em_torque_nm)
         self.measured_em_torque_nm = float(measured_em_torque_nm) if measured else -self.torque_nm
         self.sensor_sample = sensor_sample
+        self.heart_rate_bpm = float(heart_rate_bpm or 0.0)
         if dt_s > 0:
             self._observe(w, dt_s, -self.measured_em_torque_nm)
         switched = self.last_mode is not None and mode != self.last_mode
@@ -572,6 +616,7 @@ class ModeLaw:
                 self.virtual_w = w
             elif mode == MODE_ERG and self.mp.erg_speed_from_power:
                 self._start_erg_bike(w, from_slope=self.last_mode == MODE_SLOPE)
+            self.hr_erg.started = False           # a heart-rate ERG starts from this Command's power
         if mode == MODE_SPINDOWN and (mode != self.last_mode or (command != self.spindown_command
                                                                 and not self.spindown.running)):
             self.spindown.start()

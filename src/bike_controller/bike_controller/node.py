@@ -15,10 +15,11 @@ the drive's torque estimate, in DriveCommand.torque_cmd_nm (motoring positive), 
 duties (session_control.DriveTorqueLaw).
 
 Commands: a Command that is not finite, outside [0, 1], of an unknown mode or with a virtual gear
-outside [0.3, 8] (0: the config's gear) is rejected
+outside [0.3, 8] (0: the config's gear), or a heart-rate target outside 40..220 bpm or outside ERG, is rejected
 (WARN diagnostic, ControllerStatus.command_rejected = true until the next valid one); the
 previous command stays in force. Valid Commands go into a timeline sorted by header.stamp,
-kept whole (compact arrays, 25 bytes a Command: ~0.9 MB for an hour at 10 Hz), so that a
+kept whole (a stamp and an index into the distinct Commands' contents, 12 bytes a Command:
+~0.4 MB for an hour at 10 Hz), so that a
 plant restarted mid-run (seq 0 again) gets the same Commands from t = 0 as the first run.
 
 Determinism (lockstep, docs/DESIGN.md, Lockstep protocol): for the PlantState of batch k
@@ -139,12 +140,10 @@ class ControllerNode(Node):
         self.diag_name = f"{self.get_namespace().rstrip('/')}/{self.get_name()}".lstrip("/") or "controller"
         self.stop_requested = False
         self.stamps = array.array("q")     # timeline of valid Commands, sorted by stamp [ns]
-        self.values = array.array("d")     # their command values
-        self.modes = array.array("B")      # and modes
-        self.gears = array.array("d")      # and virtual gears (0: the config's)
-        self.roads: list = []              # and roads ((crr, cw_kg_m, wind_mps); None: the config's)
-        self.cadences = array.array("d")   # and the rider's cadence targets (0: none), for the plant's rider
-        self.rider_cadence_rpm = 0.0       # the one in force
+        self.entry_ids = array.array("I")  # what each says: an index into self.entries
+        self.entries: list[tuple] = []     # the distinct Commands' content (Command.command, mode, gear,
+        self._entry_ids: dict = {}         # road, cadence target, heart-rate target) and its index
+        self.rider_cadence_rpm = 0.0       # the cadence target in force (0: none), for the plant's rider
         self.applied_index = -1            # timeline entry in force (-1: config command0/mode0)
         self.rejected = False              # last received Command was invalid
         self.reject_reason = ""
@@ -194,20 +193,19 @@ class ControllerNode(Node):
         self.rejected = False
         stamp = msgconv.stamp_ns(msg.header.stamp)
         i = bisect.bisect_right(self.stamps, stamp)
+        entry = (float(msg.command), int(msg.mode), float(msg.virtual_gear_ratio), msgconv.command_road(msg),
+                 float(msg.cadence_rpm), float(msg.heart_rate_bpm))
+        entry_id = self._entry_ids.get(entry)
+        if entry_id is None:
+            entry_id = self._entry_ids[entry] = len(self.entries)
+            self.entries.append(entry)
         if i > 0 and self.stamps[i - 1] == stamp:       # same stamp: the newer one replaces it
-            self.values[i - 1], self.modes[i - 1] = float(msg.command), int(msg.mode)
-            self.gears[i - 1] = float(msg.virtual_gear_ratio)
-            self.roads[i - 1] = msgconv.command_road(msg)
-            self.cadences[i - 1] = float(msg.cadence_rpm)
+            self.entry_ids[i - 1] = entry_id
             if self.applied_index == i - 1:
                 self.applied_index = -2                  # force re-application
         else:
             self.stamps.insert(i, stamp)
-            self.values.insert(i, float(msg.command))
-            self.modes.insert(i, int(msg.mode))
-            self.gears.insert(i, float(msg.virtual_gear_ratio))
-            self.roads.insert(i, msgconv.command_road(msg))
-            self.cadences.insert(i, float(msg.cadence_rpm))
+            self.entry_ids.insert(i, entry_id)
             if self.applied_index >= i:
                 self.applied_index += 1
         self.no_session = False
@@ -402,10 +400,10 @@ class ControllerNode(Node):
         i = bisect.bisect_right(self.stamps, t_ns + STAMP_TOL_NS) - 1
         if i < 0 or i == self.applied_index:
             return
-        value, mode = self.values[i], self.modes[i]
+        value, mode, gear, road, cadence_rpm, heart_rate_bpm = self.entries[self.entry_ids[i]]
         try:
-            self.ctrl.set_command(value, mode, self.gears[i], self.roads[i])
-            self.rider_cadence_rpm = self.cadences[i]     # the plant's rider is told with each batch
+            self.ctrl.set_command(value, mode, gear, road, heart_rate_bpm)
+            self.rider_cadence_rpm = cadence_rpm          # the plant's rider is told with each batch
         except ValueError as exc:                         # the law's own validation
             self.rejected = True
             self.reject_reason = str(exc)

@@ -35,6 +35,7 @@ import math
 
 import numpy as np
 
+from bike_plant.heart import heart_rate_command_problem
 from bike_plant.mechanics import road_problem
 
 from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
@@ -155,7 +156,8 @@ class DriveTorqueLaw:
         # a flagged stale speed: the law's own integrators (speed loops, virtual bike) hold too
         measured = snapshot.get("torque_em_nm")
         out = self.law.step(command, mode, speed_rpm, 0.0 if flagged else dt, speed_valid=math.isfinite(speed_rpm),
-                            measured_em_torque_nm=measured if fresh else None)
+                            measured_em_torque_nm=measured if fresh else None,
+                            heart_rate_bpm=snapshot.get("heart_rate_bpm", 0.0))
         brake = self.trim.correct(out.brake_torque_nm, measured, dt, fresh=fresh, brake_only=mode in BRAKE_ONLY_MODES,
                                   saturated=out.saturated, released=mode == MODE_SPINDOWN)
         brake = self.pack.limit(brake, snapshot.get("battery_soc"))
@@ -200,18 +202,23 @@ class SessionCommand:
     command_rejected: bool = False
 
     def set_command(self, command: float, mode: int = MODE_RESISTANCE, virtual_gear_ratio: float = 0.0,
-                    road: tuple[float, float, float] | None = None) -> None:
+                    road: tuple[float, float, float] | None = None, heart_rate_bpm: float = 0.0) -> None:
         """The Command in force; ``virtual_gear_ratio`` shifts the virtual bike
         (:meth:`ModeLaw.set_virtual_gear`, 0: the config's gear), ``road`` is its road
-        (:meth:`ModeLaw.set_road`, None: the config's). ValueError: nothing changes."""
+        (:meth:`ModeLaw.set_road`, None: the config's), ``heart_rate_bpm`` an ERG's heart-rate
+        target (:meth:`ModeLaw.set_heart_rate_target`, 0: none). ValueError: nothing changes."""
         try:
             validate_session_command(command, mode)
+            problem = heart_rate_command_problem(heart_rate_bpm, mode)
+            if problem:
+                raise ValueError(problem)
             if road is not None:
                 problem = road_problem(*road)
                 if problem:
                     raise ValueError(problem)
             self.law.set_virtual_gear(virtual_gear_ratio)     # checks the gear; shifts only if it is good
             self.law.set_road(road)
+            self.law.set_heart_rate_target(heart_rate_bpm)
         except ValueError:
             self.command_rejected = True
             raise
@@ -261,7 +268,7 @@ class ModedController(SessionCommand):
         speed_rpm = float(inner.cs[C_SPEED_EST])
         measured = snapshot.get("torque_em_nm")
         out = self.law.step(self.command, self.mode, speed_rpm, dt_s, speed_valid=inner.cs[C_NC] > 0,
-                            measured_em_torque_nm=measured)
+                            measured_em_torque_nm=measured, heart_rate_bpm=snapshot.get("heart_rate_bpm", 0.0))
         self.last_out = out
         if self.mode == MODE_RESISTANCE and not out.ramping:
             self.trim.reset()

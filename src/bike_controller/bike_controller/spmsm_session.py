@@ -191,10 +191,11 @@ class ModedSpmsmController(SessionCommand):
     def batch_periods(self) -> int:
         return self.inner.batch_periods
 
-    def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm, sensor_sample=None) -> None:
+    def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm, sensor_sample=None,
+                    heart_rate_bpm: float = 0.0) -> None:
         inner = self.inner
         out = self.law.step(self.command, self.mode, speed_rpm, dt_s, measured_em_torque_nm=measured_em_torque_nm,
-                            sensor_sample=sensor_sample)
+                            sensor_sample=sensor_sample, heart_rate_bpm=heart_rate_bpm)
         self.last_out = out
         inner.set_no_assist(self.pack.empty(self.battery_soc))
         full = self._pack_full()
@@ -274,7 +275,8 @@ class ModedSpmsmController(SessionCommand):
             sample = self.encoder_speed.sample(snapshot.get("encoder_count", 0), snapshot.get("encoder_edge_ticks", 0))
         else:
             self.encoder_speed.ref = None      # its next spin-down starts from a fresh edge
-        self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"), sample)
+        self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"), sample,
+                         snapshot.get("heart_rate_bpm", 0.0))
         duties, relay, buck, status = inner.decide(model, n_eff)
         return duties, relay, buck, self._status(status)
 

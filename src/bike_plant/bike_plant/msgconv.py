@@ -20,6 +20,7 @@ from builtin_interfaces.msg import Time
 from .cdr import CdrError as CdrError  # re-exported: the nodes catch it
 from .cdr import Codec
 from .jit import JIT_HOT
+from .heart import heart_rate_command_problem
 from .mechanics import rider_cadence_problem, road_problem, virtual_gear_problem
 
 GATE_LIMIT = 64          # 6 gate bits: values 0..63
@@ -366,7 +367,7 @@ def command_problem(msg: Command) -> str | None:
         problem = road_problem(msg.crr, msg.cw_kg_m, msg.wind_mps)
         if problem is not None:
             return problem
-    problem = rider_cadence_problem(msg.cadence_rpm)
+    problem = rider_cadence_problem(msg.cadence_rpm) or heart_rate_command_problem(msg.heart_rate_bpm, msg.mode)
     if problem is not None:
         return problem
     return virtual_gear_problem(msg.virtual_gear_ratio)

@@ -99,6 +99,8 @@ PLANT_DEFAULTS = {
 # the end_of_run PlantState's acknowledgment by every reliable reader is awaited this long at
 # most (longer than Fast DDS's 3 s heartbeat period, which is when a lost last sample is repaired)
 END_ACK_TIMEOUT_S = 4.0
+HEART_RATE_TIMEOUT_S = 5.0       # CAN backend: a strap silent this long -> no heart rate (it sends ~1 Hz) [wall s]
+HEART_RATE_MAX_BPM = 250.0       # a reading above this is not a heart rate
 
 PLANT_DESCRIPTIONS = {
     "republish_s": "lockstep: re-publish the pending PlantState after this many wall seconds without an answer",
@@ -346,6 +348,12 @@ class PlantNode(Node):
         # taken serialized, decoded by msgconv.DriveCommandView (bike_plant.cdr: the hot path)
         self.sub_drive = self.create_subscription(DriveCommand, "drive_command", self._on_drive,
                                                   loop_reader_qos(self.sync_mode), raw=True)
+        # a drive on CAN has no rider model of its own: the rider's heart rate comes from his chest
+        # strap (or the drive emulator's rider) on heart_rate, the newest fresh one into the state
+        self.heart_rate = (0.0, -math.inf)      # (bpm, monotonic receipt time)
+        if self.backend.measured_by_drive:
+            from bike_msgs.msg import HeartRate
+            self.sub_heart_rate = self.create_subscription(HeartRate, "heart_rate", self._on_heart_rate, AUX_QOS)
         self.recorder_seq = -1       # last plant_state seq the recorder reports written
         self.recorder_rx = 0.0
         if self.recorder_window > 0:
@@ -454,9 +462,20 @@ class PlantNode(Node):
                 self.recorder_window = 0
                 return
 
+    def _on_heart_rate(self, msg) -> None:
+        bpm = float(msg.heart_rate_bpm)
+        if not (math.isfinite(bpm) and 0.0 <= bpm <= HEART_RATE_MAX_BPM):
+            self.get_logger().warning(f"heart_rate {bpm!r} bpm dropped (not a heart rate: 0..{HEART_RATE_MAX_BPM:g})",
+                                      throttle_duration_sec=10.0)
+            return
+        self.heart_rate = (bpm, time.monotonic())
+
     # ------------------------------------------------------------ publishing
     def _publish_state(self, end_of_run: bool = False) -> None:
         snap = self.backend.snapshot()
+        if self.backend.measured_by_drive:
+            bpm, rx_s = self.heart_rate
+            snap["heart_rate_bpm"] = bpm if time.monotonic() - rx_s <= HEART_RATE_TIMEOUT_S else 0.0
         snap["seq"] = self.k
         snap["batch_periods"] = self.n
         snap["backend"] = self.backend.name

@@ -18,6 +18,7 @@ from typing import Mapping
 import numpy as np
 
 from .config import ConfigError, build_dataclass, require_positive, section
+from .heart import HeartParams
 
 TWO_PI = 2.0 * math.pi
 RPM_PER_RAD_S = 60.0 / TWO_PI
@@ -119,18 +120,33 @@ LOAD_KINDS = ("prime_mover", "rider", "none")
 class RiderParams:
     """The rider of either machine's ``load`` section (bike_plant.mechanics): crank torque
     T = effort * T0 (1 - cadence/cadence_max) (1 + 0.5 cos(2 crank)), two peaks per crank
-    turn, through the load's gear ratio motor/crank; effort from a PI on cadence."""
+    turn, through the load's gear ratio motor/crank; effort from a PI on cadence. His heart
+    (bike_plant.heart): resting and maximal rate, steady-state gain and time constant."""
     rider_t0_nm: float = 120.0
     rider_cadence_max_rpm: float = 160.0
     rider_target_cadence_rpm: float = 80.0
     rider_kp: float = 0.57       # mechanics.rider_pi_gains for the BLDC bike's drivetrain
     rider_ki: float = 0.82
     rider_effort0: float = 0.3
+    rider_rest_hr_bpm: float = 60.0
+    rider_max_hr_bpm: float = 185.0
+    rider_hr_gain_bpm_per_w: float = 0.5
+    rider_hr_time_constant_s: float = 68.7
 
     def validate_rider(self) -> None:
         require_positive(self, "rider_t0_nm", "rider_cadence_max_rpm")
         if not 0.0 <= self.rider_effort0 <= 1.0:
             raise ValueError("rider_effort0 must be in [0, 1]")
+        try:
+            self.heart_params().validate()
+        except ValueError as exc:
+            raise ValueError(f"rider heart: {exc} (load.rider_rest_hr_bpm, rider_max_hr_bpm, "
+                             "rider_hr_gain_bpm_per_w, rider_hr_time_constant_s)") from None
+
+    def heart_params(self) -> HeartParams:
+        return HeartParams(rest_bpm=self.rider_rest_hr_bpm, max_bpm=self.rider_max_hr_bpm,
+                           gain_bpm_per_w=self.rider_hr_gain_bpm_per_w,
+                           time_constant_s=self.rider_hr_time_constant_s)
 
     def rider_fields(self) -> dict:
         """The rider's fields by name (to carry the rider to another load dataclass)."""
@@ -180,10 +196,14 @@ class LoadParams(ShaftLoadParams):
 # sets these keys (they win over the same keys in the section); ``custom`` (default) uses
 # the section's own values.
 RIDER_PRESETS = {
-    # about 500 W peak (T0 120 N m, Cmax 160 rpm), holds 80 rpm: a recreational rider
-    "recreational": {"rider_t0_nm": 120.0, "rider_cadence_max_rpm": 160.0, "rider_target_cadence_rpm": 80.0},
-    # about 1200 W peak (T0 200 N m, Cmax 220 rpm; sprinters reach 1600 W), holds 90 rpm
-    "trained": {"rider_t0_nm": 200.0, "rider_cadence_max_rpm": 220.0, "rider_target_cadence_rpm": 90.0},
+    # about 500 W peak (T0 120 N m, Cmax 160 rpm), holds 80 rpm: a recreational rider; his heart:
+    # bike_plant.heart.HeartParams' defaults
+    "recreational": {"rider_t0_nm": 120.0, "rider_cadence_max_rpm": 160.0, "rider_target_cadence_rpm": 80.0,
+                     "rider_rest_hr_bpm": 60.0, "rider_max_hr_bpm": 185.0, "rider_hr_gain_bpm_per_w": 0.5},
+    # about 1200 W peak (T0 200 N m, Cmax 220 rpm; sprinters reach 1600 W), holds 90 rpm; his heart:
+    # rests at 50, 90 % of 190 at an FTP of 300 W -> (171 - 50) / 300 = 0.4 bpm/W
+    "trained": {"rider_t0_nm": 200.0, "rider_cadence_max_rpm": 220.0, "rider_target_cadence_rpm": 90.0,
+                "rider_rest_hr_bpm": 50.0, "rider_max_hr_bpm": 190.0, "rider_hr_gain_bpm_per_w": 0.4},
 }
 
 

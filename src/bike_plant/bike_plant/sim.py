@@ -12,6 +12,7 @@ import numpy as np
 
 from . import bldc as K
 from . import params as P
+from .heart import RiderHeart
 from .params import PlantParams
 
 PLANT_STATE_FIELDS = (
@@ -20,7 +21,7 @@ PLANT_STATE_FIELDS = (
     "dc_bus_v", "brake_resistor_on", "hall_edge_counts", "hall_edge_states", "torque_em_nm",
     "load_torque_nm", "current_samples_a", "battery_ocv_v", "battery_soc", "battery_current_a",
     "energy_mech_in_j", "energy_battery_j", "energy_resistor_j", "energy_loss_j", "energy_stored_j",
-    "faults", "interlock_blanked_count",
+    "faults", "interlock_blanked_count", "heart_rate_bpm",
 )
 
 
@@ -74,6 +75,7 @@ class BldcPlant:
         if load.kind == "rider":
             self.state[K.S_EFFORT] = load.rider_effort0
             self.state[K.S_RIDER_INT] = load.rider_effort0
+        self.heart = RiderHeart(load.heart_params()) if load.kind == "rider" else None
         self.seq = 0
         self.batch_periods = 0
         self.end_of_run = False
@@ -121,6 +123,8 @@ class BldcPlant:
         # per-batch fault bits: set again by the kernel if it happens in this batch
         self.state[K.S_FAULTS] = float(int(self.state[K.S_FAULTS]) & ~(K.FAULT_INTERLOCK | K.FAULT_OVERCURRENT))
         ne = K.step_batch(self.state, self.p, ga, gb, sp, edge_counts, edge_states, samples, sums)
+        if self.heart is not None:
+            self.heart.advance(self.state[K.S_E_MECH], self.time_s)
         self.seq += 1
         self.batch_periods = n
         nn = max(n, 1)
@@ -192,4 +196,5 @@ class BldcPlant:
             "faults": int(s[K.S_FAULTS]),
             "interlock_blanked_count": int(s[K.S_INTERLOCK]),
             "overcurrent_trip_count": int(s[K.S_OC_TRIPS]),
+            "heart_rate_bpm": self.heart.bpm if self.heart is not None else 0.0,
         }

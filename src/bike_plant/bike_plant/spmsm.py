@@ -120,6 +120,7 @@ from numba import njit
 from . import jit as _jit
 from . import mechanics
 from .config import ConfigError, build_dataclass, require_positive, section
+from .heart import RiderHeart
 from .jit import JIT, JIT_HOT, JIT_INLINE, invalidate_stale_numba_cache  # noqa: F401
 from .params import RPM_PER_RAD_S, TWO_PI, LoadParams, MechParams, ShaftLoadParams, load_section_with_preset
 
@@ -1666,6 +1667,7 @@ class SpmsmPlant:
         self.state = new_state(self.p, speed0, params.battery.soc0)
         self.ws = np.zeros(WS_SIZE)
         self.seq = 0
+        self.heart = RiderHeart(load.heart_params()) if load.kind == "rider" else None
 
     @property
     def time_s(self) -> float:
@@ -1705,6 +1707,8 @@ class SpmsmPlant:
         sums = np.zeros(3)
         self.state[S_FAULTS] = 0.0
         step_batch(self.state, self.p, d, rr, bd, samples, sums)
+        if self.heart is not None:
+            self.heart.advance(self.state[S_E_MECH], self.time_s)
         self.seq += 1
         nn = max(n, 1)
         return SpmsmBatchResult(float(sums[0] / nn), float(sums[1] / nn), float(sums[2] / nn), samples,
@@ -1757,4 +1761,5 @@ class SpmsmPlant:
             "energy_loss_j": led["energy_loss_j"],
             "energy_stored_j": led["energy_stored_j"],
             "faults": int(s[S_FAULTS]),
+            "heart_rate_bpm": self.heart.bpm if self.heart is not None else 0.0,
         }

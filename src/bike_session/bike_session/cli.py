@@ -2,6 +2,7 @@
 
     ./bike run [--config FILE] [--duration S] [--record DIR]   ride a session in the node graph
           [--workout FILE.zwo|.erg|.mrc|.fit [--ftp W]]         ... riding a workout file
+          [--max-hr BPM]                                        ... its heart-rate targets in % of max
           [--ftms [--ftms-host 0.0.0.0]]                        ... as a smart trainer a training app rides
     ./bike shift N [--domain ID]                               press a running bike's virtual shifter
     ./bike trainer [--find] [--host H] [--power W | --grade %] the app's end of FTMS / DIRCON: poke a trainer
@@ -148,6 +149,9 @@ def _cmd_run(opts) -> int:
             return 2
     if workout is not None:
         args.update(workout=str(pathlib.Path(opts.workout).resolve()), ftp=repr(float(opts.ftp or 0.0)))
+        if getattr(opts, "max_hr", None):
+            # only when given: a --launch file of its own need not declare the argument
+            args.update(max_hr=repr(float(opts.max_hr)))
     bag_path = None
     if opts.record:
         record_dir = output_dir(pathlib.Path(opts.record).resolve(), "--record")
@@ -349,8 +353,11 @@ def _can_run_args(cfg, args: dict):
         print(f"error: {exc}", file=sys.stderr)
         return None
     if params.emulator:
-        # its rider follows what the controller tells the plant's rider (a real one reads a screen)
-        rider = ["--rider-topic", "/" + "/".join(x for x in (args.get("namespace", ""), "drive_command") if x)]
+        # its rider follows what the controller tells the plant's rider (a real one reads a screen),
+        # and his chest strap sends his heart rate where the plant node reads it
+        def topic(name: str) -> str:
+            return "/" + "/".join(x for x in (args.get("namespace", ""), name) if x)
+        rider = ["--rider-topic", topic("drive_command"), "--heart-rate-topic", topic("heart_rate")]
         args.update(emulator="true",
                     emulator_args=" ".join(shlex.quote(a) for a in emulator_args_from_config(cfg) + rider))
     print(f"[bike] drive on CAN: {params.describe()}"
@@ -364,16 +371,20 @@ def _load_workout_for_run(opts, cfg):
     import warnings
 
     from bike_session.profiles import ProfileError, mode_units_from_config
-    from bike_session.workouts import WorkoutWarning, describe, load_workout, pmax_w_from_config
+    from bike_session.workouts import MAX_HR_BPM, WorkoutWarning, describe, load_workout, pmax_w_from_config
 
     if opts.ftp is not None and not (0 < opts.ftp <= 2000):
         print(f"error: --ftp must be in (0, 2000] W, got {opts.ftp}", file=sys.stderr)
+        return None
+    max_hr = getattr(opts, "max_hr", None)
+    if max_hr is not None and not (0 < max_hr <= MAX_HR_BPM):
+        print(f"error: --max-hr must be in (0, {MAX_HR_BPM:g}] bpm, got {max_hr}", file=sys.stderr)
         return None
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", WorkoutWarning)
             workout = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=pmax_w_from_config(cfg),
-                                   units=mode_units_from_config(cfg))
+                                   units=mode_units_from_config(cfg), max_hr_bpm=max_hr)
     except (ProfileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return None
@@ -549,6 +560,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                         "ERG mode; the run lasts the workout unless --duration is given")
     run.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets "
                                                             "(default: the file's own FTP when it has one)")
+    run.add_argument("--max-hr", type=float, metavar="BPM", help="rider's maximum heart rate for a FIT workout's "
+                                                                 "heart-rate targets in %% of it (session.max_hr_bpm)")
     run.add_argument("--record", metavar="DIR", help="record every topic to an MCAP bag under DIR and summarise it")
     run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
     run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")
@@ -672,6 +685,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run the trainer's spin-down calibration (FTMS Spin Down Control) and print its "
                           "progress until success or error (within --seconds, default 120)")
     trn.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets")
+    trn.add_argument("--max-hr", type=float, metavar="BPM", help="rider's maximum heart rate for the workout's "
+                                                                 "heart-rate targets in %% of it")
     trn.add_argument("--csv", metavar="FILE", help="with --workout: write every Indoor Bike Data sample here")
     trn.set_defaults(func=_cmd_trainer)
     return parser

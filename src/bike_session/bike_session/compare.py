@@ -18,6 +18,11 @@ Per session, over the overlap (definitions as in :mod:`bike_session.report`):
   (:func:`bike_session.report.erg_response`), when either session has a step
 - ``shift_response``: slope-mode shifts, how many were felt at the cranks, median and max time,
   the largest overshoot (:func:`bike_session.report.shift_response`), when either session shifted
+- ``mean_heart_rate_bpm``, ``max_heart_rate_bpm``: the rider's heart rate, when either session
+  has one
+- ``heart_rate_erg``: heart-rate ERG target stretches, how many settled (within 3 bpm), median and
+  max settle time, mean and largest |error| after settling (:func:`bike_session.report.heart_rate_erg`),
+  when either session has a stretch
 
 ``delta`` = B - A (``delta_pct`` relative to |A|). Same bag twice: every delta is 0.
 The controller / config differences are the parameters that differ between the two
@@ -40,8 +45,9 @@ import sys
 import numpy as np
 
 from bike_session.bags import BagError, open_bag
-from bike_session.report import (PLOT_POINTS, SessionData, analyse, auto_bin_s, config_params,
-                                  erg_response, img_tag, series, shift_response, time_axis, tracking, write_html)
+from bike_session.report import (PLOT_POINTS, SessionData, analyse, auto_bin_s, config_params, erg_response,
+                                  heart_rate_erg, heart_rate_figures, img_tag, series, shift_response, time_axis,
+                                  tracking, write_html)
 
 COLORS = {"A": "tab:blue", "B": "tab:orange"}
 DIFF_LINES = 60
@@ -58,6 +64,9 @@ METRICS = (
     ("energy_mech_in_j", "energy from the rider", "J", 2),
     ("peak_phase_current_a", "peak phase current", "A", 2),
 )
+# (key, label, unit, digits): rows when either session has a heart rate
+HEART_METRICS = (("mean_heart_rate_bpm", "mean heart rate", "bpm", 1),
+                 ("max_heart_rate_bpm", "max heart rate", "bpm", 1))
 TRACK_FIELDS = (("rms", "RMS error", 3), ("max_abs", "max |error|", 3), ("rms_batch", "RMS error per batch", 3),
                 ("time_s", "time in mode", 3))
 # (field of report.erg_response, label, unit, digits)
@@ -67,6 +76,13 @@ ERG_FIELDS = (("steps", "ERG target steps", "count", 0), ("settled", "ERG steps 
 SHIFT_FIELDS = (("shifts", "slope shifts", "count", 0), ("settled", "shifts felt", "count", 0),
                 ("median_s", "shift felt after, median", "s", 2), ("max_s", "shift felt after, max", "s", 2),
                 ("overshoot_pct_max", "shift overshoot, max", "%", 0))
+# (field of report.heart_rate_erg, label, unit, digits)
+HR_ERG_FIELDS = (("stretches", "HR ERG target stretches", "count", 0),
+                 ("settled", "HR ERG stretches settled", "count", 0),
+                 ("median_settle_s", "HR ERG settle time, median", "s", 1),
+                 ("max_settle_s", "HR ERG settle time, max", "s", 1),
+                 ("mae_bpm", "HR ERG mean |error| after settling", "bpm", 2),
+                 ("max_abs_bpm", "HR ERG max |error| after settling", "bpm", 2))
 
 
 def range_metrics(d: SessionData, n: int) -> dict:
@@ -90,6 +106,8 @@ def range_metrics(d: SessionData, n: int) -> dict:
     out["tracking"] = tracking(d.bins, d.bin_s, n)
     out["erg_response"] = erg_response(d.bins, d.bin_s, n)
     out["shift_response"] = shift_response(d.bins, d.origin_s, d.bin_s, d.shifts, n)
+    out["mean_heart_rate_bpm"], out["max_heart_rate_bpm"] = heart_rate_figures(d.bins, n)
+    out["heart_rate_erg"] = heart_rate_erg(d.bins, d.origin_s, d.bin_s, d.hr_stretches, n)
     return out
 
 
@@ -177,6 +195,12 @@ def compare(bag_a, bag_b, progress: str | None = None) -> tuple[dict, SessionDat
         delta, pct = _delta(va, vb)
         metrics.append({"key": key, "label": label, "unit": unit, "a": va, "b": vb, "delta": delta,
                         "delta_pct": pct, "digits": digits})
+    if any(s["metrics"][key] is not None for s in (a, b) for key, *_ in HEART_METRICS):
+        for key, label, unit, digits in HEART_METRICS:
+            va, vb = a["metrics"][key], b["metrics"][key]
+            delta, pct = _delta(va, vb)
+            metrics.append({"key": key, "label": label, "unit": unit, "a": va, "b": vb, "delta": delta,
+                            "delta_pct": pct, "digits": digits})
     track = {}
     ta, tb = a["metrics"]["tracking"], b["metrics"]["tracking"]
     for key in [k for k in ("erg_power", "isokinetic_cadence", "resistance_torque", "slope_speed", "cadence_target")
@@ -191,7 +215,8 @@ def compare(bag_a, bag_b, progress: str | None = None) -> tuple[dict, SessionDat
                             "unit": "s" if field == "time_s" else unit, "a": ra.get(field), "b": rb.get(field),
                             "delta": delta, "delta_pct": pct, "digits": digits})
         track[key] = entry
-    for name, fields in (("erg_response", ERG_FIELDS), ("shift_response", SHIFT_FIELDS)):
+    for name, fields in (("erg_response", ERG_FIELDS), ("shift_response", SHIFT_FIELDS),
+                         ("heart_rate_erg", HR_ERG_FIELDS)):
         ea, eb = a["metrics"][name], b["metrics"][name]
         if not (ea or eb):
             continue

@@ -11,16 +11,19 @@ What goes in, per second of the session (the report's 1 s bins, bike_session.rep
   virtual speed (ControllerStatus.virtual_speed_mps: the virtual bike's in slope mode, else
   the cadence through the virtual gear in force and the wheel), as the report's distance
   uses (an older bag without it: the cadence through ``modes.virtual_gear_ratio``), and its
-  integral.
+  integral;
+- ``heart_rate`` [bpm]: the rider's mean heart rate in that second (PlantState.heart_rate_bpm),
+  only in the seconds that have one (none: no rider, a prime mover, an older bag).
 
 Messages: file_id (type activity), a timer start event, the records, a timer stop event, a
 lap per workout segment (where SessionStatus.segment_index changed, as a head unit running a
 structured workout starts a lap per step; ``wkt_step_index`` = the segment; one lap for a
 bag without SessionStatus), one session (sport cycling, sub-sport indoor cycling) and the
 activity, each lap and the session with its totals (time, distance, work, mean and max
-power, cadence and speed). Time starts at the session's ``start_wall_time`` (session_info),
-else at the bag's own start. A second without any PlantState in the bag gets no record (a
-gap, as a head unit's pause). No rclpy import here.
+power, cadence and speed; mean and max heart rate where the records have one). Time starts
+at the session's ``start_wall_time`` (session_info), else at the bag's own start. A second
+without any PlantState in the bag gets no record (a gap, as a head unit's pause). No rclpy
+import here.
 """
 from __future__ import annotations
 
@@ -37,7 +40,7 @@ MAX_RECORDS = 7 * 24 * 3600       # one record per second: a week of riding
 
 def activity_arrays(data: SessionData) -> dict:
     """Per-second arrays (t_s from the session start, power_w, cadence_rpm, speed_mps,
-    distance_m) of the seconds that hold data."""
+    distance_m, heart_rate_bpm: 0 where none) of the seconds that hold data."""
     s = series(data, points=None, merge=max(1, int(round(1.0 / data.bin_s))))
     keep = np.flatnonzero(np.nan_to_num(s["p_rider"], nan=-1.0) > -1.0)     # bins with PlantStates
     speed = np.nan_to_num(s["road_mps"])        # through the virtual gear in force (report)
@@ -46,7 +49,8 @@ def activity_arrays(data: SessionData) -> dict:
     distance = np.cumsum(speed * width)
     return {"t_s": t_end[keep], "power_w": np.clip(np.nan_to_num(s["p_rider"][keep]), 0.0, None),
             "cadence_rpm": np.abs(np.nan_to_num(s["cadence"][keep])), "speed_mps": speed[keep],
-            "distance_m": distance[keep], "bin_s": width}
+            "distance_m": distance[keep], "heart_rate_bpm": np.nan_to_num(s["heart_rate"][keep]),
+            "bin_s": width}
 
 
 def segment_starts(data: SessionData) -> list[tuple[float, int]]:
@@ -90,6 +94,8 @@ def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
     start = _start_time(data)
     power = np.rint(a["power_w"]).astype(int)
     cadence = np.rint(a["cadence_rpm"]).astype(int)
+    # FIT's uint8 bpm (255: invalid); a second without a heart rate gets no field
+    heart_bpm = np.clip(np.rint(a["heart_rate_bpm"]), 0, 254).astype(int)
     starts = segment_starts(data)
     # the lap of each record: the segment its second began in (one lap without SessionStatus)
     edges = np.array([t for t, _ in starts[1:]])
@@ -104,9 +110,10 @@ def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
                     "serial_number": 1, "time_created": start})
     enc.write_mesg({"mesg_num": mesg["EVENT"], "timestamp": start, "event": "timer", "event_type": "start"})
     for k in range(n):
+        heart = {"heart_rate": int(heart_bpm[k])} if heart_bpm[k] > 0 else {}
         enc.write_mesg({"mesg_num": mesg["RECORD"], "timestamp": start + datetime.timedelta(seconds=float(a["t_s"][k])),
                         "power": int(power[k]), "cadence": int(min(cadence[k], 254)),
-                        "speed": float(a["speed_mps"][k]), "distance": float(a["distance_m"][k])})
+                        "speed": float(a["speed_mps"][k]), "distance": float(a["distance_m"][k]), **heart})
     enc.write_mesg({"mesg_num": mesg["EVENT"], "timestamp": end, "event": "timer", "event_type": "stop_all"})
     for k, (j, idx) in enumerate(laps):
         lap = _totals(a, idx, start)
@@ -128,6 +135,8 @@ def _totals(a: dict, idx: np.ndarray, session_start: datetime.datetime) -> dict:
     start of the first record's second (``start``) to the end of the last one's (``end``)."""
     width = a["bin_s"]
     p, c, v = a["power_w"][idx], a["cadence_rpm"][idx], a["speed_mps"][idx]
+    hr = a["heart_rate_bpm"][idx]
+    hr = hr[hr >= 0.5]                      # the records that carry one
     t0, t1 = float(a["t_s"][idx[0]] - width), float(a["t_s"][idx[-1]])
     distance0_m = float(a["distance_m"][idx[0] - 1]) if idx[0] > 0 else 0.0
     return {"start": session_start + datetime.timedelta(seconds=t0),
@@ -136,18 +145,22 @@ def _totals(a: dict, idx: np.ndarray, session_start: datetime.datetime) -> dict:
             "distance_m": float(a["distance_m"][idx[-1]] - distance0_m), "work_j": float(np.sum(p) * width),
             "avg_power_w": float(np.mean(p)), "max_power_w": float(np.max(p)),
             "avg_cadence_rpm": float(np.mean(c)), "max_cadence_rpm": float(np.max(c)),
-            "avg_speed_mps": float(np.mean(v)), "max_speed_mps": float(np.max(v))}
+            "avg_speed_mps": float(np.mean(v)), "max_speed_mps": float(np.max(v)),
+            "avg_heart_rate_bpm": float(np.mean(hr)) if hr.size else None,
+            "max_heart_rate_bpm": float(np.max(hr)) if hr.size else None}
 
 
 def _fit_totals(t: dict) -> dict:
-    """A lap's or the session's totals as FIT fields."""
+    """A lap's or the session's totals as FIT fields (heart rate only when it has one)."""
+    heart = {"avg_heart_rate": int(round(min(t["avg_heart_rate_bpm"], 254))),
+             "max_heart_rate": int(round(min(t["max_heart_rate_bpm"], 254)))} if t["avg_heart_rate_bpm"] else {}
     return {"start_time": t["start"], "total_elapsed_time": t["elapsed_s"], "total_timer_time": t["timer_s"],
             "total_distance": t["distance_m"], "total_work": int(round(t["work_j"])),
             "avg_power": int(round(t["avg_power_w"])), "max_power": int(round(t["max_power_w"])),
             "avg_cadence": int(round(min(t["avg_cadence_rpm"], 254))),
             "max_cadence": int(round(min(t["max_cadence_rpm"], 254))),
             "avg_speed": t["avg_speed_mps"], "max_speed": t["max_speed_mps"],
-            "sport": "cycling", "sub_sport": "indoor_cycling"}
+            "sport": "cycling", "sub_sport": "indoor_cycling", **heart}
 
 
 def export_fit(bag_path, out_path, data: SessionData | None = None) -> dict:

@@ -25,13 +25,21 @@ Per step (the choices, in the order the reader applies them):
   range's mean is ridden in ERG mode (FIT has no ramps; a range is a band, as the ZWO
   reader rides SteadyState's PowerLow/PowerHigh). A power ZONE (target_value 1-7) needs the
   rider's zone table, which the file does not carry: refused.
+- Target ``heart_rate``: heart-rate ERG. ``target_value`` 0 means a custom range
+  ``custom_target_value_low..high``, each value > 100 in bpm + 100, 1..100 in percent of the
+  rider's maximum heart rate (the FIT ``workout_hr`` rule; percent needs ``max_hr_bpm``,
+  ``session.max_hr_bpm``). The middle of the range is the Command's ``heart_rate_bpm`` (40..220,
+  bike_plant.heart), ridden in ERG at Command 0: the controller moves the power target to hold
+  it, starting from the rider's present power. A heart-rate ZONE (target_value 1-5) needs
+  the rider's zone table: refused, as power zones are.
 - Target ``open`` or ``cadence``: no power target, ridden in resistance mode at
   ``freeride_command`` like a ZWO FreeRide; a custom cadence range (rpm) is kept as the
-  segment's cadence, as is a secondary cadence target of a power step.
-- Other targets (heart rate, speed, grade, resistance, ...): ridden free as above, with one
-  warning per target kind naming the steps (the bike has no heart-rate model to close on).
+  segment's cadence, as is a secondary cadence target of a power or heart-rate step.
+- Other targets (speed, grade, resistance, ...): ridden free as above, with one warning per
+  target kind naming the steps (nothing here models them).
 - ``wkt_step_name`` labels the segment; ``notes`` become a text event at the step's start.
-- A percent-of-FTP value needs the rider's FTP (``ftp_w``): FIT files carry none.
+- A percent-of-FTP value needs the rider's FTP (``ftp_w``): FIT files carry none; likewise a
+  percent-of-max heart rate the rider's maximum heart rate (``max_hr_bpm``).
 
 Safety: the file is at most ``MAX_FIT_BYTES`` (real workouts are a few hundred bytes; the
 SDK decodes the whole file into Python objects). The decoder checks the header and both
@@ -46,6 +54,7 @@ import dataclasses
 import math
 from typing import Any
 
+from bike_plant.heart import heart_rate_target_problem
 from bike_plant.mechanics import rider_cadence_problem
 from bike_session.profiles import MAX_LEAF_SEGMENTS, MAX_REPEAT
 from bike_session.workouts import (MAX_CADENCE_RPM, MAX_FTP_FRACTION, MAX_TEXT_EVENTS, TextEvent, Workout,
@@ -58,11 +67,13 @@ POWER_TARGETS = {"power", "power_3s", "power_10s", "power_30s", "power_lap"}
 FREE_TARGETS = {"open", "cadence"}
 BIKE_SPORTS = {"cycling", "generic", "training"}
 WATTS_OFFSET = 1000               # FIT workout_power: values above it are watts + 1000
+BPM_OFFSET = 100                  # FIT workout_hr: values above it are bpm + 100, else % of max
 
 
 @dataclasses.dataclass(frozen=True)
 class _Step:
-    """One ridable step: its length, its power target (None: free) and what labels it."""
+    """One ridable step: its length, its power or heart-rate target (both None: free) and what
+    labels it."""
 
     duration_s: float
     target_w: float | None
@@ -70,6 +81,7 @@ class _Step:
     label: str
     block: str
     notes: str
+    heart_rate_bpm: float | None = None
 
 
 def parse_fit(data: bytes, source: str, default_name: str, opts: _Options) -> Workout:
@@ -118,7 +130,10 @@ def parse_fit(data: bytes, source: str, default_name: str, opts: _Options) -> Wo
         path = where + rep
         if st.notes and len(events) < MAX_TEXT_EVENTS:
             events.append(TextEvent(tl.t, st.notes, 0.0, path))
-        if st.target_w is None:
+        if st.heart_rate_bpm is not None:
+            tl.heart_rate(st.duration_s, st.heart_rate_bpm, label=st.label, path=path, where=where,
+                          cadence=st.cadence_rpm, block=st.block)
+        elif st.target_w is None:
             tl.free(st.duration_s, opts.freeride_command, label=st.label, path=path, where=where,
                     cadence=st.cadence_rpm, block=st.block)
         else:
@@ -130,7 +145,8 @@ def parse_fit(data: bytes, source: str, default_name: str, opts: _Options) -> Wo
     name = head.get("wkt_name")
     name = name.strip() if isinstance(name, str) and name.strip() else default_name
     return Workout(name, tl.leaves, source=source, text=_summary(steps), fmt="fit", ftp_w=ftp, file_ftp_w=None,
-                   pmax_w=opts.pmax_w, mode=opts.mode, events=events, warnings_=tl.warnings())
+                   pmax_w=opts.pmax_w, mode=opts.mode, events=events, warnings_=tl.warnings(),
+                   max_hr_bpm=opts.max_hr_bpm)
 
 
 def _decode(data: bytes, source: str) -> dict:
@@ -219,6 +235,7 @@ def _ridable(i: int, step: dict, ftp: float | None, opts: _Options, notes: dict,
     text = text.strip() if isinstance(text, str) else ""
     target_w = None
     cadence = None
+    heart_rate = None
     if target in POWER_TARGETS:
         zone = step.get("target_value") or 0
         if zone != 0:
@@ -229,16 +246,29 @@ def _ridable(i: int, step: dict, ftp: float | None, opts: _Options, notes: dict,
             raise err("power step without custom_target_value_low/high")
         values = [_watts(v, ftp, err) for v in (lo, hi) if v is not None]
         target_w = sum(values) / len(values)
-        if step.get("secondary_target_type") == "cadence":
-            cadence = _cadence(step.get("secondary_custom_target_value_low"),
-                               step.get("secondary_custom_target_value_high"))
+    elif target == "heart_rate":
+        zone = step.get("target_value") or 0
+        if zone != 0:
+            raise err(f"heart-rate zone {zone} needs the rider's zone table, which a FIT workout does not carry "
+                      "(write the step as a custom range)")
+        lo, hi = step.get("custom_target_value_low"), step.get("custom_target_value_high")
+        if lo is None and hi is None:
+            raise err("heart-rate step without custom_target_value_low/high")
+        values = [_bpm(v, opts.max_hr_bpm, err) for v in (lo, hi) if v is not None]
+        heart_rate = sum(values) / len(values)
+        problem = heart_rate_target_problem(heart_rate)
+        if problem:
+            raise err(problem)
     elif target == "cadence":
         if not step.get("target_value"):
             cadence = _cadence(step.get("custom_target_value_low"), step.get("custom_target_value_high"))
     elif target not in FREE_TARGETS:
         notes.setdefault(f"{target!r} targets are not ridden (no model of them here): free ride at Command "
                          f"{opts.freeride_command:g}", []).append(i)
-    return _Step(duration, target_w, cadence, label, block, text)
+    if (target_w is not None or heart_rate is not None) and step.get("secondary_target_type") == "cadence":
+        cadence = _cadence(step.get("secondary_custom_target_value_low"),
+                           step.get("secondary_custom_target_value_high"))
+    return _Step(duration, target_w, cadence, label, block, text, heart_rate)
 
 
 def _watts(value: Any, ftp: float | None, err) -> float:
@@ -252,6 +282,18 @@ def _watts(value: Any, ftp: float | None, err) -> float:
     if ftp is None:
         raise err("percent-of-FTP target: pass the rider's ftp_w (a FIT workout carries no FTP)")
     return value / 100.0 * ftp
+
+
+def _bpm(value: Any, max_hr_bpm: float | None, err) -> float:
+    """A FIT workout_hr value: > 100 bpm + 100, 1..100 percent of the rider's maximum heart rate."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise err(f"heart-rate value must be a number > 0 (1..100 % of max, > 100 bpm + 100), got {value!r}")
+    if value > BPM_OFFSET:
+        return float(value - BPM_OFFSET)
+    if max_hr_bpm is None:
+        raise err(f"{value:g} % of the maximum heart rate: give the rider's maximum heart rate "
+                  "(session.max_hr_bpm; ./bike run --max-hr BPM); a FIT workout carries none")
+    return value / 100.0 * max_hr_bpm
 
 
 def _cadence(lo: Any, hi: Any) -> float | None:

@@ -6,11 +6,12 @@ TCP, bike_session.ftms_node joins it to the graph).
 Characteristics served (values little endian, as in BLE):
 
 - Fitness Machine Feature 0x2ACC (read): 32-bit machine features (cadence, total distance,
-  resistance level, elapsed time, power) and 32-bit target-setting features (inclination,
+  resistance level, heart rate, elapsed time, power) and 32-bit target-setting features (inclination,
   resistance, power, indoor bike simulation, spin down, targeted cadence).
 - Indoor Bike Data 0x2AD2 (notify): speed 0.01 km/h, cadence 0.5 rpm, total distance m
   (uint24), resistance level (whole levels: this field has no decimal, unlike the Control
-  Point's and the range's 0.1), power W, elapsed time s.
+  Point's and the range's 0.1), power W, heart rate uint8 bpm (only while the PlantState has
+  one: the simulated rider's, or a strap's on a CAN bike), elapsed time s.
 - Supported Inclination / Resistance Level / Power Range 0x2AD5 / 0x2AD6 / 0x2AD8 (read):
   the bike's Command ranges (bike_session.profiles.ModeUnits), so an app never has to guess.
 - Fitness Machine Control Point 0x2AD9 (write; its response [0x80, op, result] is notified,
@@ -111,6 +112,7 @@ OP_NAMES = {0x00: "request control", 0x01: "reset", 0x02: "target speed", 0x03: 
 MACHINE_CADENCE = 1 << 1
 MACHINE_TOTAL_DISTANCE = 1 << 2
 MACHINE_RESISTANCE_LEVEL = 1 << 7
+MACHINE_HEART_RATE = 1 << 10
 MACHINE_ELAPSED_TIME = 1 << 12
 MACHINE_POWER = 1 << 14
 TARGET_INCLINATION = 1 << 1
@@ -125,13 +127,16 @@ IBD_CADENCE = 1 << 2
 IBD_DISTANCE = 1 << 4
 IBD_RESISTANCE = 1 << 5
 IBD_POWER = 1 << 6
+IBD_HEART_RATE = 1 << 9
 IBD_ELAPSED = 1 << 11
+IBD_FLAGS = IBD_CADENCE | IBD_DISTANCE | IBD_RESISTANCE | IBD_POWER | IBD_ELAPSED    # always present
 
 RESISTANCE_LEVEL_MAX = 100.0    # levels 0..100 (0.1 steps) = resistance Command 0..1
 
 
 def encode_feature() -> bytes:
-    machine = MACHINE_CADENCE | MACHINE_TOTAL_DISTANCE | MACHINE_RESISTANCE_LEVEL | MACHINE_ELAPSED_TIME | MACHINE_POWER
+    machine = (MACHINE_CADENCE | MACHINE_TOTAL_DISTANCE | MACHINE_RESISTANCE_LEVEL | MACHINE_HEART_RATE
+               | MACHINE_ELAPSED_TIME | MACHINE_POWER)
     target = (TARGET_INCLINATION | TARGET_RESISTANCE | TARGET_POWER | TARGET_SIMULATION | TARGET_SPIN_DOWN
               | TARGET_CADENCE)
     return struct.pack("<II", machine, target)
@@ -146,14 +151,18 @@ def _fit(value: float, lo: int, hi: int) -> int:
 
 
 def encode_indoor_bike_data(*, speed_kmh: float, cadence_rpm: float, distance_m: float, resistance_level: float,
-                            power_w: float, elapsed_s: float) -> bytes:
-    """Indoor Bike Data (0x2AD2) with every field this bike measures."""
-    flags = IBD_CADENCE | IBD_DISTANCE | IBD_RESISTANCE | IBD_POWER | IBD_ELAPSED
+                            power_w: float, elapsed_s: float, heart_rate_bpm: float = 0.0) -> bytes:
+    """Indoor Bike Data (0x2AD2) with every field this bike measures; the heart rate only when
+    there is one (> 0), in the spec's place after the power (and the energy fields this bike
+    does not send), before the elapsed time."""
+    heart_bpm = _fit(heart_rate_bpm, 0, 0xFF)
+    flags = IBD_FLAGS | (IBD_HEART_RATE if heart_bpm > 0 else 0)
     distance = _fit(distance_m, 0, 0xFFFFFF)
     return (struct.pack("<HHH", flags, _fit(speed_kmh * 100, 0, 0xFFFF), _fit(cadence_rpm * 2, 0, 0xFFFF))
             + distance.to_bytes(3, "little")
-            + struct.pack("<hhH", _fit(resistance_level, -32768, 32767), _fit(power_w, -32768, 32767),
-                          _fit(elapsed_s, 0, 0xFFFF)))
+            + struct.pack("<hh", _fit(resistance_level, -32768, 32767), _fit(power_w, -32768, 32767))
+            + (bytes([heart_bpm]) if heart_bpm > 0 else b"")
+            + struct.pack("<H", _fit(elapsed_s, 0, 0xFFFF)))
 
 
 # Indoor Bike Data fields in their order: (flag bit, name, struct code, scale); bit 0 is
@@ -198,16 +207,17 @@ class IndoorBikeData:
     resistance_level: float
     power_w: int
     elapsed_s: int
+    heart_rate_bpm: int = 0          # 0: not in the data
 
 
 def decode_indoor_bike_data(data: bytes) -> IndoorBikeData:
     """The fields :func:`encode_indoor_bike_data` writes (an app's view; ValueError otherwise)."""
-    if len(data) != 15 or struct.unpack_from("<H", data)[0] != (IBD_CADENCE | IBD_DISTANCE | IBD_RESISTANCE
-                                                                | IBD_POWER | IBD_ELAPSED):
-        raise ValueError(f"not this bike's Indoor Bike Data: {data.hex()}")
+    flags = struct.unpack_from("<H", data)[0] if len(data) >= 2 else None
+    if (flags, len(data)) not in ((IBD_FLAGS, 15), (IBD_FLAGS | IBD_HEART_RATE, 16)):
+        raise ValueError(f"not this bike's Indoor Bike Data: {bytes(data).hex()}")
     f = parse_indoor_bike_data(data)
     return IndoorBikeData(round(f["speed_kmh"], 2), f["cadence_rpm"], f["distance_m"], f["resistance_level"],
-                          f["power_w"], f["elapsed_s"])
+                          f["power_w"], f["elapsed_s"], int(f.get("heart_rate_bpm", 0)))
 
 
 # ------------------------------------------------------------------ Cycling Power Service

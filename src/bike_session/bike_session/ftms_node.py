@@ -12,7 +12,8 @@ app (Zwift, FulGaz, Rouvy, Wahoo SYSTM, MyWhoosh, QZ, ...) rides it over Wahoo D
   + the flywheel's energy change; exact when that model is, off when its friction figure is,
   until a spin-down), cadence = flywheel speed
   / load.gear_ratio, speed and distance = the virtual bike's (ControllerStatus.virtual_speed_mps,
-  which follows the virtual gear), elapsed = the session's.
+  which follows the virtual gear), heart rate = the PlantState's (the rider's; left out of
+  the data while it is 0), elapsed = the session's.
 
 Parameters: ``config_path`` (the bike's ranges and gear), ``ftms.host`` (127.0.0.1: only this
 host, like DDS discovery; 0.0.0.0 to let an app on the network in), ``ftms.port`` (36866;
@@ -117,6 +118,7 @@ class Telemetry:
         self.cadence_rpm = 0.0
         self.level = 0.0
         self.elapsed_s = 0.0
+        self.heart_rate_bpm = 0.0           # the rider's (PlantState); 0: none, not sent
         self.crank_revs = 0.0               # cumulative crank revolutions (the cadence integrated)
         self.crank_event_s = 0.0            # sim time of the last whole revolution
         self.notified_ns: int | None = None
@@ -167,7 +169,7 @@ class Telemetry:
         return best
 
     def update(self, *, stamp_ns: int, energy_mech_in_j: float, speed_rpm: float, virtual_speed_mps: float,
-               resistance_level: float, elapsed_s: float) -> None:
+               resistance_level: float, elapsed_s: float, heart_rate_bpm: float = 0.0) -> None:
         """At a notification: the newest plant state (added if not yet) and the rest."""
         self.add_sample(stamp_ns, energy_mech_in_j, speed_rpm)
         speed = virtual_speed_mps if math.isfinite(virtual_speed_mps) else 0.0
@@ -181,6 +183,7 @@ class Telemetry:
         self.speed_mps = speed
         self.level = resistance_level
         self.elapsed_s = elapsed_s
+        self.heart_rate_bpm = heart_rate_bpm if math.isfinite(heart_rate_bpm) else 0.0
 
     def encode_cps(self) -> bytes:
         return ftms.encode_cps_measurement(self.power_w, int(self.crank_revs), self.crank_event_s)
@@ -188,7 +191,8 @@ class Telemetry:
     def encode(self) -> bytes:
         return ftms.encode_indoor_bike_data(speed_kmh=3.6 * self.speed_mps, cadence_rpm=self.cadence_rpm,
                                             distance_m=self.distance_m, resistance_level=self.level,
-                                            power_w=self.power_w, elapsed_s=self.elapsed_s)
+                                            power_w=self.power_w, elapsed_s=self.elapsed_s,
+                                            heart_rate_bpm=self.heart_rate_bpm)
 
 
 def _bike_figures(config_path: str):
@@ -380,7 +384,8 @@ def _make_node_class():
             self.telemetry.update(stamp_ns=view.stamp_ns, energy_mech_in_j=self.meter.energy_j,
                                   speed_rpm=float(state["speed_rpm"]),
                                   virtual_speed_mps=float(st.get("virtual_speed_mps", 0.0)),
-                                  resistance_level=level, elapsed_s=self.session_elapsed_s)
+                                  resistance_level=level, elapsed_s=self.session_elapsed_s,
+                                  heart_rate_bpm=float(state.get("heart_rate_bpm", 0.0)))
             self.server.broadcast(ftms.INDOOR_BIKE_DATA, self.telemetry.encode())
             self.server.broadcast(ftms.CPS_MEASUREMENT, self.telemetry.encode_cps())
 

@@ -41,6 +41,14 @@ rider's own), for that segment only (the children of ``intervals`` / ``repeat`` 
 workout file's Cadence does (:meth:`Profile.cadence_at`). The Commands carry it; the simulated
 rider pedals at it.
 
+Any segment may give ``heart_rate_bpm``: the rider's heart-rate target (40 .. 220; 0: none) for
+heart-rate ERG, for that segment only (inherited like ``cadence``), as a workout file's heart-rate
+step does (:meth:`Profile.heart_rate_at`). The Commands carry it and the controller moves the ERG
+power target to hold it (bike_controller.heart_erg); a step's ``command`` / ``target`` is where the
+power starts, and without one the command is 0 (the controller starts from the rider's present
+power). On a step in another mode than ``erg``, or on a ramp (the power follows the heart rate,
+so a ramp of it would mean nothing), it is an error.
+
 Modes are names (``resistance``, ``motoring``, ``erg``, ``slope``, ``isokinetic``, ``spindown``) mapped
 to the bike_msgs/Command constants by :data:`MODES`. Commands are in [0, 1]. Instead of a
 command, a step may give ``target`` and a ramp ``start_target`` / ``end_target`` in the
@@ -62,6 +70,7 @@ import pathlib
 from typing import Any, Mapping
 
 import yaml
+from bike_plant.heart import heart_rate_target_problem
 from bike_plant.mechanics import rider_cadence_problem, road_problem, virtual_gear_problem
 
 # name -> bike_msgs/msg/Command mode constant (bike_controller.modes)
@@ -74,7 +83,7 @@ MAX_REPEAT = 10_000
 MAX_DEPTH = 16
 KINDS = ("step", "ramp", "intervals", "repeat")
 
-_COMMON = {"kind", "mode", "label", "gear", "road", "cadence"}
+_COMMON = {"kind", "mode", "label", "gear", "road", "cadence", "heart_rate_bpm"}
 ROAD_KEYS = ("crr", "cw_kg_m", "wind_mps")
 _KEYS = {
     "step": _COMMON | {"duration_s", "command", "target"},
@@ -134,15 +143,21 @@ class ModeUnits:
         return None
 
 
-def describe_command(mode: int, command: float, units: ModeUnits | None) -> str:
+def describe_command(mode: int, command: float, units: ModeUnits | None, heart_rate_bpm: float = 0.0) -> str:
     """A Command in its mode's unit where the bike's ranges are known ("erg 150 W",
-    "slope 5.0 %", "isokinetic 80 rpm"), else its value ("resistance 0.1")."""
+    "slope 5.0 %", "isokinetic 80 rpm"), else its value ("resistance 0.1"); with a heart-rate
+    target, that target and where the power starts ("erg heart rate 140 bpm, from 150 W")."""
     name = MODE_NAMES.get(mode, str(mode))
     target = units.target_of(mode, command) if units is not None else None
     if target is None:
-        return f"{name} {command:.4g}"
-    value, unit = target
-    return f"{name} {value:.1f} {unit}" if unit == "%" else f"{name} {value:.0f} {unit}"
+        text = f"{name} {command:.4g}"
+    else:
+        value, unit = target
+        text = f"{name} {value:.1f} {unit}" if unit == "%" else f"{name} {value:.0f} {unit}"
+    if heart_rate_bpm:
+        start = "the rider's power" if command == 0 else text[len(name) + 1:]
+        text = f"{name} heart rate {heart_rate_bpm:.0f} bpm, from {start}"
+    return text
 
 
 def mode_units_from_config(cfg: Mapping) -> ModeUnits:
@@ -205,7 +220,7 @@ class Profile:
 
     def __init__(self, name: str, segments: list[Segment], source: str = "<profile>", text: str = "",
                  gears: Mapping[int, float] | None = None, roads: Mapping[int, tuple | None] | None = None,
-                 cadences: Mapping[int, float] | None = None):
+                 cadences: Mapping[int, float] | None = None, heart_rates: Mapping[int, float] | None = None):
         if not segments:
             raise ProfileError("a profile needs at least one segment", source, "segments")
         self.name = name
@@ -222,6 +237,7 @@ class Profile:
             gear = self.gears_given.get(seg.index, gear)
             self._gear_in_force.append(gear)
         self._cadences = dict(cadences or {})     # leaf index -> the rider's cadence target
+        self._heart_rates = dict(heart_rates or {})   # leaf index -> the ERG heart-rate target
         # the road in force in each leaf, the same way (None: the config's)
         roads = dict(roads or {})
         self._road_in_force = []
@@ -261,6 +277,11 @@ class Profile:
         """The rider's cadence target [rpm] of the segment at ``t_s`` (None: none)."""
         seg = self.segment_at(t_s)
         return self._cadences.get(seg.index) if seg is not None else None
+
+    def heart_rate_at(self, t_s: float) -> float | None:
+        """The heart-rate target [bpm] of the (ERG) segment at ``t_s`` (None: none)."""
+        seg = self.segment_at(t_s)
+        return self._heart_rates.get(seg.index) if seg is not None else None
 
     def road_at(self, t_s: float) -> tuple[float, float, float] | None:
         """The road (crr, cw_kg_m, wind_mps) in force at ``t_s``, None for the config's; past the
@@ -346,7 +367,7 @@ def parse_profile(doc: Any, source: str = "<profile>", default_name: str = "prof
     if not builder.leaves:
         raise ProfileError("a profile needs at least one segment", source, "segments")
     return Profile(name, builder.leaves, source=source, gears=builder.gears, roads=builder.roads,
-                   cadences=builder.cadences)
+                   cadences=builder.cadences, heart_rates=builder.heart_rates)
 
 
 class _Builder:
@@ -357,21 +378,26 @@ class _Builder:
         self.gears: dict[int, float] = {}      # leaf index -> the gear it gives (or inherits)
         self.roads: dict[int, tuple | None] = {}   # ... and the road (None: the config's again)
         self.cadences: dict[int, float] = {}       # ... and the rider's cadence target (> 0)
+        self.heart_rates: dict[int, float] = {}    # ... and the heart-rate target (> 0, ERG only)
         self.t = 0.0
 
     def err(self, where: str, message: str) -> ProfileError:
         return ProfileError(message, self.source, where)
 
-    def segment_list(self, items, where, mode, label, depth, rep, gear=None, road=None, cadence=None):
+    def segment_list(self, items, where, mode, label, depth, rep, gear=None, road=None, cadence=None,
+                     heart_rate=None):
         if not isinstance(items, list):
             raise self.err(where, f"expected a list of segments, got {_tname(items)}")
         if not items:
             raise self.err(where, "empty list of segments")
         for i, item in enumerate(items):
-            self.segment(item, f"{where}[{i}]", mode, label, depth, rep, gear=gear, road=road, cadence=cadence)
+            self.segment(item, f"{where}[{i}]", mode, label, depth, rep, gear=gear, road=road, cadence=cadence,
+                         heart_rate=heart_rate)
 
-    def segment(self, seg, where, mode, label, depth, rep, default_kind=None, gear=None, road=None, cadence=None):
+    def segment(self, seg, where, mode, label, depth, rep, default_kind=None, gear=None, road=None, cadence=None,
+                heart_rate=None):
         # road: None when not given; "config" or (crr, cw_kg_m, wind_mps) when given
+        # heart_rate: None when not given; (bpm, where it was given) when given (bpm 0: none)
         if depth > MAX_DEPTH:
             raise self.err(where, f"segments nested deeper than {MAX_DEPTH} levels")
         if not isinstance(seg, Mapping):
@@ -406,12 +432,28 @@ class _Builder:
             problem = rider_cadence_problem(cadence)
             if problem:
                 raise self.err(f"{where}.cadence", problem)
+        if "heart_rate_bpm" in seg:
+            bpm = self.number(seg["heart_rate_bpm"], f"{where}.heart_rate_bpm")
+            problem = heart_rate_target_problem(bpm)
+            if problem:
+                raise self.err(f"{where}.heart_rate_bpm", problem)
+            heart_rate = (bpm, f"{where}.heart_rate_bpm")
         if kind in ("step", "ramp"):
+            bpm, bpm_where = heart_rate or (0.0, "")
+            if bpm:
+                # checked on the leaf: a mode or kind inherited from above is refused here too
+                given = "" if bpm_where == f"{where}.heart_rate_bpm" else f" (given at {bpm_where})"
+                if mode != MODES["erg"]:
+                    raise self.err(where, f"heart_rate_bpm {bpm:g}{given} needs mode erg (it moves the ERG power "
+                                          f"target); this segment rides in mode {MODE_NAMES[mode]}")
+                if kind == "ramp":
+                    raise self.err(where, f"heart_rate_bpm {bpm:g}{given} on a ramp: the power follows the heart "
+                                          "rate, so give it on a step")
             duration = self.number(seg["duration_s"], f"{where}.duration_s")
             if duration <= 0:
                 raise self.err(f"{where}.duration_s", f"must be > 0, got {seg['duration_s']!r}")
             if kind == "step":
-                start = end = self.value(seg, "command", "target", mode, where)
+                start = end = self.value(seg, "command", "target", mode, where, no_value_ok=bool(bpm))
             else:
                 start = self.value(seg, "start", "start_target", mode, where)
                 end = self.value(seg, "end", "end_target", mode, where)
@@ -423,6 +465,8 @@ class _Builder:
                 self.roads[len(self.leaves)] = None if road == "config" else road
             if cadence:
                 self.cadences[len(self.leaves)] = cadence
+            if bpm:
+                self.heart_rates[len(self.leaves)] = bpm
             self.leaves.append(Segment(len(self.leaves), where + rep, self.t, duration, start, end, mode,
                                        label if label is not None else kind))
             self.t += duration
@@ -438,14 +482,14 @@ class _Builder:
             for r in range(count):
                 r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
                 self.segment(seg["on"], f"{where}.on", mode, label, depth + 1, r_tag, "step", gear=gear, road=road,
-                             cadence=cadence)
+                             cadence=cadence, heart_rate=heart_rate)
                 self.segment(seg["off"], f"{where}.off", mode, label, depth + 1, r_tag, "step", gear=gear,
-                             road=road, cadence=cadence)
+                             road=road, cadence=cadence, heart_rate=heart_rate)
         else:
             for r in range(count):
                 r_tag = f"{rep} (repeat {r + 1}/{count})" if count > 1 else rep
                 self.segment_list(seg["segments"], f"{where}.segments", mode, label, depth + 1, r_tag, gear=gear,
-                                  road=road, cadence=cadence)
+                                  road=road, cadence=cadence, heart_rate=heart_rate)
 
     def road(self, value, where):
         """A segment's ``road``: "config", or a mapping of exactly crr, cw_kg_m, wind_mps."""
@@ -469,14 +513,15 @@ class _Builder:
             raise self.err(where, f"must be finite, got {value!r}")
         return float(value)
 
-    def value(self, seg, key, target_key, mode, where) -> float:
-        """The command of ``seg[key]``, or of ``seg[target_key]`` in the mode's unit."""
+    def value(self, seg, key, target_key, mode, where, no_value_ok=False) -> float:
+        """The command of ``seg[key]``, or of ``seg[target_key]`` in the mode's unit; 0 when
+        neither is given and ``no_value_ok`` (a heart-rate step: the power starts where it is)."""
         if key in seg and target_key in seg:
             raise self.err(where, f"give either '{key}' or '{target_key}', not both")
         if key in seg:
             return self.command(seg[key], f"{where}.{key}")
-        if target_key not in seg and mode == MODES["spindown"]:
-            return 0.0                         # the spin-down takes no value
+        if target_key not in seg and (mode == MODES["spindown"] or no_value_ok):
+            return 0.0                         # the spin-down takes no value; heart-rate ERG may not
         if target_key not in seg:
             raise self.err(where, f"missing key '{key}' (command 0..1) or '{target_key}' (in the mode's unit)")
         target = self.number(seg[target_key], f"{where}.{target_key}")

@@ -29,12 +29,12 @@ from bike_session.profiles import MODE_NAMES as MODE_TO_NAME
 EARLY_NS = 1000
 
 
-def command_timeline(bag_path) -> tuple[list[tuple[int, float, int, float, tuple | None, float]], dict]:
-    """Sorted (stamp_ns, command, mode, virtual gear, road, rider cadence) of the bag's Commands
-    (duplicates dropped; gear 0 = the config's, also in a bag recorded before Commands had one;
-    road (crr, cw_kg_m, wind_mps) or None = the config's; cadence 0 = none) and its session_info
-    (empty dict when absent)."""
-    timeline: dict[int, tuple[float, int, float, tuple | None, float]] = {}
+def command_timeline(bag_path) -> tuple[list[tuple[int, float, int, float, tuple | None, float, float]], dict]:
+    """Sorted (stamp_ns, command, mode, virtual gear, road, rider cadence, heart rate) of the bag's
+    Commands (duplicates dropped; gear 0 = the config's, also in a bag recorded before Commands had
+    one; road (crr, cw_kg_m, wind_mps) or None = the config's; cadence and heart rate 0 = none) and
+    its session_info (empty dict when absent)."""
+    timeline: dict[int, tuple[float, int, float, tuple | None, float, float]] = {}
     info: dict = {}
     with open_bag(bag_path) as bag:
         cmd_topic = bag.resolve("command")
@@ -55,7 +55,8 @@ def command_timeline(bag_path) -> tuple[list[tuple[int, float, int, float, tuple
             road = ((float(msg.crr), float(msg.cw_kg_m), float(msg.wind_mps))
                     if getattr(msg, "road_from_command", False) else None)
             timeline[stamp] = (float(msg.command), int(msg.mode), float(getattr(msg, "virtual_gear_ratio", 0.0)),
-                               road, float(getattr(msg, "cadence_rpm", 0.0)))
+                               road, float(getattr(msg, "cadence_rpm", 0.0)),
+                               float(getattr(msg, "heart_rate_bpm", 0.0)))
     if not timeline:
         raise BagError("the command topic is empty: nothing to replay", bag_path)
     return [(t, *v) for t, v in sorted(timeline.items())], info
@@ -63,21 +64,22 @@ def command_timeline(bag_path) -> tuple[list[tuple[int, float, int, float, tuple
 
 def profile_from_timeline(timeline, duration_s: float, name: str) -> dict:
     """A profile document of steps reproducing the timeline (equal neighbours merged); entries
-    (stamp_ns, command, mode, gear[, road[, cadence]])."""
+    (stamp_ns, command, mode, gear[, road[, cadence[, heart rate]]])."""
     segments = []
     end_ns = int(round(duration_s * 1e9))
-    timeline = [tuple(x) + (None, 0.0)[len(x) - 4:] for x in timeline]
+    timeline = [tuple(x) + (None, 0.0, 0.0)[len(x) - 4:] for x in timeline]
     points = [x for x in timeline if x[0] < end_ns]
     if not points or points[0][0] > 0:
         points.insert(0, (0, 0.0, points[0][2] if points else 0, points[0][3] if points else 0.0,
-                          points[0][4] if points else None, points[0][5] if points else 0.0))
+                          points[0][4] if points else None, points[0][5] if points else 0.0,
+                          points[0][6] if points else 0.0))
     # each step starts EARLY_NS before its stamp: the profile sums float durations, and the
     # session asks for the command exactly at the stamps, so a boundary must never land on one
     def start(i):
         return 0 if i == 0 else max(points[i][0] - EARLY_NS, 0)
     gear_in_force = 0.0
     road_in_force = None
-    for i, (_t, c, m, g, r, cad) in enumerate(points):
+    for i, (_t, c, m, g, r, cad, hr) in enumerate(points):
         t = start(i)
         t_next = start(i + 1) if i + 1 < len(points) else end_ns
         if t_next <= t:
@@ -86,7 +88,8 @@ def profile_from_timeline(timeline, duration_s: float, name: str) -> dict:
         if mode is None:
             raise BagError(f"recorded Command at t={t * 1e-9:g}s has unknown mode {m}")
         if (segments and segments[-1]["command"] == c and segments[-1]["mode"] == mode and g == gear_in_force
-                and r == road_in_force and cad == segments[-1].get("cadence", 0.0)):
+                and r == road_in_force and cad == segments[-1].get("cadence", 0.0)
+                and hr == segments[-1].get("heart_rate_bpm", 0.0)):
             segments[-1]["duration_s"] = round(segments[-1]["duration_s"] + (t_next - t) * 1e-9, 9)
             continue
         segments.append({"kind": "step", "duration_s": round((t_next - t) * 1e-9, 9), "command": c,
@@ -95,6 +98,8 @@ def profile_from_timeline(timeline, duration_s: float, name: str) -> dict:
             segments[-1]["gear"] = gear_in_force = g
         if cad:                         # a cadence target is the step's own
             segments[-1]["cadence"] = cad
+        if hr:                          # as is a heart-rate target
+            segments[-1]["heart_rate_bpm"] = hr
         if r != road_in_force:          # and so does its road
             segments[-1]["road"] = "config" if r is None else dict(zip(("crr", "cw_kg_m", "wind_mps"), r))
             road_in_force = r

@@ -57,6 +57,14 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   old gear's speed); the time until it is back within max(5 % of the jump, 0.02 m/s), and how far
   it went past zero within 1 s, in % of the jump (:func:`shift_response`; trainer users complain
   of shifts felt late or bouncing); None without a shift.
+- ``mean_heart_rate_bpm`` / ``max_heart_rate_bpm``  the rider's heart rate (PlantState.heart_rate_bpm,
+  the intervals where it is > 0 at both ends): time mean and largest; None without one (no rider,
+  a prime mover, or a bag recorded before the field).
+- ``heart_rate_erg``       heart-rate ERG (Commands in ERG with heart_rate_bpm > 0): per stretch of
+  consecutive such Commands with the same target, the target, the time from the stretch's
+  first Command until the heart rate (bin mean) is first within HR_TOL_BPM of it (``settle_s``),
+  and from there to the stretch's end the mean and largest |heart rate - target|
+  (:func:`heart_rate_erg`); None without such a Command.
 
 Long bags: messages are decoded straight from the CDR bytes into numpy blocks of
 ``CHUNK`` PlantStates; only per-bin sums (``bin_s``, 10 ms for short sessions, at most
@@ -457,16 +465,18 @@ PLANT_SPEC = (
     ("energy_mech_in_j", "value", NAN), ("energy_battery_j", "value", NAN), ("energy_resistor_j", "value", NAN),
     ("energy_loss_j", "value", NAN), ("faults", "value", 0), ("interlock_blanked_count", "value", 0),
     ("phase_current_a", "absmax", 0.0), ("current_samples_a", "absmax", 0.0), ("relay_state", "value", 0),
+    ("heart_rate_bpm", "value", 0.0),            # 0 (none) in bags recorded before the field
 )
 (P_SEC, P_NSEC, P_SEQ, P_EOR, P_RPM, P_W, P_TEM, P_TLOAD, P_VBUS, P_OCV, P_SOC, P_IBAT, P_EMECH, P_EBAT, P_ERES,
- P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP, P_RELAY) = range(len(PLANT_SPEC))
+ P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP, P_RELAY, P_HR) = range(len(PLANT_SPEC))
 STATUS_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
                ("command", "value", NAN), ("mode_target", "value", NAN), ("mode_saturated", "value", False),
                ("virtual_speed_mps", "value", NAN), ("virtual_gear_ratio", "value", NAN),
                ("friction_nms", "value", NAN), ("dry_friction_nm", "value", NAN))
 STATUS_COLUMNS = 9            # t, mode, command, target, saturated, virtual speed, virtual gear, B, Tc
 COMMAND_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
-                ("command", "value", NAN), ("virtual_gear_ratio", "value", 0.0), ("cadence_rpm", "value", 0.0))
+                ("command", "value", NAN), ("virtual_gear_ratio", "value", 0.0), ("cadence_rpm", "value", 0.0),
+                ("heart_rate_bpm", "value", 0.0))
 BATTERY_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("voltage", "value", NAN),
                 ("current", "value", NAN), ("percentage", "value", NAN))
 
@@ -489,14 +499,14 @@ def window_bins(bin_s: float) -> int:
 
 
 BIN_SUMS = ["dt", "e_brake", "e_erg", "e_est", "e_mech", "tq_dt", "rpm_dt", "road_m", "vbus_dt", "ocv_dt", "soc_dt", "ibat_dt",
-            "bat_v", "bat_v_n", "bat_pct", "bat_pct_n", "bat_i",
+            "bat_v", "bat_v_n", "bat_pct", "bat_pct_n", "bat_i", "hr_dt", "hr_t",
             *[f"mode_dt{m}" for m in (*MODE_NAMES, CADENCE_TARGET)],
             *[f"target_dt{m}" for m in (*MODE_NAMES, CADENCE_TARGET)],
             *[f"sat_dt{m}" for m in (*MODE_NAMES, CADENCE_TARGET)],
             *[f"trk_dt{m}" for m, *_ in TRACKED], *[f"err_dt{m}" for m, *_ in TRACKED],
             *[f"err2_dt{m}" for m, *_ in TRACKED]]
 BIN_LAST = ["E_mech", "E_bat", "E_res", "E_loss"]
-BIN_MAX = ["ipk", *[f"errmax{m}" for m, *_ in TRACKED]]
+BIN_MAX = ["ipk", "hrmax", *[f"errmax{m}" for m, *_ in TRACKED]]
 
 
 class Bins:
@@ -564,7 +574,7 @@ class SessionData:
 
     def __init__(self, path, summary: dict, bins: dict, bin_s: float, origin_s: float, machine: dict,
                  info: dict, scatter: dict, res_commands: dict, commands: np.ndarray, first: dict,
-                 shifts: list | None = None):
+                 shifts: list | None = None, hr_stretches: list | None = None):
         self.path = path
         self.summary = summary
         self.bins = bins
@@ -577,6 +587,7 @@ class SessionData:
         self.commands = commands          # (n, 3): t_s, mode, command
         self.first = first                # ledger values of the first PlantState
         self.shifts = shifts or []        # slope-mode shifts (t, old gear, new gear, mode): shift_response
+        self.hr_stretches = hr_stretches or []    # heart-rate ERG (start t, end t, target bpm): heart_rate_erg
 
     @property
     def n_bins(self) -> int:
@@ -630,6 +641,7 @@ class _Analyser:
         self.battery_rows: list = []
         self.command_blocks: list = []
         self.cadence_blocks: list = []            # (t, the rider's cadence target; 0: none) per Command
+        self.hr_target_blocks: list = []          # (t, the heart-rate ERG target; 0: none) per Command
         self.plant_carry = None
         self.status_carry = None
         self.gear_shifts = 0                      # changes of the virtual gear in force
@@ -740,6 +752,9 @@ class _Analyser:
             block = np.column_stack([c[:, 0] + c[:, 1] * 1e-9, c[:, 2], c[:, 3]])
             self.command_blocks.append(block)
             self.cadence_blocks.append(np.column_stack([block[:, 0], c[:, 5]]))
+            # a heart-rate target rules ERG only (bike_msgs/Command)
+            hr_target = np.where((c[:, 2] == MODE_ERG) & np.isfinite(c[:, 6]) & (c[:, 6] > 0), c[:, 6], 0.0)
+            self.hr_target_blocks.append(np.column_stack([block[:, 0], hr_target]))
             if not self.use_status:
                 self.status_rows.extend((r[0], r[1], r[2], NAN, False, NAN, g, NAN, NAN)
                                         for r, g in zip(block, c[:, 4]))
@@ -882,6 +897,13 @@ class _Analyser:
             bins.last(key, b, q[1:, C + col])
         # currents of a PlantState are measured during the batch that ends at its stamp
         bins.max("ipk", b, np.maximum(q[1:, C + P_IPH], q[1:, C + P_ISMP]))
+        # the rider's heart rate where both ends have one (0: none; NaN compares False)
+        hr0, hr1 = q[:-1, C + P_HR], q[1:, C + P_HR]
+        has_hr = (hr0 > 0) & (hr1 > 0) & np.isfinite(hr0) & np.isfinite(hr1)
+        if has_hr.any():
+            bins.add("hr_dt", b[has_hr], 0.5 * (hr0 + hr1)[has_hr] * dt[has_hr])
+            bins.add("hr_t", b[has_hr], dt[has_hr])
+            bins.max("hrmax", b[has_hr], np.maximum(hr0, hr1)[has_hr])
         # the mode in force: latest status stamped <= t_{i-1}
         if len(status):
             idx = np.searchsorted(status[:, 0], t0, side="right") - 1
@@ -1008,6 +1030,8 @@ class _Analyser:
             "plant_state_conflicts": int(self.conflicts),
             "plant_state_out_of_order": int(self.out_of_order),
             "mean_cadence_rpm": None,
+            "mean_heart_rate_bpm": None,
+            "max_heart_rate_bpm": None,
             "time_in_mode_s": {},
             "tracking": {},
             "warnings": list(mc["notes"]),
@@ -1052,6 +1076,8 @@ class _Analyser:
             out["erg_response"] = erg_response(bins, self.bin_s)
             out["shift_response"] = shift_response(bins, self.origin_s, self.bin_s, self.slope_shifts())
             out["power_accuracy"] = power_accuracy(bins, self.bin_s)
+            out["mean_heart_rate_bpm"], out["max_heart_rate_bpm"] = heart_rate_figures(bins)
+            out["heart_rate_erg"] = heart_rate_erg(bins, self.origin_s, self.bin_s, self.hr_stretches())
             if self.friction_seen:
                 out["friction"] = [{"t": t, "friction_nms": b, "dry_friction_nm": tc} for t, b, tc in self.friction_seen]
         first = {}
@@ -1063,10 +1089,22 @@ class _Analyser:
         scatter["stride"] = int(self.stride)
         commands = np.vstack(self.command_blocks) if self.command_blocks else np.zeros((0, 3))
         return SessionData(bag_path, out, bins, self.bin_s, self.origin_s, mc, info, scatter,
-                           dict(sorted(self.res_commands.items())), commands, first, self.slope_shifts())
+                           dict(sorted(self.res_commands.items())), commands, first, self.slope_shifts(),
+                           self.hr_stretches())
 
     def slope_shifts(self) -> list:
         return [e for e in self.shift_events if e[3] == MODE_SLOPE]
+
+    def hr_stretches(self) -> list:
+        """Heart-rate ERG stretches (start t, end t, target bpm): consecutive Commands with the
+        same target > 0; the end is the next Command's stamp (inf: the end of the ride)."""
+        if not self.hr_target_blocks:
+            return []
+        c = np.vstack(self.hr_target_blocks)
+        c = c[np.argsort(c[:, 0], kind="stable")]
+        starts = np.flatnonzero(np.r_[True, c[1:, 1] != c[:-1, 1]])
+        ends = [float(c[i, 0]) for i in starts[1:]] + [math.inf]
+        return [(float(c[i, 0]), end, float(c[i, 1])) for i, end in zip(starts, ends) if c[i, 1] > 0]
 
 
 def analyse(bag_path, bin_s: float | None = None, progress: str | None = None) -> SessionData:
@@ -1143,7 +1181,7 @@ def series(data: SessionData, n_bins: int | None = None, points: int | None = PL
            "vbus": _div(b["vbus_dt"], dt), "ocv": _div(b["ocv_dt"], dt), "soc": _div(b["soc_dt"], dt),
            "ibat": _div(b["ibat_dt"], dt),
            "bat_v": _div(b["bat_v"], b["bat_v_n"]), "bat_pct": _div(b["bat_pct"], b["bat_pct_n"]),
-           "ipk": b["ipk"]}
+           "ipk": b["ipk"], "heart_rate": _div(b["hr_dt"], b["hr_t"])}
     out["cadence"] = out["motor_rpm"] / mc["gear_ratio"]
     full = lambda m: (b[f"mode_dt{m}"] > 0) & (b[f"mode_dt{m}"] >= dt * (1 - 1e-9))  # noqa: E731
     any_ = lambda m: b[f"mode_dt{m}"] > 0                                            # noqa: E731
@@ -1310,6 +1348,66 @@ def shift_response(bins: dict, origin_s: float, bin_s: float, shifts: list, n_bi
             "tolerance": f"max({100 * SHIFT_TOL:g} % of the jump, {SHIFT_TOL_MIN_MPS:g} m/s) within {SHIFT_WITHIN_S:g} s"}
 
 
+HR_TOL_BPM = 3.0              # heart-rate ERG: settled once the heart rate is this close to the target
+
+
+def heart_rate_figures(bins: dict, n_bins: int | None = None) -> tuple[float | None, float | None]:
+    """(mean, max) heart rate [bpm] on bins 0..n_bins-1 where the PlantStates carry one; (None,
+    None) without."""
+    n = len(bins["dt"]) if n_bins is None else int(n_bins)
+    t_hr = float(bins["hr_t"][:n].sum())
+    if not t_hr > 0:
+        return None, None
+    hr_max = bins["hrmax"][:n]
+    return (float(bins["hr_dt"][:n].sum() / t_hr),
+            float(np.nanmax(hr_max)) if np.isfinite(hr_max).any() else None)
+
+
+def heart_rate_erg(bins: dict, origin_s: float, bin_s: float, stretches: list,
+                   n_bins: int | None = None) -> dict | None:
+    """How well heart-rate ERG holds its target. ``stretches``: (start t, end t, target bpm),
+    consecutive Commands with the same target. Per stretch, on the bins whose middle lies in it
+    (bins 0..``n_bins`` - 1) and carry a heart rate: ``settle_s`` from the stretch's start to the
+    start of the first bin whose mean heart rate is within HR_TOL_BPM of the target (None:
+    never; the heart answers the power with tau ~ 69 s, so minutes are expected), then from that
+    bin on the time-weighted mean |heart rate - target| (``mae_bpm``) and the largest
+    (``max_abs_bpm``). ``start_s``: the stretch's first Command's stamp (sim time);
+    ``hr_time_s``: the stretch's time with a heart rate (0: none in the bag). None without a
+    stretch."""
+    n = len(bins["dt"]) if n_bins is None else int(n_bins)
+    stretches = [e for e in stretches if e[0] < origin_s + n * bin_s]
+    if not stretches:
+        return None
+    t_left = origin_s + np.arange(n) * bin_s
+    middle = t_left + 0.5 * bin_s
+    dt, w_hr = bins["dt"][:n], bins["hr_t"][:n]
+    hr = _div(bins["hr_dt"][:n], w_hr)
+    per: list[dict] = []
+    abs_sum = abs_t = 0.0
+    for start, end, target in stretches:
+        inside = (middle >= start) & (middle < end)
+        has = inside & np.isfinite(hr)
+        err = np.abs(hr - target)
+        near = has & (err <= HR_TOL_BPM)
+        r = {"start_s": start, "target_bpm": target, "duration_s": float(dt[inside].sum()),
+             "hr_time_s": float(w_hr[has].sum()), "settle_s": None, "mae_bpm": None, "max_abs_bpm": None}
+        if near.any():
+            k = int(np.argmax(near))
+            after = has & (np.arange(n) >= k)
+            r["settle_s"] = max(float(t_left[k] - start), 0.0)
+            r["mae_bpm"] = float(np.sum(err[after] * w_hr[after]) / np.sum(w_hr[after]))
+            r["max_abs_bpm"] = float(err[after].max())
+            abs_sum += float(np.sum(err[after] * w_hr[after]))
+            abs_t += float(np.sum(w_hr[after]))
+        per.append(r)
+    done = [r["settle_s"] for r in per if r["settle_s"] is not None]
+    worst = [r["max_abs_bpm"] for r in per if r["max_abs_bpm"] is not None]
+    return {"stretches": len(per), "settled": len(done),
+            "median_settle_s": float(np.median(done)) if done else None, "max_settle_s": max(done) if done else None,
+            "mae_bpm": abs_sum / abs_t if abs_t > 0 else None, "max_abs_bpm": max(worst) if worst else None,
+            "tolerance_bpm": HR_TOL_BPM, "bin_s": bin_s, "per_stretch": per}
+
+
 # ============================================================================ text
 
 def _fmt(value, unit: str = "", digits: int = 3) -> str:
@@ -1398,6 +1496,12 @@ def format_summary(summary: dict) -> str:
                      f"the new gear's speed, {shift['tolerance']}) after median {_fmt(shift['median_s'], 's', 2)}, "
                      f"max {_fmt(shift['max_s'], 's', 2)}; past it by at most "
                      f"{_fmt(shift['overshoot_pct_max'], '%', 0)} of the jump")
+    if s.get("mean_heart_rate_bpm") is not None:
+        lines.append(f"heart rate:            mean {s['mean_heart_rate_bpm']:.1f} bpm, max "
+                     f"{_fmt(s.get('max_heart_rate_bpm'), 'bpm', 1)}")
+    hr_erg = s.get("heart_rate_erg")
+    if hr_erg:
+        lines += _heart_rate_erg_lines(hr_erg, s.get("mean_heart_rate_bpm") is not None)
     if s.get("software_version"):
         lines.append(f"software:              {s['software_version']}")
     for w in s.get("warnings") or []:
@@ -1406,6 +1510,28 @@ def format_summary(summary: dict) -> str:
     for topic, count in (s.get("messages") or {}).items():
         lines.append(f"  {topic:<32} {count}")
     return "\n".join(lines)
+
+
+HR_ERG_LINES = 8              # stretches listed one by one in the text (a workout may have many)
+
+
+def _heart_rate_erg_lines(r: dict, has_hr: bool) -> list[str]:
+    lines = [f"heart-rate ERG:        {r['stretches']} target stretch(es), {r['settled']} settled (within "
+             f"{r['tolerance_bpm']:g} bpm) after median {_fmt(r['median_settle_s'], 's', 1)}, max "
+             f"{_fmt(r['max_settle_s'], 's', 1)}; then mean |error| {_fmt(r['mae_bpm'], 'bpm', 1)}, max "
+             f"{_fmt(r['max_abs_bpm'], 'bpm', 1)}" + ("" if has_hr else " (no heart rate in the bag)")]
+    for x in r["per_stretch"][:HR_ERG_LINES]:
+        head = f"  {x['target_bpm']:g} bpm from {x['start_s']:.1f} s ({x['duration_s']:.1f} s): "
+        if not x["hr_time_s"] > 0:
+            lines.append(head + "no heart rate")
+        elif x["settle_s"] is None:
+            lines.append(head + f"never within {r['tolerance_bpm']:g} bpm")
+        else:
+            lines.append(head + f"settled after {x['settle_s']:.1f} s, then mean |error| {x['mae_bpm']:.1f} bpm, "
+                                f"max {x['max_abs_bpm']:.1f} bpm")
+    if len(r["per_stretch"]) > HR_ERG_LINES:
+        lines.append(f"  ... {len(r['per_stretch']) - HR_ERG_LINES} more (summary.json)")
+    return lines
 
 
 # ============================================================================ charts

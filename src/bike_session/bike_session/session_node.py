@@ -6,9 +6,10 @@ Node name ``session`` (namespace ``/bike`` by default). Parameters:
   directory of ``config_path`` when that is set, else against the working directory.
 - ``session.workout`` (string, ""): a workout file (.zwo, .erg, .mrc, .fit or a profile .yaml)
   ridden instead of ``session.profile`` when set (bike_session.workouts); power targets
-  ride in ERG mode. ``session.ftp_w`` (0 = the file's own FTP) is the rider's FTP and
-  ``session.over_range`` (warn | error) what to do with targets beyond the machine's
-  range. Text events of the workout are logged at their time.
+  ride in ERG mode. ``session.ftp_w`` (0 = the file's own FTP) is the rider's FTP,
+  ``session.max_hr_bpm`` (0 = not given) his maximum heart rate (a FIT heart-rate target in
+  percent of it) and ``session.over_range`` (warn | error) what to do with targets beyond the
+  machine's range. Text events of the workout are logged at their time.
 - ``session.period_s`` (0.1): Command period in sim seconds.
 - ``duration_s`` (0.0): run length in sim seconds; 0 = profile length.
   ``session.duration_s`` (0.0), when > 0, takes precedence (DESIGN.md puts it there).
@@ -24,10 +25,16 @@ Command is ERG moves the power target by that many watts instead (until the prof
 segment), as stand-alone trainer shifters do. Commands sent again (a restarted plant, a re-published
 state) repeat the gear they were first sent with.
 
+Targets of the rider: every Command carries the cadence target (``cadence_rpm``,
+Profile.cadence_at) and the ERG heart-rate target (``heart_rate_bpm``, Profile.heart_rate_at) of
+the profile segment in force (0: none). In heart-rate ERG a shift press shifts the gear: the
+power follows the heart rate there, so there is no power target to move.
+
 Live Commands: a bike_msgs/Command on ``live_command`` (an app's target through the FTMS
-bridge, bike_session.ftms_node) replaces the profile's mode and value from the next Command
-not yet sent until the next live one or the run's end (a gear other than 0 is shifted to); a
-bad one is one warning. Re-sent Commands repeat what they were first sent with.
+bridge, bike_session.ftms_node) replaces the profile's mode, value, cadence and heart-rate
+targets from the next Command not yet sent until the next live one or the run's end (a gear
+other than 0 is shifted to); a bad one is one warning. Re-sent Commands repeat what they were
+first sent with.
 
 Lockstep protocol (DESIGN.md): on every ``/clock`` value t the node publishes the Command
 for every tau_j = j * period_s with tau_j <= t + period_s that it has not published yet,
@@ -201,7 +208,7 @@ def _make_node_class():
                                   ("session.over_range", "warn")):
                 p[name] = self.declare_parameter(name, default).value
             for name, default in (("session.period_s", 0.1), ("duration_s", 0.0), ("session.duration_s", 0.0),
-                                  ("session.ftp_w", 0.0)):
+                                  ("session.ftp_w", 0.0), ("session.max_hr_bpm", 0.0)):
                 value = self.declare_parameter(name, default, any_type).value
                 if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                     raise SetupError(f"parameter {name} must be a finite number, got {value!r}")
@@ -261,10 +268,11 @@ def _make_node_class():
             self.sent_gears = array.array("d")   # the gear of each published tau index j
             self.shifts = 0
             # live Commands (_on_live_command) and ERG bumps (_bump_erg): from tau index
-            # live_from_j[k] on, live_targets[k] = (command, mode, label, until tau index, road, cadence)
+            # live_from_j[k] on, live_targets[k] = (command, mode, label, until tau index, road, cadence,
+            # heart rate)
             self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos(10))
             self.live_from_j: list[int] = []
-            self.live_targets: list[tuple[float, int, str, int, tuple | None, float]] = []
+            self.live_targets: list[tuple[float, int, str, int, tuple | None, float, float]] = []
             self.live_commands = 0
             self.erg_shift_w = modes.erg_shift_w
             self.units = units = _units(cfg)
@@ -311,7 +319,8 @@ def _make_node_class():
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", WorkoutWarning)     # logged below, once each
                     profile = load_workout(path, ftp_w=p["session.ftp_w"] or None, pmax_w=pmax_w,
-                                           over_range=p["session.over_range"], units=units)
+                                           over_range=p["session.over_range"], units=units,
+                                           max_hr_bpm=p["session.max_hr_bpm"] or None)
             except (ProfileError, ConfigError) as exc:
                 raise SetupError(f"bad workout: {exc}") from None
             for text in getattr(profile, "warnings", []):
@@ -348,11 +357,17 @@ def _make_node_class():
             live = self._live_at(j)
             return (self.profile.cadence_at(j * self.period_s) or 0.0) if live is None else live[5]
 
+        def heart_rate_for(self, j: int) -> float:
+            """The ERG heart-rate target of the Command at tau_j: a live target's, else the
+            profile's (a FIT heart-rate step's); 0: none."""
+            live = self._live_at(j)
+            return (self.profile.heart_rate_at(j * self.period_s) or 0.0) if live is None else live[6]
+
         def _add_live(self, j: int, command: float, mode: int, label: str, until_j: int, road=None,
-                      cadence_rpm: float = 0.0) -> None:
+                      cadence_rpm: float = 0.0, heart_rate_bpm: float = 0.0) -> None:
             """A live target from tau index j (not sent yet) until until_j, on ``road``, with the
-            rider's cadence target."""
-            target = (command, mode, label, until_j, road, cadence_rpm)
+            rider's cadence and heart-rate targets."""
+            target = (command, mode, label, until_j, road, cadence_rpm, heart_rate_bpm)
             if self.live_from_j and self.live_from_j[-1] == j:     # not sent yet: replaced
                 self.live_targets[-1] = target
             else:
@@ -384,6 +399,8 @@ def _make_node_class():
             cmd, mode, _, _ = self.command_for(j * self.period_ns)
             if mode != self._Command.MODE_ERG or self.erg_shift_w <= 0.0 or self.erg_max_w <= 0.0:
                 return False
+            if self.heart_rate_for(j):
+                return False        # heart-rate ERG: the command is only where the power started
             old_w = cmd * self.erg_max_w
             new_w = min(max(old_w + steps * self.erg_shift_w, 0.0), self.erg_max_w)
             t_s = j * self.period_s
@@ -417,9 +434,10 @@ def _make_node_class():
                 self._publish_diag(text, self._DiagnosticStatus.WARN)
                 return
             j = self.next_j
-            label = f"live: {describe_command(int(msg.mode), float(msg.command), self.units)}"
+            label = f"live: {describe_command(int(msg.mode), float(msg.command), self.units, msg.heart_rate_bpm)}"
             road = command_road(msg)
-            self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62, road, float(msg.cadence_rpm))
+            self._add_live(j, float(msg.command), int(msg.mode), label, 1 << 62, road, float(msg.cadence_rpm),
+                           float(msg.heart_rate_bpm))
             if msg.virtual_gear_ratio > 0.0:
                 self._set_live_gear(float(msg.virtual_gear_ratio), j * self.period_s)
             self.live_commands += 1
@@ -480,6 +498,7 @@ def _make_node_class():
             from bike_plant.msgconv import set_command_road
             set_command_road(msg, self.road_for(j))
             msg.cadence_rpm = float(self.cadence_for(j))
+            msg.heart_rate_bpm = float(self.heart_rate_for(j))
             self.pub_command.publish(msg)
             self.commands_published += 1
             self.readers_at_publish = self.pub_command.get_subscription_count()

@@ -267,7 +267,8 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", WorkoutWarning)
-            profile = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=units.erg_power_max_w, units=units)
+            profile = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=units.erg_power_max_w, units=units,
+                                   max_hr_bpm=getattr(opts, "max_hr", None))
     except ProfileError as exc:
         print(f"error: bad workout: {exc}", file=sys.stderr)
         return 2
@@ -278,6 +279,10 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
         if problem:
             print(f"error: bad workout: {seg.path}: {problem}", file=sys.stderr)
             return 2
+    hr_segments = [seg for seg in profile.segments if profile.heart_rate_at(seg.start_s)]
+    if hr_segments:     # the heart-rate loop runs in this testbed's controller, not in an FTMS trainer
+        say(f"warning: {len(hr_segments)} segment(s) with a heart-rate target (first: {hr_segments[0].path}): "
+            "the target is not sent, the trainer gets the segment's starting power (0 W: none given)")
     seconds = profile.duration_s if not opts.seconds_given else opts.seconds
     say(f"workout {profile.name!r}: {profile.duration_s:g} s (riding {seconds:g} s) on a trainer of "
         f"0 .. {units.erg_power_max_w:g} W")

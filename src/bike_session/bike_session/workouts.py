@@ -34,8 +34,9 @@ Formats (see /work/shared/research/trainers.md, section 1)
         first point is after minute 0 its value holds from 0.
   .mrc  as .erg with ``MINUTES PERCENT`` (values in percent of FTP).
   .fit  Garmin FIT workout (binary; decoded with Garmin's FIT SDK): time steps, repeats,
-        power ranges in % FTP or watts, open / cadence steps ridden free
-        (:mod:`bike_session.fit_workout` has the rules).
+        power ranges in % FTP or watts, heart-rate ranges in bpm or % of the rider's maximum
+        (heart-rate ERG), open / cadence steps ridden free (:mod:`bike_session.fit_workout` has
+        the rules). Only FIT has heart-rate targets: .zwo, .erg and .mrc carry none.
 
 Power -> Command (the choices, all explicit parameters)
 
@@ -63,6 +64,10 @@ Power -> Command (the choices, all explicit parameters)
   ``maxeffort_command`` (0.5). The rider sets the effort with cadence.
 - Cadence targets (``Cadence``, the mean of ``CadenceLow``/``CadenceHigh``,
   ``CadenceResting``) are kept per segment: ``cadence_at(t)``; 0 means none.
+- Heart-rate targets (FIT only) ride in ERG mode whatever ``mode`` says (the Command's
+  ``heart_rate_bpm`` is ERG's), at Command 0: the controller moves the power target to hold
+  the heart rate, starting from the rider's present power; ``heart_rate_at(t)``. A target in
+  percent of the rider's maximum heart rate needs ``max_hr_bpm`` (``session.max_hr_bpm``).
 
 Safety: a file is read only if it is a regular file of at most ``MAX_WORKOUT_BYTES``. XML
 is parsed with expat directly: any ``<!DOCTYPE>`` (hence any entity declaration, internal
@@ -94,6 +99,7 @@ MAX_TEXT_EVENTS = 10_000
 MAX_WORKOUT_S = 24 * 3600.0        # one day; anything longer is a broken file
 MAX_FTP_FRACTION = 5.0             # 500 % FTP: larger values are percent written as fractions
 MAX_FTP_W = 2000.0
+MAX_HR_BPM = 250.0                 # a rider's maximum heart rate beyond this is a typo
 MAX_CADENCE_RPM = RIDER_CADENCE_MAX_RPM      # what a Command may give the rider (bike_plant.mechanics)
 DEFAULT_FREERIDE_COMMAND = 0.2
 DEFAULT_MAXEFFORT_COMMAND = 0.5
@@ -118,12 +124,13 @@ class WorkoutWarning(UserWarning):
 
 @dataclasses.dataclass(frozen=True)
 class WorkoutSegment(Segment):
-    """A profile segment that also remembers the file's power and cadence targets."""
+    """A profile segment that also remembers the file's power, cadence and heart-rate targets."""
 
     target_start_w: float | None = None    # ERG target at start_s (None: no target, e.g. FreeRide)
     target_end_w: float | None = None
     cadence_rpm: float | None = None
     block: str = ""                         # file element: SteadyState, IntervalsT, erg, ...
+    heart_rate_bpm: float | None = None     # heart-rate ERG target (then no power target)
 
     def target_w_at(self, t_s: float) -> float | None:
         if self.target_start_w is None or self.target_end_w is None:
@@ -149,13 +156,16 @@ class Workout(Profile):
 
     def __init__(self, name: str, segments: list[WorkoutSegment], *, source: str, text: str, fmt: str,
                  ftp_w: float | None, file_ftp_w: float | None, pmax_w: float, mode: int,
-                 events: list[TextEvent], warnings_: list[str], description: str = "", author: str = ""):
+                 events: list[TextEvent], warnings_: list[str], description: str = "", author: str = "",
+                 max_hr_bpm: float | None = None):
         super().__init__(name, segments, source=source, text=text,
-                         cadences={seg.index: seg.cadence_rpm for seg in segments if seg.cadence_rpm})
+                         cadences={seg.index: seg.cadence_rpm for seg in segments if seg.cadence_rpm},
+                         heart_rates={seg.index: seg.heart_rate_bpm for seg in segments if seg.heart_rate_bpm})
         self.format = fmt
         self.ftp_w = ftp_w                  # FTP the relative targets were scaled with
         self.file_ftp_w = file_ftp_w        # FTP declared in the file (ERG FTP=, ZWO ftpOverride)
         self.pmax_w = pmax_w
+        self.max_hr_bpm = max_hr_bpm        # the rider's maximum heart rate (% of max targets; None: not given)
         self.mode = mode
         self.events = sorted(events, key=lambda e: e.time_s)
         self.warnings = warnings_
@@ -182,6 +192,7 @@ class Workout(Profile):
             "ftp_w": self.ftp_w,
             "file_ftp_w": self.file_ftp_w,
             "pmax_w": self.pmax_w,
+            "max_hr_bpm": self.max_hr_bpm,
             "command_rule": "command = target_w / pmax_w (exact at speeds >= base speed)",
             "description": self.description,
             "author": self.author,
@@ -212,9 +223,11 @@ def pmax_w_from_config(cfg: Mapping) -> float:
 def load_workout(path: str | os.PathLike, *, ftp_w: float | None = None, pmax_w: float | None = None,
                  mode: str = "erg", over_range: str = "warn", use_file_ftp: bool = False,
                  freeride_command: float = DEFAULT_FREERIDE_COMMAND,
-                 maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND, units=None) -> Profile:
+                 maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND, units=None,
+                 max_hr_bpm: float | None = None) -> Profile:
     """Read a workout (.zwo/.erg/.mrc/.fit, or a .yaml profile) into a Profile; WorkoutError on any problem.
-    ``units`` (profiles.ModeUnits) lets a .yaml profile give targets in W / % / rpm."""
+    ``units`` (profiles.ModeUnits) lets a .yaml profile give targets in W / % / rpm; ``max_hr_bpm``
+    is the rider's maximum heart rate (for a FIT target in percent of it; None: not known)."""
     path = pathlib.Path(path)
     fmt = FORMATS.get(path.suffix.lower())
     if fmt is None:
@@ -226,7 +239,8 @@ def load_workout(path: str | os.PathLike, *, ftp_w: float | None = None, pmax_w:
     data = read_bounded(path)
     return parse_workout_bytes(data, fmt, source=str(path), default_name=path.stem, ftp_w=ftp_w, pmax_w=pmax_w,
                                mode=mode, over_range=over_range, use_file_ftp=use_file_ftp,
-                               freeride_command=freeride_command, maxeffort_command=maxeffort_command)
+                               freeride_command=freeride_command, maxeffort_command=maxeffort_command,
+                               max_hr_bpm=max_hr_bpm)
 
 
 def read_bounded(path: pathlib.Path, limit: int = MAX_WORKOUT_BYTES) -> bytes:
@@ -255,7 +269,8 @@ def parse_workout_bytes(data: bytes | str, fmt: str, *, source: str = "<workout>
                         ftp_w: float | None = None, pmax_w: float | None = None, mode: str = "erg",
                         over_range: str = "warn", use_file_ftp: bool = False,
                         freeride_command: float = DEFAULT_FREERIDE_COMMAND,
-                        maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND) -> Workout:
+                        maxeffort_command: float = DEFAULT_MAXEFFORT_COMMAND,
+                        max_hr_bpm: float | None = None) -> Workout:
     """Parse a workout of format ``zwo``, ``erg``, ``mrc`` or ``fit`` (see the module docstring)."""
     if isinstance(data, str):
         data = data.encode("utf-8")
@@ -265,7 +280,7 @@ def parse_workout_bytes(data: bytes | str, fmt: str, *, source: str = "<workout>
         raise WorkoutError("empty file", source)
     opts = _Options.make(source, ftp_w=ftp_w, pmax_w=pmax_w, mode=mode, over_range=over_range,
                          use_file_ftp=use_file_ftp, freeride_command=freeride_command,
-                         maxeffort_command=maxeffort_command)
+                         maxeffort_command=maxeffort_command, max_hr_bpm=max_hr_bpm)
     if fmt == "zwo":
         workout = _parse_zwo(data, source, default_name, opts)
     elif fmt in ("erg", "mrc"):
@@ -292,9 +307,11 @@ class _Options:
     use_file_ftp: bool
     freeride_command: float
     maxeffort_command: float
+    max_hr_bpm: float | None = None
 
     @classmethod
-    def make(cls, source, *, ftp_w, pmax_w, mode, over_range, use_file_ftp, freeride_command, maxeffort_command):
+    def make(cls, source, *, ftp_w, pmax_w, mode, over_range, use_file_ftp, freeride_command, maxeffort_command,
+             max_hr_bpm=None):
         def positive(name, value, upper=math.inf):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
                     or not 0 < value <= upper:
@@ -307,6 +324,7 @@ class _Options:
                                "config) is required to turn watts into a Command", source, "pmax_w")
         pmax = positive("pmax_w", pmax_w)
         ftp = None if ftp_w is None else positive("ftp_w", ftp_w, MAX_FTP_W)
+        max_hr = None if max_hr_bpm is None else positive("max_hr_bpm", max_hr_bpm, MAX_HR_BPM)
         if not isinstance(mode, str) or mode not in MODES:
             raise WorkoutError(f"unknown mode {mode!r}; expected one of {', '.join(MODES)}", source, "mode")
         if over_range not in ("warn", "error"):
@@ -315,7 +333,7 @@ class _Options:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise WorkoutError(f"parameter {name} must be in [0, 1], got {value!r}", source, name)
         return cls(ftp, pmax, MODES[mode], over_range, bool(use_file_ftp), float(freeride_command),
-                   float(maxeffort_command))
+                   float(maxeffort_command), max_hr)
 
     def effective_ftp(self, file_ftp: float | None) -> float | None:
         if file_ftp is not None and (self.use_file_ftp or self.ftp_w is None):
@@ -338,11 +356,11 @@ class _Timeline:
     def err(self, where: str, message: str, line: int | None = None) -> WorkoutError:
         return WorkoutError(message, self.source, where, line)
 
-    def _append(self, duration, c0, c1, mode, label, path, where, w0, w1, cadence, block):
+    def _append(self, duration, c0, c1, mode, label, path, where, w0, w1, cadence, block, heart_rate_bpm=None):
         if len(self.leaves) >= MAX_LEAF_SEGMENTS:
             raise self.err(where, f"workout expands to more than {MAX_LEAF_SEGMENTS} segments")
         self.leaves.append(WorkoutSegment(len(self.leaves), path, self.t, duration, c0, c1, mode, label,
-                                          w0, w1, cadence, block))
+                                          w0, w1, cadence, block, heart_rate_bpm))
         self.t += duration
 
     def power(self, duration: float, w0: float, w1: float, *, label: str, path: str, where: str,
@@ -384,6 +402,13 @@ class _Timeline:
         """A segment without power target: fixed resistance-mode Command."""
         self._check_duration(duration, where)
         self._append(duration, command, command, MODES["resistance"], label, path, where, None, None, cadence, block)
+
+    def heart_rate(self, duration: float, bpm: float, *, label: str, path: str, where: str,
+                   cadence: float | None, block: str) -> None:
+        """A heart-rate ERG segment: ERG (the only mode with a heart-rate target) at Command 0,
+        so that the controller starts from the rider's present power."""
+        self._check_duration(duration, where)
+        self._append(duration, 0.0, 0.0, MODES["erg"], label, path, where, None, None, cadence, block, bpm)
 
     def _check_duration(self, duration, where):
         if not (math.isfinite(duration) and duration > 0):
@@ -903,7 +928,9 @@ def describe(workout: Profile, limit: int = 40) -> str:
             break
         tgt = ""
         if isinstance(s, WorkoutSegment):
-            if s.target_start_w is None:
+            if s.heart_rate_bpm:
+                tgt = f"HR {s.heart_rate_bpm:.0f} bpm"
+            elif s.target_start_w is None:
                 tgt = "free"
             elif s.target_start_w == s.target_end_w:
                 tgt = f"{s.target_start_w:.0f} W"

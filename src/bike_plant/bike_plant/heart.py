@@ -1,0 +1,119 @@
+"""The rider's heart rate: a first-order response to the power he puts into the pedals (no rclpy).
+
+Model (K. J. Hunt et al., "Identification and comparison of heart-rate dynamics during cycle
+ergometer and treadmill exercise", 2019, data: figshare 9720008): around a
+working point the heart rate answers the work rate as a linear first-order system,
+
+    HR = HR_rest + x,    tau dx/dt = K P - x,    x held in [0, HR_max - HR_rest],
+
+with tau = 68.7 +- 21.5 s on the cycle ergometer (25 men, "somewhat hard" intensity, Borg 13).
+so a power held long enough settles at HR_ss(P) = HR_rest + min(K max(P, 0), HR_max - HR_rest).
+The steady-state line K [bpm/W] is the rider's own; it stops at HR_max. The input is the power of
+each batch, which swings with the pedal stroke (the flywheel takes and gives back energy): the
+limits act on the filtered state x, not on the input, so the heart answers the mean power (limits
+on the input cut the stroke's peaks: at 248 W mean, 165 bpm instead of 184). The dead time that Hunt
+and Wang add (F1000Research 13:894, 2024) and the slow cardiac drift of long efforts are not
+modelled. Power into the pedals only: while a motor drives his legs (P < 0) the heart goes back
+to rest.
+
+The same code serves the simulated rider (the plant, ``load.rider_*hr*`` figures) and the
+trainer's heart-rate ERG (bike_controller.heart_erg, which tunes its PI on the nominal figures
+of ``modes.hr_*``): two parameter sets, one model.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+# a heart-rate target a Command or a workout may give (0: none)
+HEART_RATE_TARGET_MIN_BPM = 40.0
+HEART_RATE_TARGET_MAX_BPM = 220.0
+MODE_ERG = 2                      # bike_msgs/Command.MODE_ERG (no message import in physics code)
+
+
+def heart_rate_target_problem(bpm) -> str | None:
+    """Why ``bpm`` is not a heart-rate target (None if it is): 0 (none) or a finite number in
+    [HEART_RATE_TARGET_MIN_BPM, HEART_RATE_TARGET_MAX_BPM]."""
+    if isinstance(bpm, bool) or not isinstance(bpm, (int, float)) or not math.isfinite(bpm):
+        return f"heart-rate target must be a finite number, got {bpm!r}"
+    if bpm != 0 and not HEART_RATE_TARGET_MIN_BPM <= bpm <= HEART_RATE_TARGET_MAX_BPM:
+        return (f"heart-rate target {bpm!r} bpm outside [{HEART_RATE_TARGET_MIN_BPM:g}, "
+                f"{HEART_RATE_TARGET_MAX_BPM:g}] (0: none)")
+    return None
+
+
+def heart_rate_command_problem(bpm, mode: int) -> str | None:
+    """A Command's heart-rate target: :func:`heart_rate_target_problem`, and only in ERG
+    (Command.MODE_ERG = 2; other modes have no power to follow it with)."""
+    problem = heart_rate_target_problem(bpm)
+    if problem is None and bpm != 0 and mode != MODE_ERG:
+        problem = f"a heart-rate target ({bpm:g} bpm) applies to ERG (mode 2) only, got mode {mode!r}"
+    return problem
+
+
+@dataclass
+class HeartParams:
+    """A rider's heart: resting and maximal rate, the steady-state gain and the time constant.
+
+    Defaults: a recreational rider (bike_plant.params.RIDER_PRESETS) whose heart beats at 90 % of
+    its maximum at his FTP of 207 W (research notes trainers.md section 4: 2.7 W/kg after a few
+    months of riding), (0.9 * 185 - 60) / 207 = 0.51 bpm/W; tau from Hunt et al. 2019."""
+    rest_bpm: float = 60.0
+    max_bpm: float = 185.0
+    gain_bpm_per_w: float = 0.5
+    time_constant_s: float = 68.7
+
+    def validate(self) -> None:
+        for name in ("rest_bpm", "max_bpm", "gain_bpm_per_w", "time_constant_s"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                    or value <= 0:
+                raise ValueError(f"{name} must be a number > 0, got {value!r}")
+        if not self.rest_bpm < self.max_bpm:
+            raise ValueError(f"rest_bpm ({self.rest_bpm:g}) must be below max_bpm ({self.max_bpm:g})")
+
+    def steady_bpm(self, power_w: float) -> float:
+        """HR_ss(P): the rate a power held long enough settles at."""
+        return self.rest_bpm + min(self.gain_bpm_per_w * max(power_w, 0.0), self.max_bpm - self.rest_bpm)
+
+
+class HeartRate:
+    """The first-order model above, stepped once per batch with the batch's mean power."""
+
+    def __init__(self, params: HeartParams, bpm0: float | None = None):
+        params.validate()
+        self.params = params
+        self.bpm = float(params.rest_bpm if bpm0 is None else bpm0)
+
+    def step(self, power_w: float, dt_s: float) -> float:
+        """Advance ``dt_s`` with ``power_w`` held (the exact solution for a held input, so a
+        batch of any length gives the same rate at the same time), the state then held in its
+        limits."""
+        p = self.params
+        if dt_s > 0.0 and math.isfinite(power_w):
+            target = p.gain_bpm_per_w * power_w
+            x = target + (self.bpm - p.rest_bpm - target) * math.exp(-dt_s / p.time_constant_s)
+            self.bpm = p.rest_bpm + min(max(x, 0.0), p.max_bpm - p.rest_bpm)
+        return self.bpm
+
+
+class RiderHeart:
+    """The simulated rider's heart inside a plant: it takes the energy the rider has put into the
+    shaft so far (the ledger's ``energy_mech_in_j``) and the plant's time after every batch, so
+    its input is the batch's exact mean power."""
+
+    def __init__(self, params: HeartParams):
+        self.heart = HeartRate(params)
+        self.energy_j = 0.0
+        self.time_s = 0.0
+
+    @property
+    def bpm(self) -> float:
+        return self.heart.bpm
+
+    def advance(self, energy_mech_in_j: float, time_s: float) -> float:
+        dt_s = time_s - self.time_s
+        if dt_s > 0.0:
+            self.heart.step((energy_mech_in_j - self.energy_j) / dt_s, dt_s)
+        self.energy_j, self.time_s = float(energy_mech_in_j), float(time_s)
+        return self.heart.bpm
