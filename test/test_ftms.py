@@ -160,6 +160,30 @@ def test_spin_down_control_starts_the_procedure_and_its_status_follows_the_contr
         assert control.write(bad).response == bytes([0x80, 0x13, ftms.RESULT_INVALID_PARAMETER])
 
 
+def test_a_target_heart_rate_is_erg_holding_it_from_the_power_in_force_on_a_bike_with_a_rider():
+    """Op 0x06 (uint8 bpm): ERG with Command.heart_rate_bpm, starting from the ERG target in force
+    (a plain power target after it is plain ERG again); refused outside 40..220 bpm and on a bike
+    without a heart rate (result 2: not supported there)."""
+    control = ftms.FtmsControl(UNITS, heart_rate=True)
+    control.write(bytes([ftms.OP_REQUEST_CONTROL]))
+    power = control.write(bytes([ftms.OP_TARGET_POWER]) + struct.pack("<h", 150))
+    reply = control.write(bytes([ftms.OP_TARGET_HEART_RATE, 140]))
+    assert reply.response == bytes([0x80, 0x06, ftms.RESULT_SUCCESS])
+    assert reply.status == bytes([ftms.STATUS_HEART_RATE_CHANGED, 140])
+    assert (reply.target.mode, reply.target.command, reply.target.heart_rate_bpm) == (MODES["erg"], 0.15, 140.0)
+    assert power.target.heart_rate_bpm == 0.0
+    assert control.write(bytes([ftms.OP_TARGET_POWER]) + struct.pack("<h", 200)).target.heart_rate_bpm == 0.0
+    for bad in (0, 30, 230):
+        refused = control.write(bytes([ftms.OP_TARGET_HEART_RATE, bad]))
+        assert refused.response[2] == ftms.RESULT_INVALID_PARAMETER and refused.target is None, bad
+        assert f"{bad} bpm refused" in refused.message
+    assert control.write(bytes([ftms.OP_TARGET_HEART_RATE])).response[2] == ftms.RESULT_INVALID_PARAMETER
+    none = ftms.FtmsControl(UNITS)                      # a prime mover or a dynamometer: no heart
+    none.write(bytes([ftms.OP_REQUEST_CONTROL]))
+    refused = none.write(bytes([ftms.OP_TARGET_HEART_RATE, 140]))
+    assert refused.response[2] == ftms.RESULT_NOT_SUPPORTED and "no rider's heart rate" in refused.message
+
+
 def test_characteristic_values_are_the_specs_bytes():
     machine, target = struct.unpack("<II", ftms.encode_feature())
     assert machine & ftms.MACHINE_POWER and machine & ftms.MACHINE_CADENCE and machine & ftms.MACHINE_TOTAL_DISTANCE
@@ -199,8 +223,10 @@ def test_indoor_bike_data_carries_the_heart_rate_when_there_is_one():
         assert plain == ftms.encode_indoor_bike_data(**base) and len(plain) == 15
         assert ftms.decode_indoor_bike_data(plain).heart_rate_bpm == 0
     assert ftms.encode_indoor_bike_data(**base, heart_rate_bpm=300.0)[13] == 255       # the field's end
-    machine, _ = struct.unpack("<II", ftms.encode_feature())
-    assert machine & ftms.MACHINE_HEART_RATE == 1 << 10
+    machine, target = struct.unpack("<II", ftms.encode_feature(heart_rate=True))
+    assert machine & ftms.MACHINE_HEART_RATE == 1 << 10 and target & ftms.TARGET_HEART_RATE == 1 << 4
+    machine, target = struct.unpack("<II", ftms.encode_feature())         # a bike without a rider
+    assert not machine & ftms.MACHINE_HEART_RATE and not target & ftms.TARGET_HEART_RATE
     with pytest.raises(ValueError, match="not this bike's"):
         ftms.decode_indoor_bike_data(data[:-1])
     tel = Telemetry(gear_ratio=35.0)
@@ -508,3 +534,16 @@ def test_the_trainers_power_meter_counts_brake_friction_and_flywheel():
     e1 = meter.add(1_002_000_000, 0.0, 110.0)
     assert e1 - e == pytest.approx(2e-3 * 110.0 ** 2 * 1e-3, rel=1e-9)
     assert meter.add(5_000_000, -1.0, 50.0) == e1 and meter.add(5_000_000, math.nan, 50.0) == e1
+
+
+def test_bike_trainer_sends_a_heart_rate_steps_target_and_a_bike_with_a_rider_takes_it():
+    """`./bike trainer --workout`: an ERG step with heart_rate_bpm goes out as Set Target Heart
+    Rate (not as its starting power), which this bike's Control Point takes as heart-rate ERG."""
+    from bike_session.trainer_probe import _target_write
+
+    op, param, text = _target_write(MODES["erg"], 0.15, UNITS, heart_rate_bpm=140.0)
+    assert (op, param, text) == (ftms.OP_TARGET_HEART_RATE, bytes([140]), "target heart rate 140 bpm")
+    assert _target_write(MODES["erg"], 0.15, UNITS)[0] == ftms.OP_TARGET_POWER
+    control = ftms.FtmsControl(UNITS, heart_rate=True)
+    control.write(bytes([ftms.OP_REQUEST_CONTROL]))
+    assert control.write(bytes([op]) + param).target.heart_rate_bpm == 140.0

@@ -29,6 +29,7 @@ What a control request does (:class:`FtmsControl`):
 | 0x03 | Target Inclination, sint16 0.1 % | slope, grade mapped onto [grade_min, grade_max] |
 | 0x04 | Target Resistance Level, uint8 or sint16, 0.1 | resistance, level / 100 |
 | 0x05 | Target Power, sint16 W | erg, P / erg_power_max_w |
+| 0x06 | Target Heart Rate, uint8 bpm | erg holding that heart rate (Command.heart_rate_bpm: the power follows it), from the ERG power in force (else from the rider's); only on a bike with a heart rate (a rider) |
 | 0x07 / 0x08 | Start or Resume / Stop or Pause | the target before the stop again / resistance 0 |
 | 0x11 | Indoor Bike Simulation: wind 0.001 m/s, grade 0.01 %, Crr 1e-4, Cw 0.01 kg/m | slope at the grade, on the app's road |
 | 0x13 | Spin Down Control, uint8 1 start / 2 ignore | spindown (brake released; the response carries the target speeds low / high, uint16 0.01 km/h; Status 0x14 then says stop pedalling, success or error as the controller's procedure goes) |
@@ -40,8 +41,9 @@ beyond the bike's range is ridden at the range's end, and said (the message name
 The simulation's wind, Crr and Cw become the Command's road (bike_msgs/Command
 ``road_from_command``: the slope mode's road load uses them in place of the config's modes.crr,
 cda_m2 and wind_mps), said once per change; all three zero, as apps that send only the grade
-do, keeps the config's road, and that is said. Ops this bike does not do (target speed, heart rate, wheel
-circumference, ...) get result 2 (not supported).
+do, keeps the config's road, and that is said. Ops this bike does not do (target speed, wheel
+circumference, ...) get result 2 (not supported), and so does a heart-rate target on a bike
+without a heart rate (no rider: a prime mover or a dynamometer).
 """
 from __future__ import annotations
 
@@ -49,6 +51,7 @@ import dataclasses
 import math
 import struct
 
+from bike_plant.heart import heart_rate_target_problem
 from bike_plant.mechanics import rider_cadence_problem
 from bike_session.profiles import MODES, ModeUnits
 
@@ -91,6 +94,7 @@ STATUS_STARTED_RESUMED = 0x04
 STATUS_INCLINE_CHANGED = 0x06
 STATUS_RESISTANCE_CHANGED = 0x07
 STATUS_POWER_CHANGED = 0x08
+STATUS_HEART_RATE_CHANGED = 0x09
 STATUS_SIMULATION_CHANGED = 0x12
 STATUS_SPIN_DOWN = 0x14           # + uint8: SPIN_DOWN_*
 SPIN_DOWN_REQUESTED, SPIN_DOWN_SUCCESS, SPIN_DOWN_ERROR, SPIN_DOWN_STOP_PEDALLING = 1, 2, 3, 4
@@ -118,6 +122,7 @@ MACHINE_POWER = 1 << 14
 TARGET_INCLINATION = 1 << 1
 TARGET_RESISTANCE = 1 << 2
 TARGET_POWER = 1 << 3
+TARGET_HEART_RATE = 1 << 4
 TARGET_SIMULATION = 1 << 13
 TARGET_SPIN_DOWN = 1 << 15
 TARGET_CADENCE = 1 << 16
@@ -134,11 +139,13 @@ IBD_FLAGS = IBD_CADENCE | IBD_DISTANCE | IBD_RESISTANCE | IBD_POWER | IBD_ELAPSE
 RESISTANCE_LEVEL_MAX = 100.0    # levels 0..100 (0.1 steps) = resistance Command 0..1
 
 
-def encode_feature() -> bytes:
-    machine = (MACHINE_CADENCE | MACHINE_TOTAL_DISTANCE | MACHINE_RESISTANCE_LEVEL | MACHINE_HEART_RATE
-               | MACHINE_ELAPSED_TIME | MACHINE_POWER)
+def encode_feature(heart_rate: bool = False) -> bytes:
+    """The machine and target-setting features; ``heart_rate``: the bike has one (a rider), so it
+    sends it in Indoor Bike Data and takes a heart-rate target."""
+    machine = (MACHINE_CADENCE | MACHINE_TOTAL_DISTANCE | MACHINE_RESISTANCE_LEVEL | MACHINE_ELAPSED_TIME
+               | MACHINE_POWER | (MACHINE_HEART_RATE if heart_rate else 0))
     target = (TARGET_INCLINATION | TARGET_RESISTANCE | TARGET_POWER | TARGET_SIMULATION | TARGET_SPIN_DOWN
-              | TARGET_CADENCE)
+              | TARGET_CADENCE | (TARGET_HEART_RATE if heart_rate else 0))
     return struct.pack("<II", machine, target)
 
 
@@ -262,6 +269,7 @@ class Target:
     text: str          # for the log, e.g. "target power 150 W"
     road: tuple[float, float, float] | None = None    # (crr, cw_kg_m, wind_mps); None: the config's
     cadence_rpm: float = 0.0                          # the rider's cadence target; 0: none
+    heart_rate_bpm: float = 0.0                       # ERG's heart-rate target; 0: none (hold the power)
 
 
 @dataclasses.dataclass
@@ -278,8 +286,9 @@ class Reply:
 class FtmsControl:
     """The Control Point of one bike: who has control and what it asked for."""
 
-    def __init__(self, units: ModeUnits):
+    def __init__(self, units: ModeUnits, heart_rate: bool = False):
         self.units = units
+        self.heart_rate = heart_rate                  # the bike has a rider's heart rate to follow
         self.controlled = False
         self.running_target: Target | None = None    # the target a Stop keeps for a Resume
         self.stopped = False
@@ -288,7 +297,10 @@ class FtmsControl:
         self.spindown_said: int | None = None         # the last spin-down status sent; None: none running
         self.spindown_tag = 0.0                       # the spindown Command's value: a new one per request
 
-    # ---- the read-only ranges
+    # ---- the read-only characteristics
+    def encode_feature(self) -> bytes:
+        return encode_feature(self.heart_rate)
+
     def encode_power_range(self) -> bytes:
         return struct.pack("<hhH", 0, int(math.floor(self.units.erg_power_max_w)), 1)
 
@@ -319,6 +331,7 @@ class FtmsControl:
             return result(RESULT_NOT_PERMITTED, f"{name} before Request Control: refused")
         handler = {OP_RESET: self._reset, OP_TARGET_INCLINATION: self._inclination,
                    OP_TARGET_RESISTANCE: self._resistance, OP_TARGET_POWER: self._power,
+                   OP_TARGET_HEART_RATE: self._heart_rate,
                    OP_START_RESUME: self._start, OP_STOP_PAUSE: self._stop, OP_SIMULATION: self._simulation,
                    OP_TARGETED_CADENCE: self._cadence, OP_SPIN_DOWN: self._spin_down}.get(op)
         if handler is None:
@@ -358,6 +371,24 @@ class FtmsControl:
             return bad
         (watts,) = struct.unpack("<h", param)
         return self._ranged(op, name, param, MODES["erg"], float(watts), f"{watts} W", STATUS_POWER_CHANGED)
+
+    def _heart_rate(self, op, name, param) -> Reply:
+        """ERG holding a heart rate: the power follows it (bike_controller.heart_erg), starting
+        from the ERG power in force (else from the rider's own)."""
+        if not self.heart_rate:
+            return Reply(bytes([OP_RESPONSE, op, RESULT_NOT_SUPPORTED]), warning=True,
+                         message=f"{name}: this bike has no rider's heart rate to follow")
+        bad = self._sized(op, name, param, (1,))
+        if bad:
+            return bad
+        bpm = param[0]
+        problem = heart_rate_target_problem(float(bpm)) or ("0 bpm is no target" if bpm == 0 else None)
+        if problem:
+            return self._refuse(op, f"{name} {bpm} bpm refused: {problem}")
+        running = self.running_target
+        start = running.command if running is not None and running.mode == MODES["erg"] else 0.0
+        return self._set(op, Target(MODES["erg"], start, f"{name} {bpm} bpm", heart_rate_bpm=float(bpm)),
+                         bytes([STATUS_HEART_RATE_CHANGED, bpm]))
 
     def _inclination(self, op, name, param) -> Reply:
         bad = self._sized(op, name, param, (2,))

@@ -46,7 +46,7 @@ def services_for(control: ftms.FtmsControl, telemetry, on_control_point) -> dict
     Service."""
     C, R, W, N = dircon.Characteristic, dircon.PROP_READ, dircon.PROP_WRITE, dircon.PROP_NOTIFY
     return {ftms.FTMS_SERVICE: [
-        C(ftms.FEATURE, R, read=ftms.encode_feature),
+        C(ftms.FEATURE, R, read=control.encode_feature),
         C(ftms.INDOOR_BIKE_DATA, R | N, read=telemetry),
         C(ftms.INCLINATION_RANGE, R, read=control.encode_inclination_range),
         C(ftms.RESISTANCE_RANGE, R, read=control.encode_resistance_range),
@@ -196,7 +196,8 @@ class Telemetry:
 
 
 def _bike_figures(config_path: str):
-    """(ModeUnits, gear ratio, TrainerPowerMeter) of the config; SetupError names what is wrong."""
+    """(ModeUnits, gear ratio, TrainerPowerMeter, has a heart rate) of the config; SetupError
+    names what is wrong. A heart rate: a rider (his simulated heart, or a strap's on a CAN bike)."""
     from bike_plant.config import ConfigError, load_config
 
     from bike_controller.modes import friction_figures, machine_figures
@@ -204,8 +205,9 @@ def _bike_figures(config_path: str):
     try:
         cfg = load_config(config_path or None)
         inertia = float((cfg.get("mechanics") or {}).get("inertia_kgm2", 0.01))
+        heart_rate = str((cfg.get("load") or {}).get("kind", "")) == "rider" or cfg.get("backend") == "can"
         return (mode_units_from_config(cfg), machine_figures(cfg).gear_ratio,
-                TrainerPowerMeter(inertia, friction_figures(cfg)))
+                TrainerPowerMeter(inertia, friction_figures(cfg)), heart_rate)
     except (ConfigError, ValueError, TypeError) as exc:
         raise SetupError(f"bad config: {exc}") from None
 
@@ -257,8 +259,8 @@ def _make_node_class():
                 raise SetupError(f"parameter ftms.port must be an integer 0..65535, got {port!r}")
             if isinstance(period, bool) or not isinstance(period, (int, float)) or not 0.02 <= period <= 10:
                 raise SetupError(f"parameter ftms.notify_period_s must be 0.02..10 s, got {period!r}")
-            units, gear_ratio, self.meter = _bike_figures(config_path)
-            self.control = ftms.FtmsControl(units)
+            units, gear_ratio, self.meter, heart_rate = _bike_figures(config_path)
+            self.control = ftms.FtmsControl(units, heart_rate)
             self.telemetry = Telemetry(gear_ratio)
             self.pending_status: list[bytes] = []
             self._Command = Command
@@ -339,6 +341,7 @@ def _make_node_class():
                 msg.mode = int(reply.target.mode)
                 self._set_road(msg, reply.target.road)
                 msg.cadence_rpm = float(reply.target.cadence_rpm)
+                msg.heart_rate_bpm = float(reply.target.heart_rate_bpm)
                 self.pub_live.publish(msg)
             if reply.status is not None:
                 self.pending_status.append(reply.status)

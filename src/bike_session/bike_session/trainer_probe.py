@@ -207,9 +207,14 @@ def sent_grade_pct(grade_pct: float, difficulty_pct: float | None) -> float:
 
 
 def _target_write(mode: int, command: float, units, road=DEFAULT_ROAD,
-                  difficulty_pct: float | None = None) -> tuple[int, bytes, str] | None:
-    """The Control Point write for a profile's Command (None: a mode FTMS cannot ask for)."""
+                  difficulty_pct: float | None = None, heart_rate_bpm: float = 0.0) -> tuple[int, bytes, str] | None:
+    """The Control Point write for a profile's Command (None: a mode FTMS cannot ask for); an ERG
+    step with a heart-rate target sends that (FTMS Set Target Heart Rate: the trainer's power
+    follows it, from the power it was holding)."""
     from bike_session.profiles import MODES
+    if mode == MODES["erg"] and heart_rate_bpm:
+        bpm = round(heart_rate_bpm)
+        return ftms.OP_TARGET_HEART_RATE, bytes([bpm]), f"target heart rate {bpm} bpm"
     if mode == MODES["erg"]:
         watts = round(units.target_of(mode, command)[0])
         return ftms.OP_TARGET_POWER, struct.pack("<h", watts), f"target power {watts} W"
@@ -279,10 +284,6 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
         if problem:
             print(f"error: bad workout: {seg.path}: {problem}", file=sys.stderr)
             return 2
-    hr_segments = [seg for seg in profile.segments if profile.heart_rate_at(seg.start_s)]
-    if hr_segments:     # the heart-rate loop runs in this testbed's controller, not in an FTMS trainer
-        say(f"warning: {len(hr_segments)} segment(s) with a heart-rate target (first: {hr_segments[0].path}): "
-            "the target is not sent, the trainer gets the segment's starting power (0 W: none given)")
     seconds = profile.duration_s if not opts.seconds_given else opts.seconds
     say(f"workout {profile.name!r}: {profile.duration_s:g} s (riding {seconds:g} s) on a trainer of "
         f"0 .. {units.erg_power_max_w:g} W")
@@ -299,7 +300,8 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
         if now >= seconds:
             break
         cmd, mode, _, label = profile.command_at(now)
-        target = _target_write(mode, cmd, units, profile.road_at(now) or opts.road, opts.difficulty)
+        target = _target_write(mode, cmd, units, profile.road_at(now) or opts.road, opts.difficulty,
+                               profile.heart_rate_at(now) or 0.0)
         if target is None:
             say(f"warning: t = {now:.0f} s: mode {MODE_NAMES.get(mode, mode)} has no FTMS target; not sent")
         elif target[:2] != sent and now >= next_write:
@@ -323,7 +325,8 @@ def ride_workout(app: dircon.DirconClient, opts, say) -> int:
         fields = ftms.parse_indoor_bike_data(value)
         t = time.monotonic() - t0
         cmd, mode, _, _ = profile.command_at(t)
-        target_w = units.target_of(mode, cmd)[0] if mode == MODES["erg"] else None
+        # (a heart-rate target has no power target: the trainer's power follows the heart)
+        target_w = units.target_of(mode, cmd)[0] if mode == MODES["erg"] and not profile.heart_rate_at(t) else None
         rows.append({"t_s": round(t, 3), "target_w": None if target_w is None else round(target_w, 1), **fields})
     control(app, ftms.OP_STOP_PAUSE, b"\x01", "stop", say)
     if opts.csv:
