@@ -21,7 +21,7 @@ PLANT_STATE_FIELDS = (
     "dc_bus_v", "brake_resistor_on", "hall_edge_counts", "hall_edge_states", "torque_em_nm",
     "load_torque_nm", "current_samples_a", "battery_ocv_v", "battery_soc", "battery_current_a",
     "energy_mech_in_j", "energy_battery_j", "energy_resistor_j", "energy_loss_j", "energy_stored_j",
-    "faults", "interlock_blanked_count", "heart_rate_bpm",
+    "heart_rate_bpm", "faults", "interlock_blanked_count",
 )
 
 
@@ -193,8 +193,8 @@ class BldcPlant:
             "energy_resistor_j": led["energy_resistor_j"],
             "energy_loss_j": led["energy_loss_j"],
             "energy_stored_j": led["energy_stored_j"],
+            "heart_rate_bpm": self.heart.bpm if self.heart is not None else 0.0,
             "faults": int(s[K.S_FAULTS]),
             "interlock_blanked_count": int(s[K.S_INTERLOCK]),
             "overcurrent_trip_count": int(s[K.S_OC_TRIPS]),
-            "heart_rate_bpm": self.heart.bpm if self.heart is not None else 0.0,
         }

@@ -1760,6 +1760,6 @@ class SpmsmPlant:
             "energy_resistor_j": led["energy_resistor_j"],
             "energy_loss_j": led["energy_loss_j"],
             "energy_stored_j": led["energy_stored_j"],
-            "faults": int(s[S_FAULTS]),
             "heart_rate_bpm": self.heart.bpm if self.heart is not None else 0.0,
+            "faults": int(s[S_FAULTS]),
         }
