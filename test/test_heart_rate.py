@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from bike_plant.heart import (HeartParams, HeartRate, RiderHeart, heart_rate_command_problem,
-                              heart_rate_target_problem)
+                              heart_rate_reading_problem, heart_rate_target_problem)
 
 H = HeartParams()       # rest 60, max 185, 0.5 bpm/W, tau 68.7 s
 
@@ -76,6 +76,10 @@ def test_heart_rate_targets_and_commands():
     assert heart_rate_command_problem(140.0, 2) is None
     assert "ERG (mode 2) only" in heart_rate_command_problem(140.0, 3)
     assert heart_rate_command_problem(0.0, 3) is None
+    # a strap's reading (the CAN plant node drops a bad one with a warning)
+    assert heart_rate_reading_problem(0.0) is None and heart_rate_reading_problem(142.0) is None
+    for bad in (-1.0, 251.0, float("nan"), float("inf")):
+        assert "is not a reading" in heart_rate_reading_problem(bad), bad
 
 
 def test_a_command_with_a_heart_rate_target_outside_erg_is_rejected_whole():

@@ -300,7 +300,8 @@ class ModeLaw:
         self.rider_power_avg_w = 0.0          # its power, averaged over RIDER_POWER_AVG_S
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
         self.erg_ke_j = 0.0                   # ERG with erg_speed_from_power: the virtual bike's kinetic energy
-        self.hr_erg.started = False           # the heart-rate ERG starts again from the Command's power
+        # (the heart-rate ERG keeps its power across a reset, e.g. a lost drive: the switch ramp
+        # brings the torque back, the heart has not changed)
 
     def set_heart_rate_target(self, bpm: float) -> None:
         """The Command's heart-rate target (ERG; 0: none, plain ERG). A new target keeps the

@@ -42,6 +42,18 @@ def heart_rate_target_problem(bpm) -> str | None:
     return None
 
 
+HEART_RATE_READING_MAX_BPM = 250.0   # a sensor reading above this is not a heart rate
+
+
+def heart_rate_reading_problem(bpm) -> str | None:
+    """Why a sensor's reading (bike_msgs/HeartRate) is not a heart rate (None if it is): a finite
+    number in [0, HEART_RATE_READING_MAX_BPM] (0: the strap has no contact)."""
+    if isinstance(bpm, bool) or not isinstance(bpm, (int, float)) or not math.isfinite(bpm) \
+            or not 0.0 <= bpm <= HEART_RATE_READING_MAX_BPM:
+        return f"heart rate {bpm!r} bpm is not a reading (0..{HEART_RATE_READING_MAX_BPM:g})"
+    return None
+
+
 def heart_rate_command_problem(bpm, mode: int) -> str | None:
     """A Command's heart-rate target: :func:`heart_rate_target_problem`, and only in ERG
     (Command.MODE_ERG = 2; other modes have no power to follow it with)."""

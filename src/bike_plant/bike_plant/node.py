@@ -100,7 +100,6 @@ PLANT_DEFAULTS = {
 # most (longer than Fast DDS's 3 s heartbeat period, which is when a lost last sample is repaired)
 END_ACK_TIMEOUT_S = 4.0
 HEART_RATE_TIMEOUT_S = 5.0       # CAN backend: a strap silent this long -> no heart rate (it sends ~1 Hz) [wall s]
-HEART_RATE_MAX_BPM = 250.0       # a reading above this is not a heart rate
 
 PLANT_DESCRIPTIONS = {
     "republish_s": "lockstep: re-publish the pending PlantState after this many wall seconds without an answer",
@@ -463,10 +462,11 @@ class PlantNode(Node):
                 return
 
     def _on_heart_rate(self, msg) -> None:
+        from .heart import heart_rate_reading_problem
         bpm = float(msg.heart_rate_bpm)
-        if not (math.isfinite(bpm) and 0.0 <= bpm <= HEART_RATE_MAX_BPM):
-            self.get_logger().warning(f"heart_rate {bpm!r} bpm dropped (not a heart rate: 0..{HEART_RATE_MAX_BPM:g})",
-                                      throttle_duration_sec=10.0)
+        problem = heart_rate_reading_problem(bpm)
+        if problem:
+            self.get_logger().warning(f"heart_rate dropped: {problem}", throttle_duration_sec=10.0)
             return
         self.heart_rate = (bpm, time.monotonic())
 

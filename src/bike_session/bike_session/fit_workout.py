@@ -237,25 +237,9 @@ def _ridable(i: int, step: dict, ftp: float | None, opts: _Options, notes: dict,
     cadence = None
     heart_rate = None
     if target in POWER_TARGETS:
-        zone = step.get("target_value") or 0
-        if zone != 0:
-            raise err(f"power zone {zone} needs the rider's zone table, which a FIT workout does not carry "
-                      "(write the step as a custom range)")
-        lo, hi = step.get("custom_target_value_low"), step.get("custom_target_value_high")
-        if lo is None and hi is None:
-            raise err("power step without custom_target_value_low/high")
-        values = [_watts(v, ftp, err) for v in (lo, hi) if v is not None]
-        target_w = sum(values) / len(values)
+        target_w = _custom_mean(step, "power", lambda v: _watts(v, ftp, err), err)
     elif target == "heart_rate":
-        zone = step.get("target_value") or 0
-        if zone != 0:
-            raise err(f"heart-rate zone {zone} needs the rider's zone table, which a FIT workout does not carry "
-                      "(write the step as a custom range)")
-        lo, hi = step.get("custom_target_value_low"), step.get("custom_target_value_high")
-        if lo is None and hi is None:
-            raise err("heart-rate step without custom_target_value_low/high")
-        values = [_bpm(v, opts.max_hr_bpm, err) for v in (lo, hi) if v is not None]
-        heart_rate = sum(values) / len(values)
+        heart_rate = _custom_mean(step, "heart-rate", lambda v: _bpm(v, opts.max_hr_bpm, err), err)
         problem = heart_rate_target_problem(heart_rate)
         if problem:
             raise err(problem)
@@ -269,6 +253,20 @@ def _ridable(i: int, step: dict, ftp: float | None, opts: _Options, notes: dict,
         cadence = _cadence(step.get("secondary_custom_target_value_low"),
                            step.get("secondary_custom_target_value_high"))
     return _Step(duration, target_w, cadence, label, block, text, heart_rate)
+
+
+def _custom_mean(step: dict, what: str, convert, err) -> float:
+    """The mean of a step's custom target range (either end may be missing), each end through
+    ``convert``; a zone (``target_value``) is refused: the file carries no zone table."""
+    zone = step.get("target_value") or 0
+    if zone != 0:
+        raise err(f"{what} zone {zone} needs the rider's zone table, which a FIT workout does not carry "
+                  "(write the step as a custom range)")
+    lo, hi = step.get("custom_target_value_low"), step.get("custom_target_value_high")
+    if lo is None and hi is None:
+        raise err(f"{what} step without custom_target_value_low/high")
+    values = [convert(v) for v in (lo, hi) if v is not None]
+    return sum(values) / len(values)
 
 
 def _watts(value: Any, ftp: float | None, err) -> float:
