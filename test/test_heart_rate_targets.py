@@ -192,6 +192,17 @@ def test_fit_heart_rate_steps_repeat_and_ride_erg_whatever_the_power_mode(tmp_pa
     assert [(s.mode, s.heart_rate_bpm) for s in w.segments] == [(MODES["erg"], 150.0)] * 3
 
 
+def test_a_heart_rate_zone_rides_the_middle_of_garmins_default_zone_with_a_warning(tmp_path):
+    """FIT zones 1..5 without a zone table in the file: Garmin's default zones in % of the maximum
+    (50-60 .. 90-100 %), their middle, and a warning that says so."""
+    steps = [dict(duration_type="time", duration_value=60_000, target_type="heart_rate", target_value=zone)
+             for zone in (2, 4)]
+    with pytest.warns(WorkoutWarning, match="Garmin's default zones"):
+        w = _fit(tmp_path, steps, max_hr_bpm=180)
+    assert [s.heart_rate_bpm for s in w.segments] == [pytest.approx(117.0), pytest.approx(153.0)]   # 65, 85 %
+    assert [s.mode for s in w.segments] == [MODES["erg"]] * 2
+
+
 def test_percent_of_max_heart_rate_needs_session_max_hr_bpm(tmp_path):
     with pytest.raises(WorkoutError, match=r"hr\.fit: step 0: .*session\.max_hr_bpm"):
         _fit(tmp_path, [heart_rate_step(60, 70, 80)])
@@ -201,7 +212,9 @@ def test_percent_of_max_heart_rate_needs_session_max_hr_bpm(tmp_path):
 
 @pytest.mark.parametrize("step, kw, why", [
     (dict(duration_type="time", duration_value=60_000, target_type="heart_rate", target_value=3), {},
-     r"step 0: heart-rate zone 3 needs the rider's zone table"),
+     r"step 0: heart-rate zone 3: give the rider's maximum heart rate \(session\.max_hr_bpm"),
+    (dict(duration_type="time", duration_value=60_000, target_type="heart_rate", target_value=6),
+     dict(max_hr_bpm=185), r"step 0: heart-rate zone 6: zones 1\.\.5 only"),
     (dict(duration_type="time", duration_value=60_000, target_type="heart_rate", target_value=0), {},
      r"step 0: heart-rate step without custom_target_value_low/high"),
     (heart_rate_step(60, 105), {}, r"step 0: heart-rate target 5.0 bpm outside \[40, 220\]"),

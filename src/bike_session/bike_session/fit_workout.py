@@ -30,8 +30,10 @@ Per step (the choices, in the order the reader applies them):
   rider's maximum heart rate (the FIT ``workout_hr`` rule; percent needs ``max_hr_bpm``,
   ``session.max_hr_bpm``). The middle of the range is the Command's ``heart_rate_bpm`` (40..220,
   bike_plant.heart), ridden in ERG at Command 0: the controller moves the power target to hold
-  it, starting from the rider's present power. A heart-rate ZONE (target_value 1-5) needs
-  the rider's zone table: refused, as power zones are.
+  it, starting from the rider's present power. A heart-rate ZONE (target_value 1-5) rides the
+  middle of that zone of Garmin's default zones in percent of the maximum heart rate (1: 50-60,
+  2: 60-70, 3: 70-80, 4: 80-90, 5: 90-100 %; the file carries no zone table of its own, so a
+  warning says so); it needs ``max_hr_bpm`` like a percent target.
 - Target ``open`` or ``cadence``: no power target, ridden in resistance mode at
   ``freeride_command`` like a ZWO FreeRide; a custom cadence range (rpm) is kept as the
   segment's cadence, as is a secondary cadence target of a power or heart-rate step.
@@ -238,6 +240,13 @@ def _ridable(i: int, step: dict, ftp: float | None, opts: _Options, notes: dict,
     heart_rate = None
     if target in POWER_TARGETS:
         target_w = _custom_mean(step, "power", lambda v: _watts(v, ftp, err), err)
+    elif target == "heart_rate" and step.get("target_value"):
+        heart_rate = _hr_zone_bpm(step.get("target_value"), opts.max_hr_bpm, err)
+        notes.setdefault("heart-rate zones ridden as Garmin's default zones (50-60 .. 90-100 % of the maximum "
+                         "heart rate; the file carries no zone table)", []).append(i)
+        problem = heart_rate_target_problem(heart_rate)
+        if problem:
+            raise err(problem)
     elif target == "heart_rate":
         heart_rate = _custom_mean(step, "heart-rate", lambda v: _bpm(v, opts.max_hr_bpm, err), err)
         problem = heart_rate_target_problem(heart_rate)
@@ -292,6 +301,22 @@ def _bpm(value: Any, max_hr_bpm: float | None, err) -> float:
         raise err(f"{value:g} % of the maximum heart rate: give the rider's maximum heart rate "
                   "(session.max_hr_bpm; ./bike run --max-hr BPM); a FIT workout carries none")
     return value / 100.0 * max_hr_bpm
+
+
+# Garmin's default heart-rate zones, in percent of the maximum heart rate (Garmin's watch manuals,
+# "Heart Rate Zone Calculations"): zone -> (low, high)
+HR_ZONES_PCT_MAX = {1: (50.0, 60.0), 2: (60.0, 70.0), 3: (70.0, 80.0), 4: (80.0, 90.0), 5: (90.0, 100.0)}
+
+
+def _hr_zone_bpm(zone: Any, max_hr_bpm: float | None, err) -> float:
+    """The middle of heart-rate zone ``zone`` (1..5, :data:`HR_ZONES_PCT_MAX`) for this rider."""
+    if isinstance(zone, bool) or zone not in HR_ZONES_PCT_MAX:
+        raise err(f"heart-rate zone {zone!r}: zones 1..5 only")
+    if max_hr_bpm is None:
+        raise err(f"heart-rate zone {zone}: give the rider's maximum heart rate (session.max_hr_bpm; "
+                  "./bike run --max-hr BPM); a FIT workout carries none")
+    lo, hi = HR_ZONES_PCT_MAX[zone]
+    return 0.5 * (lo + hi) / 100.0 * max_hr_bpm
 
 
 def _cadence(lo: Any, hi: Any) -> float | None:
