@@ -59,6 +59,29 @@ def test_erg_holds_power_and_avoids_the_spiral_of_death():
     assert out.saturated and out.brake_torque_nm == pytest.approx(TMAX)
 
 
+def test_erg_smoothing_ramps_the_brakes_power_to_a_new_target_and_reports_the_target():
+    """modes.erg_ramp_w_per_s: a step of the target from 150 to 300 W reaches the brake at 50 W/s
+    (3 s), the output's target is the new one at once (the report's ERG response counts the ramp);
+    a step down ramps too; the switch into ERG starts at the target (the switch ramp smooths it)."""
+    w = 80.0 * GEAR / RPM_PER_RAD_S
+    m = law(erg_ramp_w_per_s=50.0, torque_rate_nm_per_s=1e6)
+    out = settle(m, 150.0 / PMAX, MODE_ERG, 80.0 * GEAR, n=10)
+    assert out.brake_torque_nm * w == pytest.approx(150.0)               # no ramp at the switch into ERG
+    for k in range(1, 3001):
+        out = m.step(300.0 / PMAX, MODE_ERG, 80.0 * GEAR, DT)
+        assert out.target == pytest.approx(300.0)
+        if k in (1000, 2000):
+            assert out.brake_torque_nm * w == pytest.approx(150.0 + 50.0 * k * DT)
+    assert out.brake_torque_nm * w == pytest.approx(300.0)
+    out = m.step(100.0 / PMAX, MODE_ERG, 80.0 * GEAR, DT)
+    assert out.brake_torque_nm * w == pytest.approx(300.0 - 50.0 * DT)
+    off = law(torque_rate_nm_per_s=1e6)                                    # the default: no smoothing
+    settle(off, 150.0 / PMAX, MODE_ERG, 80.0 * GEAR, n=10)
+    assert off.step(300.0 / PMAX, MODE_ERG, 80.0 * GEAR, DT).brake_torque_nm * w == pytest.approx(300.0)
+    with pytest.raises(ValueError, match="erg_ramp_w_per_s must be a number >= 0"):
+        ModeParams(erg_ramp_w_per_s=-1.0)
+
+
 def test_slope_road_load_uphill_brakes_downhill_assists():
     m = law(virtual_inertia=False)
     mp = m.mp

@@ -29,7 +29,10 @@ Modes (``bike_msgs/Command``):
   (``saturated``), the target is not met silently. Its virtual speed is the gear's
   (cadence x gear x wheel) unless ``erg_speed_from_power``: then a virtual bike on the flat
   driven by the rider's power (:meth:`ModeLaw._erg_speed_mps`), so distance does not depend
-  on the gear. Heart-rate ERG: a Command with ``heart_rate_bpm`` > 0 holds the rider's heart
+  on the gear. ERG smoothing (``erg_ramp_w_per_s`` > 0; research notes section 5: "max
+  resistance change per step", QZ PR #3965, a resistance filter, QZ #230): the power the brake
+  takes moves towards a new target at most this fast, while ``target`` reports the target
+  itself, so the report's ERG response counts the ramp as the rider feels it. Heart-rate ERG: a Command with ``heart_rate_bpm`` > 0 holds the rider's heart
   rate there instead; P* is then the output of a slow PI on the PlantState's heart rate
   (:mod:`bike_controller.heart_erg`, tuned on ``hr_gain_bpm_per_w``, ``hr_time_constant_s``,
   ``hr_closed_loop_s``), starting from C * ``erg_power_max_w`` (C = 0: the rider's power then);
@@ -142,6 +145,7 @@ class ModeParams:
     virtual_gears: tuple = DEFAULT_VIRTUAL_GEARS   # the session's shift buttons step through these
     erg_shift_w: float = 0.0                 # > 0: in ERG a shift press moves the target this many W (not the gear)
     erg_speed_from_power: bool = False       # ERG's virtual speed from the rider's power on the flat, not the gear
+    erg_ramp_w_per_s: float = 0.0            # > 0: ERG's brake power moves to a new target at most this fast
     # automatic virtual shifting in the slope mode: a cadence outside the band for hold_s moves
     # the gear one step of virtual_gears (down below the band, up above it)
     auto_shift: bool = False
@@ -180,7 +184,7 @@ class ModeParams:
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a number > 0, got {v!r}")
         for name in ("erg_power_max_w", "bike_mass_kg", "crr", "cda_m2", "air_density_kg_m3", "assist_max_nm",
-                     "assist_min_cadence_rpm", "isokinetic_cadence_min_rpm", "erg_shift_w"):
+                     "assist_min_cadence_rpm", "isokinetic_cadence_min_rpm", "erg_shift_w", "erg_ramp_w_per_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a number >= 0, got {v!r}")
@@ -300,6 +304,7 @@ class ModeLaw:
         self.rider_power_avg_w = 0.0          # its power, averaged over RIDER_POWER_AVG_S
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
         self.erg_ke_j = 0.0                   # ERG with erg_speed_from_power: the virtual bike's kinetic energy
+        self.erg_ramp_w = None                # ERG smoothing: the power the brake takes now (None: the target)
         # (the heart-rate ERG keeps its power across a reset, e.g. a lost drive: the switch ramp
         # brings the torque back, the heart has not changed)
 
@@ -514,10 +519,17 @@ class ModeLaw:
                 hr_sat = self.hr_erg.saturated
             else:
                 self.hr_erg.started = False
+            p_brake_w = p_w
+            if mp.erg_ramp_w_per_s > 0.0:
+                # smoothing: towards the target at most erg_ramp_w_per_s (from the target itself
+                # at the switch into ERG, which the switch ramp already smooths)
+                ramp = p_w if self.erg_ramp_w is None else self.erg_ramp_w
+                step_w = mp.erg_ramp_w_per_s * dt_s
+                p_brake_w = self.erg_ramp_w = min(max(p_w, ramp - step_w), ramp + step_w)
             w_min = mp.erg_min_cadence_rpm * self.gear_ratio / RPM_PER_RAD_S
-            t_rider = p_w / max(w, w_min)          # the crank torque (at the motor) that gives P*
+            t_rider = p_brake_w / max(w, w_min)    # the crank torque (at the motor) that gives P*
             t = t_rider - self.friction_nm(w)       # the bike's friction takes its share
-            below_friction = t < 0.0 and p_w > 0.0
+            below_friction = t < 0.0 and p_brake_w > 0.0
             t = max(t, 0.0)
             # flagged where the braking envelope binds, but asked for uncapped (up to Tmax): the
             # SPMSM's rectifier path then brakes at buck duty 1 through the pedal stroke. Capped
@@ -618,6 +630,7 @@ class ModeLaw:
             elif mode == MODE_ERG and self.mp.erg_speed_from_power:
                 self._start_erg_bike(w, from_slope=self.last_mode == MODE_SLOPE)
             self.hr_erg.started = False           # a heart-rate ERG starts from this Command's power
+            self.erg_ramp_w = None                # ERG smoothing starts at the target
         if mode == MODE_SPINDOWN and (mode != self.last_mode or (command != self.spindown_command
                                                                 and not self.spindown.running)):
             self.spindown.start()
