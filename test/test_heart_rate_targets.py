@@ -260,3 +260,23 @@ def test_a_replayed_timeline_keeps_its_heart_rate_targets():
     p = parse_profile(doc)
     for t, *_, bpm in timeline:
         assert (p.heart_rate_at(t * 1e-9) or 0.0) == bpm
+
+
+def test_the_session_status_shows_the_riders_targets_in_force():
+    """SessionStatus carries what a head unit shows: the Command in force's gear, cadence target
+    and heart-rate target (none once DONE)."""
+    pytest.importorskip("rclpy")
+    from bike_msgs.msg import SessionStatus
+    p = parse_profile({"mode": "erg", "segments": [
+        _step(command=0.2, gear=3.5), _step(heart_rate_bpm=140, cadence=90)]})
+    node = _session(p)
+    node.__dict__.update(_SessionStatus=SessionStatus, pub_status=_Publisher(), duration_s=p.duration_s)
+    for j in range(4):
+        node._publish_command(j)
+    node._publish_status(int(0.6e9), SessionStatus.STATE_RUNNING)      # tau 0.5 s: the first step
+    node._publish_status(int(1.2e9), SessionStatus.STATE_RUNNING)      # tau 1.0 s: the second
+    node._publish_status(int(2.0e9), SessionStatus.STATE_DONE)
+    first, second, done = node.pub_status.sent
+    assert (first.virtual_gear_ratio, first.cadence_rpm, first.heart_rate_bpm) == (3.5, 0.0, 0.0)
+    assert (second.virtual_gear_ratio, second.cadence_rpm, second.heart_rate_bpm) == (3.5, 90.0, 140.0)
+    assert (done.cadence_rpm, done.heart_rate_bpm, done.command) == (0.0, 0.0, 0.0)

@@ -39,7 +39,8 @@ first sent with.
 Lockstep protocol (DESIGN.md): on every ``/clock`` value t the node publishes the Command
 for every tau_j = j * period_s with tau_j <= t + period_s that it has not published yet,
 stamped tau_j (so at t = 0 it sends tau_0 and tau_1). The command of a tau_j at or after the
-run's end is 0. One SessionStatus per period; at t >= duration a final DONE status and a
+run's end is 0. One SessionStatus per period (with the rider's targets in force: the gear, the
+cadence and heart-rate targets); at t >= duration a final DONE status and a
 Command of 0, then the node exits with code 0. A bad profile: one error line, exit code 2.
 """
 from __future__ import annotations
@@ -522,6 +523,11 @@ def _make_node_class():
             msg.segment_label = label
             msg.command = float(cmd)
             msg.mode = int(mode)
+            if state != SessionStatus.STATE_DONE:       # the rider's targets in force (DONE: none)
+                j = tau_ns // self.period_ns
+                msg.virtual_gear_ratio = float(self.gear_for(j))
+                msg.cadence_rpm = float(self.cadence_for(j))
+                msg.heart_rate_bpm = float(self.heart_rate_for(j))
             self.pub_status.publish(msg)
 
         def _publish_diag(self, message: str, level: int | None = None, t_ns: int | None = None) -> None:
