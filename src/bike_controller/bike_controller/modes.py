@@ -32,8 +32,9 @@ Modes (``bike_msgs/Command``):
   on the gear. ERG smoothing (``erg_ramp_w_per_s`` > 0; research notes section 5: "max
   resistance change per step", QZ PR #3965, a resistance filter, QZ #230): the power the brake
   takes moves towards a new target at most this fast, while ``target`` reports the target
-  itself, so the report's ERG response counts the ramp as the rider feels it. Heart-rate ERG: a Command with ``heart_rate_bpm`` > 0 holds the rider's heart
-  rate there instead; P* is then the output of a slow PI on the PlantState's heart rate
+  itself, so the report's ERG response counts the ramp as the rider feels it. Heart-rate ERG:
+  a Command with ``heart_rate_bpm`` > 0 holds the rider's heart rate there instead; P* is then
+  the output of a slow PI on the PlantState's heart rate
   (:mod:`bike_controller.heart_erg`, tuned on ``hr_gain_bpm_per_w``, ``hr_time_constant_s``,
   ``hr_closed_loop_s``), starting from C * ``erg_power_max_w`` (C = 0: the rider's power then);
   flagged ``saturated`` at 0 W or the top, and while there is no heart rate to follow.
