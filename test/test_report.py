@@ -647,6 +647,9 @@ def test_heart_rate_part_absent_without_data_and_targets_only_in_erg(tmp_path):
     assert r["settled"] == 0 and r["per_stretch"][0]["hr_time_s"] == 0.0
     text = format_summary(s)
     assert "(no heart rate in the bag)" in text and "  140 bpm from 0.0 s (0.4 s): no heart rate" in text
+    # a target the controller rejects (outside 40..220 bpm: the whole Command) rules nothing either
+    s = analyse(write_session_bag(tmp_path / "c", hr_target=lambda k: 250.0)).summary
+    assert s["heart_rate_erg"] is None
 
 
 def _without_heart_rate(src, dst):

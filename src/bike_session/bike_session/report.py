@@ -86,6 +86,7 @@ import sys
 import numpy as np
 
 from bike_controller.modes import erg_power_w
+from bike_plant.heart import HEART_RATE_TARGET_MAX_BPM, HEART_RATE_TARGET_MIN_BPM
 from bike_session.bags import BagError, open_bag
 
 # PlantState.RELAY_INVERTER, RELAY_RECTIFIER: the connected paths (RELAY_SWITCHING = 2 between them)
@@ -752,8 +753,11 @@ class _Analyser:
             block = np.column_stack([c[:, 0] + c[:, 1] * 1e-9, c[:, 2], c[:, 3]])
             self.command_blocks.append(block)
             self.cadence_blocks.append(np.column_stack([block[:, 0], c[:, 5]]))
-            # a heart-rate target rules ERG only (bike_msgs/Command)
-            hr_target = np.where((c[:, 2] == MODE_ERG) & np.isfinite(c[:, 6]) & (c[:, 6] > 0), c[:, 6], 0.0)
+            # a heart-rate target rules ERG only (bike_msgs/Command), and only in the range the
+            # controller takes (it rejects the whole Command otherwise)
+            hr = c[:, 6]
+            taken = (c[:, 2] == MODE_ERG) & (hr >= HEART_RATE_TARGET_MIN_BPM) & (hr <= HEART_RATE_TARGET_MAX_BPM)
+            hr_target = np.where(taken, hr, 0.0)
             self.hr_target_blocks.append(np.column_stack([block[:, 0], hr_target]))
             if not self.use_status:
                 self.status_rows.extend((r[0], r[1], r[2], NAN, False, NAN, g, NAN, NAN)
