@@ -489,9 +489,7 @@ class _PlantDrive(_DriveReadouts):
         self.bus_current_a = -float(a[A_IBATT])
         self.electrical_power_w = float(a[A_VDC]) * self.bus_current_a
         self.position_rev = self._position_rev(float(a[A_OMEGA]) * n * self.period_s)
-        heart = self.plant.heart
-        if heart is not None:      # the kernels step the plant's state, not its step_batch
-            heart.advance(self.plant.state[self._s_e_mech], self.plant.time_s)
+        self.plant.advance_heart()     # the kernels step the plant's state, not its step_batch
 
     @property
     def heart_rate_bpm(self) -> float:
@@ -511,8 +509,6 @@ class SpmsmPlantDrive(_PlantDrive):
     :func:`spmsm_drive_batch`. The torque setpoint reaches the current loop as its iq
     demand (iq* = T / kt), limited by the region logic to the drive's current limit and
     the voltage the 24 V inverter can make at the present speed (flux weakening, MTPV)."""
-
-    _s_e_mech = M.S_E_MECH      # the ledger's rider energy in the plant's state
 
     def __init__(self, cfg: dict, params: DriveModelParams, *, current_loop: str = "pi", load_kind: str | None = None,
                  speed_observer_hz: float = DEFAULT_SPEED_OBSERVER_HZ):
@@ -585,8 +581,6 @@ class BldcPlantDrive(_PlantDrive):
     generating (its lower switch: the winding boosts into the battery; forward rotation
     only, as the paper's quadrants I and II -- at standstill or backwards no braking
     current is commanded). The hysteresis band is controller.hysteresis_a."""
-
-    _s_e_mech = K.S_E_MECH      # the ledger's rider energy in the plant's state
 
     def __init__(self, cfg: dict, params: DriveModelParams, *, load_kind: str | None = None):
         pp = P.plant_params_from_config(cfg)

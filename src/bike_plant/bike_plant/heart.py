@@ -6,7 +6,7 @@ working point the heart rate answers the work rate as a linear first-order syste
 
     HR = HR_rest + x,    tau dx/dt = K P - x,    x held in [0, HR_max - HR_rest],
 
-with tau = 68.7 +- 21.5 s on the cycle ergometer (25 men, "somewhat hard" intensity, Borg 13).
+with tau = 68.7 +- 21.5 s on the cycle ergometer (25 men, "somewhat hard" intensity, Borg 13),
 so a power held long enough settles at HR_ss(P) = HR_rest + min(K max(P, 0), HR_max - HR_rest).
 The steady-state line K [bpm/W] is the rider's own; it stops at HR_max. The input is the power of
 each batch, which swings with the pedal stroke (the flywheel takes and gives back energy): the
@@ -42,15 +42,15 @@ def heart_rate_target_problem(bpm) -> str | None:
     return None
 
 
-HEART_RATE_READING_MAX_BPM = 250.0   # a sensor reading above this is not a heart rate
+HEART_RATE_MAX_BPM = 250.0   # no heart beats faster: a reading or a rider's maximum above it is a mistake
 
 
 def heart_rate_reading_problem(bpm) -> str | None:
     """Why a sensor's reading (bike_msgs/HeartRate) is not a heart rate (None if it is): a finite
-    number in [0, HEART_RATE_READING_MAX_BPM] (0: the strap has no contact)."""
+    number in [0, HEART_RATE_MAX_BPM] (0: the strap has no contact)."""
     if isinstance(bpm, bool) or not isinstance(bpm, (int, float)) or not math.isfinite(bpm) \
-            or not 0.0 <= bpm <= HEART_RATE_READING_MAX_BPM:
-        return f"heart rate {bpm!r} bpm is not a reading (0..{HEART_RATE_READING_MAX_BPM:g})"
+            or not 0.0 <= bpm <= HEART_RATE_MAX_BPM:
+        return f"heart rate {bpm!r} bpm is not a reading (0..{HEART_RATE_MAX_BPM:g})"
     return None
 
 
@@ -112,7 +112,7 @@ class HeartRate:
 class RiderHeart:
     """The simulated rider's heart inside a plant: it takes the energy the rider has put into the
     shaft so far (the ledger's ``energy_mech_in_j``) and the plant's time after every batch, so
-    its input is the batch's exact mean power."""
+    its input is the batch's exact mean power (the plants' ``advance_heart``)."""
 
     def __init__(self, params: HeartParams):
         self.heart = HeartRate(params)

@@ -54,7 +54,7 @@ import sys
 import time
 
 import rclpy
-from bike_msgs.msg import DriveCommand, PlantState
+from bike_msgs.msg import DriveCommand, HeartRate, PlantState
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
@@ -67,6 +67,7 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv, shm_ports
 from .config import ConfigError
+from .heart import heart_rate_reading_problem
 from .config import number_param as _number
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports)
@@ -351,7 +352,6 @@ class PlantNode(Node):
         # strap (or the drive emulator's rider) on heart_rate, the newest fresh one into the state
         self.heart_rate = (0.0, -math.inf)      # (bpm, monotonic receipt time)
         if self.backend.measured_by_drive:
-            from bike_msgs.msg import HeartRate
             self.sub_heart_rate = self.create_subscription(HeartRate, "heart_rate", self._on_heart_rate, AUX_QOS)
         self.recorder_seq = -1       # last plant_state seq the recorder reports written
         self.recorder_rx = 0.0
@@ -462,7 +462,6 @@ class PlantNode(Node):
                 return
 
     def _on_heart_rate(self, msg) -> None:
-        from .heart import heart_rate_reading_problem
         bpm = float(msg.heart_rate_bpm)
         problem = heart_rate_reading_problem(bpm)
         if problem:

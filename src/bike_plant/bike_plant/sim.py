@@ -123,8 +123,7 @@ class BldcPlant:
         # per-batch fault bits: set again by the kernel if it happens in this batch
         self.state[K.S_FAULTS] = float(int(self.state[K.S_FAULTS]) & ~(K.FAULT_INTERLOCK | K.FAULT_OVERCURRENT))
         ne = K.step_batch(self.state, self.p, ga, gb, sp, edge_counts, edge_states, samples, sums)
-        if self.heart is not None:
-            self.heart.advance(self.state[K.S_E_MECH], self.time_s)
+        self.advance_heart()
         self.seq += 1
         self.batch_periods = n
         nn = max(n, 1)
@@ -135,6 +134,12 @@ class BldcPlant:
             faults=int(self.state[K.S_FAULTS]), interlock_blanked_count=int(self.state[K.S_INTERLOCK]),
             interlock_blanked_in_batch=int(self.state[K.S_INTERLOCK]) - blanked0)
         return self._last
+
+    def advance_heart(self) -> None:
+        """The rider's heart to the plant's time, on the ledger's rider energy (after every
+        batch; the CAN drive emulator calls it after its own kernels step the state)."""
+        if self.heart is not None:
+            self.heart.advance(self.state[K.S_E_MECH], self.time_s)
 
     def set_rider_cadence(self, cadence_rpm: float, stop: bool = False) -> None:
         """The rider's cadence target from now on (a workout's; 0: the config's own); ``stop``:

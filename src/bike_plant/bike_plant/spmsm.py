@@ -1707,12 +1707,17 @@ class SpmsmPlant:
         sums = np.zeros(3)
         self.state[S_FAULTS] = 0.0
         step_batch(self.state, self.p, d, rr, bd, samples, sums)
-        if self.heart is not None:
-            self.heart.advance(self.state[S_E_MECH], self.time_s)
+        self.advance_heart()
         self.seq += 1
         nn = max(n, 1)
         return SpmsmBatchResult(float(sums[0] / nn), float(sums[1] / nn), float(sums[2] / nn), samples,
                                 int(self.state[S_FAULTS]))
+
+    def advance_heart(self) -> None:
+        """The rider's heart to the plant's time, on the ledger's rider energy (after every
+        batch; the CAN drive emulator calls it after its own kernels step the state)."""
+        if self.heart is not None:
+            self.heart.advance(self.state[S_E_MECH], self.time_s)
 
     def set_rider_cadence(self, cadence_rpm: float, stop: bool = False) -> None:
         """The rider's cadence target from now on (a workout's; 0: the config's own); ``stop``:

@@ -88,6 +88,7 @@ import warnings
 from typing import Any, Iterable, Mapping
 from xml.parsers import expat
 
+from bike_plant.heart import HEART_RATE_MAX_BPM
 from bike_plant.mechanics import RIDER_CADENCE_MAX_RPM, rider_cadence_problem
 from bike_session.profiles import (MAX_LEAF_SEGMENTS, MAX_REPEAT, MODES, Profile, ProfileError, Segment,
                                    load_profile)
@@ -99,7 +100,7 @@ MAX_TEXT_EVENTS = 10_000
 MAX_WORKOUT_S = 24 * 3600.0        # one day; anything longer is a broken file
 MAX_FTP_FRACTION = 5.0             # 500 % FTP: larger values are percent written as fractions
 MAX_FTP_W = 2000.0
-MAX_HR_BPM = 250.0                 # a rider's maximum heart rate beyond this is a typo
+MAX_HR_BPM = HEART_RATE_MAX_BPM    # a rider's maximum heart rate beyond this is a typo
 MAX_CADENCE_RPM = RIDER_CADENCE_MAX_RPM      # what a Command may give the rider (bike_plant.mechanics)
 DEFAULT_FREERIDE_COMMAND = 0.2
 DEFAULT_MAXEFFORT_COMMAND = 0.5
