@@ -87,7 +87,7 @@ PLANT_DEFAULTS = {
     "duration_s": 0.0,
     "seed": 0,
     "republish_s": 1.0,
-    "end_linger_s": 0.5,
+    "end_linger_s": 0.1,
     "battery_every": 10,
     "clock_period_s": 0.01,
     "busy_wait_s": LOCKSTEP_BUSY_WAIT_S,
@@ -663,9 +663,11 @@ class PlantNode(Node):
         end = time.monotonic() + self.end_linger_s
         # a reliable reader (recorder, fleet monitor) that lost a datagram of the last states
         # learns of it only from the writer's next heartbeat (Fast DDS: every 3 s by default,
-        # 100 ms with config/fastdds.xml, which tools/env.sh selects), possibly after a 0.5 s
+        # 100 ms with config/fastdds.xml, which tools/env.sh selects), possibly after the
         # linger would have closed the writer: wait for its acknowledgment, up to
-        # END_ACK_TIMEOUT_S, spinning in between (a Ctrl-C still ends it)
+        # END_ACK_TIMEOUT_S, spinning in between (a Ctrl-C still ends it). The linger after
+        # that is short (0.1 s): every reliable reader has the state by then, and a best-effort
+        # one got it when it was written or never will (0.5 s cost each recorded run 0.4 s).
         acked_by = time.monotonic() + max(self.end_linger_s, END_ACK_TIMEOUT_S)
         while not self.stop_requested and time.monotonic() < acked_by:
             if self.pub_state.wait_for_all_acked(Duration(seconds=0.05)):
