@@ -436,7 +436,9 @@ def test_discovery_is_limited_to_localhost_unless_configured():
 def test_fast_dds_profile_is_selected_and_parses():
     """tools/env.sh points Fast DDS at config/fastdds.xml unless the user chose a profiles file:
     reliable writers ask for acknowledgments every 100 ms (Fast DDS's default, 3 s, held the
-    plant's exit for its end_of_run acknowledgment up to 3 s). Fast DDS reads the file when
+    plant's exit for its end_of_run acknowledgment up to 3 s), and participants announce
+    themselves often enough that a node started later is matched within 0.5 s (the recorder,
+    started first, was matched 2.5-3 s late and held every recorded run). Fast DDS reads the file when
     a participant is made and ignores a malformed one with an XMLPARSER error line only, so
     the test also makes a node with it and checks that nothing was refused."""
     import xml.etree.ElementTree as ET
@@ -456,6 +458,17 @@ def test_fast_dds_profile_is_selected_and_parses():
     assert writer.get("is_default_profile") == "true"
     hb = writer.find("f:times/f:heartbeatPeriod", ns)
     assert int(hb.find("f:sec", ns).text) == 0 and int(hb.find("f:nanosec", ns).text) == 100_000_000
+    # participants announce themselves for 2 s after start, then every 0.5 s (Fast DDS: 0.5 s,
+    # then every 3 s, so a node started later waited up to 3 s for the others)
+    participant = ET.parse(path).getroot().find("f:participant", ns)
+    assert participant.get("is_default_profile") == "true"
+    disc = participant.find("f:rtps/f:builtin/f:discovery_config", ns)
+
+    def seconds(element):
+        return int(element.find("f:sec", ns).text) + int(element.find("f:nanosec", ns).text) * 1e-9
+    initial = disc.find("f:initialAnnouncements", ns)
+    assert int(initial.find("f:count", ns).text) * seconds(initial.find("f:period", ns)) == pytest.approx(2.0)
+    assert seconds(disc.find("f:leaseAnnouncement", ns)) == pytest.approx(0.5)
     code = ("import rclpy; rclpy.init(); n = rclpy.create_node('xml_probe'); "
             "from std_msgs.msg import UInt64; n.create_publisher(UInt64, 'probe', 10); n.destroy_node(); "
             "rclpy.shutdown(); print('made')")

@@ -223,8 +223,10 @@ class ModeParams:
                              f"{self.auto_shift_high_cadence_rpm:g} rpm")
 
     def heart_params(self) -> HeartParams:
-        """The nominal heart the heart-rate ERG is tuned on (rest and max do not enter the PI)."""
-        return HeartParams(gain_bpm_per_w=self.hr_gain_bpm_per_w, time_constant_s=self.hr_time_constant_s)
+        """The nominal heart the heart-rate ERG is tuned on (rest and max do not enter the PI; nor
+        does the drift, which the PI's integral takes up)."""
+        return HeartParams(gain_bpm_per_w=self.hr_gain_bpm_per_w, time_constant_s=self.hr_time_constant_s,
+                           drift_fraction=0.0)
 
     def spindown_params(self) -> SpinDownParams:
         return SpinDownParams(self.spindown_high_cadence_rpm, self.spindown_low_cadence_rpm,

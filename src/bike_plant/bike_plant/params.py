@@ -121,7 +121,7 @@ class RiderParams:
     """The rider of either machine's ``load`` section (bike_plant.mechanics): crank torque
     T = effort * T0 (1 - cadence/cadence_max) (1 + 0.5 cos(2 crank)), two peaks per crank
     turn, through the load's gear ratio motor/crank; effort from a PI on cadence. His heart
-    (bike_plant.heart): resting and maximal rate, steady-state gain and time constant."""
+    (bike_plant.heart): resting and maximal rate, steady-state gain, time constant and drift."""
     rider_t0_nm: float = 120.0
     rider_cadence_max_rpm: float = 160.0
     rider_target_cadence_rpm: float = 80.0
@@ -132,6 +132,8 @@ class RiderParams:
     rider_max_hr_bpm: float = 185.0
     rider_hr_gain_bpm_per_w: float = 0.5
     rider_hr_time_constant_s: float = 68.7
+    rider_hr_drift_fraction: float = 0.25
+    rider_hr_drift_time_constant_s: float = 1800.0
 
     def validate_rider(self) -> None:
         require_positive(self, "rider_t0_nm", "rider_cadence_max_rpm")
@@ -141,12 +143,15 @@ class RiderParams:
             self.heart_params().validate()
         except ValueError as exc:
             raise ValueError(f"rider heart: {exc} (load.rider_rest_hr_bpm, rider_max_hr_bpm, "
-                             "rider_hr_gain_bpm_per_w, rider_hr_time_constant_s)") from None
+                             "rider_hr_gain_bpm_per_w, rider_hr_time_constant_s, rider_hr_drift_fraction, "
+                             "rider_hr_drift_time_constant_s)") from None
 
     def heart_params(self) -> HeartParams:
         return HeartParams(rest_bpm=self.rider_rest_hr_bpm, max_bpm=self.rider_max_hr_bpm,
                            gain_bpm_per_w=self.rider_hr_gain_bpm_per_w,
-                           time_constant_s=self.rider_hr_time_constant_s)
+                           time_constant_s=self.rider_hr_time_constant_s,
+                           drift_fraction=self.rider_hr_drift_fraction,
+                           drift_time_constant_s=self.rider_hr_drift_time_constant_s)
 
     def rider_fields(self) -> dict:
         """The rider's fields by name (to carry the rider to another load dataclass)."""
@@ -199,11 +204,14 @@ RIDER_PRESETS = {
     # about 500 W peak (T0 120 N m, Cmax 160 rpm), holds 80 rpm: a recreational rider; his heart:
     # bike_plant.heart.HeartParams' defaults
     "recreational": {"rider_t0_nm": 120.0, "rider_cadence_max_rpm": 160.0, "rider_target_cadence_rpm": 80.0,
-                     "rider_rest_hr_bpm": 60.0, "rider_max_hr_bpm": 185.0, "rider_hr_gain_bpm_per_w": 0.5},
+                     "rider_rest_hr_bpm": 60.0, "rider_max_hr_bpm": 185.0, "rider_hr_gain_bpm_per_w": 0.5,
+                     "rider_hr_drift_fraction": 0.25},
     # about 1200 W peak (T0 200 N m, Cmax 220 rpm; sprinters reach 1600 W), holds 90 rpm; his heart:
-    # rests at 50, 90 % of 190 at an FTP of 300 W -> (171 - 50) / 300 = 0.4 bpm/W
+    # rests at 50, 90 % of 190 at an FTP of 300 W -> (171 - 50) / 300 = 0.4 bpm/W; half the
+    # recreational rider's drift (a good aerobic base: bike_plant.heart)
     "trained": {"rider_t0_nm": 200.0, "rider_cadence_max_rpm": 220.0, "rider_target_cadence_rpm": 90.0,
-                "rider_rest_hr_bpm": 50.0, "rider_max_hr_bpm": 190.0, "rider_hr_gain_bpm_per_w": 0.4},
+                "rider_rest_hr_bpm": 50.0, "rider_max_hr_bpm": 190.0, "rider_hr_gain_bpm_per_w": 0.4,
+                "rider_hr_drift_fraction": 0.12},
 }
 
 
