@@ -1,6 +1,7 @@
 """The rider's heart (bike_plant.heart) and the heart-rate ERG (bike_controller.heart_erg, the
 ERG law with a Command's heart-rate target), without ROS."""
 import math
+import re
 
 import numpy as np
 import pytest
@@ -109,14 +110,15 @@ def test_the_drift_matches_the_measured_rise_from_minute_10_to_30():
 
 
 @pytest.mark.parametrize("kwargs, words", [
-    ({"drift_fraction": -0.1}, "drift_fraction must be a number > 0 (or 0: no drift)"),
+    ({"drift_fraction": -0.1}, "drift_fraction must be a number in [0, 1] (0: no drift)"),
+    ({"drift_fraction": 1.5}, "drift_fraction must be a number in [0, 1] (0: no drift)"),
     ({"drift_time_constant_s": 60.0}, "drift_time_constant_s (60) must be above time_constant_s (68.7)"),
     ({"rest_bpm": 190.0}, "rest_bpm (190) must be below max_bpm"),
     ({"gain_bpm_per_w": 0.0}, "gain_bpm_per_w must be a number > 0"),
     ({"time_constant_s": float("nan")}, "time_constant_s must be a number > 0"),
 ])
 def test_a_bad_heart_is_one_error(kwargs, words):
-    with pytest.raises(ValueError, match=words.replace("(", r"\(").replace(")", r"\)")):
+    with pytest.raises(ValueError, match=re.escape(words)):
         HeartRate(HeartParams(**kwargs))
 
 

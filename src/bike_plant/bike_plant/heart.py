@@ -47,10 +47,15 @@ HEART_RATE_TARGET_MAX_BPM = 220.0
 MODE_ERG = 2                      # bike_msgs/Command.MODE_ERG (no message import in physics code)
 
 
+def _number(value) -> bool:
+    """A finite int or float (not a bool)."""
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+
+
 def heart_rate_target_problem(bpm) -> str | None:
     """Why ``bpm`` is not a heart-rate target (None if it is): 0 (none) or a finite number in
     [HEART_RATE_TARGET_MIN_BPM, HEART_RATE_TARGET_MAX_BPM]."""
-    if isinstance(bpm, bool) or not isinstance(bpm, (int, float)) or not math.isfinite(bpm):
+    if not _number(bpm):
         return f"heart-rate target must be a finite number, got {bpm!r}"
     if bpm != 0 and not HEART_RATE_TARGET_MIN_BPM <= bpm <= HEART_RATE_TARGET_MAX_BPM:
         return (f"heart-rate target {bpm!r} bpm outside [{HEART_RATE_TARGET_MIN_BPM:g}, "
@@ -64,8 +69,7 @@ HEART_RATE_MAX_BPM = 250.0   # no heart beats faster: a reading or a rider's max
 def heart_rate_reading_problem(bpm) -> str | None:
     """Why a sensor's reading (bike_msgs/HeartRate) is not a heart rate (None if it is): a finite
     number in [0, HEART_RATE_MAX_BPM] (0: the strap has no contact)."""
-    if isinstance(bpm, bool) or not isinstance(bpm, (int, float)) or not math.isfinite(bpm) \
-            or not 0.0 <= bpm <= HEART_RATE_MAX_BPM:
+    if not _number(bpm) or not 0.0 <= bpm <= HEART_RATE_MAX_BPM:
         return f"heart rate {bpm!r} bpm is not a reading (0..{HEART_RATE_MAX_BPM:g})"
     return None
 
@@ -99,10 +103,11 @@ class HeartParams:
         for name in ("rest_bpm", "max_bpm", "gain_bpm_per_w", "time_constant_s", "drift_fraction",
                      "drift_time_constant_s"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                    or value < 0 or (value == 0 and name != "drift_fraction"):
-                raise ValueError(f"{name} must be a number > 0{' (or 0: no drift)' if name == 'drift_fraction' else ''},"
-                                 f" got {value!r}")
+            if name == "drift_fraction":
+                if not _number(value) or not 0.0 <= value <= 1.0:
+                    raise ValueError(f"drift_fraction must be a number in [0, 1] (0: no drift), got {value!r}")
+            elif not _number(value) or value <= 0:
+                raise ValueError(f"{name} must be a number > 0, got {value!r}")
         if not self.rest_bpm < self.max_bpm:
             raise ValueError(f"rest_bpm ({self.rest_bpm:g}) must be below max_bpm ({self.max_bpm:g})")
         if self.drift_fraction > 0 and not self.drift_time_constant_s > self.time_constant_s:
