@@ -101,11 +101,10 @@ import numpy as np
 from bike_plant.mechanics import VIRTUAL_GEAR_MAX, VIRTUAL_GEAR_MIN, virtual_gear_problem  # noqa: F401
 from bike_plant.heart import HeartParams, heart_rate_target_problem
 from bike_plant.mechanics import friction_torque_nm, road_problem
-from bike_plant.params import MechParams
+from bike_plant.params import RPM_PER_RAD_S, MechParams
 
 from .heart_erg import HeartRateErg
 from .spindown import COAST, DONE, FAILED, SpinDown, SpinDownParams
-from .torque_command import RPM_PER_RAD_S, torque_command_nm
 
 MODE_RESISTANCE = 0
 MODE_MOTORING = 1
@@ -255,6 +254,10 @@ class ModeLaw:
                  pmax_w: float, base_speed_rpm: float, friction_nms: float = 0.0,
                  dry_friction_nm: float = 0.0, dry_friction_speed_rpm: float = 1.0,
                  brake_envelope: tuple | None = None):
+        # Eq. 2-5 is a numba kernel: imported by the law only, so that the session node, which
+        # reads ModeParams' figures, does not load numba and its code generator
+        from .torque_command import torque_command_nm
+        self._torque_command_nm = torque_command_nm
         self.mp = mp
         # (motor r/min grid, N m): the strongest steady brake of the machine's braking path,
         # when it is weaker than Tmax / Pmax somewhere (None: Eq. 3-4 is the envelope)
@@ -505,7 +508,7 @@ class ModeLaw:
         cadence_rpm = w * RPM_PER_RAD_S / self.gear_ratio
         v = w * self.mps_per_rad_s
         if mode == MODE_RESISTANCE:
-            t = torque_command_nm(command, w * RPM_PER_RAD_S, self.tmax_nm, self.base_speed_rpm, self.pmax_w)
+            t = self._torque_command_nm(command, w * RPM_PER_RAD_S, self.tmax_nm, self.base_speed_rpm, self.pmax_w)
             if self.envelope_rpm is not None:
                 # C times the lower of Eq. 3-4 and the envelope (both linear in C)
                 t = min(t, command * self.brake_cap_nm(w))
