@@ -667,7 +667,7 @@ class PlantNode(Node):
         # linger would have closed the writer: wait for its acknowledgment, up to
         # END_ACK_TIMEOUT_S, spinning in between (a Ctrl-C still ends it). The linger after
         # that is short (0.1 s): every reliable reader has the state by then, and a best-effort
-        # one got it when it was written or never will (0.5 s cost each recorded run 0.4 s).
+        # one got it when it was written or never will (0.5 s made every run 0.4 s longer).
         acked_by = time.monotonic() + max(self.end_linger_s, END_ACK_TIMEOUT_S)
         while not self.stop_requested and time.monotonic() < acked_by:
             if self.pub_state.wait_for_all_acked(Duration(seconds=0.05)):

@@ -179,8 +179,10 @@ def _units(cfg: dict | None):
 def live_qos(depth: int = 1):
     """live_command's QoS: reliable and transient local, so that a target written before the
     session matched (an app connected at start-up, a restarted session) still reaches it; the
-    writer keeps its latest (depth 1), the session reads with depth 10 so that targets
-    written close together are all taken. A writer of its own must be transient local too
+    writer keeps its latest (depth 1), the session reads with depth 100 so that targets
+    written close together are all taken, also when a writer of a deeper history (a script,
+    a test) matched this reader only after writing them: they then arrive as one burst (10
+    kept 10 of a fuzz test's 40 when the session's side of the match came 0.4 s late). A writer of its own must be transient local too
     (`ros2 topic pub --qos-durability transient_local ...`): DDS does not match a volatile
     writer with this reader."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -271,7 +273,7 @@ def _make_node_class():
             # live Commands (_on_live_command) and ERG bumps (_bump_erg): from tau index
             # live_from_j[k] on, live_targets[k] = (command, mode, label, until tau index, road, cadence,
             # heart rate)
-            self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos(10))
+            self.sub_live = self.create_subscription(Command, "live_command", self._on_live_command, live_qos(100))
             self.live_from_j: list[int] = []
             self.live_targets: list[tuple[float, int, str, int, tuple | None, float, float]] = []
             self.live_commands = 0
