@@ -545,11 +545,12 @@ def test_the_emulated_rider_follows_the_trainers_instructions_and_a_spin_down_wo
     stops = [m for m in read_topic(bag, "drive_command") if m.rider_stops_pedalling]
     assert stops and all(4.0 < t(m) < 10.0 for m in stops)
     # his chest strap (--heart-rate-topic, once a second) reaches the PlantState through the plant
-    # node: a heart rate once discovery has matched the strap's writer (1-3.5 s of the ride seen),
-    # above rest, and higher at the end
+    # node: a heart rate once discovery has matched the strap's writer (from t = 0, at rest, since
+    # participants announce themselves every 0.5 s; 1-3.5 s into the ride before), never below
+    # rest, and higher at the end
     beats = [(t(m), m.heart_rate_bpm) for m in states if m.heart_rate_bpm > 0.0]
     assert beats and beats[0][0] < 6.0, beats[:3]
-    assert min(b for _, b in beats) > 60.0 and beats[-1][1] > beats[0][1] + 1.0, (beats[0], beats[-1])
+    assert min(b for _, b in beats) >= 60.0 and beats[-1][1] > beats[0][1] + 1.0, (beats[0], beats[-1])
     status = read_topic(bag, "controller_status")
     w = 80.0 * 4.0 / (60.0 / (2.0 * 3.141592653589793))        # 80 rpm at the crank, motor rad/s
     learnt = status[-1].friction_nms * w + status[-1].dry_friction_nm
