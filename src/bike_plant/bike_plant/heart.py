@@ -122,15 +122,14 @@ class HeartParams:
 class HeartRate:
     """The model above, stepped once per batch with the batch's mean power."""
 
-    def __init__(self, params: HeartParams, bpm0: float | None = None):
+    def __init__(self, params: HeartParams):
         params.validate()
         self.params = params
-        self.x_bpm = min(max(float(params.rest_bpm if bpm0 is None else bpm0) - params.rest_bpm, 0.0),
-                         params.max_bpm - params.rest_bpm)
+        self.x_bpm = 0.0              # at rest
         self.drift_bpm = 0.0
-        self.bpm = self._bpm()
 
-    def _bpm(self) -> float:
+    @property
+    def bpm(self) -> float:
         p = self.params
         return p.rest_bpm + min(self.x_bpm + self.drift_bpm, p.max_bpm - p.rest_bpm)
 
@@ -151,7 +150,6 @@ class HeartRate:
                 d = settled + b * e_x + (self.drift_bpm - settled - b) * math.exp(-dt_s / p.drift_time_constant_s)
                 self.drift_bpm = max(d, 0.0)
             self.x_bpm = min(max(target + a * e_x, 0.0), p.max_bpm - p.rest_bpm)
-            self.bpm = self._bpm()
         return self.bpm
 
 

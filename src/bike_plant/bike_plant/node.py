@@ -67,8 +67,8 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv, shm_ports
 from .config import ConfigError
-from .heart import heart_rate_reading_problem
 from .config import number_param as _number
+from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports)
 from .memory import release_clean_library_pages

@@ -182,9 +182,9 @@ def live_qos(depth: int = 1):
     writer keeps its latest (depth 1), the session reads with depth 100 so that targets
     written close together are all taken, also when a writer of a deeper history (a script,
     a test) matched this reader only after writing them: they then arrive as one burst (10
-    kept 10 of a fuzz test's 40 when the session's side of the match came 0.4 s late). A writer of its own must be transient local too
-    (`ros2 topic pub --qos-durability transient_local ...`): DDS does not match a volatile
-    writer with this reader."""
+    kept 10 of a fuzz test's 40 when the session's side of the match came 0.4 s late). A
+    writer of its own must be transient local too (`ros2 topic pub --qos-durability
+    transient_local ...`): DDS does not match a volatile writer with this reader."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
