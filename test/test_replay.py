@@ -5,7 +5,7 @@ import pathlib
 import pytest
 import yaml
 
-from conftest import bike_command
+from conftest import FAST_BATCHES, bike_command
 
 from bike_session.bags import read_topic
 from bike_session.replay import command_timeline
@@ -137,7 +137,7 @@ def test_a_profiles_road_brakes_in_the_graph_is_recorded_and_replays(tmp_path, r
     prof.write_text(yaml.safe_dump({"name": "windy", "mode": "slope", "segments": [
         {"kind": "step", "duration_s": 8, "target": 3},
         {"kind": "step", "duration_s": 8, "target": 3, "road": dict(zip(("crr", "cw_kg_m", "wind_mps"), road))}]}))
-    res = bike_command("run", "--workout", str(prof), "--record", str(tmp_path / "orig"))
+    res = bike_command("run", "--workout", str(prof), "--record", str(tmp_path / "orig"), *FAST_BATCHES)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     orig = _bag_in(tmp_path / "orig")
     timeline = command_timeline(orig)[0]

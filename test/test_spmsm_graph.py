@@ -27,6 +27,11 @@ segments:
 """
 
 
+# 5 ms batches (5 speed-loop periods), not the default 1 ms: the ride runs about 3x faster
+# (conftest.FAST_BATCHES); the default N is ridden by the app's spin-down over FTMS (test_ftms_graph)
+SPMSM_BATCH_PERIODS = 50
+
+
 def _bike_config(tmp_path: pathlib.Path, family: str) -> pathlib.Path:
     doc = yaml.safe_load((ROOT / "config" / "spmsm_default.yaml").read_text())
     params = doc["/**"]["ros__parameters"]
@@ -35,6 +40,7 @@ def _bike_config(tmp_path: pathlib.Path, family: str) -> pathlib.Path:
     params["load"].update(kind="rider", gear_ratio=4.0)
     params["mechanics"]["speed0_rpm"] = 240.0
     params["controller"]["family"] = family
+    params["batch_periods"] = SPMSM_BATCH_PERIODS
     # road load without the virtual bike's mass: the downhill assist shows within 2 s
     params["modes"] = dict(params.get("modes") or {}, virtual_inertia=False)
     path = tmp_path / f"spmsm_{family}.yaml"
@@ -54,7 +60,7 @@ def test_spmsm_session_in_the_node_graph_and_replay_with_pi(tmp_path, ros_domain
     bag = next(p for p in (tmp_path / "pred").iterdir() if p.is_dir())
     states = read_topic(bag, "plant_state")
     status = read_topic(bag, "controller_status")
-    assert states[0].machine == "spmsm" and len(states) >= 10999
+    assert states[0].machine == "spmsm" and len(states) >= 11.0 / (SPMSM_BATCH_PERIODS * 1e-4) - 1
     assert {s.family for s in status} == {"predictive"}
     # braking through the rectifier + buck path, isokinetic through the inverter (paper 001, Fig. 2)
     assert np.mean([m.relay_state for m in _window(states, 1.0, 2.0)]) == pytest.approx(1.0)

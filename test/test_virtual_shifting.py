@@ -12,7 +12,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rosgraph_msgs.msg import Clock
 
-from conftest import bike_command
+from conftest import FAST_BATCHES, bike_command
 from node_harness import domain  # noqa: F401
 
 from bike_session.bags import read_topic, stamp_s
@@ -34,7 +34,7 @@ def test_a_shifter_and_the_profile_shift_the_virtual_bike_in_the_node_graph(tmp_
     profile.write_text(PROFILE)
     record = tmp_path / "rec"
     run = threading.Thread(target=lambda: done.update(r=bike_command(
-        "run", "--workout", str(profile), "--record", str(record))))
+        "run", "--workout", str(profile), "--record", str(record), *FAST_BATCHES)))
     run.start()
     context = rclpy.Context()
     rclpy.init(context=context)
@@ -187,7 +187,7 @@ def test_auto_shift_in_the_node_graph_shifts_down_on_a_climb_and_the_report_coun
     profile = tmp_path / "climb.yaml"
     profile.write_text(CLIMB_PROFILE)
     result = bike_command("run", "--set", "modes.auto_shift=true", "--workout", str(profile),
-                          "--record", str(tmp_path / "rec"))
+                          "--record", str(tmp_path / "rec"), *FAST_BATCHES)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     bag = next((tmp_path / "rec").iterdir())
     assert {c.virtual_gear_ratio for c in read_topic(bag, "command")} == {0.0}
