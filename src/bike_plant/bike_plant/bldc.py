@@ -227,6 +227,27 @@ def blank_interlock(gates):
     return g, (both & 1) + ((both >> 2) & 1) + ((both >> 4) & 1)
 
 
+@njit(**JIT_HOT)
+def gate_split_check(ga, gb, sp, gate_limit):  # pragma: no cover - compiled
+    """A DriveCommand's arrays in one pass (bike_plant.msgconv.drive_command_problem, every
+    batch): 0 valid; 1 / 2 a gates_a / gates_b value >= gate_limit; 3 a non-finite split; 4 a
+    split outside [0, 1] (3 wins over 4, as the messages order them)."""
+    for i in range(ga.shape[0]):
+        if ga[i] >= gate_limit:
+            return 1
+    for i in range(gb.shape[0]):
+        if gb[i] >= gate_limit:
+            return 2
+    out = 0
+    for i in range(sp.shape[0]):
+        x = sp[i]
+        if not np.isfinite(x):
+            return 3
+        if x < 0.0 or x > 1.0:
+            out = 4
+    return out
+
+
 @njit(**JIT)
 def _solve(cur, co, wi, vdc, ws, t):
     """Crank-Nicolson step of the conducting legs (wi[x] > 0) from cur[co:co+3] into

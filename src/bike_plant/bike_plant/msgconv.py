@@ -13,13 +13,11 @@ import math
 import struct
 
 import numpy as np
-from numba import njit
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState
 from builtin_interfaces.msg import Time
 
 from .cdr import CdrError as CdrError  # re-exported: the nodes catch it
 from .cdr import Codec
-from .jit import JIT_HOT
 from .heart import heart_rate_command_problem
 from .mechanics import rider_cadence_problem, road_problem, virtual_gear_problem
 
@@ -307,29 +305,12 @@ def _drive_scalars_problem(msg) -> str | None:
     return None
 
 
-@njit(**JIT_HOT)
-def _gate_split_check(ga, gb, sp, gate_limit):  # pragma: no cover - compiled
-    """One pass over a BLDC batch: 0 valid; 1 / 2 a gates_a / gates_b value >= gate_limit;
-    3 a non-finite split; 4 a split outside [0, 1] (3 wins over 4, as the messages order them)."""
-    for i in range(ga.shape[0]):
-        if ga[i] >= gate_limit:
-            return 1
-    for i in range(gb.shape[0]):
-        if gb[i] >= gate_limit:
-            return 2
-    out = 0
-    for i in range(sp.shape[0]):
-        x = sp[i]
-        if not np.isfinite(x):
-            return 3
-        if x < 0.0 or x > 1.0:
-            out = 4
-    return out
-
-
 def drive_command_problem(msg: DriveCommand, batch_periods: int) -> str | None:
     """Why a (BLDC) DriveCommand cannot be applied (None: it can). Never raises. One compiled
     pass checks the arrays (the plant runs this on every batch); numpy words the problem."""
+    # the check is a numba kernel: imported here, so that the session and FTMS nodes (which use
+    # this module's other conversions) never load numba, 0.4 s of CPU at the run's start
+    from .bldc import gate_split_check
     try:
         n = int(batch_periods)
         for name in ("gates_a", "gates_b", "split"):
@@ -338,7 +319,7 @@ def drive_command_problem(msg: DriveCommand, batch_periods: int) -> str | None:
         ga = np.frombuffer(msg.gates_a, dtype=np.uint8) if n else np.zeros(0, np.uint8)
         gb = np.frombuffer(msg.gates_b, dtype=np.uint8) if n else np.zeros(0, np.uint8)
         sp = np.frombuffer(msg.split, dtype=np.float32) if n else np.zeros(0, np.float32)
-        code = _gate_split_check(ga, gb, sp, GATE_LIMIT)
+        code = gate_split_check(ga, gb, sp, GATE_LIMIT)
         if code == 1:
             return f"gates_a holds {int(ga.max())} (gate values must be < {GATE_LIMIT})"
         if code == 2:
