@@ -51,12 +51,11 @@ from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, S
 from bike_plant import msgconv, shm_ports
 from bike_plant.config import ConfigError, number_param
 from bike_plant.loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
-                             recorder_reads)
+                             recorder_reads, take_sim_time_from_messages)
 from bike_plant.node import run_loop_node, warm_up_kernels
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
 from .modes import MODE_NAMES, MODE_SPINDOWN
 
@@ -120,8 +119,7 @@ class ControllerNode(Node):
         self.n = self.ctrl.batch_periods
         # before the node joins the graph (see the plant's warm-up)
         warm_up_kernels(self.get_logger(), lambda: warm_up_law(self._make_law, cfg, self.machine, self.n))
-        # Time comes from PlantState stamps; following /clock would only add a callback per batch.
-        self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
+        take_sim_time_from_messages(self)
 
         self.pub_drive = self.create_publisher(DriveCommand, "drive_command", LOOP_QOS)
         self.pub_status = self.create_publisher(ControllerStatus, "controller_status", LOOP_QOS)

@@ -33,6 +33,16 @@ REALTIME_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability
 LOCKSTEP_BUSY_WAIT_S = 0.001
 
 
+def take_sim_time_from_messages(node) -> None:
+    """use_sim_time off for a node of the graph. Each one takes sim time from what it reads (the
+    plant is the clock; the controller, PlantState stamps; the session and the recorder, /clock
+    through a reader of their own). rclpy's time source, which the configs' use_sim_time: true
+    turns on, would add a second /clock reader to the node: one more delivery of every /clock,
+    which the plant publishes inside the lockstep loop (every batch from N = 200 on)."""
+    from rclpy.parameter import Parameter
+    node.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
+
+
 def loop_reader_qos(sync_mode: str) -> QoSProfile:
     """QoS of a loop subscription: every sample in lockstep, the newest in realtime."""
     return REALTIME_QOS if sync_mode == "realtime" else LOOP_QOS

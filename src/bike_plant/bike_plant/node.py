@@ -59,7 +59,6 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
@@ -70,7 +69,7 @@ from .config import ConfigError
 from .config import number_param as _number
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
-                   recorder_progress, recorder_reads, start_over_on_fresh_ports)
+                   recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
 from .memory import release_clean_library_pages
 
 # the start-up wait for a recorder: matching its reader took ~3 s on a loaded 2-core machine,
@@ -337,9 +336,8 @@ class PlantNode(Node):
             # before the node joins the graph: a compile inside the run held its first batches
             # for ~30 s and made the controller report a stopped plant
             warm_up_kernels(self.get_logger(), lambda: self.backend.warm_up(self.n))
-        # The plant is the clock source: it does not follow /clock itself (that would also
-        # cost one extra callback per batch). Its stamps are the model's time.
-        self.set_parameters([Parameter("use_sim_time", Parameter.Type.BOOL, False)])
+        # The plant is the clock source: its stamps are the model's time.
+        take_sim_time_from_messages(self)
 
         self.pub_clock = self.create_publisher(Clock, "/clock", LOOP_QOS)
         self.pub_state = self.create_publisher(PlantState, "plant_state", LOOP_QOS)

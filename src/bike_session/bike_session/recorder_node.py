@@ -276,9 +276,12 @@ def _make_node_class():
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+    from bike_plant.loop import take_sim_time_from_messages
+
     class RecorderNode(Node):
         def __init__(self, **kwargs):
             super().__init__("recorder", **kwargs)
+            take_sim_time_from_messages(self)
             record_dir = self.declare_parameter("record_dir", ".").value
             bag_name = self.declare_parameter("bag_name", "").value or default_bag_name()
             storage = self.declare_parameter("storage", "mcap").value

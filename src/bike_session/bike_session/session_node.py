@@ -197,6 +197,7 @@ def _make_node_class():
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     from bike_msgs.msg import Command, SessionStatus
+    from bike_plant.loop import take_sim_time_from_messages
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from rosgraph_msgs.msg import Clock
     from std_msgs.msg import Int8, String
@@ -261,6 +262,7 @@ def _make_node_class():
             self.pub_info = self.create_publisher(String, "session_info", latched)
             self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
             self.sub_clock = self.create_subscription(Clock, "/clock", self._on_clock, clock_qos)
+            take_sim_time_from_messages(self)
             # virtual shifting: +n / -n gears through the config's modes.virtual_gears
             modes = _mode_params(cfg)
             self.config_gear = modes.virtual_gear_ratio
