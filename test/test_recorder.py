@@ -131,7 +131,8 @@ def test_session_and_recorder_processes(tmp_path, ros_domain, procs):
     config.write_text(CONFIG)
     record_dir = tmp_path / "runs"
 
-    recorder = Proc("recorder_node", ["-p", f"record_dir:={record_dir}", "-p", "bag_name:=bag"], tmp_path)
+    recorder = Proc("recorder_node", ["--params-file", str(config), "-p", f"record_dir:={record_dir}",
+                                      "-p", "bag_name:=bag"], tmp_path)
     procs.append(recorder)
     session = Proc("session_node", ["--params-file", str(config), "-p", f"config_path:={config}"], tmp_path)
     procs.append(session)
@@ -174,6 +175,10 @@ def test_session_and_recorder_processes(tmp_path, ros_domain, procs):
         # discovery saw the subscriptions it made: ci16 read nothing yet)
         assert wait_for(lambda: recorder.out().startswith(f"bag: {record_dir / 'bag'}"), 10.0), \
             (recorder.out()[-500:], recorder.err()[-2000:])
+        # one /clock reader each, their own, although the config says use_sim_time: true (rclpy's
+        # time source would add a second one to each, and the plant delivers every /clock to it)
+        spin(0.5)
+        assert pub_clock.get_subscription_count() == 2
 
         for name, pub in others.items():
             msg = pub.msg_type()
