@@ -30,7 +30,7 @@ from bike_plant import bldc as K
 from bike_plant import jit as _jit
 from bike_plant import params as P
 from bike_plant.config import ConfigError, build_dataclass, require_positive, section
-from bike_plant.jit import JIT, JIT_INLINE
+from bike_plant.jit import JIT, JIT_INLINE, unlikely
 
 from . import speed_estimator as _se
 from . import torque_command as _tc
@@ -268,6 +268,20 @@ def _edge_needed(q, icmd, on, i_fb, i_end, scale):
 
 
 @njit(**JIT_INLINE)
+def _clamp01(s):
+    """min(max(s, 0.0), 1.0), bit for bit (numba's max(s, 0.0) is 0.0 if 0.0 > s else s, so a
+    NaN passes, as here), as two branches that almost never apply: the edge fractions are
+    ratios of band distances inside [0, 1] but for round-off. min / max are selects, whose
+    latency lands on the period's serial chain (trial -> split -> plant step -> currents):
+    ~3 cycles per period."""
+    if unlikely(s < 0.0):
+        s = 0.0
+    if unlikely(s > 1.0):
+        s = 1.0
+    return s
+
+
+@njit(**JIT_INLINE)
 def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, scale):
     """The period's one switching edge where the prediction i_end (active pattern) crosses the
     band edge; i_other: the prediction with the other pattern for the whole period. Returns
@@ -285,14 +299,14 @@ def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, scale):
             if s_keep > s:
                 s = s_keep
         cs[C_ON] = 0.0
-        return on_pat, off_pat, min(max(s, 0.0), 1.0)
+        return on_pat, off_pat, _clamp01(s)
     s = (i_fb - lower) / (i_fb - i_end)
     if i_other > upper:
         s_keep = (i_other - upper) / (i_other - i_end)
         if s_keep > s:
             s = s_keep
     cs[C_ON] = 1.0
-    return off_pat, on_pat, min(max(s, 0.0), 1.0)
+    return off_pat, on_pat, _clamp01(s)
 
 
 @njit(**JIT_INLINE)
@@ -303,25 +317,31 @@ def control_period_sym(cs, q, model, p, c, ws, wi):
     K.NO_LEGS without an edge), which K.step_period_sym reuses: with a matched model the
     controller's prediction IS the plant's first step, and its second starts on the trial's
     line."""
-    emf = K.emf_sym(model, p)
+    return control_period_sym_i(cs, q, model, p, c, ws, wi, K.fast_state(model))
+
+
+@njit(**JIT_INLINE)
+def control_period_sym_i(cs, q, model, p, c, ws, wi, fs):
+    """control_period_sym from fs = K.fast_state(model) (the fused loop's values in registers)."""
+    i0, i1, i2, vdc, omega, theta_e = fs
+    # the speed bound first: its (rare) out-of-line update_command call then has no EMF values
+    # live across it to spill
     _bound_speed(cs, q, model, p)
+    emf = K.emf_sym_i(theta_e, omega, p)
     on_pat, off_pat = _sector_patterns(cs, model)
     icmd = cs[C_ICMD]
     if on_pat < 0 or icmd <= 0.0:
         cs[C_ON] = 0.0
         return 0, 0, 1.0, emf, K.NO_LEGS, K.NO_LEGS
-    i0 = model[K.S_IA]
-    i1 = model[K.S_IB]
-    i2 = model[K.S_IC]
     i_fb = abs(i0) + abs(i1) + abs(i2)        # 2 x the feedback: scale 2 below
     on = _comparator(cs, q, icmd, i_fb, 2.0)
     pat = on_pat if on else off_pat
-    vdc = model[K.S_VDC]
-    i_end, legs = K.trial_sym(model, pat, emf, K.legs_of(i0, i1, i2, pat, vdc, emf, c), c, ws, wi, False)
+    i_end, legs = K.trial_sym_i(i0, i1, i2, vdc, pat, emf, K.legs_of(i0, i1, i2, pat, vdc, emf, c), c, ws, wi,
+                                False)
     if _edge_needed(q, icmd, on, i_fb, i_end, 2.0):
         other = off_pat if on else on_pat
-        i_other, legs_o = K.trial_sym(model, other, emf, K.legs_of(i0, i1, i2, other, vdc, emf, c), c, ws, wi,
-                                      True)
+        i_other, legs_o = K.trial_sym_i(i0, i1, i2, vdc, other, emf, K.legs_of(i0, i1, i2, other, vdc, emf, c), c,
+                                        ws, wi, True)
         a, b, s = _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, 2.0)
         return a, b, s, emf, legs, legs_o
     cs[C_ON] = 1.0 if on else 0.0
@@ -334,16 +354,29 @@ def closed_loop_period(cs, q, model, p, c, ws, wi, edge_counts, edge_states):
     run_fused the plant itself), Hall edges fed back to Eq. 1. Returns (gates_a, gates_b,
     split) as sent to the plant."""
     if c[K.KC_SYM] != 0.0:
-        a, b, s, emf, legs_a, legs_b = control_period_sym(cs, q, model, p, c, ws, wi)
-        s = np.float64(np.float32(s))    # DriveCommand carries split as float32: predict what the plant gets
-        ne = K.step_period_sym(model, p, c, a, b, s, emf, legs_a, legs_b, edge_counts, edge_states, 0, ws, wi)
-    else:
-        a, b, s = control_period(cs, q, model, p, ws, wi)
-        s = np.float64(np.float32(s))
-        ne = K.step_period(model, p, c, a, b, s, edge_counts, edge_states, 0, ws, wi, True)
+        a, b, s, _fs = closed_loop_period_sym(cs, q, model, p, c, ws, wi, edge_counts, edge_states,
+                                              K.fast_state(model))
+        return a, b, s
+    a, b, s = control_period(cs, q, model, p, ws, wi)
+    s = np.float64(np.float32(s))
+    ne = K.step_period(model, p, c, a, b, s, edge_counts, edge_states, 0, ws, wi, True)
     for j in range(ne):
         process_edge(cs, q, float(edge_counts[j]))
     return a, b, s
+
+
+@njit(**JIT_INLINE)
+def closed_loop_period_sym(cs, q, model, p, c, ws, wi, edge_counts, edge_states, fs):
+    """closed_loop_period for the symmetric machine from fs = K.fast_state(model). Returns
+    (gates_a, gates_b, split, fs) with fs the fast state after the period (as stored in
+    model): run_fused carries it to the next period in registers, so its serial chains
+    (currents -> trial -> edge -> step -> currents; v_dc, angle) have no store and reload."""
+    a, b, s, emf, legs_a, legs_b = control_period_sym_i(cs, q, model, p, c, ws, wi, fs)
+    s = np.float64(np.float32(s))    # DriveCommand carries split as float32: predict what the plant gets
+    ne, fs = K.step_period_sym_i(model, p, c, fs, a, b, s, emf, legs_a, legs_b, edge_counts, edge_states, 0, ws, wi)
+    for j in range(ne):
+        process_edge(cs, q, float(edge_counts[j]))
+    return a, b, s, fs
 
 
 @njit(**JIT)
@@ -373,8 +406,15 @@ def run_fused(plant, p, cs, q, n, samples, rec_every, tem_out):
     # the next recorded period (k = r * rec_every): one compare per period, not a modulo
     next_rec = 0 if rec_every > 0 else -1
     r = 0
+    sym = c[K.KC_SYM] != 0.0
+    # symmetric machine: the fast state (currents, v_dc, speed, angle) goes from one period to
+    # the next in registers (closed_loop_period_sym returns what it stores in plant)
+    fs = K.fast_state(plant)
     for k in range(n):
-        closed_loop_period(cs, q, plant, p, c, ws, wi, ec, es)
+        if sym:
+            _a, _b, _s, fs = closed_loop_period_sym(cs, q, plant, p, c, ws, wi, ec, es, fs)
+        else:
+            closed_loop_period(cs, q, plant, p, c, ws, wi, ec, es)
         if k == next_rec:
             if r < samples.shape[0]:
                 samples[r, 0] = plant[0]

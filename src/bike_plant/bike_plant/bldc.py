@@ -706,8 +706,13 @@ def plant_constants(p):
 def emf_sym(state, p):
     """period_setup's back-EMF as scalars (f_a, f_b, f_c, e_a, e_b, e_c): shape and
     e_x = kph w f_x at the mid-period angle, held for the period."""
-    omega = state[S_OMEGA]
-    th_mid = state[S_THETA_E] + 0.5 * p[P.P_POLE_PAIRS] * omega * p[P.P_DT]
+    return emf_sym_i(state[S_THETA_E], state[S_OMEGA], p)
+
+
+@njit(**JIT_INLINE)
+def emf_sym_i(theta_e, omega, p):
+    """emf_sym at the state's angle theta_e and speed omega."""
+    th_mid = theta_e + 0.5 * p[P.P_POLE_PAIRS] * omega * p[P.P_DT]
     f0, f1, f2 = emf_f3(th_mid, omega, p)
     kw = p[P.P_KPH] * omega
     return f0, f1, f2, kw * f0, kw * f1, kw * f2
@@ -927,9 +932,13 @@ def trial_sym(state, gates, emf, legs, c, ws, wi, hold_at_zero):
     within 1e-5 A of the exact split (currents summing to ~100 A; test_bldc_controller).
     The controller uses it for the other pattern's trial, which only guards the edge's
     earliest place, and saves the split's divisions and second bridge solution."""
-    i0 = state[S_IA]
-    i1 = state[S_IB]
-    i2 = state[S_IC]
+    return trial_sym_i(state[S_IA], state[S_IB], state[S_IC], state[S_VDC], gates, emf, legs, c, ws, wi,
+                       hold_at_zero)
+
+
+@njit(**JIT_INLINE)
+def trial_sym_i(i0, i1, i2, vdc, gates, emf, legs, c, ws, wi, hold_at_zero):
+    """trial_sym from the currents i0, i1, i2 and v_dc of the state (fast_state)."""
     if legs[1] and legs[0] == gates:
         g = c[KC_G_DT]
         j0 = i0 + g * legs[5]
@@ -941,7 +950,7 @@ def trial_sym(state, gates, emf, legs, c, ws, wi, hold_at_zero):
                     (legs[0], legs[1], legs[2], legs[3], legs[4], legs[5], legs[6], legs[7], True))
         if hold_at_zero:
             return (0.0 if x0 else abs(j0)) + (0.0 if x1 else abs(j1)) + (0.0 if x2 else abs(j2)), legs
-    j0, j1, j2, _a1, _a2, _a3, _a4 = sym_segment(ws, W_TRIAL, i0, i1, i2, gates, c[KC_DT], state[S_VDC], emf,
+    j0, j1, j2, _a1, _a2, _a3, _a4 = sym_segment(ws, W_TRIAL, i0, i1, i2, gates, c[KC_DT], vdc, emf,
                                                  legs, c, False, 0.0, 0.0, 0.0, 0.0, ws, wi)
     return abs(j0) + abs(j1) + abs(j2), legs
 
@@ -958,7 +967,7 @@ def _overcurrent_trip(state):
 
 
 @njit(**JIT_INLINE)
-def _interlock_and_split(state, p, gates_a, gates_b, split):
+def _interlock_and_split(state, p, gates_a, gates_b, split, i0, i1, i2):
     """Interlock (blank shorted legs, count, fault), the overcurrent trip and the clamped
     split of one period.
 
@@ -968,7 +977,8 @@ def _interlock_and_split(state, p, gates_a, gates_b, split):
     link, so it decays), S_OC_TRIPS counts the period and FAULT_OVERCURRENT is set. The
     check runs once per period, so a current can pass the trip by at most one period of
     rise. The trip level sits above the controller's current_limit_a + hysteresis_a:
-    closed-loop operation with fresh gate decisions never reaches it."""
+    closed-loop operation with fresh gate decisions never reaches it. i0, i1, i2: the state's
+    phase currents."""
     ga = int(gates_a) & 63
     gb = int(gates_b) & 63
     if ((ga & (ga >> 1)) | (gb & (gb >> 1))) & 0b010101:      # some leg has both switches on (rare)
@@ -976,7 +986,7 @@ def _interlock_and_split(state, p, gates_a, gates_b, split):
         gb, nbb = blank_interlock(gb)
         state[S_INTERLOCK] += nba + nbb
         state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_INTERLOCK
-    if max(abs(state[S_IA]), abs(state[S_IB]), abs(state[S_IC])) > p[P.P_OC_TRIP]:
+    if max(abs(i0), abs(i1), abs(i2)) > p[P.P_OC_TRIP]:
         ga = _overcurrent_trip(state)
         gb = ga
     s = split
@@ -1007,12 +1017,28 @@ def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, legs_b, e
     legs_of(state currents, interlock-applied gates_a / gates_b, ...) if the controller
     already computed them (its trials), else NO_LEGS. The second segment starts from the
     first one's currents with legs_b carried there (legs_moved). Returns n_edges."""
-    ga, gb, s = _interlock_and_split(state, p, gates_a, gates_b, split)
+    n_edges, _fs = step_period_sym_i(state, p, c, fast_state(state), gates_a, gates_b, split, emf, legs_a, legs_b,
+                                     edge_counts, edge_states, n_edges, ws, wi)
+    return n_edges
+
+
+@njit(**JIT_INLINE)
+def fast_state(state):
+    """(i_a, i_b, i_c, v_dc, omega, theta_e) of the state vector: what one period hands the
+    next along its serial chains (currents, DC bus, shaft, angle). The fused loop keeps it in
+    registers (step_period_sym_i returns the next one), so the next period does not wait on
+    a store and reload of values just computed."""
+    return (state[S_IA], state[S_IB], state[S_IC], state[S_VDC], state[S_OMEGA], state[S_THETA_E])
+
+
+@njit(**JIT_INLINE)
+def step_period_sym_i(state, p, c, fs, gates_a, gates_b, split, emf, legs_a, legs_b, edge_counts, edge_states,
+                      n_edges, ws, wi):
+    """step_period_sym from fs = fast_state(state). Returns (n_edges, fast_state(state)) after
+    the period (the values it stored)."""
+    i0, i1, i2, vdc, omega, theta_e = fs
+    ga, gb, s = _interlock_and_split(state, p, gates_a, gates_b, split, i0, i1, i2)
     dt = c[KC_DT]
-    vdc = state[S_VDC]
-    i0 = state[S_IA]
-    i1 = state[S_IB]
-    i2 = state[S_IC]
     a1 = 0.0
     a2 = 0.0
     a3 = 0.0
@@ -1040,7 +1066,9 @@ def step_period_sym(state, p, c, gates_a, gates_b, split, emf, legs_a, legs_b, e
     state[S_IB] = i1
     state[S_IC] = i2
     # conversion sum(e_x i_x) dt = w sum(kph f_x i_x) dt = w T dt (e_x = kph w f_x, dL = 0)
-    return period_tail(state, p, c, a1, a2, state[S_OMEGA] * a4, a4, edge_counts, edge_states, n_edges)
+    n_edges, vdc, omega, theta_e = period_tail_i(state, p, c, omega, theta_e, vdc, a1, a2, omega * a4, a4,
+                                                 edge_counts, edge_states, n_edges)
+    return n_edges, (i0, i1, i2, vdc, omega, theta_e)
 
 
 @njit(**JIT)
@@ -1057,7 +1085,7 @@ def step_period(state, p, c, gates_a, gates_b, split, edge_counts, edge_states, 
     kph = c[KC_KPH]
     if not setup_done:
         period_setup(state, p, ws)
-    ga, gb, s = _interlock_and_split(state, p, gates_a, gates_b, split)
+    ga, gb, s = _interlock_and_split(state, p, gates_a, gates_b, split, state[S_IA], state[S_IB], state[S_IC])
     for k in range(5):
         ws[W_ACC + k] = 0.0
     vdc = state[S_VDC]
@@ -1088,11 +1116,17 @@ def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_st
     a_charge: charge DC node -> bridge [C] (negated bridge current integral), a_cu: copper
     loss [J], a_conv: electromechanical conversion [J], a_tdt: torque integral [N m s];
     state still holds the period's start angle, speed and v_dc. Returns n_edges."""
+    n_edges, _vdc, _w, _th = period_tail_i(state, p, c, state[S_OMEGA], state[S_THETA_E], state[S_VDC], a_charge, a_cu,
+                                           a_conv, a_tdt, edge_counts, edge_states, n_edges)
+    return n_edges
+
+
+@njit(**JIT_INLINE)
+def period_tail_i(state, p, c, omega, th0, vdc, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_states, n_edges):
+    """period_tail from the state's start speed omega, angle th0 and v_dc. Returns (n_edges,
+    v_dc, omega, theta_e) of the next period, as stored in the state."""
     dt = c[KC_DT]
-    omega = state[S_OMEGA]
-    th0 = state[S_THETA_E]
     we = c[KC_PP] * omega
-    vdc = state[S_VDC]
     t_em = a_tdt * c[KC_INV_DT]
 
     # ---- Hall edges (sector boundaries at 30 + 60 k deg), capture-timer quantised
@@ -1167,7 +1201,7 @@ def period_tail(state, p, c, a_charge, a_cu, a_conv, a_tdt, edge_counts, edge_st
         th1 = _wrap_angle(th1)
     state[S_THETA_E] = th1
     state[S_PERIODS] = periods + 1.0
-    return n_edges
+    return n_edges, vdc_next, w_new, th1
 
 
 @njit(**JIT)

@@ -9,13 +9,33 @@ JIT_HOT: per-period kernels that allocate nothing: no reference counting of thei
 arguments (numba's NRT would incref / decref each one with an atomic instruction per call).
 JIT_INLINE: ... and inlined into the fused loops (numba passes each array as 7 scalars; the
 per-period chain plant -> controller -> plant is otherwise call bound).
+unlikely(cond): cond, marked rarely true for LLVM (branch weights only, no change of value).
 """
 from __future__ import annotations
+
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 KERNEL_FASTMATH = {"contract", "arcp"}
 JIT = dict(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH)
 JIT_HOT = dict(JIT, _nrt=False)
 JIT_INLINE = dict(JIT_HOT, forceinline=True)
+
+
+@intrinsic
+def unlikely(typingctx, cond):
+    """cond (a bool) with llvm.expect(cond, false). A branch so marked stays a branch (LLVM
+    does not fold a predictable branch into a select): a clamp that almost never applies
+    then costs the value it guards no latency, where a select (min / max) adds its own."""
+    if not isinstance(cond, types.Boolean):
+        return None
+
+    def codegen(context, builder, signature, args):
+        i1 = ir.IntType(1)
+        fn = builder.module.declare_intrinsic("llvm.expect", [i1], ir.FunctionType(i1, [i1, i1]))
+        return builder.call(fn, [args[0], ir.Constant(i1, 0)])
+    return types.boolean(cond), codegen
 
 
 def numba_cache_dirs(module_file: str) -> list:
