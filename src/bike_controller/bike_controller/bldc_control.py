@@ -310,19 +310,13 @@ def _place_edge(cs, q, icmd, on, on_pat, off_pat, i_fb, i_end, i_other, scale):
 
 
 @njit(**JIT_INLINE)
-def control_period_sym(cs, q, model, p, c, ws, wi):
-    """control_period for the symmetric machine (c[K.KC_SYM] != 0), the currents in
-    registers. Returns (gates_a, gates_b, split, emf, legs_a, legs_b): emf the period's
-    back-EMF (K.emf_sym), legs_a / legs_b the trials' K.legs_of for gates_a / gates_b (legs_b
-    K.NO_LEGS without an edge), which K.step_period_sym reuses: with a matched model the
-    controller's prediction IS the plant's first step, and its second starts on the trial's
-    line."""
-    return control_period_sym_i(cs, q, model, p, c, ws, wi, K.fast_state(model))
-
-
-@njit(**JIT_INLINE)
-def control_period_sym_i(cs, q, model, p, c, ws, wi, fs):
-    """control_period_sym from fs = K.fast_state(model) (the fused loop's values in registers)."""
+def control_period_sym(cs, q, model, p, c, ws, wi, fs):
+    """control_period for the symmetric machine (c[K.KC_SYM] != 0), from fs =
+    K.fast_state(model): the currents, v_dc, speed and angle in registers. Returns (gates_a,
+    gates_b, split, emf, legs_a, legs_b): emf the period's back-EMF (K.emf_sym), legs_a /
+    legs_b the trials' K.legs_of for gates_a / gates_b (legs_b K.NO_LEGS without an edge),
+    which K.step_period_sym_i reuses: with a matched model the controller's prediction IS the
+    plant's first step, and its second starts on the trial's line."""
     i0, i1, i2, vdc, omega, theta_e = fs
     # the speed bound first: its (rare) out-of-line update_command call then has no EMF values
     # live across it to spill
@@ -371,7 +365,7 @@ def closed_loop_period_sym(cs, q, model, p, c, ws, wi, edge_counts, edge_states,
     (gates_a, gates_b, split, fs) with fs the fast state after the period (as stored in
     model): run_fused carries it to the next period in registers, so its serial chains
     (currents -> trial -> edge -> step -> currents; v_dc, angle) have no store and reload."""
-    a, b, s, emf, legs_a, legs_b = control_period_sym_i(cs, q, model, p, c, ws, wi, fs)
+    a, b, s, emf, legs_a, legs_b = control_period_sym(cs, q, model, p, c, ws, wi, fs)
     s = np.float64(np.float32(s))    # DriveCommand carries split as float32: predict what the plant gets
     ne, fs = K.step_period_sym_i(model, p, c, fs, a, b, s, emf, legs_a, legs_b, edge_counts, edge_states, 0, ws, wi)
     for j in range(ne):
