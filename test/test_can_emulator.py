@@ -160,6 +160,47 @@ def test_injected_faults_disarm_and_persist_through_clear_errors(params):
     assert fw.active_errors == drv
 
 
+def _signal_hammer(trials: int = 1500) -> None:
+    """Fire a real signal (SIGALRM -> inject_fault_soon) at a random moment while the emulator
+    spins on its check of the request, ``trials`` times; each must be followed by exactly one
+    injection by the next check."""
+    params = DriveModelParams.from_config(load_config(CONFIG))
+    bus = can.Bus(interface="virtual", channel=uuid.uuid4().hex)
+    emu = DriveEmulator(bus, DriveFirmware(AverageTorqueDrive(params), watchdog_timeout_s=0.0), 0)
+    injected = []
+    emu.firmware.inject_fault = lambda error, persist=0: injected.append(error)
+    emu.start(0.0)
+    fired = [0]
+
+    def handler(signum, frame):
+        fired[0] += 1
+        emu.inject_fault_soon()
+    signal.signal(signal.SIGALRM, handler)
+    rng = random.Random(7)
+    try:
+        for trial in range(trials):
+            signal.setitimer(signal.ITIMER_REAL, rng.uniform(20e-6, 300e-6))
+            while fired[0] == trial:
+                emu._faults_due(0.0)
+            emu._faults_due(0.0)                        # the check after the signal
+            assert len(injected) == trial + 1, f"signal {trial + 1} lost"
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        bus.shutdown()
+
+
+def test_a_fault_asked_for_by_a_signal_is_never_lost():
+    """SIGUSR1 (inject_fault_soon) can interrupt the emulator's tick anywhere, also inside its own
+    check of the request. With an Event's is_set() / clear() pair, 2 runs of _signal_hammer in 3
+    hung here on the Event's lock (the handler's set() inside clear()) and the third lost a
+    signal; a CI run lost one. In a child process, so that a hang is a failure, not a stuck suite."""
+    code = f"import sys; sys.path.insert(0, {str(ROOT / 'test')!r}); import test_can_emulator as t; t._signal_hammer()"
+    try:
+        result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=90)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the emulator hung on a signal asking for a fault")
+    assert result.returncode == 0, result.stdout + result.stderr
+
 # ---- plant physics: the bike_plant kernels behind the drive's own current loop
 def spmsm_drive(speed_rpm: float, load: str = "prime_mover", **kwargs) -> tuple[SpmsmPlantDrive, DriveFirmware]:
     """The SPMSM bike's drive (plant physics), armed in torque control."""

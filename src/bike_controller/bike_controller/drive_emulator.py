@@ -976,7 +976,11 @@ class DriveEmulator:
         self.fault_error = int(fault_error)
         self.fault_persist = int(fault_persist)
         self._fault_times = sorted(float(t) for t in fault_at_s)
-        self._fault_requested = threading.Event()     # inject_fault_soon(): from a signal handler
+        # inject_fault_soon() runs in a signal handler, between any two bytecodes of this
+        # thread: it only bumps a count, and the tick compares counts. An Event lost a request
+        # that came between its is_set() and clear(), or deadlocked on its lock inside clear().
+        self._fault_requests = 0
+        self._fault_requests_done = 0
         self._signal_ranges = {m.name: {s.name: (s.minimum, s.maximum, s.is_float) for s in m.signals}
                                for m in self.codec.db.messages}
 
@@ -992,12 +996,13 @@ class DriveEmulator:
 
     def inject_fault_soon(self) -> None:
         """Inject the configured fault at the next tick (safe to call from a signal handler)."""
-        self._fault_requested.set()
+        self._fault_requests += 1
 
     def _faults_due(self, now_s: float) -> None:
         elapsed = now_s - self._t0
-        due = self._fault_requested.is_set()
-        self._fault_requested.clear()
+        requests = self._fault_requests
+        due = requests != self._fault_requests_done
+        self._fault_requests_done = requests
         while self._fault_times and elapsed >= self._fault_times[0]:
             self._fault_times.pop(0)
             due = True
