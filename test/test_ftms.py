@@ -3,6 +3,7 @@ bytes of the characteristics, DIRCON framing and dispatch, the TCP server on rea
 (a broken stream closes only its own connection), and the telemetry an app is shown."""
 import dataclasses
 import math
+import os
 import socket
 import struct
 import time
@@ -426,6 +427,34 @@ def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer()
     assert dircon.host_addresses("10.1.2.3") == ["10.1.2.3"]
     assert all(not a.startswith("127.") for a in dircon.host_addresses("0.0.0.0")) or \
         dircon.host_addresses("0.0.0.0") == ["127.0.0.1"]
+
+
+def test_a_second_bike_of_the_same_name_is_advertised_as_name_2_and_both_are_found():
+    """Two testbeds with one namespace on a network: the second bike's name is taken, so it is
+    advertised as "bike twin-2" (mDNS's rename), says so, and an app finds both at their ports.
+    Before, the second registration failed (NonUniqueNameException): no advert at all."""
+    from zeroconf import IPVersion, Zeroconf
+    name = f"bike twin{os.getpid()}"
+    logs = []
+    first = dircon.Advertiser(name, ["127.0.0.1"], 36997, "bike-36997", lambda t, w: logs.append((t, w)))
+    second = app = None
+    try:
+        assert first.done.wait(20) and first.error is None and first.advertised_name == name, logs
+        second = dircon.Advertiser(name, ["127.0.0.1"], 36998, "bike-36998", lambda t, w: logs.append((t, w)))
+        assert second.done.wait(20) and second.error is None, logs
+        assert second.advertised_name == f"{name}-2", logs
+        assert (f"advertised as '{name}-2' ({dircon.MDNS_SERVICE} on 127.0.0.1); '{name}' is taken on this "
+                "network", True) in logs
+        app = Zeroconf(interfaces=["127.0.0.1"], ip_version=IPVersion.V4Only)
+        ports = [getattr(app.get_service_info(dircon.MDNS_SERVICE, f"{n}.{dircon.MDNS_SERVICE}", timeout=5000),
+                         "port", None) for n in (name, f"{name}-2")]
+        assert ports == [36997, 36998]
+    finally:
+        if app is not None:
+            app.close()
+        for adv in (second, first):
+            if adv is not None:
+                adv.close()
 
 
 def test_fuzzed_dircon_streams_and_control_point_writes_never_raise_anything_else():

@@ -296,7 +296,8 @@ class Advertiser:
     """The mDNS record apps look for (python-zeroconf): ``<name>._wahoo-fitness-tnp._tcp.local.``
     at ``address``:``port`` with the TXT keys a DIRCON trainer sends (ble-service-uuids,
     mac-address, serial-number). Registration probes the network for about 2 s, so it runs in
-    a thread of its own; ``done`` holds None or the error text when it is over."""
+    a thread of its own; when ``done`` is set, ``error`` is None or the error text and
+    ``advertised_name`` the name registered (``name``, or ``name-2``, ... if that was taken)."""
 
     def __init__(self, name: str, addresses: list[str], port: int, serial: str, log: Callable[[str, bool], None]):
         import threading
@@ -304,6 +305,7 @@ class Advertiser:
         self.zc = self.info = None
         self.done = threading.Event()
         self.error: str | None = None
+        self.advertised_name: str | None = None
         self.thread = threading.Thread(target=self._register, name="mdns", daemon=True)
         self.thread.start()
 
@@ -318,9 +320,14 @@ class Advertiser:
                 addresses=[socket.inet_aton(a) for a in self.addresses],
                 properties={"ble-service-uuids": "0x1826,0x1818", "serial-number": self.serial,
                             "mac-address": local_mac(self.serial)})
-            # the type's 17-byte name is longer than RFC 6335's 15: DIRCON's own, not ours to fix
-            self.zc.register_service(self.info, strict=False)
-            self.log(f"advertised as {self.name!r} ({MDNS_SERVICE} on {', '.join(self.addresses)})", False)
+            # the type's 17-byte name is longer than RFC 6335's 15: DIRCON's own, not ours to fix.
+            # A name another bike on the network holds (two testbeds, one namespace) becomes
+            # "<name>-2", ... as mDNS does it: both stay findable, this one under the name logged
+            self.zc.register_service(self.info, allow_name_change=True, strict=False)
+            self.advertised_name = self.info.name[:-len("." + MDNS_SERVICE)]
+            taken = "" if self.advertised_name == self.name else f"; {self.name!r} is taken on this network"
+            self.log(f"advertised as {self.advertised_name!r} ({MDNS_SERVICE} on {', '.join(self.addresses)}){taken}",
+                     bool(taken))
         except Exception as exc:  # noqa: BLE001 - no advert is a warning, the server still serves
             self.error = f"{type(exc).__name__}: {exc}"
             self.log(f"mDNS advertisement failed ({self.error}); apps must be given the address", True)
