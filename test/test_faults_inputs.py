@@ -330,6 +330,13 @@ def test_run_refuses_an_invalid_namespace(namespace):
     assert "--namespace" in line and "Invalid namespace" in line, line
 
 
+@pytest.mark.parametrize("namespace", ["a b", "9bike", "bike//x"])
+def test_shift_refuses_an_invalid_namespace(namespace):
+    """`./bike shift 1 --namespace 'a b'` ended in rclpy's InvalidTopicNameException (a traceback)."""
+    line = _one_error(_cli("shift", "1", "--domain", "7", "--namespace", namespace, timeout=60))
+    assert "--namespace" in line and "Invalid namespace" in line, line
+
+
 def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
     """An output path that cannot be made (under a regular file) or is a directory where a
     file goes: one error naming the option, exit 2, before the command runs (a bench or a
