@@ -532,6 +532,26 @@ def test_bike_trainer_refuses_a_road_or_cadence_the_ftms_fields_cannot_carry(tmp
         assert result.returncode == 2 and words in result.stderr, result.stderr
 
 
+@pytest.mark.parametrize("args,words", [
+    (["--power", "nan"], "--power nan outside [0, 32767] W"), (["--power", "40000"], "--power 40000 outside"),
+    (["--power", "-5"], "--power -5 outside"), (["--grade", "500"], "--grade 500 outside [-327.68, 327.67] %"),
+    (["--grade", "700", "--difficulty", "50"], "--grade 700 (sent as 350) outside"),
+    (["--level", "nan"], "--level nan outside [0, 3276.7]"), (["--level", "-1"], "--level -1 outside"),
+    (["--port", "70000", "--power", "100"], "--port must be 1..65535, got 70000"),
+    (["--port", "-1", "--power", "100"], "--port must be 1..65535, got -1")])
+def test_bike_trainer_refuses_a_target_or_port_the_fields_cannot_carry_before_connecting(args, words):
+    """--power / --grade / --level are written as sint16 fields: NaN or a value beyond the field
+    ended in a ValueError / struct.error traceback once connected (and, with no trainer there,
+    in "no trainer" rather than the bad value); a --port beyond 1..65535 was tried as one. One
+    error naming the option, exit 2, before connecting (--port 1: nothing listens there)."""
+    from conftest import bike_command
+
+    full = args if "--port" in args else ["--port", "1", *args]
+    result = bike_command("trainer", *full, timeout=60)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines) == 1 and words in lines[0], result.stderr
+
+
 def test_bike_trainer_sends_grades_as_zwift_does_at_a_trainer_difficulty():
     """Zwift's trainer difficulty (research notes, trainers.md section 3): the grade scaled by it,
     descents halved again (-10 % -> -2.5 % at 50 %); none given: the grade as it is. A profile's

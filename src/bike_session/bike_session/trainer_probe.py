@@ -29,6 +29,7 @@ not finish within --seconds; 2 bad arguments.
 """
 from __future__ import annotations
 
+import math
 import struct
 import sys
 import time
@@ -183,6 +184,26 @@ def simulation_road_problem(road, prefix: str = "--") -> str | None:
 
 
 CADENCE_FIELD_MAX_RPM = 0xFFFF / 2      # Set Targeted Cadence: uint16 in 0.5 rpm
+
+
+def target_problem(opts) -> str | None:
+    """Why --power / --grade (as sent, after --difficulty) / --level does not fit the sint16 field
+    it is written in (NaN and out-of-field values ended in a ValueError / struct.error traceback
+    after connecting), and why --port is no TCP port."""
+    if not 1 <= opts.port <= 65535:
+        return f"--port must be 1..65535, got {opts.port}"
+    fields = (("power", opts.power, opts.power, 1, 0.0, "W"),
+              ("grade", opts.grade, None if opts.grade is None else sent_grade_pct(opts.grade, opts.difficulty),
+               100, -327.68, "%"),
+              ("level", opts.level, opts.level, 10, 0.0, ""))
+    for name, given, sent, scale, lo, unit in fields:
+        if given is None:
+            continue
+        hi = 0x7FFF / scale
+        if not (math.isfinite(sent) and lo * scale <= round(sent * scale) <= 0x7FFF):
+            what = "" if sent is given or sent == given else f" (sent as {sent:g})"
+            return f"--{name} {given:g}{what} outside [{lo:g}, {hi:g}]{' ' + unit if unit else ''} (the FTMS field)"
+    return None
 
 
 def simulation_param(grade_pct: float, road=DEFAULT_ROAD) -> bytes:
@@ -373,6 +394,8 @@ def main(opts) -> int:
         problem = f"--difficulty {opts.difficulty:g} outside [0, 100] %"
     if problem is None and opts.cadence is not None and not 0.0 <= opts.cadence <= CADENCE_FIELD_MAX_RPM:
         problem = f"--cadence {opts.cadence:g} outside [0, {CADENCE_FIELD_MAX_RPM:g}] (the FTMS field)"
+    if problem is None:
+        problem = target_problem(opts)
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2
