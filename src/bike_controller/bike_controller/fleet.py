@@ -94,12 +94,20 @@ def _check_seconds(seconds) -> float:
     return float(seconds)
 
 
+def _check_seed(seed) -> int:
+    # numpy's default_rng said only "expected non-negative integer"
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    return int(seed)
+
+
 def make_fleet(cfg: dict, n_bikes: int, seed: int = 0, spread: bool = True) -> Fleet:
     """n_bikes rider bikes of config `cfg` (load kind forced to rider). With `spread`, each
     bike draws its own (seeded) start speed, resistance Command and rider: start 1500-3000
     rpm, Command 0.2-1.0 (Eq. 5, resistance mode), crank torque T0 80-200 N m, target
     cadence 70-95 rpm; without it every bike is the config's bike at Command 1."""
     n_bikes = _check_bikes(n_bikes)
+    seed = _check_seed(seed)
     cfg = dict(cfg)
     cfg["load"] = dict(cfg.get("load") or {}, kind="rider")
     plant = P.plant_params_from_config(cfg)
@@ -211,6 +219,7 @@ def fleet_real_time(n_bikes: int = 1000, seconds: float = 2.0, threads: int | No
 
     n_bikes = _check_bikes(n_bikes)
     seconds = _check_seconds(seconds)
+    seed = _check_seed(seed)
     cfg = load_config(cfg_path)
     used = set_threads(threads)
     t0 = time.perf_counter()

@@ -495,6 +495,10 @@ def _cmd_fleet(opts) -> int:
     if opts.netns:
         print("error: --netns places the nodes of a --graph fleet", file=sys.stderr)
         return 2
+    if opts.show < 0:
+        # it was taken as 0 without a word
+        print(f"error: --show must be >= 0 (bikes to print), got {opts.show}", file=sys.stderr)
+        return 2
     from bike_controller import fleet as F
     seconds = 2.0 if opts.seconds is None else opts.seconds
     try:
@@ -517,7 +521,7 @@ def _cmd_fleet(opts) -> int:
         a = agg[key]
         print(f"    {label:<22}{a['mean']:>11.4g}{a['min']:>11.4g}{a['max']:>11.4g}")
     print(f"    bikes with faults: {agg['bikes_with_faults']}")
-    shown = r["per_bike"][:max(opts.show, 0)]
+    shown = r["per_bike"][:opts.show]
     if shown:
         print(f"  first {len(shown)} bikes: command, rider T0 [N m], target cadence, mean cadence [rpm], rider W, battery W")
         for b in shown:

@@ -220,6 +220,10 @@ def run_graph(n_bikes: int, config: str, duration_s: float, placement: dict[str,
         raise FleetError(f"--graph expects 1..64 bikes, got {n_bikes!r}")
     if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s) and duration_s > 0):
         raise FleetError(f"--seconds must be > 0, got {duration_s!r}")
+    if timeout_s is not None and not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s)
+                                      and timeout_s > 0):
+        # a timeout <= 0 stopped every bike at once: "FAILED" with no word of the timeout
+        raise FleetError(f"--timeout must be a finite number > 0, got {timeout_s!r}")
     placement = dict(placement or {})
     _check_netns(placement, n_bikes)
     cfg = load_config(config)
