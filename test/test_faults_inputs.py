@@ -115,6 +115,32 @@ def _one_error(run) -> str:
     return lines[0]
 
 
+@pytest.mark.parametrize("key,value,words", [
+    ("batch_periods", -3, "batch_periods: must be finite and >= 1, got -3"),
+    ("batch_periods", "abc", "batch_periods: expected a number, got 'abc'"),
+    ("sync_mode", "dragon", "sync_mode: must be 'lockstep' or 'realtime'"),
+    ("modes", {"erg_power_max_w": float("nan")}, "erg_power_max_w must be a number >= 0, got nan")])
+def test_run_checks_the_config_before_any_node_starts(tmp_path, key, value, words):
+    """A value only a node checked (the plant node's batch_periods / sync_mode; the modes section,
+    which --set copies were checked for but a --config file was not) started the graph: the
+    plant's configuration error among the other nodes' lines, exit 1. Now one error naming the
+    file and key, exit 2, nothing started; --set names the config it changed, not its
+    temporary copy."""
+    import yaml
+    doc = yaml.safe_load(CONFIG.read_text())
+    doc["/**"]["ros__parameters"][key] = value
+    doc["/**"]["ros__parameters"]["session"]["profile"] = str(ROOT / "config" / "profiles" / "demo_intervals.yaml")
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    run = _cli("run", "--config", str(path), "--duration", "0.5", timeout=90)
+    line = _one_error(run)
+    assert str(path) in line and words in line, line
+    assert run.stdout == "", run.stdout[-2000:]
+    if not isinstance(value, dict):
+        line = _one_error(_cli("run", "--set", f"{key}={value}", "--duration", "0.5", timeout=90))
+        assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
+
+
 def test_yaml_python_tags_are_refused_not_run(tmp_path):
     """A config with !!python tags is refused (safe_load) and nothing is executed."""
     marker = tmp_path / "pwned"

@@ -213,6 +213,40 @@ def require_positive(obj, *names: str) -> None:
             raise ValueError(f"{name} must be > 0, got {value!r}")
 
 
+# the plant node's top-level numbers: (kind, minimum); the node reads them with plant_number,
+# ./bike run checks a config's with check_plant_numbers before it starts a node
+PLANT_NUMBERS = {
+    "batch_periods": (int, 1), "control_period_s": (float, 1e-9), "duration_s": (float, 0.0),
+    "command_timeout_s": (float, 1e-6), "republish_s": (float, 1e-3), "end_linger_s": (float, 0.0),
+    "battery_every": (int, 1), "busy_wait_s": (float, 0.0), "clock_period_s": (float, 0.0),
+    "diagnostics_period_s": (float, 1e-3), "recorder_window_batches": (int, 0),
+    "recorder_timeout_s": (float, 0.1), "start_timeout_s": (float, 0.0), "seed": (int, 0),
+}
+
+
+def plant_number(cfg: dict, key: str, path):
+    """The plant node's parameter ``key`` (PLANT_NUMBERS), checked; ConfigError naming it."""
+    kind, minimum = PLANT_NUMBERS[key]
+    return number_param(cfg, key, kind, minimum, path)
+
+
+def check_plant_numbers(cfg: dict, path=None) -> None:
+    """The plant node's top-level numbers and choices a config gives (absent ones take the
+    node's defaults), as the node checks them: ConfigError naming the key. For ./bike run
+    before it starts anything (a bad batch_periods was otherwise found by the plant node after
+    the graph had started: its error, the other nodes' lines, exit 1)."""
+    path = path or cfg.get("_config_path")
+    sync_mode = cfg.get("sync_mode", "lockstep")
+    if sync_mode not in ("lockstep", "realtime"):
+        raise ConfigError(f"must be 'lockstep' or 'realtime', got {sync_mode!r}", path, "sync_mode")
+    for key in PLANT_NUMBERS:
+        if key in cfg and not (key == "busy_wait_s" and sync_mode != "lockstep"):
+            plant_number(cfg, key, path)
+    for key, known in (("machine", ("bldc", "spmsm")), ("backend", ("sim", "can"))):
+        if key in cfg and str(cfg[key]) not in known:
+            raise ConfigError(f"unknown {key} {cfg[key]!r} ({' | '.join(known)})", path, key)
+
+
 def number_param(cfg: dict, key: str, kind, minimum, path):
     """A node parameter ``cfg[key]`` that must be a finite number >= ``minimum`` (``kind`` int:
     also a whole number); one ConfigError naming the key otherwise."""

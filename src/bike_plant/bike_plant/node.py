@@ -66,7 +66,7 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv, shm_ports
 from .config import ConfigError
-from .config import number_param as _number
+from .config import plant_number
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
@@ -298,19 +298,19 @@ class PlantNode(Node):
         self.sync_mode = str(cfg.get("sync_mode"))
         if self.sync_mode not in ("lockstep", "realtime"):
             raise ConfigError(f"must be 'lockstep' or 'realtime', got {self.sync_mode!r}", path, "sync_mode")
-        self.n = _number(cfg, "batch_periods", int, 1, path)
-        self.dt = _number(cfg, "control_period_s", float, 1e-9, path)
-        self.duration_s = _number(cfg, "duration_s", float, 0.0, path)
-        self.command_timeout_s = _number(cfg, "command_timeout_s", float, 1e-6, path)
-        self.republish_s = _number(cfg, "republish_s", float, 1e-3, path)
-        self.end_linger_s = _number(cfg, "end_linger_s", float, 0.0, path)
-        self.battery_every = _number(cfg, "battery_every", int, 1, path)
-        self.busy_wait_s = _number(cfg, "busy_wait_s", float, 0.0, path) if self.sync_mode == "lockstep" else 0.0
+        self.n = plant_number(cfg, "batch_periods", path)
+        self.dt = plant_number(cfg, "control_period_s", path)
+        self.duration_s = plant_number(cfg, "duration_s", path)
+        self.command_timeout_s = plant_number(cfg, "command_timeout_s", path)
+        self.republish_s = plant_number(cfg, "republish_s", path)
+        self.end_linger_s = plant_number(cfg, "end_linger_s", path)
+        self.battery_every = plant_number(cfg, "battery_every", path)
+        self.busy_wait_s = plant_number(cfg, "busy_wait_s", path) if self.sync_mode == "lockstep" else 0.0
         # /clock at a sim-time rate, not per batch: at 1 ms batches a /clock per batch woke the
         # session's process 1000 times per sim second, about 5 % of a core taken from the loop
         # (measured: lockstep 2.2x -> 2.4x real time at N = 20). The session publishes its
         # Commands a period (0.1 s) ahead, so a 10 ms clock still keeps them ahead of the loop.
-        clock_period_s = _number(cfg, "clock_period_s", float, 0.0, path)
+        clock_period_s = plant_number(cfg, "clock_period_s", path)
         session_period_s = (cfg.get("session") or {}).get("period_s")
         if isinstance(session_period_s, (int, float)) and clock_period_s > 0.5 * session_period_s:
             # the session sends its Commands one period ahead of the last /clock it saw; a
@@ -320,18 +320,18 @@ class PlantNode(Node):
         self.clock_period_ns = round(clock_period_s * 1e9)
         self.next_clock_ns = 0       # the next /clock goes out at the first stamp >= this
         self.clock_ns = None         # the last /clock value published
-        self.diag_period_s = _number(cfg, "diagnostics_period_s", float, 1e-3, path)
+        self.diag_period_s = plant_number(cfg, "diagnostics_period_s", path)
         self.batch_s = self.n * self.dt
         # must stay below LOOP_QOS depth: a sample lost on the transport is repaired from the
         # writer's history, so the window must not let the history roll over it
-        self.recorder_window = _number(cfg, "recorder_window_batches", int, 0, path)
+        self.recorder_window = plant_number(cfg, "recorder_window_batches", path)
         self.recorder_window_cfg = self.recorder_window        # restored when a lost recorder reports again
         if self.recorder_window > LOOP_QOS.depth // 2:
             raise ConfigError(f"must be at most {LOOP_QOS.depth // 2} (half the loop topics' DDS history), "
                               f"got {self.recorder_window}", path, "recorder_window_batches")
-        self.recorder_timeout_s = _number(cfg, "recorder_timeout_s", float, 0.1, path)
-        self.start_timeout_s = _number(cfg, "start_timeout_s", float, 0.0, path)
-        self.backend = make_backend(str(cfg.get("backend")), cfg, _number(cfg, "seed", int, 0, path))
+        self.recorder_timeout_s = plant_number(cfg, "recorder_timeout_s", path)
+        self.start_timeout_s = plant_number(cfg, "start_timeout_s", path)
+        self.backend = make_backend(str(cfg.get("backend")), cfg, plant_number(cfg, "seed", path))
         if hasattr(self.backend, "warm_up"):
             # before the node joins the graph: a compile inside the run held its first batches
             # for ~30 s and made the controller report a stopped plant

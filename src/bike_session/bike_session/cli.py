@@ -100,8 +100,14 @@ def _cmd_run(opts) -> int:
     config = pathlib.Path(opts.config or repo_root() / "config" / "bldc_default.yaml").resolve()
     try:
         cfg = load_config(config)
+        if not getattr(opts, "set", None):      # a --set copy is checked as a whole below
+            _check_config(cfg)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        # checked before any node starts: one error, not the nodes' (and exit 1 after the start)
+        print(f"error: {exc}" if str(config) in str(exc) else f"error: {config}: {exc}", file=sys.stderr)
         return 2
     source_config = config
     if getattr(opts, "set", None):
@@ -223,16 +229,24 @@ def _config_copy(config: pathlib.Path, doc: dict, note: str):
     atexit.register(shutil.rmtree, folder, True)
     path = pathlib.Path(folder) / config.name
     path.write_text(f"# {config} {note}; written by ./bike run\n" + yaml.safe_dump(doc, sort_keys=False))
-    cfg = load_config(path)
-    _check_config(cfg)
+    try:
+        cfg = load_config(path)
+        _check_config(cfg)
+    except ValueError as exc:
+        # named by the config it was made from: the copy is removed at exit
+        raise ValueError(str(exc).replace(str(path), str(config))) from None
     return path, cfg
 
 
 def _check_config(cfg: dict) -> None:
     """What the nodes build first from a config, without building them: ValueError naming the
-    key (the modes section, the friction figures, the machine's plant parameters)."""
+    key (the plant node's top-level numbers, the modes section, the friction figures, the
+    machine's plant parameters)."""
+    from bike_plant.config import check_plant_numbers
+
     from bike_controller.modes import friction_figures, mode_params_from_config
 
+    check_plant_numbers(cfg)
     mode_params_from_config(cfg)
     friction_figures(cfg)
     if str(cfg.get("machine", "bldc")) == "spmsm":
