@@ -141,6 +141,22 @@ def test_run_checks_the_config_before_any_node_starts(tmp_path, key, value, word
         assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
 
 
+def test_run_set_refuses_a_key_no_node_reads(capsys):
+    """--set batch_period=5 (a typo) or --set foo=1 was written into the run's config, which no
+    node reads: the run went on with batch_periods 20 without a word. One error naming --set
+    and the key (with the near one), nothing runs; a key a node reads but the config leaves to
+    its default is still taken."""
+    from bike_session.cli import _set_run_config
+    for item, words in (("batch_period=5", "unknown key 'batch_period'"), ("foo=1", "unknown key 'foo'"),
+                        ("nope.x=1", "unknown key 'nope'")):
+        assert _set_run_config([item], CONFIG) is None, item
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: --set: ") and words in err[0], (item, err)
+    assert "did you mean batch_periods?" in (_set_run_config(["batch_period=5"], CONFIG) or capsys.readouterr().err)
+    path, cfg = _set_run_config(["clock_period_s=0.005", "modes.auto_shift=true"], CONFIG)
+    assert cfg["clock_period_s"] == 0.005 and cfg["modes"]["auto_shift"] is True
+
+
 def test_yaml_python_tags_are_refused_not_run(tmp_path):
     """A config with !!python tags is refused (safe_load) and nothing is executed."""
     marker = tmp_path / "pwned"

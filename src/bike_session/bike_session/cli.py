@@ -256,6 +256,16 @@ def _check_config(cfg: dict) -> None:
     plant_params_from_config(cfg)
 
 
+# the top-level keys a node reads (besides the config's own): --set of another is a typo that
+# would change nothing (--set batch_period=5 rode batch_periods 20 without a word)
+RUN_TOP_LEVEL_KEYS = frozenset((
+    "use_sim_time", "machine", "backend", "sync_mode", "batch_periods", "control_period_s", "command_timeout_s",
+    "duration_s", "republish_s", "end_linger_s", "battery_every", "busy_wait_s", "clock_period_s",
+    "diagnostics_period_s", "recorder_window_batches", "recorder_timeout_s", "start_timeout_s", "seed",
+    "can_log_file", "command_wait_s", "calibration_file", "session", "modes", "load", "mechanics", "battery",
+    "controller", "bldc", "hall", "spmsm", "encoder", "inverter", "regen", "can", "ftms"))
+
+
 def _set_run_config(sets: list[str], config: pathlib.Path):
     """--set KEY=VALUE ...: this run's config with each dotted KEY under the wildcard section's
     ros__parameters set to VALUE (read as YAML: numbers, true / false, lists, text). Returns
@@ -282,6 +292,12 @@ def _set_run_config(sets: list[str], config: pathlib.Path):
                     value = float(text)      # YAML 1.1 reads 1e-4 (no dot) as text
                 except ValueError:
                     pass
+            top = parts[0].strip()
+            if top not in params and top not in RUN_TOP_LEVEL_KEYS:
+                import difflib
+                near = difflib.get_close_matches(top, sorted(RUN_TOP_LEVEL_KEYS | set(params)), n=1)
+                raise ValueError(f"{item!r}: unknown key {top!r}: not in {config.name} nor read by a node"
+                                 + (f" (did you mean {near[0]}?)" if near else ""))
             node = params
             for i, part in enumerate(parts[:-1]):
                 node = node.setdefault(part, {})
