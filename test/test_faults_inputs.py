@@ -141,6 +141,26 @@ def test_run_checks_the_config_before_any_node_starts(tmp_path, key, value, word
         assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
 
 
+@pytest.mark.parametrize("item,words", [
+    ("session.period_s=-1", "session.period_s: must be a finite number > 0, got -1"),
+    ("session.period_s=abc", "session.period_s: must be a finite number > 0, got 'abc'"),
+    ("controller.current_limit_a=-5", "controller: current_limit_a must be > 0, got -5.0"),
+    ("session.profile=/nonexistent/p.yaml", "session.profile: /nonexistent/p.yaml: cannot read profile")])
+def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tmp_path, item, words):
+    """What the session node (period, profile) and the controller node (its parameters) refused
+    once the graph had started: one error naming --set, the config and the key, exit 2, nothing
+    started; a --config whose profile is missing too."""
+    line = _one_error(_cli("run", "--set", item, "--duration", "0.5", timeout=90))
+    assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
+    if item.startswith("session.profile"):
+        path = tmp_path / "bad.yaml"
+        path.write_text(CONFIG.read_text())          # its relative profile is not beside the copy
+        run = _cli("run", "--config", str(path), "--duration", "0.5", timeout=90)
+        line = _one_error(run)
+        assert str(path) in line and "session.profile" in line and "cannot read profile" in line, line
+        assert run.stdout == "", run.stdout[-2000:]
+
+
 def test_run_set_refuses_a_key_no_node_reads(capsys):
     """--set batch_period=5 (a typo) or --set foo=1 was written into the run's config, which no
     node reads: the run went on with batch_periods 20 without a word. One error naming --set

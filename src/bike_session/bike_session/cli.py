@@ -126,6 +126,8 @@ def _cmd_run(opts) -> int:
         workout = _load_workout_for_run(opts, cfg)
         if workout is None:
             return 2
+    elif not _config_profile_ok(cfg, config, source_config):
+        return 2
     default_s = workout.duration_s if workout is not None else float(cfg.get("duration_s", 60.0))
     duration_s = opts.duration if opts.duration is not None else default_s
     if not (duration_s > 0 and math.isfinite(duration_s)):
@@ -242,18 +244,29 @@ def _check_config(cfg: dict) -> None:
     """What the nodes build first from a config, without building them: ValueError naming the
     key (the plant node's top-level numbers, the modes section, the friction figures, the
     machine's plant parameters)."""
-    from bike_plant.config import check_plant_numbers
+    from bike_plant.config import ConfigError, check_plant_numbers
 
     from bike_controller.modes import friction_figures, mode_params_from_config
 
     check_plant_numbers(cfg)
+    session = cfg.get("session") or {}
+    for key, positive in (("period_s", True), ("duration_s", False)):
+        value = session.get(key, 0.1 if positive else 0.0) if isinstance(session, dict) else None
+        # as the session node checks them (it refused them once the graph had started)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                or (value <= 0 if positive else value < 0):
+            raise ConfigError(f"must be a finite number {'> 0' if positive else '>= 0'}, got {value!r}",
+                              cfg.get("_config_path"), f"session.{key}")
     mode_params_from_config(cfg)
     friction_figures(cfg)
     if str(cfg.get("machine", "bldc")) == "spmsm":
+        from bike_controller.spmsm_control import controller_params_from_config
         from bike_plant.spmsm import plant_params_from_config
     else:
+        from bike_controller.bldc_control import controller_params_from_config
         from bike_plant.params import plant_params_from_config
     plant_params_from_config(cfg)
+    controller_params_from_config(cfg)
 
 
 # the top-level keys a node reads (besides the config's own): --set of another is a typo that
@@ -394,6 +407,32 @@ def _can_run_args(cfg, args: dict):
           + (", started here as bike-drive-emulator" if params.emulator else ", a real drive (can.emulator false)")
           + "; sim time pauses while the drive is not armed", flush=True)
     return params
+
+
+def _config_profile_ok(cfg: dict, config: pathlib.Path, source_config: pathlib.Path) -> bool:
+    """The config's session.profile (ridden without --workout) read before anything starts, as
+    the session node reads it: a missing or bad profile was the session node's error once the
+    graph had started. False after one error (naming the config given, and --set when the run
+    rides a changed copy of it)."""
+    from bike_session.profiles import ProfileError, load_profile, mode_units_from_config
+    from bike_session.session_node import resolve_profile_path
+
+    where = f"{'--set: ' if config != source_config else ''}{source_config}: "
+    profile = (cfg.get("session") or {}).get("profile") if isinstance(cfg.get("session"), dict) else None
+    if not isinstance(profile, str) or not profile:
+        print(f"error: {where}session.profile is empty: give a profile in the config or --workout FILE",
+              file=sys.stderr)
+        return False
+    try:
+        units = mode_units_from_config(cfg)
+    except ValueError:
+        units = None                     # as the session node: a profile that needs them says so
+    try:
+        load_profile(resolve_profile_path(profile, str(config)), units=units)
+    except (ProfileError, ValueError) as exc:
+        print(f"error: {where}session.profile: {exc}", file=sys.stderr)
+        return False
+    return True
 
 
 def _load_workout_for_run(opts, cfg):
