@@ -177,6 +177,30 @@ def test_run_set_refuses_a_key_no_node_reads(capsys):
     assert cfg["clock_period_s"] == 0.005 and cfg["modes"]["auto_shift"] is True
 
 
+def test_run_set_of_a_rider_value_is_ridden_not_overridden_by_the_rider_preset(capsys):
+    """The README's `--set load.rider_target_cadence_rpm=90` rode 80 rpm: load.rider_preset
+    (recreational in the shipped configs) sets the rider's values over the section's own, so the
+    --set value was dropped without a word. It is ridden now, with the preset's other values,
+    and a note says so; a --set of another load value leaves the preset alone."""
+    from bike_plant.params import RIDER_PRESETS, plant_params_from_config
+
+    from bike_session.cli import _set_run_config
+    _path, cfg = _set_run_config(["load.rider_target_cadence_rpm=90"], CONFIG)
+    load = plant_params_from_config(cfg).load
+    assert load.rider_target_cadence_rpm == 90.0
+    assert load.rider_t0_nm == RIDER_PRESETS["recreational"]["rider_t0_nm"]
+    assert load.rider_max_hr_bpm == RIDER_PRESETS["recreational"]["rider_max_hr_bpm"]
+    out = capsys.readouterr().out
+    assert "load.rider_preset recreational would override it" in out, out
+    _path, cfg = _set_run_config(["load.rider_preset=trained", "load.rider_t0_nm=250"], CONFIG)
+    load = plant_params_from_config(cfg).load
+    assert load.rider_t0_nm == 250.0 and load.rider_target_cadence_rpm == RIDER_PRESETS["trained"]["rider_target_cadence_rpm"]
+    capsys.readouterr()
+    _path, cfg = _set_run_config(["load.gear_ratio=30"], CONFIG)
+    assert cfg["load"]["rider_preset"] == "recreational" and plant_params_from_config(cfg).load.gear_ratio == 30.0
+    assert capsys.readouterr().out == ""
+
+
 def test_yaml_python_tags_are_refused_not_run(tmp_path):
     """A config with !!python tags is refused (safe_load) and nothing is executed."""
     marker = tmp_path / "pwned"
