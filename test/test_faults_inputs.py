@@ -86,7 +86,8 @@ def test_fuzzed_configs_give_one_clear_error_each(tmp_path):
     assert outcomes["error"] >= 30, outcomes
 
 
-BAD_VALUES = [("bldc", "inductance_h", -1.0), ("bldc", "inductance_h", "abc"), ("battery", "soc0", float("nan")),
+BAD_VALUES = [("load", "rider_target_cadence_rpm", 1000.0), ("load", "rider_target_cadence_rpm", -90.0),
+              ("bldc", "inductance_h", -1.0), ("bldc", "inductance_h", "abc"), ("battery", "soc0", float("nan")),
               ("battery", "r_brake_ohm", 0.0), ("controller", "current_limit_a", float("inf")),
               ("mechanics", "inertia_kgm2", [1, 2]), ("controller", "k_factor", []), ("load", "kind", "dragon")]
 
@@ -96,6 +97,8 @@ def test_bad_config_values_are_named(tmp_path, section, key, value):
     import yaml
     doc = yaml.safe_load(CONFIG.read_text())
     doc["/**"]["ros__parameters"][section][key] = value
+    if section == "load":
+        doc["/**"]["ros__parameters"]["load"]["rider_preset"] = "custom"      # else the preset's value wins
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(doc))
     with pytest.raises((ConfigError, ValueError), match=key.split("_")[0]):
@@ -181,7 +184,8 @@ def test_run_set_of_a_rider_value_is_ridden_not_overridden_by_the_rider_preset(c
     """The README's `--set load.rider_target_cadence_rpm=90` rode 80 rpm: load.rider_preset
     (recreational in the shipped configs) sets the rider's values over the section's own, so the
     --set value was dropped without a word. It is ridden now, with the preset's other values,
-    and a note says so; a --set of another load value leaves the preset alone."""
+    and a note says so; a --set of another load value leaves the preset alone. A target
+    cadence outside (0, rider_cadence_max_rpm), which the preset had hidden, is refused."""
     from bike_plant.params import RIDER_PRESETS, plant_params_from_config
 
     from bike_session.cli import _set_run_config
@@ -196,6 +200,10 @@ def test_run_set_of_a_rider_value_is_ridden_not_overridden_by_the_rider_preset(c
     load = plant_params_from_config(cfg).load
     assert load.rider_t0_nm == 250.0 and load.rider_target_cadence_rpm == RIDER_PRESETS["trained"]["rider_target_cadence_rpm"]
     capsys.readouterr()
+    for bad in ("1000", "-90"):
+        assert _set_run_config([f"load.rider_target_cadence_rpm={bad}"], CONFIG) is None
+        err = capsys.readouterr()
+        assert "rider_target_cadence_rpm must be in (0, rider_cadence_max_rpm = 160)" in err.err and err.out == ""
     _path, cfg = _set_run_config(["load.gear_ratio=30"], CONFIG)
     assert cfg["load"]["rider_preset"] == "recreational" and plant_params_from_config(cfg).load.gear_ratio == 30.0
     assert capsys.readouterr().out == ""

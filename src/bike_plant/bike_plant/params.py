@@ -137,6 +137,10 @@ class RiderParams:
 
     def validate_rider(self) -> None:
         require_positive(self, "rider_t0_nm", "rider_cadence_max_rpm")
+        if not 0.0 < self.rider_target_cadence_rpm < self.rider_cadence_max_rpm:
+            # beyond it the rider's torque line is negative (mechanics.rider_pi_gains clamped it)
+            raise ValueError(f"rider_target_cadence_rpm must be in (0, rider_cadence_max_rpm = "
+                             f"{self.rider_cadence_max_rpm:g}), got {self.rider_target_cadence_rpm!r}")
         if not 0.0 <= self.rider_effort0 <= 1.0:
             raise ValueError("rider_effort0 must be in [0, 1]")
         try:

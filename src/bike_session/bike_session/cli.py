@@ -317,37 +317,40 @@ def _set_run_config(sets: list[str], config: pathlib.Path):
                 if not isinstance(node, dict):
                     raise ValueError(f"{item!r}: {'.'.join(parts[:i + 1])} is a value, not a section")
             node[parts[-1]] = value
-        _set_over_rider_preset(params, sets)
+        note = _set_over_rider_preset(params, sets)
         changed = ", ".join(sets)
-        return _config_copy(config, doc, f"with --set {changed}")
+        copied = _config_copy(config, doc, f"with --set {changed}")
+        if note:
+            print(note, flush=True)              # once the copy is a config the bike takes
+        return copied
     except (ConfigError, ValueError, OSError, KeyError, TypeError) as exc:
         print(f"error: --set: {exc}", file=sys.stderr)
         return None
 
 
-def _set_over_rider_preset(params: dict, sets: list[str]) -> None:
+def _set_over_rider_preset(params: dict, sets: list[str]) -> str | None:
     """A --set of a rider value that load.rider_preset sets (the presets win over the section's
     own values) is ridden, not overridden by the preset without a word (the README's --set
     load.rider_target_cadence_rpm=90 rode 80 rpm): the preset's other values are written into
-    the section, the preset becomes custom, and a note says so."""
+    the section, the preset becomes custom; returns the note that says so."""
     from bike_plant.params import RIDER_PRESETS
 
     load = params.get("load")
     preset = load.get("rider_preset", "custom") if isinstance(load, dict) else "custom"
     if not isinstance(preset, str) or preset not in RIDER_PRESETS:
-        return                                   # custom, or an unknown preset: its own error follows
+        return None                              # custom, or an unknown preset: its own error follows
     given = [key.strip().split(".")[1] for key, _eq, _v in (item.partition("=") for item in sets)
              if key.strip().split(".")[0] == "load" and len(key.strip().split(".")) == 2]
     overridden = [key for key in given if key in RIDER_PRESETS[preset]]
     if not overridden:
-        return
+        return None
     for key, value in RIDER_PRESETS[preset].items():
         if key not in overridden:
             load[key] = value
     load["rider_preset"] = "custom"
-    print(f"[bike] --set load.{', load.'.join(overridden)}: load.rider_preset {preset} would override "
-          f"{'it' if len(overridden) == 1 else 'them'}; riding the {preset} rider with "
-          f"{'this change' if len(overridden) == 1 else 'these changes'} (rider_preset custom)", flush=True)
+    return (f"[bike] --set load.{', load.'.join(overridden)}: load.rider_preset {preset} would override "
+            f"{'it' if len(overridden) == 1 else 'them'}; riding the {preset} rider with "
+            f"{'this change' if len(overridden) == 1 else 'these changes'} (rider_preset custom)")
 
 
 def _calibration_run_args(path_text: str, config: pathlib.Path, cfg: dict, args: dict):
