@@ -445,7 +445,9 @@ def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
              (["bench", "--only", "can", "--json", str(tmp_path)], "--json"),
              (["fleet", "--bikes", "2", "--seconds", "0.01", "--json", str(blocker / "f.json")], "--json"),
              (["report", str(tmp_path / "no_bag"), "--fit", str(blocker / "r.fit")], "--fit"),
-             (["report", str(tmp_path / "no_bag"), "--fit", str(tmp_path)], "--fit")]
+             (["report", str(tmp_path / "no_bag"), "--fit", str(tmp_path)], "--fit"),
+             (["report", str(tmp_path / "no_bag"), "--out", bad_dir], "--out"),
+             (["compare", str(tmp_path / "no_bag"), str(tmp_path / "no_bag"), "--out", bad_dir], "--out")]
     for args, flag in cases:
         run = _cli(*args, timeout=60)
         line = _one_error(run)

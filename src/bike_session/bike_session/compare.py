@@ -390,6 +390,10 @@ def main(argv=None) -> int:
     parser.add_argument("--out", help="write compare.txt/.json/.html and overlay charts (PNG) into this folder")
     parser.add_argument("--json", action="store_true", help="print the comparison as JSON")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.out:
+        from bike_session.cli import output_dir
+        if output_dir(args.out, "--out") is None:       # before the bags are read: one error, no work lost
+            return 2
     try:
         result, da, db, n = compare(args.bag_a, args.bag_b, progress="bike compare")
         written = write_outputs(result, da, db, n, args.out) if args.out else []

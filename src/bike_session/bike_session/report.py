@@ -1773,6 +1773,10 @@ def main(argv=None) -> int:
         from bike_session.cli import output_file_ok
         if not output_file_ok(args.fit, "--fit"):       # before the bag is read: one error, no work lost
             return 2
+    if args.out:
+        from bike_session.cli import output_dir
+        if output_dir(args.out, "--out") is None:       # the same (it was found after the analysis)
+            return 2
     target = args.out
     try:
         data = analyse(args.bag, progress="bike report")
