@@ -431,6 +431,19 @@ def test_shift_refuses_an_invalid_namespace(namespace):
     assert "--namespace" in line and "Invalid namespace" in line, line
 
 
+def test_run_ftms_refuses_an_address_it_cannot_listen_on():
+    """--ftms-host 999.1.1.1 or a --ftms-port in use started the graph, and the bridge node's
+    'cannot listen' came among the other nodes' lines, exit 1. One error naming both options,
+    exit 2, nothing started."""
+    import socket
+    line = _one_error(_cli("run", "--ftms", "--ftms-host", "999.1.1.1", "--duration", "1", timeout=90))
+    assert "--ftms-host 999.1.1.1 --ftms-port 36866: cannot listen there" in line, line
+    with socket.create_server(("127.0.0.1", 0)) as busy:
+        port = busy.getsockname()[1]
+        line = _one_error(_cli("run", "--ftms", "--ftms-port", str(port), "--duration", "1", timeout=90))
+    assert f"--ftms-port {port}: cannot listen there (Address already in use" in line, line
+
+
 def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
     """An output path that cannot be made (under a regular file) or is a directory where a
     file goes: one error naming the option, exit 2, before the command runs (a bench or a

@@ -122,6 +122,8 @@ def _cmd_run(opts) -> int:
     if ftms_on and not 0 <= opts.ftms_port <= 65535:
         print(f"error: --ftms-port must be 0..65535, got {opts.ftms_port}", file=sys.stderr)
         return 2
+    if ftms_on and not _ftms_address_ok(opts.ftms_host, opts.ftms_port):
+        return 2
     if opts.workout:
         workout = _load_workout_for_run(opts, cfg)
         if workout is None:
@@ -389,6 +391,22 @@ def _calibration_run_args(path_text: str, config: pathlib.Path, cfg: dict, args:
           f"B {old[0]:.4g} N m s, Tc {old[1]:.4g} N m. A new spin-down replaces it", flush=True)
     args["config"] = str(calibrated)
     return calibrated, calibrated_cfg
+
+
+def _ftms_address_ok(host: str, port: int) -> bool:
+    """--ftms-host / --ftms-port: the bridge can listen there (a trial listen, closed at once),
+    else one error naming them: the bridge node found it once the graph had started (its error
+    among the other nodes' lines, exit 1)."""
+    import socket
+
+    try:
+        with socket.create_server((host, port), reuse_port=False):
+            pass
+    except (OSError, OverflowError) as exc:
+        print(f"error: --ftms-host {host} --ftms-port {port}: cannot listen there "
+              f"({getattr(exc, 'strerror', None) or exc})", file=sys.stderr)
+        return False
+    return True
 
 
 def _ftms_run_args(opts, cfg, args: dict) -> None:
