@@ -115,6 +115,39 @@ def test_recover_refuses_a_complete_bag(tmp_path):
         recover(tmp_path / "ok")
 
 
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_failure_to_write_the_recovered_bag_is_not_taken_for_a_torn_recording(tmp_path, monkeypatch, storage):
+    """The source readers take any exception inside their loop for the torn tail of the crashed
+    recording: an --out under a regular file was "no complete message survived (... NotADirectoryError)",
+    and a write failing mid-way (a full disk) ended the copy early yet reported "recovered N
+    messages". Either is one BagError naming the new bag and --out, and nothing is left of it."""
+    from rosbags.rosbag2 import Writer
+
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    sink = BagSink(tmp_path / "b", storage, ts, [("/x", "std_msgs/msg/String", False, False)], flush_period_s=1.0)
+    for k in range(50):
+        sink.write("/x", k, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=str(k)), "std_msgs/msg/String"))
+    sink.flush()                                 # then the process "dies"
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    with pytest.raises(BagError, match=r"cannot write the recovered bag .*a_file/r \(--out\): NotADirectoryError"):
+        recover(tmp_path / "b", blocker / "r")
+    real_write, calls = Writer.write, []
+
+    def full_disk(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) > 10:
+            raise OSError(28, "No space left on device")
+        return real_write(self, *args, **kwargs)
+
+    monkeypatch.setattr(Writer, "write", full_disk)
+    with pytest.raises(BagError, match=r"cannot write the recovered bag .*r \(--out\): OSError: .*No space left"):
+        recover(tmp_path / "b", tmp_path / "r")
+    assert not (tmp_path / "r").exists(), "no half-written output on failure"
+
+
 def test_cli_bag_recover(tmp_path):
     from bike_session.recorder_node import BagSink, build_typestore
 

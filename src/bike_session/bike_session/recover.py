@@ -53,7 +53,21 @@ class _Out:
         self.start_ns = None
         self.end_ns = None
 
+    def _failed(self, exc: Exception) -> BagError:
+        # the new bag's error, not the crashed one's: the source readers take any other exception
+        # from inside their loop for the torn tail of the recording (a NotADirectoryError of
+        # --out was "no complete message survived"; a full disk ended the copy as "recovered")
+        return BagError(f"cannot write the recovered bag {self.out} (--out): {type(exc).__name__}: {exc}")
+
     def _open(self):
+        try:
+            self._open_writer()
+        except BagError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - OSError, rosbags' WriterError
+            raise self._failed(exc) from None
+
+    def _open_writer(self):
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
 
@@ -74,13 +88,19 @@ class _Out:
         except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds
             raise BagError(f"embedded definition of {msgtype} ({topic}) cannot be parsed: {exc}") from None
         self.typestore.register({k: v for k, v in types.items() if k not in self.typestore.types})
-        self.conns[key] = self.writer.add_connection(topic, msgtype, typestore=self.typestore,
-                                                     offered_qos_profiles=[_rosbags_qos(latched)])
+        try:
+            self.conns[key] = self.writer.add_connection(topic, msgtype, typestore=self.typestore,
+                                                         offered_qos_profiles=[_rosbags_qos(latched)])
+        except Exception as exc:  # noqa: BLE001
+            raise self._failed(exc) from None
         self.counts.setdefault(topic, 0)
 
     def write(self, key, t_ns: int, data: bytes) -> None:
         conn = self.conns[key]
-        self.writer.write(conn, int(t_ns), data)
+        try:
+            self.writer.write(conn, int(t_ns), data)
+        except Exception as exc:  # noqa: BLE001
+            raise self._failed(exc) from None
         self.count += 1
         self.counts[conn.topic] += 1
         self.start_ns = t_ns if self.start_ns is None else min(self.start_ns, t_ns)
@@ -91,7 +111,10 @@ class _Out:
             return
         self.writer.set_custom_data("bike.recovered_from", str(recovered_from))
         self.writer.set_custom_data("bike.recovery", note)
-        self.writer.close()
+        try:
+            self.writer.close()
+        except Exception as exc:  # noqa: BLE001
+            raise self._failed(exc) from None
 
     def abort(self) -> None:
         if self.writer is not None:
