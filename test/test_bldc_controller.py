@@ -10,7 +10,8 @@ import pytest
 from bike_controller import bldc_control as C
 from bike_controller.closed_loop import run_offline
 from bike_controller.speed_estimator import HallSpeedEstimator, pulses_per_rev, speed_rpm_from_counts
-from bike_controller.torque_command import KGF_CM_TO_NM, pmax_w, torque_command_nm
+from bike_controller.bldc_params import KGF_CM_TO_NM
+from bike_controller.torque_command import pmax_w, torque_command_nm
 from bike_plant import bldc as K
 from bike_plant.config import config_variant, load_config
 

@@ -43,7 +43,9 @@ def test_the_session_recorder_and_ftms_nodes_load_no_numba_on_the_bldc_bike():
     """Only the plant and the controller run kernels. numba costs a node 0.4 s of CPU and ~60 MB
     when loaded, and the session loads its message conversions when it publishes its first
     Command, which the run's first batch waits for (the plant, the controller and the recorder
-    start on the same 2 cores). What those nodes import and call on the BLDC bike, numba not among it."""
+    start on the same 2 cores). What those nodes import and call on the BLDC bike, numba not among
+    it; nor in ./bike run's check of the config before it starts them (its process stays up as
+    the launcher for the whole run)."""
     code = ("import importlib, sys\n"
             "for m in ('bike_session.session_node', 'bike_session.recorder_node', 'bike_session.ftms_node',\n"
             "          'bike_session.workouts', 'bike_plant.msgconv', 'bike_plant.loop', 'bike_plant.shm_ports'):\n"
@@ -54,6 +56,9 @@ def test_the_session_recorder_and_ftms_nodes_load_no_numba_on_the_bldc_bike():
             "from bike_session.ftms_node import _bike_figures\n"
             f"cfg = load_config({str(ROOT / 'config' / 'bldc_default.yaml')!r})\n"
             "mode_params_from_config(cfg), mode_units_from_config(cfg), _bike_figures(cfg['_config_path'])\n"
+            "from bike_session import cli\n"
+            "cli._check_config(cfg)\n"
+            "assert cli._config_profile_ok(cfg, cfg['_config_path'], cfg['_config_path'])\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'llvmlite')))\n")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-3000:]

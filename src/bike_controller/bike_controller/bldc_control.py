@@ -21,7 +21,6 @@ Feedback current = (|ia| + |ib| + |ic|) / 2 (paper 000, Fig. 12b/13b).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
@@ -29,69 +28,27 @@ from numba import njit
 from bike_plant import bldc as K
 from bike_plant import jit as _jit
 from bike_plant import params as P
-from bike_plant.config import ConfigError, build_dataclass, require_positive, section
+from bike_plant.config import ConfigError
 from bike_plant.jit import JIT, JIT_INLINE, unlikely
 
+from . import bldc_params as _bp
 from . import speed_estimator as _se
 from . import torque_command as _tc
 from .speed_estimator import speed_rpm_from_counts
-from .torque_command import (KGF_CM_TO_NM, MODE_MOTORING, MODE_RESISTANCE, k_factor, ktg_nm_per_a, region_of,
+from .bldc_params import K_TABLE_MAX, ControllerParams, controller_params_from_config, validate_command  # noqa: F401
+from .torque_command import (MODE_MOTORING, MODE_RESISTANCE, k_factor, ktg_nm_per_a, region_of,
                              torque_command_nm)
 
 # the kernels below inline bike_plant.bldc / params code: drop our numba cache if they changed
-K.invalidate_stale_numba_cache(__file__, [K.__file__, _jit.__file__, P.__file__, _se.__file__, _tc.__file__])
+K.invalidate_stale_numba_cache(__file__, [K.__file__, _jit.__file__, P.__file__, _se.__file__, _tc.__file__,
+                                         _bp.__file__])
 
 QUADRANT_MOTORING = 1
 QUADRANT_GENERATING = 2
 
 
-@dataclass
-class ControllerParams:
-    """controller: section of the config (paper 000, section 4-5)."""
-    tmax_nm: float = 30.0 * KGF_CM_TO_NM          # 30 kgf cm = 2.942 N m
-    base_speed_rpm: float = 3300.0
-    pmax_w: float = 1016.68                        # Eq. 2 (see torque_command.py on 964.68 W)
-    k_speed_rpm: list = field(default_factory=lambda: [0.0, 4500.0])
-    k_factor: list = field(default_factory=lambda: [0.8, 1.0])
-    k_interp: str = "step"                         # step | linear
-    hysteresis_a: float = 1.5                      # half band h: I* - h .. I* + h
-    current_limit_a: float = 120.0
-    model: str = "nominal"                         # nominal | actual (see nominal_params_from_config)
-    command0: float = 0.0
-    mode0: int = 0
-
-    def validate(self) -> None:
-        require_positive(self, "tmax_nm", "base_speed_rpm", "pmax_w", "hysteresis_a", "current_limit_a")
-        P._check_table(self.k_speed_rpm, self.k_factor, "k_speed_rpm", "k_factor", 1e-6, 1.0)
-        if len(self.k_speed_rpm) > K_TABLE_MAX:
-            raise ValueError(f"at most {K_TABLE_MAX} k table points")
-        if self.k_interp not in ("step", "linear"):
-            raise ValueError(f"k_interp must be 'step' or 'linear', got {self.k_interp!r}")
-        if self.model not in ("nominal", "actual"):
-            raise ValueError(f"model must be 'nominal' or 'actual', got {self.model!r}")
-        validate_command(self.command0, self.mode0)
-
-
-def controller_params_from_config(cfg: dict) -> ControllerParams:
-    path = cfg.get("_config_path")
-    return build_dataclass(ControllerParams, section(cfg, "controller", path), "controller", path)
-
-
-def validate_command(command, mode) -> None:
-    """Eq. 5: Command in [0, 1]; mode 0 (resistance) or 1 (motoring). ValueError otherwise."""
-    if isinstance(command, bool) or not isinstance(command, (int, float, np.floating, np.integer)):
-        raise ValueError(f"command must be a number in [0, 1], got {command!r}")
-    if not math.isfinite(float(command)):
-        raise ValueError(f"command must be finite, got {command!r}")
-    if not 0.0 <= float(command) <= 1.0:
-        raise ValueError(f"command must be in [0, 1] (paper 000, Eq. 5), got {command!r}")
-    if isinstance(mode, bool) or int(mode) != mode or int(mode) not in (MODE_RESISTANCE, MODE_MOTORING):
-        raise ValueError(f"mode must be 0 (resistance) or 1 (motoring), got {mode!r}")
-
-
 # ---- controller parameter vector / state layout -------------------------------------------
 Q_TMAX, Q_WB, Q_PMAX, Q_H, Q_ILIM, Q_KT, Q_PP, Q_FC, Q_KN, Q_KLIN = range(10)
-K_TABLE_MAX = 24
 Q_KX = 10
 Q_KY = Q_KX + K_TABLE_MAX
 Q_SIZE = Q_KY + K_TABLE_MAX

@@ -17,7 +17,6 @@ import math
 from numba import njit
 
 RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
-KGF_CM_TO_NM = 9.80665e-2
 REGION_CONSTANT_TORQUE = 0
 REGION_CONSTANT_POWER = 1
 MODE_RESISTANCE = 0

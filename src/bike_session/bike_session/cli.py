@@ -265,7 +265,7 @@ def _check_config(cfg: dict) -> None:
         from bike_controller.spmsm_control import controller_params_from_config
         from bike_plant.spmsm import plant_params_from_config
     else:
-        from bike_controller.bldc_control import controller_params_from_config
+        from bike_controller.bldc_params import controller_params_from_config
         from bike_plant.params import plant_params_from_config
     plant_params_from_config(cfg)
     controller_params_from_config(cfg)

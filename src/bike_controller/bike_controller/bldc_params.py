@@ -1,0 +1,62 @@
+"""The BLDC controller's parameters (the config's ``controller:`` section, paper 000 section
+4-5) and the Command check of Eq. 5, apart from the kernels of bike_controller.bldc_control
+(which re-exports them): ./bike run checks a config with them before it starts a node, and
+that process then loads no numba (0.3 s and ~60 MB)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bike_plant import params as P
+from bike_plant.config import build_dataclass, require_positive, section
+
+from .modes import MODE_MOTORING, MODE_RESISTANCE
+
+KGF_CM_TO_NM = 9.80665e-2
+K_TABLE_MAX = 24                 # k(speed) table points the controller's parameter vector holds
+
+
+@dataclass
+class ControllerParams:
+    """controller: section of the config (paper 000, section 4-5)."""
+    tmax_nm: float = 30.0 * KGF_CM_TO_NM          # 30 kgf cm = 2.942 N m
+    base_speed_rpm: float = 3300.0
+    pmax_w: float = 1016.68                        # Eq. 2 (see torque_command.py on 964.68 W)
+    k_speed_rpm: list = field(default_factory=lambda: [0.0, 4500.0])
+    k_factor: list = field(default_factory=lambda: [0.8, 1.0])
+    k_interp: str = "step"                         # step | linear
+    hysteresis_a: float = 1.5                      # half band h: I* - h .. I* + h
+    current_limit_a: float = 120.0
+    model: str = "nominal"                         # nominal | actual (see nominal_params_from_config)
+    command0: float = 0.0
+    mode0: int = 0
+
+    def validate(self) -> None:
+        require_positive(self, "tmax_nm", "base_speed_rpm", "pmax_w", "hysteresis_a", "current_limit_a")
+        P._check_table(self.k_speed_rpm, self.k_factor, "k_speed_rpm", "k_factor", 1e-6, 1.0)
+        if len(self.k_speed_rpm) > K_TABLE_MAX:
+            raise ValueError(f"at most {K_TABLE_MAX} k table points")
+        if self.k_interp not in ("step", "linear"):
+            raise ValueError(f"k_interp must be 'step' or 'linear', got {self.k_interp!r}")
+        if self.model not in ("nominal", "actual"):
+            raise ValueError(f"model must be 'nominal' or 'actual', got {self.model!r}")
+        validate_command(self.command0, self.mode0)
+
+
+def controller_params_from_config(cfg: dict) -> ControllerParams:
+    path = cfg.get("_config_path")
+    return build_dataclass(ControllerParams, section(cfg, "controller", path), "controller", path)
+
+
+def validate_command(command, mode) -> None:
+    """Eq. 5: Command in [0, 1]; mode 0 (resistance) or 1 (motoring). ValueError otherwise."""
+    if isinstance(command, bool) or not isinstance(command, (int, float, np.floating, np.integer)):
+        raise ValueError(f"command must be a number in [0, 1], got {command!r}")
+    if not math.isfinite(float(command)):
+        raise ValueError(f"command must be finite, got {command!r}")
+    if not 0.0 <= float(command) <= 1.0:
+        raise ValueError(f"command must be in [0, 1] (paper 000, Eq. 5), got {command!r}")
+    if isinstance(mode, bool) or int(mode) != mode or int(mode) not in (MODE_RESISTANCE, MODE_MOTORING):
+        raise ValueError(f"mode must be 0 (resistance) or 1 (motoring), got {mode!r}")
