@@ -164,6 +164,35 @@ def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tm
         assert run.stdout == "", run.stdout[-2000:]
 
 
+@pytest.mark.parametrize("sets,words", [
+    (["clock_period_s=0.08"], "clock_period_s: must be at most half of session.period_s = 0.1 s, got 0.08"),
+    (["session.period_s=0.01"], "clock_period_s: must be at most half of session.period_s = 0.01 s, got 0.01"),
+])
+def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(tmp_path, sets, words):
+    """Checks a node made once the graph had started, its error among the other nodes' lines
+    (exit 1): the plant's clock_period_s against session.period_s (the node's default clock
+    period when the config gives none). Now one error naming --set, the config and the key,
+    exit 2, nothing started; a --config file with the values too."""
+    import yaml
+    line = _one_error(_cli("run", *(x for item in sets for x in ("--set", item)), "--duration", "0.5", timeout=90))
+    assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
+    doc = yaml.safe_load(CONFIG.read_text())
+    for item in sets:
+        key, _eq, text = item.partition("=")
+        node = doc["/**"]["ros__parameters"]
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = yaml.safe_load(text)
+    doc["/**"]["ros__parameters"]["session"]["profile"] = str(ROOT / "config" / "profiles" / "demo_intervals.yaml")
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    run = _cli("run", "--config", str(path), "--duration", "0.5", timeout=90)
+    line = _one_error(run)
+    assert str(path) in line and words in line, line
+    assert run.stdout == "", run.stdout[-2000:]
+
+
 def test_run_set_refuses_a_key_no_node_reads(capsys):
     """--set batch_period=5 (a typo) or --set foo=1 was written into the run's config, which no
     node reads: the run went on with batch_periods 20 without a word. One error naming --set

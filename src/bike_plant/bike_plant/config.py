@@ -224,6 +224,23 @@ PLANT_NUMBERS = {
 }
 
 
+# the plant node's default /clock period [sim s] (PLANT_DEFAULTS): check_plant_numbers holds a
+# config without clock_period_s to it, as the node does
+CLOCK_PERIOD_S = 0.01
+
+
+def check_clock_period(clock_period_s: float, session_period_s, path) -> None:
+    """clock_period_s at most half of session.period_s (when that is a finite number > 0; the
+    session's own check names it otherwise): ConfigError naming clock_period_s. The plant node
+    and check_plant_numbers both call it."""
+    if isinstance(session_period_s, (int, float)) and not isinstance(session_period_s, bool) \
+            and 0 < session_period_s < math.inf and clock_period_s > 0.5 * session_period_s:
+        # the session sends its Commands one period ahead of the last /clock it saw; a
+        # controller at a later batch would wait for Commands that are not sent yet
+        raise ConfigError(f"must be at most half of session.period_s = {session_period_s:g} s, got "
+                          f"{clock_period_s:g}", path, "clock_period_s")
+
+
 def plant_number(cfg: dict, key: str, path):
     """The plant node's parameter ``key`` (PLANT_NUMBERS), checked; ConfigError naming it."""
     kind, minimum = PLANT_NUMBERS[key]
@@ -242,6 +259,9 @@ def check_plant_numbers(cfg: dict, path=None) -> None:
     for key in PLANT_NUMBERS:
         if key in cfg and not (key == "busy_wait_s" and sync_mode != "lockstep"):
             plant_number(cfg, key, path)
+    clock_period_s = plant_number(cfg, "clock_period_s", path) if "clock_period_s" in cfg else CLOCK_PERIOD_S
+    session = cfg.get("session")
+    check_clock_period(clock_period_s, session.get("period_s") if isinstance(session, dict) else None, path)
     for key, known in (("machine", ("bldc", "spmsm")), ("backend", ("sim", "can"))):
         if key in cfg and str(cfg[key]) not in known:
             raise ConfigError(f"unknown {key} {cfg[key]!r} ({' | '.join(known)})", path, key)
