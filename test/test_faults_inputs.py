@@ -167,11 +167,14 @@ def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tm
 @pytest.mark.parametrize("sets,words", [
     (["clock_period_s=0.08"], "clock_period_s: must be at most half of session.period_s = 0.1 s, got 0.08"),
     (["session.period_s=0.01"], "clock_period_s: must be at most half of session.period_s = 0.01 s, got 0.01"),
+    (["recorder_window_batches=101"], "recorder_window_batches: must be at most 100 (half the loop topics' DDS "
+                                      "history), got 101"),
 ])
 def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(tmp_path, sets, words):
     """Checks a node made once the graph had started, its error among the other nodes' lines
     (exit 1): the plant's clock_period_s against session.period_s (the node's default clock
-    period when the config gives none). Now one error naming --set, the config and the key,
+    period when the config gives none); its recorder_window_batches against the loop topics' DDS
+    history (LOOP_QOS, whose depth is config.LOOP_HISTORY_DEPTH). Now one error naming --set, the config and the key,
     exit 2, nothing started; a --config file with the values too."""
     import yaml
     line = _one_error(_cli("run", *(x for item in sets for x in ("--set", item)), "--duration", "0.5", timeout=90))

@@ -241,6 +241,22 @@ def check_clock_period(clock_period_s: float, session_period_s, path) -> None:
                           f"{clock_period_s:g}", path, "clock_period_s")
 
 
+# the loop topics' DDS history [samples] (bike_plant.loop.LOOP_QOS depth): here, where checks
+# without rclpy (./bike run's, before it starts a node) read it too
+LOOP_HISTORY_DEPTH = 200
+
+
+def recorder_window_batches(cfg: dict, path) -> int:
+    """The plant node's recorder_window_batches, checked: at most half the loop topics' DDS
+    history (ConfigError naming it). A sample lost on the transport is repaired from the writer's
+    history, so the window must not let the history roll over it."""
+    window = plant_number(cfg, "recorder_window_batches", path)
+    if window > LOOP_HISTORY_DEPTH // 2:
+        raise ConfigError(f"must be at most {LOOP_HISTORY_DEPTH // 2} (half the loop topics' DDS history), "
+                          f"got {window}", path, "recorder_window_batches")
+    return window
+
+
 def plant_number(cfg: dict, key: str, path):
     """The plant node's parameter ``key`` (PLANT_NUMBERS), checked; ConfigError naming it."""
     kind, minimum = PLANT_NUMBERS[key]
@@ -259,6 +275,8 @@ def check_plant_numbers(cfg: dict, path=None) -> None:
     for key in PLANT_NUMBERS:
         if key in cfg and not (key == "busy_wait_s" and sync_mode != "lockstep"):
             plant_number(cfg, key, path)
+    if "recorder_window_batches" in cfg:
+        recorder_window_batches(cfg, path)
     clock_period_s = plant_number(cfg, "clock_period_s", path) if "clock_period_s" in cfg else CLOCK_PERIOD_S
     session = cfg.get("session")
     check_clock_period(clock_period_s, session.get("period_s") if isinstance(session, dict) else None, path)

@@ -11,9 +11,10 @@ import rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from . import shm_ports
+from .config import LOOP_HISTORY_DEPTH
 
-LOOP_QOS = QoSProfile(depth=200, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE)
+LOOP_QOS = QoSProfile(depth=LOOP_HISTORY_DEPTH, history=HistoryPolicy.KEEP_LAST,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 AUX_QOS = QoSProfile(depth=10, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 # Realtime mode, the loop's readers (plant <- DriveCommand, controller <- PlantState): best
 # effort. A reliable reader delivers in order, so a sample lost in transport would hold back

@@ -66,7 +66,7 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv, shm_ports
 from .config import ConfigError
-from .config import CLOCK_PERIOD_S, check_clock_period, plant_number
+from .config import CLOCK_PERIOD_S, check_clock_period, plant_number, recorder_window_batches
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
@@ -317,13 +317,8 @@ class PlantNode(Node):
         self.clock_ns = None         # the last /clock value published
         self.diag_period_s = plant_number(cfg, "diagnostics_period_s", path)
         self.batch_s = self.n * self.dt
-        # must stay below LOOP_QOS depth: a sample lost on the transport is repaired from the
-        # writer's history, so the window must not let the history roll over it
-        self.recorder_window = plant_number(cfg, "recorder_window_batches", path)
+        self.recorder_window = recorder_window_batches(cfg, path)       # below the LOOP_QOS history
         self.recorder_window_cfg = self.recorder_window        # restored when a lost recorder reports again
-        if self.recorder_window > LOOP_QOS.depth // 2:
-            raise ConfigError(f"must be at most {LOOP_QOS.depth // 2} (half the loop topics' DDS history), "
-                              f"got {self.recorder_window}", path, "recorder_window_batches")
         self.recorder_timeout_s = plant_number(cfg, "recorder_timeout_s", path)
         self.start_timeout_s = plant_number(cfg, "start_timeout_s", path)
         self.backend = make_backend(str(cfg.get("backend")), cfg, plant_number(cfg, "seed", path))
