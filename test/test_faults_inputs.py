@@ -169,12 +169,13 @@ def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tm
     (["session.period_s=0.01"], "clock_period_s: must be at most half of session.period_s = 0.01 s, got 0.01"),
     (["recorder_window_batches=101"], "recorder_window_batches: must be at most 100 (half the loop topics' DDS "
                                       "history), got 101"),
+    (["backend=can", "sync_mode=lockstep"], "sync_mode: backend 'can' drives a real drive in real time"),
 ])
 def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(tmp_path, sets, words):
     """Checks a node made once the graph had started, its error among the other nodes' lines
     (exit 1): the plant's clock_period_s against session.period_s (the node's default clock
     period when the config gives none); its recorder_window_batches against the loop topics' DDS
-    history (LOOP_QOS, whose depth is config.LOOP_HISTORY_DEPTH). Now one error naming --set, the config and the key,
+    history (LOOP_QOS, whose depth is config.LOOP_HISTORY_DEPTH); backend can in lockstep. Now one error naming --set, the config and the key,
     exit 2, nothing started; a --config file with the values too."""
     import yaml
     line = _one_error(_cli("run", *(x for item in sets for x in ("--set", item)), "--duration", "0.5", timeout=90))
@@ -194,6 +195,17 @@ def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(tmp_
     line = _one_error(run)
     assert str(path) in line and words in line, line
     assert run.stdout == "", run.stdout[-2000:]
+
+
+def test_run_takes_a_lockstep_can_config_with_ftms_which_rides_it_in_real_time(capsys):
+    """--ftms rides every config in real time (an overrides file), so the check of backend can
+    against lockstep goes by the sync mode the run rides, not the config's alone."""
+    from bike_session.cli import _backend_sync_mode_ok
+    cfg = dict(load_config(CONFIG), backend="can", sync_mode="lockstep")
+    assert _backend_sync_mode_ok(cfg, CONFIG, CONFIG, ftms_on=True)
+    assert not _backend_sync_mode_ok(cfg, CONFIG, CONFIG, ftms_on=False)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{CONFIG}: sync_mode: backend 'can'" in err[0], err
 
 
 def test_run_set_refuses_a_key_no_node_reads(capsys):

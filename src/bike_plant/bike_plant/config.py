@@ -257,6 +257,15 @@ def recorder_window_batches(cfg: dict, path) -> int:
     return window
 
 
+def check_backend_sync_mode(backend: str, sync_mode: str, path) -> None:
+    """backend can with sync_mode realtime only: ConfigError naming sync_mode otherwise. The
+    plant node's make_backend and ./bike run (with the sync mode the run rides: --ftms makes
+    it realtime) both call it."""
+    if backend == "can" and sync_mode != "realtime":
+        raise ConfigError("backend 'can' drives a real drive in real time: set sync_mode: realtime",
+                          path, "sync_mode")
+
+
 def plant_number(cfg: dict, key: str, path):
     """The plant node's parameter ``key`` (PLANT_NUMBERS), checked; ConfigError naming it."""
     kind, minimum = PLANT_NUMBERS[key]

@@ -66,7 +66,7 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv, shm_ports
 from .config import ConfigError
-from .config import CLOCK_PERIOD_S, check_clock_period, plant_number, recorder_window_batches
+from .config import CLOCK_PERIOD_S, check_backend_sync_mode, check_clock_period, plant_number, recorder_window_batches
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
@@ -279,9 +279,7 @@ def make_backend(kind: str, cfg: dict, seed: int):
     if kind == "sim":
         return SpmsmSimBackend(cfg, seed) if machine == "spmsm" else SimBackend(cfg, seed)
     if kind == "can":
-        if str(cfg.get("sync_mode", "lockstep")) != "realtime":
-            raise ConfigError("backend 'can' drives a real drive in real time: set sync_mode: realtime",
-                              cfg.get("_config_path"), "sync_mode")
+        check_backend_sync_mode(kind, str(cfg.get("sync_mode", "lockstep")), cfg.get("_config_path"))
         from .can.backend import CanBackend
         return CanBackend(cfg, log_file=str(cfg.get("can_log_file") or "") or None)
     raise ConfigError(f"unknown backend {kind!r} (sim | can)", cfg.get("_config_path"), "backend")

@@ -130,6 +130,8 @@ def _cmd_run(opts) -> int:
             return 2
     elif not _config_profile_ok(cfg, config, source_config):
         return 2
+    if not _backend_sync_mode_ok(cfg, config, source_config, ftms_on):
+        return 2
     default_s = workout.duration_s if workout is not None else float(cfg.get("duration_s", 60.0))
     duration_s = opts.duration if opts.duration is not None else default_s
     if not (duration_s > 0 and math.isfinite(duration_s)):
@@ -454,6 +456,22 @@ def _can_run_args(cfg, args: dict):
           + (", started here as bike-drive-emulator" if params.emulator else ", a real drive (can.emulator false)")
           + "; sim time pauses while the drive is not armed", flush=True)
     return params
+
+
+def _backend_sync_mode_ok(cfg: dict, config: pathlib.Path, source_config: pathlib.Path, ftms_on: bool) -> bool:
+    """backend can in the sync mode the run rides (--ftms: realtime, whatever the config says),
+    checked as the plant node checks it before anything starts: a lockstep CAN run was the
+    plant's error once the graph had started. False after one error (naming the config given,
+    and --set when the run rides a changed copy of it)."""
+    from bike_plant.config import ConfigError, check_backend_sync_mode
+
+    sync_mode = "realtime" if ftms_on else str(cfg.get("sync_mode", "lockstep"))
+    try:
+        check_backend_sync_mode(str(cfg.get("backend", "sim")), sync_mode, source_config)
+    except ConfigError as exc:
+        print(f"error: {'--set: ' if config != source_config else ''}{exc}", file=sys.stderr)
+        return False
+    return True
 
 
 def _config_profile_ok(cfg: dict, config: pathlib.Path, source_config: pathlib.Path) -> bool:
