@@ -170,12 +170,15 @@ def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tm
     (["recorder_window_batches=101"], "recorder_window_batches: must be at most 100 (half the loop topics' DDS "
                                       "history), got 101"),
     (["backend=can", "sync_mode=lockstep"], "sync_mode: backend 'can' drives a real drive in real time"),
+    (["session.over_range=clamp"], "session.over_range: must be 'warn' or 'error', got 'clamp'"),
+    (["session.over_range=5"], "session.over_range: must be 'warn' or 'error', got 5"),
 ])
 def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(tmp_path, sets, words):
     """Checks a node made once the graph had started, its error among the other nodes' lines
     (exit 1): the plant's clock_period_s against session.period_s (the node's default clock
     period when the config gives none); its recorder_window_batches against the loop topics' DDS
-    history (LOOP_QOS, whose depth is config.LOOP_HISTORY_DEPTH); backend can in lockstep. Now one error naming --set, the config and the key,
+    history (LOOP_QOS, whose depth is config.LOOP_HISTORY_DEPTH); backend can in lockstep; the
+    session's over_range (only read with a workout, and then named by the workout file). Now one error naming --set, the config and the key,
     exit 2, nothing started; a --config file with the values too."""
     import yaml
     line = _one_error(_cli("run", *(x for item in sets for x in ("--set", item)), "--duration", "0.5", timeout=90))
@@ -206,6 +209,20 @@ def test_run_takes_a_lockstep_can_config_with_ftms_which_rides_it_in_real_time(c
     assert not _backend_sync_mode_ok(cfg, CONFIG, CONFIG, ftms_on=False)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{CONFIG}: sync_mode: backend 'can'" in err[0], err
+
+
+def test_run_reads_the_workout_with_the_configs_over_range(tmp_path):
+    """session.over_range: error refuses a workout target beyond the machine's range: ./bike run
+    read the workout with 'warn' (the targets saturated, a warning) and the session node, which
+    reads it with the config's over_range, refused it once the graph had started (exit 1). Now
+    one error naming the workout, exit 2, nothing started."""
+    workout = tmp_path / "hard.zwo"
+    workout.write_text('<workout_file><workout>\n<SteadyState Duration="60" Power="3.0"/>\n</workout></workout_file>\n')
+    run = _cli("run", "--set", "session.over_range=error", "--workout", str(workout), "--ftp", "400",
+               "--duration", "0.5", timeout=90)
+    line = _one_error(run)
+    assert str(workout) in line and "exceeds the machine's power range" in line, line
+    assert "--set" not in run.stdout and "[bike] config" not in run.stdout, run.stdout[-2000:]
 
 
 def test_run_set_refuses_a_key_no_node_reads(capsys):

@@ -252,6 +252,8 @@ def _check_config(cfg: dict) -> None:
 
     from bike_controller.modes import friction_figures, mode_params_from_config
 
+    from bike_session.workouts import over_range_problem
+
     check_plant_numbers(cfg)
     session = cfg.get("session") or {}
     for key, positive in (("period_s", True), ("duration_s", False)):
@@ -261,6 +263,10 @@ def _check_config(cfg: dict) -> None:
                 or (value <= 0 if positive else value < 0):
             raise ConfigError(f"must be a finite number {'> 0' if positive else '>= 0'}, got {value!r}",
                               cfg.get("_config_path"), f"session.{key}")
+    over_range = session.get("over_range", "warn") if isinstance(session, dict) else "warn"
+    if over_range_problem(over_range):
+        # the session node's check (it refused it once the graph had started)
+        raise ConfigError(over_range_problem(over_range), cfg.get("_config_path"), "session.over_range")
     mode_params_from_config(cfg)
     friction_figures(cfg)
     if str(cfg.get("machine", "bldc")) == "spmsm":
@@ -517,8 +523,11 @@ def _load_workout_for_run(opts, cfg):
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", WorkoutWarning)
+            # the config's over_range as the session node reads the workout: an error there
+            # refuses a target beyond the machine's range now, not once the graph has started
             workout = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=pmax_w_from_config(cfg),
-                                   units=mode_units_from_config(cfg), max_hr_bpm=max_hr)
+                                   units=mode_units_from_config(cfg), max_hr_bpm=max_hr,
+                                   over_range=(cfg.get("session") or {}).get("over_range", "warn"))
     except (ProfileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return None

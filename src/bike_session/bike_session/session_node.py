@@ -208,9 +208,13 @@ def _make_node_class():
         def __init__(self, **kwargs):
             super().__init__(NODE_NAME, **kwargs)
             p = {}
-            for name, default in (("session.profile", ""), ("config_path", ""), ("session.workout", ""),
-                                  ("session.over_range", "warn")):
+            from bike_session.workouts import over_range_problem
+            for name, default in (("session.profile", ""), ("config_path", ""), ("session.workout", "")):
                 p[name] = self.declare_parameter(name, default).value
+            # any type: a config's over_range: 5 is this error, not rclpy's type exception
+            p["session.over_range"] = self.declare_parameter("session.over_range", "warn", any_type).value
+            if over_range_problem(p["session.over_range"]):
+                raise SetupError(f"parameter session.over_range {over_range_problem(p['session.over_range'])}")
             for name, default in (("session.period_s", 0.1), ("duration_s", 0.0), ("session.duration_s", 0.0),
                                   ("session.ftp_w", 0.0), ("session.max_hr_bpm", 0.0)):
                 value = self.declare_parameter(name, default, any_type).value

@@ -103,11 +103,21 @@ MAX_FTP_W = 2000.0
 MAX_HR_BPM = HEART_RATE_MAX_BPM    # a rider's maximum heart rate beyond this is a typo
 MAX_CADENCE_RPM = RIDER_CADENCE_MAX_RPM      # what a Command may give the rider (bike_plant.mechanics)
 DEFAULT_FREERIDE_COMMAND = 0.2
+OVER_RANGE_CHOICES = ("warn", "error")      # what to do with a target beyond the machine's range
 DEFAULT_MAXEFFORT_COMMAND = 0.5
 
 FORMATS = {".zwo": "zwo", ".erg": "erg", ".mrc": "mrc", ".fit": "fit", ".yaml": "yaml", ".yml": "yaml"}
 
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z")
+
+
+def over_range_problem(over_range) -> str | None:
+    """What is wrong with an over_range setting (load_workout's, a config's session.over_range),
+    None when it is one of OVER_RANGE_CHOICES. The session node and ./bike run (before a node
+    starts) check the config's with it."""
+    if isinstance(over_range, str) and over_range in OVER_RANGE_CHOICES:
+        return None
+    return f"must be {' or '.join(repr(c) for c in OVER_RANGE_CHOICES)}, got {over_range!r}"
 
 
 class WorkoutError(ProfileError):
@@ -328,8 +338,8 @@ class _Options:
         max_hr = None if max_hr_bpm is None else positive("max_hr_bpm", max_hr_bpm, MAX_HR_BPM)
         if not isinstance(mode, str) or mode not in MODES:
             raise WorkoutError(f"unknown mode {mode!r}; expected one of {', '.join(MODES)}", source, "mode")
-        if over_range not in ("warn", "error"):
-            raise WorkoutError(f"over_range must be 'warn' or 'error', got {over_range!r}", source, "over_range")
+        if over_range_problem(over_range):
+            raise WorkoutError(f"over_range {over_range_problem(over_range)}", source, "over_range")
         for name, value in (("freeride_command", freeride_command), ("maxeffort_command", maxeffort_command)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise WorkoutError(f"parameter {name} must be in [0, 1], got {value!r}", source, name)
