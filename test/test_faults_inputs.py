@@ -172,13 +172,16 @@ def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tm
     (["backend=can", "sync_mode=lockstep"], "sync_mode: backend 'can' drives a real drive in real time"),
     (["session.over_range=clamp"], "session.over_range: must be 'warn' or 'error', got 'clamp'"),
     (["session.over_range=5"], "session.over_range: must be 'warn' or 'error', got 5"),
+    (["command_wait_s=-1"], "command_wait_s: must be a number > 0, got -1"),
+    (["sync_mode=realtime", "busy_wait_s=-1"], "busy_wait_s: must be finite and >= 0.0, got -1"),
 ])
 def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(tmp_path, sets, words):
     """Checks a node made once the graph had started, its error among the other nodes' lines
     (exit 1): the plant's clock_period_s against session.period_s (the node's default clock
     period when the config gives none); its recorder_window_batches against the loop topics' DDS
     history (LOOP_QOS, whose depth is config.LOOP_HISTORY_DEPTH); backend can in lockstep; the
-    session's over_range (only read with a workout, and then named by the workout file). Now one error naming --set, the config and the key,
+    session's over_range (only read with a workout, and then named by the workout file); the
+    controller node's own numbers (command_wait_s; busy_wait_s, which it reads in realtime too). Now one error naming --set, the config and the key,
     exit 2, nothing started; a --config file with the values too."""
     import yaml
     line = _one_error(_cli("run", *(x for item in sets for x in ("--set", item)), "--duration", "0.5", timeout=90))

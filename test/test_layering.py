@@ -30,7 +30,8 @@ def test_physics_and_control_modules_import_no_rclpy():
     modules = ["bike_plant.bldc", "bike_plant.spmsm", "bike_plant.sim", "bike_plant.params", "bike_plant.mechanics",
                "bike_plant.can.protocol", "bike_controller.bldc_control", "bike_controller.spmsm_control",
                "bike_controller.session_control", "bike_controller.spmsm_session", "bike_controller.modes",
-               "bike_controller.closed_loop", "bike_controller.fleet", "bike_controller.drive_emulator"]
+               "bike_controller.closed_loop", "bike_controller.fleet", "bike_controller.drive_emulator",
+               "bike_controller.node_params"]
     code = ("import importlib, sys\n"
             f"for m in {modules!r}: importlib.import_module(m)\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy'))\n")

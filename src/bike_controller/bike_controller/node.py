@@ -49,7 +49,7 @@ import time
 
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv, shm_ports
-from bike_plant.config import ConfigError, number_param
+from bike_plant.config import ConfigError
 from bike_plant.loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                              recorder_reads, take_sim_time_from_messages)
 from bike_plant.node import run_loop_node, warm_up_kernels
@@ -58,6 +58,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from .modes import MODE_NAMES, MODE_SPINDOWN
+from .node_params import controller_node_numbers
 
 CONTROLLER_DEFAULTS = {
     "sync_mode": "lockstep",
@@ -97,10 +98,11 @@ class ControllerNode(Node):
         self.sync_mode = str(cfg.get("sync_mode"))
         if self.sync_mode not in ("lockstep", "realtime"):
             raise ConfigError(f"must be 'lockstep' or 'realtime', got {self.sync_mode!r}", path, "sync_mode")
-        self.command_wait_s = _positive(cfg.get("command_wait_s"), "command_wait_s", path)
-        self.period_s = _positive((cfg.get("session") or {}).get("period_s"), "session.period_s", path)
-        self.diag_period_s = _positive(cfg.get("diagnostics_period_s"), "diagnostics_period_s", path)
-        busy = number_param(cfg, "busy_wait_s", float, 0.0, path)
+        numbers = controller_node_numbers(cfg, path)          # ./bike run checks them too
+        self.command_wait_s = numbers["command_wait_s"]
+        self.period_s = numbers["session.period_s"]
+        self.diag_period_s = numbers["diagnostics_period_s"]
+        busy = numbers["busy_wait_s"]
         self.busy_wait_s = busy if self.sync_mode == "lockstep" else 0.0     # realtime never polls
         self.calibration_file = str(cfg.get("calibration_file") or "")
         self.saved_spindown = None         # the spin-down result last written there
@@ -486,12 +488,6 @@ class ControllerNode(Node):
                 self.get_logger().warning(text)
                 self._publish_diag(DiagnosticStatus.WARN, text)
         return 0
-
-
-def _positive(value, key, path) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise ConfigError(f"must be a number > 0, got {value!r}", path, key)
-    return float(value)
 
 
 def warm_up_law(make_law, cfg: dict, machine: str, n: int, batches: int = 5) -> None:

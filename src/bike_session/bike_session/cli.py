@@ -246,11 +246,13 @@ def _config_copy(config: pathlib.Path, doc: dict, note: str):
 
 def _check_config(cfg: dict) -> None:
     """What the nodes build first from a config, without building them: ValueError naming the
-    key (the plant node's top-level numbers, the modes section, the friction figures, the
-    machine's plant parameters)."""
+    key (the plant node's top-level numbers, the session's period, duration and over_range, the
+    modes section, the friction figures, the machine's plant and controller parameters, the
+    controller node's own numbers)."""
     from bike_plant.config import ConfigError, check_plant_numbers
 
     from bike_controller.modes import friction_figures, mode_params_from_config
+    from bike_controller.node_params import controller_node_numbers
 
     from bike_session.workouts import over_range_problem
 
@@ -277,6 +279,7 @@ def _check_config(cfg: dict) -> None:
         from bike_plant.params import plant_params_from_config
     plant_params_from_config(cfg)
     controller_params_from_config(cfg)
+    controller_node_numbers(cfg)        # the controller node's own (command_wait_s, ...)
 
 
 # the top-level keys a node reads (besides the config's own): --set of another is a typo that
