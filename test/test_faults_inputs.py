@@ -228,6 +228,35 @@ def test_run_reads_the_workout_with_the_configs_over_range(tmp_path):
     assert "--set" not in run.stdout and "[bike] config" not in run.stdout, run.stdout[-2000:]
 
 
+@pytest.mark.parametrize("key,value,words", [
+    ("batch_periods", -3, "batch_periods: must be finite and >= 1, got -3"),
+    ("command_wait_s", -1, "command_wait_s: must be a number > 0, got -1")])
+def test_replay_names_the_given_config_and_leaves_nothing_when_it_refuses_it(tmp_path, monkeypatch, capsys,
+                                                                             key, value, words):
+    """./bike replay BAG --config BAD: the run it hands the replay's config to refused it naming
+    the generated replay_<bag>_config.yaml, and that file and the profile were left in the
+    --record folder. Now one error naming --config's file and the key, exit 2, --record as it
+    was (not even the folder when the replay made it)."""
+    import yaml
+
+    from bike_session import replay
+    info = {"duration_s": 1.0, "period_s": 0.1, "config_text": CONFIG.read_text()}
+    monkeypatch.setattr(replay, "command_timeline", lambda _bag: ([(0, 0.5, 0, 0.0, None)], info))
+    doc = yaml.safe_load(CONFIG.read_text())
+    doc["/**"]["ros__parameters"][key] = value
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(doc))
+    for record in (tmp_path / "runs", tmp_path / "new" / "runs"):
+        record.parent.mkdir(exist_ok=True)
+        if record.name == "runs" and record.parent == tmp_path:
+            record.mkdir()
+        code = replay.main([str(tmp_path / "session_x"), "--config", str(bad), "--record", str(record)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith(f"error: {bad}: ") and words in err[0], err
+        assert "_config.yaml" not in err[0], err
+        assert (list(record.iterdir()) == []) if record.parent == tmp_path else not record.exists()
+
+
 def test_run_set_refuses_a_key_no_node_reads(capsys):
     """--set batch_period=5 (a typo) or --set foo=1 was written into the run's config, which no
     node reads: the run went on with batch_periods 20 without a word. One error naming --set

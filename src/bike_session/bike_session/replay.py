@@ -169,9 +169,32 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     header = (f"# Replay of {bag_path.resolve()} ({'recorded' if config is None else config} bike, "
               f"{load} load); written by ./bike replay\n")
     config_path.write_text(header + yaml.safe_dump(doc, sort_keys=False))
-    load_config(config_path)
+    try:
+        _check_replay_config(config_path)
+    except ValueError as exc:
+        # refused: nothing of this replay is left in out_dir, and the error names the bike it
+        # was asked for (--config, or the bag's recorded one), not the file written from it
+        profile_path.unlink(missing_ok=True)
+        config_path.unlink(missing_ok=True)
+        given = str(path) if config is not None else f"{bag_path} (its recorded config)"
+        raise ConfigError(str(exc).replace(f"{config_path.resolve()}: ", "").replace(f"{config_path}: ", ""),
+                          given) from None
     return {"profile": profile_path, "config": config_path, "duration_s": duration_s,
             "commands": len(timeline), "segments": len(profile["segments"]), "base_dir": str(base_dir)}
+
+
+def _check_replay_config(config_path: pathlib.Path) -> None:
+    """The replay's config checked as ./bike run checks a config before it starts a node
+    (ValueError naming the key): the run it is handed to refused it naming this generated
+    file, and left it behind."""
+    from bike_plant.config import check_backend_sync_mode, load_config
+
+    from bike_session import cli
+
+    cfg = load_config(config_path)
+    cli._check_config(cfg)
+    # a replay rides the config's own sync mode (no --ftms)
+    check_backend_sync_mode(str(cfg.get("backend", "sim")), str(cfg.get("sync_mode", "lockstep")), config_path)
 
 
 def main(argv: list[str]) -> int:
@@ -190,12 +213,15 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     opts = ap.parse_args(argv)
     from bike_session import cli
+    made_record_dir = not pathlib.Path(opts.record).exists()
     if cli.output_dir(opts.record, "--record") is None:
         return 2
     try:
         prep = prepare(opts.bag, opts.record, opts.config, opts.load)
     except (BagError, ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        if made_record_dir and not any(pathlib.Path(opts.record).iterdir()):
+            pathlib.Path(opts.record).rmdir()          # made for this replay, which did not start
         return 2
     print(f"[bike] replaying {prep['commands']} Commands ({prep['segments']} steps, {prep['duration_s']:g} s) "
           f"of {opts.bag} with {prep['config']}", flush=True)
