@@ -254,17 +254,16 @@ def _check_config(cfg: dict) -> None:
     from bike_controller.modes import friction_figures, mode_params_from_config
     from bike_controller.node_params import controller_node_numbers
 
-    from bike_session.workouts import over_range_problem
+    from bike_session.workouts import over_range_problem, session_number_problem
 
     check_plant_numbers(cfg)
     session = cfg.get("session") or {}
-    for key, positive in (("period_s", True), ("duration_s", False)):
-        value = session.get(key, 0.1 if positive else 0.0) if isinstance(session, dict) else None
-        # as the session node checks them (it refused them once the graph had started)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                or (value <= 0 if positive else value < 0):
-            raise ConfigError(f"must be a finite number {'> 0' if positive else '>= 0'}, got {value!r}",
-                              cfg.get("_config_path"), f"session.{key}")
+    for key, default in (("period_s", 0.1), ("duration_s", 0.0)):
+        value = session.get(key, default) if isinstance(session, dict) else None
+        # the session node's check (it refused them once the graph had started)
+        if session_number_problem(f"session.{key}", value):
+            raise ConfigError(session_number_problem(f"session.{key}", value), cfg.get("_config_path"),
+                              f"session.{key}")
     over_range = session.get("over_range", "warn") if isinstance(session, dict) else "warn"
     if over_range_problem(over_range):
         # the session node's check (it refused it once the graph had started)

@@ -208,7 +208,7 @@ def _make_node_class():
         def __init__(self, **kwargs):
             super().__init__(NODE_NAME, **kwargs)
             p = {}
-            from bike_session.workouts import over_range_problem
+            from bike_session.workouts import over_range_problem, session_number_problem
             for name, default in (("session.profile", ""), ("config_path", ""), ("session.workout", "")):
                 p[name] = self.declare_parameter(name, default).value
             # any type: a config's over_range: 5 is this error, not rclpy's type exception
@@ -218,14 +218,9 @@ def _make_node_class():
             for name, default in (("session.period_s", 0.1), ("duration_s", 0.0), ("session.duration_s", 0.0),
                                   ("session.ftp_w", 0.0), ("session.max_hr_bpm", 0.0)):
                 value = self.declare_parameter(name, default, any_type).value
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                    raise SetupError(f"parameter {name} must be a finite number, got {value!r}")
+                if session_number_problem(name, value):
+                    raise SetupError(f"parameter {name} {session_number_problem(name, value)}")
                 p[name] = float(value)
-            if p["session.period_s"] <= 0:
-                raise SetupError(f"parameter session.period_s must be > 0, got {p['session.period_s']!r}")
-            for name in ("duration_s", "session.duration_s"):
-                if p[name] < 0:
-                    raise SetupError(f"parameter {name} must be >= 0 (0 = profile length), got {p[name]!r}")
             if not p["session.profile"] and not p["session.workout"]:
                 raise SetupError("parameters session.profile and session.workout are empty: give a profile "
                                  "or workout file")

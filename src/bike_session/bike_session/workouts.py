@@ -120,6 +120,20 @@ def over_range_problem(over_range) -> str | None:
     return f"must be {' or '.join(repr(c) for c in OVER_RANGE_CHOICES)}, got {over_range!r}"
 
 
+def session_number_problem(name: str, value) -> str | None:
+    """What is wrong with the session node's number parameter ``name`` (session.period_s,
+    duration_s, session.duration_s, session.ftp_w, session.max_hr_bpm), None when it is good:
+    each a finite number, the period > 0 and the durations >= 0. The session node and ./bike
+    run (before a node starts) check them with it."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return f"must be a finite number, got {value!r}"
+    if name == "session.period_s" and value <= 0:
+        return f"must be > 0, got {value!r}"
+    if name.endswith("duration_s") and value < 0:
+        return f"must be >= 0 (0 = profile length), got {value!r}"
+    return None
+
+
 class WorkoutError(ProfileError):
     """A problem in a workout file: ``<file>: line N <Element>: what is wrong``."""
 
