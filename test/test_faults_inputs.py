@@ -118,6 +118,23 @@ def _one_error(run) -> str:
     return lines[0]
 
 
+def _refused_config_file(tmp_path, change) -> str:
+    """`./bike run --config` of the default config changed by ``change(params)`` (its profile
+    path made absolute): the one error line, which names the file; nothing started."""
+    import yaml
+    doc = yaml.safe_load(CONFIG.read_text())
+    params = doc["/**"]["ros__parameters"]
+    change(params)
+    params["session"]["profile"] = str(ROOT / "config" / "profiles" / "demo_intervals.yaml")
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    run = _cli("run", "--config", str(path), "--duration", "0.5", timeout=90)
+    line = _one_error(run)
+    assert str(path) in line, line
+    assert run.stdout == "", run.stdout[-2000:]
+    return line
+
+
 @pytest.mark.parametrize("key,value,words", [
     ("batch_periods", -3, "batch_periods: must be finite and >= 1, got -3"),
     ("batch_periods", "abc", "batch_periods: expected a number, got 'abc'"),
@@ -129,16 +146,8 @@ def test_run_checks_the_config_before_any_node_starts(tmp_path, key, value, word
     plant's configuration error among the other nodes' lines, exit 1. Now one error naming the
     file and key, exit 2, nothing started; --set names the config it changed, not its
     temporary copy."""
-    import yaml
-    doc = yaml.safe_load(CONFIG.read_text())
-    doc["/**"]["ros__parameters"][key] = value
-    doc["/**"]["ros__parameters"]["session"]["profile"] = str(ROOT / "config" / "profiles" / "demo_intervals.yaml")
-    path = tmp_path / "bad.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    run = _cli("run", "--config", str(path), "--duration", "0.5", timeout=90)
-    line = _one_error(run)
-    assert str(path) in line and words in line, line
-    assert run.stdout == "", run.stdout[-2000:]
+    line = _refused_config_file(tmp_path, lambda params: params.__setitem__(key, value))
+    assert words in line, line
     if not isinstance(value, dict):
         line = _one_error(_cli("run", "--set", f"{key}={value}", "--duration", "0.5", timeout=90))
         assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
@@ -186,21 +195,16 @@ def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(tmp_
     import yaml
     line = _one_error(_cli("run", *(x for item in sets for x in ("--set", item)), "--duration", "0.5", timeout=90))
     assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
-    doc = yaml.safe_load(CONFIG.read_text())
-    for item in sets:
-        key, _eq, text = item.partition("=")
-        node = doc["/**"]["ros__parameters"]
-        *parents, leaf = key.split(".")
-        for part in parents:
-            node = node.setdefault(part, {})
-        node[leaf] = yaml.safe_load(text)
-    doc["/**"]["ros__parameters"]["session"]["profile"] = str(ROOT / "config" / "profiles" / "demo_intervals.yaml")
-    path = tmp_path / "bad.yaml"
-    path.write_text(yaml.safe_dump(doc))
-    run = _cli("run", "--config", str(path), "--duration", "0.5", timeout=90)
-    line = _one_error(run)
-    assert str(path) in line and words in line, line
-    assert run.stdout == "", run.stdout[-2000:]
+
+    def change(params):
+        for item in sets:
+            key, _eq, text = item.partition("=")
+            node = params
+            *parents, leaf = key.split(".")
+            for part in parents:
+                node = node.setdefault(part, {})
+            node[leaf] = yaml.safe_load(text)
+    assert words in _refused_config_file(tmp_path, change)
 
 
 def test_run_takes_a_lockstep_can_config_with_ftms_which_rides_it_in_real_time(capsys):
