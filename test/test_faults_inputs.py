@@ -261,6 +261,23 @@ def test_replay_names_the_given_config_and_leaves_nothing_when_it_refuses_it(tmp
         assert (list(record.iterdir()) == []) if record.parent == tmp_path else not record.exists()
 
 
+def test_run_refuses_a_session_key_no_node_reads(tmp_path, capsys):
+    """`--set session.perod_s=0.05` (a typo) or a config's unknown session: key rode the config's
+    period without a word: one error naming the section and the key. SESSION_KEYS holds every
+    session.* parameter the session node declares (read from its source, so a new one is seen)."""
+    import re
+
+    from bike_session import workouts
+    from bike_session.cli import _set_run_config
+    assert _set_run_config(["session.perod_s=0.05"], CONFIG) is None
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "session: unknown key(s) perod_s; known: profile, period_s" in err[0], err
+    assert "unknown key(s) perod_s" in _refused_config_file(tmp_path, lambda p: p["session"].update(perod_s=0.05))
+    source = (ROOT / "src" / "bike_session" / "bike_session" / "session_node.py").read_text()
+    declared = set(re.findall(r'"session\.([a-z_0-9]+)"', source))
+    assert declared and declared <= set(workouts.SESSION_KEYS), declared - set(workouts.SESSION_KEYS)
+
+
 def test_run_set_refuses_a_key_no_node_reads(capsys):
     """--set batch_period=5 (a typo) or --set foo=1 was written into the run's config, which no
     node reads: the run went on with batch_periods 20 without a word. One error naming --set

@@ -254,10 +254,15 @@ def _check_config(cfg: dict) -> None:
     from bike_controller.modes import friction_figures, mode_params_from_config
     from bike_controller.node_params import controller_node_numbers
 
-    from bike_session.workouts import over_range_problem, session_number_problem
+    from bike_session.workouts import SESSION_KEYS, over_range_problem, session_number_problem
 
     check_plant_numbers(cfg)
     session = cfg.get("session") or {}
+    unknown = sorted(set(session) - set(SESSION_KEYS)) if isinstance(session, dict) else []
+    if unknown:
+        # no node reads them: --set session.perod_s=0.05 (a typo) rode the 0.1 s period without a word
+        raise ConfigError(f"unknown key(s) {', '.join(unknown)}; known: {', '.join(SESSION_KEYS)}",
+                          cfg.get("_config_path"), "session")
     for key, default in (("period_s", 0.1), ("duration_s", 0.0)):
         value = session.get(key, default) if isinstance(session, dict) else None
         # the session node's check (it refused them once the graph had started)

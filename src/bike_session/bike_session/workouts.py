@@ -120,6 +120,11 @@ def over_range_problem(over_range) -> str | None:
     return f"must be {' or '.join(repr(c) for c in OVER_RANGE_CHOICES)}, got {over_range!r}"
 
 
+# the config's session: keys the nodes read (the session node's session.* parameters; the plant
+# and the controller read period_s too): ./bike run refuses another, a typo that changes nothing
+SESSION_KEYS = ("profile", "period_s", "duration_s", "workout", "ftp_w", "max_hr_bpm", "over_range")
+
+
 def session_number_problem(name: str, value) -> str | None:
     """What is wrong with the session node's number parameter ``name`` (session.period_s,
     duration_s, session.duration_s, session.ftp_w, session.max_hr_bpm), None when it is good:
