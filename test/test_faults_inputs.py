@@ -156,6 +156,7 @@ def test_run_checks_the_config_before_any_node_starts(tmp_path, key, value, word
 @pytest.mark.parametrize("item,words", [
     ("session.period_s=-1", "session.period_s: must be > 0, got -1"),
     ("session.period_s=abc", "session.period_s: must be a finite number, got 'abc'"),
+    ("session.ftp_w=.nan", "session.ftp_w: must be a finite number, got nan"),
     ("controller.current_limit_a=-5", "controller: current_limit_a must be > 0, got -5.0"),
     ("session.profile=/nonexistent/p.yaml", "session.profile: /nonexistent/p.yaml: cannot read profile")])
 def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tmp_path, item, words):

@@ -246,7 +246,7 @@ def _config_copy(config: pathlib.Path, doc: dict, note: str):
 
 def _check_config(cfg: dict) -> None:
     """What the nodes build first from a config, without building them: ValueError naming the
-    key (the plant node's top-level numbers, the session's period, duration and over_range, the
+    key (the plant node's top-level numbers, the session's keys, numbers and over_range, the
     modes section, the friction figures, the machine's plant and controller parameters, the
     controller node's own numbers)."""
     from bike_plant.config import ConfigError, check_plant_numbers
@@ -263,7 +263,7 @@ def _check_config(cfg: dict) -> None:
         # no node reads them: --set session.perod_s=0.05 (a typo) rode the 0.1 s period without a word
         raise ConfigError(f"unknown key(s) {', '.join(unknown)}; known: {', '.join(SESSION_KEYS)}",
                           cfg.get("_config_path"), "session")
-    for key, default in (("period_s", 0.1), ("duration_s", 0.0)):
+    for key, default in (("period_s", 0.1), ("duration_s", 0.0), ("ftp_w", 0.0), ("max_hr_bpm", 0.0)):
         value = session.get(key, default) if isinstance(session, dict) else None
         # the session node's check (it refused them once the graph had started)
         if session_number_problem(f"session.{key}", value):
