@@ -49,7 +49,7 @@ import time
 
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, SessionStatus
 from bike_plant import msgconv, shm_ports
-from bike_plant.config import ConfigError
+from bike_plant.config import ConfigError, sync_mode_of
 from bike_plant.loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                              recorder_reads, take_sim_time_from_messages)
 from bike_plant.node import run_loop_node, warm_up_kernels
@@ -95,9 +95,7 @@ class ControllerNode(Node):
 
         self.cfg = cfg = declare_config(self, CONTROLLER_DEFAULTS, CONTROLLER_DESCRIPTIONS)
         path = cfg.get("_config_path")
-        self.sync_mode = str(cfg.get("sync_mode"))
-        if self.sync_mode not in ("lockstep", "realtime"):
-            raise ConfigError(f"must be 'lockstep' or 'realtime', got {self.sync_mode!r}", path, "sync_mode")
+        self.sync_mode = sync_mode_of(cfg, path)
         numbers = controller_node_numbers(cfg, path)          # ./bike run checks them too
         self.command_wait_s = numbers["command_wait_s"]
         self.period_s = numbers["session.period_s"]

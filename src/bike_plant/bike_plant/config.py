@@ -266,6 +266,15 @@ def check_backend_sync_mode(backend: str, sync_mode: str, path) -> None:
                           path, "sync_mode")
 
 
+def sync_mode_of(cfg: dict, path) -> str:
+    """The config's sync_mode (lockstep when absent), checked: ConfigError naming it. The plant
+    and controller nodes and check_plant_numbers take it with this."""
+    sync_mode = str(cfg.get("sync_mode", "lockstep"))
+    if sync_mode not in ("lockstep", "realtime"):
+        raise ConfigError(f"must be 'lockstep' or 'realtime', got {sync_mode!r}", path, "sync_mode")
+    return sync_mode
+
+
 def plant_number(cfg: dict, key: str, path):
     """The plant node's parameter ``key`` (PLANT_NUMBERS), checked; ConfigError naming it."""
     kind, minimum = PLANT_NUMBERS[key]
@@ -278,9 +287,7 @@ def check_plant_numbers(cfg: dict, path=None) -> None:
     before it starts anything (a bad batch_periods was otherwise found by the plant node after
     the graph had started: its error, the other nodes' lines, exit 1)."""
     path = path or cfg.get("_config_path")
-    sync_mode = cfg.get("sync_mode", "lockstep")
-    if sync_mode not in ("lockstep", "realtime"):
-        raise ConfigError(f"must be 'lockstep' or 'realtime', got {sync_mode!r}", path, "sync_mode")
+    sync_mode = sync_mode_of(cfg, path)
     for key in PLANT_NUMBERS:
         if key in cfg and not (key == "busy_wait_s" and sync_mode != "lockstep"):
             plant_number(cfg, key, path)

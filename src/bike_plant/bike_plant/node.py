@@ -66,7 +66,8 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv, shm_ports
 from .config import ConfigError
-from .config import CLOCK_PERIOD_S, check_backend_sync_mode, check_clock_period, plant_number, recorder_window_batches
+from .config import (CLOCK_PERIOD_S, check_backend_sync_mode, check_clock_period, plant_number, recorder_window_batches,
+                     sync_mode_of)
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
@@ -293,9 +294,7 @@ class PlantNode(Node):
 
         self.cfg = cfg = declare_config(self, PLANT_DEFAULTS, PLANT_DESCRIPTIONS)
         path = cfg.get("_config_path")
-        self.sync_mode = str(cfg.get("sync_mode"))
-        if self.sync_mode not in ("lockstep", "realtime"):
-            raise ConfigError(f"must be 'lockstep' or 'realtime', got {self.sync_mode!r}", path, "sync_mode")
+        self.sync_mode = sync_mode_of(cfg, path)
         self.n = plant_number(cfg, "batch_periods", path)
         self.dt = plant_number(cfg, "control_period_s", path)
         self.duration_s = plant_number(cfg, "duration_s", path)
