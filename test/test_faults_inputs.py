@@ -324,6 +324,48 @@ def test_run_set_of_a_rider_value_is_ridden_not_overridden_by_the_rider_preset(c
     assert capsys.readouterr().out == ""
 
 
+def test_run_rides_the_configs_values_of_the_parameters_the_launch_file_sets(tmp_path, monkeypatch, capsys):
+    """recorder_window_batches, can_log_file and calibration_file are node parameters the
+    launch file sets after the config (0, "", ""), so a config's or --set's value was dropped
+    without a word (--set recorder_window_batches=10 rode the run's 50). ./bike run now hands
+    them to the launch file: a window that paces nothing (no --record) is said, a can log on
+    a simulated bike is said, and a file that cannot be written is one error naming its key.
+    (launcher.run is replaced: what is checked is what ./bike run hands it.)"""
+    from bike_session import cli, launcher
+
+    launched = []
+    monkeypatch.setattr(launcher, "run", lambda _launch, args: launched.append(dict(args)) or 0)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "0")         # no domain lock for a run that starts nothing
+    can_config = ROOT / "config" / "bldc_can.yaml"
+
+    def run(*argv):
+        launched.clear()
+        code = cli.main(["run", "--duration", "1", *argv])
+        return code, (launched[0] if launched else None), capsys.readouterr()
+
+    _code, args, out = run("--set", "recorder_window_batches=10", "--record", str(tmp_path / "rec"))
+    assert args["recorder_window"] == "10", args
+    _code, args, out = run("--record", str(tmp_path / "rec"))
+    assert args["recorder_window"] == str(cli.RECORDER_WINDOW_BATCHES)
+    code, args, out = run("--set", "recorder_window_batches=10")
+    assert code == 0 and "recorder_window" not in args
+    assert "recorder_window_batches 10 not used: it paces a recorded run (--record)" in out.out
+    code, args, out = run("--set", f"calibration_file={tmp_path / 'cal' / 'bike.yaml'}")
+    assert code == 0 and args["calibration"] == str(tmp_path / "cal" / "bike.yaml")
+    code, args, out = run("--set", "can_log_file=frames.asc")
+    assert code == 0 and "can_log" not in args and "can_log_file frames.asc not used" in out.out
+    code, args, out = run("--config", str(can_config), "--set", f"can_log_file={tmp_path / 'frames.asc'}")
+    assert code == 0 and args["can_log"] == str(tmp_path / "frames.asc"), (args, out)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    for item, message in ((f"calibration_file={blocker / 'cal.yaml'}", "error: calibration_file "),
+                          ("can_log_file=frames.txt", "error: can_log_file must end in .asc or .blf"),
+                          (f"can_log_file={blocker / 'f.asc'}", "error: can_log_file ")):
+        extra = () if item.startswith("calibration") else ("--config", str(can_config))
+        code, args, out = run(*extra, "--set", item)
+        assert code == 2 and args is None and out.err.startswith(message), (item, out.err)
+
+
 def test_yaml_python_tags_are_refused_not_run(tmp_path):
     """A config with !!python tags is refused (safe_load) and nothing is executed."""
     marker = tmp_path / "pwned"

@@ -99,7 +99,8 @@ def test_lockstep_closed_loop(domain):
     procs = []
     try:
         cmd_pub = col.publisher(Command, "command")
-        plant = _start_plant_and_wait(col, domain, {"duration_s": duration}, procs)
+        # a rider value edited beside load.rider_preset: the preset rides, and the plant says so
+        plant = _start_plant_and_wait(col, domain, {"duration_s": duration, "load.rider_t0_nm": 150.0}, procs)
         ctrl = _controller(domain, {"command_wait_s": 10.0})
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
@@ -113,6 +114,8 @@ def test_lockstep_closed_loop(domain):
             cmd_pub.publish(msgconv.command_msg(bad_value, bad_mode, msgconv.seconds_to_ns(0.05)))
         col.wait_for(lambda: any(m.end_of_run for m in col.data["plant_state"]), 25, "end_of_run", [plant])
         assert plant.wait(5.0) == 0, plant.output()
+        assert ("load.rider_preset recreational replaces the section's rider_t0_nm 150.0 -> 120"
+                in plant.output()), plant.output()
         states = list(col.data["plant_state"])
         seqs, states = _check_lockstep_states(states, CFG["batch_periods"], duration)
         time.sleep(0.3)

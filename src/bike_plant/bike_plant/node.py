@@ -319,6 +319,10 @@ class PlantNode(Node):
         self.recorder_timeout_s = plant_number(cfg, "recorder_timeout_s", path)
         self.start_timeout_s = plant_number(cfg, "start_timeout_s", path)
         self.backend = make_backend(str(cfg.get("backend")), cfg, plant_number(cfg, "seed", path))
+        from .params import rider_preset_overrides
+        preset_note = rider_preset_overrides(cfg["load"]) if isinstance(cfg.get("load"), dict) else None
+        if preset_note:
+            self.get_logger().warning(preset_note)
         if hasattr(self.backend, "warm_up"):
             # before the node joins the graph: a compile inside the run held its first batches
             # for ~30 s and made the controller report a stopped plant

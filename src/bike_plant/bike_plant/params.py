@@ -219,6 +219,21 @@ RIDER_PRESETS = {
 }
 
 
+def rider_preset_overrides(load: Mapping) -> str | None:
+    """What the ``load`` section's rider_preset replaces: its own rider values that differ
+    from the preset's ("rider_t0_nm 150 -> 120, ..."), or None. Said by the plant node and
+    ./bike run: an edited value beside a preset was otherwise dropped without a word."""
+    preset = (load or {}).get("rider_preset", "custom")
+    if not isinstance(preset, str) or preset not in RIDER_PRESETS:
+        return None
+    changed = [f"{key} {load[key]} -> {value:g}" for key, value in RIDER_PRESETS[preset].items()
+               if key in load and load[key] != value]
+    if not changed:
+        return None
+    return (f"load.rider_preset {preset} replaces the section's {', '.join(changed)} "
+            "(rider_preset: custom rides the section's own)")
+
+
 def load_section_with_preset(load: Mapping, path=None) -> dict:
     """The ``load`` section with ``rider_preset`` (recreational | trained | custom) applied."""
     load = dict(load or {})

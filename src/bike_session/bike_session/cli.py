@@ -180,6 +180,8 @@ def _cmd_run(opts) -> int:
         if can_params is not None and can_params.log_format != "none" and not can_params.log_file:
             # the CAN traffic beside the bag, in a format CAN tools read (python-can .asc / .blf)
             args["can_log"] = str(record_dir / f"{bag_path.name}.can.{can_params.log_format}")
+    if not _config_launch_args(cfg, args, recording=bag_path is not None):
+        return 2
     # a private DDS domain: two simulations on one host must not ride each other's /clock and
     # commands (an explicit ROS_DOMAIN_ID is always respected)
     from bike_session import domains
@@ -207,6 +209,40 @@ def _cmd_run(opts) -> int:
         print(f"error: the recorder wrote no bag at {bag_path}", file=sys.stderr)
         code = code or 1
     return code
+
+
+def _config_launch_args(cfg: dict, args: dict, recording: bool) -> bool:
+    """The config's values of the node parameters the launch file sets after the config
+    (recorder_window_batches, can_log_file, calibration_file), put into the launch arguments
+    that carry them: the launch file's own values ("0", "") had replaced them without a word
+    (--set recorder_window_batches=10 rode the run's 50). The window was checked with the
+    config; a file that cannot be written is one error naming its key (False)."""
+    window = cfg.get("recorder_window_batches")
+    if window is not None and recording:
+        args["recorder_window"] = str(int(window))
+        if int(window) == 0:
+            print("[bike] recorder_window_batches 0: the plant does not wait for the recorder, which may "
+                  "fall behind and lose samples in a lockstep run", flush=True)
+    elif window is not None and int(window) > 0:
+        # a window with no recorder would hold the plant at its start until recorder_timeout_s
+        print(f"[bike] recorder_window_batches {int(window)} not used: it paces a recorded run "
+              "(--record), and this run records nothing", flush=True)
+    if cfg.get("can_log_file") and str(cfg.get("backend", "sim")) != "can":
+        print(f"[bike] can_log_file {cfg['can_log_file']} not used: this bike's backend is not can", flush=True)
+    elif cfg.get("can_log_file"):
+        from bike_plant.can.backend import LOG_SUFFIXES
+        if pathlib.Path(str(cfg["can_log_file"])).suffix.lower() not in LOG_SUFFIXES:
+            print(f"error: can_log_file must end in .asc or .blf, got {cfg['can_log_file']!r}", file=sys.stderr)
+            return False
+    for key, arg in (("can_log_file", "can_log"), ("calibration_file", "calibration")):
+        if key == "can_log_file" and str(cfg.get("backend", "sim")) != "can":
+            continue
+        if cfg.get(key) and not (arg == "calibration" and args.get(arg)):     # --calibration wins
+            path = pathlib.Path(str(cfg[key])).expanduser().resolve()       # the nodes' cwd may differ
+            if not output_file_ok(path, key):
+                return False
+            args[arg] = str(path)
+    return True
 
 
 def _config_copy(config: pathlib.Path, doc: dict, note: str):
