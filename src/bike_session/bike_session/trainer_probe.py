@@ -169,6 +169,27 @@ def _ranges(app: dircon.DirconClient):
     return ModeUnits(float(hi_w), lo_g / 1000.0, hi_g / 1000.0 if hi_g > lo_g else lo_g / 1000.0 + 1e-3, 0.0, 1.0)
 
 
+def workout_problem(opts) -> str | None:
+    """Why --workout cannot be ridden on any trainer (a file that is not a workout, a bad --ftp
+    or --max-hr), found before connecting: it was found only once a trainer answered. Read
+    against the widest ranges the FTMS fields carry; ride_workout reads it again against the
+    trainer's own (where a target beyond them is said)."""
+    import warnings
+
+    from bike_session.profiles import ModeUnits, ProfileError
+    from bike_session.workouts import load_workout
+
+    widest = ModeUnits(float(0x7FFF), -0x8000 / 1000.0, 0x7FFF / 1000.0, 0.0, 1.0)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=widest.erg_power_max_w, units=widest,
+                         max_hr_bpm=getattr(opts, "max_hr", None))
+    except ProfileError as exc:
+        return f"bad workout: {exc}"
+    return None
+
+
 # the road an app sends with a grade unless told otherwise: Zwift's (Crr 0.004, Cw 0.51 kg/m, no wind)
 DEFAULT_ROAD = (0.004, 0.51, 0.0)
 
@@ -401,6 +422,10 @@ def main(opts) -> int:
         return 2
     if opts.csv and not opts.workout:
         print("error: --csv needs --workout", file=sys.stderr)
+        return 2
+    problem = workout_problem(opts) if opts.workout else None
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     try:
         app = dircon.DirconClient(opts.host, opts.port)
