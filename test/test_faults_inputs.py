@@ -262,6 +262,29 @@ def test_replay_names_the_given_config_and_leaves_nothing_when_it_refuses_it(tmp
         assert (list(record.iterdir()) == []) if record.parent == tmp_path else not record.exists()
 
 
+def test_replay_leaves_nothing_when_the_run_refuses_it_after_the_config_checks(tmp_path, monkeypatch, capsys):
+    """A refusal from ./bike run's checks after the config's (here: calibration_file under a
+    regular file) left the replay's generated profile and config in --record. Now --record is
+    as it was, and the one error names the key."""
+    import yaml
+
+    from bike_session import replay
+    info = {"duration_s": 1.0, "period_s": 0.1, "config_text": CONFIG.read_text()}
+    monkeypatch.setattr(replay, "command_timeline", lambda _bag: ([(0, 0.5, 0, 0.0, None)], info))
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    doc = yaml.safe_load(CONFIG.read_text())
+    doc["/**"]["ros__parameters"]["calibration_file"] = str(blocker / "cal.yaml")
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(doc))
+    record = tmp_path / "runs"
+    record.mkdir()
+    code = replay.main([str(tmp_path / "session_x"), "--config", str(other), "--record", str(record)])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(err) == 1 and err[0].startswith("error: calibration_file "), err
+    assert list(record.iterdir()) == []
+
+
 def test_run_refuses_a_session_key_no_node_reads(tmp_path, capsys):
     """`--set session.perod_s=0.05` (a typo) or a config's unknown session: key rode the config's
     period without a word: one error naming the section and the key. SESSION_KEYS holds every

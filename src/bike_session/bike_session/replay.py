@@ -225,5 +225,13 @@ def main(argv: list[str]) -> int:
         return 2
     print(f"[bike] replaying {prep['commands']} Commands ({prep['segments']} steps, {prep['duration_s']:g} s) "
           f"of {opts.bag} with {prep['config']}", flush=True)
-    return cli.main(["run", "--config", str(prep["config"]), "--duration", repr(prep["duration_s"]),
+    code = cli.main(["run", "--config", str(prep["config"]), "--duration", repr(prep["duration_s"]),
                      "--record", opts.record, "--storage", opts.storage])
+    if code == 2:
+        # refused by ./bike run before a node started (its later checks: the CAN bus, a file
+        # the config names): as with a refused config, nothing of this replay is left behind
+        prep["profile"].unlink(missing_ok=True)
+        prep["config"].unlink(missing_ok=True)
+        if made_record_dir and not any(pathlib.Path(opts.record).iterdir()):
+            pathlib.Path(opts.record).rmdir()
+    return code
