@@ -678,24 +678,26 @@ class MachineFigures:
     brake_envelope: tuple | None = None
 
 
-def machine_figures(cfg: dict) -> MachineFigures:
+def machine_figures(cfg: dict, with_envelope: bool = True) -> MachineFigures:
     """Tmax, base speed, Pmax (= Tmax wb, Eq. 2 of paper 000) and gear of either machine:
     BLDC from ``controller`` (paper 000's Tmax / wb / Pmax); SPMSM: ``controller.tmax_nm``
     or Kt * current limit, the rated speed as wb, and the rectifier path's braking envelope
-    (spmsm_control.brake_envelope; not for a drive on CAN). ValueError names what is missing."""
+    (spmsm_control.brake_envelope; not for a drive on CAN). ValueError names what is missing.
+    ``with_envelope=False``: no envelope (None), and no numba kernel loaded, for what needs
+    only the figures (the mode ranges of the session and FTMS nodes: ~110 MB less there)."""
     machine = str(cfg.get("machine", "bldc"))
     ctrl = cfg.get("controller") or {}
     load = cfg.get("load") or {}
     if machine == "spmsm":
-        from bike_plant.spmsm import nominal_params_from_config
+        from bike_plant.spmsm_params import nominal_params_from_config
 
-        from .spmsm_control import controller_params_from_config
+        from .spmsm_params import controller_params_from_config
         nominal = nominal_params_from_config(cfg)
         tmax = float(ctrl.get("tmax_nm") or nominal.spmsm.torque_constant_nm_per_a
                      * controller_params_from_config(cfg).current_limit_a)
         base = float(nominal.spmsm.rated_speed_rpm)
         envelope = None
-        if cfg.get("backend", "sim") != "can":
+        if with_envelope and cfg.get("backend", "sim") != "can":
             # braking goes through the relay's rectifier path (a drive on CAN brakes through its inverter)
             from .spmsm_control import brake_envelope, pack_controller
             envelope = brake_envelope(pack_controller(controller_params_from_config(cfg), nominal))

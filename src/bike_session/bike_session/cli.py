@@ -312,8 +312,8 @@ def _check_config(cfg: dict) -> None:
     mode_params_from_config(cfg)
     friction_figures(cfg)
     if str(cfg.get("machine", "bldc")) == "spmsm":
-        from bike_controller.spmsm_control import controller_params_from_config
-        from bike_plant.spmsm import plant_params_from_config
+        from bike_controller.spmsm_params import controller_params_from_config
+        from bike_plant.spmsm_params import plant_params_from_config
     else:
         from bike_controller.bldc_params import controller_params_from_config
         from bike_plant.params import plant_params_from_config

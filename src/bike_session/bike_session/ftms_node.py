@@ -206,7 +206,7 @@ def _bike_figures(config_path: str):
         cfg = load_config(config_path or None)
         inertia = float((cfg.get("mechanics") or {}).get("inertia_kgm2", 0.01))
         heart_rate = str((cfg.get("load") or {}).get("kind", "")) == "rider" or cfg.get("backend") == "can"
-        return (mode_units_from_config(cfg), machine_figures(cfg).gear_ratio,
+        return (mode_units_from_config(cfg), machine_figures(cfg, with_envelope=False).gear_ratio,
                 TrainerPowerMeter(inertia, friction_figures(cfg)), heart_rate)
     except (ConfigError, ValueError, TypeError) as exc:
         raise SetupError(f"bad config: {exc}") from None

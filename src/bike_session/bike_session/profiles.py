@@ -165,7 +165,7 @@ def mode_units_from_config(cfg: Mapping) -> ModeUnits:
     from bike_controller.modes import machine_figures, mode_params_from_config
 
     mp = mode_params_from_config(cfg)
-    pmax = mp.erg_power_max_w or machine_figures(cfg).pmax_w
+    pmax = mp.erg_power_max_w or machine_figures(cfg, with_envelope=False).pmax_w
     kmh_per_rpm = mp.virtual_gear_ratio * 2.0 * math.pi * mp.wheel_radius_m / 60.0 * 3.6
     return ModeUnits(pmax, mp.grade_min, mp.grade_max, mp.isokinetic_cadence_min_rpm,
                      mp.isokinetic_cadence_max_rpm,

@@ -244,7 +244,7 @@ def pmax_w_from_config(cfg: Mapping) -> float:
     if isinstance(erg, (int, float)) and not isinstance(erg, bool) and math.isfinite(erg) and erg > 0:
         return float(erg)
     try:
-        return machine_figures(dict(cfg)).pmax_w
+        return machine_figures(dict(cfg), with_envelope=False).pmax_w
     except (ValueError, TypeError) as exc:
         raise WorkoutError(str(exc), cfg.get("_config_path") if isinstance(cfg, Mapping) else None,
                            "controller.pmax_w") from None
