@@ -221,8 +221,8 @@ RIDER_PRESETS = {
 
 def rider_preset_overrides(load: Mapping) -> str | None:
     """What the ``load`` section's rider_preset replaces: its own rider values that differ
-    from the preset's ("rider_t0_nm 150 -> 120, ..."), or None. Said by the plant node and
-    ./bike run: an edited value beside a preset was otherwise dropped without a word."""
+    from the preset's ("rider_t0_nm 150 -> 120, ..."), or None. The plant node warns with it:
+    a value edited beside a preset was otherwise dropped without a word."""
     preset = (load or {}).get("rider_preset", "custom")
     if not isinstance(preset, str) or preset not in RIDER_PRESETS:
         return None

@@ -227,17 +227,18 @@ def _config_launch_args(cfg: dict, args: dict, recording: bool) -> bool:
         # a window with no recorder would hold the plant at its start until recorder_timeout_s
         print(f"[bike] recorder_window_batches {int(window)} not used: it paces a recorded run "
               "(--record), and this run records nothing", flush=True)
-    if cfg.get("can_log_file") and str(cfg.get("backend", "sim")) != "can":
-        print(f"[bike] can_log_file {cfg['can_log_file']} not used: this bike's backend is not can", flush=True)
-    elif cfg.get("can_log_file"):
+    files = {"calibration_file": "calibration"}
+    can_log = cfg.get("can_log_file")
+    if can_log and str(cfg.get("backend", "sim")) != "can":
+        print(f"[bike] can_log_file {can_log} not used: this bike's backend is not can", flush=True)
+    elif can_log:
         from bike_plant.can.backend import LOG_SUFFIXES
-        if pathlib.Path(str(cfg["can_log_file"])).suffix.lower() not in LOG_SUFFIXES:
-            print(f"error: can_log_file must end in .asc or .blf, got {cfg['can_log_file']!r}", file=sys.stderr)
+        if pathlib.Path(str(can_log)).suffix.lower() not in LOG_SUFFIXES:
+            print(f"error: can_log_file must end in .asc or .blf, got {can_log!r}", file=sys.stderr)
             return False
-    for key, arg in (("can_log_file", "can_log"), ("calibration_file", "calibration")):
-        if key == "can_log_file" and str(cfg.get("backend", "sim")) != "can":
-            continue
-        if cfg.get(key) and not (arg == "calibration" and args.get(arg)):     # --calibration wins
+        files["can_log_file"] = "can_log"
+    for key, arg in files.items():
+        if cfg.get(key) and not (key == "calibration_file" and args.get(arg)):     # --calibration wins
             path = pathlib.Path(str(cfg[key])).expanduser().resolve()       # the nodes' cwd may differ
             if not output_file_ok(path, key):
                 return False
