@@ -237,3 +237,30 @@ def test_an_apps_spin_down_teaches_the_bike_its_friction(tmp_path, ros_domain):
     assert args["calibration"] == str(calibration) and args["config"] == str(path) != str(config)
     assert friction_figures(cfg)[:2] == (saved["modes"]["friction_nms"], saved["modes"]["dry_friction_nm"])
     assert cfg["spmsm"] == load_config(config)["spmsm"]
+
+
+def test_the_bridges_reader_node_keeps_its_own_name_under_the_launchers_remap(ros_domain):
+    """The launcher starts every node with `-r __node:=NAME` (a remap for the whole process).
+    The bridge's second node, the readers no executor serves, must not take the bridge's name
+    too: two nodes /bike/ftms in the graph, and rcl warned 'Publisher already registered for
+    node name: ftms' at every `./bike run --ftms`."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from bike_session.ftms_node import _make_node_class
+
+    context = rclpy.Context()
+    rclpy.init(args=["--ros-args", "-r", "__node:=ftms", "-r", "__ns:=/bike"], context=context)
+    node = None
+    try:
+        node = _make_node_class()(context=context, parameter_overrides=[
+            Parameter("config_path", value=str(ROOT / "config" / "bldc_default.yaml")),
+            Parameter("ftms.port", value=0), Parameter("ftms.advertise", value="false")])
+        assert node.get_fully_qualified_name() == "/bike/ftms"
+        assert node.taps.get_fully_qualified_name() == "/bike/ftms_taps"
+    finally:
+        if node is not None:
+            node.server.close()
+            node.taps.destroy_node()
+            node.destroy_node()
+        rclpy.try_shutdown(context=context)

@@ -275,7 +275,11 @@ def _make_node_class():
             # to 600) for the power over whole crank turns
             latest = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
             every = QoSProfile(depth=600, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
-            self.taps = rclpy.create_node(f"{NODE_NAME}_taps", namespace=self.get_namespace(), context=self.context)
+            # its own name: the launcher's `-r __node:=NAME` applies to every node of the process,
+            # and a node-local remap takes precedence over it (else two nodes NAME in the graph)
+            taps_name = f"{self.get_name()}_taps"
+            self.taps = rclpy.create_node(taps_name, namespace=self.get_namespace(), context=self.context,
+                                          cli_args=["--ros-args", "-r", f"__node:={taps_name}"])
             self.sub_plant = self.taps.create_subscription(PlantState, "plant_state", _unused, every, raw=True)
             self.sub_status = self.taps.create_subscription(ControllerStatus, "controller_status", _unused, latest,
                                                             raw=True)
