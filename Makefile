@@ -1,6 +1,6 @@
 # The two commands of the README: `make demo` and `make test`.
 SHELL := /bin/bash
-.PHONY: setup demo test test-faults test-smoke test-fast bench peers clean
+.PHONY: setup demo test test-faults test-smoke bench peers clean
 
 setup:
 	@./tools/setup.sh
