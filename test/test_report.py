@@ -775,3 +775,27 @@ def test_shift_response_times_the_flywheel_reaching_the_new_gear_and_its_oversho
     assert r["overshoot_pct_max"] == pytest.approx(20.0, abs=0.5)
     assert shift_response(bins, 0.0, bin_s, []) is None
     assert shift_response(bins, 0.0, bin_s, [(4.5, 2.0, 2.5, 3)], n_bins=300) is None    # beyond the range
+
+
+def _refuse_constant(name):
+    raise ValueError(f"not standard JSON: {name}")
+
+
+def test_a_bag_without_a_state_of_charge_reports_na_and_standard_json(tmp_path, monkeypatch, capsys):
+    """A drive on CAN has no battery model (PlantState.battery_soc NaN): the summary says n/a,
+    and `--json` / summary.json stay standard JSON (a bare NaN there is refused by JSON parsers;
+    `./bike report` of a bldc_can.yaml ride printed "final_soc": NaN)."""
+    plain = _plant_state
+
+    def without_soc(i):
+        m = plain(i)
+        m.battery_soc = math.nan
+        return m
+
+    monkeypatch.setitem(globals(), "_plant_state", without_soc)
+    bag = write_bag(tmp_path / "bag")
+    s = summarise(bag)
+    assert s["final_soc"] is None
+    assert "final battery SOC:     n/a" in format_summary(s)
+    assert main([str(bag), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out, parse_constant=_refuse_constant)["final_soc"] is None

@@ -1066,7 +1066,9 @@ class _Analyser:
             out["relay_switch_overs"] = int(self.relay_switch_overs)
             out["timeouts"] = self.fault_counts["command_timeout"]
             out["end_of_run"] = bool(self.end_of_run)
-            out["final_soc"] = float(last[C + P_SOC])
+            # a drive on CAN has no battery model (NaN): n/a, and no bare NaN in the JSON
+            soc = float(last[C + P_SOC])
+            out["final_soc"] = soc if math.isfinite(soc) else None
             dtot = float(bins["dt"].sum())
             if dtot > 0:
                 out["mean_cadence_rpm"] = float(bins["rpm_dt"].sum() / dtot / mc["gear_ratio"])
