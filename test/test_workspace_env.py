@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import pathlib
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -65,3 +66,27 @@ def test_a_test_stuck_in_c_with_the_gil_ends_the_run_with_the_stacks(tmp_path):
     assert time.monotonic() - t0 < 30
     assert run.returncode != 0
     assert "Timeout (0:00:02)!" in run.stderr and "in test_stuck" in run.stderr, run.stdout + run.stderr
+
+
+def test_setup_with_a_python_that_does_not_run_keeps_the_environment(tmp_path):
+    """`PYTHON=python3.12 make demo` where python3.12 does not run (not installed; a pyenv shim
+    of a version not selected) removed .venv, build and install, then failed to create the new
+    environment: the working checkout was left without one. Now nothing is touched. Runs a copy
+    of tools/setup.sh in a scratch root, so the checkout's own environment is never at risk."""
+    (tmp_path / "tools").mkdir()
+    shutil.copy(ROOT / "tools" / "setup.sh", tmp_path / "tools" / "setup.sh")
+    fake = tmp_path / ".venv" / "bin" / "python"
+    fake.parent.mkdir(parents=True)
+    fake.write_text("#!/bin/sh\necho 3.11\n")
+    fake.chmod(0o755)
+    for name in ("build", "install"):
+        (tmp_path / name).mkdir()
+    for name in ("requirements.txt", "constraints.txt"):
+        shutil.copy(ROOT / name, tmp_path / name)
+    env = dict(os.environ, PYTHON=str(tmp_path / "no-such-python3.12"))
+    env.pop("BIKE_VENV", None)
+    run = subprocess.run(["bash", str(tmp_path / "tools" / "setup.sh")], env=env, capture_output=True,
+                         text=True, timeout=60)
+    assert run.returncode != 0
+    assert "does not run" in run.stderr and "no-such-python3.12" in run.stderr
+    assert fake.exists() and (tmp_path / "build").is_dir() and (tmp_path / "install").is_dir()

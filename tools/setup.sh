@@ -14,6 +14,12 @@ hash_of() { cat "$@" 2>/dev/null | sha256sum | cut -c1-16; }
 # 1. virtual environment + pinned wheels
 req_hash=$(hash_of requirements.txt constraints.txt)
 pyver() { "$1" -c 'import sys; print("%d.%d" % sys.version_info[:2])'; }
+# an interpreter that does not run (a PYTHON not installed, a pyenv shim of another version)
+# must not get as far as the recreate below, which removes the working environment first
+if ! pyver "$py" > /dev/null 2>&1; then
+  log "PYTHON=$py does not run here ($("$py" --version 2>&1 | head -1)): nothing was changed"
+  exit 2
+fi
 if [ -x "$venv/bin/python" ] && [ -n "${PYTHON:-}" ] && [ "$(pyver "$venv/bin/python")" != "$(pyver "$py")" ]; then
   # PYTHON asks for another interpreter than the existing environment's: kept, it would
   # silently run the old one, and colcon's build/ and install/ hold that version's paths
