@@ -100,3 +100,18 @@ def test_both_machines_check_the_shared_load_fields_alike(values, message):
     for cls in (LoadParams, SpmsmLoadParams):
         with pytest.raises(ConfigError, match=message):
             build_dataclass(cls, values, "load")
+
+
+@pytest.mark.parametrize("values", [
+    {"v_empty_v": 30.0, "v_full_v": 42.0},                    # a 36 V pack with the 48 V pack's S0 (54.6 / 54.0 V)
+    {"v_empty_v": 60.0, "v_full_v": 84.0, "s0_on_v": 60.0, "s0_off_v": 59.0},   # S0 at the empty pack's voltage
+])
+def test_the_brake_resistor_switch_must_lie_within_the_pack_voltages(values):
+    """A 36 V pack whose S0 thresholds stayed at the 48 V pack's: S0 never closed, and the
+    demo charged a full pack to SOC 1.2 without a fault. One error naming s0_on_v instead."""
+    from bike_plant.params import BatteryParams
+
+    with pytest.raises(ConfigError, match="battery: s0_on_v .*must be above v_empty_v and at most v_full_v"):
+        build_dataclass(BatteryParams, values, "battery")
+    build_dataclass(BatteryParams, {"v_empty_v": 30.0, "v_full_v": 42.0, "s0_on_v": 42.0, "s0_off_v": 41.5},
+                    "battery")

@@ -98,6 +98,13 @@ class BatteryParams:
             raise ValueError(f"soc0 must be in [0, 1], got {self.soc0!r}")
         if self.s0_off_v >= self.s0_on_v:
             raise ValueError("s0_off_v must be < s0_on_v (hysteresis)")
+        if not self.v_empty_v < self.s0_on_v <= self.v_full_v:
+            # above the full pack's voltage S0 never closes and a full pack takes the regenerated
+            # energy on (SOC 1.2 after 10 s of the demo on a 36 V pack with the 48 V pack's 54.6 V);
+            # at or below the empty pack's it is closed throughout and drains the pack into the resistor
+            raise ValueError(f"s0_on_v (the brake resistor's switch-on voltage) must be above v_empty_v "
+                             f"and at most v_full_v ({self.v_empty_v:g} < s0_on_v <= {self.v_full_v:g} V), "
+                             f"got {self.s0_on_v:g} V: set it with the pack's voltages")
 
 
 @dataclass
