@@ -198,3 +198,20 @@ def test_current_hysteresis_mean_35a_at_3000rpm(cfg):
     s = out["samples_a"][400:]
     i_fb = 0.5 * np.abs(s).sum(axis=1)
     assert i_fb.mean() == pytest.approx(35.0, rel=0.05)
+
+
+def test_a_current_limit_below_what_tmax_needs_on_the_configured_machine_is_refused():
+    """A BLDC with half the default ke needs Tmax / (k kt) = 138 A for Command = 1, and the
+    controller clamped I* to current_limit_a (120 A) without a word. One error naming the key."""
+    from bike_controller.bldc_params import controller_params_from_config, peak_current_command_a
+    from bike_plant.config import ConfigError
+
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml")
+    need_a, _ = peak_current_command_a(controller_params_from_config(cfg), 5.45e-3 * 60.0 / (2.0 * math.pi))
+    assert 68.0 < need_a < 70.0                   # the README's "~70 A the paper's Tmax needs"
+    half_ke = config_variant(cfg, bldc={"ke_v_per_rpm": 2.725e-3})
+    with pytest.raises(ConfigError, match=r"controller.current_limit_a: Command = 1 asks for 137.8 A .* "
+                                          r"current_limit_a is 120 A"):
+        controller_params_from_config(half_ke)
+    controller_params_from_config(config_variant(half_ke, controller={"current_limit_a": 150.0}))
+    controller_params_from_config(config_variant(half_ke, controller={"tmax_nm": 2.5, "pmax_w": 863.9}))

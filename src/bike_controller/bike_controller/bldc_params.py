@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bike_plant import params as P
-from bike_plant.config import build_dataclass, require_positive, section
+from bike_plant.config import ConfigError, build_dataclass, require_positive, section
 
 from .modes import MODE_MOTORING, MODE_RESISTANCE
 
@@ -47,7 +47,47 @@ class ControllerParams:
 
 def controller_params_from_config(cfg: dict) -> ControllerParams:
     path = cfg.get("_config_path")
-    return build_dataclass(ControllerParams, section(cfg, "controller", path), "controller", path)
+    cp = build_dataclass(ControllerParams, section(cfg, "controller", path), "controller", path)
+    bldc = cfg.get("bldc")
+    ke = bldc.get("ke_v_per_rpm", P.BldcParams.ke_v_per_rpm) if isinstance(bldc, dict) else None
+    if isinstance(ke, (int, float)) and not isinstance(ke, bool) and math.isfinite(ke) and ke > 0:
+        # the plant's section is checked with the plant's parameters; here only what it asks of the limit
+        need_a, at_rpm = peak_current_command_a(cp, ke * RPM_PER_RAD_S)
+        if need_a > cp.current_limit_a:
+            # I* = Tcmd / (k kt) was clamped to the limit without a word (half the default ke:
+            # 138 A asked, 120 A commanded); Eq. 3-4 cannot be met there
+            raise ConfigError(
+                f"Command = 1 asks for {need_a:.1f} A at {at_rpm:g} rpm (Eq. 3-4 torque / (k_factor x kt), "
+                f"kt = {ke * RPM_PER_RAD_S:.4g} N m/A from bldc.ke_v_per_rpm) but current_limit_a is "
+                f"{cp.current_limit_a:g} A: lower tmax_nm / pmax_w or raise current_limit_a (and "
+                "bldc.overcurrent_trip_a above it)", path, "controller.current_limit_a")
+    return cp
+
+
+RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
+
+
+def peak_current_command_a(cp: ControllerParams, kt_nm_per_a: float) -> tuple[float, float]:
+    """(largest current command I* = Tcmd / (k(w) kt) of Command = 1 over the k table's speeds
+    and the base speed, the speed where it is asked) of Eq. 3-4 and 6-9 (torque_command.py)."""
+    xs, ys = [float(x) for x in cp.k_speed_rpm], [float(y) for y in cp.k_factor]
+
+    def k_at(w):
+        if w <= xs[0]:
+            return ys[0]
+        for j in range(1, len(xs)):
+            if w < xs[j]:
+                if cp.k_interp == "linear":
+                    return ys[j - 1] + (ys[j] - ys[j - 1]) * (w - xs[j - 1]) / (xs[j] - xs[j - 1])
+                return ys[j - 1]
+        return ys[-1]
+
+    def torque(w):
+        return cp.tmax_nm if w < cp.base_speed_rpm else cp.pmax_w / (w / RPM_PER_RAD_S)
+
+    wb = cp.base_speed_rpm
+    speeds = sorted({*(x for x in xs if x >= 0.0), wb, math.nextafter(wb, 0.0)})
+    return max((torque(w) / (k_at(w) * kt_nm_per_a), w) for w in speeds)
 
 
 def validate_command(command, mode) -> None:
