@@ -115,3 +115,19 @@ def test_the_brake_resistor_switch_must_lie_within_the_pack_voltages(values):
         build_dataclass(BatteryParams, values, "battery")
     build_dataclass(BatteryParams, {"v_empty_v": 30.0, "v_full_v": 42.0, "s0_on_v": 42.0, "s0_off_v": 41.5},
                     "battery")
+
+
+def test_a_back_emf_above_the_pack_at_the_ridden_speed_is_refused():
+    """4 x the default ke on the 48 V pack: 61 V line-to-line at the rider's 80 rpm x 35, above
+    the pack, so the bridge diodes braked 10 N m for 1.2 N m asked, and the summary said no
+    fault, 0 % saturated. One error naming bldc.ke_v_per_rpm; 2 x ke (30.5 V) still rides."""
+    from bike_plant.config import config_variant
+    from bike_plant.params import plant_params_from_config
+
+    cfg = load_config(DEFAULT_CONFIG)
+    with pytest.raises(ConfigError, match=r"bldc.ke_v_per_rpm: 0.0218 V/rpm gives a line-to-line back-EMF of "
+                                          r"61.0 V at 2800 motor rpm .* empty pack's 42 V"):
+        plant_params_from_config(config_variant(cfg, bldc={"ke_v_per_rpm": 21.8e-3}))
+    with pytest.raises(ConfigError, match=r"bldc.ke_v_per_rpm: .* at 9000 motor rpm \(load.speed_rpm\)"):
+        plant_params_from_config(config_variant(cfg, load={"kind": "prime_mover", "speed_rpm": 9000.0}))
+    plant_params_from_config(config_variant(cfg, bldc={"ke_v_per_rpm": 10.9e-3}))

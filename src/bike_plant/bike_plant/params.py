@@ -309,7 +309,35 @@ def plant_params_from_config(cfg: dict) -> PlantParams:
         raise ConfigError(f"the capture timer must tick at least once per control period "
                           f"(timer_hz * control_period_s = {params.hall.timer_hz * params.control_period_s:g})",
                           path, "hall.timer_hz")
+    emf_problem = riding_emf_problem(params)
+    if emf_problem:
+        raise ConfigError(emf_problem, path, "bldc.ke_v_per_rpm")
     return params
+
+
+def riding_emf_problem(p: PlantParams) -> str | None:
+    """The line-to-line back-EMF at the speed the load rides (the rider's target cadence x gear,
+    the prime mover's speeds, the start speed) against the empty pack's voltage, or None. Above
+    the bus voltage the bridge's diodes rectify whatever the gates do: a braking torque no
+    Command controls (4 x the default ke on the 48 V pack: 10 N m at 2800 rpm for 1.2 N m
+    asked, the demo's cadence 69 rpm, no fault and 0 % saturation in the summary)."""
+    load = p.load
+    speeds = [("mechanics.speed0_rpm", abs(p.mech.speed0_rpm))]
+    if load.kind == "rider":
+        speeds.append(("load.rider_target_cadence_rpm x load.gear_ratio",
+                       load.rider_target_cadence_rpm * load.gear_ratio))
+    elif load.kind == "prime_mover":
+        speeds += [("load.speed_rpm", abs(load.speed_rpm))] + [
+            ("load.schedule_speed_rpm", abs(float(v))) for v in load.schedule_speed_rpm]
+    name, top = max(speeds, key=lambda item: item[1])
+    e_ll = p.bldc.ke_v_per_rpm * top
+    if e_ll < p.battery.v_empty_v:
+        return None
+    return (f"{p.bldc.ke_v_per_rpm:g} V/rpm gives a line-to-line back-EMF of {e_ll:.1f} V at {top:g} motor rpm "
+            f"({name}), at or above the empty pack's {p.battery.v_empty_v:g} V (battery.v_empty_v): the bridge "
+            f"diodes would rectify it and brake beyond any Command. The machine must stay below "
+            f"{p.battery.v_empty_v / p.bldc.ke_v_per_rpm:.0f} rpm on this pack: a lower ke, a smaller "
+            "load.gear_ratio or a higher-voltage pack")
 
 
 def _battery_values(cfg, path):
