@@ -48,3 +48,16 @@ def test_bench_host_summary_measures_a_plausible_clock():
     host = host_summary(repeats=3)
     assert 0.3 < host["clock_ghz"] < 8.0
     assert host["cpu"] and host["cores"] >= 1 and isinstance(host["virtual"], bool)
+
+
+def test_fig14_of_another_machine_measures_only_the_speeds_it_can_brake_under_control(tmp_path):
+    """2 x the default ke reaches the empty 48 V pack's 42 V at 3853 rpm: a prime mover above
+    it is refused (the diodes would brake beyond control), and Fig. 14 stopped with that error
+    at 3900 rpm. It measures the speeds below and names the others."""
+    from bike_plant.config import config_variant, load_config
+
+    cfg = config_variant(load_config(CFG_PATH), bldc={"ke_v_per_rpm": 10.9e-3})
+    res = paper.fig14(cfg, tmp_path)
+    assert res["skipped_rpm"] == [3900.0, 4200.0, 4500.0, 4800.0, 5100.0, 5400.0]
+    assert [p["speed_rpm"] for p in res["points"]][-1] == 3600.0
+    assert not res["passed"]          # the default machine's k table brakes this one ~18 % too hard

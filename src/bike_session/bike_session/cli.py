@@ -637,6 +637,9 @@ def _cmd_paper(opts) -> int:
     verdict = "PASS" if result.get("passed") else "FAIL"
     print(f"{result['name']}: {len(result['points'])} points, largest error {result['max_error'] * 100:.2f} % "
           f"(target {result['tolerance'] * 100:.0f} %): {verdict}")
+    if result.get("skipped_rpm"):
+        print(f"  not measured: {', '.join(f'{s:g}' for s in result['skipped_rpm'])} rpm (the back-EMF reaches the "
+              "empty pack's voltage there: the bridge diodes brake beyond control)")
     for path in result["files"]:
         print(f"  wrote {path}")
     return 0 if result.get("passed", False) else 1
