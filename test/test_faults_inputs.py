@@ -177,6 +177,9 @@ def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tm
 @pytest.mark.parametrize("sets,words", [
     (["clock_period_s=0.08"], "clock_period_s: must be at most half of session.period_s = 0.1 s, got 0.08"),
     (["session.period_s=0.01"], "clock_period_s: must be at most half of session.period_s = 0.01 s, got 0.01"),
+    # 0.15 s batches against 0.1 s Commands rode the demo with a third of its Commands never applied
+    (["batch_periods=3000"], "batch_periods: one batch (3000 x control_period_s 5e-05 s = 0.15 s) must be at most "
+                             "half of session.period_s = 0.1 s"),
     (["recorder_window_batches=101"], "recorder_window_batches: must be at most 100 (half the loop topics' DDS "
                                       "history), got 101"),
     (["backend=can", "sync_mode=lockstep"], "sync_mode: backend 'can' drives a real drive in real time"),

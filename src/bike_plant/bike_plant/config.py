@@ -241,6 +241,22 @@ def check_clock_period(clock_period_s: float, session_period_s, path) -> None:
                           f"{clock_period_s:g}", path, "clock_period_s")
 
 
+def check_batch_length(batch_periods: int, control_period_s: float, session_period_s, path) -> None:
+    """One batch (batch_periods x control_period_s) at most half of session.period_s, as
+    clock_period_s (check_clock_period): the plant's /clock cannot advance within a batch, so
+    a longer batch is a longer clock period; and the controller takes one Command per batch.
+    ConfigError naming batch_periods. The plant node and check_plant_numbers both call it."""
+    batch_s = batch_periods * control_period_s
+    if isinstance(session_period_s, (int, float)) and not isinstance(session_period_s, bool) \
+            and 0 < session_period_s < math.inf and batch_s > 0.5 * session_period_s:
+        # --set batch_periods=3000 (0.15 s batches, 0.1 s Commands) rode the demo with a third of
+        # its Commands never applied: braking power 288 W for 340 W, and no word
+        raise ConfigError(f"one batch ({batch_periods} x control_period_s {control_period_s:g} s = {batch_s:g} s) "
+                          f"must be at most half of session.period_s = {session_period_s:g} s: the controller "
+                          f"takes one Command per batch (at most {int(0.5 * session_period_s / control_period_s)} "
+                          "periods here)", path, "batch_periods")
+
+
 # the loop topics' DDS history [samples] (bike_plant.loop.LOOP_QOS depth): here, where checks
 # without rclpy (./bike run's, before it starts a node) read it too
 LOOP_HISTORY_DEPTH = 200
@@ -296,6 +312,9 @@ def check_plant_numbers(cfg: dict, path=None) -> None:
     clock_period_s = plant_number(cfg, "clock_period_s", path) if "clock_period_s" in cfg else CLOCK_PERIOD_S
     session = cfg.get("session")
     check_clock_period(clock_period_s, session.get("period_s") if isinstance(session, dict) else None, path)
+    check_batch_length(plant_number(cfg, "batch_periods", path) if "batch_periods" in cfg else 20,
+                       plant_number(cfg, "control_period_s", path) if "control_period_s" in cfg else 5.0e-5,
+                       session.get("period_s") if isinstance(session, dict) else None, path)
     for key, known in (("machine", ("bldc", "spmsm")), ("backend", ("sim", "can"))):
         if key in cfg and str(cfg[key]) not in known:
             raise ConfigError(f"unknown {key} {cfg[key]!r} ({' | '.join(known)})", path, key)

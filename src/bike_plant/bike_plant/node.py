@@ -66,8 +66,8 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv, shm_ports
 from .config import ConfigError
-from .config import (CLOCK_PERIOD_S, check_backend_sync_mode, check_clock_period, plant_number, recorder_window_batches,
-                     sync_mode_of)
+from .config import (CLOCK_PERIOD_S, check_backend_sync_mode, check_batch_length, check_clock_period, plant_number,
+                     recorder_window_batches, sync_mode_of)
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
@@ -309,6 +309,7 @@ class PlantNode(Node):
         # Commands a period (0.1 s) ahead, so a 10 ms clock still keeps them ahead of the loop.
         clock_period_s = plant_number(cfg, "clock_period_s", path)
         check_clock_period(clock_period_s, (cfg.get("session") or {}).get("period_s"), path)
+        check_batch_length(self.n, self.dt, (cfg.get("session") or {}).get("period_s"), path)
         self.clock_period_ns = round(clock_period_s * 1e9)
         self.next_clock_ns = 0       # the next /clock goes out at the first stamp >= this
         self.clock_ns = None         # the last /clock value published
