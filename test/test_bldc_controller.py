@@ -213,5 +213,20 @@ def test_a_current_limit_below_what_tmax_needs_on_the_configured_machine_is_refu
     with pytest.raises(ConfigError, match=r"controller.current_limit_a: Command = 1 asks for 137.8 A .* "
                                           r"current_limit_a is 120 A"):
         controller_params_from_config(half_ke)
-    controller_params_from_config(config_variant(half_ke, controller={"current_limit_a": 150.0}))
+    controller_params_from_config(config_variant(half_ke, controller={"current_limit_a": 150.0},
+                                                 bldc={"overcurrent_trip_a": 190.0}))
     controller_params_from_config(config_variant(half_ke, controller={"tmax_nm": 2.5, "pmax_w": 863.9}))
+
+
+def test_an_overcurrent_trip_inside_the_controllers_current_band_is_refused():
+    """current_limit_a raised to 200 A with the bridge's trip left at 150 A: the trip would blank
+    the gates of the controller's own commands. One error naming bldc.overcurrent_trip_a."""
+    from bike_controller.bldc_params import controller_params_from_config
+    from bike_plant.config import ConfigError
+
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml")
+    with pytest.raises(ConfigError, match=r"bldc.overcurrent_trip_a: 150 A must be above "
+                                          r"controller.current_limit_a \+ hysteresis_a = 201.5 A"):
+        controller_params_from_config(config_variant(cfg, controller={"current_limit_a": 200.0}))
+    controller_params_from_config(config_variant(cfg, controller={"current_limit_a": 200.0},
+                                                 bldc={"overcurrent_trip_a": 250.0}))

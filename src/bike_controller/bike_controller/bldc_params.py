@@ -61,6 +61,14 @@ def controller_params_from_config(cfg: dict) -> ControllerParams:
                 f"kt = {ke * RPM_PER_RAD_S:.4g} N m/A from bldc.ke_v_per_rpm) but current_limit_a is "
                 f"{cp.current_limit_a:g} A: lower tmax_nm / pmax_w or raise current_limit_a (and "
                 "bldc.overcurrent_trip_a above it)", path, "controller.current_limit_a")
+    trip = bldc.get("overcurrent_trip_a", P.BldcParams.overcurrent_trip_a) if isinstance(bldc, dict) else None
+    if isinstance(trip, (int, float)) and not isinstance(trip, bool) and trip <= cp.current_limit_a + cp.hysteresis_a:
+        # the bridge's cycle-by-cycle trip inside the controller's own band blanks the gates in
+        # closed-loop operation (--set controller.current_limit_a=200 was taken with the 150 A trip)
+        raise ConfigError(f"{trip:g} A must be above controller.current_limit_a + hysteresis_a = "
+                          f"{cp.current_limit_a + cp.hysteresis_a:g} A: the trip would blank the gates of "
+                          "commands the controller makes (the shipped configs: 1.25 x current_limit_a)",
+                          path, "bldc.overcurrent_trip_a")
     return cp
 
 
