@@ -52,13 +52,14 @@ def controller_params_from_config(cfg: dict) -> ControllerParams:
     ke = bldc.get("ke_v_per_rpm", P.BldcParams.ke_v_per_rpm) if isinstance(bldc, dict) else None
     if isinstance(ke, (int, float)) and not isinstance(ke, bool) and math.isfinite(ke) and ke > 0:
         # the plant's section is checked with the plant's parameters; here only what it asks of the limit
-        need_a, at_rpm = peak_current_command_a(cp, ke * RPM_PER_RAD_S)
+        kt_nm_per_a = P.BldcParams(ke_v_per_rpm=ke).kt_nm_per_a
+        need_a, at_rpm = peak_current_command_a(cp, kt_nm_per_a)
         if need_a > cp.current_limit_a:
             # I* = Tcmd / (k kt) was clamped to the limit without a word (half the default ke:
             # 138 A asked, 120 A commanded); Eq. 3-4 cannot be met there
             raise ConfigError(
                 f"Command = 1 asks for {need_a:.1f} A at {at_rpm:g} rpm (Eq. 3-4 torque / (k_factor x kt), "
-                f"kt = {ke * RPM_PER_RAD_S:.4g} N m/A from bldc.ke_v_per_rpm) but current_limit_a is "
+                f"kt = {kt_nm_per_a:.4g} N m/A from bldc.ke_v_per_rpm) but current_limit_a is "
                 f"{cp.current_limit_a:g} A: lower tmax_nm / pmax_w or raise current_limit_a (and "
                 "bldc.overcurrent_trip_a above it)", path, "controller.current_limit_a")
     trip = bldc.get("overcurrent_trip_a", P.BldcParams.overcurrent_trip_a) if isinstance(bldc, dict) else None
@@ -70,9 +71,6 @@ def controller_params_from_config(cfg: dict) -> ControllerParams:
                           "commands the controller makes (the shipped configs: 1.25 x current_limit_a)",
                           path, "bldc.overcurrent_trip_a")
     return cp
-
-
-RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 
 
 def peak_current_command_a(cp: ControllerParams, kt_nm_per_a: float) -> tuple[float, float]:
@@ -91,7 +89,7 @@ def peak_current_command_a(cp: ControllerParams, kt_nm_per_a: float) -> tuple[fl
         return ys[-1]
 
     def torque(w):
-        return cp.tmax_nm if w < cp.base_speed_rpm else cp.pmax_w / (w / RPM_PER_RAD_S)
+        return cp.tmax_nm if w < cp.base_speed_rpm else cp.pmax_w / (w / P.RPM_PER_RAD_S)
 
     wb = cp.base_speed_rpm
     speeds = sorted({*(x for x in xs if x >= 0.0), wb, math.nextafter(wb, 0.0)})
