@@ -115,7 +115,7 @@ from bike_plant.can.protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REA
                                      error_names)
 from bike_plant.config import ConfigError, load_config, section
 from bike_plant.heart import RiderHeart
-from bike_plant.memory import release_clean_library_pages
+from bike_plant.memory import LoadTimePageReleaser, release_clean_library_pages
 from bike_plant.params import RPM_PER_RAD_S, TWO_PI, LoadParams
 from bike_plant.sim import BldcPlant
 
@@ -1392,9 +1392,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bike-drive-emulator: {exc}", file=sys.stderr)
         return 2
     if hasattr(model, "warm_up"):
-        model.warm_up()                  # compile (or load from numba's cache) before serving the bus
-    # nothing runs LLVM from here on: drop its clean library pages, as the nodes do (bike_plant.memory)
-    released_mb = release_clean_library_pages() / 2**20
+        # compile (or load from numba's cache) before serving the bus, LLVM's library pages
+        # dropped as it goes, as the nodes do (bike_plant.memory)
+        with LoadTimePageReleaser():
+            model.warm_up()
+    else:
+        # nothing runs LLVM from here on: drop its clean library pages, as the nodes do
+        release_clean_library_pages()
     if args.bench_s is not None:
         print(json.dumps(benchmark_physics(model, args.bench_s, tick_s=1.0 / args.physics_hz,
                                            substeps=args.substeps)), flush=True)
@@ -1432,8 +1436,7 @@ def main(argv: list[str] | None = None) -> int:
         channel = _bus_kwargs(args).get("channel", "default")
         print(f"bike-drive-emulator ready: node_id={args.node_id} interface={args.interface} channel={channel} "
               f"port={args.port} machine={params.machine} physics={args.physics} load={params.load_kind} "
-              f"kt={params.torque_constant_nm_per_a:.5f}Nm/A watchdog_s={args.watchdog_s} "
-              f"(released {released_mb:.0f} MB of LLVM library pages)", flush=True)
+              f"kt={params.torque_constant_nm_per_a:.5f}Nm/A watchdog_s={args.watchdog_s}", flush=True)
         # a full collection of the ~120 000 objects numba, python-can and cantools leave behind
         # takes ~40 ms here (several times that on a loaded laptop): a stall of the heartbeats
         # and encoder frames. Collect once now and freeze them out of every later collection.
