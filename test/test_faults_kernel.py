@@ -106,6 +106,30 @@ def test_long_regeneration_into_a_full_battery_engages_s0_and_holds_the_bus():
     assert abs(led["residual_j"]) < 1e-6 * led["energy_mech_in_j"]
 
 
+def test_a_full_pack_charged_on_past_what_s0_takes_is_an_overvoltage_fault():
+    """A brake resistor too weak for the regenerated power (100 ohm: 30 W at 54.6 V against
+    about 0.9 kW): the pack took the rest and went past full (SOC 1.15 in a 10 s demo) while
+    the bus stayed under overvoltage_v, with no fault. Now FAULT_OVERVOLTAGE is set while a pack
+    past SOC_OVERCHARGE takes charge, as a real pack's BMS would open; the ledger still closes."""
+    c = copy.deepcopy(CFG)
+    c["battery"] = dict(c["battery"], soc0=1.0, capacity_ah=0.05, r_brake_ohm=100.0)
+    c["load"] = dict(c["load"], kind="prime_mover", speed_rpm=3000.0)
+    c["mechanics"] = dict(c["mechanics"], speed0_rpm=3000.0)
+    plant, ctrl = BldcPlant(P.plant_params_from_config(c)), ModedController(c, P.nominal_params_from_config(c))
+    ctrl.set_command(1.0, 0)
+    first = None
+    for b in range(int(round(1.0 / BATCH_S))):
+        plant.step_batch(*ctrl.decide(plant.snapshot())[:3])
+        snap = plant.snapshot()
+        if first is None and snap["faults"] & K.FAULT_OVERVOLTAGE:
+            first = snap
+    assert first is not None, plant.snapshot()["battery_soc"]
+    assert K.SOC_OVERCHARGE <= first["battery_soc"] < K.SOC_OVERCHARGE + 0.01
+    assert first["dc_bus_v"] < c["bldc"]["overvoltage_v"]          # the bus alone would not say it
+    led = plant.ledger()
+    assert abs(led["residual_j"]) < 1e-6 * led["energy_mech_in_j"]
+
+
 def test_long_regeneration_into_an_empty_battery_charges_it_without_s0():
     """The same braking into an empty pack: the bus sits between v_empty_v and s0_on_v, S0
     never engages, the energy goes into the pack (SOC rises), no fault."""

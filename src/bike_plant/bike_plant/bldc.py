@@ -67,6 +67,11 @@ S_SIZE = 32
 FAULT_INTERLOCK = 1
 FAULT_OVERVOLTAGE = 4
 FAULT_OVERCURRENT = 512   # = PlantState.FAULT_OVERCURRENT: a period's gates were blanked by the trip
+# FAULT_OVERVOLTAGE also while a pack past full takes charge: S0's resistor cannot take the
+# regenerated power (a 100 ohm resistor charged the pack to SOC 1.15 with no fault); a real
+# pack's BMS opens there. The margin lies beyond the charge a full pack takes before S0's
+# filtered voltage closes it (well under 1e-5 of the capacity in the shipped configs)
+SOC_OVERCHARGE = 1.005
 
 # Hall code -> 60-degree sector (sector k spans theta_e in [30 + 60k, 90 + 60k) deg)
 HALL_TO_SECTOR = np.array([-1, 0, 2, 1, 4, 5, 3, -1], dtype=np.int64)
@@ -1168,7 +1173,8 @@ def period_tail_i(state, p, c, omega, th0, vdc, a_charge, a_cu, a_conv, a_tdt, e
     voc = battery_voc(soc, p)
     vdc_next = (voc * c[KC_INV_RB] + i_dc) * (c[KC_INV_DEN_S0_ON] if s0 != 0.0 else c[KC_INV_DEN_S0_OFF])
     state[S_VDC] = vdc_next
-    if vdc_next > p[P.P_OVERVOLTAGE]:
+    # (unlikely: a branch, not a select added to the period's chain; bike_plant.jit)
+    if vdc_next > p[P.P_OVERVOLTAGE] or _jit.unlikely(soc > SOC_OVERCHARGE and i_batt > 0.0):
         state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_OVERVOLTAGE
     elif state[S_FAULTS] != 0.0:
         state[S_FAULTS] = int(state[S_FAULTS]) & ~FAULT_OVERVOLTAGE

@@ -553,8 +553,14 @@ class PlantNode(Node):
         if faults & PlantState.FAULT_INTERLOCK:
             reasons.append("gate pattern with both switches of a leg on was blanked")
         if faults & PlantState.FAULT_OVERVOLTAGE:
-            reasons.append("DC bus over the configured limit" if snap.get("machine") != "spmsm" else
-                           "a full pack charged through the inverter (no dump on that path: a BMS would open)")
+            if snap.get("machine") == "spmsm":
+                reasons.append("a full pack charged through the inverter (no dump on that path: a BMS would open)")
+            elif float(snap.get("battery_soc", 0.0)) > 1.0:
+                reasons.append(f"DC bus over the configured limit, or a full pack charged on (SOC "
+                               f"{float(snap['battery_soc']):.3f}: the brake resistor cannot take the regenerated "
+                               "power; a BMS would open)")
+            else:
+                reasons.append("DC bus over the configured limit")
         if faults & PlantState.FAULT_OVERCURRENT:
             reasons.append(f"overcurrent trip: a phase current above bldc.overcurrent_trip_a, gates blanked for "
                            f"{int(snap.get('overcurrent_trip_count', 0))} periods in total (stale gate decisions?)")
