@@ -180,6 +180,10 @@ def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tm
     # 0.15 s batches against 0.1 s Commands rode the demo with a third of its Commands never applied
     (["batch_periods=3000"], "batch_periods: one batch (3000 x control_period_s 5e-05 s = 0.15 s) must be at most "
                              "half of session.period_s = 0.1 s"),
+    # hysteresis control with one edge per period: a 2 ms period braked 53 W for 340 W, no current shown
+    (["control_period_s=0.002", "batch_periods=1"], "control_period_s: 0.002 s is too long a period for hysteresis "
+                                                    "current control on this machine: the current changes by up to "
+                                                    "466 A in one"),
     (["recorder_window_batches=101"], "recorder_window_batches: must be at most 100 (half the loop topics' DDS "
                                       "history), got 101"),
     (["backend=can", "sync_mode=lockstep"], "sync_mode: backend 'can' drives a real drive in real time"),
