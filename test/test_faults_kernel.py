@@ -130,6 +130,30 @@ def test_a_full_pack_charged_on_past_what_s0_takes_is_an_overvoltage_fault():
     assert abs(led["residual_j"]) < 1e-6 * led["energy_mech_in_j"]
 
 
+def test_a_back_emf_above_the_bus_is_flagged_as_uncontrolled_generation():
+    """A machine whose line-to-line back-EMF exceeds the DC bus (4 x the default ke at 3000 rpm:
+    65 V on the 48 V pack's ~52 V): the bridge's diodes brake with every gate off, and the
+    summary said nothing (the config check refuses such a machine at its ridden speed, not a
+    sprint past it). The snapshot carries FAULT_UNCONTROLLED_GENERATION while it lasts; the
+    default machine at the same speed does not."""
+    import dataclasses
+
+    c = copy.deepcopy(CFG)
+    c["load"] = dict(c["load"], kind="prime_mover", speed_rpm=3000.0)
+    c["mechanics"] = dict(c["mechanics"], speed0_rpm=3000.0)
+    default = P.plant_params_from_config(c)
+    strong = dataclasses.replace(default, bldc=dataclasses.replace(default.bldc,
+                                                                   ke_v_per_rpm=4 * default.bldc.ke_v_per_rpm))
+    for params, flagged in ((default, False), (strong, True)):
+        plant = BldcPlant(params)
+        for _ in range(50):
+            plant.step_batch(*plant.safe_gates(CFG["batch_periods"]))
+        snap = plant.snapshot()
+        assert bool(snap["faults"] & K.FAULT_UNCONTROLLED_GENERATION) is flagged, snap["faults"]
+        # gates off: only the diodes can brake, and they do once the back-EMF is above the bus
+        assert (snap["torque_em_nm"] < -1.0) is flagged, snap["torque_em_nm"]
+
+
 def test_long_regeneration_into_an_empty_battery_charges_it_without_s0():
     """The same braking into an empty pack: the bus sits between v_empty_v and s0_on_v, S0
     never engages, the energy goes into the pack (SOC rises), no fault."""

@@ -67,6 +67,9 @@ S_SIZE = 32
 FAULT_INTERLOCK = 1
 FAULT_OVERVOLTAGE = 4
 FAULT_OVERCURRENT = 512   # = PlantState.FAULT_OVERCURRENT: a period's gates were blanked by the trip
+# = PlantState.FAULT_UNCONTROLLED_GENERATION: the line-to-line back-EMF above the DC bus, so the
+# bridge's diodes rectify it whatever the gates do (set by BldcPlant.snapshot, per batch)
+FAULT_UNCONTROLLED_GENERATION = 128
 # FAULT_OVERVOLTAGE also while a pack past full takes charge: S0's resistor cannot take the
 # regenerated power (a 100 ohm resistor charged the pack to SOC 1.15 with no fault); a real
 # pack's BMS opens there. The margin lies beyond the charge a full pack takes before S0's

@@ -567,7 +567,10 @@ class PlantNode(Node):
         if faults & PlantState.FAULT_RELAY_FORCED:
             reasons.append("relay opened under current after its drain timeout (energy booked as loss)")
         if faults & PlantState.FAULT_UNCONTROLLED_GENERATION:
-            reasons.append("gates off but the inverter diodes conduct: uncontrolled generation (overspeed)")
+            reasons.append("gates off but the inverter diodes conduct: uncontrolled generation (overspeed)"
+                           if snap.get("machine") == "spmsm" else
+                           "the back-EMF is above the DC bus: the bridge diodes brake whatever the gates do "
+                           "(uncontrolled generation, overspeed)")
         if faults & PlantState.FAULT_RECORDER_LOST:
             reasons.append(f"the recorder went silent for recorder_timeout_s={self.recorder_timeout_s:g}s: "
                            "the rest of the run is not recorded")

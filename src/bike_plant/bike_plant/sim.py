@@ -168,6 +168,12 @@ class BldcPlant:
         last = self._last
         led = self.ledger()
         soc = float(s[K.S_SOC])
+        speed_rpm = float(s[K.S_OMEGA] * P.RPM_PER_RAD_S)
+        faults = int(s[K.S_FAULTS])
+        if self.params.bldc.ke_v_per_rpm * abs(speed_rpm) > float(s[K.S_VDC]):
+            # the diodes brake beyond any Command (4 x the default ke in the demo: 10 N m for 1.2
+            # asked, and no word); slow quantities, so a check per batch, off the kernel's path
+            faults |= K.FAULT_UNCONTROLLED_GENERATION
         return {
             "seq": int(self.seq),
             "batch_periods": int(self.batch_periods),
@@ -179,7 +185,7 @@ class BldcPlant:
             "phase_current_a": [float(s[K.S_IA]), float(s[K.S_IB]), float(s[K.S_IC])],
             "rotor_angle_elec_rad": float(s[K.S_THETA_E]),
             "speed_rad_s": float(s[K.S_OMEGA]),
-            "speed_rpm": float(s[K.S_OMEGA] * P.RPM_PER_RAD_S),
+            "speed_rpm": speed_rpm,
             "hall_state": int(s[K.S_HALL]),
             "timer_count": self.timer_count,
             "dc_bus_v": float(s[K.S_VDC]),
@@ -199,7 +205,7 @@ class BldcPlant:
             "energy_loss_j": led["energy_loss_j"],
             "energy_stored_j": led["energy_stored_j"],
             "heart_rate_bpm": self.heart.bpm if self.heart is not None else 0.0,
-            "faults": int(s[K.S_FAULTS]),
+            "faults": faults,
             "interlock_blanked_count": int(s[K.S_INTERLOCK]),
             "overcurrent_trip_count": int(s[K.S_OC_TRIPS]),
         }
