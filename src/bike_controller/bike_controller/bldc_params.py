@@ -106,27 +106,39 @@ def current_step_problem(cfg: dict, cp: ControllerParams) -> str | None:
             f"torque is lost; at most {longest_s:.3g} s here (the paper's 5e-05 s)")
 
 
+def torque_command_nm(command, speed_rpm, tmax_nm, base_speed_rpm, pmax):
+    """Eq. 3-4 of paper 000 (magnitude of the braking torque). Plain Python, for the checks
+    here; the controller's kernels run torque_command's njit copy of this very function."""
+    w = abs(speed_rpm)
+    if w < base_speed_rpm:
+        return command * tmax_nm
+    return command * pmax / (w / P.RPM_PER_RAD_S)
+
+
+def k_factor(speed_rpm, xs, ys, n, linear):
+    """Eq. 7 modification factor k(w) from a table: step (value of the last point <= w) or
+    linear. Plain Python; torque_command.k_factor is its njit copy."""
+    w = abs(speed_rpm)
+    if w <= xs[0]:
+        return ys[0]
+    for j in range(1, n):
+        if w < xs[j]:
+            if linear:
+                return ys[j - 1] + (ys[j] - ys[j - 1]) * (w - xs[j - 1]) / (xs[j] - xs[j - 1])
+            return ys[j - 1]
+    return ys[n - 1]
+
+
 def peak_current_command_a(cp: ControllerParams, kt_nm_per_a: float) -> tuple[float, float]:
     """(largest current command I* = Tcmd / (k(w) kt) of Command = 1 over the k table's speeds
-    and the base speed, the speed where it is asked) of Eq. 3-4 and 6-9 (torque_command.py)."""
+    and the base speed, the speed where it is asked) of Eq. 3-4 and 6-9, with the law's own
+    functions (torque_command_nm, k_factor)."""
     xs, ys = [float(x) for x in cp.k_speed_rpm], [float(y) for y in cp.k_factor]
-
-    def k_at(w):
-        if w <= xs[0]:
-            return ys[0]
-        for j in range(1, len(xs)):
-            if w < xs[j]:
-                if cp.k_interp == "linear":
-                    return ys[j - 1] + (ys[j] - ys[j - 1]) * (w - xs[j - 1]) / (xs[j] - xs[j - 1])
-                return ys[j - 1]
-        return ys[-1]
-
-    def torque(w):
-        return cp.tmax_nm if w < cp.base_speed_rpm else cp.pmax_w / (w / P.RPM_PER_RAD_S)
-
+    linear = cp.k_interp == "linear"
     wb = cp.base_speed_rpm
     speeds = sorted({*(x for x in xs if x >= 0.0), wb, math.nextafter(wb, 0.0)})
-    return max((torque(w) / (k_at(w) * kt_nm_per_a), w) for w in speeds)
+    return max((torque_command_nm(1.0, w, cp.tmax_nm, wb, cp.pmax_w)
+                / (k_factor(w, xs, ys, len(xs), linear) * kt_nm_per_a), w) for w in speeds)
 
 
 def validate_command(command, mode) -> None:

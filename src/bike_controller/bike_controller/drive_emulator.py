@@ -121,12 +121,13 @@ from bike_plant.sim import BldcPlant
 
 from . import bldc_control as BC
 from . import spmsm_control as SC
-from . import speed_estimator, torque_command
+from . import bldc_params, speed_estimator, torque_command
 
 # the batch kernels below compile the plant and control-law kernels into this module's
 # numba cache: drop it when one of those modules changed (numba keys it on this file only)
 K.invalidate_stale_numba_cache(__file__, [K.__file__, K._jit.__file__, P.__file__, M.__file__, SC.__file__,
-                                          BC.__file__, speed_estimator.__file__, torque_command.__file__])
+                                          BC.__file__, speed_estimator.__file__, torque_command.__file__,
+                                          bldc_params.__file__])
 
 CALIBRATION_STATES = frozenset({2, 3, 4, 6, 7, 10, 12, 13, 14})
 DEFAULT_CURRENT_TAU_S = 1.0e-3     # 1 / ODrive's default current_control_bandwidth (1000 rad/s)

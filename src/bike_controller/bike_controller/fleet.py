@@ -27,11 +27,12 @@ from bike_plant import params as P
 
 from . import bldc_control as BC
 from . import speed_estimator as _se
+from . import bldc_params as _bp
 from . import torque_command as _tc
 
 # the fleet kernel compiles run_fused and everything it calls into its own cache entry
 K.invalidate_stale_numba_cache(__file__, [BC.__file__, K.__file__, K._jit.__file__, P.__file__, _se.__file__,
-                                          _tc.__file__])
+                                          _tc.__file__, _bp.__file__])
 
 CHUNK_PERIODS = 1000          # cadence sample every 1000 periods (50 ms at 20 kHz)
 BIKES_PER_TASK = 4            # prange work unit (numba parallel chunk size)

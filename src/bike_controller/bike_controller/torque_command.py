@@ -16,6 +16,8 @@ import math
 
 from numba import njit
 
+from . import bldc_params as _law
+
 RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 REGION_CONSTANT_TORQUE = 0
 REGION_CONSTANT_POWER = 1
@@ -29,32 +31,15 @@ def pmax_w(tmax_nm, base_speed_rpm):
     return tmax_nm * base_speed_rpm / RPM_PER_RAD_S
 
 
-@njit(cache=True, error_model="numpy")
-def torque_command_nm(command, speed_rpm, tmax_nm, base_speed_rpm, pmax):
-    """Eq. 3-4 of paper 000 (magnitude of the braking torque)."""
-    w = abs(speed_rpm)
-    if w < base_speed_rpm:
-        return command * tmax_nm
-    return command * pmax / (w / RPM_PER_RAD_S)
+# Eq. 3-4 and the k(w) table, written once in bldc_params (numba-free: the config checks use
+# them) and compiled here for the kernels
+torque_command_nm = njit(cache=True, error_model="numpy")(_law.torque_command_nm)
+k_factor = njit(cache=True, error_model="numpy")(_law.k_factor)
 
 
 @njit(cache=True, error_model="numpy")
 def region_of(speed_rpm, base_speed_rpm):
     return REGION_CONSTANT_TORQUE if abs(speed_rpm) < base_speed_rpm else REGION_CONSTANT_POWER
-
-
-@njit(cache=True, error_model="numpy")
-def k_factor(speed_rpm, xs, ys, n, linear):
-    """Eq. 7 modification factor k(w) from a table: step (value of the last point <= w) or linear."""
-    w = abs(speed_rpm)
-    if w <= xs[0]:
-        return ys[0]
-    for j in range(1, n):
-        if w < xs[j]:
-            if linear:
-                return ys[j - 1] + (ys[j] - ys[j - 1]) * (w - xs[j - 1]) / (xs[j] - xs[j - 1])
-            return ys[j - 1]
-    return ys[n - 1]
 
 
 @njit(cache=True, error_model="numpy")
