@@ -269,6 +269,30 @@ def test_replay_names_the_given_config_and_leaves_nothing_when_it_refuses_it(tmp
         assert (list(record.iterdir()) == []) if record.parent == tmp_path else not record.exists()
 
 
+def test_replay_on_another_machine_keeps_the_recorded_rider_on_that_bikes_drivetrain(tmp_path, monkeypatch):
+    """./bike replay of a BLDC ride --config spmsm_default.yaml (--load recorded, the default)
+    rode the BLDC's 35:1 gear on the SPMSM: 14 W braking, the pack drawn down. The recorded
+    rider (preset, torque-cadence line, heart) rides on, but the gear and the rider's effort
+    gains, tuned on the bike's crank inertia, are the other bike's."""
+    import yaml
+
+    from bike_plant.config import load_config
+    from bike_session import replay
+    recorded = yaml.safe_load(CONFIG.read_text())
+    recorded["/**"]["ros__parameters"]["load"]["rider_preset"] = "trained"
+    info = {"duration_s": 1.0, "period_s": 0.1, "config_text": yaml.safe_dump(recorded)}
+    monkeypatch.setattr(replay, "command_timeline", lambda _bag: ([(0, 0.5, 0, 0.0, None)], info))
+    spmsm = ROOT / "config" / "spmsm_default.yaml"
+    own = load_config(spmsm)["load"]
+    prep = replay.prepare(tmp_path / "session_x", tmp_path / "runs", str(spmsm), "recorded")
+    load = load_config(prep["config"])["load"]
+    assert load["rider_preset"] == "trained" and load["kind"] == "rider"
+    for key in replay.BIKE_LOAD_KEYS:
+        assert load[key] == own[key], key
+    same = replay.prepare(tmp_path / "session_x", tmp_path / "runs2", None, "recorded")
+    assert load_config(same["config"])["load"]["gear_ratio"] == recorded["/**"]["ros__parameters"]["load"]["gear_ratio"]
+
+
 def test_replay_leaves_nothing_when_the_run_refuses_it_after_the_config_checks(tmp_path, monkeypatch, capsys):
     """A refusal from ./bike run's checks after the config's (here: calibration_file under a
     regular file) left the replay's generated profile and config in --record. Now --record is

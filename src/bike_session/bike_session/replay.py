@@ -127,6 +127,11 @@ def _recorded_config(info: dict, bag_path) -> dict:
     return doc
 
 
+# load: keys that belong to the bike, not to the rider: the motor-to-crank gear and the rider
+# model's effort PI, placed on the crank inertia J x gear^2 (bike_plant.mechanics.rider_pi_gains)
+BIKE_LOAD_KEYS = ("gear_ratio", "rider_kp", "rider_ki")
+
+
 def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded") -> dict:
     """Write the replay's profile and config into out_dir; returns their paths + facts."""
     from bike_plant.config import ConfigError, load_config
@@ -152,7 +157,16 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     if load == "recorded":
         rec_load = recorded["/**"]["ros__parameters"].get("load")
         if rec_load is not None:
-            params["load"] = rec_load
+            own = params.get("load") if isinstance(params.get("load"), dict) else {}
+            params["load"] = dict(rec_load)
+            if config is not None:
+                # the recorded rider on the other bike's drivetrain: its gear and the rider's
+                # effort gains tuned on that bike's crank inertia (the BLDC's 35:1 gear on the
+                # SPMSM braked 14 W and drew the pack down)
+                for key in BIKE_LOAD_KEYS:
+                    params["load"].pop(key, None)
+                    if key in own:
+                        params["load"][key] = own[key]
     # relative paths in the config (none needed now, but keep them resolvable)
     params.setdefault("session", {})
     out_dir = pathlib.Path(out_dir)
@@ -208,7 +222,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("bag")
     ap.add_argument("--config", help="the bike to ride it on (default: the recorded config)")
     ap.add_argument("--load", choices=["recorded", "config"], default="recorded",
-                    help="rider / load: the recorded one (default) or the one of --config")
+                    help="rider / load: the recorded one (default; with --config, on that bike's gear_ratio and "
+                         "rider_kp / rider_ki) or the one of --config")
     ap.add_argument("--record", default="runs", metavar="DIR", help="where the new bag goes (default runs/)")
     ap.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     opts = ap.parse_args(argv)
