@@ -521,6 +521,11 @@ def test_fuzzed_fit_records_past_the_checksum_give_one_clear_error_each(tmp_path
         except Exception as exc:  # noqa: BLE001
             pytest.fail(f"variant {i} raised {type(exc).__name__}: {exc}")
     assert outcomes["error"] >= 20 and outcomes["workout"] >= 1, outcomes
+    # a truncated file: what it is, before the SDK's own words (a TypeError of its internals)
+    path = tmp_path / "truncated.fit"
+    path.write_bytes(data[:len(data) // 2])
+    with pytest.raises(ProfileError, match="corrupt FIT file: truncated or damaged"):
+        load_workout(path, ftp_w=250.0, pmax_w=1016.68)
 
 
 def test_hostile_workouts_are_bounded(tmp_path):

@@ -525,9 +525,13 @@ def test_bike_trainer_refuses_a_road_or_cadence_the_ftms_fields_cannot_carry(tmp
     assert trainer_probe.ride_workout(Trainer(), opts, print) == 2
     err = capsys.readouterr().err
     assert "segments[1]: road crr 0.03 outside [0, 0.0255]" in err, err
-    for args, words in ((["--crr", "0.1"], "--crr 0.1 outside"), (["--cadence", "-5", "--power", "100"],
-                                                                    "--cadence -5 outside"),
-                        (["--difficulty", "150", "--grade", "3"], "--difficulty 150 outside")):
+    for args, words in ((["--crr", "0.1", "--grade", "3"], "--crr 0.1 outside"),
+                        (["--cadence", "-5", "--power", "100"], "--cadence -5 outside"),
+                        (["--difficulty", "150", "--grade", "3"], "--difficulty 150 outside"),
+                        # the road goes with a grade: with --power it was dropped without a word
+                        (["--power", "200", "--crr", "0.005", "--wind", "2"],
+                         "--crr, --wind: only with --grade or --workout"),
+                        (["--level", "5", "--difficulty", "50"], "--difficulty: only with --grade or --workout")):
         result = bike_command("trainer", "--port", "1", *args, timeout=60)
         assert result.returncode == 2 and words in result.stderr, result.stderr
 

@@ -865,11 +865,11 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--level", type=float, metavar="L", help="take control and set the resistance level")
     trn.add_argument("--cadence", type=float, metavar="RPM", help="with a target: also set the rider's cadence "
                                                                 "target (FTMS Set Targeted Cadence)")
-    trn.add_argument("--crr", type=float, default=0.004, help="the road sent with a grade: rolling resistance "
+    trn.add_argument("--crr", type=float, help="the road sent with a grade: rolling resistance "
                                                               "(default 0.004, as Zwift sends)")
-    trn.add_argument("--cw", type=float, default=0.51, metavar="KG_PER_M",
+    trn.add_argument("--cw", type=float, metavar="KG_PER_M",
                      help="... air resistance 1/2 rho CdA in kg/m (default 0.51, as Zwift sends)")
-    trn.add_argument("--wind", type=float, default=0.0, metavar="MPS", help="... head wind in m/s (default 0)")
+    trn.add_argument("--wind", type=float, metavar="MPS", help="... head wind in m/s (default 0)")
     trn.add_argument("--difficulty", type=float, metavar="PCT",
                      help="send grades as Zwift does at this trainer difficulty: scaled by it, descents halved "
                           "again (Zwift's default 50; default: the grade as it is)")

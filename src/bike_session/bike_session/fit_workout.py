@@ -166,10 +166,14 @@ def _decode(data: bytes, source: str) -> dict:
     except WorkoutError:
         raise
     except Exception as exc:  # noqa: BLE001 - a third-party decoder on hostile bytes: one clear error
-        raise WorkoutError(f"FIT decoder failed: {type(exc).__name__}: {exc}", source) from None
+        raise WorkoutError(f"corrupt FIT file: truncated or damaged, Garmin's FIT SDK could not decode it "
+                           f"(its error: {type(exc).__name__}: {exc})", source) from None
     if errors:
+        # the SDK's own error on a damaged file reads like a bug of ours ("TypeError: can only
+        # concatenate str ..." on a truncated one): say what it means first, and keep it after
         first = errors[0]
-        raise WorkoutError(f"corrupt FIT file ({type(first).__name__}: {first})", source)
+        raise WorkoutError(f"corrupt FIT file: truncated or damaged, Garmin's FIT SDK could not decode it "
+                           f"(its error: {type(first).__name__}: {first})", source)
     return messages
 
 

@@ -409,7 +409,16 @@ def main(opts) -> int:
     if len(targets) > 1:
         print("error: give one of --power, --grade, --level, --workout, --spindown", file=sys.stderr)
         return 2
-    opts.road = (opts.crr, opts.cw, opts.wind)
+    # the road and the difficulty go with a grade (--grade, a workout's slope segments) only:
+    # given with --power they were dropped without a word
+    given = [name for name, value in (("--crr", opts.crr), ("--cw", opts.cw), ("--wind", opts.wind),
+                                      ("--difficulty", opts.difficulty)) if value is not None]
+    if given and opts.grade is None and not opts.workout:
+        print(f"error: {', '.join(given)}: only with --grade or --workout (the road and the difficulty a grade "
+              "is sent with)", file=sys.stderr)
+        return 2
+    opts.road = tuple(default if value is None else value
+                      for default, value in zip(DEFAULT_ROAD, (opts.crr, opts.cw, opts.wind)))
     problem = simulation_road_problem(opts.road)
     if problem is None and opts.difficulty is not None and not 0.0 <= opts.difficulty <= 100.0:
         problem = f"--difficulty {opts.difficulty:g} outside [0, 100] %"
