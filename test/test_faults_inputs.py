@@ -291,6 +291,10 @@ def test_replay_on_another_machine_keeps_the_recorded_rider_on_that_bikes_drivet
         assert load[key] == own[key], key
     same = replay.prepare(tmp_path / "session_x", tmp_path / "runs2", None, "recorded")
     assert load_config(same["config"])["load"]["gear_ratio"] == recorded["/**"]["ros__parameters"]["load"]["gear_ratio"]
+    # a second replay into the same folder keeps the first one's files (its bag names them)
+    again = replay.prepare(tmp_path / "session_x", tmp_path / "runs", None, "recorded")
+    assert again["config"] != prep["config"] and again["profile"] != prep["profile"]
+    assert prep["config"].exists() and prep["profile"].exists() and again["config"].name.endswith("_2_config.yaml")
 
 
 def test_replay_leaves_nothing_when_the_run_refuses_it_after_the_config_checks(tmp_path, monkeypatch, capsys):

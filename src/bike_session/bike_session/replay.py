@@ -172,6 +172,11 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     stem = f"replay_{bag_path.name}"
+    suffix = 1
+    while (out_dir / f"{stem}_profile.yaml").exists() or (out_dir / f"{stem}_config.yaml").exists():
+        # a second replay of the bag into the same folder: the first one's bag names these files
+        suffix += 1
+        stem = f"replay_{bag_path.name}_{suffix}"
     profile_path = out_dir / f"{stem}_profile.yaml"
     config_path = out_dir / f"{stem}_config.yaml"
     profile = profile_from_timeline(timeline, duration_s, f"replay of {bag_path.name}")
