@@ -167,13 +167,13 @@ def _decode(data: bytes, source: str) -> dict:
         raise
     except Exception as exc:  # noqa: BLE001 - a third-party decoder on hostile bytes: one clear error
         raise WorkoutError(f"corrupt FIT file: truncated or damaged, Garmin's FIT SDK could not decode it "
-                           f"(its error: {type(exc).__name__}: {exc})", source) from None
+                           f"(the SDK reports {type(exc).__name__}: {exc})", source) from None
     if errors:
         # the SDK's own error on a damaged file reads like a bug of ours ("TypeError: can only
         # concatenate str ..." on a truncated one): say what it means first, and keep it after
         first = errors[0]
         raise WorkoutError(f"corrupt FIT file: truncated or damaged, Garmin's FIT SDK could not decode it "
-                           f"(its error: {type(first).__name__}: {first})", source)
+                           f"(the SDK reports {type(first).__name__}: {first})", source)
     return messages
 
 
