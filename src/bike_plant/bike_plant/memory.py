@@ -71,21 +71,29 @@ def releasable_mappings(smaps_text: str, suffixes=LOAD_TIME_LIBRARIES,
     return out
 
 
+def _smaps_and_madvise():
+    """(this process's /proc/self/smaps text, libc's madvise) on Linux; ("", None) where either
+    is not available."""
+    if not sys.platform.startswith("linux"):
+        return "", None
+    try:
+        with open("/proc/self/smaps") as f:
+            text = f.read()
+        madvise = ctypes.CDLL(None, use_errno=True).madvise
+    except (OSError, AttributeError):
+        return "", None
+    madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    madvise.restype = ctypes.c_int
+    return text, madvise
+
+
 def release_clean_library_pages(suffixes=LOAD_TIME_LIBRARIES) -> int:
     """Drop this process's clean, read-only pages of the libraries named by `suffixes` (see the
     module docstring). Returns the bytes that were resident in the mappings released (0 where
     /proc or madvise is not available)."""
-    if not sys.platform.startswith("linux"):
+    text, madvise = _smaps_and_madvise()
+    if madvise is None:
         return 0
-    try:
-        with open("/proc/self/smaps") as f:
-            text = f.read()
-        libc = ctypes.CDLL(None, use_errno=True)
-        madvise = libc.madvise
-    except (OSError, AttributeError):
-        return 0
-    madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
-    madvise.restype = ctypes.c_int
     released = 0
     for start, end, rss in releasable_mappings(text, suffixes):
         if madvise(start, end - start, MADV_DONTNEED) == 0:
@@ -129,20 +137,12 @@ class LoadTimePageReleaser:
     def __enter__(self) -> LoadTimePageReleaser:
         import threading
 
-        if sys.platform.startswith("linux"):
-            try:
-                import llvmlite.binding  # noqa: F401 - mapped now, so that its mappings are found
-            except ImportError:
-                pass
-            try:
-                with open("/proc/self/smaps") as f:
-                    text = f.read()
-                libc = ctypes.CDLL(None, use_errno=True)
-                self.madvise = libc.madvise
-            except (OSError, AttributeError):
-                return self
-            self.madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
-            self.madvise.restype = ctypes.c_int
+        try:
+            import llvmlite.binding  # noqa: F401 - mapped now, so that its mappings are found
+        except ImportError:
+            pass
+        text, self.madvise = _smaps_and_madvise()
+        if self.madvise is not None:
             self.ranges = [(start, end) for start, end, _rss in releasable_mappings(text, self.suffixes,
                                                                                    resident_only=False)]
             self._release()

@@ -71,7 +71,7 @@ from .config import (CLOCK_PERIOD_S, check_backend_sync_mode, check_batch_length
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
-from .memory import LoadTimePageReleaser, release_clean_library_pages
+from .memory import LoadTimePageReleaser
 
 # the start-up wait for a recorder: matching its reader took ~3 s on a loaded 2-core machine,
 # longer than a recorder_timeout_s chosen to notice a lost recorder quickly
@@ -967,9 +967,8 @@ def warm_up_kernels(logger, warm_up) -> float:
         finally:
             finished.set()
 
-    # LLVM's pages touched so far (the node's construction loaded kernels through it) are not
-    # needed again either: dropped before the warm-up touches its own
-    released = release_clean_library_pages()
+    # (LLVM's library pages, touched to load the kernels, are dropped as they load by the
+    # LoadTimePageReleaser that run_loop_node makes the node in: bike_plant.memory)
     worker = threading.Thread(target=run, name="numba-warm-up", daemon=True)
     t0 = time.perf_counter()
     worker.start()
@@ -997,11 +996,7 @@ def warm_up_kernels(logger, warm_up) -> float:
         logger.warning(f"numba kernel warm-up failed ({type(failure).__name__}: {failure}): they compile at "
                        "first use")
         return took_s
-    # the code generator's library pages were needed to load (or compile) the kernels only: drop
-    # them from this process's RSS (bike_plant.memory; ~65 MB of a ~190 MB node)
-    released_mb = (released + release_clean_library_pages()) / 2**20
-    logger.info(f"numba kernels ready in {took_s:.1f} s" + (" (compiled)" if took_s > COMPILED_AFTER_S else "")
-                + (f"; released {released_mb:.0f} MB of LLVM library pages" if released_mb >= 1.0 else ""))
+    logger.info(f"numba kernels ready in {took_s:.1f} s" + (" (compiled)" if took_s > COMPILED_AFTER_S else ""))
     return took_s
 
 
