@@ -227,6 +227,9 @@ PLANT_NUMBERS = {
 # the plant node's default /clock period [sim s] (PLANT_DEFAULTS): check_plant_numbers holds a
 # config without clock_period_s to it, as the node does
 CLOCK_PERIOD_S = 0.01
+# ... and its batch_periods and control_period_s, as check_batch_length takes them
+BATCH_PERIODS = 20
+CONTROL_PERIOD_S = 5.0e-5
 
 
 def check_clock_period(clock_period_s: float, session_period_s, path) -> None:
@@ -312,8 +315,8 @@ def check_plant_numbers(cfg: dict, path=None) -> None:
     clock_period_s = plant_number(cfg, "clock_period_s", path) if "clock_period_s" in cfg else CLOCK_PERIOD_S
     session = cfg.get("session")
     check_clock_period(clock_period_s, session.get("period_s") if isinstance(session, dict) else None, path)
-    check_batch_length(plant_number(cfg, "batch_periods", path) if "batch_periods" in cfg else 20,
-                       plant_number(cfg, "control_period_s", path) if "control_period_s" in cfg else 5.0e-5,
+    check_batch_length(plant_number(cfg, "batch_periods", path) if "batch_periods" in cfg else BATCH_PERIODS,
+                       plant_number(cfg, "control_period_s", path) if "control_period_s" in cfg else CONTROL_PERIOD_S,
                        session.get("period_s") if isinstance(session, dict) else None, path)
     for key, known in (("machine", ("bldc", "spmsm")), ("backend", ("sim", "can"))):
         if key in cfg and str(cfg[key]) not in known:

@@ -66,8 +66,8 @@ from sensor_msgs.msg import BatteryState
 
 from . import msgconv, shm_ports
 from .config import ConfigError
-from .config import (CLOCK_PERIOD_S, check_backend_sync_mode, check_batch_length, check_clock_period, plant_number,
-                     recorder_window_batches, sync_mode_of)
+from .config import (BATCH_PERIODS, CLOCK_PERIOD_S, CONTROL_PERIOD_S, check_backend_sync_mode, check_batch_length,
+                     check_clock_period, plant_number, recorder_window_batches, sync_mode_of)
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
                    recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
@@ -81,8 +81,8 @@ PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
 PLANT_DEFAULTS = {
     "backend": "sim",
     "sync_mode": "lockstep",
-    "batch_periods": 20,
-    "control_period_s": 5.0e-5,
+    "batch_periods": BATCH_PERIODS,
+    "control_period_s": CONTROL_PERIOD_S,
     "command_timeout_s": 0.05,
     "duration_s": 0.0,
     "seed": 0,
