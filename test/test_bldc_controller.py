@@ -40,7 +40,8 @@ def cfg():
 @pytest.fixture
 def paper_cfg(cfg):
     """The paper's own k table: 0.8 below 4500 rpm, 1.0 above (section 5)."""
-    return config_variant(cfg, controller={"k_speed_rpm": [0.0, 4500.0], "k_factor": [0.8, 1.0], "k_interp": "step"})
+    return config_variant(cfg, controller={"k_speed_rpm": [0.0, 4500.0], "k_factor": [0.8, 1.0], "k_interp": "step",
+                                           "k_command": []})
 
 
 def test_eq1_speed_from_capture_counts():
@@ -82,6 +83,65 @@ def test_eq8_eq9_ktg_with_paper_table(paper_cfg):
     assert ctrl.ktg(2000.0) == pytest.approx(0.04163, abs=1e-5)
     assert ctrl.k_factor(4500.0) == 1.0
     assert ctrl.ktg(4500.0) == pytest.approx(0.05204, abs=1e-5)
+
+
+COMMAND_TABLE = {"k_speed_rpm": [0.0, 2000.0], "k_command": [0.2, 0.4, 0.8], "k_interp": "linear",
+                 "k_factor": [1.10, 1.00, 0.90, 0.80, 0.70, 0.60]}     # rows of Command 0.2, 0.4, 0.8
+
+
+def test_eq7_k_over_speed_and_command(cfg):
+    """A k table with a Command axis: rows interpolated linearly in the Command, clamped at both
+    ends, each row over the speed as before; the controller's kernel and the plain-Python law
+    agree."""
+    from bike_controller.bldc_params import k_factor as k_law
+    ctrl = C.BatchController(config_variant(cfg, controller=COMMAND_TABLE))
+    assert ctrl.k_factor(0.0, 0.4) == pytest.approx(0.90)
+    assert ctrl.k_factor(2000.0, 0.8) == pytest.approx(0.60)
+    assert ctrl.k_factor(1000.0, 0.4) == pytest.approx(0.85)                 # along the speed
+    assert ctrl.k_factor(0.0, 0.3) == pytest.approx(1.00)                    # between two rows
+    assert ctrl.k_factor(1000.0, 0.6) == pytest.approx(0.5 * (0.85 + 0.65))  # bilinear
+    assert ctrl.k_factor(0.0, 0.1) == pytest.approx(1.10)                    # clamped below
+    assert ctrl.k_factor(3000.0) == pytest.approx(0.60)                      # and above (Command 1)
+    assert ctrl.k_factor(-1000.0, 0.6) == ctrl.k_factor(1000.0, 0.6)
+    xs, cs, ys = ctrl.cp.k_table()
+    rng = np.random.default_rng(3)
+    for speed, command in zip(rng.uniform(-3000, 3000, 50), rng.uniform(0, 1, 50)):
+        assert ctrl.k_factor(speed, command) == pytest.approx(k_law(speed, command, xs, ys, len(xs), True, cs, len(cs)),
+                                                              rel=1e-12)   # the kernel may fuse a multiply-add
+
+
+def test_eq7_the_command_row_sets_the_current_command(cfg):
+    """I* = Tcmd / (k(w, Command) kt) (Eq. 3-9): the row of the Command in force, not Command
+    = 1's; a torque the modes ask (ERG, slope) takes the row of the Command that asks it."""
+    ctrl = C.BatchController(config_variant(cfg, controller=COMMAND_TABLE))
+    kt = 5.45e-3 * 60 / (2 * math.pi)
+    ctrl.cs[C.C_SPEED_EST] = 1000.0
+    for command in (0.1, 0.3, 0.6):
+        ctrl.set_command(command, 0)
+        tcmd = command * TMAX
+        assert ctrl.cs[C.C_TCMD] == pytest.approx(tcmd)
+        assert ctrl.cs[C.C_K] == pytest.approx(ctrl.k_factor(1000.0, command))
+        assert ctrl.cs[C.C_ICMD] == pytest.approx(tcmd / (ctrl.k_factor(1000.0, command) * kt))
+        assert ctrl.ktg(1000.0, tcmd) == pytest.approx(ctrl.k_factor(1000.0, command) * kt)
+    assert ctrl.ktg(1000.0) == pytest.approx(0.65 * kt)
+
+
+@pytest.mark.parametrize("table, message", [
+    ({"k_factor": [0.8, 0.9]}, "k_factor must hold 6 values, one row of 2 per Command"),
+    ({"k_factor": [0.8, 0.9] * 3 + [0.9]}, "k_factor must hold 6 values"),
+    ({"k_command": [0.4, 0.2, 0.8]}, "strictly increasing Commands in (0, 1]"),
+    ({"k_command": [0.0, 0.5, 1.0]}, "strictly increasing Commands in (0, 1]"),
+    ({"k_command": [0.2, 0.5, 1.5]}, "strictly increasing Commands in (0, 1]"),
+    ({"k_factor": [0.8, 0.9, 0.8, 2.5, 0.8, 0.9]}, "k_factor row of Command 0.4 entries must be in [1e-06, 2.0]"),
+    ({"k_factor": [[0.8, 0.9], [0.8, 0.9], [0.8, 0.9]]}, "list items must be numbers"),
+    ({"k_command": [], "k_factor": [0.8, 1.2]}, "in [1e-06, 1.0]"),       # the paper's one row: k <= 1
+    ({"k_command": [i / 13 for i in range(1, 14)], "k_factor": [0.8, 0.9] * 13}, "at most 12 k_command points"),
+])
+def test_a_bad_k_table_is_one_config_error(cfg, table, message):
+    from bike_plant.config import ConfigError
+    with pytest.raises(ConfigError, match="controller") as err:
+        C.controller_params_from_config(config_variant(cfg, controller=dict(COMMAND_TABLE, **table)))
+    assert message in str(err.value)
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -0.01, 1.01, "0.5", None, True])

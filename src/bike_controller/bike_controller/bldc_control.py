@@ -35,7 +35,8 @@ from . import bldc_params as _bp
 from . import speed_estimator as _se
 from . import torque_command as _tc
 from .speed_estimator import speed_rpm_from_counts
-from .bldc_params import K_TABLE_MAX, ControllerParams, controller_params_from_config, validate_command  # noqa: F401
+from .bldc_params import (K_ROWS_MAX, K_TABLE_MAX, ControllerParams, controller_params_from_config,  # noqa: F401
+                          validate_command)
 from .torque_command import (MODE_MOTORING, MODE_RESISTANCE, k_factor, ktg_nm_per_a, region_of,
                              torque_command_nm)
 
@@ -48,10 +49,11 @@ QUADRANT_GENERATING = 2
 
 
 # ---- controller parameter vector / state layout -------------------------------------------
-Q_TMAX, Q_WB, Q_PMAX, Q_H, Q_ILIM, Q_KT, Q_PP, Q_FC, Q_KN, Q_KLIN = range(10)
-Q_KX = 10
-Q_KY = Q_KX + K_TABLE_MAX
-Q_SIZE = Q_KY + K_TABLE_MAX
+Q_TMAX, Q_WB, Q_PMAX, Q_H, Q_ILIM, Q_KT, Q_PP, Q_FC, Q_KN, Q_KLIN, Q_KCN = range(11)
+Q_KX = 11                               # k table speeds
+Q_KCX = Q_KX + K_TABLE_MAX              # its Commands (Q_KCN of them; 0: the paper's one row)
+Q_KY = Q_KCX + K_ROWS_MAX               # its rows, Q_KN values each
+Q_SIZE = Q_KY + K_TABLE_MAX * K_ROWS_MAX
 
 C_ON = 0            # hysteresis comparator memory (switch state)
 C_LAST_EDGE = 1     # capture count of the last Hall edge
@@ -80,12 +82,21 @@ def pack_controller(cp: ControllerParams, plant: P.PlantParams) -> np.ndarray:
     q[Q_KT] = plant.bldc.kt_nm_per_a
     q[Q_PP] = plant.bldc.pole_pairs
     q[Q_FC] = plant.hall.timer_hz
-    q[Q_KN] = len(cp.k_speed_rpm)
+    xs, cs, ys = cp.k_table()
+    q[Q_KN] = len(xs)
     q[Q_KLIN] = 1.0 if cp.k_interp == "linear" else 0.0
-    for j, (x, y) in enumerate(zip(cp.k_speed_rpm, cp.k_factor)):
-        q[Q_KX + j] = x
-        q[Q_KY + j] = y
+    q[Q_KCN] = len(cs)
+    q[Q_KX:Q_KX + len(xs)] = xs
+    q[Q_KCX:Q_KCX + len(cs)] = cs
+    q[Q_KY:Q_KY + len(ys)] = ys
     return q
+
+
+@njit(**JIT_INLINE)
+def _k_of(speed_rpm, command, q):
+    """Eq. 7 k from the packed table (bike_controller.bldc_params.k_factor)."""
+    return k_factor(speed_rpm, command, q[Q_KX:Q_KCX], q[Q_KY:Q_SIZE], int(q[Q_KN]), q[Q_KLIN] != 0.0,
+                    q[Q_KCX:Q_KY], int(q[Q_KCN]))
 
 
 @njit(**JIT)
@@ -100,7 +111,7 @@ def update_command(cs, q):
         cs[C_QUADRANT] = QUADRANT_MOTORING
     else:
         tcmd = torque_command_nm(cs[C_COMMAND], speed, q[Q_TMAX], q[Q_WB], q[Q_PMAX])
-        k = k_factor(speed, q[Q_KX:Q_KX + K_TABLE_MAX], q[Q_KY:Q_KY + K_TABLE_MAX], int(q[Q_KN]), q[Q_KLIN] != 0.0)
+        k = _k_of(speed, cs[C_COMMAND], q)
         cs[C_QUADRANT] = QUADRANT_GENERATING
     ktg = ktg_nm_per_a(k, q[Q_KT])
     icmd = tcmd / ktg
@@ -428,13 +439,15 @@ class BatchController:
         """Eq. 3-4 for this controller's Tmax, wb, Pmax."""
         return float(torque_command_nm(command, speed_rpm, self.cp.tmax_nm, self.cp.base_speed_rpm, self.cp.pmax_w))
 
-    def k_factor(self, speed_rpm: float) -> float:
-        return float(k_factor(speed_rpm, self.q[Q_KX:Q_KX + K_TABLE_MAX], self.q[Q_KY:Q_KY + K_TABLE_MAX], int(self.q[Q_KN]),
-                              self.q[Q_KLIN] != 0.0))
+    def k_factor(self, speed_rpm: float, command: float = 1.0) -> float:
+        """Eq. 7 k at this speed and Command."""
+        return float(_k_of(float(speed_rpm), float(command), self.q))
 
-    def ktg(self, speed_rpm: float) -> float:
-        """Eq. 8-9: ktg = k(w) * kt."""
-        return float(ktg_nm_per_a(self.k_factor(speed_rpm), self.q[Q_KT]))
+    def ktg(self, speed_rpm: float, torque_nm: float | None = None) -> float:
+        """Eq. 8-9: ktg = k * kt, k at the Command that asks ``torque_nm`` here (Eq. 3-4; none:
+        Command = 1)."""
+        command = 1.0 if torque_nm is None else abs(torque_nm) / self.torque_command_nm(speed_rpm)
+        return float(ktg_nm_per_a(self.k_factor(speed_rpm, command), self.q[Q_KT]))
 
     # ---------------------------------------------------------------- the batch
     def _load_model(self, snap: dict) -> float:

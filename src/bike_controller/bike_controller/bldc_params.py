@@ -16,6 +16,8 @@ from .modes import MODE_MOTORING, MODE_RESISTANCE
 
 KGF_CM_TO_NM = 9.80665e-2
 K_TABLE_MAX = 24                 # k(speed) table points the controller's parameter vector holds
+K_ROWS_MAX = 12                  # k table rows over the Command (k_command)
+K_ROW_MAX = 2.0                  # a light Command's row may exceed 1: see ControllerParams.k_command
 
 
 @dataclass
@@ -27,6 +29,14 @@ class ControllerParams:
     k_speed_rpm: list = field(default_factory=lambda: [0.0, 4500.0])
     k_factor: list = field(default_factory=lambda: [0.8, 1.0])
     k_interp: str = "step"                         # step | linear
+    # Optional Command axis of the k table. Empty: k_factor is the paper's k(w) (one row, Eq. 7).
+    # Given: k_factor holds one row per Command here, row after row (each over k_speed_rpm: a
+    # flat list, as a ROS parameter file takes no nested lists), interpolated linearly in the
+    # Command (Eq. 5) and clamped at both ends; the row at Command = 1 is the paper's k(w). The
+    # paper measured k at Command = 1 only; torque per ampere rises as the current falls (a
+    # shorter commutation dip), so that row alone brakes 13-19 % over Eq. 3-4 at Command 0.1-0.4
+    # (default machine, 600-3000 rpm).
+    k_command: list = field(default_factory=list)
     hysteresis_a: float = 1.5                      # half band h: I* - h .. I* + h
     current_limit_a: float = 120.0
     model: str = "nominal"                         # nominal | actual (see nominal_params_from_config)
@@ -35,14 +45,40 @@ class ControllerParams:
 
     def validate(self) -> None:
         require_positive(self, "tmax_nm", "base_speed_rpm", "pmax_w", "hysteresis_a", "current_limit_a")
-        P._check_table(self.k_speed_rpm, self.k_factor, "k_speed_rpm", "k_factor", 1e-6, 1.0)
         if len(self.k_speed_rpm) > K_TABLE_MAX:
             raise ValueError(f"at most {K_TABLE_MAX} k table points")
+        if not isinstance(self.k_command, list) or not self.k_command:
+            if self.k_command != []:
+                raise ValueError(f"k_command must be a list of Commands, got {self.k_command!r}")
+            P._check_table(self.k_speed_rpm, self.k_factor, "k_speed_rpm", "k_factor", 1e-6, 1.0)
+        else:
+            self._check_command_rows()
         if self.k_interp not in ("step", "linear"):
             raise ValueError(f"k_interp must be 'step' or 'linear', got {self.k_interp!r}")
         if self.model not in ("nominal", "actual"):
             raise ValueError(f"model must be 'nominal' or 'actual', got {self.model!r}")
         validate_command(self.command0, self.mode0)
+
+    def _check_command_rows(self) -> None:
+        cs, xs, ys = self.k_command, self.k_speed_rpm, self.k_factor
+        if len(cs) > K_ROWS_MAX:
+            raise ValueError(f"at most {K_ROWS_MAX} k_command points")
+        if any(isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 < c <= 1.0 for c in cs) \
+                or any(b <= a for a, b in zip(cs, cs[1:])):
+            raise ValueError(f"k_command must be strictly increasing Commands in (0, 1], got {cs!r}")
+        if len(ys) != len(cs) * len(xs):
+            raise ValueError(f"with {len(cs)} k_command points and {len(xs)} k_speed_rpm points k_factor must "
+                             f"hold {len(cs) * len(xs)} values, one row of {len(xs)} per Command, row after row; "
+                             f"got {len(ys)} (k_command: [] makes k_factor the paper's one row over k_speed_rpm)")
+        for r, c in enumerate(cs):
+            P._check_table(xs, ys[r * len(xs):(r + 1) * len(xs)], "k_speed_rpm", f"k_factor row of Command {c:g}",
+                           1e-6, K_ROW_MAX)
+
+    def k_table(self) -> tuple[list, list, list]:
+        """(speeds, Commands, rows one after the other) as :func:`k_factor` takes them: no
+        Commands for the paper's k(w)."""
+        return ([float(x) for x in self.k_speed_rpm], [float(c) for c in self.k_command],
+                [float(y) for y in self.k_factor])
 
 
 def controller_params_from_config(cfg: dict) -> ControllerParams:
@@ -115,30 +151,49 @@ def torque_command_nm(command, speed_rpm, tmax_nm, base_speed_rpm, pmax):
     return command * pmax / (w / P.RPM_PER_RAD_S)
 
 
-def k_factor(speed_rpm, xs, ys, n, linear):
-    """Eq. 7 modification factor k(w) from a table: step (value of the last point <= w) or
-    linear. Plain Python; torque_command.k_factor is its njit copy."""
+def k_factor(speed_rpm, command, xs, ys, n, linear, cs, nc):
+    """Eq. 7 modification factor k(w) from a table over the speeds xs[:n]: step (value of the
+    last point <= w) or linear. With nc >= 2 Commands cs, ys holds nc rows of n (row r at
+    ys[r n:]) and k is interpolated linearly between the rows about the Command (clamped at
+    the ends); nc <= 1: ys is the one row of the paper. Plain Python; torque_command.k_factor
+    is its njit copy (one function: an njit copy cannot call a plain one)."""
+    r0, r1, f = 0, 0, 0.0
+    if nc >= 2:
+        if command >= cs[nc - 1]:
+            r0, r1 = nc - 1, nc - 1
+        elif command > cs[0]:
+            r1 = 1
+            while command >= cs[r1]:
+                r1 += 1
+            r0 = r1 - 1
+            f = (command - cs[r0]) / (cs[r1] - cs[r0])
     w = abs(speed_rpm)
+    j0, j1, g = n - 1, n - 1, 0.0
     if w <= xs[0]:
-        return ys[0]
-    for j in range(1, n):
-        if w < xs[j]:
-            if linear:
-                return ys[j - 1] + (ys[j] - ys[j - 1]) * (w - xs[j - 1]) / (xs[j] - xs[j - 1])
-            return ys[j - 1]
-    return ys[n - 1]
+        j0, j1 = 0, 0
+    else:
+        for j in range(1, n):
+            if w < xs[j]:
+                j0, j1 = j - 1, j - 1
+                if linear:
+                    j1 = j
+                    g = (w - xs[j - 1]) / (xs[j] - xs[j - 1])
+                break
+    k0 = ys[r0 * n + j0] + (ys[r0 * n + j1] - ys[r0 * n + j0]) * g
+    k1 = ys[r1 * n + j0] + (ys[r1 * n + j1] - ys[r1 * n + j0]) * g
+    return k0 + (k1 - k0) * f
 
 
 def peak_current_command_a(cp: ControllerParams, kt_nm_per_a: float) -> tuple[float, float]:
-    """(largest current command I* = Tcmd / (k(w) kt) of Command = 1 over the k table's speeds
+    """(largest current command I* = Tcmd / (k kt) of Command = 1 over the k table's speeds
     and the base speed, the speed where it is asked) of Eq. 3-4 and 6-9, with the law's own
     functions (torque_command_nm, k_factor)."""
-    xs, ys = [float(x) for x in cp.k_speed_rpm], [float(y) for y in cp.k_factor]
+    xs, cs, ys = cp.k_table()
     linear = cp.k_interp == "linear"
     wb = cp.base_speed_rpm
     speeds = sorted({*(x for x in xs if x >= 0.0), wb, math.nextafter(wb, 0.0)})
     return max((torque_command_nm(1.0, w, cp.tmax_nm, wb, cp.pmax_w)
-                / (k_factor(w, xs, ys, len(xs), linear) * kt_nm_per_a), w) for w in speeds)
+                / (k_factor(w, 1.0, xs, ys, len(xs), linear, cs, len(cs)) * kt_nm_per_a), w) for w in speeds)
 
 
 def validate_command(command, mode) -> None:

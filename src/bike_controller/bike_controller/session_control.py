@@ -282,7 +282,7 @@ class ModedController(SessionCommand):
             self.last_out = out = dataclasses.replace(out, saturated=True)
         if torque >= 0.0:
             inner.set_command(self.command if self.mode == MODE_RESISTANCE else 0.0, MODE_RESISTANCE)
-            current = torque / inner.ktg(speed_rpm)
+            current = torque / inner.ktg(speed_rpm, torque)     # k of the Command that asks this torque
         else:
             inner.set_command(0.0, MODE_MOTORING)
             current = -torque / self.kt

@@ -315,6 +315,12 @@ def plant_params_from_config(cfg: dict) -> PlantParams:
     return params
 
 
+def emf_speed_limit_rpm(p: PlantParams) -> float:
+    """The motor speed whose line-to-line back-EMF reaches the empty pack's voltage: above it
+    the bridge's diodes rectify whatever the gates do (no Command controls the brake)."""
+    return p.battery.v_empty_v / p.bldc.ke_v_per_rpm
+
+
 def riding_emf_problem(p: PlantParams) -> str | None:
     """The line-to-line back-EMF at the speed the load rides (the rider's target cadence x gear,
     the prime mover's speeds, the start speed) against the empty pack's voltage, or None. Above
@@ -330,13 +336,13 @@ def riding_emf_problem(p: PlantParams) -> str | None:
         speeds += [("load.speed_rpm", abs(load.speed_rpm))] + [
             ("load.schedule_speed_rpm", abs(float(v))) for v in load.schedule_speed_rpm]
     name, top = max(speeds, key=lambda item: item[1])
-    e_ll = p.bldc.ke_v_per_rpm * top
-    if e_ll < p.battery.v_empty_v:
+    if top < emf_speed_limit_rpm(p):
         return None
+    e_ll = p.bldc.ke_v_per_rpm * top
     return (f"{p.bldc.ke_v_per_rpm:g} V/rpm gives a line-to-line back-EMF of {e_ll:.1f} V at {top:g} motor rpm "
             f"({name}), at or above the empty pack's {p.battery.v_empty_v:g} V (battery.v_empty_v): the bridge "
             f"diodes would rectify it and brake beyond any Command. The machine must stay below "
-            f"{p.battery.v_empty_v / p.bldc.ke_v_per_rpm:.0f} rpm on this pack: a lower ke, a smaller "
+            f"{emf_speed_limit_rpm(p):.0f} rpm on this pack: a lower ke, a smaller "
             "load.gear_ratio or a higher-voltage pack")
 
 

@@ -26,6 +26,9 @@ import sys
 PAPERS = {
     "seed1-fig14": "paper 000 Fig. 14: torque-speed curve with Command = 1, prime mover 300..5400 rpm",
     "seed1-current": "paper 000 Fig. 12/13: hysteresis current control at I* = 35 A and 50 A, 3000 rpm",
+    "seed1-resistance": "paper 000 Eq. 3-4 at Command 0.2..1: the resistance mode's steady torque, 600..4500 rpm",
+    "seed1-k-table": "paper 000 Eq. 7: measure the config machine's k table over speed and Command, then "
+                     "check it as seed1-resistance",
     "seed2-table1": "paper 001 Table 1 (Fig. 11-16): predictive vs PI speed/current control of the SPMSM",
 }
 
@@ -628,7 +631,8 @@ def _cmd_paper(opts) -> int:
             print(f"  wrote {path}")
         return 0 if result["passed"] else 1
     config = opts.config or str(repo_root() / "config" / "bldc_default.yaml")
-    runner = {"seed1-fig14": paper.fig14, "seed1-current": paper.current}[opts.name]
+    runner = {"seed1-fig14": paper.fig14, "seed1-current": paper.current, "seed1-resistance": paper.resistance,
+              "seed1-k-table": paper.k_table}[opts.name]
     try:
         result = runner(config, str(out))
     except ConfigError as exc:
@@ -642,6 +646,12 @@ def _cmd_paper(opts) -> int:
               "empty pack's voltage there: the bridge diodes brake beyond control)")
     for path in result["files"]:
         print(f"  wrote {path}")
+    if result.get("dropped_commands"):
+        print(f"  no row for Command {', '.join(f'{c:g}' for c in result['dropped_commands'])}: the machine brakes "
+              "nothing there at some speed (the current asked stays inside the hysteresis band)")
+    if opts.name == "seed1-k-table":
+        print(f"  put the values of {result['files'][0]} into your config's controller: section, then check "
+              "Fig. 14 with ./bike paper seed1-fig14 --config <it>")
     return 0 if result.get("passed", False) else 1
 
 
