@@ -734,13 +734,16 @@ def test_spmsm_descent_with_the_virtual_bike_does_not_chatter_the_relay():
     (A 4 % climb no longer serves: it brakes steadily since the virtual bike observes the
     rider through the measured brake; 17 sign changes in 3 s before, an artefact. Since the
     observer counts the Coulomb friction as the rider's torque, the descent's law changes sign
-    16 times in 6 s, not 50-odd; without the hold the relay still switches 9 times.)"""
+    16 times in 6 s, not 50-odd; without the hold the relay still switches 9 times. Since the
+    torque trim holds on an assist beyond the inverter's voltage limit instead of winding up to
+    -3.6 N m, the law's torque changes sign 81-85 times and, without the hold, the relay
+    switches 5 times and opens under current twice.)"""
     switches, forced, flips, ctrl = _spmsm_ride(0.5)
     assert flips > 10, f"the law's torque changed sign {flips} times: the ride does not test the relay"
     assert switches <= 1 and forced == 0, (switches, forced)
     assert ctrl.last_out is not None
     switches, forced, _, _ = _spmsm_ride(0.0)
-    assert switches > 5 and forced > 2, (switches, forced)
+    assert switches >= 5 and forced >= 2, (switches, forced)
 
 
 def test_spmsm_full_pack_brakes_through_the_dump_resistor(caplog, monkeypatch):
@@ -1204,3 +1207,31 @@ def test_spmsm_plantstate_torque_is_the_batch_mean_and_the_assist_is_what_the_mo
                 asked_nm.append(-ctrl.last_out.brake_torque_nm)
         assert np.mean(asked_nm) == pytest.approx(command * ctrl.law.tmax_nm)
         assert np.mean(delivered_nm) == pytest.approx(np.mean(asked_nm), rel=3e-3), (speed_rpm, command)
+
+
+def test_spmsm_assist_beyond_the_inverters_voltage_is_flagged_and_does_not_wind_up_the_trim():
+    """Assist (motoring, C Tmax) through the inverter above ~150 r/min is beyond the 24 V link's
+    reach (paper 001's voltage disc: the region logic clips iq*): 0.59 N m for 1.65 N m at 300
+    r/min. The session's torque trim took that shortfall for a model error and wound up to its
+    limit (30 % of Tmax, 4.94 N m), flagged only once there (after ~1.5 s); when the speed fell
+    to 100 r/min the bike assisted with 4.30 N m for 1.65 asked over the next 0.2 s, 3.44 over
+    the 0.3 s after. Now the clipped request is flagged at once and the trim holds on it."""
+    plant, ctrl = _spmsm_on_prime_mover(300.0, schedule_time_s=[0.0, 3.0], schedule_speed_rpm=[300.0, 100.0])
+    ctrl.set_command(0.1, MODE_MOTORING)
+    t_s, delivered_nm, saturated = [], [], []
+    for _ in range(4500):
+        res = _spmsm_batch(plant, ctrl)
+        t_s.append(plant.time_s)
+        delivered_nm.append(res.torque_em_nm)
+        saturated.append(ctrl.status()["mode_saturated"])
+        if plant.time_s < 3.0:
+            assert abs(ctrl.trim.trim_nm) < 0.3, "the trim winds up on a torque the inverter cannot give"
+    t_s, delivered_nm, saturated = np.array(t_s), np.array(delivered_nm), np.array(saturated)
+    asked_nm = 0.1 * ctrl.law.tmax_nm
+    fast = (t_s > 0.2) & (t_s < 3.0)
+    assert np.mean(delivered_nm[fast]) < 0.5 * asked_nm, "the test needs a torque beyond the inverter's reach"
+    assert np.all(saturated[fast])
+    for t0, t1 in ((3.1, 3.3), (3.3, 3.6), (3.6, 4.5)):
+        sel = (t_s > t0) & (t_s <= t1)
+        assert np.mean(delivered_nm[sel]) == pytest.approx(asked_nm, rel=0.1), (t0, t1)
+        assert not np.any(saturated[sel])

@@ -848,6 +848,13 @@ class TorqueTrim:
             torque = 0.0
         return torque
 
+    def hold_last(self) -> None:
+        """The last request turned out, after its batch, to be beyond what the machine could
+        give (the SPMSM inverter's region logic clipped iq* at its voltage or current limit):
+        like a request the law flagged, its shortfall is no model error and the trim holds on it
+        at the next :meth:`correct`."""
+        self.asked_saturated = True
+
     @property
     def saturated(self) -> bool:
         """The trim is at its limit (or clamped to keep a brake a brake): the machine cannot
