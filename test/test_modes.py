@@ -737,13 +737,14 @@ def test_spmsm_descent_with_the_virtual_bike_does_not_chatter_the_relay():
     16 times in 6 s, not 50-odd; without the hold the relay still switches 9 times. Since the
     torque trim holds on an assist beyond the inverter's voltage limit instead of winding up to
     -3.6 N m, the law's torque changes sign 81-85 times and, without the hold, the relay
-    switches 5 times and opens under current twice.)"""
+    switches 5 times and opens under current twice; since the assist reaches what the 24 V link
+    gives in flux weakening (it was held 30 % low), 3 times, twice under current.)"""
     switches, forced, flips, ctrl = _spmsm_ride(0.5)
     assert flips > 10, f"the law's torque changed sign {flips} times: the ride does not test the relay"
     assert switches <= 1 and forced == 0, (switches, forced)
     assert ctrl.last_out is not None
     switches, forced, _, _ = _spmsm_ride(0.0)
-    assert switches >= 5 and forced >= 2, (switches, forced)
+    assert switches >= 3 and forced >= 2, (switches, forced)
 
 
 def test_spmsm_full_pack_brakes_through_the_dump_resistor(caplog, monkeypatch):
@@ -1210,14 +1211,15 @@ def test_spmsm_plantstate_torque_is_the_batch_mean_and_the_assist_is_what_the_mo
 
 
 def test_spmsm_assist_beyond_the_inverters_voltage_is_flagged_and_does_not_wind_up_the_trim():
-    """Assist (motoring, C Tmax) through the inverter above ~150 r/min is beyond the 24 V link's
-    reach (paper 001's voltage disc: the region logic clips iq*): 0.59 N m for 1.65 N m at 300
-    r/min. The session's torque trim took that shortfall for a model error and wound up to its
-    limit (30 % of Tmax, 4.94 N m), flagged only once there (after ~1.5 s); when the speed fell
-    to 100 r/min the bike assisted with 4.30 N m for 1.65 asked over the next 0.2 s, 3.44 over
-    the 0.3 s after. Now the clipped request is flagged at once and the trim holds on it."""
+    """Assist (motoring, C Tmax) through the inverter in flux weakening can be beyond the 24 V
+    link's reach (paper 001's voltage disc: the region logic clips iq*): Command 0.3 asks 4.94 N m
+    at 300 r/min, where the link gives 2.89. The session's torque trim took such a shortfall for
+    a model error and wound up to its limit (30 % of Tmax, 4.94 N m), flagged only once there
+    (after ~1.5 s); when the speed fell to 100 r/min the bike assisted with 2.6x the ask for
+    0.2 s (measured with Command 0.1 while the plan was held 30 % low: 4.30 N m for 1.65). Now
+    the clipped request is flagged at once and the trim holds on it."""
     plant, ctrl = _spmsm_on_prime_mover(300.0, schedule_time_s=[0.0, 3.0], schedule_speed_rpm=[300.0, 100.0])
-    ctrl.set_command(0.1, MODE_MOTORING)
+    ctrl.set_command(0.3, MODE_MOTORING)
     t_s, delivered_nm, saturated = [], [], []
     for _ in range(4500):
         res = _spmsm_batch(plant, ctrl)
@@ -1227,11 +1229,37 @@ def test_spmsm_assist_beyond_the_inverters_voltage_is_flagged_and_does_not_wind_
         if plant.time_s < 3.0:
             assert abs(ctrl.trim.trim_nm) < 0.3, "the trim winds up on a torque the inverter cannot give"
     t_s, delivered_nm, saturated = np.array(t_s), np.array(delivered_nm), np.array(saturated)
-    asked_nm = 0.1 * ctrl.law.tmax_nm
+    asked_nm = 0.3 * ctrl.law.tmax_nm
     fast = (t_s > 0.2) & (t_s < 3.0)
-    assert np.mean(delivered_nm[fast]) < 0.5 * asked_nm, "the test needs a torque beyond the inverter's reach"
+    assert np.mean(delivered_nm[fast]) < 0.7 * asked_nm, "the test needs a torque beyond the inverter's reach"
     assert np.all(saturated[fast])
     for t0, t1 in ((3.1, 3.3), (3.3, 3.6), (3.6, 4.5)):
         sel = (t_s > t0) & (t_s <= t1)
         assert np.mean(delivered_nm[sel]) == pytest.approx(asked_nm, rel=0.1), (t0, t1)
         assert not np.any(saturated[sel])
+
+
+@pytest.mark.parametrize("speed_rpm", [200.0, 300.0])
+def test_spmsm_assist_in_flux_weakening_reaches_what_the_24v_link_gives(speed_rpm):
+    """Assist through the inverter above ~175 r/min is flux weakening on the 24 V link (paper
+    001, section 5). The strongest (Command 1) must reach the region logic's steady-state limit
+    there (the voltage disc at the planning margin, spmsm_control.current_reference), and a
+    lighter one that lies within it must be given in full. The planning-voltage feedback counted
+    the saturated periods of the back-EMF harmonics' ripple, whose mean current is on target, as
+    an unreachable reference and held the plan 30 % low: 1.26 / 0.59 N m at 200 / 300 r/min
+    where the link gives 4.46 / 2.89, and 1.26 N m for Command 0.1's 1.65 at 200 r/min."""
+    from bike_controller import spmsm_control as SC
+    from bike_plant.params import RPM_PER_RAD_S
+
+    for command in (1.0, 0.1):
+        plant, ctrl = _spmsm_on_prime_mover(speed_rpm)
+        ctrl.set_command(command, MODE_MOTORING)
+        delivered_nm = [_spmsm_batch(plant, ctrl).torque_em_nm for _ in range(2500)][-1000:]
+        q = ctrl.inner.q
+        _, iq_a, _, _ = SC.current_reference.py_func(
+            q[SC.Q_IMAX], q[SC.Q_PP] * speed_rpm / RPM_PER_RAD_S, q[SC.Q_VMARGIN] * q[SC.Q_VMAX_FACTOR] * q[SC.Q_VDC],
+            q[SC.Q_IMAX], q[SC.Q_R], q[SC.Q_L], q[SC.Q_LAM], 1.0)
+        reach_nm = iq_a * q[SC.Q_KT]
+        asked_nm = command * ctrl.law.tmax_nm
+        assert np.mean(delivered_nm) == pytest.approx(min(asked_nm, reach_nm), rel=0.03), (command, reach_nm)
+        assert ctrl.status()["mode_saturated"] == (asked_nm > reach_nm)
