@@ -209,6 +209,51 @@ def test_the_heart_rate_erg_holds_at_its_limits_without_wind_up_and_without_a_he
     assert erg.step(120.0, 0.0, 1.0) == held and erg.saturated     # no heart rate: held, flagged
 
 
+def test_the_heart_rate_erg_comes_down_from_the_power_the_bike_takes():
+    """A bike that takes less than the PI asks (the SPMSM's brake at its envelope): below the
+    target the power still rises freely (the brake is asked past its envelope, its strongest),
+    above it the integral is no higher than the power taken, so the power comes down at once,
+    not from the wound-up integral at the integral gain's pace."""
+    from bike_controller.heart_erg import HeartRateErg
+
+    erg = HeartRateErg(H, 60.0, 1000.0)
+    erg.start(300.0)
+    assert erg.step(150.0, 140.0, 1.0, taken_w=200.0) > 300.0          # below the target: unchanged law
+    wound = erg.integral_w
+    p_over = erg.step(150.0, 152.0, 1.0, taken_w=200.0)
+    assert erg.integral_w < 200.0 and p_over < 200.0 - 2.0 * erg.kp_w_per_bpm + 1e-9
+    free = HeartRateErg(H, 60.0, 1000.0)
+    free.start(wound)
+    assert free.step(150.0, 152.0, 1.0) > 290.0                         # without it: ~wound - 2 Kp
+
+
+def test_an_spmsm_heart_rate_erg_beyond_its_brake_does_not_overshoot_the_target():
+    """The SPMSM bike with its rider at 80 rpm takes at most ~200 W (its rectifier path's
+    envelope through the pedal stroke); a 150 bpm target asks more. The power target wound up to
+    300 W, unwound at 0.35 W/s once the heart passed the target, and the heart went on to
+    154.6 bpm at 200 s. Now it comes down from what the bike takes: at most 150.1 bpm."""
+    import pathlib
+
+    from bike_controller.modes import MODE_ERG
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import load_config
+
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+    plant, ctrl = M.SpmsmPlant(M.plant_params_from_config(cfg)), ModedSpmsmController(cfg)
+    ctrl.set_command(100.0 / ctrl.law.erg_power_max_w, MODE_ERG, heart_rate_bpm=150.0)
+    hr_bpm, saturated = [], []
+    while plant.time_s < 200.0:
+        snap = plant.snapshot()
+        snap.update(batch_periods=ctrl.batch_periods)
+        *cmd, status = ctrl.decide(snap)
+        plant.step_batch(*cmd)
+        hr_bpm.append(snap["heart_rate_bpm"])
+        saturated.append(status["mode_saturated"])
+    assert np.mean(saturated[:20000]) > 0.9, "the test needs a target beyond what the brake takes"
+    assert max(hr_bpm) < 150.5 and hr_bpm[-1] > 147.0, (max(hr_bpm), hr_bpm[-1])
+
+
 def test_bad_tuning_is_one_error():
     from bike_controller.heart_erg import HeartRateErg
     from bike_controller.modes import ModeParams

@@ -13,7 +13,10 @@ model), G(s) = K / (tau s + 1): the PI
 cancels the pole and leaves the closed loop 1 / (lambda s + 1), lambda =
 ``modes.hr_closed_loop_s``. The power stays in [0, ``erg_power_max_w``]; the integral stops
 while the power sits at a limit (no wind-up), and holds while there is no heart rate (0: no
-rider's heart in the PlantState, e.g. a strap that fell silent).
+rider's heart in the PlantState, e.g. a strap that fell silent). Asked beyond what the bike can
+take (the SPMSM's brake at its envelope), the power still rises freely below the target, which
+keeps that brake at its strongest; above the target it comes down from the power the bike takes,
+not from the integral wound up beyond it.
 """
 from __future__ import annotations
 
@@ -46,12 +49,18 @@ class HeartRateErg:
         self.saturated = False
         self.started = True
 
-    def step(self, target_bpm: float, heart_rate_bpm: float, dt_s: float) -> float:
-        """The power [W] for the next ``dt_s`` from the heart rate measured now."""
+    def step(self, target_bpm: float, heart_rate_bpm: float, dt_s: float, taken_w: float | None = None) -> float:
+        """The power [W] for the next ``dt_s`` from the heart rate measured now; ``taken_w``:
+        the power the bike takes now (the rider's, averaged) while it cannot take more."""
         if not (heart_rate_bpm > 0.0 and math.isfinite(heart_rate_bpm)):
             self.saturated = True                 # nothing to follow: hold the power, flagged
             return self.power_w
         err_bpm = target_bpm - heart_rate_bpm      # below the target -> more power
+        if err_bpm < 0.0 and taken_w is not None and math.isfinite(taken_w):
+            # above the target the power comes down from what the bike takes, not from an
+            # integral wound up beyond it (a brake at its envelope: 300 W asked of an SPMSM bike
+            # that took 200, unwound at 0.35 W/s, and the heart overshot by ~5 bpm)
+            self.integral_w = min(self.integral_w, max(float(taken_w), 0.0))
         integral = self.integral_w + self.ki_w_per_bpm_s * err_bpm * max(dt_s, 0.0)
         raw = integral + self.kp_w_per_bpm * err_bpm
         self.power_w = min(max(raw, 0.0), self.power_max_w)

@@ -308,6 +308,7 @@ class ModeLaw:
         self.obs_tb = float(torque_nm)        # ... and low-passed applied braking torque
         self.rider_torque_nm = 0.0            # observer output
         self.rider_power_avg_w = 0.0          # its power, averaged over RIDER_POWER_AVG_S
+        self.erg_brake_limited = False        # the last ERG batch asked past the braking envelope
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
         self.erg_ke_j = 0.0                   # ERG with erg_speed_from_power: the virtual bike's kinetic energy
         self.erg_ramp_w = None                # ERG smoothing: the power the brake takes now (None: the target)
@@ -521,7 +522,10 @@ class ModeLaw:
             if self.heart_rate_target_bpm > 0.0:
                 if not self.hr_erg.started:
                     self.hr_erg.start(p_w if p_w > 0.0 else self.rider_power_avg_w)
-                p_w = self.hr_erg.step(self.heart_rate_target_bpm, self.heart_rate_bpm, dt_s)
+                # while the brake could not take the power (the last batch at its envelope), the
+                # rider's power is what the bike takes (heart_erg: no unwinding from beyond it)
+                p_w = self.hr_erg.step(self.heart_rate_target_bpm, self.heart_rate_bpm, dt_s,
+                                       taken_w=self.rider_power_avg_w if self.erg_brake_limited else None)
                 hr_sat = self.hr_erg.saturated
             else:
                 self.hr_erg.started = False
@@ -541,9 +545,10 @@ class ModeLaw:
             # SPMSM's rectifier path then brakes at buck duty 1 through the pedal stroke. Capped
             # at the envelope of the speed estimate, the duty followed the stroke and the
             # all_modes ERG 180 W braked 4.1-4.7 N m instead of 5.0-5.7
+            self.erg_brake_limited = t > self.brake_cap_nm(w)
             if mp.erg_speed_from_power:
                 v = self._erg_speed_mps(w, dt_s)
-            return min(t, self.tmax_nm), p_w, v, t > self.brake_cap_nm(w) or below_friction or hr_sat
+            return min(t, self.tmax_nm), p_w, v, self.erg_brake_limited or below_friction or hr_sat
         if mode == MODE_SLOPE:
             grade = mp.grade_min + command * (mp.grade_max - mp.grade_min)
             k = self.mps_per_rad_s
