@@ -200,17 +200,9 @@ def resistance(cfg_path, out_dir) -> dict:
     ax.set_xlabel("Command (Eq. 5)")
     ax.set_ylabel("braking torque against Eq. 3-4 [%]")
     ax.set_title("Resistance mode: steady torque at every Command")
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    png_path = out_dir / "resistance.png"
-    fig.tight_layout()
-    fig.savefig(png_path, dpi=110)
-    plt.close(fig)
-    max_err = max(abs(r["error"]) for r in rows)
-    ok = bool(max_err <= RESISTANCE_TOL)
-    return {"name": "seed1-resistance", "points": rows, "max_error": max_err, "tolerance": RESISTANCE_TOL,
-            "skipped_rpm": [float(sp) for sp in RESISTANCE_SPEEDS_RPM if sp not in speeds],
-            "pass": ok, "passed": ok, "files": [str(csv_path), str(png_path)]}
+    png_path = _save_figure(plt, fig, ax, out_dir / "resistance.png")
+    return _sweep_result("seed1-resistance", rows, RESISTANCE_TOL, RESISTANCE_SPEEDS_RPM, speeds,
+                         [csv_path, png_path])
 
 
 def k_table(cfg_path, out_dir) -> dict:
@@ -266,6 +258,25 @@ def _write_csv(path: pathlib.Path, rows: list[dict], formats: dict[str, str]) ->
     return path
 
 
+def _save_figure(plt, fig, ax, png_path: pathlib.Path) -> pathlib.Path:
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=110)
+    plt.close(fig)
+    return png_path
+
+
+def _sweep_result(name: str, rows: list[dict], tolerance: float, sweep_rpm, measured_rpm, files) -> dict:
+    """A speed sweep's result: pass when every point's error is within ``tolerance``; the
+    sweep's speeds not measured (beyond the back-EMF limit) listed."""
+    max_err = max(abs(r["error"]) for r in rows)
+    ok = bool(max_err <= tolerance)
+    return {"name": name, "points": rows, "max_error": max_err, "tolerance": tolerance,
+            "skipped_rpm": [float(sp) for sp in sweep_rpm if sp not in measured_rpm],
+            "pass": ok, "passed": ok, "files": [str(f) for f in files]}
+
+
 def _plt():
     import matplotlib
     matplotlib.use("Agg")
@@ -297,17 +308,8 @@ def fig14(cfg_path, out_dir) -> dict:
     ax.set_ylabel("braking torque [N m]")
     ax.set_title("Paper 000, Fig. 14: torque control in the generating mode")
     ax.set_ylim(bottom=0)
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    png_path = out_dir / "fig14.png"
-    fig.tight_layout()
-    fig.savefig(png_path, dpi=110)
-    plt.close(fig)
-    max_err = max(abs(r["error"]) for r in rows)
-    ok = bool(max_err <= FIG14_TOL)
-    return {"name": "seed1-fig14", "points": rows, "max_error": max_err, "tolerance": FIG14_TOL,
-            "skipped_rpm": [float(sp) for sp in FIG14_SPEEDS_RPM if sp not in speeds],
-            "pass": ok, "passed": ok, "files": [str(csv_path), str(png_path)]}
+    png_path = _save_figure(plt, fig, ax, out_dir / "fig14.png")
+    return _sweep_result("seed1-fig14", rows, FIG14_TOL, FIG14_SPEEDS_RPM, speeds, [csv_path, png_path])
 
 
 def current(cfg_path, out_dir) -> dict:
