@@ -340,6 +340,22 @@ def test_plant_erg_holds_the_target_power():
     assert p_brake + np.mean(1e-4 * w ** 2) == pytest.approx(200.0, rel=0.005)
 
 
+def test_a_modes_current_reports_the_k_it_was_made_with():
+    """ERG (like slope and isokinetic) sets the BLDC current as torque / (k kt), k of the Command
+    that asks that torque (Eq. 3-9); the status reports that k, not the Command-0 row the inner
+    law holds while the current is overridden."""
+    from bike_controller.bldc_control import BatchController
+
+    r, ctrl = _ride_plant(lambda t: (150.0 / PMAX, MODE_ERG), 1.0)
+    current, k = r["current_cmd_a"][-1], r["k_factor"][-1]
+    torque = current * k * ctrl.kt                      # the trimmed torque the current was made for
+    speed = r["speed_est_rpm"][-1]
+    inner: BatchController = ctrl.inner
+    assert torque > 0.3
+    assert k == pytest.approx(inner.k_factor(speed, torque / inner.torque_command_nm(speed)), rel=2e-3)
+    assert abs(k - inner.k_factor(speed, 0.0)) > 0.05
+
+
 def test_the_rider_settles_an_erg_step_within_seconds_as_a_rider_does():
     """150 -> 250 W: the brake takes the step at once, the rider's cadence dips and is back
     within 2 rpm of 80 in 3 s, and the rider's power (whole crank turns) meets the brake's.

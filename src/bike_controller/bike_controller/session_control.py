@@ -244,6 +244,7 @@ class ModedController(SessionCommand):
                            base_speed_rpm=self.inner.cp.base_speed_rpm,
                            friction_nms=b_nms, dry_friction_nm=dry_nm, dry_friction_speed_rpm=dry_rpm)
         self.kt = float(nominal.bldc.kt_nm_per_a)
+        self.mode_ktg: float | None = None     # a mode's current override: its ktg (None: Eq. 2-9 inside)
         self.command = float(self.inner.cs[C_COMMAND])
         self.mode = int(self.inner.cs[C_MODE])
         self.command_rejected = False
@@ -272,6 +273,7 @@ class ModedController(SessionCommand):
         self.last_out = out
         if self.mode == MODE_RESISTANCE and not out.ramping:
             self.trim.reset()
+            self.mode_ktg = None
             inner.cs[C_IOVERRIDE] = -1.0                         # no override: Eq. 2-9 inside the batch
             inner.set_command(self.command, MODE_RESISTANCE)
             return
@@ -282,10 +284,11 @@ class ModedController(SessionCommand):
             self.last_out = out = dataclasses.replace(out, saturated=True)
         if torque >= 0.0:
             inner.set_command(self.command if self.mode == MODE_RESISTANCE else 0.0, MODE_RESISTANCE)
-            current = torque / inner.ktg(speed_rpm, torque)     # k of the Command that asks this torque
+            self.mode_ktg = inner.ktg(speed_rpm, torque)        # k of the Command that asks this torque
         else:
             inner.set_command(0.0, MODE_MOTORING)
-            current = -torque / self.kt
+            self.mode_ktg = self.kt
+        current = abs(torque) / self.mode_ktg
         inner.set_current_override(current)
 
     def decide(self, snapshot: dict, n: int | None = None):
@@ -316,6 +319,10 @@ class ModedController(SessionCommand):
         status["command_rejected"] = self.command_rejected
         if out is not None and not (self.mode == MODE_RESISTANCE and not out.ramping):
             status["torque_cmd_nm"] = abs(out.brake_torque_nm)
+        if self.mode_ktg is not None:
+            # the current override's Eq. 8-9 constant (the inner law's cs holds Command 0's row)
+            status["ktg_nm_per_a"] = float(self.mode_ktg)
+            status["k_factor"] = float(self.mode_ktg / self.kt)
         status["mode_target"] = float(out.target) if out is not None else self.command
         status["mode_saturated"] = bool(out is not None and out.saturated) or self.trim.saturated
         status["mode_ramping"] = bool(out is not None and out.ramping)
