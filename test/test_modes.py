@@ -356,6 +356,25 @@ def test_a_modes_current_reports_the_k_it_was_made_with():
     assert abs(k - inner.k_factor(speed, 0.0)) > 0.05
 
 
+def test_a_resistance_inside_the_hysteresis_band_is_flagged_not_given_silently():
+    """Command 0.03 at 5250 rpm asks I* = 1.3 A, inside the 1.5 A half band: the switch would
+    close only below I* - h < 0, so the BLDC brakes nothing. The status says so; Command 0.2
+    there brakes as asked and is not flagged."""
+    import copy
+
+    from bike_controller.closed_loop import run_offline
+    from bike_controller.session_control import ModedController
+    from bike_plant.config import load_config
+    cfg = copy.deepcopy(load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml"))
+    cfg["load"] = dict(cfg["load"], kind="prime_mover", speed_rpm=5250.0)
+    for command, starved in ((0.03, True), (0.2, False)):
+        ctrl = ModedController(cfg)
+        r = run_offline(cfg, 0.2, lambda t: (command, MODE_RESISTANCE), controller=ctrl)
+        braked = -np.mean(r["torque_em_nm"][-50:])
+        assert ctrl.status()["mode_saturated"] == starved, command
+        assert (braked < 0.01) == starved, (command, braked)
+
+
 def test_the_rider_settles_an_erg_step_within_seconds_as_a_rider_does():
     """150 -> 250 W: the brake takes the step at once, the rider's cadence dips and is back
     within 2 rpm of 80 in 3 s, and the rider's power (whole crank turns) meets the brake's.

@@ -38,7 +38,7 @@ import numpy as np
 from bike_plant.heart import heart_rate_command_problem
 from bike_plant.mechanics import road_problem
 
-from .bldc_control import C_COMMAND, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
+from .bldc_control import C_COMMAND, C_ICMD, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, MODE_SPINDOWN, ModeLaw,
                     ModeOutput, TorqueTrim, friction_figures, mode_params_from_config)
 
@@ -311,6 +311,13 @@ class ModedController(SessionCommand):
         empty = np.zeros(0, np.uint8)
         return empty, empty.copy(), np.zeros(0), status
 
+    def _inside_the_band(self) -> bool:
+        """A brake whose current command lies inside the hysteresis half band (Command 0.03 at
+        5250 rpm: 1.3 A against 1.5 A) brakes nothing: the switch closes only below I* - h < 0,
+        and a generating winding's current does not go negative. Said, not given silently."""
+        cs = self.inner.cs
+        return bool(cs[C_MODE] == MODE_RESISTANCE and 0.0 < cs[C_ICMD] <= self.inner.cp.hysteresis_a)
+
     def _status(self, status: dict) -> dict:
         out = self.last_out
         status = dict(status)
@@ -324,7 +331,8 @@ class ModedController(SessionCommand):
             status["ktg_nm_per_a"] = float(self.mode_ktg)
             status["k_factor"] = float(self.mode_ktg / self.kt)
         status["mode_target"] = float(out.target) if out is not None else self.command
-        status["mode_saturated"] = bool(out is not None and out.saturated) or self.trim.saturated
+        status["mode_saturated"] = bool(out is not None and out.saturated) or self.trim.saturated \
+            or self._inside_the_band()
         status["mode_ramping"] = bool(out is not None and out.ramping)
         status["virtual_speed_mps"] = float(out.virtual_speed_mps) if out is not None else 0.0
         status["virtual_gear_ratio"] = self.law.virtual_gear_ratio
