@@ -136,3 +136,15 @@ def test_calibrate_k_at_command_1_is_the_last_row_of_the_command_table():
     assert both["k_command"] == [0.2, 1.0] and len(both["k_factor"]) == 4 and both["dropped"] == []
     assert paper.calibrate_k(cfg, speeds_rpm=speeds, iterations=2)["k_factor"] == both["k_factor"][2:]
     assert min(both["k_factor"][:2]) > max(both["k_factor"][2:]) + 0.1
+
+
+@pytest.mark.parametrize("name", ["seed1-fig14", "seed1-current", "seed1-resistance", "seed1-k-table"])
+def test_a_paper_000_command_on_the_spmsm_bike_is_one_error_naming_the_machine(name, tmp_path, capsys):
+    """The SPMSM config read with the BLDC sections' names gave "battery: unknown parameter(s)
+    dump_above_soc, nominal_v": one error now says which machine the command is for."""
+    from bike_session import cli
+
+    spmsm = ROOT / "config" / "spmsm_default.yaml"
+    assert cli.main(["paper", name, "--config", str(spmsm), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "machine" in err and "'spmsm' bike" in err and "unknown" not in err, err
