@@ -26,7 +26,7 @@ import sys
 PAPERS = {
     "seed1-fig14": "paper 000 Fig. 14: torque-speed curve with Command = 1, prime mover 300..5400 rpm",
     "seed1-current": "paper 000 Fig. 12/13: hysteresis current control at I* = 35 A and 50 A, 3000 rpm",
-    "seed1-resistance": "paper 000 Eq. 3-4 at Command 0.2..1: the resistance mode's steady torque, 600..4500 rpm",
+    "seed1-resistance": "paper 000 Eq. 3-4 at Command 0.2..1: the resistance mode's steady torque, 750..4750 rpm",
     "seed1-k-table": "paper 000 Eq. 7: measure the config machine's k table over speed and Command, then "
                      "check it as seed1-resistance",
     "seed2-table1": "paper 001 Table 1 (Fig. 11-16): predictive vs PI speed/current control of the SPMSM",
