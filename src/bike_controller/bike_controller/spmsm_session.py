@@ -245,7 +245,7 @@ class ModedSpmsmController(SessionCommand):
             inner.set_relay(False)
             if not self._torque_command(torque):
                 inner.set_speed_ref(speed_rpm, speed_rpm)
-        if (self.trim.clamped or self.pack.active or clipped or self.inverter_limited) and not out.saturated:
+        if (self.trim.clamped or self.pack.active or clipped) and not out.saturated:
             self.last_out = out = dataclasses.replace(out, saturated=True)
 
     def _pack_full(self) -> bool:
