@@ -132,7 +132,8 @@ def calibrate_k(cfg_or_path, speeds_rpm=K_SPEEDS_RPM, iterations: int = 4, comma
     cfg = _load(cfg_or_path)
     speeds = [float(s) for s in speeds_rpm]
     if commands is None:
-        ks = [_measure_k(cfg, sp, 1.0, iterations) for sp in speeds]
+        # the paper's one row takes k <= 1 (ControllerParams), as before the Command rows
+        ks = [_measure_k(cfg, sp, 1.0, iterations, k_max=1.0) for sp in speeds]
         if None in ks:
             raise ConfigError(f"the machine brakes nothing at Command = 1 and {speeds[ks.index(None)]:g} rpm",
                               cfg.get("_config_path"), "controller")
@@ -148,9 +149,10 @@ def calibrate_k(cfg_or_path, speeds_rpm=K_SPEEDS_RPM, iterations: int = 4, comma
     return table
 
 
-def _measure_k(cfg: dict, speed_rpm: float, command: float, iterations: int) -> float | None:
-    """k at one speed and Command (a one-point table, so the law asks exactly Tcmd / (k kt));
-    None when the machine brakes nothing there."""
+def _measure_k(cfg: dict, speed_rpm: float, command: float, iterations: int,
+               k_max: float = K_ROW_MAX) -> float | None:
+    """k at one speed and Command (a one-point table, so the law asks exactly Tcmd / (k kt)), at
+    most ``k_max``; None when the machine brakes nothing there."""
     sp_run = max(float(speed_rpm), 300.0)
     k = 0.85
     for _ in range(iterations):
@@ -160,7 +162,7 @@ def _measure_k(cfg: dict, speed_rpm: float, command: float, iterations: int) -> 
         m = measure_steady(c, sp_run, command=command)
         if not m["torque_nm"] > 1e-3 * m["torque_cmd_nm"]:
             return None
-        k = min(K_ROW_MAX, k * m["torque_nm"] / m["torque_cmd_nm"])
+        k = min(k_max, k * m["torque_nm"] / m["torque_cmd_nm"])
     return round(k, 4)
 
 
