@@ -1326,15 +1326,17 @@ def test_spmsm_light_assist_at_the_voltage_edge_holds_its_torque(speed_rpm):
     dv = 0 the current loop has no voltage left to move id (the model lacks the dead time and
     the EMF harmonics): iq slid to ~0 in ~20 ms, the plan fell to its 30 % floor to free it and
     crept back over 200 ms, so the 10 ms torque means over 4 s had a std of 0.120 / 0.127 /
-    0.115 N m at 390 / 410 / 430 r/min. Under torque control the plan now recovers at that rate
-    only while the region logic clips the reference (where it buys torque), else 10x slower:
-    0.068 / 0.083 / 0.074 (the back-EMF harmonics' own ripple is ~0.065 with a fixed plan)."""
+    0.115 N m at 390 / 410 / 430 r/min, their 50 ms means down to 0.13-0.20 N m. Recovering 10x
+    slower while the reference is reachable: 0.068 / 0.083 / 0.074, still met the edge every
+    ~2 s (50 ms means down to 0.26). Now the plan also stays 0.5 V above where a miss began:
+    0.061 / 0.068 / 0.065 (the harmonics' own ripple with the plan held), >= 0.39 N m."""
     plant, ctrl = _spmsm_on_prime_mover(speed_rpm)
     ctrl.set_command(0.025, MODE_MOTORING)
     delivered_nm = np.array([_spmsm_batch(plant, ctrl).torque_em_nm for _ in range(6000)][-4000:])
     asked_nm = 0.025 * ctrl.law.tmax_nm
     assert np.mean(delivered_nm) == pytest.approx(asked_nm, rel=0.03)
-    assert delivered_nm.reshape(-1, 10).mean(axis=1).std() < 0.1
+    assert delivered_nm.reshape(-1, 10).mean(axis=1).std() < 0.085
+    assert delivered_nm.reshape(-1, 50).mean(axis=1).min() > 0.8 * asked_nm
 
 
 def test_spmsm_virtual_bike_descent_tracks_with_the_light_assist():

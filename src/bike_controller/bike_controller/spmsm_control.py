@@ -171,7 +171,10 @@ Q_SIZE = 53
 C_ADV_ID, C_ADV_IQ = 62, 63
 # 1: no motoring from the speed loop (an empty pack: a BMS takes charge only), braking kept
 C_NO_ASSIST = 64
-C_SIZE = 65
+# torque control: the plan's margin learned at the voltage edge [V], and whether the last speed
+# period's miss counted (speed_loop)
+C_DV_FLOOR_V, C_DV_MISSED = 65, 66
+C_SIZE = 67
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -578,16 +581,25 @@ def speed_loop(cs, q):
             < 0.05 * abs(cs[C_IQ_REF_PREV]) + 0.01 * q[Q_IMAX]:
         sat = 0.0
     # Under torque control the recovery towards the voltage edge buys torque only while the
-    # region logic clips the reference (limits: Command 1 reaches the link's limit at dv = 0);
-    # a reachable reference is delivered at any plan, and near dv = 0 (390-430 r/min, light
+    # region logic clips the reference (limits: Command 1 reaches the link's limit at dv = 0).
+    # A reachable reference is delivered at any plan, and near dv = 0 (390-430 r/min, light
     # assist) the model's missing dead time (0.36 V) and EMF harmonics leave the current loop
     # no voltage to move id: iq slid to ~0 within ~20 ms, the plan fell to its 30 % floor to
-    # free it and crept back for 200 ms, a 4-5 Hz cycle (10 ms torque std 0.12 N m). There the
-    # plan now creeps back 10x slower, so it keeps most of the margin it found.
+    # free it and crept back for 200 ms, a 4-5 Hz cycle (10 ms torque std 0.12 N m). So, with
+    # the reference reachable, the plan creeps back 10x slower, and not below the plan at which
+    # a miss last began plus 0.5 V (with the plan held, the light assist is steady from 0.5 V,
+    # erratic below 0.3 V): the margin that edge needs, kept while torque control lasts.
     recover = 0.02
-    if cs[C_TORQUE_MODE] != 0.0 and cs[C_LIMITS] == 0.0:
+    if cs[C_TORQUE_MODE] == 0.0:
+        cs[C_DV_FLOOR_V] = 0.0
+    elif cs[C_LIMITS] == 0.0:
         recover = 0.002
+        if sat > 0.0 and cs[C_DV_MISSED] == 0.0:
+            cs[C_DV_FLOOR_V] = cs[C_DV] + 0.5
+    cs[C_DV_MISSED] = 1.0 if sat > 0.0 else 0.0
     dv = cs[C_DV] + 0.2 * sat - recover
+    if cs[C_TORQUE_MODE] != 0.0 and cs[C_LIMITS] == 0.0 and dv < cs[C_DV_FLOOR_V]:
+        dv = max(dv, min(cs[C_DV], cs[C_DV_FLOOR_V]))
     cs[C_DV] = min(max(dv, 0.0), 0.3 * vmax_mod)
     if cs[C_VSAT] >= q[Q_NS] and cs[C_IQ_N] > 0.0:
         # the current loop was voltage limited during the whole last speed period: continue
@@ -928,6 +940,7 @@ class SpmsmController:
         loop continues from the iq reference in force)."""
         if torque_nm is None:
             self.cs[C_TORQUE_MODE] = 0.0
+            self.cs[C_DV_FLOOR_V] = 0.0      # the edge's margin is learned afresh (speed_loop)
             return
         if not math.isfinite(torque_nm):
             raise ValueError(f"torque command must be finite, got {torque_nm!r}")
