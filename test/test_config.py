@@ -47,6 +47,19 @@ def test_malformed_config_names_the_file_and_problem(tmp_path, text, message):
     assert str(path) in str(info.value)
 
 
+@pytest.mark.parametrize("value, message", [
+    ("[0.8, 1]", r"controller.k_factor: a list parameter holds one type, got decimal and integer .*e.g. 1.0"),
+    ("[1, 'a']", r"controller.k_factor: a list parameter holds one type, got integer and text"),
+    ("[[0.8], [1.0]]", r"controller.k_factor: a list parameter holds numbers, text or true/false, not \[0.8\]"),
+])
+def test_a_list_the_ros_parameter_parser_refuses_is_one_error(tmp_path, value, message):
+    # every node gets the file as --params-file: rcl refused a mixed list at start, a traceback per node
+    path = tmp_path / "c.yaml"
+    path.write_text(f"/**:\n  ros__parameters:\n    controller:\n      k_factor: {value}\n")
+    with pytest.raises(ConfigError, match=message):
+        load_config(path)
+
+
 def test_missing_and_binary_files(tmp_path):
     with pytest.raises(ConfigError, match="cannot read config"):
         load_config(tmp_path / "nope.yaml")

@@ -80,12 +80,47 @@ def load_config(path: str | os.PathLike | None = None, node_name: str | None = N
             continue
         if not isinstance(body, dict) or not isinstance(body.get("ros__parameters"), dict):
             raise ConfigError("section needs a 'ros__parameters' mapping", path, section)
+        _check_ros_lists(body["ros__parameters"], path, "")
         _deep_merge(merged, body["ros__parameters"])
         found = True
     if not found:
         raise ConfigError(f"no '{WILDCARD}: ros__parameters:' section", path)
     merged["_config_path"] = str(path.resolve())
     return merged
+
+
+def _list_kind(item) -> str | None:
+    """The ROS parameter type of one list item (None: none, as a list or mapping)."""
+    if isinstance(item, bool):
+        return "true/false"
+    if isinstance(item, int):
+        return "integer"
+    if isinstance(item, float):
+        return "decimal"
+    if isinstance(item, str):
+        return "text"
+    return None
+
+
+def _check_ros_lists(params: Mapping, path, prefix: str) -> None:
+    """ConfigError naming the key of a list the ROS parameter parser refuses: every node is
+    started with the file (--params-file), and rcl takes a list of one type only, so
+    [0.8, 1] made each node exit at start with a traceback ('Sequence should be of same
+    type') after the config had been checked."""
+    for key, value in params.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            _check_ros_lists(value, path, name + ".")
+        elif isinstance(value, list):
+            kinds = [_list_kind(item) for item in value]
+            if None in kinds:
+                raise ConfigError(f"a list parameter holds numbers, text or true/false, not "
+                                  f"{value[kinds.index(None)]!r}", path, name)
+            if len(set(kinds)) > 1:
+                hint = " (write whole numbers with a decimal point, e.g. 1.0)" \
+                    if set(kinds) == {"integer", "decimal"} else ""
+                raise ConfigError(f"a list parameter holds one type, got {' and '.join(sorted(set(kinds)))} "
+                                  f"in {value!r}{hint}", path, name)
 
 
 def config_variant(cfg: dict, **sections) -> dict:
