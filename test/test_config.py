@@ -51,6 +51,7 @@ def test_malformed_config_names_the_file_and_problem(tmp_path, text, message):
     ("[0.8, 1]", r"controller.k_factor: a list parameter holds one type, got decimal and integer .*e.g. 1.0"),
     ("[1, 'a']", r"controller.k_factor: a list parameter holds one type, got integer and text"),
     ("[[0.8], [1.0]]", r"controller.k_factor: a list parameter holds numbers, text or true/false, not \[0.8\]"),
+    ("[0, 100000000000000000000]", r"controller.k_factor: integer 100000000000000000000 outside the 64-bit range"),
 ])
 def test_a_list_the_ros_parameter_parser_refuses_is_one_error(tmp_path, value, message):
     # every node gets the file as --params-file: rcl refused a mixed list at start, a traceback per node

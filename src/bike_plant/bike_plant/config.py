@@ -109,6 +109,10 @@ def _check_ros_lists(params: Mapping, path, prefix: str) -> None:
     type') after the config had been checked."""
     for key, value in params.items():
         name = f"{prefix}{key}"
+        for item in (value if isinstance(value, list) else [value]):
+            if isinstance(item, int) and not isinstance(item, bool) and not -2**63 <= item < 2**63:
+                # rcl reads it as a decimal: a list of it and integers was refused as mixed
+                raise ConfigError(f"integer {item} outside the 64-bit range of a ROS parameter", path, name)
         if isinstance(value, Mapping):
             _check_ros_lists(value, path, name + ".")
         elif isinstance(value, list):
