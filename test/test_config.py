@@ -63,6 +63,8 @@ def test_a_list_the_ros_parameter_parser_refuses_is_one_error(tmp_path, value, m
 
 def test_missing_and_binary_files(tmp_path):
     with pytest.raises(ConfigError, match="cannot read config"):
+        load_config(tmp_path)           # a folder: IsADirectoryError, a traceback of ./bike run --config DIR
+    with pytest.raises(ConfigError, match="cannot read config"):
         load_config(tmp_path / "nope.yaml")
     binary = tmp_path / "bin.yaml"
     binary.write_bytes(b"\xff\xfe\x00\x01" * 10)

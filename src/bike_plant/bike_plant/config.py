@@ -69,6 +69,9 @@ def load_config(path: str | os.PathLike | None = None, node_name: str | None = N
         raise ConfigError(f"not valid YAML{line}: {getattr(exc, 'problem', exc)}", path) from None
     except UnicodeDecodeError:
         raise ConfigError("not a text file", path) from None
+    except OSError as exc:
+        # a directory (--config /some/folder) or a file stat could see but not read
+        raise ConfigError(f"cannot read config ({exc.strerror or exc})", path) from None
     if not isinstance(doc, dict):
         raise ConfigError("expected a mapping of node names to 'ros__parameters'", path)
     merged: dict = {}
