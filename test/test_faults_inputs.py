@@ -689,6 +689,22 @@ def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
     assert blocker.read_text() == "" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
 
 
+@pytest.mark.parametrize("argv", [
+    ["run", "--record", ""], ["run", "--config", " "], ["run", "--calibration", ""], ["run", "--workout", ""],
+    ["report", "b", "--out", ""], ["compare", "a", "b", "--out", ""], ["paper", "seed1-fig14", "--out", ""],
+    ["replay", "b", "--record", ""], ["replay", "b", "--config", ""]])
+def test_an_empty_path_option_is_refused_not_taken_as_not_given(argv, capsys):
+    """--record "" (an unset shell variable) rode without recording, --config "" the default
+    bike, --calibration "" without it, --out "" wrote into the working directory: each
+    without a word. One argparse error naming the option, exit 2."""
+    from bike_session import cli
+    with pytest.raises(SystemExit) as info:
+        cli.main(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and f"argument {argv[-2]}: empty path" in err, err
+
+
 HOSTILE_READER = textwrap.dedent("""
     import resource, sys, pathlib
     # at most 400 MB more address space than the interpreter with its imports already has

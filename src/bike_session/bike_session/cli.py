@@ -47,6 +47,15 @@ def default_launch_file() -> pathlib.Path:
     return repo_root() / "config" / "launch" / "bike.launch.yaml"
 
 
+def path_arg(text: str) -> str:
+    """argparse type of a file or folder option: an empty value (an unset shell variable) is
+    refused, not taken as not given (--record "" rode without recording, --config "" the
+    default bike, --calibration "" without the calibration, each without a word)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path (an unset shell variable?)")
+    return text
+
+
 def output_dir(path, flag: str) -> pathlib.Path | None:
     """Create an output directory before any work; on failure print one error naming the
     option and return None (a run must not end in a traceback, nor work be lost, because
@@ -757,24 +766,24 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="start the node graph (plant, controller, session[, recorder]) "
                                      "for a number of simulated seconds")
-    run.add_argument("--config", help="bike config (ROS 2 parameter file); default config/bldc_default.yaml")
+    run.add_argument("--config", type=path_arg, help="bike config (ROS 2 parameter file); default config/bldc_default.yaml")
     run.add_argument("--duration", type=float, help="simulated seconds (default: duration_s of the config)")
-    run.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc, .fit or a profile "
+    run.add_argument("--workout", metavar="FILE", type=path_arg, help="ride a workout file (.zwo, .erg, .mrc, .fit or a profile "
                                                         ".yaml) instead of the config's profile; power targets in "
                                                         "ERG mode; the run lasts the workout unless --duration is given")
     run.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets "
                                                             "(default: the file's own FTP when it has one)")
     run.add_argument("--max-hr", type=float, metavar="BPM", help="rider's maximum heart rate for a FIT workout's "
                                                                  "heart-rate targets in %% of it (session.max_hr_bpm)")
-    run.add_argument("--record", metavar="DIR", help="record every topic to an MCAP bag under DIR and summarise it")
+    run.add_argument("--record", metavar="DIR", type=path_arg, help="record every topic to an MCAP bag under DIR and summarise it")
     run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
     run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")
-    run.add_argument("--launch", help="launch description (default config/launch/bike.launch.yaml)")
+    run.add_argument("--launch", type=path_arg, help="launch description (default config/launch/bike.launch.yaml)")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                      help="change one config value for this run (repeatable), e.g. --set modes.auto_shift=true or "
                           "--set load.rider_target_cadence_rpm=90: a dotted key under the config's ros__parameters, "
                           "the value read as YAML; the bag records the changed config")
-    run.add_argument("--calibration", metavar="FILE",
+    run.add_argument("--calibration", metavar="FILE", type=path_arg,
                      help="ride with the friction of the bike's last spin-down, kept in FILE, and write the next "
                           "successful spin-down there (as a trainer keeps its calibration)")
     run.add_argument("--ftms", action="store_true",
@@ -792,9 +801,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     rep = sub.add_parser("report", help="summarise a recorded bag: duration, power, energy, peak current, faults")
     rep.add_argument("bag")
-    rep.add_argument("--out", help="also write charts (PNG) and summary.txt/.json/.html into this folder")
+    rep.add_argument("--out", type=path_arg, help="also write charts (PNG) and summary.txt/.json/.html into this folder")
     rep.add_argument("--json", action="store_true", help="print the summary as JSON")
-    rep.add_argument("--fit", metavar="FILE", help="also write the ride as a FIT activity (power, cadence, speed, "
+    rep.add_argument("--fit", metavar="FILE", type=path_arg, help="also write the ride as a FIT activity (power, cadence, speed, "
                                                   "distance per second) for Garmin Connect, Strava, GoldenCheetah")
     rep.set_defaults(func=_cmd_report)
 
@@ -802,7 +811,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "energy, current peaks, config differences (on the overlapping time range)")
     cmp.add_argument("bag_a")
     cmp.add_argument("bag_b")
-    cmp.add_argument("--out", help="write compare.txt/.json/.html and overlay charts into this folder")
+    cmp.add_argument("--out", type=path_arg, help="write compare.txt/.json/.html and overlay charts into this folder")
     cmp.add_argument("--json", action="store_true", help="print the comparison as JSON")
     cmp.set_defaults(func=_cmd_compare)
 
@@ -818,18 +827,18 @@ def build_parser() -> argparse.ArgumentParser:
     rec = bag_sub.add_parser("recover", help="rewrite what survived of a crashed recording (no metadata.yaml) "
                                              "into a new bag (BAG.recovered); the original is not modified")
     rec.add_argument("bag")
-    rec.add_argument("--out", help="output bag directory (default BAG.recovered)")
+    rec.add_argument("--out", type=path_arg, help="output bag directory (default BAG.recovered)")
     rec.set_defaults(func=_cmd_bag)
 
     pap = sub.add_parser("paper", help="reproduce a figure of a paper: " + "; ".join(
         f"{k} ({v})" for k, v in PAPERS.items()))
     pap.add_argument("name", choices=sorted(PAPERS))
-    pap.add_argument("--out", required=True, help="output folder for CSV and PNG")
-    pap.add_argument("--config", help="bike config (default config/bldc_default.yaml; seed2-*: config/spmsm_default.yaml)")
+    pap.add_argument("--out", required=True, type=path_arg, help="output folder for CSV and PNG")
+    pap.add_argument("--config", type=path_arg, help="bike config (default config/bldc_default.yaml; seed2-*: config/spmsm_default.yaml)")
     pap.set_defaults(func=_cmd_paper)
 
     ben = sub.add_parser("bench", help="print speed figures and ratios (inner loop, node graph, DDS ping-pong)")
-    ben.add_argument("--json", help="also write the figures to this JSON file")
+    ben.add_argument("--json", type=path_arg, help="also write the figures to this JSON file")
     ben.add_argument("--quick", action="store_true", help="shorter runs (noisier figures)")
     ben.add_argument("--only", action="append", metavar="SECTION",
                      help="run only this section (repeatable): inner, fleet, graph, can, peers, memory")
@@ -850,9 +859,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "needs ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET")
     flt.add_argument("--timeout", type=float, default=300.0, help="--graph: wall-clock limit in seconds (default 300)")
     flt.add_argument("--verbose", action="store_true", help="--graph: show the nodes' output")
-    flt.add_argument("--launch", help="--graph: launch description of one bike (default config/launch/bike.launch.yaml)")
-    flt.add_argument("--config", help="bike config (default config/bldc_default.yaml)")
-    flt.add_argument("--json", help="also write the figures to this JSON file")
+    flt.add_argument("--launch", type=path_arg, help="--graph: launch description of one bike (default config/launch/bike.launch.yaml)")
+    flt.add_argument("--config", type=path_arg, help="bike config (default config/bldc_default.yaml)")
+    flt.add_argument("--json", type=path_arg, help="also write the figures to this JSON file")
     flt.set_defaults(func=_cmd_fleet)
 
     shf = sub.add_parser("shift", help="press a running bike's virtual shifter: N gears up, -N down "
@@ -883,7 +892,7 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--difficulty", type=float, metavar="PCT",
                      help="send grades as Zwift does at this trainer difficulty: scaled by it, descents halved "
                           "again (Zwift's default 50; default: the grade as it is)")
-    trn.add_argument("--workout", metavar="FILE", help="ride a workout file (.zwo, .erg, .mrc, .fit, profile .yaml) "
+    trn.add_argument("--workout", metavar="FILE", type=path_arg, help="ride a workout file (.zwo, .erg, .mrc, .fit, profile .yaml) "
                                                         "on the trainer as an app does, then print how it followed")
     trn.add_argument("--spindown", action="store_true",
                      help="run the trainer's spin-down calibration (FTMS Spin Down Control) and print its "
@@ -891,7 +900,7 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets")
     trn.add_argument("--max-hr", type=float, metavar="BPM", help="rider's maximum heart rate for the workout's "
                                                                  "heart-rate targets in %% of it")
-    trn.add_argument("--csv", metavar="FILE", help="with --workout: write every Indoor Bike Data sample here")
+    trn.add_argument("--csv", metavar="FILE", type=path_arg, help="with --workout: write every Indoor Bike Data sample here")
     trn.set_defaults(func=_cmd_trainer)
     return parser
 

@@ -223,13 +223,15 @@ def main(argv: list[str]) -> int:
 
     from bike_plant.config import ConfigError
 
+    from bike_session.cli import path_arg
+
     ap = argparse.ArgumentParser(prog="bike replay", description=__doc__.split("\n\n")[0])
     ap.add_argument("bag")
-    ap.add_argument("--config", help="the bike to ride it on (default: the recorded config)")
+    ap.add_argument("--config", type=path_arg, help="the bike to ride it on (default: the recorded config)")
     ap.add_argument("--load", choices=["recorded", "config"], default="recorded",
                     help="rider / load: the recorded one (default; with --config, on that bike's gear_ratio and "
                          "rider_kp / rider_ki) or the one of --config")
-    ap.add_argument("--record", default="runs", metavar="DIR", help="where the new bag goes (default runs/)")
+    ap.add_argument("--record", default="runs", metavar="DIR", type=path_arg, help="where the new bag goes (default runs/)")
     ap.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     opts = ap.parse_args(argv)
     from bike_session import cli
