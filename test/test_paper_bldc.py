@@ -126,6 +126,20 @@ def test_k_table_measures_the_shipped_table_and_another_machines(tmp_path, capsy
     assert res["table"]["k_command"][0] > 0.05 and res["skipped_rpm"] == []
 
 
+def test_k_table_of_a_machine_its_check_cannot_ride_is_refused_before_measuring(tmp_path):
+    """20 x the default ke reaches the empty pack's voltage at 385 rpm, below the check's lowest
+    speed (750 rpm): the table was measured (~8 s) and written, then refused with the check's
+    error. Refused first now, naming the k table's check; nothing written."""
+    from bike_plant.config import ConfigError, config_variant, load_config
+
+    cfg = load_config(CFG_PATH)
+    fast = config_variant(cfg, bldc={"ke_v_per_rpm": 20 * cfg["bldc"]["ke_v_per_rpm"]},
+                          mechanics={"speed0_rpm": 0.0})
+    with pytest.raises(ConfigError, match=r"bldc.ke_v_per_rpm: .* at 385 rpm, below 750 rpm: no point of the k table's check"):
+        paper.k_table(fast, tmp_path / "out")
+    assert not (tmp_path / "out" / "k_table.yaml").exists()
+
+
 def test_calibrate_k_at_command_1_is_the_last_row_of_the_command_table():
     """calibrate_k without Commands is the paper's k(w) at Command = 1: the same measurement as
     the table's row at Command = 1; a lighter Command gets more torque per ampere."""

@@ -224,6 +224,8 @@ def k_table(cfg_path, out_dir) -> dict:
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     speeds = _brakeable_speeds(cfg, K_SPEEDS_RPM, "the k table")
+    # before the measuring: the table was measured and written, then refused with the check's error
+    _brakeable_speeds(cfg, RESISTANCE_SPEEDS_RPM, "the k table's check (seed1-resistance)")
     table = calibrate_k(cfg, speeds, commands=K_COMMANDS)
     dropped = table.pop("dropped")
     if 1.0 in dropped:
