@@ -136,6 +136,9 @@ def test_eq7_the_command_row_sets_the_current_command(cfg):
     ({"k_factor": [[0.8, 0.9], [0.8, 0.9], [0.8, 0.9]]}, "list items must be numbers"),
     ({"k_command": [], "k_factor": [0.8, 1.2]}, "in [1e-06, 1.0]"),       # the paper's one row: k <= 1
     ({"k_command": [i / 13 for i in range(1, 14)], "k_factor": [0.8, 0.9] * 13}, "at most 12 k_command points"),
+    # k is read at |speed|: a point below 0 was taken and never used
+    ({"k_speed_rpm": [-1000.0, 2000.0]}, "k_speed_rpm must be speeds >= 0"),
+    ({"k_command": [], "k_speed_rpm": [-1000.0, 0.0], "k_factor": [0.8, 1.0]}, "k_speed_rpm must be speeds >= 0"),
 ])
 def test_a_bad_k_table_is_one_config_error(cfg, table, message):
     from bike_plant.config import ConfigError

@@ -53,6 +53,10 @@ class ControllerParams:
             P._check_table(self.k_speed_rpm, self.k_factor, "k_speed_rpm", "k_factor", 1e-6, 1.0)
         else:
             self._check_command_rows()
+        if self.k_speed_rpm[0] < 0.0:
+            # k_factor reads the table at |speed|: a point below 0 was taken and never used
+            raise ValueError(f"k_speed_rpm must be speeds >= 0 (k is read at the speed's magnitude), "
+                             f"got {self.k_speed_rpm!r}")
         if self.k_interp not in ("step", "linear"):
             raise ValueError(f"k_interp must be 'step' or 'linear', got {self.k_interp!r}")
         if self.model not in ("nominal", "actual"):
