@@ -136,6 +136,8 @@ def test_eq7_the_command_row_sets_the_current_command(cfg):
     ({"k_factor": [[0.8, 0.9], [0.8, 0.9], [0.8, 0.9]]}, "list items must be numbers"),
     ({"k_command": [], "k_factor": [0.8, 1.2]}, "in [1e-06, 1.0]"),       # the paper's one row: k <= 1
     ({"k_command": [i / 13 for i in range(1, 14)], "k_factor": [0.8, 0.9] * 13}, "at most 12 k_command points"),
+    ({"k_command": []}, "with k_command: [] k_factor is the paper's one row over k_speed_rpm and must hold 2 "
+                        "values, one per speed; got 6 (rows for several Commands need their k_command)"),
     # k is read at |speed|: a point below 0 was taken and never used
     ({"k_speed_rpm": [-1000.0, 2000.0]}, "k_speed_rpm must be speeds >= 0"),
     ({"k_command": [], "k_speed_rpm": [-1000.0, 0.0], "k_factor": [0.8, 1.0]}, "k_speed_rpm must be speeds >= 0"),

@@ -50,6 +50,13 @@ class ControllerParams:
         if not isinstance(self.k_command, list) or not self.k_command:
             if self.k_command != []:
                 raise ValueError(f"k_command must be a list of Commands, got {self.k_command!r}")
+            if isinstance(self.k_factor, list) and isinstance(self.k_speed_rpm, list) \
+                    and self.k_speed_rpm and len(self.k_factor) != len(self.k_speed_rpm):
+                # --set controller.k_command=[] on the shipped table: "must be ... of equal length"
+                # did not say that the 117 values are its 9 Command rows
+                raise ValueError(f"with k_command: [] k_factor is the paper's one row over k_speed_rpm and must hold "
+                                 f"{len(self.k_speed_rpm)} values, one per speed; got {len(self.k_factor)} (rows "
+                                 f"for several Commands need their k_command)")
             P._check_table(self.k_speed_rpm, self.k_factor, "k_speed_rpm", "k_factor", 1e-6, 1.0)
         else:
             self._check_command_rows()
