@@ -135,7 +135,8 @@ def test_k_table_of_a_machine_its_check_cannot_ride_is_refused_before_measuring(
     cfg = load_config(CFG_PATH)
     fast = config_variant(cfg, bldc={"ke_v_per_rpm": 20 * cfg["bldc"]["ke_v_per_rpm"]},
                           mechanics={"speed0_rpm": 0.0})
-    with pytest.raises(ConfigError, match=r"bldc.ke_v_per_rpm: .* at 385 rpm, below 750 rpm: no point of the k table's check"):
+    with pytest.raises(ConfigError, match=r"bldc.ke_v_per_rpm: .* at 385 rpm, below 750 rpm: "
+                                          r"no point of the k table's check"):
         paper.k_table(fast, tmp_path / "out")
     assert not (tmp_path / "out" / "k_table.yaml").exists()
 

@@ -766,16 +766,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="start the node graph (plant, controller, session[, recorder]) "
                                      "for a number of simulated seconds")
-    run.add_argument("--config", type=path_arg, help="bike config (ROS 2 parameter file); default config/bldc_default.yaml")
+    run.add_argument("--config", type=path_arg,
+                     help="bike config (ROS 2 parameter file); default config/bldc_default.yaml")
     run.add_argument("--duration", type=float, help="simulated seconds (default: duration_s of the config)")
-    run.add_argument("--workout", metavar="FILE", type=path_arg, help="ride a workout file (.zwo, .erg, .mrc, .fit or a profile "
-                                                        ".yaml) instead of the config's profile; power targets in "
-                                                        "ERG mode; the run lasts the workout unless --duration is given")
+    run.add_argument("--workout", metavar="FILE", type=path_arg,
+                     help="ride a workout file (.zwo, .erg, .mrc, .fit or a profile "
+                          ".yaml) instead of the config's profile; power targets in "
+                          "ERG mode; the run lasts the workout unless --duration is given")
     run.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets "
                                                             "(default: the file's own FTP when it has one)")
     run.add_argument("--max-hr", type=float, metavar="BPM", help="rider's maximum heart rate for a FIT workout's "
                                                                  "heart-rate targets in %% of it (session.max_hr_bpm)")
-    run.add_argument("--record", metavar="DIR", type=path_arg, help="record every topic to an MCAP bag under DIR and summarise it")
+    run.add_argument("--record", metavar="DIR", type=path_arg,
+                     help="record every topic to an MCAP bag under DIR and summarise it")
     run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
     run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")
     run.add_argument("--launch", type=path_arg, help="launch description (default config/launch/bike.launch.yaml)")
@@ -801,10 +804,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     rep = sub.add_parser("report", help="summarise a recorded bag: duration, power, energy, peak current, faults")
     rep.add_argument("bag")
-    rep.add_argument("--out", type=path_arg, help="also write charts (PNG) and summary.txt/.json/.html into this folder")
+    rep.add_argument("--out", type=path_arg,
+                     help="also write charts (PNG) and summary.txt/.json/.html into this folder")
     rep.add_argument("--json", action="store_true", help="print the summary as JSON")
-    rep.add_argument("--fit", metavar="FILE", type=path_arg, help="also write the ride as a FIT activity (power, cadence, speed, "
-                                                  "distance per second) for Garmin Connect, Strava, GoldenCheetah")
+    rep.add_argument("--fit", metavar="FILE", type=path_arg,
+                     help="also write the ride as a FIT activity (power, cadence, speed, "
+                          "distance per second) for Garmin Connect, Strava, GoldenCheetah")
     rep.set_defaults(func=_cmd_report)
 
     cmp = sub.add_parser("compare", help="A/B comparison of two recorded sessions: tracking error, power, "
@@ -834,7 +839,8 @@ def build_parser() -> argparse.ArgumentParser:
         f"{k} ({v})" for k, v in PAPERS.items()))
     pap.add_argument("name", choices=sorted(PAPERS))
     pap.add_argument("--out", required=True, type=path_arg, help="output folder for CSV and PNG")
-    pap.add_argument("--config", type=path_arg, help="bike config (default config/bldc_default.yaml; seed2-*: config/spmsm_default.yaml)")
+    pap.add_argument("--config", type=path_arg,
+                     help="bike config (default config/bldc_default.yaml; seed2-*: config/spmsm_default.yaml)")
     pap.set_defaults(func=_cmd_paper)
 
     ben = sub.add_parser("bench", help="print speed figures and ratios (inner loop, node graph, DDS ping-pong)")
@@ -859,7 +865,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "needs ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET")
     flt.add_argument("--timeout", type=float, default=300.0, help="--graph: wall-clock limit in seconds (default 300)")
     flt.add_argument("--verbose", action="store_true", help="--graph: show the nodes' output")
-    flt.add_argument("--launch", type=path_arg, help="--graph: launch description of one bike (default config/launch/bike.launch.yaml)")
+    flt.add_argument("--launch", type=path_arg,
+                     help="--graph: launch description of one bike (default config/launch/bike.launch.yaml)")
     flt.add_argument("--config", type=path_arg, help="bike config (default config/bldc_default.yaml)")
     flt.add_argument("--json", type=path_arg, help="also write the figures to this JSON file")
     flt.set_defaults(func=_cmd_fleet)
@@ -892,15 +899,17 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--difficulty", type=float, metavar="PCT",
                      help="send grades as Zwift does at this trainer difficulty: scaled by it, descents halved "
                           "again (Zwift's default 50; default: the grade as it is)")
-    trn.add_argument("--workout", metavar="FILE", type=path_arg, help="ride a workout file (.zwo, .erg, .mrc, .fit, profile .yaml) "
-                                                        "on the trainer as an app does, then print how it followed")
+    trn.add_argument("--workout", metavar="FILE", type=path_arg,
+                     help="ride a workout file (.zwo, .erg, .mrc, .fit, profile .yaml) "
+                          "on the trainer as an app does, then print how it followed")
     trn.add_argument("--spindown", action="store_true",
                      help="run the trainer's spin-down calibration (FTMS Spin Down Control) and print its "
                           "progress until success or error (within --seconds, default 120)")
     trn.add_argument("--ftp", type=float, metavar="W", help="rider FTP for the workout's relative targets")
     trn.add_argument("--max-hr", type=float, metavar="BPM", help="rider's maximum heart rate for the workout's "
                                                                  "heart-rate targets in %% of it")
-    trn.add_argument("--csv", metavar="FILE", type=path_arg, help="with --workout: write every Indoor Bike Data sample here")
+    trn.add_argument("--csv", metavar="FILE", type=path_arg,
+                     help="with --workout: write every Indoor Bike Data sample here")
     trn.set_defaults(func=_cmd_trainer)
     return parser
 

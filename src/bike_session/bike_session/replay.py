@@ -231,7 +231,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--load", choices=["recorded", "config"], default="recorded",
                     help="rider / load: the recorded one (default; with --config, on that bike's gear_ratio and "
                          "rider_kp / rider_ki) or the one of --config")
-    ap.add_argument("--record", default="runs", metavar="DIR", type=path_arg, help="where the new bag goes (default runs/)")
+    ap.add_argument("--record", default="runs", metavar="DIR", type=path_arg,
+                    help="where the new bag goes (default runs/)")
     ap.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     opts = ap.parse_args(argv)
     from bike_session import cli
