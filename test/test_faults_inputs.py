@@ -158,6 +158,9 @@ def test_run_checks_the_config_before_any_node_starts(tmp_path, key, value, word
     ("session.period_s=abc", "session.period_s: must be a finite number, got 'abc'"),
     ("session.ftp_w=.nan", "session.ftp_w: must be a finite number, got nan"),
     ("controller.current_limit_a=-5", "controller: current_limit_a must be > 0, got -5.0"),
+    # the modes section's messages named neither the config nor the section
+    ("modes.erg_power_max_w=-1", "modes: erg_power_max_w must be a number >= 0, got -1.0"),
+    ("modes.foo=1", ".yaml: modes: unknown key(s) foo"),
     ("session.profile=/nonexistent/p.yaml", "session.profile: /nonexistent/p.yaml: cannot read profile")])
 def test_run_checks_the_session_controller_and_profile_before_any_node_starts(tmp_path, item, words):
     """What the session node (period, profile) and the controller node (its parameters) refused
