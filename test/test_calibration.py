@@ -60,6 +60,9 @@ BAD_FILES = [
     ("machine: bldc\nmodes: {friction_nms: true, dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
     ("machine: bldc\nmodes: {friction_nms: '1e-4', dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
     ("machine: bldc\nmodes: {friction_nms: 1.0e-4}\n", "modes.dry_friction_nm must be"),
+    # finite but beyond any bike's: B = 1e300 rode to a virtual distance of 5e202 m, an rms of inf
+    ("machine: bldc\nmodes: {friction_nms: 1.0e+300, dry_friction_nm: 0.0}\n", "friction_nms must be a number in [0, 1]"),
+    ("machine: bldc\nmodes: {friction_nms: 1.0e-4, dry_friction_nm: 20.0}\n", "dry_friction_nm must be a number in [0, 10]"),
     ("machine: bldc\nmodes: {friction_nms: 1.0e-4, dry_friction_nm: 0, erg_power_max_w: 9}\n", "unknown key"),
     ("machine: bldc\nmodes: !!python/object/apply:os.system ['true']\n", "not valid YAML"),
 ]
@@ -151,7 +154,9 @@ def test_set_changes_config_values_for_one_run_and_refuses_bad_ones(capsys):
            "modes.grade_min=[1": "not valid YAML", "modes.crr=": "give one value",
            "modes.auto_shift=1": "auto_shift must be true or false", "modes.nope=1": "unknown key(s) nope",
            "modes.crr=nan": "crr must be", "load.kind=dragon": "dragon",
-           "bldc.inductance_h=-1": "inductance_h", "modes.friction_nms=-1": "friction_nms"}
+           "bldc.inductance_h=-1": "inductance_h", "modes.friction_nms=-1": "friction_nms",
+           "modes.friction_nms=1e300": "modes: friction_nms must be a number in [0, 1]",
+           "mechanics.friction_nms=1e300": "friction_nms must be a number in [0, 1]"}
     for item, words in bad.items():
         assert _set_run_config([item], config) is None, item
         err = capsys.readouterr().err.strip().splitlines()

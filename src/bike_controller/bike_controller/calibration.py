@@ -19,13 +19,14 @@ touched: the calibration is the trainer's belief about it.
 from __future__ import annotations
 
 import datetime
-import math
 import os
 import pathlib
 import tempfile
 from dataclasses import dataclass
 
 import yaml
+
+from bike_plant.params import friction_problem
 
 MAX_CALIBRATION_BYTES = 64 * 1024   # the file is a few hundred bytes; refuse anything absurd unparsed
 FIGURES = ("friction_nms", "dry_friction_nm")
@@ -83,7 +84,7 @@ def write_calibration(path, machine: str, result, *, sim_time_s: float, config_p
 def read_calibration(path, machine: str) -> Calibration:
     """The calibration in ``path`` for a bike of kind ``machine``; CalibrationError naming the
     problem when the file is unreadable, not one this module wrote, another machine's, or
-    carries a figure that is not a finite number >= 0."""
+    carries a figure outside bike_plant.params.friction_problem's range."""
     path = pathlib.Path(path)
     try:
         size = path.stat().st_size
@@ -110,8 +111,8 @@ def read_calibration(path, machine: str) -> Calibration:
     figures = {}
     for key in FIGURES:
         v = modes.get(key)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
-            raise CalibrationError(f"modes.{key} must be a number >= 0, got {v!r}", path)
+        if friction_problem(key, v):
+            raise CalibrationError(f"modes.{friction_problem(key, v)}", path)
         figures[key] = float(v)
     coast = doc.get("coast_s", 0.0)
     coast = float(coast) if isinstance(coast, (int, float)) and not isinstance(coast, bool) else 0.0

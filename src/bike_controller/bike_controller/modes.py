@@ -101,7 +101,7 @@ import numpy as np
 from bike_plant.mechanics import VIRTUAL_GEAR_MAX, VIRTUAL_GEAR_MIN, virtual_gear_problem  # noqa: F401
 from bike_plant.heart import HeartParams, heart_rate_target_problem
 from bike_plant.mechanics import friction_torque_nm, road_problem
-from bike_plant.params import RPM_PER_RAD_S, MechParams
+from bike_plant.params import RPM_PER_RAD_S, MechParams, friction_problem
 
 from .heart_erg import HeartRateErg
 from .spindown import COAST, DONE, FAILED, SpinDown, SpinDownParams
@@ -190,8 +190,8 @@ class ModeParams:
                 raise ValueError(f"{name} must be a number >= 0, got {v!r}")
         for name in ("friction_nms", "dry_friction_nm"):
             v = getattr(self, name)
-            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a number >= 0, got {v!r}")
+            if v is not None and friction_problem(name, v):
+                raise ValueError(friction_problem(name, v))
         if not (isinstance(self.wind_mps, (int, float)) and math.isfinite(self.wind_mps)):
             raise ValueError(f"wind_mps must be a finite number, got {self.wind_mps!r}")
         if not (-1.0 <= self.grade_min < self.grade_max <= 1.0):
@@ -417,8 +417,8 @@ class ModeLaw:
     def set_friction(self, friction_nms: float, dry_friction_nm: float) -> None:
         """The bike's friction from now on (a spin-down's figures); ValueError: unchanged."""
         for name, v in (("friction_nms", friction_nms), ("dry_friction_nm", dry_friction_nm)):
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a number >= 0, got {v!r}")
+            if friction_problem(name, v):
+                raise ValueError(friction_problem(name, v))
         self.friction_nms, self.dry_friction_nm = float(friction_nms), float(dry_friction_nm)
 
     def rider_instruction(self) -> tuple[float, bool] | None:
@@ -731,8 +731,9 @@ def friction_figures(cfg: dict) -> tuple[float, float, float]:
 
     def figure(section: str, key: str, default: float) -> float:
         v = (cfg.get(section) or {}).get(key, default)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
-            raise ValueError(f"{section}.{key} must be a number >= 0, got {v!r}")
+        problem = friction_problem(key, v) if "friction_nm" in key else None
+        if problem or isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"{section}.{problem or f'{key} must be a number >= 0, got {v!r}'}")
         return float(v)
 
     spmsm = cfg.get("machine") == "spmsm"

@@ -107,6 +107,24 @@ class BatteryParams:
                              f"got {self.s0_on_v:g} V: set it with the pack's voltages")
 
 
+# Upper bounds of a friction figure (config, calibration file, spin-down): far above any bike's
+# (a spin-down measures B ~1e-4..1e-2 N m s/rad, Tc ~0..0.5 N m at the motor shaft), low enough
+# that B w and the virtual bike's figures stay finite (B = 1e300 rode to a distance of 5e202 m
+# and an infinite rms without a word).
+FRICTION_NMS_MAX = 1.0
+DRY_FRICTION_NM_MAX = 10.0
+
+
+def friction_problem(name: str, value) -> str | None:
+    """Why a friction figure (``friction_nms`` [N m s/rad] or ``dry_friction_nm`` [N m]) is
+    refused, or None: a finite number in [0, FRICTION_NMS_MAX / DRY_FRICTION_NM_MAX]."""
+    top = DRY_FRICTION_NM_MAX if name.startswith("dry") else FRICTION_NMS_MAX
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value)
+                                                                              and 0.0 <= value <= top):
+        return f"{name} must be a number in [0, {top:g}], got {value!r}"
+    return None
+
+
 @dataclass
 class MechParams:
     """Shaft: motor-side inertia (flywheel reflected) and viscous friction."""
@@ -116,8 +134,9 @@ class MechParams:
 
     def validate(self) -> None:
         require_positive(self, "inertia_kgm2")
-        if self.friction_nms < 0:
-            raise ValueError("friction_nms must be >= 0")
+        problem = friction_problem("friction_nms", self.friction_nms)
+        if problem:
+            raise ValueError(problem)
 
 
 LOAD_KINDS = ("prime_mover", "rider", "none")
