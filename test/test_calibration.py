@@ -34,6 +34,16 @@ def test_the_file_written_after_a_spin_down_reads_back_the_same_figures(tmp_path
     assert os.listdir(tmp_path) == ["cal.yaml"]                    # no temporary file left beside it
 
 
+def test_a_calibration_is_never_renamed_over_a_device(tmp_path):
+    """The write renames a new file over the old one: as root, --calibration /dev/null replaced
+    the device with the calibration. Refused with an OSError, the device untouched."""
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    with pytest.raises(OSError, match="not a regular file"):
+        write_calibration(fifo, "bldc", RESULT, sim_time_s=1.0)
+    assert fifo.is_fifo() and [p.name for p in tmp_path.iterdir()] == ["pipe"]
+
+
 def test_a_write_that_fails_leaves_the_previous_calibration_whole(tmp_path, monkeypatch):
     path = write_calibration(tmp_path / "cal.yaml", "bldc", RESULT, sim_time_s=1.0)
     before = path.read_text()
@@ -124,7 +134,7 @@ def test_run_refuses_a_bad_or_foreign_calibration_before_anything_starts(tmp_pat
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     for path, words in ((foreign, "'spmsm' bike's calibration"), (bad, "modes.friction_nms must be"),
-                        (blocker / "cal.yaml", "cannot")):
+                        (blocker / "cal.yaml", "cannot"), (pathlib.Path("/dev/null"), "not a regular file")):
         run = _bike("run", "--duration", "1", "--calibration", str(path))
         assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr[-2000:]
         lines = [line for line in run.stderr.splitlines() if line.strip()]

@@ -58,8 +58,11 @@ class Calibration:
 def write_calibration(path, machine: str, result, *, sim_time_s: float, config_path: str = "") -> pathlib.Path:
     """Store a spin-down's result (bike_controller.spindown.SpinDownResult) in ``path``: written
     beside it and renamed over it, so a reader sees the old file or the new one, never half of
-    one. OSError when it cannot be written."""
+    one. OSError when it cannot be written or ``path`` is no regular file (the rename would
+    replace a device or pipe, e.g. /dev/null, with the calibration)."""
     path = pathlib.Path(path)
+    if path.exists() and not path.is_file():
+        raise OSError(f"{path}: not a regular file, and a calibration replaces the file it is written to")
     doc = {"machine": machine,
            "written_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
            "sim_time_s": round(float(sim_time_s), 6),

@@ -438,6 +438,11 @@ def _calibration_run_args(path_text: str, config: pathlib.Path, cfg: dict, args:
     from bike_controller.modes import friction_figures
 
     path = pathlib.Path(path_text).resolve()
+    if path.exists() and not path.is_file() and not path.is_dir():
+        # a spin-down renames the new calibration over the file: /dev/null would be replaced
+        print(f"error: --calibration {path}: not a regular file (a spin-down replaces the file with its "
+              f"calibration)", file=sys.stderr)
+        return None
     if not output_file_ok(path, "--calibration"):
         return None
     machine = str(cfg.get("machine", "bldc"))
