@@ -115,6 +115,31 @@ def test_recover_refuses_a_complete_bag(tmp_path):
         recover(tmp_path / "ok")
 
 
+def test_a_closed_bag_whose_data_file_was_cut_short_is_recovered(tmp_path):
+    """A bag copied or kept on a disk that ran out has its metadata.yaml but half its data
+    file: opening it says where the rescue is, and recover, which refused it as "closed
+    properly", rescues what survived."""
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    sink = BagSink(tmp_path / "cut", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)],
+                   flush_period_s=0.1)
+    for k in range(2000):
+        sink.write("/x", k * 1_000_000, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=f"m{k:05d}" * 50),
+                                             "std_msgs/msg/String"))
+    sink.close()
+    (data,) = (tmp_path / "cut").glob("*.mcap")
+    with open(data, "r+b") as fh:
+        fh.truncate(data.stat().st_size // 2)
+    with pytest.raises(BagError, match="cannot open bag: .*bike bag recover rescues what survived") as err:
+        open_bag(tmp_path / "cut")
+    assert "\n" not in str(err.value)
+    result = recover(tmp_path / "cut")
+    assert 0 < result["messages"] < 2000
+    got = read_topic(result["out"], "/x")
+    assert [m.data for m in got] == [f"m{k:05d}" * 50 for k in range(len(got))]
+
+
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_a_failure_to_write_the_recovered_bag_is_not_taken_for_a_torn_recording(tmp_path, monkeypatch, storage):
     """The source readers take any exception inside their loop for the torn tail of the crashed

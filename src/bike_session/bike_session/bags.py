@@ -63,7 +63,11 @@ class Bag:
             reader = AnyReader([self.path])
             reader.open()
         except Exception as exc:  # noqa: BLE001 - rosbags raises many error classes
-            raise BagError(f"cannot open bag: {_reason(exc)}", self.path) from None
+            # a data file cut short (a copy or disk that ran out, a crash after the metadata)
+            # reads as "File end magic is invalid": say where the rescue is
+            hint = "; if its data file was cut short, ./bike bag recover rescues what survived" \
+                if any(self.path.glob("*.mcap")) or any(self.path.glob("*.db3")) else ""
+            raise BagError(f"cannot open bag: {_reason(exc).rstrip('.')}{hint}", self.path) from None
         self._reader = reader
         self.typestore = reader.typestore
         self._connections = reader.connections

@@ -26,6 +26,19 @@ from bike_session.bags import BagError
 MAX_RECORD_BYTES = 256 * 2**20       # a hostile length field must not make us allocate GBs
 
 
+def _opens(bag: pathlib.Path) -> bool:
+    """Whether a bag with its metadata.yaml opens: one whose data file was cut short after it
+    was closed (a truncated copy) has the metadata but not the file's summary, and is recovered
+    like a crashed recording."""
+    from bike_session.bags import open_bag
+
+    try:
+        open_bag(bag).close()
+    except BagError:
+        return False
+    return True
+
+
 def _find_data_file(bag: pathlib.Path) -> pathlib.Path:
     if bag.is_file():
         if bag.suffix in (".mcap", ".db3"):
@@ -194,7 +207,7 @@ def recover(bag: str | os.PathLike, out: str | os.PathLike | None = None) -> dic
     bag = pathlib.Path(bag)
     if not bag.exists():
         raise BagError("no such bag (path does not exist)", bag)
-    if bag.is_dir() and (bag / "metadata.yaml").is_file():
+    if bag.is_dir() and (bag / "metadata.yaml").is_file() and _opens(bag):
         raise BagError("this bag was closed properly (metadata.yaml present): nothing to recover; "
                        "read it with ./bike report", bag)
     src = _find_data_file(bag)
