@@ -167,3 +167,17 @@ def test_overmodulation_raises_the_thd_but_not_to_the_papers_level():
         assert abs(om["speed_rpm"] - P.SPEED_RPM) < 2.0
         assert om["id"] > lin["id"] + 0.5                       # less flux weakening
         assert lin["thd_percent"] < om["thd_percent"] < 0.5 * paper
+
+
+@pytest.mark.parametrize("config", ["bldc_default.yaml", "bldc_can.yaml"])
+def test_paper_001_on_the_bldc_bike_is_one_error_naming_the_machine(config, tmp_path, capsys):
+    """seed2-table1 with a BLDC config said "machine: expected 'spmsm' for this loader, got
+    'bldc'" (the loader is nothing a user asked for): one error now says which bike the command
+    reproduces, as the seed1-* commands do for an SPMSM config, and nothing is written."""
+    from bike_session import cli
+
+    out = tmp_path / "out"
+    assert cli.main(["paper", "seed2-table1", "--config", str(ROOT / "config" / config), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "'bldc' bike" in err and "paper 001" in err and "loader" not in err, err
+    assert not any(out.glob("*")) if out.exists() else True
