@@ -300,6 +300,32 @@ def test_replay_on_another_machine_keeps_the_recorded_rider_on_that_bikes_drivet
     assert prep["config"].exists() and prep["profile"].exists() and again["config"].name.endswith("_2_config.yaml")
 
 
+
+def test_replay_of_an_spmsm_ride_on_the_bldc_bike_keeps_the_rider_without_the_dynamometer(tmp_path, monkeypatch):
+    """./bike replay of an SPMSM ride --config bldc_default.yaml (--load recorded) was refused:
+    "bldc_default.yaml: load: unknown parameter(s) dyno_time_s, dyno_torque_nm", naming a file
+    that is fine, for the SPMSM's own dynamometer keys in the recorded load. The recorded rider
+    rides the BLDC bike; a key the recorded machine does not know either is still one error."""
+    import yaml
+
+    from bike_plant.config import ConfigError, load_config
+    from bike_session import replay
+    spmsm = ROOT / "config" / "spmsm_default.yaml"
+    recorded = yaml.safe_load(spmsm.read_text())
+    recorded["/**"]["ros__parameters"]["load"]["rider_preset"] = "trained"
+    info = {"duration_s": 1.0, "period_s": 0.1, "config_text": yaml.safe_dump(recorded)}
+    monkeypatch.setattr(replay, "command_timeline", lambda _bag: ([(0, 0.5, 0, 0.0, None)], info))
+    own = load_config(CONFIG)["load"]
+    prep = replay.prepare(tmp_path / "session_x", tmp_path / "runs", str(CONFIG), "recorded")
+    load = load_config(prep["config"])["load"]
+    assert load["rider_preset"] == "trained" and load["kind"] == "rider" and "dyno_time_s" not in load
+    for key in replay.BIKE_LOAD_KEYS:
+        assert load[key] == own[key], key
+    recorded["/**"]["ros__parameters"]["load"]["rider_t0_nmm"] = 100.0          # a typo stays an error
+    info["config_text"] = yaml.safe_dump(recorded)
+    with pytest.raises(ConfigError, match="rider_t0_nmm"):
+        replay.prepare(tmp_path / "session_x", tmp_path / "runs3", str(CONFIG), "recorded")
+
 def test_replay_leaves_nothing_when_the_run_refuses_it_after_the_config_checks(tmp_path, monkeypatch, capsys):
     """A refusal from ./bike run's checks after the config's (here: calibration_file under a
     regular file) left the replay's generated profile and config in --record. Now --record is

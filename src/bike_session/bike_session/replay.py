@@ -132,6 +132,21 @@ def _recorded_config(info: dict, bag_path) -> dict:
 BIKE_LOAD_KEYS = ("gear_ratio", "rider_kp", "rider_ki")
 
 
+def _machine_only_load_keys(recorded_machine, other_machine) -> set:
+    """The ``load`` keys the recorded machine knows and the other does not (none for the same
+    machine or one that is neither's: its config check names it)."""
+    import dataclasses
+
+    from bike_plant.params import LoadParams
+    from bike_plant.spmsm_params import SpmsmLoadParams
+
+    classes = {"bldc": LoadParams, "spmsm": SpmsmLoadParams}
+    if recorded_machine not in classes or other_machine not in classes:
+        return set()
+    names = lambda cls: {f.name for f in dataclasses.fields(cls)}       # noqa: E731
+    return names(classes[recorded_machine]) - names(classes[other_machine])
+
+
 def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded") -> dict:
     """Write the replay's profile and config into out_dir; returns their paths + facts."""
     from bike_plant.config import ConfigError, load_config
@@ -167,6 +182,11 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
                     params["load"].pop(key, None)
                     if key in own:
                         params["load"][key] = own[key]
+                # keys of the recorded machine's load that the other machine has not (the SPMSM's
+                # dynamometer, dyno_*): an SPMSM ride on the BLDC bike was refused for them
+                for key in _machine_only_load_keys(recorded["/**"]["ros__parameters"].get("machine", "bldc"),
+                                                   params.get("machine", "bldc")):
+                    params["load"].pop(key, None)
     # relative paths in the config (none needed now, but keep them resolvable)
     params.setdefault("session", {})
     out_dir = pathlib.Path(out_dir)
