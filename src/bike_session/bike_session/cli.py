@@ -701,9 +701,14 @@ def _cmd_fleet(opts) -> int:
         from bike_session import fleet_graph as FG
         seconds = 1.0 if opts.seconds is None else opts.seconds
         from bike_session import domains
+        try:
+            placement = FG.check_graph_args(opts.graph, seconds, opts.timeout, FG.parse_placement(opts.netns))
+        except FG.FleetError as exc:
+            # before the domain's line: a bad argument is the one line printed
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         domains.ensure_private_domain("fleet")
         try:
-            placement = FG.parse_placement(opts.netns)
             result = FG.run_graph(opts.graph, config, seconds, placement, launch_file=opts.launch,
                                   timeout_s=opts.timeout, quiet_nodes=not opts.verbose)
         except (FG.FleetError, FG.L.LaunchError, ConfigError) as exc:

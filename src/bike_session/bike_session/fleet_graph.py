@@ -209,13 +209,10 @@ class FleetMonitor:
         return out
 
 
-def run_graph(n_bikes: int, config: str, duration_s: float, placement: dict[str, str] | None = None,
-              launch_file: str | None = None, timeout_s: float | None = None, out=sys.stdout,
-              quiet_nodes: bool = False) -> dict:
-    """Start K bikes, wait for every bike to end (or the timeout), return the summaries.
-    Keys: bikes (list of per-bike summaries), exit_codes {bike/node: code}, wall_s, ok."""
-    from bike_plant.config import load_config
-
+def check_graph_args(n_bikes: int, duration_s: float, timeout_s: float | None = None,
+                     placement: dict[str, str] | None = None) -> dict[str, str]:
+    """FleetError naming a bad --graph / --seconds / --timeout / --netns before anything starts
+    (./bike fleet checks them before it picks the fleet's domain); the placement as a dict."""
     if isinstance(n_bikes, bool) or not isinstance(n_bikes, int) or not 1 <= n_bikes <= 64:
         raise FleetError(f"--graph expects 1..64 bikes, got {n_bikes!r}")
     if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s) and duration_s > 0):
@@ -226,6 +223,17 @@ def run_graph(n_bikes: int, config: str, duration_s: float, placement: dict[str,
         raise FleetError(f"--timeout must be a finite number > 0, got {timeout_s!r}")
     placement = dict(placement or {})
     _check_netns(placement, n_bikes)
+    return placement
+
+
+def run_graph(n_bikes: int, config: str, duration_s: float, placement: dict[str, str] | None = None,
+              launch_file: str | None = None, timeout_s: float | None = None, out=sys.stdout,
+              quiet_nodes: bool = False) -> dict:
+    """Start K bikes, wait for every bike to end (or the timeout), return the summaries.
+    Keys: bikes (list of per-bike summaries), exit_codes {bike/node: code}, wall_s, ok."""
+    from bike_plant.config import load_config
+
+    placement = check_graph_args(n_bikes, duration_s, timeout_s, placement)
     cfg = load_config(config)
     if str(cfg.get("backend", "sim")) != "sim":
         raise FleetError("fleet bikes are simulated: use a config with backend: sim")
