@@ -167,3 +167,16 @@ def test_two_real_sessions(tmp_path):
         assert (out / name).stat().st_size > 5000, name
     same, *_ = compare(erg, erg)
     assert all(m["delta"] == 0.0 for m in same["metrics"] if m["a"] is not None)
+
+
+def test_columns_stay_apart_at_any_width(tmp_path):
+    """A difference as wide as its column ran into the percentage ('...138.0+13800.0 %'): each
+    column now starts after a space."""
+    from bike_session.compare import format_compare
+
+    bag = write_session_bag(tmp_path / "bag")
+    r = compare(bag, bag)[0]
+    m = metric(r, "mean_braking_power_w")
+    m.update(a=1.0, b=123456789.0, delta=123456788.0, delta_pct=12345678800.0)
+    line = next(x for x in format_compare(r).splitlines() if x.startswith(m["label"]))
+    assert line.split()[-5:] == ["1.00", "123456789.00", "123456788.00", "+12345678800.0", "%"], line

@@ -257,12 +257,14 @@ def format_compare(r: dict) -> str:
                                                          or "n/a"))
     lines.append(("NOTE: " if r["overlap"]["truncated"] else "") + r["overlap"]["note"])
     lines.append("")
-    lines.append(f"{'':<46}{'A':>14}{'B':>14}{'B - A':>14}{'':>10}")
+    lines.append(f"{'':<46} {'A':>13} {'B':>13} {'B - A':>13}")
     for m in r["metrics"]:
         d = m["digits"]
         pct = f"{m['delta_pct']:+.1f} %" if m["delta_pct"] is not None else ""
-        lines.append(f"{(m['label'] + ' [' + m['unit'] + ']'):<46}{_f(m['a'], d):>14}{_f(m['b'], d):>14}"
-                     f"{_f(m['delta'], d):>14}{pct:>10}")
+        # a space before each column: a figure as wide as its column ran into the one before
+        # (a '+13796.5 %' read as part of the difference)
+        lines.append(f"{(m['label'] + ' [' + m['unit'] + ']'):<46} {_f(m['a'], d):>13} {_f(m['b'], d):>13} "
+                     f"{_f(m['delta'], d):>13} {pct:>10}".rstrip())
     for key, t in r["tracking"].items():
         lines.append(f"  {key}: {t['compares']} [{t['unit']}], 0.1 s windows")
     cd = r["config_diff"]
