@@ -130,6 +130,19 @@ def _check_ros_lists(params: Mapping, path, prefix: str) -> None:
                                   f"in {value!r}{hint}", path, name)
 
 
+def machine_config(cfg_or_path, machine: str, command: str, hint: str = "") -> dict:
+    """A deep copy of a loaded config (or the config at a path) of a ``machine`` bike; one
+    ConfigError naming the ``machine`` key and what ``command`` needs otherwise (the other
+    machine's loader said "battery: unknown parameter(s) ..." or "expected 'spmsm' for this
+    loader", neither of which named what was wrong)."""
+    cfg = copy.deepcopy(cfg_or_path) if isinstance(cfg_or_path, dict) else load_config(cfg_or_path)
+    found = cfg.get("machine", "bldc")
+    if found != machine:
+        raise ConfigError(f"{command}, and this config is a {found!r} bike{hint}", cfg.get("_config_path"),
+                          "machine")
+    return cfg
+
+
 def config_variant(cfg: dict, **sections) -> dict:
     """A deep copy of a loaded config with the given sections' keys updated, e.g.
     config_variant(cfg, load={"kind": "none"}) (experiments and tests derive their cases so)."""

@@ -28,7 +28,7 @@ import pathlib
 import numpy as np
 
 from bike_plant import params as P
-from bike_plant.config import ConfigError, load_config
+from bike_plant.config import ConfigError, machine_config
 from bike_controller.bldc_params import K_ROW_MAX
 from bike_controller.closed_loop import run_offline
 
@@ -48,15 +48,8 @@ K_COMMANDS = (0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.6, 0.8, 1.0)
 
 
 def _load(cfg_or_path) -> dict:
-    cfg = copy.deepcopy(cfg_or_path) if isinstance(cfg_or_path, dict) else load_config(cfg_or_path)
-    machine = cfg.get("machine", "bldc")
-    if machine != "bldc":
-        # an SPMSM config was read with the BLDC sections' names: "battery: unknown parameter(s)
-        # dump_above_soc, nominal_v", which did not say what was wrong
-        raise ConfigError(f"the seed1-* commands reproduce paper 000 on a BLDC bike, and this config is a "
-                          f"{machine!r} bike (seed2-table1 reproduces paper 001 on the SPMSM)",
-                          cfg.get("_config_path"), "machine")
-    return cfg
+    return machine_config(cfg_or_path, "bldc", "the seed1-* commands reproduce paper 000 on a BLDC bike",
+                          "; seed2-table1 reproduces paper 001 on the SPMSM")
 
 
 def _prime_mover(cfg: dict, speed_rpm: float) -> dict:

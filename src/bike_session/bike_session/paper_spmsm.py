@@ -113,7 +113,6 @@ Every row carries the paper's values, the ratios ours / paper and two verdicts:
 """
 from __future__ import annotations
 
-import copy
 import csv
 import math
 import pathlib
@@ -121,7 +120,7 @@ import time
 
 import numpy as np
 
-from bike_plant.config import ConfigError, config_variant, load_config
+from bike_plant.config import config_variant, machine_config
 
 from bike_controller import spmsm_control as C
 
@@ -153,15 +152,8 @@ PAPER = {
 
 
 def _load(cfg_or_path) -> dict:
-    cfg = copy.deepcopy(cfg_or_path) if isinstance(cfg_or_path, dict) else load_config(cfg_or_path)
-    machine = cfg.get("machine", "bldc")
-    if machine != "spmsm":
-        # the SPMSM loader's own message, "expected 'spmsm' for this loader, got 'bldc'", named
-        # nothing the user asked for (as bike_session.paper does for the seed1-* commands)
-        raise ConfigError(f"seed2-table1 reproduces paper 001 on the SPMSM bike, and this config is a "
-                          f"{machine!r} bike (the seed1-* commands reproduce paper 000 on the BLDC)",
-                          cfg.get("_config_path"), "machine")
-    return cfg
+    return machine_config(cfg_or_path, "spmsm", "seed2-table1 reproduces paper 001 on the SPMSM bike",
+                          "; the seed1-* commands reproduce paper 000 on the BLDC")
 
 
 def _free_shaft(cfg: dict, speed0_rpm: float) -> dict:
