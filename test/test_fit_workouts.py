@@ -9,7 +9,7 @@ import pytest
 from fit_files import SWEET_SPOT, fit_workout_bytes
 
 from bike_session import fit_workout
-from bike_session.profiles import MAX_LEAF_SEGMENTS
+from bike_session.profiles import MAX_LEAF_SEGMENTS, MODES
 from bike_session.workouts import WorkoutError, WorkoutWarning, load_workout
 
 DATA = pathlib.Path(__file__).resolve().parent / "data" / "workouts"
@@ -159,3 +159,33 @@ def test_a_fit_cadence_range_is_its_mean_and_one_the_rider_cannot_take_is_none()
     from bike_session.fit_workout import _cadence
     assert _cadence(85, 95) == 90.0 and _cadence(5, 95) == 50.0 and _cadence(None, 90) == 90.0
     assert _cadence(3, 5) is None and _cadence(0, 0) is None and _cadence(300, 400) is None
+
+
+def test_a_power_or_heart_rate_secondary_target_is_ridden_when_the_primary_is_cadence_or_open(tmp_path):
+    # Garmin Connect lets the cadence target be the primary one and the power target the
+    # secondary: the step was ridden free at freeride_command (its power target lost, no word)
+    cadence_power = dict(duration_type="time", duration_value=60_000, target_type="cadence", target_value=0,
+                         custom_target_value_low=85, custom_target_value_high=95, secondary_target_type="power",
+                         secondary_target_value=0, secondary_custom_target_value_low=1200,
+                         secondary_custom_target_value_high=1220)
+    open_percent = dict(duration_type="time", duration_value=60_000, target_type="open",
+                        secondary_target_type="power", secondary_target_value=0,
+                        secondary_custom_target_value_low=80, secondary_custom_target_value_high=90)
+    cadence_hr = dict(cadence_power, secondary_target_type="heart_rate", secondary_custom_target_value_low=240,
+                      secondary_custom_target_value_high=250)
+    speed_power = dict(open_percent, target_type="speed", target_value=0, custom_target_value_low=8000,
+                       custom_target_value_high=9000)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        w = _load(tmp_path, [cadence_power, open_percent, cadence_hr, speed_power], ftp_w=200)
+    segs = w.segments
+    assert segs[0].target_start_w == 210.0 and segs[0].cadence_rpm == pytest.approx(90.0)
+    assert segs[0].mode == segs[1].mode == MODES["erg"] and segs[0].start == pytest.approx(210.0 / PMAX)
+    assert segs[1].target_start_w == pytest.approx(170.0), "85 % of FTP 200 W"
+    assert segs[2].heart_rate_bpm == pytest.approx(145.0) and segs[2].cadence_rpm == pytest.approx(90.0)
+    assert segs[3].target_start_w == pytest.approx(170.0)
+    texts = [str(c.message) for c in caught if issubclass(c.category, WorkoutWarning)]
+    assert texts == [f"{tmp_path / 'w.fit'}: step 3: 'speed' targets are not ridden (no model of them here): the "
+                     "step's secondary power target is ridden"]
+    with pytest.raises(WorkoutError, match=r"step 0: secondary power zone 3 needs the rider's zone table"):
+        _load(tmp_path, [dict(open_percent, secondary_target_value=3)], ftp_w=200)

@@ -37,6 +37,10 @@ Per step (the choices, in the order the reader applies them):
 - Target ``open`` or ``cadence``: no power target, ridden in resistance mode at
   ``freeride_command`` like a ZWO FreeRide; a custom cadence range (rpm) is kept as the
   segment's cadence, as is a secondary cadence target of a power or heart-rate step.
+- Secondary targets: a step whose primary target is open, cadence or unmodelled and whose
+  ``secondary_target_type`` is power or heart rate (Garmin Connect lets a cadence target be the
+  primary one) rides the secondary target by the rules above, read from
+  ``secondary_target_value`` / ``secondary_custom_target_value_low/high``.
 - Other targets (speed, grade, resistance, ...): ridden free as above, with one warning per
   target kind naming the steps (nothing here models them).
 - ``wkt_step_name`` labels the segment; ``notes`` become a text event at the step's start.
@@ -239,33 +243,49 @@ def _ridable(i: int, step: dict, ftp: float | None, opts: _Options, notes: dict,
     label = name.strip() if isinstance(name, str) and name.strip() else block
     text = step.get("notes")
     text = text.strip() if isinstance(text, str) else ""
-    target_w = None
     cadence = None
-    heart_rate = None
-    if target in POWER_TARGETS:
-        target_w = _custom_mean(step, "power", lambda v: _watts(v, ftp, err), err)
-    elif target == "heart_rate" and step.get("target_value"):
-        heart_rate = _hr_zone_bpm(step.get("target_value"), opts.max_hr_bpm, err)
-        notes.setdefault("heart-rate zones ridden as Garmin's default zones (50-60 .. 90-100 % of the maximum "
-                         "heart rate; the file carries no zone table)", []).append(i)
-        problem = heart_rate_target_problem(heart_rate)
-        if problem:
-            raise err(problem)
-    elif target == "heart_rate":
-        heart_rate = _custom_mean(step, "heart-rate", lambda v: _bpm(v, opts.max_hr_bpm, err), err)
-        problem = heart_rate_target_problem(heart_rate)
-        if problem:
-            raise err(problem)
-    elif target == "cadence":
-        if not step.get("target_value"):
-            cadence = _cadence(step.get("custom_target_value_low"), step.get("custom_target_value_high"))
-    elif target not in FREE_TARGETS:
-        notes.setdefault(f"{target!r} targets are not ridden (no model of them here): free ride at Command "
-                         f"{opts.freeride_command:g}", []).append(i)
-    if (target_w is not None or heart_rate is not None) and step.get("secondary_target_type") == "cadence":
+    target_w, heart_rate = _power_or_heart_rate(target, step, ftp, opts, notes, i, err)
+    secondary = step.get("secondary_target_type")
+    if target == "cadence" and not step.get("target_value"):
+        cadence = _cadence(step.get("custom_target_value_low"), step.get("custom_target_value_high"))
+    use_secondary = target_w is None and heart_rate is None and (secondary in POWER_TARGETS
+                                                                   or secondary == "heart_rate")
+    if target not in POWER_TARGETS | FREE_TARGETS | {"heart_rate"}:
+        ridden = (f"the step's secondary {secondary} target is ridden" if use_secondary
+                  else f"free ride at Command {opts.freeride_command:g}")
+        notes.setdefault(f"{target!r} targets are not ridden (no model of them here): {ridden}", []).append(i)
+    if use_secondary:
+        # a cadence / open (or unmodelled) primary target with a power or heart-rate secondary
+        # target (Garmin Connect lets either be primary): the secondary one is the ERG target
+        fields = {"target_value": step.get("secondary_target_value"),
+                  "custom_target_value_low": step.get("secondary_custom_target_value_low"),
+                  "custom_target_value_high": step.get("secondary_custom_target_value_high")}
+        target_w, heart_rate = _power_or_heart_rate(secondary, fields, ftp, opts, notes, i, err, "secondary ")
+    if (target_w is not None or heart_rate is not None) and secondary == "cadence":
         cadence = _cadence(step.get("secondary_custom_target_value_low"),
                            step.get("secondary_custom_target_value_high"))
     return _Step(duration, target_w, cadence, label, block, text, heart_rate)
+
+
+def _power_or_heart_rate(target: Any, step: dict, ftp: float | None, opts: _Options, notes: dict, i: int, err,
+                         prefix: str = "") -> tuple[float | None, float | None]:
+    """(power W, heart rate bpm) of a target of kind ``target`` whose target_value and custom range
+    are in ``step`` (a primary target, or a secondary one under the primary names); (None, None)
+    for any other kind."""
+    if target in POWER_TARGETS:
+        return _custom_mean(step, f"{prefix}power", lambda v: _watts(v, ftp, err), err), None
+    if target != "heart_rate":
+        return None, None
+    if step.get("target_value"):
+        heart_rate = _hr_zone_bpm(step.get("target_value"), opts.max_hr_bpm, err)
+        notes.setdefault("heart-rate zones ridden as Garmin's default zones (50-60 .. 90-100 % of the maximum "
+                         "heart rate; the file carries no zone table)", []).append(i)
+    else:
+        heart_rate = _custom_mean(step, f"{prefix}heart-rate", lambda v: _bpm(v, opts.max_hr_bpm, err), err)
+    problem = heart_rate_target_problem(heart_rate)
+    if problem:
+        raise err(problem)
+    return None, heart_rate
 
 
 def _custom_mean(step: dict, what: str, convert, err) -> float:
