@@ -147,6 +147,25 @@ def test_zwo_variants(tmp_path):
     assert load_workout(path, pmax_w=PMAX).target_w_at(150) == pytest.approx(150)     # no rider FTP: file's
 
 
+
+@pytest.mark.parametrize("declaration", ["", '<?xml version="1.0" encoding="UTF-8"?>\r\n'])
+def test_zwo_saved_in_a_windows_code_page_is_read(tmp_path, declaration):
+    # a .zwo whose description was edited in a Windows editor saving ANSI (cp1252): expat refused
+    # the whole file ("not well-formed (invalid token)"); the .erg reader reads such text already
+    text = declaration + zwo('<SteadyState Duration="60" Power="0.75"><textevent timeoffset="5" message="Allez, '
+                             '\u00e9t\u00e9 \u2013 go"/></SteadyState>', head="<name>Caf\u00e9 \u2013 Sweet spot</name>")
+    path = tmp_path / "cp.zwo"
+    path.write_bytes(text.encode("cp1252"))
+    w = load_workout(path, ftp_w=200, pmax_w=PMAX)
+    assert w.name == "Caf\u00e9 \u2013 Sweet spot" and w.target_w_at(10) == pytest.approx(150)
+    assert [e.message for e in w.events] == ["Allez, \u00e9t\u00e9 \u2013 go"]
+    # a file that declares its encoding, or is UTF-16 with a byte order mark, is read as it says
+    path.write_bytes(text.replace(declaration, "").encode("utf-16"))
+    assert load_workout(path, ftp_w=200, pmax_w=PMAX).name == "Caf\u00e9 \u2013 Sweet spot"
+    path.write_bytes(('<?xml version="1.0" encoding="ISO-8859-1"?>' + text.replace(declaration, "")
+                      .replace("\u2013", "-")).encode("latin-1"))
+    assert load_workout(path, ftp_w=200, pmax_w=PMAX).name == "Caf\u00e9 - Sweet spot"
+
 def test_over_range_warns_and_saturates():
     text = zwo('<Ramp Duration="100" PowerLow="0.5" PowerHigh="1.5"/>\n<SteadyState Duration="50" Power="1.2"/>')
     with pytest.warns(WorkoutWarning, match=r"exceeds the machine's power range Pmax = 400 W") as rec:

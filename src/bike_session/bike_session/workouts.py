@@ -24,7 +24,9 @@ Formats (see /work/shared/research/trainers.md, section 1)
         is accepted for ``message``. Unknown *metadata* elements under ``<workout_file>``
         and unknown attributes are ignored (they cannot change the ride); an unknown element
         in ``<workout>`` or in a block is an error. ``sportType`` other than bike and
-        ``durationType`` distance are refused.
+        ``durationType`` distance are refused. Text is UTF-8, UTF-16 with a byte order mark or
+        the encoding the XML declaration names; a file meant as UTF-8 that is not (a Windows
+        editor's ANSI code page) is read as cp1252, as the .erg reader does.
   .erg  ``[COURSE HEADER]`` (``FTP = W`` optional, ``MINUTES WATTS``), ``[COURSE DATA]`` of
         "minutes watts" points, ``[END COURSE DATA]``, optional ``[COURSE TEXT]``
         ("seconds <tab> message <tab> duration"). Points are piecewise linear: two points at
@@ -725,7 +727,32 @@ _ZWO_META = {"author", "name", "description", "category", "subcategory", "catego
              "ftpoverride", "durationtype"}
 
 
+_XML_ENCODING = re.compile(rb'\A\s*<\?xml[^>]*?\bencoding\s*=\s*["\']([A-Za-z0-9._-]+)["\']')
+
+
+def _windows_text_as_utf8(data: bytes) -> bytes:
+    """An XML file that should be UTF-8 (no BOM, no encoding declared or UTF-8 declared) but is
+    not, as UTF-8: a .zwo saved by a Windows editor in its ANSI code page (cp1252, latin-1 where
+    cp1252 has no character) has a description or text event 'Caf\xe9'; expat refused the whole
+    file with 'not well-formed (invalid token)'. The .erg reader reads such text the same way."""
+    if data.startswith((b"\xef\xbb\xbf", b"\xff\xfe", b"\xfe\xff")):
+        return data                      # a byte order mark says what it is
+    declared = _XML_ENCODING.match(data)
+    if declared and declared.group(1).lower().replace(b"_", b"-") not in (b"utf-8", b"utf8"):
+        return data                      # expat reads the declared encoding (or names it)
+    try:
+        data.decode("utf-8")
+        return data
+    except UnicodeDecodeError:
+        pass
+    try:
+        return data.decode("cp1252").encode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1").encode("utf-8")
+
+
 def _parse_zwo(data: bytes, source: str, default_name: str, opts: _Options) -> Workout:
+    data = _windows_text_as_utf8(data)
     root = _parse_xml(data, source)
     if root.key != "workout_file":
         raise WorkoutError(f"root element is <{root.tag}>, expected <workout_file>", source, root.where(), root.line)
