@@ -246,6 +246,27 @@ def test_erg_percent_values_and_late_start(tmp_path):
     assert any("holds from 0" in x for x in w.warnings)
 
 
+
+def test_erg_written_as_utf16_or_cp1252_is_read(tmp_path):
+    # Windows PowerShell 5's '>' (and Notepad's 'Unicode') write UTF-16 with a byte order mark:
+    # the file was refused as "binary file (NUL bytes)"; a cp1252 description kept its en dash
+    # as a C1 control character (read as latin-1)
+    text = (DATA / "erg_smoke.erg").read_text().replace("\n", "\r\n")
+    expected = load_workout(DATA / "erg_smoke.erg", ftp_w=200, pmax_w=PMAX)
+    for encoding in ("utf-16", "utf-16-be"):
+        path = tmp_path / f"{encoding}.erg"
+        data = text.encode(encoding)
+        path.write_bytes(data if encoding == "utf-16" else b"\xfe\xff" + data)
+        w = load_workout(path, ftp_w=200, pmax_w=PMAX)
+        assert [(s.start_s, s.target_start_w, s.target_end_w) for s in w.segments] == \
+            [(s.start_s, s.target_start_w, s.target_end_w) for s in expected.segments]
+    path.write_bytes(b"\xff\xfe" + "[COURSE HEADER]\n".encode("utf-16-le") + b"\x00")
+    with pytest.raises(WorkoutError, match="UTF-16 byte order mark but is not UTF-16 text"):
+        load_workout(path, ftp_w=200, pmax_w=PMAX)
+    path = tmp_path / "cp.erg"
+    path.write_bytes(text.replace("DESCRIPTION = ", "DESCRIPTION = Caf\u00e9 \u2013 ").encode("cp1252"))
+    assert load_workout(path, ftp_w=200, pmax_w=PMAX).description.startswith("Caf\u00e9 \u2013 ")
+
 def test_yaml_goes_to_the_profile_loader():
     path = ROOT / "config" / "profiles" / "demo_intervals.yaml"
     p = load_workout(path, ftp_w=250, pmax_w=PMAX)

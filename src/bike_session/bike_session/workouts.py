@@ -27,7 +27,8 @@ Formats (see /work/shared/research/trainers.md, section 1)
         ``durationType`` distance are refused. Text is UTF-8, UTF-16 with a byte order mark or
         the encoding the XML declaration names; a file meant as UTF-8 that is not (a Windows
         editor's ANSI code page) is read as cp1252, as the .erg reader does.
-  .erg  ``[COURSE HEADER]`` (``FTP = W`` optional, ``MINUTES WATTS``), ``[COURSE DATA]`` of
+  .erg  Text in UTF-8 (a BOM is fine), UTF-16 with a BOM, else cp1252.
+        ``[COURSE HEADER]`` (``FTP = W`` optional, ``MINUTES WATTS``), ``[COURSE DATA]`` of
         "minutes watts" points, ``[END COURSE DATA]``, optional ``[COURSE TEXT]``
         ("seconds <tab> message <tab> duration"). Points are piecewise linear: two points at
         the same time are a step; consecutive points with different values a ramp. A value
@@ -814,12 +815,24 @@ _SECTIONS = ("course header", "end course header", "course data", "end course da
 
 
 def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt: str) -> Workout:
-    if b"\x00" in data:
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        # UTF-16 with a byte order mark: what Windows PowerShell 5's '>' and Notepad's 'Unicode' write
+        try:
+            text = data.decode("utf-16")
+        except UnicodeDecodeError:
+            raise WorkoutError("starts with a UTF-16 byte order mark but is not UTF-16 text", source) from None
+        if "\x00" in text:
+            raise WorkoutError("binary file (NUL characters), not a text workout", source)
+    elif b"\x00" in data:
         raise WorkoutError("binary file (NUL bytes), not a text workout", source)
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        text = data.decode("latin-1")      # old Windows tools write cp1252 descriptions
+    else:
+        try:
+            text = data.decode("utf-8-sig")
+        except UnicodeDecodeError:
+            try:
+                text = data.decode("cp1252")      # old Windows tools write cp1252 descriptions
+            except UnicodeDecodeError:
+                text = data.decode("latin-1")
 
     def err(line_no: int | None, message: str) -> WorkoutError:
         return WorkoutError(message, source, f"line {line_no}" if line_no else None, line_no)
