@@ -267,6 +267,16 @@ def test_erg_written_as_utf16_or_cp1252_is_read(tmp_path):
     path.write_bytes(text.replace("DESCRIPTION = ", "DESCRIPTION = Caf\u00e9 \u2013 ").encode("cp1252"))
     assert load_workout(path, ftp_w=200, pmax_w=PMAX).description.startswith("Caf\u00e9 \u2013 ")
 
+
+def test_a_relative_target_without_an_ftp_says_where_the_rider_gives_it():
+    # "pass the rider's ftp_w" named a Python parameter: a rider at ./bike run gives --ftp W
+    from fit_files import SWEET_SPOT, fit_workout_bytes
+    for data, fmt in ((zwo('<SteadyState Duration="60" Power="0.75"/>'), "zwo"),
+                      ((DATA / "mrc_smoke.mrc").read_bytes(), "mrc"), (fit_workout_bytes(SWEET_SPOT), "fit")):
+        with pytest.raises(WorkoutError, match=r"\(session\.ftp_w; \./bike run --ftp W\)") as info:
+            parse_workout_bytes(data, fmt, source=f"w.{fmt}", pmax_w=PMAX)
+        assert str(info.value).count("error:") == 0 and str(info.value).startswith(f"w.{fmt}: ")
+
 def test_yaml_goes_to_the_profile_loader():
     path = ROOT / "config" / "profiles" / "demo_intervals.yaml"
     p = load_workout(path, ftp_w=250, pmax_w=PMAX)

@@ -63,8 +63,8 @@ from typing import Any
 from bike_plant.heart import heart_rate_target_problem
 from bike_plant.mechanics import rider_cadence_problem
 from bike_session.profiles import MAX_LEAF_SEGMENTS, MAX_REPEAT
-from bike_session.workouts import (MAX_CADENCE_RPM, MAX_FTP_FRACTION, MAX_TEXT_EVENTS, TextEvent, Workout,
-                                   WorkoutError, _Options, _Timeline)
+from bike_session.workouts import (FTP_HINT, MAX_CADENCE_RPM, MAX_FTP_FRACTION, MAX_TEXT_EVENTS, TextEvent,
+                                   Workout, WorkoutError, _Options, _Timeline)
 
 MAX_FIT_BYTES = 256 * 1024
 MAX_FIT_STEPS = 0x0FFF            # message_index 0..4094 (12 bits; 0x0FFF is the invalid value)
@@ -311,7 +311,7 @@ def _watts(value: Any, ftp: float | None, err) -> float:
     if value > MAX_FTP_FRACTION * 100:
         raise err(f"{value:g} % of FTP is beyond {MAX_FTP_FRACTION * 100:g} %")
     if ftp is None:
-        raise err("percent-of-FTP target: pass the rider's ftp_w (a FIT workout carries no FTP)")
+        raise err(f"percent-of-FTP target: pass the rider's ftp_w {FTP_HINT}; a FIT workout carries no FTP")
     return value / 100.0 * ftp
 
 

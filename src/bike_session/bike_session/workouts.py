@@ -106,6 +106,7 @@ MAX_FTP_W = 2000.0
 MAX_HR_BPM = HEART_RATE_MAX_BPM    # a rider's maximum heart rate beyond this is a typo
 MAX_CADENCE_RPM = RIDER_CADENCE_MAX_RPM      # what a Command may give the rider (bike_plant.mechanics)
 DEFAULT_FREERIDE_COMMAND = 0.2
+FTP_HINT = "(session.ftp_w; ./bike run --ftp W)"     # where a rider gives his FTP
 OVER_RANGE_CHOICES = ("warn", "error")      # what to do with a target beyond the machine's range
 DEFAULT_MAXEFFORT_COMMAND = 0.5
 
@@ -614,7 +615,8 @@ class _Zwo:
             raise self.err(node, f"{value:g} is {value * 100:g} % of FTP; ZWO powers are FTP fractions "
                                  f"(0.75 = 75 %), at most {MAX_FTP_FRACTION:g}", name)
         if self.ftp is None:
-            raise self.err(node, "power targets are fractions of FTP: pass the rider's ftp_w", names[0])
+            raise self.err(node, "power targets are fractions of FTP: pass the rider's ftp_w "
+                                 f"{FTP_HINT}", names[0])
         return value * self.ftp
 
     def pair(self, node: _Node, single: str, low: str, high: str) -> tuple[float, float]:
@@ -960,7 +962,7 @@ def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt:
             if value > MAX_FTP_FRACTION * 100:
                 raise err(n, f"{value:g} % of FTP is beyond {MAX_FTP_FRACTION * 100:g} %")
             if ftp is None:
-                raise err(n, "percent-of-FTP value: pass the rider's ftp_w")
+                raise err(n, f"percent-of-FTP value: pass the rider's ftp_w {FTP_HINT}")
             return value / 100.0 * ftp
         return value * scale
 
