@@ -189,3 +189,12 @@ def test_a_power_or_heart_rate_secondary_target_is_ridden_when_the_primary_is_ca
                      "step's secondary power target is ridden"]
     with pytest.raises(WorkoutError, match=r"step 0: secondary power zone 3 needs the rider's zone table"):
         _load(tmp_path, [dict(open_percent, secondary_target_value=3)], ftp_w=200)
+
+
+
+def test_a_secondary_cadence_target_of_a_free_step_is_kept(tmp_path):
+    # an open (lap button or time) step with a secondary cadence target: the rider's cadence was lost
+    step = dict(duration_type="time", duration_value=60_000, target_type="open", secondary_target_type="cadence",
+                secondary_target_value=0, secondary_custom_target_value_low=100, secondary_custom_target_value_high=110)
+    seg = _load(tmp_path, [step]).segments[0]
+    assert seg.target_start_w is None and seg.cadence_rpm == pytest.approx(105.0)

@@ -36,7 +36,7 @@ Per step (the choices, in the order the reader applies them):
   warning says so); it needs ``max_hr_bpm`` like a percent target.
 - Target ``open`` or ``cadence``: no power target, ridden in resistance mode at
   ``freeride_command`` like a ZWO FreeRide; a custom cadence range (rpm) is kept as the
-  segment's cadence, as is a secondary cadence target of a power or heart-rate step.
+  segment's cadence, as is a secondary cadence target (of a power, heart-rate or free step).
 - Secondary targets: a step whose primary target is open, cadence or unmodelled and whose
   ``secondary_target_type`` is power or heart rate (Garmin Connect lets a cadence target be the
   primary one) rides the secondary target by the rules above, read from
@@ -261,7 +261,7 @@ def _ridable(i: int, step: dict, ftp: float | None, opts: _Options, notes: dict,
                   "custom_target_value_low": step.get("secondary_custom_target_value_low"),
                   "custom_target_value_high": step.get("secondary_custom_target_value_high")}
         target_w, heart_rate = _power_or_heart_rate(secondary, fields, ftp, opts, notes, i, err, "secondary ")
-    if (target_w is not None or heart_rate is not None) and secondary == "cadence":
+    if secondary == "cadence" and cadence is None:
         cadence = _cadence(step.get("secondary_custom_target_value_low"),
                            step.get("secondary_custom_target_value_high"))
     return _Step(duration, target_w, cadence, label, block, text, heart_rate)
