@@ -166,6 +166,19 @@ def test_zwo_saved_in_a_windows_code_page_is_read(tmp_path, declaration):
                       .replace("\u2013", "-")).encode("latin-1"))
     assert load_workout(path, ftp_w=200, pmax_w=PMAX).name == "Caf\u00e9 - Sweet spot"
 
+
+def test_zwo_with_blank_lines_before_the_xml_declaration_is_read(tmp_path):
+    # a web page's template writes a newline before '<?xml ...?>': expat refused the file with
+    # 'XML or text declaration not at start of entity'
+    for bom in (b"", b"\xef\xbb\xbf"):
+        path = tmp_path / "late.zwo"
+        path.write_bytes(bom + b'\r\n\r\n<?xml version="1.0" encoding="UTF-8"?>\r\n'
+                         + zwo('<SteadyState Duration="60" Power="0.75"/>').encode())
+        assert load_workout(path, ftp_w=200, pmax_w=PMAX).target_w_at(10) == pytest.approx(150)
+        path.write_bytes(bom + b'\n\n<?xml version="1.0"?>\n' + zwo('<SteadyState Duration="x" Power="0.75"/>').encode())
+        with pytest.raises(WorkoutError, match=r"late.zwo: line 5 <SteadyState> attribute Duration"):
+            load_workout(path, ftp_w=200, pmax_w=PMAX)
+
 def test_over_range_warns_and_saturates():
     text = zwo('<Ramp Duration="100" PowerLow="0.5" PowerHigh="1.5"/>\n<SteadyState Duration="50" Power="1.2"/>')
     with pytest.warns(WorkoutWarning, match=r"exceeds the machine's power range Pmax = 400 W") as rec:

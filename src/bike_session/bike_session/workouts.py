@@ -26,7 +26,8 @@ Formats (see /work/shared/research/trainers.md, section 1)
         in ``<workout>`` or in a block is an error. ``sportType`` other than bike and
         ``durationType`` distance are refused. Text is UTF-8, UTF-16 with a byte order mark or
         the encoding the XML declaration names; a file meant as UTF-8 that is not (a Windows
-        editor's ANSI code page) is read as cp1252, as the .erg reader does.
+        editor's ANSI code page) is read as cp1252, as the .erg reader does. Blank lines before
+        the XML declaration are allowed.
   .erg  Text in UTF-8 (a BOM is fine), UTF-16 with a BOM, else cp1252.
         ``[COURSE HEADER]`` (``FTP = W`` optional, ``MINUTES WATTS``), ``[COURSE DATA]`` of
         "minutes watts" points, ``[END COURSE DATA]``, optional ``[COURSE TEXT]``
@@ -754,8 +755,21 @@ def _windows_text_as_utf8(data: bytes) -> bytes:
         return data.decode("latin-1").encode("utf-8")
 
 
+_XML_DECLARATION_LATE = re.compile(rb"(\xef\xbb\xbf)?([ \t\r\n]+)(<\?xml[ \t][^>\r\n]*\?>)")
+
+
+def _xml_declaration_first(data: bytes) -> bytes:
+    """Blank lines before the XML declaration (a web page's template writes them) moved after it:
+    expat refuses a declaration that is not the first thing in the file ('XML or text declaration
+    not at start of entity'). The lines keep their numbers."""
+    m = _XML_DECLARATION_LATE.match(data)
+    if m is None:
+        return data
+    return (m.group(1) or b"") + m.group(3) + m.group(2) + data[m.end():]
+
+
 def _parse_zwo(data: bytes, source: str, default_name: str, opts: _Options) -> Workout:
-    data = _windows_text_as_utf8(data)
+    data = _xml_declaration_first(_windows_text_as_utf8(data))
     root = _parse_xml(data, source)
     if root.key != "workout_file":
         raise WorkoutError(f"root element is <{root.tag}>, expected <workout_file>", source, root.where(), root.line)
