@@ -1,6 +1,7 @@
 """Workout files (.zwo, .erg, .mrc) imported as profiles: timelines, FTP scaling, Pmax, malformed files."""
 import math
 import pathlib
+import re
 import warnings
 
 import pytest
@@ -289,6 +290,18 @@ def test_a_relative_target_without_an_ftp_says_where_the_rider_gives_it():
         with pytest.raises(WorkoutError, match=r"\(session\.ftp_w; \./bike run --ftp W\)") as info:
             parse_workout_bytes(data, fmt, source=f"w.{fmt}", pmax_w=PMAX)
         assert str(info.value).count("error:") == 0 and str(info.value).startswith(f"w.{fmt}: ")
+
+
+@pytest.mark.parametrize("file_name, name", [("C:\\Users\\me\\Workouts\\Sweet Spot.erg", "Sweet Spot"),
+                                             ("workouts/Baxter.ERG", "Baxter"), ("Over-unders 2.5", "Over-unders 2.5"),
+                                             ("Tempo 3x12.mrc", "Tempo 3x12"), ("", "n")])
+def test_erg_file_name_header_names_the_workout(tmp_path, file_name, name):
+    # a Windows path was the name whole ("C:\\Users\\...\\Sweet Spot"); a name with a decimal
+    # lost what followed its last dot ("Over-unders 2")
+    text = (DATA / "erg_smoke.erg").read_text()
+    text = re.sub(r"(?m)^FILE NAME = .*$", lambda _m: f"FILE NAME = {file_name}", text)
+    assert "FILE NAME = " + file_name in text
+    assert load_workout(write(tmp_path, text, "n.erg"), ftp_w=200, pmax_w=PMAX).name == name
 
 def test_yaml_goes_to_the_profile_loader():
     path = ROOT / "config" / "profiles" / "demo_intervals.yaml"

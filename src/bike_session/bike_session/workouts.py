@@ -998,7 +998,12 @@ def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt:
                  block=fmt)
     desc = header.get("DESCRIPTION", ("", 0))[0]
     name = header.get("FILE NAME", ("", 0))[0]
-    name = pathlib.PurePath(name).stem if name else default_name
+    if name:
+        # FILE NAME as Windows tools write it ("C:\\Workouts\\Sweet Spot.erg"): the file's name,
+        # without its .erg / .mrc only ("Over-unders 2.5" keeps its ".5")
+        name = pathlib.PureWindowsPath(name).name
+        stem, dot, ext = name.rpartition(".")
+        name = stem if dot and stem and ext.lower() in ("erg", "mrc") else name
     return Workout(name or default_name, tl.leaves, source=source, text=text, fmt=fmt, ftp_w=ftp,
                    file_ftp_w=file_ftp, pmax_w=opts.pmax_w, mode=opts.mode, events=events,
                    warnings_=tl.warnings(), description=desc)
