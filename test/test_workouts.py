@@ -303,6 +303,27 @@ def test_erg_file_name_header_names_the_workout(tmp_path, file_name, name):
     assert "FILE NAME = " + file_name in text
     assert load_workout(write(tmp_path, text, "n.erg"), ftp_w=200, pmax_w=PMAX).name == name
 
+
+def test_a_decimal_comma_is_one_error_that_says_so():
+    # a European locale writes '0,75': the error said only "not a number"
+    hint = "(numbers take a decimal point, not a comma)"
+    erg = ("[COURSE HEADER]\nFTP = {ftp}\nMINUTES WATTS\n[END COURSE HEADER]\n[COURSE DATA]\n"
+           "0 {w}\n{t} 100\n[END COURSE DATA]\n")
+    for data, fmt, words in (
+            (zwo('<SteadyState Duration="60" Power="0,75"/>'), "zwo", "line 2 <SteadyState> attribute Power: "
+                                                                      "expected a number, got '0,75'"),
+            (zwo('<SteadyState Duration="60,5" Power="0.75"/>'), "zwo", "attribute Duration"),
+            (erg.format(ftp=250, w=100, t="1,5"), "erg", "line 7: time is not a number: '1,5'"),
+            (erg.format(ftp=250, w="112,5", t=1), "erg", "line 6: watts value is not a number: '112,5'"),
+            (erg.format(ftp=250, w="50,5%", t=1), "erg", "line 6: percent value is not a number: '50,5%'"),
+            (erg.format(ftp="250,5", w=100, t=1), "erg", "line 2: FTP must be a number of watts")):
+        with pytest.raises(WorkoutError) as info:
+            parse_workout_bytes(data, fmt, source=f"c.{fmt}", ftp_w=200, pmax_w=PMAX)
+        assert words in str(info.value) and str(info.value).endswith(hint), str(info.value)
+    with pytest.raises(WorkoutError) as info:
+        parse_workout_bytes(zwo('<SteadyState Duration="60" Power="x"/>'), "zwo", ftp_w=200, pmax_w=PMAX)
+    assert "comma" not in str(info.value)
+
 def test_yaml_goes_to_the_profile_loader():
     path = ROOT / "config" / "profiles" / "demo_intervals.yaml"
     p = load_workout(path, ftp_w=250, pmax_w=PMAX)

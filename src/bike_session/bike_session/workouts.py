@@ -465,6 +465,12 @@ class _Timeline:
 # --------------------------------------------------------------------------- numbers
 
 
+def _comma_hint(text: str) -> str:
+    """A hint for a number written with a decimal comma ('0,75', as a European locale writes it)."""
+    t = text.strip()
+    return " (numbers take a decimal point, not a comma)" if re.fullmatch(r"[+-]?\d*,\d+", t) else ""
+
+
 def _number(text: str | None) -> float | None:
     if text is None:
         return None
@@ -596,7 +602,7 @@ class _Zwo:
         name, raw = found
         value = _number(raw)
         if value is None:
-            raise self.err(node, f"expected a number, got {raw!r}", name)
+            raise self.err(node, f"expected a number, got {raw!r}{_comma_hint(raw)}", name)
         if value < minimum or (not allow_equal and value == minimum):
             raise self.err(node, f"must be {'>=' if allow_equal else '>'} {minimum:g}, got {raw!r}", name)
         return value
@@ -909,7 +915,7 @@ def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt:
                 raise err(n, f"expected '<minutes> <{'percent' if units == 'percent' else 'watts'}>', got {line!r}")
             minutes = _number(parts[0])
             if minutes is None:
-                raise err(n, f"time is not a number: {parts[0]!r}")
+                raise err(n, f"time is not a number: {parts[0]!r}{_comma_hint(parts[0])}")
             if minutes < 0:
                 raise err(n, f"time must be >= 0 minutes, got {parts[0]!r}")
             if minutes * 60.0 > MAX_WORKOUT_S:
@@ -918,7 +924,7 @@ def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt:
             value = _number(parts[1][:-1] if is_pct else parts[1])
             if value is None:
                 raise err(n, f"{'percent' if (is_pct or units == 'percent') else 'watts'} value is not a number: "
-                             f"{parts[1]!r}")
+                             f"{parts[1]!r}{_comma_hint(parts[1].rstrip('%'))}")
             if value < 0:
                 raise err(n, f"value must be >= 0, got {parts[1]!r}")
             if points and minutes < points[-1][0]:
@@ -967,7 +973,7 @@ def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt:
         raw, n = header["FTP"]
         file_ftp = _number(raw)
         if file_ftp is None or not 0 < file_ftp <= MAX_FTP_W:
-            raise err(n, f"FTP must be a number of watts in (0, {MAX_FTP_W:g}], got {raw!r}")
+            raise err(n, f"FTP must be a number of watts in (0, {MAX_FTP_W:g}], got {raw!r}{_comma_hint(raw)}")
     ftp = opts.effective_ftp(file_ftp)
     scale = ftp / file_ftp if (file_ftp is not None and ftp is not None) else 1.0
 
