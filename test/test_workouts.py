@@ -324,6 +324,24 @@ def test_a_decimal_comma_is_one_error_that_says_so():
         parse_workout_bytes(zwo('<SteadyState Duration="60" Power="x"/>'), "zwo", ftp_w=200, pmax_w=PMAX)
     assert "comma" not in str(info.value)
 
+
+@pytest.mark.parametrize("ftp_line", ["FTP =", "FTP = 0", "FTP=  "])
+def test_an_erg_ftp_line_without_an_ftp_is_no_ftp(tmp_path, ftp_line):
+    # an exporter writing 'FTP = {its FTP}' without one: the file was refused ("FTP must be a number
+    # of watts in (0, 2000], got ''") where GoldenCheetah and others ride its watts as written
+    text = (DATA / "erg_smoke.erg").read_text().replace("FTP = 200", ftp_line)
+    assert ftp_line in text
+    with pytest.warns(WorkoutWarning, match=r"e.erg: line 6: 'FTP =( 0)?' names no FTP: the watts are ridden as "
+                                            "written"):
+        w = load_workout(write(tmp_path, text, "e.erg"), ftp_w=250, pmax_w=PMAX)
+    assert w.file_ftp_w is None and w.target_w_at(130) == pytest.approx(220), "not rescaled to the rider's 250 W"
+    mrc = (DATA / "mrc_smoke.mrc").read_text().replace("MINUTES PERCENT", ftp_line + "\nMINUTES PERCENT")
+    with pytest.warns(WorkoutWarning, match=r"m.mrc: line \d+: 'FTP =( 0)?' names no FTP: the percent take the "
+                                            "rider's FTP"):
+        assert load_workout(write(tmp_path, mrc, "m.mrc"), ftp_w=250, pmax_w=PMAX).ftp_w == 250
+    with pytest.raises(WorkoutError, match=r"line 6: FTP must be a number of watts in \(0, 2000\], got '-5'"):
+        load_workout(write(tmp_path, text.replace(ftp_line, "FTP = -5"), "e.erg"), ftp_w=250, pmax_w=PMAX)
+
 def test_yaml_goes_to_the_profile_loader():
     path = ROOT / "config" / "profiles" / "demo_intervals.yaml"
     p = load_workout(path, ftp_w=250, pmax_w=PMAX)

@@ -29,7 +29,8 @@ Formats (see /work/shared/research/trainers.md, section 1)
         editor's ANSI code page) is read as cp1252, as the .erg reader does. Blank lines before
         the XML declaration are allowed.
   .erg  Text in UTF-8 (a BOM is fine), UTF-16 with a BOM, else cp1252.
-        ``[COURSE HEADER]`` (``FTP = W`` optional, ``MINUTES WATTS``), ``[COURSE DATA]`` of
+        ``[COURSE HEADER]`` (``FTP = W`` optional; ``FTP =`` or ``FTP = 0`` is none, with a
+        warning; ``MINUTES WATTS``), ``[COURSE DATA]`` of
         "minutes watts" points, ``[END COURSE DATA]``, optional ``[COURSE TEXT]``
         ("seconds <tab> message <tab> duration"). Points are piecewise linear: two points at
         the same time are a step; consecutive points with different values a ramp. A value
@@ -969,10 +970,17 @@ def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt:
         raise err(points[-1][3], "the workout has no duration (all points at the same time)")
 
     file_ftp = None
+    header_notes = []
     if "FTP" in header:
         raw, n = header["FTP"]
         file_ftp = _number(raw)
-        if file_ftp is None or not 0 < file_ftp <= MAX_FTP_W:
+        if not raw.strip() or file_ftp == 0:
+            # an exporter that writes 'FTP = {its FTP}' without one writes 'FTP =' or 'FTP = 0':
+            # no FTP, the watts as written (GoldenCheetah reads it so); other apps ride such files
+            file_ftp = None
+            ridden = "the watts are ridden as written" if units == "watts" else "the percent take the rider's FTP"
+            header_notes.append(f"{source}: line {n}: '{('FTP = ' + raw.strip()).strip()}' names no FTP: {ridden}")
+        elif file_ftp is None or not 0 < file_ftp <= MAX_FTP_W:
             raise err(n, f"FTP must be a number of watts in (0, {MAX_FTP_W:g}], got {raw!r}{_comma_hint(raw)}")
     ftp = opts.effective_ftp(file_ftp)
     scale = ftp / file_ftp if (file_ftp is not None and ftp is not None) else 1.0
@@ -987,6 +995,7 @@ def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt:
         return value * scale
 
     tl = _Timeline(source, opts)
+    tl.notes.extend(header_notes)
     label = fmt
     first_m, first_v, first_pct, first_n = points[0]
     if first_m > 0:
