@@ -180,6 +180,16 @@ def test_zwo_with_blank_lines_before_the_xml_declaration_is_read(tmp_path):
         with pytest.raises(WorkoutError, match=r"late.zwo: line 5 <SteadyState> attribute Duration"):
             load_workout(path, ftp_w=200, pmax_w=PMAX)
 
+
+@pytest.mark.parametrize("encoding", ["U-8", "shift_jis", "utf-32"])
+def test_zwo_declaring_an_encoding_the_reader_cannot_read_is_one_error(encoding):
+    # a declared encoding Python does not know (LookupError) or expat cannot read (ValueError:
+    # multi-byte) escaped the reader as a traceback
+    data = f'<?xml version="1.0" encoding="{encoding}"?>\n' + zwo('<SteadyState Duration="60" Power="0.5"/>')
+    with pytest.raises(WorkoutError, match=rf"enc.zwo: line 1: the XML declaration names encoding '{encoding}', "
+                                           r"which this reader cannot read \(.*\); save the file as UTF-8"):
+        parse_workout_bytes(data, "zwo", source="enc.zwo", ftp_w=200, pmax_w=PMAX)
+
 def test_over_range_warns_and_saturates():
     text = zwo('<Ramp Duration="100" PowerLow="0.5" PowerHigh="1.5"/>\n<SteadyState Duration="50" Power="1.2"/>')
     with pytest.warns(WorkoutWarning, match=r"exceeds the machine's power range Pmax = 400 W") as rec:

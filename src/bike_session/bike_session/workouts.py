@@ -556,6 +556,15 @@ def _parse_xml(data: bytes, source: str) -> _Node:
                            source, f"line {exc.lineno}", exc.lineno) from None
     except RecursionError:
         raise WorkoutError("XML nested too deeply", source) from None
+    except WorkoutError:
+        raise
+    except (LookupError, ValueError) as exc:
+        # the declaration names an encoding Python does not know ('U-8': LookupError) or expat
+        # cannot read ('shift_jis', 'utf-32': ValueError); both were tracebacks
+        declared = _XML_ENCODING.match(data)
+        name = declared.group(1).decode("ascii", "replace") if declared else "?"
+        raise WorkoutError(f"the XML declaration names encoding {name!r}, which this reader cannot read ({exc}); "
+                           "save the file as UTF-8", source, "line 1", 1) from None
     if not root:
         raise WorkoutError("no XML element found", source)
     return root[0]
