@@ -561,7 +561,9 @@ def test_config_section_and_emulator_arguments(tmp_path):
     for key, value, text in (("node_id", 64, "node_id"), ("log_file", "x.txt", ".asc or .blf"),
                              ("request", ["torque", "nope"], "unknown kind"), ("bogus", 1, "unknown parameter"),
                              ("heartbeat_timeout_s", 0.0, "> 0"), ("protocol", "vesc", "unknown 'vesc'"),
-                             ("enable_max_attempts", -1, ">= 0"), ("arm_ramp_nm_per_s", -5.0, ">= 0")):
+                             ("enable_max_attempts", -1, ">= 0"), ("arm_ramp_nm_per_s", -5.0, ">= 0"),
+                             # Set_Limits sets both: a one-sided limit would overwrite the other on the drive
+                             ("velocity_limit_rev_s", 0.0, "go together"), ("current_limit_a", 0.0, "go together")):
         bad = load_config(CAN_CONFIG)
         bad["can"][key] = value
         with pytest.raises(ConfigError, match=text):

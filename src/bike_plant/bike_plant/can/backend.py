@@ -132,8 +132,8 @@ class CanParams:
     disarm_grace_s: float = 0.5         # first arming: not yet a fault while it takes less than this
     arm_ramp_nm_per_s: float = 20.0     # after (re-)arming, |setpoint| <= this x time in closed loop (0: no ramp)
     torque_limit_nm: float = 0.0        # clamp of the torque setpoint; 0: controller.tmax_nm (none if absent)
-    current_limit_a: float = 0.0        # > 0: Set_Limits at arming (with velocity_limit_rev_s)
-    velocity_limit_rev_s: float = 0.0   # > 0: Set_Limits at arming
+    current_limit_a: float = 0.0        # > 0: Set_Limits at arming (with velocity_limit_rev_s; both or neither)
+    velocity_limit_rev_s: float = 0.0   # > 0: Set_Limits at arming (with current_limit_a)
     log_file: str = ""                  # .asc or .blf: log every frame sent / received ("" = off)
     log_format: str = "asc"             # ./bike run --record: log beside the bag as asc | blf | none
     idle_on_exit: bool = True           # on shutdown: zero torque + IDLE
@@ -159,6 +159,12 @@ class CanParams:
                      "enable_max_attempts", "armed_stable_s", "disarm_grace_s", "arm_ramp_nm_per_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if (self.current_limit_a > 0) != (self.velocity_limit_rev_s > 0):
+            # CANSimple's Set_Limits always sets both: a placeholder for the one left at 0 would
+            # overwrite that limit on the drive (e.g. its motor's current limit with 1000 A)
+            raise ValueError(f"current_limit_a ({self.current_limit_a:g}) and velocity_limit_rev_s "
+                             f"({self.velocity_limit_rev_s:g}) go together: Set_Limits sets both on the drive, "
+                             "so give both, or 0 and 0 to leave the drive's own limits")
         unknown = [k for k in self.request if k not in REQUEST_KINDS]
         if unknown:
             raise ValueError(f"request: unknown kind(s) {unknown} (known: {', '.join(REQUEST_KINDS)})")
@@ -584,8 +590,8 @@ class CanBackend:
             self._event("info", f"Clear_Errors ({', '.join(error_names(drive.active_errors))})")
         self.arm_errors_logged = drive.active_errors
         drive.clear_errors()
-        if p.current_limit_a > 0 or p.velocity_limit_rev_s > 0:
-            drive.set_limits(p.velocity_limit_rev_s or 1000.0, p.current_limit_a or 1000.0)
+        if p.current_limit_a > 0 and p.velocity_limit_rev_s > 0:    # both or neither (CanParams.validate)
+            drive.set_limits(p.velocity_limit_rev_s, p.current_limit_a)
         drive.enable("torque")
         drive.request("status")              # the answer tells us at once that we are armed
         self._send_setpoint(self.setpoint_nm)
