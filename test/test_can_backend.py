@@ -216,6 +216,64 @@ def test_malformed_frames_are_counted_and_ignored(rig):
     assert b.diagnostic()[2]["can_dropped"] == "8"
 
 
+def test_no_heartbeat_of_our_node_says_what_the_bus_carries(rig):
+    """A real bus without a link: the drive on another node id, heartbeats off, heartbeats we
+    drop, or silence. After 2 s the log and the diagnostic say which (before: "waiting for the
+    drive's Heartbeat" and nothing in the log, forever)."""
+    clock = Clock()
+    r = rig(clock)
+    b = r.backend
+    node3 = OdriveCanSimpleCodec(3)
+    hb = {"Axis_Error": 0, "Axis_State": 1, "Procedure_Result": 0, "Trajectory_Done_Flag": 1}
+    for _ in range(3):
+        r.drive_bus.send(node3.encode("Heartbeat", hb))
+        b.service()
+    assert b.pop_events() == [] and "node 3" not in b.diagnostic()[1][0], "not before 2 s"
+    clock.t += 2.5
+    b.service()
+    events = b.pop_events()
+    assert len(events) == 1 and events[0][0] == "warning"
+    assert "from node 3, none from node 0" in events[0][1] and "can.node_id" in events[0][1]
+    level, reasons, _ = b.diagnostic()
+    assert level == 1 and "from node 3, none from node 0" in reasons[0] and not b.seen
+    clock.t += 0.5
+    b.service()
+    assert b.pop_events() == [], "logged again only when the picture changes"
+    # our node sends estimates but no heartbeat (heartbeat_msg_rate_ms = 0)
+    r2 = rig(clock)
+    r2.send("Get_Encoder_Estimates", Pos_Estimate=0.0, Vel_Estimate=0.0)
+    clock.t += 2.5
+    r2.backend.service()
+    assert "sends Get_Encoder_Estimates but no Heartbeat" in r2.backend.pop_events()[0][1]
+    # our node's heartbeats, in a layout we drop (a DLC of 4)
+    r3 = rig(clock)
+    r3.drive_bus.send(can.Message(arbitration_id=0x01, data=bytes(4), is_extended_id=False))
+    clock.t += 2.5
+    r3.backend.service()
+    assert "Heartbeat frames of node 0 dropped (bad_dlc 1)" in r3.backend.pop_events()[0][1]
+    # nothing at all
+    r4 = rig(clock)
+    clock.t += 2.5
+    r4.backend.service()
+    assert "nothing received on the bus" in r4.backend.pop_events()[0][1]
+    assert "nothing received on the bus" in r4.backend.diagnostic()[1][0]
+    # a drive lost, then back on another node id (rebooted with another config)
+    r5 = armed(rig, clock)
+    clock.t += 0.4
+    r5.backend.service()
+    assert r5.backend.lost
+    r5.backend.pop_events()
+    r5.drive_bus.send(node3.encode("Heartbeat", hb))
+    clock.t += 2.0
+    r5.backend.service()
+    events = r5.backend.pop_events()
+    assert len(events) == 1 and "still silent" in events[0][1] and "from node 3" in events[0][1]
+    assert "from node 3" in r5.backend.diagnostic()[1][0]
+    r5.heartbeat()
+    r5.backend.service()
+    assert not r5.backend.lost and r5.backend.diagnostic()[1] == []
+
+
 # ----------------------------------------------------------------------------- link loss, safe state
 def test_silent_drive_is_lost_after_three_heartbeat_periods_then_recovers(rig):
     clock = Clock()

@@ -86,7 +86,7 @@ from typing import Callable
 import can
 
 from ..config import ConfigError, build_dataclass, section
-from .protocol import (MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, PROTOCOLS, ODriveError,
+from .protocol import (DRIVE_TO_HOST, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, PROTOCOLS, ODriveError,
                        error_names)
 
 TWO_PI = 2.0 * math.pi
@@ -106,6 +106,10 @@ RX_STAMP_MAX_AGE_S = 5.0
 
 # diagnostic levels (diagnostic_msgs/DiagnosticStatus)
 OK, WARN, ERROR = 0, 1, 2
+
+# no Heartbeat of our node this long (at start, or since the drive was lost): log what the bus
+# does carry (other nodes' heartbeats, our node's dropped heartbeats, nothing at all, ...)
+LINK_HINT_AFTER_S = 2.0
 
 LOG_SUFFIXES = (".asc", ".blf")
 REQUEST_KINDS = tuple(k for k in MEASUREMENT_KINDS if k != "status")
@@ -311,6 +315,11 @@ class CanBackend:
         self.stale = False                 # speed / torque estimates older than measurement_timeout_s
         self.stale_age_s = 0.0
         self.last_stale_event_s = -math.inf
+        # what the bus carries while there is no link (reset whenever the link comes up): for the
+        # diagnostic and a logged hint (a drive on another node id, heartbeats we drop, silence)
+        self.link_hint_key = None
+        self.link_hint_logged_s = -math.inf
+        self._reset_bus_watch()
         self._closed = False
         # sim time and ledger
         self.time_s = 0.0
@@ -402,8 +411,11 @@ class CanBackend:
             self._on_lost(now, late_gap, late=True)
             self._update_stale(now)
             return
+        if not alive and not (self.seen and not self.lost):
+            self._log_link_hint(now)
         if not self.seen and alive:
             self.seen = True
+            self._reset_bus_watch()
             self._event("info", f"drive found: {self.params.describe()}, axis state {drive.axis_state}, "
                                 f"errors {error_names(drive.active_errors) or 'none'}")
         if self.seen:
@@ -411,6 +423,7 @@ class CanBackend:
                 self._on_lost(now)
             elif alive and self.lost:
                 self.lost = False
+                self._reset_bus_watch()
                 self.counters["drive_back"] += 1
                 gone = now - self.lost_since_s if self.lost_since_s is not None else math.nan
                 self._event("info", f"the drive is back after {gone:.2f}s (axis state {drive.axis_state}, errors "
@@ -466,11 +479,96 @@ class CanBackend:
                 return
             echoes = drive.counters["echo"]
             rx_s = self._receipt_s(msg, now)
-            for m in drive.receive(msg, rx_s):
+            measurements = drive.receive(msg, rx_s)
+            for m in measurements:
                 if m.kind == "status":
                     self._heartbeat_at(rx_s)
             if drive.counters["echo"] == echoes:
                 self._log(msg, rx=True)
+                if not self.link_alive:
+                    self._watch_bus(msg, bool(measurements))
+
+    def _reset_bus_watch(self) -> None:
+        self.watch_frames = 0                          # frames received (not our own echoes)
+        self.watch_error_frames = 0
+        self.watch_other_heartbeats: dict[int, int] = {}   # node id -> Heartbeat-shaped frames
+        self.watch_own_drops: collections.Counter = collections.Counter()   # our Heartbeat id: reason
+        self.watch_tx_failed0 = self.drive.counters["tx_failed"]
+        self.link_hint_key = None
+        self.link_hint_logged_s = -math.inf
+
+    def _watch_bus(self, msg: can.Message, decoded: bool) -> None:
+        """While there is no link: note what the bus carries (cheap; frames we did not use)."""
+        self.watch_frames += 1
+        if msg.is_error_frame:
+            self.watch_error_frames += 1
+            return
+        codec = getattr(self.drive, "codec", None)
+        if decoded or codec is None or msg.is_extended_id or msg.is_remote_frame or msg.is_fd:
+            return
+        arb = msg.arbitration_id
+        if not isinstance(arb, int) or not 0 <= arb <= 0x7FF:
+            return
+        heartbeat = codec.messages["Heartbeat"]
+        if arb & 0x1F != heartbeat.frame_id:
+            return
+        node = arb >> 5
+        if node != self.params.node_id:
+            if len(msg.data) == heartbeat.length and (node in self.watch_other_heartbeats
+                                                      or len(self.watch_other_heartbeats) < 64):
+                self.watch_other_heartbeats[node] = self.watch_other_heartbeats.get(node, 0) + 1
+            return
+        reason = codec.classify(msg, DRIVE_TO_HOST, answers_requests=False)
+        self.watch_own_drops[reason if isinstance(reason, str) else "decode_error"] += 1
+
+    def _link_hint(self) -> tuple[tuple, str]:
+        """(shape, text) of what the bus carried while there was no link: '' when nothing helps."""
+        p = self.params
+        parts, key = [], []
+        if self.watch_other_heartbeats:
+            nodes = sorted(self.watch_other_heartbeats)
+            key.append(("nodes", tuple(nodes)))
+            parts.append(f"Heartbeats on the bus from node {', '.join(map(str, nodes))}, none from node "
+                         f"{p.node_id} (can.node_id must be the drive's odrv.axis0.config.can.node_id)")
+        if self.watch_own_drops:
+            reasons = ", ".join(f"{r} {n}" for r, n in sorted(self.watch_own_drops.items()))
+            key.append(("drops", tuple(sorted(self.watch_own_drops))))
+            parts.append(f"{sum(self.watch_own_drops.values())} Heartbeat frames of node {p.node_id} dropped "
+                         f"({reasons}): not the {p.protocol} layout?")
+        others = sorted(m.message for k, m in self.drive.last.items() if k != "status")
+        if not self.seen and others and not self.watch_own_drops:
+            key.append(("no_heartbeat", tuple(others)))
+            parts.append(f"node {p.node_id} sends {', '.join(others)} but no Heartbeat "
+                         "(heartbeat_msg_rate_ms = 0 on the drive?)")
+        if self.watch_frames == self.watch_error_frames:
+            key.append(("silent", self.watch_error_frames > 0))
+            parts.append("nothing received on the bus" + (f" but {self.watch_error_frames} error frames"
+                                                          if self.watch_error_frames else "")
+                         + " (drive powered? wiring, termination, bitrate?)")
+        elif self.watch_error_frames:
+            key.append(("error_frames",))
+            parts.append(f"{self.watch_error_frames} error frames on the bus (bitrate, termination?)")
+        failed = self.drive.counters["tx_failed"] - self.watch_tx_failed0
+        if failed:
+            key.append(("tx_failed",))
+            parts.append(f"{failed} frames could not be sent (bus-off, interface down or no node acknowledging?)")
+        return tuple(key), "; ".join(parts)
+
+    def _no_link_since(self) -> float:
+        return self.lost_since_s if self.lost and self.lost_since_s is not None else self.started_s
+
+    def _log_link_hint(self, now: float) -> None:
+        """No link for LINK_HINT_AFTER_S: log what the bus carries, again when that changes."""
+        since = self._no_link_since()
+        if now - since < LINK_HINT_AFTER_S:
+            return
+        key, text = self._link_hint()
+        if key == self.link_hint_key or now - self.link_hint_logged_s < 1.0:
+            return
+        self.link_hint_key, self.link_hint_logged_s = key, now
+        what = "no Heartbeat yet" if not self.seen else "the drive is still silent"
+        self._event("warning", f"{what} from {self.params.describe()} after {now - since:.0f}s: "
+                               f"{text or 'nothing on the bus explains why'}; sim time paused")
 
     def _heartbeat_at(self, rx_s: float) -> None:
         """Link supervision on receipt times: a gap between two Heartbeats longer than
@@ -510,6 +608,7 @@ class CanBackend:
         self.was_enabled = False
         self.armed_since_s = None
         self.counters["drive_lost"] += 1
+        self._reset_bus_watch()
         age = gap_s if gap_s is not None else self.drive.heartbeat_age_s(now)
         self.lost_gap_s = gap_s
         seen_late = (" (seen late: the heartbeats had resumed before this loop, itself delayed, looked; "
@@ -816,13 +915,17 @@ class CanBackend:
         level = OK
         if not self.seen:
             level = WARN
+            hint = self._link_hint()[1] if now - self.started_s >= LINK_HINT_AFTER_S else ""
             reasons.append(f"waiting for the drive's Heartbeat ({p.describe()}, "
-                           f"{now - self.started_s:.0f}s): sim time paused")
+                           f"{now - self.started_s:.0f}s)" + (f": {hint}" if hint else "") + ": sim time paused")
         elif self.lost:
             level = ERROR
             silent = max(drive.heartbeat_age_s(now), self.lost_gap_s or 0.0)
+            hint = self._link_hint()[1] if self.lost_since_s is not None and \
+                now - self.lost_since_s >= LINK_HINT_AFTER_S else ""
             reasons.append(f"drive silent for {silent:.2f}s (heartbeat_timeout_s="
-                           f"{p.heartbeat_timeout_s:g}s): zero torque commanded, sim time paused")
+                           f"{p.heartbeat_timeout_s:g}s)" + (f": {hint}" if hint else "")
+                           + ": zero torque commanded, sim time paused")
         else:
             errors = error_names(drive.active_errors)
             if errors:
