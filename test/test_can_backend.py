@@ -274,6 +274,40 @@ def test_no_heartbeat_of_our_node_says_what_the_bus_carries(rig):
     assert not r5.backend.lost and r5.backend.diagnostic()[1] == []
 
 
+def test_heartbeats_slower_than_configured_are_named_as_such(rig):
+    """A drive whose heartbeat_msg_rate_ms is not the config's: at 500 ms with a 0.3 s timeout the
+    link drops and returns twice a second; the log says the rate is the cause (before: only
+    "drive silent" / "back" over and over). At 250 ms it holds, with a warning; at 100 ms nothing."""
+    def ride(period_s: float, seconds: float = 4.0):
+        clock = Clock()
+        r = rig(clock)
+        b = r.backend
+        t_next = clock.t
+        events = []
+        while clock.t < 100.0 + seconds:
+            if clock.t >= t_next - 1e-9:
+                r.heartbeat()
+                t_next += period_s
+            b.service()
+            b.apply(Cmd(-0.2))
+            events += b.pop_events()
+            clock.t += 0.01
+        return b, [text for level, text in events if level == "warning"]
+
+    b, warnings = ride(0.5)
+    rate = [w for w in warnings if "Heartbeats come every 0.50s" in w]
+    assert len(rate) == 1 and "link cannot hold" in rate[0] and "heartbeat_msg_rate_ms = 100" in rate[0]
+    assert b.stats()["drive_lost"] >= 3
+    b.clock.t += 0.6                                     # no heartbeat: lost for sure
+    b.service()
+    assert b.lost and "Heartbeats come every 0.50s" in b.diagnostic()[1][0]
+    b, warnings = ride(0.25)
+    assert len(warnings) == 1 and "every 0.25s" in warnings[0] and "little margin" in warnings[0]
+    assert b.stats()["drive_lost"] == 0
+    b, warnings = ride(0.1)
+    assert warnings == [] and b.stats()["drive_lost"] == 0
+
+
 # ----------------------------------------------------------------------------- link loss, safe state
 def test_silent_drive_is_lost_after_three_heartbeat_periods_then_recovers(rig):
     clock = Clock()

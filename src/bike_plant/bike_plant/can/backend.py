@@ -124,7 +124,7 @@ class CanParams:
     bitrate: int = 1000000              # interfaces that set it (pcan, kvaser, ...); socketcan: `ip link`
     node_id: int = 0                    # ODrive axis node id 0..63
     protocol: str = "odrive_cansimple_0.6"   # bike_plant.can.protocol.PROTOCOLS
-    heartbeat_period_s: float = 0.1     # the drive's heartbeat_msg_rate_ms (informative)
+    heartbeat_period_s: float = 0.1     # the drive's heartbeat_msg_rate_ms (a slower drive is logged, with the fix)
     heartbeat_timeout_s: float = 0.3    # no Heartbeat this long -> FAULT_DRIVE_LOST (3 periods)
     measurement_timeout_s: float = 0.05  # speed / torque estimate older than this -> FAULT_DRIVE_STALE (5 x 10 ms)
     watchdog_feed_s: float = 0.1        # re-send the setpoint at least this often (drive watchdog)
@@ -311,6 +311,8 @@ class CanBackend:
         self.last_heartbeat_rx_s = None    # receipt time of the newest Heartbeat (host clock)
         self.heartbeat_gap_max_s = 0.0     # longest gap between two Heartbeats seen while the link was up
         self.late_gap_s = None             # a gap > heartbeat_timeout_s found only when its frames were drained
+        self.recent_heartbeat_gaps_s: collections.deque = collections.deque(maxlen=8)   # the drive's actual rate
+        self.heartbeat_period_warned = False
         self.lost_gap_s = None             # that gap, while the loss it caused is reported
         self.stale = False                 # speed / torque estimates older than measurement_timeout_s
         self.stale_age_s = 0.0
@@ -575,6 +577,9 @@ class CanBackend:
         heartbeat_timeout_s is a lost drive even when this loop, delayed itself, only sees
         both after the fact (then :meth:`service` raises FAULT_DRIVE_LOST for one batch)."""
         prev, self.last_heartbeat_rx_s = self.last_heartbeat_rx_s, rx_s
+        if prev is not None and rx_s > prev:
+            self.recent_heartbeat_gaps_s.append(rx_s - prev)
+            self._check_heartbeat_period()
         if prev is None or not self.seen or self.lost:
             return
         gap = rx_s - prev
@@ -582,6 +587,32 @@ class CanBackend:
         if gap > self.params.heartbeat_timeout_s:
             self.counters["heartbeat_gaps"] += 1
             self.late_gap_s = max(gap, self.late_gap_s or 0.0)
+
+    def heartbeat_period_hint(self) -> str:
+        """'' or why the drive's Heartbeat rate does not fit the config: the median of the
+        last gaps (RTR answers only shorten gaps) beyond 1.5 x heartbeat_period_s."""
+        gaps = sorted(self.recent_heartbeat_gaps_s)
+        if len(gaps) < 5:
+            return ""
+        period = gaps[len(gaps) // 2]
+        p = self.params
+        if period <= 1.5 * p.heartbeat_period_s:
+            return ""
+        text = f"the drive's Heartbeats come every {period:.2f}s, not every can.heartbeat_period_s={p.heartbeat_period_s:g}s"
+        if period > p.heartbeat_timeout_s:
+            return text + (f", longer than heartbeat_timeout_s={p.heartbeat_timeout_s:g}s, so the link cannot "
+                           f"hold: set heartbeat_msg_rate_ms = {p.heartbeat_period_s * 1000:g} on the drive")
+        return text + (f" (little margin below heartbeat_timeout_s={p.heartbeat_timeout_s:g}s): set "
+                       f"heartbeat_msg_rate_ms = {p.heartbeat_period_s * 1000:g} on the drive, or the can: keys to match")
+
+    def _check_heartbeat_period(self) -> None:
+        """Log once (again after it fits for a while) when the Heartbeat rate does not fit."""
+        hint = self.heartbeat_period_hint()
+        if hint and not self.heartbeat_period_warned:
+            self.heartbeat_period_warned = True
+            self._event("warning", hint)
+        elif not hint and len(self.recent_heartbeat_gaps_s) == self.recent_heartbeat_gaps_s.maxlen:
+            self.heartbeat_period_warned = False
 
     def _update_stale(self, now: float) -> None:
         """FAULT_DRIVE_STALE while the drive is armed and its newest speed or torque estimate
@@ -923,6 +954,7 @@ class CanBackend:
             silent = max(drive.heartbeat_age_s(now), self.lost_gap_s or 0.0)
             hint = self._link_hint()[1] if self.lost_since_s is not None and \
                 now - self.lost_since_s >= LINK_HINT_AFTER_S else ""
+            hint = "; ".join(h for h in (self.heartbeat_period_hint(), hint) if h)
             reasons.append(f"drive silent for {silent:.2f}s (heartbeat_timeout_s="
                            f"{p.heartbeat_timeout_s:g}s)" + (f": {hint}" if hint else "")
                            + ": zero torque commanded, sim time paused")
