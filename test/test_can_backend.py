@@ -251,6 +251,12 @@ def test_no_heartbeat_of_our_node_says_what_the_bus_carries(rig):
     clock.t += 2.5
     r3.backend.service()
     assert "Heartbeat frames of node 0 dropped (bad_dlc 1)" in r3.backend.pop_events()[0][1]
+    # our node's heartbeats with 29-bit ids (a drive set to extended ids)
+    r6 = rig(clock)
+    r6.drive_bus.send(can.Message(arbitration_id=0x01, data=bytes(8), is_extended_id=True))
+    clock.t += 2.5
+    r6.backend.service()
+    assert "with a 29-bit (extended) id" in r6.backend.pop_events()[0][1]
     # nothing at all
     r4 = rig(clock)
     clock.t += 2.5

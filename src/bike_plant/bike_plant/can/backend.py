@@ -493,6 +493,7 @@ class CanBackend:
     def _reset_bus_watch(self) -> None:
         self.watch_frames = 0                          # frames received (not our own echoes)
         self.watch_error_frames = 0
+        self.watch_extended_heartbeats = 0
         self.watch_other_heartbeats: dict[int, int] = {}   # node id -> Heartbeat-shaped frames
         self.watch_own_drops: collections.Counter = collections.Counter()   # our Heartbeat id: reason
         self.watch_tx_failed0 = self.drive.counters["tx_failed"]
@@ -506,12 +507,17 @@ class CanBackend:
             self.watch_error_frames += 1
             return
         codec = getattr(self.drive, "codec", None)
-        if decoded or codec is None or msg.is_extended_id or msg.is_remote_frame or msg.is_fd:
+        if decoded or codec is None or msg.is_remote_frame or msg.is_fd:
             return
         arb = msg.arbitration_id
+        heartbeat = codec.messages["Heartbeat"]
+        if msg.is_extended_id:
+            # a drive set to 29-bit ids (node_id << 5 | cmd_id as an extended id)
+            if isinstance(arb, int) and arb == (self.params.node_id << 5 | heartbeat.frame_id):
+                self.watch_extended_heartbeats += 1
+            return
         if not isinstance(arb, int) or not 0 <= arb <= 0x7FF:
             return
-        heartbeat = codec.messages["Heartbeat"]
         if arb & 0x1F != heartbeat.frame_id:
             return
         node = arb >> 5
@@ -532,6 +538,10 @@ class CanBackend:
             key.append(("nodes", tuple(nodes)))
             parts.append(f"Heartbeats on the bus from node {', '.join(map(str, nodes))}, none from node "
                          f"{p.node_id} (can.node_id must be the drive's odrv.axis0.config.can.node_id)")
+        if self.watch_extended_heartbeats:
+            key.append(("extended",))
+            parts.append(f"{self.watch_extended_heartbeats} Heartbeats of node {p.node_id} with a 29-bit (extended) "
+                         "id: CANSimple here uses 11-bit ids, set the drive to standard ids")
         if self.watch_own_drops:
             reasons = ", ".join(f"{r} {n}" for r, n in sorted(self.watch_own_drops.items()))
             key.append(("drops", tuple(sorted(self.watch_own_drops))))
