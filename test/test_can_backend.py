@@ -298,7 +298,7 @@ def test_heartbeats_slower_than_configured_are_named_as_such(rig):
             b.apply(Cmd(-0.2))
             events += b.pop_events()
             clock.t += 0.01
-        return b, [text for level, text in events if level == "warning"]
+        return b, [text for level, text in events if level == "warning" and "Heartbeat" in text]
 
     b, warnings = ride(0.5)
     rate = [w for w in warnings if "Heartbeats come every 0.50s" in w]
@@ -312,6 +312,50 @@ def test_heartbeats_slower_than_configured_are_named_as_such(rig):
     assert b.stats()["drive_lost"] == 0
     b, warnings = ride(0.1)
     assert warnings == [] and b.stats()["drive_lost"] == 0
+
+
+def test_a_drive_found_already_in_closed_loop_is_put_in_torque_control_first(rig):
+    """A drive left in closed loop (odrivetool, a previous run, startup_closed_loop_control) may
+    be in velocity control, where Input_Torque is only a feed-forward: the plant sends zero
+    torque, Set_Limits and Set_Controller_Mode(torque, passthrough) before any setpoint. Before,
+    it took the heartbeat's CLOSED_LOOP_CONTROL as its own torque control and sent setpoints only."""
+    clock = Clock()
+    r = rig(clock, arm_ramp_nm_per_s=20.0)
+    b = r.backend
+    r.heartbeat()                                     # closed loop, not armed by us
+    b.service()
+    frames = r.host_frames()
+    names = [n for n, _ in frames]
+    assert names[:3] == ["Set_Input_Torque", "Set_Limits", "Set_Controller_Mode"]
+    assert frames[0][1] == {"Input_Torque": 0.0} and frames[2][1] == {"Control_Mode": 1, "Input_Mode": 1}
+    assert "Set_Axis_State" not in names, "no re-entry into closed loop (that would reset the drive's state)"
+    assert any("not armed by this plant" in text for _, text in b.pop_events())
+    clock.t += 0.02
+    b.submit(Cmd(-1.0))
+    assert r.torques() == [pytest.approx(-0.4)], "then the setpoint, ramped from zero (20 N m/s x 0.02 s)"
+    for _ in range(3):                                 # still armed: nothing re-sent
+        clock.t += 0.05
+        r.heartbeat()
+        b.service()
+    assert "Set_Controller_Mode" not in [n for n, _ in r.host_frames()]
+    # lost, then back in closed loop (rebooted into its own startup mode): torque control again
+    clock.t += 0.4
+    b.service()
+    assert b.lost
+    r.heartbeat()
+    b.service()
+    names = [n for n, _ in r.host_frames()]
+    assert "Set_Controller_Mode" in names and "Set_Axis_State" not in names
+    # a drive the plant armed itself is not taken over again
+    r2 = rig(clock)
+    r2.heartbeat(AxisState.IDLE)
+    r2.backend.apply(Cmd(-0.5))
+    r2.backend.service()
+    assert [n for n, _ in r2.host_frames()].count("Set_Controller_Mode") == 1
+    r2.heartbeat()
+    r2.backend.service()
+    assert "Set_Controller_Mode" not in [n for n, _ in r2.host_frames()]
+    assert r2.backend.stats()["taken_over"] == 0
 
 
 # ----------------------------------------------------------------------------- link loss, safe state

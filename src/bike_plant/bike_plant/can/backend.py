@@ -289,6 +289,7 @@ class CanBackend:
         self.safe = False              # the node's DriveCommand timeout
         self.commanded = False         # valid DriveCommands are flowing: the drive should be armed
         self.was_enabled = False
+        self.configured = False        # Set_Controller_Mode (torque) sent since the link came up
         self.last_enable_s = -math.inf
         # bounded re-arming (see _arming): failed attempts in a row, give-up latch
         self.arm_attempts = 0
@@ -417,6 +418,7 @@ class CanBackend:
             self._log_link_hint(now)
         if not self.seen and alive:
             self.seen = True
+            self.configured = False
             self._reset_bus_watch()
             self._event("info", f"drive found: {self.params.describe()}, axis state {drive.axis_state}, "
                                 f"errors {error_names(drive.active_errors) or 'none'}")
@@ -425,6 +427,7 @@ class CanBackend:
                 self._on_lost(now)
             elif alive and self.lost:
                 self.lost = False
+                self.configured = False      # it may have rebooted, into a mode of its own
                 self._reset_bus_watch()
                 self.counters["drive_back"] += 1
                 gone = now - self.lost_since_s if self.lost_since_s is not None else math.nan
@@ -434,6 +437,8 @@ class CanBackend:
         if self.link_alive:
             enabled = drive.enabled
             if enabled and not self.was_enabled:
+                if not self.configured:
+                    self._take_over_armed_drive()
                 self.counters["armed"] += 1
                 self.ever_armed = True
                 self.armed_since_s = now
@@ -718,9 +723,31 @@ class CanBackend:
             return
         self._arm(now)
 
+    def _take_over_armed_drive(self) -> None:
+        """The drive is in closed-loop control, but not because this plant armed it since the
+        link came up (left armed by a previous run or odrivetool, or it arms itself at boot): its
+        control and input modes and its input torque are unknown, e.g. velocity control, where
+        Input_Torque is only a feed-forward. Zero torque first, then the limits and torque
+        control / passthrough; the setpoint then ramps up from zero as after any arming."""
+        p = self.params
+        self.configured = True
+        self.counters["taken_over"] += 1
+        self._send_setpoint(0.0)
+        if p.current_limit_a > 0 and p.velocity_limit_rev_s > 0:
+            self.drive.set_limits(p.velocity_limit_rev_s, p.current_limit_a)
+        self.drive.select_control("torque")
+        sent = "zero torque, then " + ("Set_Limits and " if p.current_limit_a > 0 else "") + \
+            "Set_Controller_Mode torque / passthrough"
+        if self.ever_armed:
+            self._event("info", f"drive back in closed-loop control (it may have rebooted into a mode of its own): {sent}")
+        else:
+            self._event("warning", f"drive found already in closed-loop control, not armed by this plant (its "
+                                   f"control mode unknown): {sent}")
+
     def _arm(self, now: float) -> None:
         drive = self.drive
         p = self.params
+        self.configured = True           # Set_Controller_Mode goes out with every arming
         self.last_enable_s = now
         self.arm_attempts += 1
         if self.first_attempt_s is None:
@@ -922,7 +949,7 @@ class CanBackend:
             "disarmed": self.counters["disarmed"], "enable_attempts": self.counters["enable_attempts"],
             "safe_state": self.counters["safe_state"], "frozen_batches": self.counters["frozen_batches"],
             "arm_gave_up": self.counters["arm_gave_up"], "ramped_setpoints": self.counters["ramped_setpoints"],
-            "heartbeat_gaps": self.counters["heartbeat_gaps"],
+            "heartbeat_gaps": self.counters["heartbeat_gaps"], "taken_over": self.counters["taken_over"],
             "heartbeat_gap_max_ms": round(self.heartbeat_gap_max_s * 1e3, 1),
             "stale_episodes": self.counters["stale_episodes"], "stale_batches": self.counters["stale_batches"],
         }

@@ -444,6 +444,12 @@ class DriveProtocol(abc.ABC):
     def enable(self, control: str = "torque") -> bool:
         """Enter closed-loop control in 'torque' or 'velocity' control."""
 
+    def select_control(self, control: str = "torque") -> bool:
+        """Put a drive that is already in closed-loop control into 'torque' or 'velocity'
+        control (its mode is not known: someone else armed it). Protocols without a separate
+        mode command re-enable."""
+        return self.enable(control)
+
     @abc.abstractmethod
     def disable(self) -> bool:
         """Put the drive in its idle (no torque) state."""
@@ -646,11 +652,16 @@ class OdriveCanSimple(DriveProtocol):
 
     # ------------------------------------------------------------ neutral interface
     def enable(self, control: str = "torque") -> bool:
+        ok = self.select_control(control)
+        return self.set_axis_state(AxisState.CLOSED_LOOP_CONTROL) and ok
+
+    def select_control(self, control: str = "torque") -> bool:
+        """Set_Controller_Mode (torque or velocity control, passthrough input) only: an ODrive
+        switches modes in closed loop without disarming."""
         modes = {"torque": ControlMode.TORQUE_CONTROL, "velocity": ControlMode.VELOCITY_CONTROL}
         if control not in modes:
             raise ValueError(f"control must be 'torque' or 'velocity', got {control!r}")
-        ok = self.set_controller_mode(modes[control], InputMode.PASSTHROUGH)
-        return self.set_axis_state(AxisState.CLOSED_LOOP_CONTROL) and ok
+        return self.set_controller_mode(modes[control], InputMode.PASSTHROUGH)
 
     def disable(self) -> bool:
         return self.set_axis_state(AxisState.IDLE)
