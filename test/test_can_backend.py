@@ -358,6 +358,24 @@ def test_a_drive_found_already_in_closed_loop_is_put_in_torque_control_first(rig
     assert r2.backend.stats()["taken_over"] == 0
 
 
+def test_a_refused_arming_names_the_axis_state_and_the_procedure_result(rig):
+    """An uncalibrated ODrive refuses closed loop with no error bit, only a procedure result:
+    the diagnostic and the log name it (before: 'axis state 1', errors none, and no why)."""
+    clock = Clock()
+    r = rig(clock, enable_retry_s=0.2, enable_max_attempts=2)
+    b = r.backend
+    b.apply(Cmd(-0.5))
+    for _ in range(40):
+        r.send("Heartbeat", Axis_Error=0, Axis_State=int(AxisState.IDLE), Procedure_Result=14,
+               Trajectory_Done_Flag=1)
+        b.service()
+        clock.t += 0.05
+    assert b.gave_up
+    level, reasons, _ = b.diagnostic()
+    assert level == 2 and "axis state 1 (IDLE), procedure result 14 (NOT_CALIBRATED)" in reasons[0]
+    assert any("procedure result 14 (NOT_CALIBRATED)" in text for _, text in b.pop_events())
+
+
 # ----------------------------------------------------------------------------- link loss, safe state
 def test_silent_drive_is_lost_after_three_heartbeat_periods_then_recovers(rig):
     clock = Clock()

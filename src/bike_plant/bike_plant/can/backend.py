@@ -86,8 +86,8 @@ from typing import Callable
 import can
 
 from ..config import ConfigError, build_dataclass, section
-from .protocol import (DRIVE_TO_HOST, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, PROTOCOLS, ODriveError,
-                       error_names)
+from .protocol import (DRIVE_TO_HOST, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, PROTOCOLS, AxisState,
+                       ODriveError, ProcedureResult, error_names)
 
 TWO_PI = 2.0 * math.pi
 RPM_PER_REV_S = 60.0
@@ -362,6 +362,20 @@ class CanBackend:
         return out
 
     # ------------------------------------------------------------------ state
+    def _axis_text(self) -> str:
+        """'axis state 1 (IDLE)', plus the procedure result when it says why the axis did not do
+        what was asked (e.g. 'procedure result 14 (NOT_CALIBRATED)': a refused closed loop often
+        has no error bit, only this)."""
+        state = int(self.drive.axis_state)
+        name = AxisState(state).name if state in AxisState._value2member_map_ else "unknown"
+        text = f"axis state {state} ({name})"
+        status = self.drive.last.get("status")
+        result = int(status.values.get("procedure_result", 0)) if status is not None else 0
+        if result not in (ProcedureResult.SUCCESS, ProcedureResult.BUSY):
+            rname = ProcedureResult(result).name if result in ProcedureResult._value2member_map_ else "unknown"
+            text += f", procedure result {result} ({rname})"
+        return text
+
     @property
     def link_alive(self) -> bool:
         return self.seen and not self.lost
@@ -420,7 +434,7 @@ class CanBackend:
             self.seen = True
             self.configured = False
             self._reset_bus_watch()
-            self._event("info", f"drive found: {self.params.describe()}, axis state {drive.axis_state}, "
+            self._event("info", f"drive found: {self.params.describe()}, {self._axis_text()}, "
                                 f"errors {error_names(drive.active_errors) or 'none'}")
         if self.seen:
             if not alive and not self.lost:
@@ -431,7 +445,7 @@ class CanBackend:
                 self._reset_bus_watch()
                 self.counters["drive_back"] += 1
                 gone = now - self.lost_since_s if self.lost_since_s is not None else math.nan
-                self._event("info", f"the drive is back after {gone:.2f}s (axis state {drive.axis_state}, errors "
+                self._event("info", f"the drive is back after {gone:.2f}s ({self._axis_text()}, errors "
                                     f"{error_names(drive.active_errors) or 'none'}): re-arming when DriveCommands flow")
                 self._new_arming_episode("the drive is back")
         if self.link_alive:
@@ -449,7 +463,7 @@ class CanBackend:
                 self.counters["disarmed"] += 1
                 self.armed_since_s = None
                 errors = error_names(drive.active_errors)
-                self._event("error", f"drive alive but left closed-loop control (axis state {drive.axis_state}"
+                self._event("error", f"drive alive but left closed-loop control ({self._axis_text()}"
                                      + (f", errors {', '.join(errors)}" if errors else ", no error") +
                                      "): FAULT_DRIVE_DISARMED, sim time paused")
             self.was_enabled = enabled
@@ -716,8 +730,8 @@ class CanBackend:
             self.gave_up_errors = drive.active_errors
             self.counters["arm_gave_up"] += 1
             errors = ", ".join(error_names(drive.active_errors)) or "none"
-            self._event("error", f"gave up arming the drive after {self.arm_attempts} attempts (axis state "
-                                 f"{drive.axis_state}, errors {errors}): "
+            self._event("error", f"gave up arming the drive after {self.arm_attempts} attempts ("
+                                 f"{self._axis_text()}, errors {errors}): "
                                  "FAULT_DRIVE_DISARMED stays, sim time paused; fix the drive, then the plant re-arms "
                                  "when its errors change, after it reboots or when DriveCommands resume")
             return
@@ -1013,7 +1027,7 @@ class CanBackend:
                 else:
                     why = "waiting for DriveCommands"
                 reasons.append(f"drive {'disarmed' if disarmed else 'idle'}: alive but not in closed-loop control "
-                               f"(axis state {drive.axis_state}): {why}; sim time paused")
+                               f"({self._axis_text()}): {why}; sim time paused")
             if self.stale:
                 level = max(level, WARN)
                 reasons.append(f"drive measurements stale ({self.stale_age_s * 1e3:.0f} ms > measurement_timeout_s="
