@@ -854,3 +854,19 @@ def test_the_launch_file_starts_the_emulator_with_the_bus_of_the_config(tmp_path
     bad.write_text("launch:\n- executable: {cmd: no-such-program-here --x 1}\n")
     with pytest.raises(LaunchError, match="not found on PATH"):
         parse_launch(str(bad))[0].command()
+
+
+def test_socketcan_on_a_kernel_without_it_is_one_config_error_that_says_so():
+    """A config for a real drive on a machine without SocketCAN (this one): one ConfigError
+    naming the cause and the way out, not only '[Errno 97] Address family not supported'."""
+    import socket
+    try:
+        socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW).close()
+        pytest.skip("this kernel has SocketCAN")
+    except (OSError, AttributeError):
+        pass
+    cfg = load_config(CAN_CONFIG)
+    cfg["can"].update(interface="socketcan", channel="can0", emulator=False)
+    with pytest.raises(ConfigError, match="this kernel has no SocketCAN") as info:
+        CanBackend(cfg)
+    assert str(info.value).count("error:") == 0 and "can0" in str(info.value)

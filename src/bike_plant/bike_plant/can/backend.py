@@ -220,6 +220,20 @@ def _number(cfg: dict, dotted: str, default: float) -> float:
     return float(node)
 
 
+def _open_hint(p: CanParams, exc: BaseException) -> str:
+    """What to do about the commonest reasons a bus does not open."""
+    err = getattr(exc, "errno", None)
+    if err is None and isinstance(getattr(exc, "__cause__", None) or getattr(exc, "__context__", None), OSError):
+        err = (exc.__cause__ or exc.__context__).errno
+    if p.interface == "socketcan" and err == 97:
+        return (" (this kernel has no SocketCAN: on a machine without it, ride the emulator on "
+                "interface udp_multicast or virtual with can.emulator true)")
+    if p.interface == "socketcan" and err == 19:
+        return (f" (no interface {p.channel}: plug the adapter in, then sudo ip link set {p.channel} up type can "
+                f"bitrate {p.bitrate})")
+    return ""
+
+
 class _BusTap:
     """The bus as the protocol sees it: frames sent also go to the CAN log (Tx)."""
 
@@ -266,7 +280,8 @@ class CanBackend:
             try:
                 bus = can.Bus(**p.bus_kwargs())
             except Exception as exc:  # noqa: BLE001 -- any interface problem is a set-up error
-                raise ConfigError(f"cannot open the CAN bus {p.bus_kwargs()}: {exc}", path, "can") from None
+                raise ConfigError(f"cannot open the CAN bus {p.bus_kwargs()}: {exc}{_open_hint(p, exc)}",
+                                  path, "can") from None
         self.bus = bus
         self.logger = None
         self.log_path = None
