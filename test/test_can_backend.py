@@ -257,6 +257,15 @@ def test_no_heartbeat_of_our_node_says_what_the_bus_carries(rig):
     clock.t += 2.5
     r6.backend.service()
     assert "with a 29-bit (extended) id" in r6.backend.pop_events()[0][1]
+    # the interface fails (socketcan: the link set down, the adapter unplugged)
+    r7 = rig(clock)
+
+    def broken_recv(timeout=None):
+        raise can.CanOperationError("Network is down [Error Code 100]")
+    r7.backend.bus.recv = broken_recv
+    clock.t += 2.5
+    r7.backend.service()
+    assert "receive calls failed in the interface" in r7.backend.pop_events()[0][1]
     # nothing at all
     r4 = rig(clock)
     clock.t += 2.5

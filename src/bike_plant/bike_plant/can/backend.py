@@ -531,6 +531,7 @@ class CanBackend:
         self.watch_other_heartbeats: dict[int, int] = {}   # node id -> Heartbeat-shaped frames
         self.watch_own_drops: collections.Counter = collections.Counter()   # our Heartbeat id: reason
         self.watch_tx_failed0 = self.drive.counters["tx_failed"]
+        self.watch_bus_errors0 = self.drive.counters["bus_error"]
         self.link_hint_key = None
         self.link_hint_logged_s = -math.inf
 
@@ -594,6 +595,11 @@ class CanBackend:
         elif self.watch_error_frames:
             key.append(("error_frames",))
             parts.append(f"{self.watch_error_frames} error frames on the bus (bitrate, termination?)")
+        rx_errors = self.drive.counters["bus_error"] - self.watch_bus_errors0
+        if rx_errors:
+            key.append(("rx_errors",))
+            parts.append(f"{rx_errors} receive calls failed in the interface ({self.params.interface} "
+                         f"{self.params.channel} down, or unplugged?)")
         failed = self.drive.counters["tx_failed"] - self.watch_tx_failed0
         if failed:
             key.append(("tx_failed",))
