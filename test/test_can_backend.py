@@ -385,6 +385,25 @@ def test_a_refused_arming_names_the_axis_state_and_the_procedure_result(rig):
     assert any("procedure result 14 (NOT_CALIBRATED)" in text for _, text in b.pop_events())
 
 
+def test_another_host_commanding_our_drive_is_warned_about(rig):
+    """Set_Input_Torque to our node that this plant did not send: a second controller on the
+    drive. Counted and logged (before: counted only as other_direction, with RTRs)."""
+    r = armed(rig)
+    b = r.backend
+    b.submit(Cmd(-0.5))
+    b.service()
+    assert b.stats()["foreign_commands"] == 0, "our own frames are not foreign (virtual: no echo)"
+    r.drive_bus.send(can.Message(arbitration_id=0x09, is_remote_frame=True, dlc=8, is_extended_id=False))
+    b.service()
+    assert b.stats()["foreign_commands"] == 0, "another host's request is harmless"
+    for _ in range(3):
+        r.drive_bus.send(OdriveCanSimpleCodec(0).encode("Set_Input_Torque", {"Input_Torque": 1.5}))
+    b.service()
+    assert b.stats()["foreign_commands"] == 3
+    warnings = [text for level, text in b.pop_events() if level == "warning" and "another host" in text]
+    assert len(warnings) == 1 and "another host sends Set_Input_Torque to node 0" in warnings[0]
+
+
 # ----------------------------------------------------------------------------- link loss, safe state
 def test_silent_drive_is_lost_after_three_heartbeat_periods_then_recovers(rig):
     clock = Clock()

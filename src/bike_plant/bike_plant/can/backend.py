@@ -86,7 +86,7 @@ from typing import Callable
 import can
 
 from ..config import ConfigError, build_dataclass, section
-from .protocol import (DRIVE_TO_HOST, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, PROTOCOLS, AxisState,
+from .protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, PROTOCOLS, AxisState,
                        ODriveError, ProcedureResult, error_names)
 
 TWO_PI = 2.0 * math.pi
@@ -329,6 +329,7 @@ class CanBackend:
         self.late_gap_s = None             # a gap > heartbeat_timeout_s found only when its frames were drained
         self.recent_heartbeat_gaps_s: collections.deque = collections.deque(maxlen=8)   # the drive's actual rate
         self.heartbeat_period_warned = False
+        self.foreign_warned_s = -math.inf
         self.lost_gap_s = None             # that gap, while the loss it caused is reported
         self.stale = False                 # speed / torque estimates older than measurement_timeout_s
         self.stale_age_s = 0.0
@@ -523,6 +524,8 @@ class CanBackend:
                 self._log(msg, rx=True)
                 if not self.link_alive:
                     self._watch_bus(msg, bool(measurements))
+                if not measurements and not msg.is_remote_frame and not msg.is_extended_id:
+                    self._foreign_command(msg, now)
 
     def _reset_bus_watch(self) -> None:
         self.watch_frames = 0                          # frames received (not our own echoes)
@@ -563,6 +566,24 @@ class CanBackend:
             return
         reason = codec.classify(msg, DRIVE_TO_HOST, answers_requests=False)
         self.watch_own_drops[reason if isinstance(reason, str) else "decode_error"] += 1
+
+    def _foreign_command(self, msg: can.Message, now: float) -> None:
+        """A command frame to our node that this plant did not send (its own echoes are already
+        filtered): another host drives the same axis (a script, ros_odrive, a second plant).
+        Counted; warned about at most every 10 s."""
+        codec = getattr(self.drive, "codec", None)
+        arb = msg.arbitration_id
+        if codec is None or not isinstance(arb, int) or arb >> 5 != self.params.node_id:
+            return
+        name = next((n for n, m in codec.messages.items() if m.frame_id == arb & 0x1F), None)
+        if name not in HOST_TO_DRIVE:
+            return
+        self.counters["foreign_commands"] += 1
+        if now - self.foreign_warned_s >= 10.0:
+            self.foreign_warned_s = now
+            self._event("warning", f"another host sends {name} to {self.params.describe()} "
+                                   f"({self.counters['foreign_commands']} such frames so far): two controllers on "
+                                   "one drive; stop the other one")
 
     def _link_hint(self) -> tuple[tuple, str]:
         """(shape, text) of what the bus carried while there was no link: '' when nothing helps."""
@@ -985,6 +1006,7 @@ class CanBackend:
             "safe_state": self.counters["safe_state"], "frozen_batches": self.counters["frozen_batches"],
             "arm_gave_up": self.counters["arm_gave_up"], "ramped_setpoints": self.counters["ramped_setpoints"],
             "heartbeat_gaps": self.counters["heartbeat_gaps"], "taken_over": self.counters["taken_over"],
+            "foreign_commands": self.counters["foreign_commands"],
             "heartbeat_gap_max_ms": round(self.heartbeat_gap_max_s * 1e3, 1),
             "stale_episodes": self.counters["stale_episodes"], "stale_batches": self.counters["stale_batches"],
         }
