@@ -751,7 +751,10 @@ def test_config_section_and_emulator_arguments(tmp_path):
                              ("heartbeat_timeout_s", 0.0, "> 0"), ("protocol", "vesc", "unknown 'vesc'"),
                              ("enable_max_attempts", -1, ">= 0"), ("arm_ramp_nm_per_s", -5.0, ">= 0"),
                              # Set_Limits sets both: a one-sided limit would overwrite the other on the drive
-                             ("velocity_limit_rev_s", 0.0, "go together"), ("current_limit_a", 0.0, "go together")):
+                             ("velocity_limit_rev_s", 0.0, "go together"), ("current_limit_a", 0.0, "go together"),
+                             # a drive at heartbeat_msg_rate_ms 500 told in the config, the timeout left at 0.3 s
+                             ("heartbeat_period_s", 0.5, "must be longer than heartbeat_period_s"),
+                             ("watchdog_feed_s", 0.5, "must be shorter than the drive's watchdog")):
         bad = load_config(CAN_CONFIG)
         bad["can"][key] = value
         with pytest.raises(ConfigError, match=text):

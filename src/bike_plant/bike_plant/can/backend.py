@@ -163,6 +163,13 @@ class CanParams:
                      "enable_max_attempts", "armed_stable_s", "disarm_grace_s", "arm_ramp_nm_per_s"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if self.heartbeat_timeout_s <= self.heartbeat_period_s:
+            raise ValueError(f"heartbeat_timeout_s ({self.heartbeat_timeout_s:g}) must be longer than "
+                             f"heartbeat_period_s ({self.heartbeat_period_s:g}), the drive's Heartbeat period: "
+                             "else every gap between two Heartbeats is a lost drive (3 periods is usual)")
+        if self.emulator and self.emulator_watchdog_s and self.watchdog_feed_s >= self.emulator_watchdog_s:
+            raise ValueError(f"watchdog_feed_s ({self.watchdog_feed_s:g}) must be shorter than the drive's "
+                             f"watchdog, emulator_watchdog_s ({self.emulator_watchdog_s:g})")
         if (self.current_limit_a > 0) != (self.velocity_limit_rev_s > 0):
             # CANSimple's Set_Limits always sets both: a placeholder for the one left at 0 would
             # overwrite that limit on the drive (e.g. its motor's current limit with 1000 A)
