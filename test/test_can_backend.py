@@ -404,6 +404,29 @@ def test_another_host_commanding_our_drive_is_warned_about(rig):
     assert len(warnings) == 1 and "another host sends Set_Input_Torque to node 0" in warnings[0]
 
 
+def test_a_drive_that_sends_no_speed_is_stale_and_says_why(rig):
+    """Heartbeats and torques but no Get_Encoder_Estimates (encoder_msg_rate_ms left at 0, motion
+    not requested): before, no fault at all and a PlantState reading 0 rpm however fast the
+    flywheel turned; now FAULT_DRIVE_STALE after 0.5 s armed, and the diagnostic says what to set."""
+    clock = Clock()
+    r = armed(rig, clock)
+    b = r.backend
+    for _ in range(20):
+        r.heartbeat()
+        r.send("Get_Torques", Torque_Target=-0.5, Torque_Estimate=-0.5)
+        b.apply(Cmd(-0.5))
+        b.service()
+        clock.t += 0.05
+    assert b.faults & FAULT_DRIVE_STALE and b.snapshot()["speed_rpm"] == 0.0
+    level, reasons, _ = b.diagnostic()
+    assert level == 1 and "no Get_Encoder_Estimates" in reasons[0] and "encoder_msg_rate_ms = 10" in reasons[0]
+    assert any("no Get_Encoder_Estimates" in text for _, text in b.pop_events())
+    r.send("Get_Encoder_Estimates", Pos_Estimate=1.0, Vel_Estimate=20.0)
+    r.heartbeat()
+    b.service()
+    assert not b.faults & FAULT_DRIVE_STALE and b.snapshot()["speed_rpm"] == pytest.approx(1200.0)
+
+
 # ----------------------------------------------------------------------------- link loss, safe state
 def test_silent_drive_is_lost_after_three_heartbeat_periods_then_recovers(rig):
     clock = Clock()

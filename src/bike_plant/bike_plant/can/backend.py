@@ -100,6 +100,8 @@ FAULT_DRIVE_STALE = 1024
 
 # measurement kinds whose age makes a PlantState stale (speed and torque: what the controller closes loops on)
 STALE_KINDS = ("motion", "torque")
+# armed this long without a single speed (Get_Encoder_Estimates): stale, and the diagnostic says why
+SPEED_MISSING_AFTER_S = 0.5
 # a frame's own receive timestamp (wall clock, e.g. the kernel's on socketcan / udp_multicast) is
 # trusted for the receipt time when it is at most this old and not in the future
 RX_STAMP_MAX_AGE_S = 5.0
@@ -340,6 +342,7 @@ class CanBackend:
         self.lost_gap_s = None             # that gap, while the loss it caused is reported
         self.stale = False                 # speed / torque estimates older than measurement_timeout_s
         self.stale_age_s = 0.0
+        self.speed_missing = False         # armed for a while, and not one Get_Encoder_Estimates
         self.last_stale_event_s = -math.inf
         # what the bus carries while there is no link (reset whenever the link comes up): for the
         # diagnostic and a logged hint (a drive on another node id, heartbeats we drop, silence)
@@ -698,18 +701,29 @@ class CanBackend:
         must not integrate on a held value. Counted; logged at most once per second."""
         last = self.drive.last
         ages = [now - last[k].received_s for k in STALE_KINDS if k in last]
+        # no speed at all since the drive armed (encoder_msg_rate_ms 0 and motion not requested):
+        # the PlantState would read 0 rpm however fast the flywheel turns
+        armed_s = now - self.armed_since_s if self.armed_since_s is not None else 0.0
+        self.speed_missing = "motion" not in last and armed_s > max(SPEED_MISSING_AFTER_S,
+                                                                    self.params.measurement_timeout_s)
+        if self.speed_missing:
+            ages.append(armed_s)
         self.stale_age_s = max(ages) if ages else 0.0
         stale = self.drive_enabled and self.stale_age_s > self.params.measurement_timeout_s
         if stale and not self.stale:
             self.counters["stale_episodes"] += 1
             if now - self.last_stale_event_s >= 1.0:
                 self.last_stale_event_s = now
-                self._event("warning", f"drive measurements stale: speed / torque estimate "
-                                       f"{self.stale_age_s * 1e3:.0f} ms "
-                                       f"old > measurement_timeout_s={self.params.measurement_timeout_s:g}s: "
-                                       f"FAULT_DRIVE_STALE, the controller holds its trim "
+                self._event("warning", self._stale_text() + f": FAULT_DRIVE_STALE, the controller holds its trim "
                                        f"({self.counters['stale_episodes']} episodes so far)")
         self.stale = stale
+
+    def _stale_text(self) -> str:
+        if self.speed_missing:
+            return (f"no Get_Encoder_Estimates from the drive in the {self.stale_age_s:.1f}s since it armed, so "
+                    "the speed reads 0: set encoder_msg_rate_ms = 10 on the drive, or add motion to can.request")
+        return (f"drive measurements stale: speed / torque estimate {self.stale_age_s * 1e3:.0f} ms old > "
+                f"measurement_timeout_s={self.params.measurement_timeout_s:g}s")
 
     def _on_lost(self, now: float, gap_s: float | None = None, late: bool = False) -> None:
         self.lost = True
@@ -1080,8 +1094,7 @@ class CanBackend:
                                f"({self._axis_text()}): {why}; sim time paused")
             if self.stale:
                 level = max(level, WARN)
-                reasons.append(f"drive measurements stale ({self.stale_age_s * 1e3:.0f} ms > measurement_timeout_s="
-                               f"{p.measurement_timeout_s:g}s): the controller holds its trim")
+                reasons.append(self._stale_text() + ": the controller holds its trim")
         values = {f"can_{k}": str(v) for k, v in self.stats().items()}
         v = drive.values(now)
         values.update({
