@@ -71,8 +71,10 @@ BAD_FILES = [
     ("machine: bldc\nmodes: {friction_nms: '1e-4', dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
     ("machine: bldc\nmodes: {friction_nms: 1.0e-4}\n", "modes.dry_friction_nm must be"),
     # finite but beyond any bike's: B = 1e300 rode to a virtual distance of 5e202 m, an rms of inf
-    ("machine: bldc\nmodes: {friction_nms: 1.0e+300, dry_friction_nm: 0.0}\n", "friction_nms must be a number in [0, 1]"),
-    ("machine: bldc\nmodes: {friction_nms: 1.0e-4, dry_friction_nm: 20.0}\n", "dry_friction_nm must be a number in [0, 10]"),
+    ("machine: bldc\nmodes: {friction_nms: 1.0e+300, dry_friction_nm: 0.0}\n",
+     "friction_nms must be a number in [0, 1]"),
+    ("machine: bldc\nmodes: {friction_nms: 1.0e-4, dry_friction_nm: 20.0}\n",
+     "dry_friction_nm must be a number in [0, 10]"),
     ("machine: bldc\nmodes: {friction_nms: 1.0e-4, dry_friction_nm: 0, erg_power_max_w: 9}\n", "unknown key"),
     ("machine: bldc\nmodes: !!python/object/apply:os.system ['true']\n", "not valid YAML"),
 ]

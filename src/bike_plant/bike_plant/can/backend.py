@@ -86,8 +86,8 @@ from typing import Callable
 import can
 
 from ..config import ConfigError, build_dataclass, section
-from .protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND, PROTOCOLS, AxisState,
-                       ODriveError, ProcedureResult, error_names)
+from .protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND,
+                       PROTOCOLS, AxisState, ODriveError, ProcedureResult, error_names)
 
 TWO_PI = 2.0 * math.pi
 RPM_PER_REV_S = 60.0
@@ -679,12 +679,14 @@ class CanBackend:
         p = self.params
         if period <= 1.5 * p.heartbeat_period_s:
             return ""
-        text = f"the drive's Heartbeats come every {period:.2f}s, not every can.heartbeat_period_s={p.heartbeat_period_s:g}s"
+        text = (f"the drive's Heartbeats come every {period:.2f}s, not every "
+                f"can.heartbeat_period_s={p.heartbeat_period_s:g}s")
         if period > p.heartbeat_timeout_s:
             return text + (f", longer than heartbeat_timeout_s={p.heartbeat_timeout_s:g}s, so the link cannot "
                            f"hold: set heartbeat_msg_rate_ms = {p.heartbeat_period_s * 1000:g} on the drive")
         return text + (f" (little margin below heartbeat_timeout_s={p.heartbeat_timeout_s:g}s): set "
-                       f"heartbeat_msg_rate_ms = {p.heartbeat_period_s * 1000:g} on the drive, or the can: keys to match")
+                       f"heartbeat_msg_rate_ms = {p.heartbeat_period_s * 1000:g} on the drive, or the can: keys "
+                       f"to match")
 
     def _check_heartbeat_period(self) -> None:
         """Log once (again after it fits for a while) when the Heartbeat rate does not fit."""
@@ -816,7 +818,8 @@ class CanBackend:
         sent = "zero torque, then " + ("Set_Limits and " if p.current_limit_a > 0 else "") + \
             "Set_Controller_Mode torque / passthrough"
         if self.ever_armed:
-            self._event("info", f"drive back in closed-loop control (it may have rebooted into a mode of its own): {sent}")
+            self._event("info", f"drive back in closed-loop control (it may have rebooted into a mode of its "
+                                f"own): {sent}")
         else:
             self._event("warning", f"drive found already in closed-loop control, not armed by this plant (its "
                                    f"control mode unknown): {sent}")
