@@ -338,6 +338,37 @@ def test_dircon_discovery_read_subscribe_and_a_write_answered_with_its_notificat
     assert note.data == dircon.uuid128(ftms.CONTROL_POINT) + bytes([0x80, 0x05, 0x01])
 
 
+def _characteristics(conn, service):
+    """{characteristic uuid: DIRCON properties} of ``service`` as an app discovers them."""
+    (msg,) = dircon.split_messages(bytearray(conn.feed(dircon.encode(dircon.MSG_DISCOVER_CHARACTERISTICS, 5,
+                                                                     dircon.uuid128(service)))))
+    records = msg.data[16:]
+    return {struct.unpack(">I", records[i:i + 4])[0]: records[i + 16] for i in range(0, len(records), 17)}
+
+
+def test_a_heart_rate_target_comes_with_its_supported_heart_rate_range_and_only_with_it():
+    """FTMS 1.0, 3 (C.5): Supported Heart Rate Range 0x2AD7 is mandatory with the Heart Rate
+    Target Setting feature and excluded without it: uint8 min, max, increment in bpm, the
+    targets the Control Point takes (40..220 bpm, bike_plant.heart)."""
+    for heart_rate in (True, False):
+        control = ftms.FtmsControl(UNITS, heart_rate=heart_rate)
+        tel = Telemetry(35.0)
+        conn = dircon.DirconConnection(services_for(control, tel.encode, lambda data: []))
+        chars = _characteristics(conn, ftms.FTMS_SERVICE)
+        claims = bool(struct.unpack("<II", control.encode_feature())[1] & ftms.TARGET_HEART_RATE)
+        assert claims == heart_rate and (ftms.HEART_RATE_RANGE in chars) == heart_rate
+        if not heart_rate:
+            continue
+        assert chars[ftms.HEART_RATE_RANGE] == dircon.PROP_READ
+        (msg,) = dircon.split_messages(bytearray(conn.feed(dircon.encode(dircon.MSG_READ, 6,
+                                                                         dircon.uuid128(ftms.HEART_RATE_RANGE)))))
+        assert msg.code == dircon.RESP_SUCCESS and struct.unpack("<BBB", msg.data[16:]) == (40, 220, 1)
+        control.write(bytes([ftms.OP_REQUEST_CONTROL]))
+        for bpm, result in ((40, ftms.RESULT_SUCCESS), (220, ftms.RESULT_SUCCESS),
+                            (39, ftms.RESULT_INVALID_PARAMETER), (221, ftms.RESULT_INVALID_PARAMETER)):
+            assert control.write(bytes([ftms.OP_TARGET_HEART_RATE, bpm])).response[2] == result, bpm
+
+
 @pytest.mark.parametrize("msg_type,data,code", [
     (9, b"", dircon.RESP_UNKNOWN_TYPE),
     (dircon.MSG_READ, b"\x00" * 5, dircon.RESP_GENERIC_ERROR),

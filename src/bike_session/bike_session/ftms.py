@@ -14,6 +14,9 @@ Characteristics served (values little endian, as in BLE):
   one: the simulated rider's, or a strap's on a CAN bike), elapsed time s.
 - Supported Inclination / Resistance Level / Power Range 0x2AD5 / 0x2AD6 / 0x2AD8 (read):
   the bike's Command ranges (bike_session.profiles.ModeUnits), so an app never has to guess.
+- Supported Heart Rate Range 0x2AD7 (read; uint8 min, max, increment bpm): only on a bike with
+  a heart rate, which alone claims the heart-rate target (FTMS 1.0, 3: mandatory with that
+  target-setting feature, excluded without it).
 - Fitness Machine Control Point 0x2AD9 (write; its response [0x80, op, result] is notified,
   BLE's indication) and Fitness Machine Status 0x2ADA (notify).
 
@@ -51,7 +54,7 @@ import dataclasses
 import math
 import struct
 
-from bike_plant.heart import heart_rate_target_problem
+from bike_plant.heart import HEART_RATE_TARGET_MAX_BPM, HEART_RATE_TARGET_MIN_BPM, heart_rate_target_problem
 from bike_plant.mechanics import rider_cadence_problem
 from bike_session.profiles import MODES, ModeUnits
 
@@ -61,6 +64,7 @@ FEATURE = 0x2ACC
 INDOOR_BIKE_DATA = 0x2AD2
 INCLINATION_RANGE = 0x2AD5
 RESISTANCE_RANGE = 0x2AD6
+HEART_RATE_RANGE = 0x2AD7
 POWER_RANGE = 0x2AD8
 CONTROL_POINT = 0x2AD9
 STATUS = 0x2ADA
@@ -310,6 +314,10 @@ class FtmsControl:
 
     def encode_resistance_range(self) -> bytes:
         return struct.pack("<hhH", 0, int(RESISTANCE_LEVEL_MAX * 10), 1)
+
+    def encode_heart_rate_range(self) -> bytes:
+        """The heart-rate targets Set Target Heart Rate takes (bike_plant.heart), whole bpm."""
+        return struct.pack("<BBB", math.ceil(HEART_RATE_TARGET_MIN_BPM), math.floor(HEART_RATE_TARGET_MAX_BPM), 1)
 
     # ---- the Control Point
     def write(self, data: bytes) -> Reply:

@@ -45,11 +45,14 @@ def services_for(control: ftms.FtmsControl, telemetry, on_control_point) -> dict
     """The GATT table served over DIRCON: the Fitness Machine Service and the Cycling Power
     Service."""
     C, R, W, N = dircon.Characteristic, dircon.PROP_READ, dircon.PROP_WRITE, dircon.PROP_NOTIFY
+    # the heart-rate range with the heart-rate target it bounds (a bike with a rider's heart rate)
+    heart = [C(ftms.HEART_RATE_RANGE, R, read=control.encode_heart_rate_range)] if control.heart_rate else []
     return {ftms.FTMS_SERVICE: [
         C(ftms.FEATURE, R, read=control.encode_feature),
         C(ftms.INDOOR_BIKE_DATA, R | N, read=telemetry),
         C(ftms.INCLINATION_RANGE, R, read=control.encode_inclination_range),
         C(ftms.RESISTANCE_RANGE, R, read=control.encode_resistance_range),
+        *heart,
         C(ftms.POWER_RANGE, R, read=control.encode_power_range),
         C(ftms.CONTROL_POINT, W | N, write=on_control_point),
         C(ftms.STATUS, N),
