@@ -307,7 +307,7 @@ def _connection():
     control = ftms.FtmsControl(UNITS)
     tel = Telemetry(35.0)
     return dircon.DirconConnection(services_for(control, tel.encode,
-                                                lambda data: [(ftms.CONTROL_POINT, control.write(data).response)]))
+                                                lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]))
 
 
 def test_dircon_discovery_read_subscribe_and_a_write_answered_with_its_notification():
@@ -353,7 +353,7 @@ def test_a_heart_rate_target_comes_with_its_supported_heart_rate_range_and_only_
     for heart_rate in (True, False):
         control = ftms.FtmsControl(UNITS, heart_rate=heart_rate)
         tel = Telemetry(35.0)
-        conn = dircon.DirconConnection(services_for(control, tel.encode, lambda data: []))
+        conn = dircon.DirconConnection(services_for(control, tel.encode, lambda data, client: []))
         chars = _characteristics(conn, ftms.FTMS_SERVICE)
         claims = bool(struct.unpack("<II", control.encode_feature())[1] & ftms.TARGET_HEART_RATE)
         assert claims == heart_rate and (ftms.HEART_RATE_RANGE in chars) == heart_rate
@@ -402,7 +402,7 @@ def test_the_server_closes_only_a_broken_connection_and_drops_an_app_that_reads_
     logs = []
     control = ftms.FtmsControl(UNITS)
     tel = Telemetry(35.0)
-    server = dircon.DirconServer("127.0.0.1", 0, services_for(control, tel.encode, lambda d: []),
+    server = dircon.DirconServer("127.0.0.1", 0, services_for(control, tel.encode, lambda d, client: []),
                                  lambda text, warning: logs.append((text, warning)))
     stop = [False]
     import threading
@@ -431,6 +431,64 @@ def test_the_server_closes_only_a_broken_connection_and_drops_an_app_that_reads_
         assert any("reads nothing" in t and w for t, w in logs), logs
         good.close()
         deaf.close()
+    finally:
+        stop[0] = True
+        pump.join()
+        server.close()
+
+
+def test_control_is_one_apps_until_it_resets_or_disconnects():
+    """FTMS 1.0, 4.16.2.1: a Request Control while another client has control gets result 5
+    (control not permitted), and so does any op of a client that does not have it; control
+    lasts as long as its holder's connection. Two apps on real sockets: the second is refused
+    until the first disconnects, then takes over; the first's target stayed in force meanwhile."""
+    control = ftms.FtmsControl(UNITS)
+    a, b = object(), object()
+    assert control.write(bytes([ftms.OP_REQUEST_CONTROL]), a).response[2] == ftms.RESULT_SUCCESS
+    assert control.write(bytes([ftms.OP_REQUEST_CONTROL]), a).response[2] == ftms.RESULT_SUCCESS   # again: still its
+    refused = control.write(bytes([ftms.OP_REQUEST_CONTROL]), b)
+    assert refused.response == bytes([0x80, 0x00, ftms.RESULT_NOT_PERMITTED]) and "another app" in refused.message
+    taken = control.write(cp(ftms.OP_TARGET_POWER, "h", 200), b)
+    assert taken.response[2] == ftms.RESULT_NOT_PERMITTED and taken.target is None and taken.status is None
+    assert control.write(bytes([ftms.OP_RESET]), b).response[2] == ftms.RESULT_NOT_PERMITTED
+    assert control.write(cp(ftms.OP_TARGET_POWER, "h", 200), a).response[2] == ftms.RESULT_SUCCESS
+    assert control.release(b) is None                     # b never had it
+    assert "disconnected" in control.release(a)
+    assert control.write(cp(ftms.OP_TARGET_POWER, "h", 150), b).response[2] == ftms.RESULT_NOT_PERMITTED
+    assert control.write(bytes([ftms.OP_REQUEST_CONTROL]), b).response[2] == ftms.RESULT_SUCCESS
+    control.write(bytes([ftms.OP_RESET]), b)              # a reset gives it up too
+    assert control.write(bytes([ftms.OP_REQUEST_CONTROL]), a).response[2] == ftms.RESULT_SUCCESS
+
+    control = ftms.FtmsControl(UNITS)
+    tel = Telemetry(35.0)
+    server = dircon.DirconServer("127.0.0.1", 0, services_for(
+        control, tel.encode, lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]),
+        lambda text, warning: None, on_close=control.release)
+    stop = [False]
+    import threading
+    pump = threading.Thread(target=lambda: [server.poll(0.01) for _ in iter(lambda: stop[0], True)])
+    pump.start()
+
+    def ask(app, data):
+        assert app.write(ftms.CONTROL_POINT, data).code == dircon.RESP_SUCCESS
+        return app.wait_notification(ftms.CONTROL_POINT)[2]
+
+    try:
+        first, second = (dircon.DirconClient("127.0.0.1", server.port) for _ in range(2))
+        for app in (first, second):
+            app.subscribe(ftms.CONTROL_POINT)
+        assert ask(first, bytes([ftms.OP_REQUEST_CONTROL])) == ftms.RESULT_SUCCESS
+        assert ask(first, cp(ftms.OP_TARGET_POWER, "h", 180)) == ftms.RESULT_SUCCESS
+        assert ask(second, bytes([ftms.OP_REQUEST_CONTROL])) == ftms.RESULT_NOT_PERMITTED
+        assert ask(second, cp(ftms.OP_TARGET_POWER, "h", 120)) == ftms.RESULT_NOT_PERMITTED
+        assert control.running_target.text == "target power 180 W"
+        first.close()
+        end = time.monotonic() + 5
+        while control.controlled and time.monotonic() < end:
+            time.sleep(0.01)
+        assert ask(second, bytes([ftms.OP_REQUEST_CONTROL])) == ftms.RESULT_SUCCESS
+        assert ask(second, cp(ftms.OP_TARGET_POWER, "h", 120)) == ftms.RESULT_SUCCESS
+        second.close()
     finally:
         stop[0] = True
         pump.join()

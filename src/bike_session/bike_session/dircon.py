@@ -107,8 +107,9 @@ class Characteristic:
     uuid: int
     properties: int
     read: Callable[[], bytes] | None = None
-    # a write returns the notifications it causes: [(characteristic uuid, value), ...]
-    write: Callable[[bytes], list] | None = None
+    # write(value, client): the notifications it causes, [(characteristic uuid, value), ...];
+    # client: the DirconConnection that wrote (FTMS control is an app's, not everyone's)
+    write: Callable[[bytes, DirconConnection], list] | None = None
 
 
 class DirconConnection:
@@ -169,7 +170,7 @@ class DirconConnection:
         # write
         if not char.properties & PROP_WRITE or char.write is None:
             return self._refuse(msg, RESP_NOT_SUPPORTED, f"{uuid_text(uuid)} cannot be written", uuid)
-        caused = char.write(rest)
+        caused = char.write(rest, self)
         return encode(msg.msg_type, msg.seq, uuid) + b"".join(self.notification(u, v) for u, v in caused)
 
 
@@ -179,16 +180,18 @@ MAX_OUTBOX_BYTES = 1 << 16     # an app that does not read this much is dropped,
 class DirconServer:
     """A non-blocking TCP server of :class:`DirconConnection` s, driven by :meth:`poll` (the
     node calls it from a timer: no thread of its own). ``log(text, warning)`` gets every
-    connection change and refusal."""
+    connection change and refusal; ``on_close(connection)`` is called when an app's connection
+    is gone (whatever closed it)."""
 
     def __init__(self, host: str, port: int, services: dict[int, list[Characteristic]],
-                 log: Callable[[str, bool], None]):
+                 log: Callable[[str, bool], None], on_close: Callable[[DirconConnection], None] | None = None):
         import selectors
         import socket
 
         self._socket_mod = socket
         self.services = services
         self.log = log
+        self.on_close = on_close
         self.sel = selectors.DefaultSelector()
         self.listener = socket.create_server((host, port), reuse_port=False, backlog=4)
         self.listener.setblocking(False)
@@ -277,7 +280,9 @@ class DirconServer:
 
     def _close(self, sock, why: str, warning: bool) -> None:
         self.log(why, warning)          # said before the app sees the close
-        self.conns.pop(sock, None)
+        entry = self.conns.pop(sock, None)
+        if entry is not None and self.on_close is not None:
+            self.on_close(entry[0])
         try:
             self.sel.unregister(sock)
         except (KeyError, ValueError):

@@ -27,7 +27,7 @@ What a control request does (:class:`FtmsControl`):
 
 | op | request | Command (mode, value) |
 |---|---|---|
-| 0x00 | Request Control | (none; needed before any other op, else result 5) |
+| 0x00 | Request Control | (none; needed before any other op, else result 5; one app at a time) |
 | 0x01 | Reset | resistance 0 (brake released), control given up |
 | 0x03 | Target Inclination, sint16 0.1 % | slope, grade mapped onto [grade_min, grade_max] |
 | 0x04 | Target Resistance Level, uint8 or sint16, 0.1 | resistance, level / 100 |
@@ -37,6 +37,11 @@ What a control request does (:class:`FtmsControl`):
 | 0x11 | Indoor Bike Simulation: wind 0.001 m/s, grade 0.01 %, Crr 1e-4, Cw 0.01 kg/m | slope at the grade, on the app's road |
 | 0x13 | Spin Down Control, uint8 1 start / 2 ignore | spindown (brake released; the response carries the target speeds low / high, uint16 0.01 km/h; Status 0x14 then says stop pedalling, success or error as the controller's procedure goes) |
 | 0x14 | Set Targeted Cadence, uint16 0.5 rpm | the rider's cadence target (Command.cadence_rpm): the target in force again with it, and every later one; 0: none |
+
+Control belongs to the app that requested it (FTMS 1.0, 4.16.2.1), a ``client`` of
+:meth:`FtmsControl.write` (its DIRCON connection): another app's Request Control, and any other
+op from an app without it, get result 5 (control not permitted) until that app resets or
+disconnects (:meth:`FtmsControl.release`); the targets it set stay in force.
 
 A target outside the advertised range is refused with result 3 (invalid parameter) and a
 message, except the simulation grade: apps send the road's grade as it comes, so a grade
@@ -294,6 +299,7 @@ class FtmsControl:
         self.units = units
         self.heart_rate = heart_rate                  # the bike has a rider's heart rate to follow
         self.controlled = False
+        self.controller = None                        # the client that has control (a DIRCON connection)
         self.running_target: Target | None = None    # the target a Stop keeps for a Resume
         self.stopped = False
         self.simulation_extra = None                  # (wind, crr, cw) last said
@@ -320,7 +326,17 @@ class FtmsControl:
         return struct.pack("<BBB", math.ceil(HEART_RATE_TARGET_MIN_BPM), math.floor(HEART_RATE_TARGET_MAX_BPM), 1)
 
     # ---- the Control Point
-    def write(self, data: bytes) -> Reply:
+    def release(self, client) -> str | None:
+        """``client`` is gone (its connection closed): the control it had is free again (FTMS
+        1.0, 4.16.2.1: it lasts as long as the connection). A line for the log, None if it had none."""
+        if not self.controlled or self.controller is not client:
+            return None
+        self.controlled, self.controller = False, None
+        return "control released: the app that had it disconnected (its targets stay in force)"
+
+    def write(self, data: bytes, client=None) -> Reply:
+        """One Control Point write by ``client`` (who wrote it: its DIRCON connection; None for
+        the one caller of a test)."""
         if not data:
             return Reply(bytes([OP_RESPONSE, 0, RESULT_INVALID_PARAMETER]), message="empty Control Point write",
                          warning=True)
@@ -331,12 +347,16 @@ class FtmsControl:
             return Reply(bytes([OP_RESPONSE, op, code]), message=message, warning=warning, **kw)
 
         if op == OP_REQUEST_CONTROL:
-            self.controlled = True
+            if self.controlled and self.controller is not client:
+                return result(RESULT_NOT_PERMITTED, "request control refused: another app has control")
+            self.controlled, self.controller = True, client
             return result(RESULT_SUCCESS, "control granted", warning=False)
         if op not in OP_NAMES:
             return result(RESULT_NOT_SUPPORTED, f"unknown Control Point op 0x{op:02x} ({len(param)} parameter bytes)")
         if not self.controlled:
             return result(RESULT_NOT_PERMITTED, f"{name} before Request Control: refused")
+        if self.controller is not client:
+            return result(RESULT_NOT_PERMITTED, f"{name} refused: another app has control")
         handler = {OP_RESET: self._reset, OP_TARGET_INCLINATION: self._inclination,
                    OP_TARGET_RESISTANCE: self._resistance, OP_TARGET_POWER: self._power,
                    OP_TARGET_HEART_RATE: self._heart_rate,
@@ -501,7 +521,7 @@ class FtmsControl:
         return out + [bytes([STATUS_SPIN_DOWN, value])]
 
     def _reset(self, op, name, param) -> Reply:
-        self.controlled = False
+        self.controlled, self.controller = False, None
         self.cadence_rpm = 0.0
         self.stopped = False
         self.running_target = None

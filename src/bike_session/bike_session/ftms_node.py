@@ -293,7 +293,7 @@ def _make_node_class():
             self._set_road = set_command_road
             try:
                 self.server = dircon.DirconServer(host, int(port), services_for(
-                    self.control, self.telemetry.encode, self._on_control_point), self._log)
+                    self.control, self.telemetry.encode, self._on_control_point), self._log, self._on_app_gone)
             except OSError as exc:
                 raise SetupError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
             # apps find a trainer by mDNS; on loopback only (the default) nobody else could reach it
@@ -338,8 +338,13 @@ def _make_node_class():
             self.pub_diag.publish(self._Diag(status=[st]))
 
         # ---- app side
-        def _on_control_point(self, data: bytes) -> list:
-            reply = self.control.write(data)
+        def _on_app_gone(self, conn) -> None:
+            released = self.control.release(conn)
+            if released:
+                self._log(f"FTMS {released}", False)
+
+        def _on_control_point(self, data: bytes, client) -> list:
+            reply = self.control.write(data, client)
             if reply.message:
                 self._log(f"FTMS {reply.message}", reply.warning)
             if reply.target is not None:
