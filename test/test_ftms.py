@@ -193,6 +193,9 @@ def test_characteristic_values_are_the_specs_bytes():
     assert struct.unpack("<hhH", control.encode_power_range()) == (0, 1000, 1)
     assert struct.unpack("<hhH", control.encode_inclination_range()) == (-100, 200, 1)      # 0.1 % steps
     assert struct.unpack("<hhH", control.encode_resistance_range()) == (0, 1000, 1)
+    # a range beyond the sint16 field says its end (it raised struct.error: the app's read closed its connection)
+    strong = ftms.FtmsControl(dataclasses.replace(UNITS, erg_power_max_w=40000.0))
+    assert struct.unpack("<hhH", strong.encode_power_range()) == (0, 32767, 1)
     data = ftms.encode_indoor_bike_data(speed_kmh=31.456, cadence_rpm=88.6, distance_m=1234.4,
                                         resistance_level=12.3, power_w=-20.4, elapsed_s=61.2)
     # flags (speed present: bit 0 clear), speed 0.01 km/h, cadence 0.5 rpm, uint24 m, level 1, W, s

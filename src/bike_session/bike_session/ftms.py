@@ -312,7 +312,8 @@ class FtmsControl:
         return encode_feature(self.heart_rate)
 
     def encode_power_range(self) -> bytes:
-        return struct.pack("<hhH", 0, int(math.floor(self.units.erg_power_max_w)), 1)
+        # sint16 W: a bike stronger than 32767 W (a config's erg_power_max_w) shows the field's end
+        return struct.pack("<hhH", 0, _fit(math.floor(self.units.erg_power_max_w), 0, 0x7FFF), 1)
 
     def encode_inclination_range(self) -> bytes:
         return struct.pack("<hhH", math.ceil(self.units.grade_min * 1000 - 1e-9),
