@@ -289,6 +289,10 @@ class ModedSpmsmController(SessionCommand):
         # near the voltage edge the trim still gets more torque out of them, 4.96 N m for 4.94 at
         # 100 r/min, where holding it there gave 4.84)
         self.inverter_limited = bool(inner.cs[C_TORQUE_MODE]) and int(status["limits"]) != 0
+        if self.inverter_limited:
+            # the law's integrators hold on it as the trim does (hold_last): no wind-up on an
+            # assist the 24 V link cannot give
+            self.law.hold_integral()
         if self.inverter_limited and self.last_out is not None and not self.last_out.saturated:
             self.last_out = dataclasses.replace(self.last_out, saturated=True)
         return duties, relay, buck, self._status(status)
