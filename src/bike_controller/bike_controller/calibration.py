@@ -114,8 +114,9 @@ def read_calibration(path, machine: str) -> Calibration:
     figures = {}
     for key in FIGURES:
         v = modes.get(key)
-        if friction_problem(key, v):
-            raise CalibrationError(f"modes.{friction_problem(key, v)}", path)
+        problem = friction_problem(key, v)
+        if problem:
+            raise CalibrationError(f"modes.{problem}", path)
         figures[key] = float(v)
     coast = doc.get("coast_s", 0.0)
     coast = float(coast) if isinstance(coast, (int, float)) and not isinstance(coast, bool) else 0.0

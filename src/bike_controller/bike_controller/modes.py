@@ -190,8 +190,9 @@ class ModeParams:
                 raise ValueError(f"{name} must be a number >= 0, got {v!r}")
         for name in ("friction_nms", "dry_friction_nm"):
             v = getattr(self, name)
-            if v is not None and friction_problem(name, v):
-                raise ValueError(friction_problem(name, v))
+            problem = None if v is None else friction_problem(name, v)
+            if problem:
+                raise ValueError(problem)
         if not (isinstance(self.wind_mps, (int, float)) and math.isfinite(self.wind_mps)):
             raise ValueError(f"wind_mps must be a finite number, got {self.wind_mps!r}")
         if not (-1.0 <= self.grade_min < self.grade_max <= 1.0):
@@ -429,8 +430,9 @@ class ModeLaw:
     def set_friction(self, friction_nms: float, dry_friction_nm: float) -> None:
         """The bike's friction from now on (a spin-down's figures); ValueError: unchanged."""
         for name, v in (("friction_nms", friction_nms), ("dry_friction_nm", dry_friction_nm)):
-            if friction_problem(name, v):
-                raise ValueError(friction_problem(name, v))
+            problem = friction_problem(name, v)
+            if problem:
+                raise ValueError(problem)
         self.friction_nms, self.dry_friction_nm = float(friction_nms), float(dry_friction_nm)
 
     def rider_instruction(self) -> tuple[float, bool] | None:
@@ -745,9 +747,14 @@ def friction_figures(cfg: dict) -> tuple[float, float, float]:
 
     def figure(section: str, key: str, default: float) -> float:
         v = (cfg.get(section) or {}).get(key, default)
-        problem = friction_problem(key, v) if "friction_nm" in key else None
-        if problem or isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
-            raise ValueError(f"{section}.{problem or f'{key} must be a number >= 0, got {v!r}'}")
+        if key in ("friction_nms", "dry_friction_nm"):
+            problem = friction_problem(key, v)
+        elif isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+            problem = f"{key} must be a number >= 0, got {v!r}"
+        else:
+            problem = None
+        if problem:
+            raise ValueError(f"{section}.{problem}")
         return float(v)
 
     spmsm = cfg.get("machine") == "spmsm"

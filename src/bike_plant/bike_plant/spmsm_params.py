@@ -9,7 +9,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from .config import ConfigError, build_dataclass, require_positive, section
-from .params import LoadParams, MechParams, ShaftLoadParams, load_section_with_preset
+from .params import LoadParams, MechParams, ShaftLoadParams, friction_problem, load_section_with_preset
 
 MAX_DYNO_POINTS = 16
 
@@ -49,10 +49,13 @@ class SpmsmParams:
         require_positive(self, "pole_pairs", "rs_ohm", "inductance_h", "flux_linkage_vs", "rated_speed_rpm",
                          "rs_scale", "inductance_scale", "flux_scale", "cogging_per_rev")
         require_positive(self, "dry_friction_speed_rpm")
-        for name in ("emf_harmonic_5", "emf_harmonic_7", "cogging_torque_nm", "dry_friction_nm"):
+        for name in ("emf_harmonic_5", "emf_harmonic_7", "cogging_torque_nm"):
             if not 0.0 <= getattr(self, name) <= (0.5 if name.startswith("emf") else 10.0):
                 raise ValueError(f"{name} must be in [0, {0.5 if name.startswith('emf') else 10.0}], "
                                  f"got {getattr(self, name)!r}")
+        problem = friction_problem("dry_friction_nm", self.dry_friction_nm)   # the bound of every friction figure
+        if problem:
+            raise ValueError(problem)
 
     @property
     def torque_constant_nm_per_a(self) -> float:

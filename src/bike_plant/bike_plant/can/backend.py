@@ -346,8 +346,6 @@ class CanBackend:
         self.last_stale_event_s = -math.inf
         # what the bus carries while there is no link (reset whenever the link comes up): for the
         # diagnostic and a logged hint (a drive on another node id, heartbeats we drop, silence)
-        self.link_hint_key = None
-        self.link_hint_logged_s = -math.inf
         self._reset_bus_watch()
         self._closed = False
         # sim time and ledger
@@ -454,7 +452,7 @@ class CanBackend:
             self._on_lost(now, late_gap, late=True)
             self._update_stale(now)
             return
-        if not alive and not (self.seen and not self.lost):
+        if not alive and not self.link_alive:
             self._log_link_hint(now)
         if not self.seen and alive:
             self.seen = True
@@ -582,10 +580,7 @@ class CanBackend:
         filtered): another host drives the same axis (a script, ros_odrive, a second plant).
         Counted; warned about at most every 10 s."""
         codec = getattr(self.drive, "codec", None)
-        arb = msg.arbitration_id
-        if codec is None or not isinstance(arb, int) or arb >> 5 != self.params.node_id:
-            return
-        name = next((n for n, m in codec.messages.items() if m.frame_id == arb & 0x1F), None)
+        name = codec.message_name(msg.arbitration_id) if codec is not None else None
         if name not in HOST_TO_DRIVE:
             return
         self.counters["foreign_commands"] += 1

@@ -316,6 +316,14 @@ class OdriveCanSimpleCodec:
         """11-bit id of message ``name`` for this node."""
         return (self.node_id << CMD_ID_BITS) | self.messages[name].frame_id
 
+    def message_name(self, arbitration_id) -> str | None:
+        """The name of this node's message with 11-bit id ``arbitration_id`` (None: another
+        node's, or no message of the DBC); the inverse of :meth:`arbitration_id`."""
+        if not isinstance(arbitration_id, int) or arbitration_id >> CMD_ID_BITS != self.node_id:
+            return None
+        message = self._by_cmd.get(arbitration_id & CMD_ID_MASK)
+        return message.name if message is not None else None
+
     def encode(self, name: str, signals: Mapping[str, float | int]) -> can.Message:
         """A data frame of ``name``; raises ValueError for missing, non-finite or out-of-range values."""
         message = self.messages[name]
