@@ -765,6 +765,25 @@ def friction_figures(cfg: dict) -> tuple[float, float, float]:
     return b, tc, ws if ws > 0 else 1.0
 
 
+def modes_from_config(cfg: dict) -> tuple[ModeParams, tuple[float, float, float]]:
+    """(:func:`mode_params_from_config`, :func:`friction_figures`) of a config; a ConfigError
+    naming the config and the section, as the controllers and ./bike run's check give it (their
+    three copies named 'modes' twice, or not at all: --set modes.erg_power_max_w=-1 said
+    "error: --set: erg_power_max_w must be ...")."""
+    from bike_plant.config import ConfigError
+
+    path = cfg.get("_config_path")
+    try:
+        mp = mode_params_from_config(cfg)
+    except ValueError as exc:
+        text = str(exc)           # ModeParams' own checks name the key alone
+        raise ConfigError(text, path, None if text.startswith("modes") else "modes") from None
+    try:
+        return mp, friction_figures(cfg)
+    except ValueError as exc:
+        raise ConfigError(str(exc), path) from None     # it names its section.key
+
+
 def erg_power_w(torque_em_nm, speed_rad_s, friction: tuple[float, float, float]):
     """The power ERG holds, the rider's: braking power -T_em w plus the bike's friction
     (``friction``: :func:`friction_figures`) times w. Scalars or numpy arrays."""

@@ -40,7 +40,7 @@ from bike_plant.mechanics import road_problem
 
 from .bldc_control import C_COMMAND, C_ICMD, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, MODE_SPINDOWN, ModeLaw,
-                    ModeOutput, TorqueTrim, friction_figures, mode_params_from_config)
+                    ModeOutput, TorqueTrim, modes_from_config)
 
 FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this module imports no ROS)
 FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
@@ -232,12 +232,7 @@ class ModedController(SessionCommand):
 
     def __init__(self, cfg: dict, nominal_params=None, batch_periods: int | None = None):
         self.inner = BatchController(cfg, nominal_params, batch_periods)
-        try:
-            mp = mode_params_from_config(cfg)
-            b_nms, dry_nm, dry_rpm = friction_figures(cfg)
-        except ValueError as exc:
-            from bike_plant.config import ConfigError
-            raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
+        mp, (b_nms, dry_nm, dry_rpm) = modes_from_config(cfg)
         nominal = self.inner.nominal
         self.law = ModeLaw(mp, gear_ratio=nominal.load.gear_ratio, inertia_kgm2=nominal.mech.inertia_kgm2,
                            tmax_nm=self.inner.cp.tmax_nm, pmax_w=self.inner.cp.pmax_w,

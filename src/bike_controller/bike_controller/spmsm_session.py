@@ -36,7 +36,7 @@ from bike_plant import spmsm as M
 from bike_plant.params import RPM_PER_RAD_S
 
 from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, MODE_SPINDOWN, ModeLaw, ModeOutput, TorqueTrim,
-                    friction_figures, machine_figures, mode_params_from_config)
+                    machine_figures, modes_from_config)
 from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status
 from .spmsm_control import C_IQ_REF, C_TORQUE_MODE, SpmsmController, controller_params_from_config
 from .spindown import EncoderSpeed
@@ -148,12 +148,7 @@ class ModedSpmsmController(SessionCommand):
         self.kt = float(nominal.spmsm.torque_constant_nm_per_a)
         fig = machine_figures(cfg)
         tmax, base = fig.tmax_nm, fig.base_speed_rpm
-        try:
-            mp = mode_params_from_config(cfg)
-            b_nms, dry_nm, dry_rpm = friction_figures(cfg)
-        except ValueError as exc:
-            from bike_plant.config import ConfigError
-            raise ConfigError(str(exc), cfg.get("_config_path"), "modes") from None
+        mp, (b_nms, dry_nm, dry_rpm) = modes_from_config(cfg)
         self.gear = float(nominal.load.gear_ratio)
         self.law = ModeLaw(mp, gear_ratio=self.gear, inertia_kgm2=nominal.mech.inertia_kgm2, tmax_nm=tmax,
                            pmax_w=fig.pmax_w, base_speed_rpm=base,

@@ -300,7 +300,7 @@ def _check_config(cfg: dict) -> None:
     controller node's own numbers)."""
     from bike_plant.config import ConfigError, check_plant_numbers
 
-    from bike_controller.modes import friction_figures, mode_params_from_config
+    from bike_controller.modes import modes_from_config
     from bike_controller.node_params import controller_node_numbers
 
     from bike_session.workouts import SESSION_KEYS, over_range_problem, session_number_problem
@@ -322,15 +322,7 @@ def _check_config(cfg: dict) -> None:
     if over_range_problem(over_range):
         # the session node's check (it refused it once the graph had started)
         raise ConfigError(over_range_problem(over_range), cfg.get("_config_path"), "session.over_range")
-    try:
-        mode_params_from_config(cfg)
-        friction_figures(cfg)
-    except ValueError as exc:
-        # named with the config and section: --set modes.erg_power_max_w=-1 said neither
-        # ("error: --set: erg_power_max_w must be ..."); some messages name their section already
-        text = str(exc)
-        raise ConfigError(text, cfg.get("_config_path"),
-                          None if text.startswith(("modes", "mechanics.", "spmsm.")) else "modes") from None
+    modes_from_config(cfg)
     if str(cfg.get("machine", "bldc")) == "spmsm":
         from bike_controller.spmsm_params import controller_params_from_config
         from bike_plant.spmsm_params import plant_params_from_config
