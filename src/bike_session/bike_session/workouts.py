@@ -760,15 +760,18 @@ def _windows_text_as_utf8(data: bytes) -> bytes:
     declared = _XML_ENCODING.match(data)
     if declared and declared.group(1).lower().replace(b"_", b"-") not in (b"utf-8", b"utf8"):
         return data                      # expat reads the declared encoding (or names it)
-    try:
-        data.decode("utf-8")
-        return data
-    except UnicodeDecodeError:
-        pass
-    try:
-        return data.decode("cp1252").encode("utf-8")
-    except UnicodeDecodeError:
-        return data.decode("latin-1").encode("utf-8")
+    return _windows_text(data, "utf-8").encode("utf-8")
+
+
+def _windows_text(data: bytes, encoding: str) -> str:
+    """Text in ``encoding`` (a UTF-8 codec) or, failing that, in a Windows ANSI code page: cp1252, then
+    latin-1, which decodes any byte (old Windows tools write descriptions in their code page)."""
+    for name in (encoding, "cp1252"):
+        try:
+            return data.decode(name)
+        except UnicodeDecodeError:
+            pass
+    return data.decode("latin-1")
 
 
 _XML_DECLARATION_LATE = re.compile(rb"(\xef\xbb\xbf)?([ \t\r\n]+)(<\?xml[ \t][^>\r\n]*\?>)")
@@ -858,13 +861,7 @@ def _parse_erg(data: bytes, source: str, default_name: str, opts: _Options, fmt:
     elif b"\x00" in data:
         raise WorkoutError("binary file (NUL bytes), not a text workout", source)
     else:
-        try:
-            text = data.decode("utf-8-sig")
-        except UnicodeDecodeError:
-            try:
-                text = data.decode("cp1252")      # old Windows tools write cp1252 descriptions
-            except UnicodeDecodeError:
-                text = data.decode("latin-1")
+        text = _windows_text(data, "utf-8-sig")
 
     def err(line_no: int | None, message: str) -> WorkoutError:
         return WorkoutError(message, source, f"line {line_no}" if line_no else None, line_no)
