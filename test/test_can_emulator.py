@@ -366,7 +366,8 @@ def _port() -> int:
 class Emulator:
     """bike-drive-emulator in its own process (python -m; the console entry is the same main)."""
 
-    def __init__(self, tmp_path: pathlib.Path, *args: str, node_id: int = 0, config: pathlib.Path = CONFIG):
+    def __init__(self, tmp_path: pathlib.Path, *args: str, node_id: int = 0, config: pathlib.Path = CONFIG,
+                 host_factory=OdriveCanSimple):
         self.port = _port()
         self.out_path = tmp_path / f"emulator_{self.port}.out"
         self.err_path = tmp_path / f"emulator_{self.port}.err"
@@ -377,7 +378,7 @@ class Emulator:
              "--port", str(self.port), "--node-id", str(node_id), "--config", str(config), *args],
             stdout=self._out, stderr=self._err, stdin=subprocess.DEVNULL, start_new_session=True)
         self.bus = can.Bus(interface="udp_multicast", channel=GROUP, port=self.port)
-        self.host = OdriveCanSimple(self.bus, node_id)
+        self.host = host_factory(self.bus, node_id)     # the protocol the emulator speaks (--protocol)
         # "ready" follows the compile of the plant kernels: seconds from numba's cache, more
         # when a kernel module changed (cache invalidated) and both cores are busy
         end = time.monotonic() + 60.0

@@ -110,9 +110,11 @@ from bike_plant import bldc as K
 from bike_plant import mechanics
 from bike_plant import params as P
 from bike_plant import spmsm as M
-from bike_plant.can.protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, AxisState, ControlMode,
-                                     InputMode, ODriveError, OdriveCanSimpleCodec, ProcedureResult, _EchoFilter,
-                                     error_names)
+from bike_plant.can.protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, PROTOCOLS,
+                                     RPM_PER_REV_S, VESC_DRIVE_TO_HOST, VESC_HOST_TO_DRIVE, VESC_ID_MAX,
+                                     VESC_TACHO_PER_EREV, AxisState, ControlMode, InputMode, ODriveError,
+                                     OdriveCanSimple, OdriveCanSimpleCodec, ProcedureResult, VescCan, VescCanCodec,
+                                     _EchoFilter, error_names)
 from bike_plant.config import ConfigError, load_config, section
 from bike_plant.heart import RiderHeart
 from bike_plant.memory import LoadTimePageReleaser, release_clean_library_pages
@@ -861,6 +863,87 @@ class DriveFirmware:
         raise KeyError(name)
 
 
+class VescFirmware(DriveFirmware):
+    """What a VESC does with CAN commands (vedderb/bldc documentation/comm_can.md), on the axis
+    logic above: there is no armed state on the bus -- any SET_CURRENT / SET_RPM runs the motor
+    (the axis enters closed loop, a fault the protections latched is dropped as a VESC's clears
+    itself) -- and when no command arrived for the command timeout (``watchdog_timeout_s``, app
+    timeout 0.5 s by default) the motor is released (gates off) without an error.
+
+    Readouts of the status broadcasts: ERPM = motor rpm x pole pairs; tachometer = 6 counts
+    per electrical revolution; amp / watt hours integrated from the bus current (drawn when
+    positive, charged when negative); duty cycle approximated as the back-EMF over the bus
+    voltage (kt w / V, the model has no modulator); temperatures are a constant 25 degC (no
+    thermal model).
+    """
+
+    def __init__(self, model: AverageTorqueDrive, *, pole_pairs: int, **kwargs):
+        super().__init__(model, **kwargs)
+        if pole_pairs < 1:
+            raise ValueError(f"pole_pairs must be >= 1, got {pole_pairs}")
+        self.pole_pairs = int(pole_pairs)
+        self.charge_drawn_ah = 0.0
+        self.charge_regenerated_ah = 0.0
+        self.energy_drawn_wh = 0.0
+        self.energy_regenerated_wh = 0.0
+
+    def _run(self, now_s: float, control_mode: int) -> None:
+        if not self.armed or self.control_mode != control_mode:
+            self.active_errors = 0           # a VESC fault clears itself: the next command runs again
+            self.sticky_errors = 0
+            self.set_controller_mode(control_mode, InputMode.PASSTHROUGH)
+            self.request_state(AxisState.CLOSED_LOOP_CONTROL, now_s)
+
+    def set_current(self, current_a: float, now_s: float) -> None:
+        """SET_CURRENT: motor current [A], signed (negative brakes, regenerating)."""
+        self._run(now_s, ControlMode.TORQUE_CONTROL)
+        self.set_input_torque(current_a * self.model.params.torque_constant_nm_per_a, now_s)
+
+    def set_rpm(self, speed_erpm: float, now_s: float) -> None:
+        """SET_RPM: electrical rpm (the velocity loop of the axis logic)."""
+        self._run(now_s, ControlMode.VELOCITY_CONTROL)
+        self.set_input_vel(speed_erpm / self.pole_pairs / RPM_PER_REV_S, 0.0, now_s)
+
+    def check_watchdog(self, now_s: float) -> bool:
+        """The command timeout: release the motor (no error latched, as a VESC)."""
+        if self.armed and self.watchdog_timeout_s > 0 and now_s - self.last_feed_s > self.watchdog_timeout_s:
+            self.log("command timeout: motor released")
+            self._to_idle()
+            return True
+        return False
+
+    def step(self, dt_s: float) -> None:
+        super().step(dt_s)
+        m = self.model
+        i_a, v = m.bus_current_a, m.bus_voltage_v
+        if i_a >= 0.0:
+            self.charge_drawn_ah += i_a * dt_s / 3600.0
+            self.energy_drawn_wh += v * i_a * dt_s / 3600.0
+        else:
+            self.charge_regenerated_ah -= i_a * dt_s / 3600.0
+            self.energy_regenerated_wh -= v * i_a * dt_s / 3600.0
+
+    def signals(self, name: str) -> dict[str, float | int]:
+        """DBC signal values of VESC status message ``name``."""
+        m = self.model
+        if name == "Status":
+            v = m.bus_voltage_v
+            duty = m.params.torque_constant_nm_per_a * m.speed_rev_s * TWO_PI / v if v > 0 else 0.0
+            return {"Erpm": round(m.speed_rev_s * RPM_PER_REV_S * self.pole_pairs), "Current": m.iq_a,
+                    "Duty_Cycle": min(max(duty, -1.0), 1.0) if self.armed else 0.0}
+        if name == "Status_2":
+            return {"Amp_Hours": self.charge_drawn_ah, "Amp_Hours_Charged": self.charge_regenerated_ah}
+        if name == "Status_3":
+            return {"Watt_Hours": self.energy_drawn_wh, "Watt_Hours_Charged": self.energy_regenerated_wh}
+        if name == "Status_4":
+            return {"Temp_Fet": 25.0, "Temp_Motor": 25.0, "Current_In": m.bus_current_a,
+                    "Pid_Pos": (m.position_rev % 1.0) * 360.0}
+        if name == "Status_5":
+            return {"Tachometer": round(m.position_rev * VESC_TACHO_PER_EREV * self.pole_pairs),
+                    "Voltage_In": m.bus_voltage_v, "Reserved": 0}
+        raise KeyError(name)
+
+
 class RiderDisplay:
     """The emulated rider's view of what the trainer tells him (``--rider-topic``): the
     controller's DriveCommand carries it for the simulated plant's rider (a workout's cadence
@@ -930,8 +1013,13 @@ class DriveEmulator:
 
     cyclic_s: period [s] per drive -> host message name (0 or absent: only on RTR).
     Call :meth:`run` (blocking, real time) or drive it yourself with :meth:`handle`
-    and :meth:`tick` (tests).
+    and :meth:`tick` (tests). Subclasses speak another protocol (:class:`VescEmulator`).
     """
+
+    codec_class = OdriveCanSimpleCodec
+    host_to_drive = HOST_TO_DRIVE
+    drive_to_host = DRIVE_TO_HOST
+    default_cyclic_s = {"Heartbeat": 0.1, "Get_Encoder_Estimates": 0.01}
 
     def __init__(self, bus: can.BusABC, firmware: DriveFirmware, node_id: int = 0, *,
                  cyclic_s: dict[str, float] | None = None, tick_s: float = 1.0e-3, substeps: int = 4,
@@ -946,10 +1034,10 @@ class DriveEmulator:
         self.rider = rider                  # what the controller tells the rider (None: nothing)
         self.rider_told = (0.0, False)
         self.next_heart_rate_s = 0.0        # physics time of the rider's next strap reading
-        self.codec = OdriveCanSimpleCodec(node_id)
+        self.codec = self.codec_class(node_id)
         self.node_id = node_id
-        cyclic = {"Heartbeat": 0.1, "Get_Encoder_Estimates": 0.01} if cyclic_s is None else dict(cyclic_s)
-        unknown = set(cyclic) - DRIVE_TO_HOST
+        cyclic = dict(self.default_cyclic_s) if cyclic_s is None else dict(cyclic_s)
+        unknown = set(cyclic) - self.drive_to_host
         if unknown:
             raise ValueError(f"not drive -> host messages: {', '.join(sorted(unknown))}")
         self.cyclic_s = {name: float(period) for name, period in cyclic.items() if period and period > 0}
@@ -982,8 +1070,9 @@ class DriveEmulator:
         # that came between its is_set() and clear(), or deadlocked on its lock inside clear().
         self._fault_requests = 0
         self._fault_requests_done = 0
-        self._signal_ranges = {m.name: {s.name: (s.minimum, s.maximum, s.is_float) for s in m.signals}
-                               for m in self.codec.db.messages}
+        # (min, max, whether the value goes out as is: floats and scaled integers, which the codec rounds)
+        self._signal_ranges = {m.name: {s.name: (s.minimum, s.maximum, s.is_float or s.scale != 1)
+                                        for s in m.signals} for m in self.codec.db.messages}
 
     def _count(self, key: str, n: int = 1) -> None:
         self.counters[key] = self.counters.get(key, 0) + n
@@ -1054,7 +1143,7 @@ class DriveEmulator:
             if self._echo.is_echo(msg, now_s):
                 self._count("echo")
                 return
-            result = self.codec.classify(msg, HOST_TO_DRIVE, answers_requests=True)
+            result = self.codec.classify(msg, self.host_to_drive, answers_requests=True)
             if isinstance(result, str):
                 self._count(result)
                 return
@@ -1205,6 +1294,61 @@ class DriveEmulator:
                 "physics_lag_max_ms": round(self.physics_lag_max_s * 1e3, 2)}
 
 
+class VescEmulator(DriveEmulator):
+    """A VESC (CAN mode VESC, vedderb/bldc documentation/comm_can.md) on ``bus`` whose motor is
+    ``firmware`` (a :class:`VescFirmware`): decodes SET_CURRENT, SET_CURRENT_BRAKE,
+    SET_CURRENT_REL and SET_RPM with the host's codec (:class:`VescCanCodec`, 29-bit ids
+    ``cmd << 8 | vesc_id``), broadcasts STATUS .. STATUS_5 every ``cyclic_s`` (VESC Tool's default
+    CAN status rate is 50 Hz), answers nothing (VESC has no request). SET_DUTY and SET_POS are
+    counted (``unsupported:<name>``) and feed the timeout only.
+    """
+
+    codec_class = VescCanCodec
+    host_to_drive = VESC_HOST_TO_DRIVE
+    drive_to_host = VESC_DRIVE_TO_HOST
+    default_cyclic_s = {name: 0.02 for name in sorted(VESC_DRIVE_TO_HOST)}
+
+    def _apply(self, name: str, s, now_s: float) -> None:
+        fw = self.firmware
+        speed = fw.model.speed_rev_s
+        if name == "Set_Current":
+            fw.set_current(s["Current"], now_s)
+        elif name == "Set_Current_Brake":
+            # brake current opposes the rotation whatever its sign (regenerative braking)
+            fw.set_current(-math.copysign(abs(s["Current_Brake"]), speed) if speed else 0.0, now_s)
+        elif name == "Set_Current_Rel":
+            fw.set_current(s["Current_Rel"] * fw.current_limit_a, now_s)
+        elif name == "Set_Rpm":
+            fw.set_rpm(s["Erpm"], now_s)
+        else:
+            self._count(f"unsupported:{name}")
+            fw.feed_watchdog(now_s)
+
+    def _garbage_frame(self) -> can.Message:
+        """A random malformed or foreign frame; never a command to any VESC (bench-safe)."""
+        rng = self.rng
+        vid = self.node_id
+        kind = rng.randrange(6)
+        if kind == 0:       # unknown command id of this VESC
+            known = set(self.codec._by_cmd)
+            cmd = rng.choice([c for c in range(64) if c not in known])
+            return can.Message(arbitration_id=(cmd << 8) | vid, data=rng.randbytes(rng.randrange(9)),
+                               is_extended_id=True)
+        if kind == 1:       # status with the wrong length
+            cmd = self.codec.messages[rng.choice(sorted(VESC_DRIVE_TO_HOST))].frame_id
+            return can.Message(arbitration_id=cmd | vid, data=rng.randbytes(rng.randrange(5)), is_extended_id=True)
+        if kind == 2:
+            return can.Message(is_error_frame=True, arbitration_id=0x4, data=bytes(8), dlc=8)
+        if kind == 3:       # standard id
+            return can.Message(arbitration_id=rng.randrange(0x800), data=rng.randbytes(8), is_extended_id=False)
+        if kind == 4:       # RTR of a status (a VESC has no request)
+            return can.Message(arbitration_id=self.codec.arbitration_id("Status"), is_remote_frame=True, dlc=8,
+                               is_extended_id=True)
+        # another VESC's status (drive -> host: nobody acts on it)
+        other = rng.choice([n for n in range(VESC_ID_MAX + 1) if n != vid])
+        return can.Message(arbitration_id=(9 << 8) | other, data=rng.randbytes(8), is_extended_id=True)
+
+
 def benchmark_physics(model, sim_s: float, *, tick_s: float = 1.0e-3, substeps: int = 4,
                       torque_nm: float = -1.0) -> dict:
     """Real-time factor of a drive model without the bus: the axis armed in torque control
@@ -1253,7 +1397,11 @@ def build_arg_parser() -> argparse.ArgumentParser:
                           "(default: the interface's default)")
     bus.add_argument("--port", type=int, default=None, help="udp_multicast UDP port (one per test / bench)")
     bus.add_argument("--bitrate", type=int, default=1000000, help="CAN bitrate (real interfaces)")
-    bus.add_argument("--node-id", type=int, default=0, help="ODrive node id 0..63 (default 0)")
+    bus.add_argument("--node-id", type=int, default=0, help="ODrive node id 0..63 / VESC ID 0..254 (default 0)")
+    bus.add_argument("--protocol", choices=sorted(EMULATED_PROTOCOLS), default=OdriveCanSimple.protocol_name,
+                     help="what the drive speaks: odrive_cansimple_0.6 (default) or vesc_can (a VESC: STATUS .. "
+                          "STATUS_5 broadcast every --heartbeat-ms, SET_CURRENT / SET_RPM, --watchdog-s is its "
+                          "command timeout)")
     phys = ap.add_argument_group("physics")
     phys.add_argument("--config", default=None, help="bike config (default: config/bldc_default.yaml)")
     phys.add_argument("--physics", choices=PHYSICS, default="plant",
@@ -1279,7 +1427,8 @@ def build_arg_parser() -> argparse.ArgumentParser:
                       help="no bus: advance S simulated seconds of the armed drive as fast as possible in tick-"
                            "sized batches, print the real-time factor as JSON and exit")
     drv = ap.add_argument_group("drive")
-    drv.add_argument("--heartbeat-ms", type=float, default=100.0, help="Heartbeat period (default 100; 0 off)")
+    drv.add_argument("--heartbeat-ms", type=float, default=100.0,
+                     help="Heartbeat period (default 100; 0 off); vesc_can: the period of each status broadcast")
     drv.add_argument("--encoder-ms", type=float, default=10.0, help="Get_Encoder_Estimates period (default 10; 0 off)")
     for name, flag in (("Get_Iq", "iq"), ("Get_Bus_Voltage_Current", "bus"), ("Get_Torques", "torques"),
                        ("Get_Powers", "powers"), ("Get_Error", "error")):
@@ -1317,6 +1466,20 @@ def build_arg_parser() -> argparse.ArgumentParser:
     ap.add_argument("--duration-s", type=float, default=None, help="exit 0 after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="no event log on stderr")
     return ap
+
+
+#: --protocol: the emulator class of each host protocol it can stand in for
+EMULATED_PROTOCOLS = {OdriveCanSimple.protocol_name: DriveEmulator, VescCan.protocol_name: VescEmulator}
+
+
+def pole_pairs_of(cfg: dict) -> int:
+    """The machine section's pole_pairs (VESC speaks electrical rpm); ConfigError if absent or bad."""
+    machine = cfg.get("machine", "bldc")
+    path = cfg.get("_config_path")
+    value = section(cfg, machine, path).get("pole_pairs")
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"pole_pairs must be an integer >= 1, got {value!r}", path, f"{machine}.pole_pairs")
+    return value
 
 
 def parse_fault(name: str) -> int:
@@ -1365,8 +1528,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"bike-drive-emulator: {text}", file=sys.stderr, flush=True)
 
     try:
-        if not 0 <= args.node_id <= 0x3F:
-            raise ValueError(f"--node-id must be in 0..63, got {args.node_id}")
+        node_id_max = PROTOCOLS[args.protocol].node_id_max
+        if not 0 <= args.node_id <= node_id_max:
+            raise ValueError(f"--node-id must be in 0..{node_id_max} for {args.protocol}, got {args.node_id}")
         for name in ("heartbeat_ms", "encoder_ms", "iq_ms", "bus_ms", "torques_ms", "powers_ms", "error_ms",
                      "watchdog_s", "garbage_rate"):
             value = getattr(args, name)
@@ -1389,6 +1553,7 @@ def main(argv: list[str] | None = None) -> int:
                                  current_tau_s=args.current_tau_s, current_loop=args.current_loop,
                                  speed_observer_hz=args.speed_observer_hz)
         params = model.params
+        pole_pairs = pole_pairs_of(cfg)
     except (ConfigError, ValueError) as exc:
         print(f"bike-drive-emulator: {exc}", file=sys.stderr)
         return 2
@@ -1404,13 +1569,18 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(benchmark_physics(model, args.bench_s, tick_s=1.0 / args.physics_hz,
                                            substeps=args.substeps)), flush=True)
         return 0
-    firmware = DriveFirmware(model, watchdog_timeout_s=args.watchdog_s,
-                             velocity_limit_rev_s=args.velocity_limit_rev_s,
-                             current_limit_a=args.current_limit_a, vel_gain_nm_per_rev_s=args.vel_gain,
-                             vel_integrator_gain_nm_per_rev=args.vel_integrator_gain, log=log)
-    cyclic = {"Heartbeat": args.heartbeat_ms, "Get_Encoder_Estimates": args.encoder_ms, "Get_Iq": args.iq_ms,
-              "Get_Bus_Voltage_Current": args.bus_ms, "Get_Torques": args.torques_ms,
-              "Get_Powers": args.powers_ms, "Get_Error": args.error_ms}
+    firmware_kwargs = dict(watchdog_timeout_s=args.watchdog_s, velocity_limit_rev_s=args.velocity_limit_rev_s,
+                           current_limit_a=args.current_limit_a, vel_gain_nm_per_rev_s=args.vel_gain,
+                           vel_integrator_gain_nm_per_rev=args.vel_integrator_gain, log=log)
+    emulator_class = EMULATED_PROTOCOLS[args.protocol]
+    if emulator_class is VescEmulator:
+        firmware = VescFirmware(model, pole_pairs=pole_pairs, **firmware_kwargs)
+        cyclic = {name: args.heartbeat_ms for name in VescEmulator.default_cyclic_s}
+    else:
+        firmware = DriveFirmware(model, **firmware_kwargs)
+        cyclic = {"Heartbeat": args.heartbeat_ms, "Get_Encoder_Estimates": args.encoder_ms, "Get_Iq": args.iq_ms,
+                  "Get_Bus_Voltage_Current": args.bus_ms, "Get_Torques": args.torques_ms,
+                  "Get_Powers": args.powers_ms, "Get_Error": args.error_ms}
     try:
         bus = can.Bus(**_bus_kwargs(args))
     except Exception as exc:  # noqa: BLE001 -- report any interface problem as a usage error
@@ -1428,14 +1598,14 @@ def main(argv: list[str] | None = None) -> int:
             bus.shutdown()
             return 2
     try:
-        emu = DriveEmulator(bus, firmware, args.node_id, cyclic_s={k: v / 1000.0 for k, v in cyclic.items()},
+        emu = emulator_class(bus, firmware, args.node_id, cyclic_s={k: v / 1000.0 for k, v in cyclic.items()},
                             tick_s=1.0 / args.physics_hz, substeps=args.substeps,
                             silent_after_s=args.silent_after_s, garbage_rate_hz=args.garbage_rate,
                             seed=args.seed, fault_at_s=args.fault_at_s, fault_error=fault_error,
                             fault_persist=args.fault_persist, rider=rider, log=log)
         signal.signal(signal.SIGUSR1, lambda signum, frame: emu.inject_fault_soon())
         channel = _bus_kwargs(args).get("channel", "default")
-        print(f"bike-drive-emulator ready: node_id={args.node_id} interface={args.interface} channel={channel} "
+        print(f"bike-drive-emulator ready: protocol={args.protocol} node_id={args.node_id} interface={args.interface} channel={channel} "
               f"port={args.port} machine={params.machine} physics={args.physics} load={params.load_kind} "
               f"kt={params.torque_constant_nm_per_a:.5f}Nm/A watchdog_s={args.watchdog_s}", flush=True)
         # a full collection of the ~120 000 objects numba, python-can and cantools leave behind

@@ -124,8 +124,9 @@ class CanParams:
     channel: str = "can0"               # can0 / a virtual channel name / a multicast group (239.74.163.2)
     port: int = 0                       # udp_multicast UDP port (0: python-can's default 43113)
     bitrate: int = 1000000              # interfaces that set it (pcan, kvaser, ...); socketcan: `ip link`
-    node_id: int = 0                    # ODrive axis node id 0..63
-    protocol: str = "odrive_cansimple_0.6"   # bike_plant.can.protocol.PROTOCOLS
+    node_id: int = 0                    # ODrive axis node id 0..63 / VESC ID 0..254
+    protocol: str = "odrive_cansimple_0.6"   # bike_plant.can.protocol.PROTOCOLS (odrive_cansimple_0.6, vesc_can)
+    torque_constant_nm_per_a: float = 0.0    # vesc_can: torque -> SET_CURRENT; 0: the bldc section's kt
     heartbeat_period_s: float = 0.1     # the drive's heartbeat_msg_rate_ms (a slower drive is logged, with the fix)
     heartbeat_timeout_s: float = 0.3    # no Heartbeat this long -> FAULT_DRIVE_LOST (3 periods)
     measurement_timeout_s: float = 0.05  # speed / torque estimate older than this -> FAULT_DRIVE_STALE (5 x 10 ms)
@@ -152,8 +153,14 @@ class CanParams:
             raise ValueError("interface must not be empty")
         if self.protocol not in PROTOCOLS:
             raise ValueError(f"protocol: unknown {self.protocol!r} (known: {', '.join(sorted(PROTOCOLS))})")
-        if not 0 <= self.node_id <= 0x3F:
-            raise ValueError(f"node_id must be in 0..63, got {self.node_id}")
+        drive = PROTOCOLS[self.protocol]
+        if not 0 <= self.node_id <= drive.node_id_max:
+            raise ValueError(f"node_id must be in 0..{drive.node_id_max} for {self.protocol}, got {self.node_id}")
+        if not (math.isfinite(self.torque_constant_nm_per_a) and self.torque_constant_nm_per_a >= 0):
+            raise ValueError(f"torque_constant_nm_per_a must be >= 0, got {self.torque_constant_nm_per_a!r}")
+        if not drive.can_request and self.request:
+            raise ValueError(f"request: {self.protocol} drives only broadcast (nothing can be requested), "
+                             f"set request: [] (got {self.request})")
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
         for name in ("heartbeat_period_s", "heartbeat_timeout_s", "measurement_timeout_s", "watchdog_feed_s",
@@ -172,6 +179,9 @@ class CanParams:
         if self.emulator and self.emulator_watchdog_s and self.watchdog_feed_s >= self.emulator_watchdog_s:
             raise ValueError(f"watchdog_feed_s ({self.watchdog_feed_s:g}) must be shorter than the drive's "
                              f"watchdog, emulator_watchdog_s ({self.emulator_watchdog_s:g})")
+        if not drive.has_arming and (self.current_limit_a > 0 or self.velocity_limit_rev_s > 0):
+            raise ValueError(f"current_limit_a / velocity_limit_rev_s: {self.protocol} has no limits command on "
+                             "CAN (set the limits in the drive's own configuration), set both to 0")
         if (self.current_limit_a > 0) != (self.velocity_limit_rev_s > 0):
             # CANSimple's Set_Limits always sets both: a placeholder for the one left at 0 would
             # overwrite that limit on the drive (e.g. its motor's current limit with 1000 A)
@@ -213,9 +223,25 @@ def emulator_args_from_config(cfg: dict) -> list[str]:
     args = ["--interface", p.interface, "--channel", p.channel, "--bitrate", str(p.bitrate),
             "--node-id", str(p.node_id), "--heartbeat-ms", f"{p.heartbeat_period_s * 1000:g}",
             "--watchdog-s", f"{p.emulator_watchdog_s:g}"]
+    if p.protocol != CanParams.protocol:
+        args += ["--protocol", p.protocol]
     if p.interface == "udp_multicast" and p.port:
         args += ["--port", str(p.port)]
     return args + list(p.emulator_args)
+
+
+def torque_constant_of(cfg: dict, p: CanParams) -> float:
+    """kt [N m/A] for protocols that command current: ``can.torque_constant_nm_per_a``, or
+    (0) the BLDC section's (bike_plant.params.BldcParams.kt_nm_per_a); ConfigError otherwise."""
+    path = cfg.get("_config_path")
+    if p.torque_constant_nm_per_a > 0:
+        return float(p.torque_constant_nm_per_a)
+    if cfg.get("machine", "bldc") == "bldc":
+        from ..params import plant_params_from_config
+        return plant_params_from_config(cfg).bldc.kt_nm_per_a
+    raise ConfigError(f"{p.protocol} commands the motor current: give the motor's torque constant "
+                      f"(machine {cfg.get('machine')!r} has no bldc section to take it from)",
+                      path, "can.torque_constant_nm_per_a")
 
 
 def _number(cfg: dict, dotted: str, default: float) -> float:
@@ -303,8 +329,16 @@ class CanBackend:
             except Exception as exc:  # noqa: BLE001
                 self._shutdown_bus()
                 raise ConfigError(f"cannot write the CAN log {self.log_path}: {exc}", path, "can.log_file") from None
-        self.drive = PROTOCOLS[p.protocol](_BusTap(bus, self), p.node_id, heartbeat_timeout_s=p.heartbeat_timeout_s,
-                                     watchdog_feed_interval_s=p.watchdog_feed_s, clock=clock)
+        drive_cls = PROTOCOLS[p.protocol]
+        motor = {}
+        if drive_cls.uses_motor_constants:   # e.g. VESC: electrical rpm and amperes on the bus
+            try:
+                motor = {"pole_pairs": self.pole_pairs, "torque_constant_nm_per_a": torque_constant_of(cfg, p)}
+            except ConfigError:
+                self._shutdown_bus()
+                raise
+        self.drive = drive_cls(_BusTap(bus, self), p.node_id, heartbeat_timeout_s=p.heartbeat_timeout_s,
+                               watchdog_feed_interval_s=p.watchdog_feed_s, clock=clock, **motor)
         self.counters: collections.Counter = collections.Counter()
         self.events: list[tuple[str, str]] = []
         # link / arming state
@@ -390,6 +424,8 @@ class CanBackend:
         """'axis state 1 (IDLE)', plus the procedure result when it says why the axis did not do
         what was asked (e.g. 'procedure result 14 (NOT_CALIBRATED)': a refused closed loop often
         has no error bit, only this)."""
+        if not self.drive.has_arming:
+            return f"{self.params.protocol}: no axis state"
         state = int(self.drive.axis_state)
         name = AxisState(state).name if state in AxisState._value2member_map_ else "unknown"
         text = f"axis state {state} ({name})"
@@ -475,12 +511,15 @@ class CanBackend:
         if self.link_alive:
             enabled = drive.enabled
             if enabled and not self.was_enabled:
-                if not self.configured:
+                if not self.configured and drive.has_arming:
                     self._take_over_armed_drive()
+                self.configured = True
                 self.counters["armed"] += 1
                 self.ever_armed = True
                 self.armed_since_s = now
-                self._event("info", "drive in closed-loop torque control")
+                self._event("info", "drive in closed-loop torque control" if drive.has_arming else
+                            f"drive alive ({drive.status_message} arriving; {self.params.protocol} has no arming): "
+                            "torque setpoints go out")
                 if self.commanded and not self.safe:
                     self._send_setpoint(self.setpoint_nm)
             elif not enabled and self.was_enabled:
@@ -532,7 +571,8 @@ class CanBackend:
                 self._log(msg, rx=True)
                 if not self.link_alive:
                     self._watch_bus(msg, bool(measurements))
-                if not measurements and not msg.is_remote_frame and not msg.is_extended_id:
+                if not measurements and not msg.is_remote_frame and \
+                        bool(msg.is_extended_id) == getattr(drive.codec, "extended_id", False):
                     self._foreign_command(msg, now)
 
     def _reset_bus_watch(self) -> None:
@@ -553,8 +593,8 @@ class CanBackend:
             self.watch_error_frames += 1
             return
         codec = getattr(self.drive, "codec", None)
-        if decoded or codec is None or msg.is_remote_frame or msg.is_fd:
-            return
+        if decoded or codec is None or msg.is_remote_frame or msg.is_fd or "Heartbeat" not in codec.messages:
+            return                           # (the id analysis below is ODrive's)
         arb = msg.arbitration_id
         heartbeat = codec.messages["Heartbeat"]
         if msg.is_extended_id:
@@ -581,7 +621,7 @@ class CanBackend:
         Counted; warned about at most every 10 s."""
         codec = getattr(self.drive, "codec", None)
         name = codec.message_name(msg.arbitration_id) if codec is not None else None
-        if name not in HOST_TO_DRIVE:
+        if name not in getattr(codec, "host_to_drive", HOST_TO_DRIVE):
             return
         self.counters["foreign_commands"] += 1
         if now - self.foreign_warned_s >= 10.0:
@@ -611,8 +651,10 @@ class CanBackend:
         others = sorted(m.message for k, m in self.drive.last.items() if k != "status")
         if not self.seen and others and not self.watch_own_drops:
             key.append(("no_heartbeat", tuple(others)))
-            parts.append(f"node {p.node_id} sends {', '.join(others)} but no Heartbeat "
-                         "(heartbeat_msg_rate_ms = 0 on the drive?)")
+            status = self.drive.status_message
+            parts.append(f"node {p.node_id} sends {', '.join(others)} but no {status} "
+                         + ("(heartbeat_msg_rate_ms = 0 on the drive?)" if status == "Heartbeat"
+                            else f"(is {status} among the drive's broadcast status messages?)"))
         if self.watch_frames == self.watch_error_frames:
             key.append(("silent", self.watch_error_frames > 0))
             parts.append("nothing received on the bus" + (f" but {self.watch_error_frames} error frames"
@@ -644,7 +686,7 @@ class CanBackend:
         if key == self.link_hint_key or now - self.link_hint_logged_s < 1.0:
             return
         self.link_hint_key, self.link_hint_logged_s = key, now
-        what = "no Heartbeat yet" if not self.seen else "the drive is still silent"
+        what = f"no {self.drive.status_message} yet" if not self.seen else "the drive is still silent"
         self._event("warning", f"{what} from {self.params.describe()} after {now - since:.0f}s: "
                                f"{text or 'nothing on the bus explains why'}; sim time paused")
 
@@ -733,7 +775,7 @@ class CanBackend:
         self.lost_gap_s = gap_s
         seen_late = (" (seen late: the heartbeats had resumed before this loop, itself delayed, looked; "
                      "back at the next batch)") if late else ""
-        self._event("error", f"drive silent: no Heartbeat for {age:.3f}s > heartbeat_timeout_s="
+        self._event("error", f"drive silent: no {self.drive.status_message} for {age:.3f}s > heartbeat_timeout_s="
                              f"{self.params.heartbeat_timeout_s:g}s ({self.params.describe()}){seen_late}: "
                              "FAULT_DRIVE_LOST, zero torque, sim time paused")
         # zero torque in case only our receive path broke, then stop feeding the watchdog
@@ -957,7 +999,7 @@ class CanBackend:
         if self.omega0 is None:
             self.omega0 = w
         t_em = float(v.get("torque_estimate_nm", 0.0))
-        if "bus_voltage_v" in v:
+        if "bus_voltage_v" in v and "bus_current_a" in v:   # (VESC: two status messages)
             self.e_battery_j += float(v["bus_voltage_v"]) * -float(v["bus_current_a"]) * dt
         self.e_shaft_j += -t_em * w * dt
         self.e_friction_j += self.friction_nms * w * w * dt
@@ -1017,7 +1059,7 @@ class CanBackend:
             "rx_frames": c["rx_frames"] - c["echo"], "tx_frames": c["tx_frames"], "decoded": c["decoded"],
             "dropped": self.drive.dropped, "echo": c["echo"], "other_node": c["other_node"],
             "other_direction": c["other_direction"], "tx_failed": c["tx_failed"],
-            "heartbeats": c["rx:Heartbeat"], "requests": self.counters["requests"],
+            "heartbeats": c[f"rx:{self.drive.status_message}"], "requests": self.counters["requests"],
             "setpoints": self.counters["setpoints"], "keepalive": self.counters["keepalive"],
             "torque_clamped": self.counters["torque_clamped"], "drive_lost": self.counters["drive_lost"],
             "drive_back": self.counters["drive_back"], "armed": self.counters["armed"],
@@ -1060,7 +1102,7 @@ class CanBackend:
         if not self.seen:
             level = WARN
             hint = self._link_hint()[1] if now - self.started_s >= LINK_HINT_AFTER_S else ""
-            reasons.append(f"waiting for the drive's Heartbeat ({p.describe()}, "
+            reasons.append(f"waiting for the drive's {drive.status_message} ({p.describe()}, "
                            f"{now - self.started_s:.0f}s)" + (f": {hint}" if hint else "") + ": sim time paused")
         elif self.lost:
             level = ERROR
@@ -1100,7 +1142,7 @@ class CanBackend:
             "can_link": "lost" if self.lost else ("alive" if self.seen else "waiting"),
             "can_arming": ("gave_up" if self.gave_up else "armed" if self.drive_enabled
                            else f"attempt {self.arm_attempts}" if self.arm_attempts else "idle"),
-            "can_axis_state": str(drive.axis_state),
+            "can_axis_state": str(drive.axis_state) if drive.has_arming else "none",
             "can_axis_error": "|".join(error_names(drive.active_errors)) or "none",
             "can_heartbeat_age_ms": f"{drive.heartbeat_age_s(now) * 1e3:.0f}" if self.seen else "inf",
             "can_torque_setpoint_nm": f"{self.setpoint_nm:.4f}",

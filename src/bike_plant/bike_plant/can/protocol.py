@@ -58,6 +58,8 @@ import cantools
 
 DBC_PATH = pathlib.Path(__file__).with_name("odrive_cansimple_0_6.dbc")
 
+RPM_PER_REV_S = 60.0
+
 CMD_ID_BITS = 5
 CMD_ID_MASK = (1 << CMD_ID_BITS) - 1     # 0x1F
 NODE_ID_MAX = 0x3F                       # 6 bits of an 11-bit id
@@ -188,7 +190,7 @@ MESSAGE_OF_KIND = {kind: name for name, (kind, _) in MEASUREMENT_OF.items()}
 
 #: Reasons a received frame is dropped because it is broken or not allowed here.
 MALFORMED_REASONS = ("error_frame", "fd_frame", "extended_id", "unknown_id", "unknown_cmd", "bad_dlc",
-                     "non_finite", "out_of_range", "unexpected_rtr", "decode_error", "bus_error")
+                     "non_finite", "out_of_range", "unexpected_rtr", "decode_error", "bus_error", "standard_id")
 #: Reasons a received frame is ignored although nothing is wrong with it.
 IGNORED_REASONS = ("other_node", "other_direction", "echo")
 
@@ -243,9 +245,9 @@ def export_dbc(node_id: int, path: str | pathlib.Path, dbc_path: str | pathlib.P
     return out
 
 
-def _check_node_id(node_id: int) -> None:
-    if isinstance(node_id, bool) or not isinstance(node_id, int) or not 0 <= node_id <= NODE_ID_MAX:
-        raise ValueError(f"node_id must be an integer in 0..{NODE_ID_MAX}, got {node_id!r}")
+def _check_node_id(node_id: int, node_id_max: int = NODE_ID_MAX) -> None:
+    if isinstance(node_id, bool) or not isinstance(node_id, int) or not 0 <= node_id <= node_id_max:
+        raise ValueError(f"node_id must be an integer in 0..{node_id_max}, got {node_id!r}")
 
 
 class _EchoFilter:
@@ -295,33 +297,70 @@ class _EchoFilter:
 
 
 # ---------------------------------------------------------------------------------------
-class OdriveCanSimpleCodec:
-    """Bus-free ODrive CANSimple 0.6.x codec for one node over the DBC (node 0 ids + node_id << 5)."""
+class DbcCodec:
+    """Bus-free codec of one drive's messages over a DBC whose frame ids are those of node 0.
+
+    Subclasses say how a node's frame id is formed (:meth:`_compose` / :meth:`_split`), which
+    id format the protocol uses (``extended_id``), which messages each side sends and which
+    the host may request by RTR. Encoding checks every signal against the DBC's [min|max];
+    :meth:`classify` turns any frame python-can can construct into a :class:`Decoded` or the
+    reason (MALFORMED_REASONS / IGNORED_REASONS) it is dropped, and never raises.
+    """
+
+    default_dbc: pathlib.Path = DBC_PATH
+    extended_id = False
+    id_max = STANDARD_ID_MAX
+    node_id_max = NODE_ID_MAX
+    cmd_max = CMD_ID_MASK
+    host_to_drive: frozenset = frozenset()
+    drive_to_host: frozenset = frozenset()
+    requestable: frozenset = frozenset()
+    min_dlc: Mapping[str, int] = {}
 
     def __init__(self, node_id: int = 0, dbc_path: str | pathlib.Path | None = None):
-        _check_node_id(node_id)
+        _check_node_id(node_id, self.node_id_max)
         self.node_id = node_id
-        self.db = cantools.database.load_file(str(dbc_path or DBC_PATH))
+        self.db = cantools.database.load_file(str(dbc_path or self.default_dbc))
         self.messages = {m.name: m for m in self.db.messages}
-        missing = (HOST_TO_DRIVE | DRIVE_TO_HOST) - set(self.messages)
+        missing = (self.host_to_drive | self.drive_to_host) - set(self.messages)
         if missing:
             raise ValueError(f"DBC lacks message(s) {', '.join(sorted(missing))}")
-        self._by_cmd = {m.frame_id: m for m in self.db.messages}
-        if any(cmd > CMD_ID_MASK for cmd in self._by_cmd):
-            raise ValueError("DBC frame ids must be node-0 command ids (0..0x1F)")
+        self._by_cmd = {self._command_id(m.frame_id): m for m in self.db.messages}
+        if any(cmd > self.cmd_max for cmd in self._by_cmd):
+            raise ValueError(f"DBC frame ids must be node-0 ids (command ids 0..{self.cmd_max:#x})")
         self._signals = {m.name: [(s.name, s.is_float, s.minimum, s.maximum) for s in m.signals]
                          for m in self.db.messages}
+        # integer signals whose physical value is the raw one (scale 1, offset 0): the value must be an
+        # integer; scaled integer signals (VESC's x1000 current, ...) are rounded to their resolution
+        self._unscaled_int = {(m.name, s.name) for m in self.db.messages for s in m.signals
+                              if not s.is_float and s.scale == 1 and s.offset == 0}
 
+    # ------------------------------------------------------------ id scheme (per protocol)
+    def _command_id(self, node0_frame_id: int) -> int:
+        """The command id of a DBC frame id (the DBC holds node 0's ids)."""
+        return node0_frame_id
+
+    def _compose(self, cmd: int) -> int:
+        raise NotImplementedError
+
+    def _split(self, arbitration_id: int) -> tuple[int, int]:
+        """(node id, command id) of a frame id of this protocol's format."""
+        raise NotImplementedError
+
+    # ------------------------------------------------------------ encode
     def arbitration_id(self, name: str) -> int:
-        """11-bit id of message ``name`` for this node."""
-        return (self.node_id << CMD_ID_BITS) | self.messages[name].frame_id
+        """Frame id of message ``name`` for this node."""
+        return self._compose(self._command_id(self.messages[name].frame_id))
 
     def message_name(self, arbitration_id) -> str | None:
-        """The name of this node's message with 11-bit id ``arbitration_id`` (None: another
+        """The name of this node's message with id ``arbitration_id`` (None: another
         node's, or no message of the DBC); the inverse of :meth:`arbitration_id`."""
-        if not isinstance(arbitration_id, int) or arbitration_id >> CMD_ID_BITS != self.node_id:
+        if not isinstance(arbitration_id, int) or not 0 <= arbitration_id <= self.id_max:
             return None
-        message = self._by_cmd.get(arbitration_id & CMD_ID_MASK)
+        node, cmd = self._split(arbitration_id)
+        if node != self.node_id:
+            return None
+        message = self._by_cmd.get(cmd)
         return message.name if message is not None else None
 
     def encode(self, name: str, signals: Mapping[str, float | int]) -> can.Message:
@@ -338,25 +377,26 @@ class OdriveCanSimpleCodec:
                 raise ValueError(f"{name}.{sig_name} must be a finite number, got {value!r}")
             if (lo is not None and value < lo) or (hi is not None and value > hi):
                 raise ValueError(f"{name}.{sig_name} = {value!r} is outside [{lo}, {hi}]")
-            if not is_float:
+            if (name, sig_name) in self._unscaled_int:
                 if float(value) != int(value):
                     raise ValueError(f"{name}.{sig_name} must be an integer, got {value!r}")
                 value = int(value)
             clean[sig_name] = value
         data = message.encode(clean, scaling=True, padding=False, strict=True)
-        return can.Message(arbitration_id=self.arbitration_id(name), data=data, is_extended_id=False)
+        return can.Message(arbitration_id=self.arbitration_id(name), data=data, is_extended_id=self.extended_id)
 
     def encode_request(self, name: str) -> can.Message:
         """An RTR frame requesting ``name`` (DLC = the message length, no data)."""
-        if name not in REQUESTABLE:
-            raise ValueError(f"{name} cannot be requested; requestable: {', '.join(sorted(REQUESTABLE))}")
+        if name not in self.requestable:
+            raise ValueError(f"{name} cannot be requested; requestable: {', '.join(sorted(self.requestable))}")
         return can.Message(arbitration_id=self.arbitration_id(name), is_remote_frame=True,
-                           dlc=self.messages[name].length, is_extended_id=False)
+                           dlc=self.messages[name].length, is_extended_id=self.extended_id)
 
+    # ------------------------------------------------------------ decode
     def classify(self, msg: can.Message, receives: frozenset[str], answers_requests: bool) -> Decoded | str:
         """Decode ``msg`` for a side that receives ``receives`` messages.
 
-        answers_requests: True for the drive side (RTR frames of REQUESTABLE messages
+        answers_requests: True for the drive side (RTR frames of requestable messages
         are requests), False for the host (RTR frames are other hosts' requests or our
         own echoes). Returns a :class:`Decoded` or the reason (a string) the frame is
         dropped. Never raises for a frame that python-can could construct.
@@ -365,25 +405,26 @@ class OdriveCanSimpleCodec:
             return "error_frame"
         if msg.is_fd:
             return "fd_frame"
-        if msg.is_extended_id:
-            return "extended_id"
+        if bool(msg.is_extended_id) != self.extended_id:
+            return "extended_id" if msg.is_extended_id else "standard_id"
         arb = msg.arbitration_id
-        if not isinstance(arb, int) or arb < 0 or arb > STANDARD_ID_MAX:
+        if not isinstance(arb, int) or arb < 0 or arb > self.id_max:
             return "unknown_id"
-        if arb >> CMD_ID_BITS != self.node_id:
+        node, cmd = self._split(arb)
+        if node != self.node_id:
             return "other_node"
-        message = self._by_cmd.get(arb & CMD_ID_MASK)
+        message = self._by_cmd.get(cmd)
         if message is None:
             return "unknown_cmd"
         name = message.name
         if msg.is_remote_frame:
-            if name in REQUESTABLE:
+            if name in self.requestable:
                 return Decoded(name, {}, is_request=True) if answers_requests else "other_direction"
             return "unexpected_rtr"
         if name not in receives:
             return "other_direction"
         data = bytes(msg.data)
-        if msg.dlc != len(data) or len(data) < MIN_DLC.get(name, message.length) or len(data) > 8:
+        if msg.dlc != len(data) or len(data) < self.min_dlc.get(name, message.length) or len(data) > 8:
             return "bad_dlc"
         if len(data) < message.length:
             data = data + bytes(message.length - len(data))   # accepted short payload: zero-fill
@@ -398,6 +439,22 @@ class OdriveCanSimpleCodec:
             if (lo is not None and value < lo) or (hi is not None and value > hi):
                 return "out_of_range"
         return Decoded(name, raw)
+
+
+class OdriveCanSimpleCodec(DbcCodec):
+    """Bus-free ODrive CANSimple 0.6.x codec for one node over the DBC (node 0 ids + node_id << 5)."""
+
+    default_dbc = DBC_PATH
+    host_to_drive = HOST_TO_DRIVE
+    drive_to_host = DRIVE_TO_HOST
+    requestable = REQUESTABLE
+    min_dlc = MIN_DLC
+
+    def _compose(self, cmd: int) -> int:
+        return (self.node_id << CMD_ID_BITS) | cmd
+
+    def _split(self, arbitration_id: int) -> tuple[int, int]:
+        return arbitration_id >> CMD_ID_BITS, arbitration_id & CMD_ID_MASK
 
 
 # ---------------------------------------------------------------------------------------
@@ -429,6 +486,18 @@ class DriveProtocol(abc.ABC):
     """
 
     protocol_name = "abstract"
+    #: the message whose arrival proves the drive alive (measurement kind 'status')
+    status_message = "status"
+    #: False: the drive has no armed / idle state of its own (it runs whatever setpoint arrives
+    #: while its command timeout is fed): :attr:`enabled` is True whenever its status arrives
+    has_arming = True
+    #: False: the drive sends everything cyclically (:meth:`request` sends nothing)
+    can_request = True
+    #: True: the constructor takes ``pole_pairs`` and ``torque_constant_nm_per_a`` (the drive
+    #: speaks electrical rpm and amperes, not rev/s and N m)
+    uses_motor_constants = False
+    #: largest node id of the protocol's id scheme
+    node_id_max = NODE_ID_MAX
 
     def __init__(self, bus: can.BusABC, node_id: int, *, heartbeat_timeout_s: float = 0.5,
                  watchdog_feed_interval_s: float = 0.1, clock: Callable[[], float] = time.monotonic,
@@ -548,7 +617,8 @@ class DriveProtocol(abc.ABC):
             return []
         for m in result:
             self.last[m.kind] = m
-            self.counters[f"rx:{m.message}"] += 1
+        for name in dict.fromkeys(m.message for m in result):   # once per frame, also for several kinds
+            self.counters[f"rx:{name}"] += 1
         self.counters["decoded"] += 1
         return result
 
@@ -613,6 +683,7 @@ class OdriveCanSimple(DriveProtocol):
     """
 
     protocol_name = "odrive_cansimple_0.6"
+    status_message = "Heartbeat"
 
     def __init__(self, bus: can.BusABC, node_id: int = 0, *, heartbeat_timeout_s: float = 0.5,
                  watchdog_feed_interval_s: float = 0.1, dbc_path: str | pathlib.Path | None = None,
@@ -707,9 +778,185 @@ class OdriveCanSimple(DriveProtocol):
         return self.axis_state == AxisState.CLOSED_LOOP_CONTROL
 
 
+# ---------------------------------------------------------------------------------------
+# VESC (vedderb/bldc documentation/comm_can.md, CAN mode "VESC")
+VESC_DBC_PATH = pathlib.Path(__file__).with_name("vesc_can.dbc")
+VESC_CMD_SHIFT = 8                       # id = command_id << 8 | vesc_id (29-bit extended)
+VESC_ID_MASK = (1 << VESC_CMD_SHIFT) - 1
+VESC_ID_MAX = 254                        # 255 is the VESC broadcast id: it would command every VESC on the bus
+EXTENDED_ID_MAX = 0x1FFFFFFF
+#: Tachometer counts per electrical revolution (firmware mc_interface_get_tachometer_value: motor
+#: revolutions = tachometer / (3 x motor poles) = tachometer / (6 x pole pairs))
+VESC_TACHO_PER_EREV = 6
+
+VESC_HOST_TO_DRIVE = frozenset({"Set_Duty", "Set_Current", "Set_Current_Brake", "Set_Rpm", "Set_Pos",
+                                "Set_Current_Rel"})
+VESC_DRIVE_TO_HOST = frozenset({"Status", "Status_2", "Status_3", "Status_4", "Status_5"})
+#: Every command resets the VESC's command timeout; STATUS_5's two reserved bytes are not required.
+VESC_MIN_DLC = {"Status_5": 6}
+#: Measurement kinds and neutral value names of the VESC status broadcasts. STATUS also yields
+#: 'motion' (speed_rev_s), 'torque' (torque_estimate_nm = kt x motor current) and 'current'
+#: (iq_measured_a = motor current), STATUS_5 also 'position' (position_rev from the tachometer).
+VESC_MEASUREMENT_OF: dict[str, tuple[str, dict[str, str]]] = {
+    "Status": ("status", {"Erpm": "erpm", "Current": "motor_current_a", "Duty_Cycle": "duty"}),
+    "Status_2": ("charge", {"Amp_Hours": "charge_drawn_ah", "Amp_Hours_Charged": "charge_regenerated_ah"}),
+    "Status_3": ("energy", {"Watt_Hours": "energy_drawn_wh", "Watt_Hours_Charged": "energy_regenerated_wh"}),
+    "Status_4": ("input", {"Temp_Fet": "fet_temp_c", "Temp_Motor": "motor_temp_c", "Current_In": "bus_current_a",
+                           "Pid_Pos": "pid_pos_deg"}),
+    "Status_5": ("bus", {"Voltage_In": "bus_voltage_v", "Tachometer": "tachometer"}),
+}
+
+
+class VescCanCodec(DbcCodec):
+    """Bus-free VESC CAN codec for one VESC ID over ``vesc_can.dbc`` (VESC ID 0 ids + vesc_id).
+
+    29-bit extended ids ``command_id << 8 | vesc_id``; payloads big-endian signed integers
+    with the scales of vedderb/bldc documentation/comm_can.md (e.g. SET_CURRENT 51 A to VESC
+    23: id 0x0117, data 00 00 C7 38).
+    """
+
+    default_dbc = VESC_DBC_PATH
+    extended_id = True
+    id_max = EXTENDED_ID_MAX
+    node_id_max = VESC_ID_MAX
+    cmd_max = EXTENDED_ID_MAX >> VESC_CMD_SHIFT
+    host_to_drive = VESC_HOST_TO_DRIVE
+    drive_to_host = VESC_DRIVE_TO_HOST
+    min_dlc = VESC_MIN_DLC
+
+    def _command_id(self, node0_frame_id: int) -> int:
+        return node0_frame_id >> VESC_CMD_SHIFT
+
+    def _compose(self, cmd: int) -> int:
+        return (cmd << VESC_CMD_SHIFT) | self.node_id
+
+    def _split(self, arbitration_id: int) -> tuple[int, int]:
+        return arbitration_id & VESC_ID_MASK, arbitration_id >> VESC_CMD_SHIFT
+
+
+class VescCan(DriveProtocol):
+    """VESC host side (CAN mode VESC) for the controller with ``node_id`` (its VESC ID) on ``bus``.
+
+    Source: vedderb/bldc documentation/comm_can.md. A VESC has no heartbeat, no axis state
+    and no request / response: it broadcasts STATUS .. STATUS_5 at its CAN status rate and
+    runs the last command until none arrived for its timeout (0.5 s by default), then
+    releases the motor. So:
+
+    * link alive = STATUS frames arriving (the 'status' measurement; ``heartbeat_timeout_s``);
+    * :attr:`enabled` is True once a STATUS arrived (nothing to arm); :meth:`enable`,
+      :meth:`clear_errors` send nothing; :meth:`disable` sends SET_CURRENT 0 (motor released);
+    * :meth:`set_torque` sends SET_CURRENT = torque / kt (signed: negative brakes and
+      regenerates), repeated by :meth:`keepalive` to feed the command timeout;
+    * :meth:`set_velocity` sends SET_RPM in electrical rpm (motor rev/s x 60 x pole pairs);
+    * measurements: speed = ERPM / pole pairs; position = tachometer / (6 x pole pairs)
+      (1/12 rev steps for 2 pole pairs); torque_estimate_nm = kt x motor current (VESC's
+      STATUS current is the motor current); bus voltage (STATUS_5), bus current (STATUS_4
+      input current, positive = drawn from the battery, as ODrive's Bus_Current).
+      Not reported: torque target, Iq setpoint, error bits (active_errors stays 0), power.
+    """
+
+    protocol_name = "vesc_can"
+    status_message = "Status"
+    has_arming = False
+    can_request = False
+    uses_motor_constants = True
+    node_id_max = VESC_ID_MAX
+
+    def __init__(self, bus: can.BusABC, node_id: int = 0, *, pole_pairs: int, torque_constant_nm_per_a: float,
+                 heartbeat_timeout_s: float = 0.5, watchdog_feed_interval_s: float = 0.1,
+                 dbc_path: str | pathlib.Path | None = None, clock: Callable[[], float] = time.monotonic,
+                 filter_echo: bool = True):
+        if isinstance(pole_pairs, bool) or not isinstance(pole_pairs, int) or pole_pairs < 1:
+            raise ValueError(f"pole_pairs must be an integer >= 1, got {pole_pairs!r}")
+        kt = torque_constant_nm_per_a
+        if isinstance(kt, bool) or not isinstance(kt, (int, float)) or not (math.isfinite(kt) and kt > 0):
+            raise ValueError(f"torque_constant_nm_per_a must be a finite number > 0, got {kt!r}")
+        super().__init__(bus, node_id, heartbeat_timeout_s=heartbeat_timeout_s,
+                         watchdog_feed_interval_s=watchdog_feed_interval_s, clock=clock, filter_echo=filter_echo)
+        self.codec = VescCanCodec(node_id, dbc_path)
+        self.pole_pairs = pole_pairs
+        self.torque_constant_nm_per_a = float(kt)
+
+    def _send(self, name: str, signals: Mapping[str, float | int], repeat: bool = False) -> bool:
+        msg = self.codec.encode(name, signals)
+        return self.send(msg, name, feeds_watchdog=name in VESC_HOST_TO_DRIVE, repeat=repeat)
+
+    def set_current(self, current_a: float) -> bool:
+        """SET_CURRENT (1) [A, motor current, signed]; repeated by keepalive (command timeout)."""
+        return self._send("Set_Current", {"Current": current_a}, repeat=True)
+
+    def set_rpm(self, speed_erpm: float) -> bool:
+        """SET_RPM (3) [electrical rpm]; repeated by keepalive."""
+        return self._send("Set_Rpm", {"Erpm": round(speed_erpm)}, repeat=True)
+
+    # ------------------------------------------------------------ neutral interface
+    def enable(self, control: str = "torque") -> bool:
+        """Nothing to send: a VESC runs whatever command arrives (no armed state)."""
+        if control not in ("torque", "velocity"):
+            raise ValueError(f"control must be 'torque' or 'velocity', got {control!r}")
+        return True
+
+    def disable(self) -> bool:
+        """SET_CURRENT 0, not repeated: the VESC releases the motor (it coasts)."""
+        self.forget_setpoint()
+        return self._send("Set_Current", {"Current": 0.0})
+
+    def set_torque(self, torque_nm: float) -> bool:
+        return self.set_current(float(torque_nm) / self.torque_constant_nm_per_a)
+
+    def set_velocity(self, speed_rev_s: float, torque_ff_nm: float = 0.0) -> bool:
+        if torque_ff_nm:
+            raise ValueError("VESC SET_RPM has no torque feed-forward; torque_ff_nm must be 0")
+        return self.set_rpm(float(speed_rev_s) * RPM_PER_REV_S * self.pole_pairs)
+
+    def set_limits(self, velocity_limit_rev_s: float, current_limit_a: float) -> bool:  # noqa: ARG002
+        """Not sent: a VESC's limits are its motor configuration (VESC Tool). Counted, False."""
+        self.counters["unsupported:set_limits"] += 1
+        return False
+
+    def clear_errors(self) -> bool:
+        """Nothing to send: a VESC fault clears itself once its cause is gone."""
+        return True
+
+    def request(self, what: str) -> bool:  # noqa: ARG002
+        """Not possible: a VESC only broadcasts. Counted, False."""
+        self.counters["unsupported:request"] += 1
+        return False
+
+    def decode(self, msg: can.Message, now_s: float) -> list[Measurement] | str:
+        result = self.codec.classify(msg, VESC_DRIVE_TO_HOST, answers_requests=False)
+        if isinstance(result, str):
+            return result
+        kind, names = VESC_MEASUREMENT_OF[result.name]
+        values = {names[k]: v for k, v in result.signals.items() if k in names}
+        stamp = float(msg.timestamp) if isinstance(msg.timestamp, (int, float)) else 0.0
+        out = [Measurement(kind, values, now_s, stamp, result.name)]
+        if result.name == "Status":
+            current_a = float(values["motor_current_a"])
+            speed_rev_s = float(values["erpm"]) / self.pole_pairs / RPM_PER_REV_S
+            out += [Measurement("motion", {"speed_rev_s": speed_rev_s}, now_s, stamp, result.name),
+                    Measurement("torque", {"torque_estimate_nm": self.torque_constant_nm_per_a * current_a},
+                                now_s, stamp, result.name),
+                    Measurement("current", {"iq_measured_a": current_a}, now_s, stamp, result.name)]
+        elif result.name == "Status_5":
+            position_rev = float(values["tachometer"]) / (VESC_TACHO_PER_EREV * self.pole_pairs)
+            out.append(Measurement("position", {"position_rev": position_rev}, now_s, stamp, result.name))
+        return out
+
+    @property
+    def active_errors(self) -> int:
+        """Always 0: the VESC status broadcasts carry no fault code."""
+        return 0
+
+    @property
+    def enabled(self) -> bool:
+        return "status" in self.last
+
+
 #: Host-side protocols by name (the ``can.protocol`` parameter of the plant's backend). A
 #: second protocol (VESC, CANopen CiA 402) is a DriveProtocol subclass registered here.
-PROTOCOLS: dict[str, type[DriveProtocol]] = {OdriveCanSimple.protocol_name: OdriveCanSimple}
+PROTOCOLS: dict[str, type[DriveProtocol]] = {OdriveCanSimple.protocol_name: OdriveCanSimple,
+                                              VescCan.protocol_name: VescCan}
 
 
 def main(argv: Iterable[str] | None = None) -> int:
