@@ -21,7 +21,12 @@ from bike_plant.can import (PROTOCOLS, VESC_DBC_PATH, VESC_DRIVE_TO_HOST, VESC_H
 from bike_plant.can.backend import FAULT_DRIVE_LOST, CanBackend, can_params_from_config, emulator_args_from_config
 from bike_plant.config import ConfigError, load_config
 from bike_controller.drive_emulator import AverageTorqueDrive, DriveModelParams, VescEmulator, VescFirmware
+from bike_session.bags import read_topic
+from bike_session.report import summarise
+from conftest import bike_command
+from node_harness import stamp_ns
 from test_can_emulator import Emulator
+from test_can_graph import _port, write_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 VESC_CONFIG = ROOT / "config" / "bldc_vesc.yaml"
@@ -424,3 +429,38 @@ def test_vesc_emulator_process_over_udp_multicast(tmp_path):
         rc, summary = emu.stop(signal.SIGTERM)
     assert rc == 0
     assert summary["rx:Set_Current"] >= 1 and summary["tx:Status"] >= 50 and summary["tx:garbage"] > 0
+
+
+# ----------------------------------------------------------------------------- the whole bike on a VESC
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_a_workout_on_a_vesc_through_the_can_path_end_to_end(tmp_path, ros_domain):
+    """`./bike run --config config/bldc_vesc.yaml` starts the emulator in VESC mode, rides,
+    records and reports: braking torque as asked, SET_CURRENT / STATUS frames in the CAN log."""
+    port = _port()
+    profile = {"name": "vesc_smoke", "segments": [
+        {"kind": "step", "duration_s": 4.0, "command": 0.5, "mode": "resistance", "label": "resistance"}]}
+    config = write_config(tmp_path, port, emulator=True, profile=profile, base=VESC_CONFIG)
+    result = bike_command("run", "--config", str(config), "--duration", "4", "--record", str(tmp_path / "runs"),
+                          timeout=150)
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out[-6000:]
+    assert "protocol=vesc_can" in out and "drive alive (Status arriving" in out
+    bag = next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
+    states = read_topic(bag, "plant_state")
+    status = read_topic(bag, "controller_status")
+    assert states[-1].end_of_run and all(m.measured_by_drive and m.backend == "can" for m in states)
+    t = lambda m: stamp_ns(m.header.stamp) * 1e-9  # noqa: E731
+    res = [m for m in states if 1.0 < t(m) < 3.9 and not m.faults]
+    res_cmd = [s for s in status if 1.0 < t(s) < 3.9]
+    asked = sum(s.torque_cmd_nm for s in res_cmd) / len(res_cmd)
+    got = -sum(m.torque_em_nm for m in res) / len(res)
+    assert 0.5 < asked < 1.6 and got == pytest.approx(asked, rel=0.05), (asked, got)
+    assert states[-1].dc_bus_v > 40 and states[-1].energy_battery_j > 0, "regenerated into the battery"
+    can_stats = summarise(bag)["can"]
+    assert can_stats["protocol"] == "vesc_can" and can_stats["dropped"] == "0"
+    assert int(can_stats["setpoints"]) > 300 and int(can_stats["heartbeats"]) > 200
+    logged = list(can.LogReader(can_stats["log_file"]))
+    ids = {m.arbitration_id for m in logged if m.is_extended_id}
+    assert {0x100, 0x900, 0x1000, 0x1B00} <= ids, "SET_CURRENT and STATUS / _4 / _5 of VESC ID 0 in the log"
+    assert "(vesc_can)" in result.stdout and "status frames" in result.stdout, "the report's CAN section"

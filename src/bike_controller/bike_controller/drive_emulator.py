@@ -1605,7 +1605,8 @@ def main(argv: list[str] | None = None) -> int:
                             fault_persist=args.fault_persist, rider=rider, log=log)
         signal.signal(signal.SIGUSR1, lambda signum, frame: emu.inject_fault_soon())
         channel = _bus_kwargs(args).get("channel", "default")
-        print(f"bike-drive-emulator ready: protocol={args.protocol} node_id={args.node_id} interface={args.interface} channel={channel} "
+        print(f"bike-drive-emulator ready: protocol={args.protocol} node_id={args.node_id} "
+              f"interface={args.interface} channel={channel} "
               f"port={args.port} machine={params.machine} physics={args.physics} load={params.load_kind} "
               f"kt={params.torque_constant_nm_per_a:.5f}Nm/A watchdog_s={args.watchdog_s}", flush=True)
         # a full collection of the ~120 000 objects numba, python-can and cantools leave behind

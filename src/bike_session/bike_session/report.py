@@ -1455,10 +1455,13 @@ def format_summary(summary: dict) -> str:
     can = s.get("can")
     if can:
         dropped = ", ".join(f"{k[len('dropped_'):]} {v}" for k, v in can.items() if k.startswith("dropped_"))
+        protocol = f" ({can['protocol']})" if can.get("protocol") else ""    # absent: ODrive CANSimple
         lines.append(f"CAN:                   {can.get('interface', '?')} {can.get('channel', '?')}, node "
-                     f"{can.get('node_id', '?')}: rx {can.get('rx_frames', '?')} frames, tx {can.get('tx_frames', '?')}, "
+                     f"{can.get('node_id', '?')}{protocol}: rx {can.get('rx_frames', '?')} frames, "
+                     f"tx {can.get('tx_frames', '?')}, "
                      f"dropped {can.get('dropped', '?')}" + (f" ({dropped})" if dropped else ""))
-        lines.append(f"                       heartbeats {can.get('heartbeats', '?')}, setpoints "
+        alive = "status frames" if can.get("protocol") == "vesc_can" else "heartbeats"
+        lines.append(f"                       {alive} {can.get('heartbeats', '?')}, setpoints "
                      f"{can.get('setpoints', '?')}, RTR requests {can.get('requests', '?')}, drive lost "
                      f"{can.get('drive_lost', '?')}x, armed {can.get('armed', '?')}x, disarmed {can.get('disarmed', 0)}x, "
                      f"gave up arming {can.get('arm_gave_up', 0)}x, ERROR diagnostics "

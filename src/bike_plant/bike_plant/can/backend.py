@@ -1147,6 +1147,8 @@ class CanBackend:
             "can_heartbeat_age_ms": f"{drive.heartbeat_age_s(now) * 1e3:.0f}" if self.seen else "inf",
             "can_torque_setpoint_nm": f"{self.setpoint_nm:.4f}",
         })
+        if p.protocol != CanParams.protocol:      # (the default, ODrive, keeps its diagnostic as it was)
+            values["can_protocol"] = p.protocol
         if "torque_target_nm" in v:
             values["can_torque_target_nm"] = f"{v['torque_target_nm']:.4f}"
         if self.log_path is not None:
