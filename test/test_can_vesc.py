@@ -302,6 +302,21 @@ def test_backend_link_is_status_frames_lost_then_back(vesc_rig):
     assert level == 0 and reasons == [] and values["can_axis_state"] == "none"
 
 
+def test_no_status_of_our_vesc_id_names_the_ids_that_are_on_the_bus(vesc_rig):
+    clock = Clock()
+    r = vesc_rig(clock)
+    other = VescCanCodec(9)
+    for _ in range(3):
+        r.drive_bus.send(other.encode("Status", {"Erpm": 100, "Current": 0.0, "Duty_Cycle": 0.0}))
+    r.backend.service()
+    clock.t += 2.5
+    r.backend.service()
+    assert not r.backend.seen and r.backend.stats()["other_node"] == 3
+    warnings = [text for level, text in r.backend.pop_events() if level == "warning"]
+    assert warnings and "Status frames on the bus from node 9, none from node 0" in warnings[-1]
+    assert "controller ID" in warnings[-1]
+
+
 def test_backend_garbage_on_the_bus_is_counted(vesc_rig):
     r = vesc_rig()
     b = r.backend
@@ -336,6 +351,14 @@ def test_config_checks_and_emulator_arguments(tmp_path):
     odrive["can"]["node_id"] = 200
     with pytest.raises(ConfigError, match="node_id"):
         can_params_from_config(odrive)
+
+
+def test_the_vesc_config_is_the_can_config_but_for_its_can_section():
+    import yaml
+    vesc = yaml.safe_load(VESC_CONFIG.read_text())["/**"]["ros__parameters"]
+    odrive = yaml.safe_load(CAN_CONFIG.read_text())["/**"]["ros__parameters"]
+    assert {k: v for k, v in vesc.items() if k != "can"} == {k: v for k, v in odrive.items() if k != "can"}
+    assert vesc["can"]["port"] != odrive["can"]["port"], "one udp_multicast port per bike: both can run on one host"
 
 
 def test_a_machine_without_a_bldc_kt_needs_the_torque_constant():

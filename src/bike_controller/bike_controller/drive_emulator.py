@@ -1,4 +1,5 @@
-"""bike-drive-emulator: an ODrive-like drive (CANSimple 0.6.x) on any python-can bus.
+"""bike-drive-emulator: an ODrive-like drive (CANSimple 0.6.x) -- or a VESC (``--protocol
+vesc_can``) -- on any python-can bus.
 
 It stands in for a real drive so the plant node's ``backend: can``, a script or a test
 can talk CAN without hardware. Three layers, each usable alone (no ROS imports but the optional
@@ -30,6 +31,10 @@ rider display below):
 * :class:`DriveFirmware` -- the axis logic of an ODrive: states IDLE(1) and
   CLOSED_LOOP_CONTROL(8), torque (1) and velocity (2) control, limits, error latching,
   Clear_Errors, the watchdog.
+* :class:`VescFirmware` / :class:`VescEmulator` -- the same physics behind a VESC (vedderb/bldc
+  documentation/comm_can.md): SET_CURRENT / SET_CURRENT_BRAKE / SET_CURRENT_REL / SET_RPM run
+  the motor at once (no arming), the command timeout (--watchdog-s) releases it without an
+  error, STATUS .. STATUS_5 are broadcast every --heartbeat-ms.
 * :class:`DriveEmulator` -- the CAN side: decodes host frames with the same codec as
   the host (:class:`bike_plant.can.protocol.OdriveCanSimpleCodec`), answers RTR
   requests, sends cyclic messages, and paces physics against time.monotonic in real
@@ -1330,7 +1335,7 @@ class VescEmulator(DriveEmulator):
         vid = self.node_id
         kind = rng.randrange(6)
         if kind == 0:       # unknown command id of this VESC
-            known = set(self.codec._by_cmd)
+            known = {self.codec.command_id_of(m.frame_id) for m in self.codec.db.messages}
             cmd = rng.choice([c for c in range(64) if c not in known])
             return can.Message(arbitration_id=(cmd << 8) | vid, data=rng.randbytes(rng.randrange(9)),
                                is_extended_id=True)

@@ -11,7 +11,12 @@ What it does
 ------------
 * Opens the bus (``can.interface``: socketcan, virtual, udp_multicast, pcan, ... any
   python-can interface; ``channel``, ``bitrate``, ``port`` for udp_multicast) and speaks
-  ODrive CANSimple 0.6.x through :class:`bike_plant.can.protocol.OdriveCanSimple`.
+  ODrive CANSimple 0.6.x through :class:`bike_plant.can.protocol.OdriveCanSimple`, or VESC
+  (``protocol: vesc_can``, :class:`bike_plant.can.protocol.VescCan`): a drive without arming,
+  whose STATUS broadcasts are its heartbeat; the torque setpoint goes out as SET_CURRENT =
+  T / kt (``torque_constant_nm_per_a``, 0: the bldc section's kt); arming, take-over, RTR
+  requests and Set_Limits do not apply (``request: []``, limits 0), so its only faults are
+  FAULT_DRIVE_LOST and FAULT_DRIVE_STALE. The rest of this description is the ODrive's.
 * Setpoints: the firmware of the drive owns the current loop, so per batch the
   controller's ``DriveCommand.torque_cmd_nm`` (N m at the motor shaft, motoring positive,
   the same sign as ODrive's torque) goes out as ``Set_Input_Torque``, clamped to
@@ -593,8 +598,11 @@ class CanBackend:
             self.watch_error_frames += 1
             return
         codec = getattr(self.drive, "codec", None)
-        if decoded or codec is None or msg.is_remote_frame or msg.is_fd or "Heartbeat" not in codec.messages:
-            return                           # (the id analysis below is ODrive's)
+        if decoded or codec is None or msg.is_remote_frame or msg.is_fd:
+            return
+        if "Heartbeat" not in codec.messages:
+            self._watch_other_status(msg, codec)
+            return
         arb = msg.arbitration_id
         heartbeat = codec.messages["Heartbeat"]
         if msg.is_extended_id:
@@ -614,6 +622,23 @@ class CanBackend:
             return
         reason = codec.classify(msg, DRIVE_TO_HOST, answers_requests=False)
         self.watch_own_drops[reason if isinstance(reason, str) else "decode_error"] += 1
+
+    def _status_plural(self) -> str:
+        status = self.drive.status_message
+        return "Heartbeats" if status == "Heartbeat" else f"{status} frames"
+
+    def _watch_other_status(self, msg: can.Message, codec) -> None:
+        """Protocols other than ODrive: status frames of other node ids (a VESC with another ID)."""
+        arb = msg.arbitration_id
+        if bool(msg.is_extended_id) != codec.extended_id or not isinstance(arb, int) or \
+                not 0 <= arb <= codec.id_max:
+            return
+        node, cmd = codec.split_id(arb)
+        status = codec.messages.get(self.drive.status_message)
+        if status is None or cmd != codec.command_id_of(status.frame_id) or node == self.params.node_id:
+            return
+        if node in self.watch_other_heartbeats or len(self.watch_other_heartbeats) < 64:
+            self.watch_other_heartbeats[node] = self.watch_other_heartbeats.get(node, 0) + 1
 
     def _foreign_command(self, msg: can.Message, now: float) -> None:
         """A command frame to our node that this plant did not send (its own echoes are already
@@ -637,8 +662,11 @@ class CanBackend:
         if self.watch_other_heartbeats:
             nodes = sorted(self.watch_other_heartbeats)
             key.append(("nodes", tuple(nodes)))
-            parts.append(f"Heartbeats on the bus from node {', '.join(map(str, nodes))}, none from node "
-                         f"{p.node_id} (can.node_id must be the drive's odrv.axis0.config.can.node_id)")
+            status = self.drive.status_message
+            which = ("the drive's odrv.axis0.config.can.node_id" if status == "Heartbeat"
+                     else "the VESC's controller ID (VESC Tool, App Settings, General)")
+            parts.append(f"{self._status_plural()} on the bus from node {', '.join(map(str, nodes))}, none from node "
+                         f"{p.node_id} (can.node_id must be {which})")
         if self.watch_extended_heartbeats:
             key.append(("extended",))
             parts.append(f"{self.watch_extended_heartbeats} Heartbeats of node {p.node_id} with a 29-bit (extended) "
@@ -716,14 +744,16 @@ class CanBackend:
         p = self.params
         if period <= 1.5 * p.heartbeat_period_s:
             return ""
-        text = (f"the drive's Heartbeats come every {period:.2f}s, not every "
+        status = self.drive.status_message
+        text = (f"the drive's {self._status_plural()} come every {period:.2f}s, not every "
                 f"can.heartbeat_period_s={p.heartbeat_period_s:g}s")
+        fix = (f"heartbeat_msg_rate_ms = {p.heartbeat_period_s * 1000:g}" if status == "Heartbeat"
+               else f"its CAN status rate to {1.0 / p.heartbeat_period_s:g} Hz")
         if period > p.heartbeat_timeout_s:
             return text + (f", longer than heartbeat_timeout_s={p.heartbeat_timeout_s:g}s, so the link cannot "
-                           f"hold: set heartbeat_msg_rate_ms = {p.heartbeat_period_s * 1000:g} on the drive")
+                           f"hold: set {fix} on the drive")
         return text + (f" (little margin below heartbeat_timeout_s={p.heartbeat_timeout_s:g}s): set "
-                       f"heartbeat_msg_rate_ms = {p.heartbeat_period_s * 1000:g} on the drive, or the can: keys "
-                       f"to match")
+                       f"{fix} on the drive, or the can: keys to match")
 
     def _check_heartbeat_period(self) -> None:
         """Log once (again after it fits for a while) when the Heartbeat rate does not fit."""

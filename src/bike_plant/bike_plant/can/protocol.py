@@ -1,10 +1,13 @@
-"""Drive protocols on CAN: a host-side interface and ODrive CANSimple (firmware 0.6.x).
+"""Drive protocols on CAN: a host-side interface, ODrive CANSimple (firmware 0.6.x) and VESC.
 
 No ROS imports: the plant node's ``backend: can`` drives these objects, and so can a
 script or a test.
 
 Layers
 ------
+* :class:`DbcCodec` -- bus-free encode / classify over a DBC with node 0's frame ids; a
+  protocol subclass says how a node's id is formed. :class:`OdriveCanSimpleCodec` and
+  :class:`VescCanCodec` are the two.
 * :class:`OdriveCanSimpleCodec` -- bus-free codec over the DBC file next to this module
   (``odrive_cansimple_0_6.dbc``, read with cantools). It turns signal dicts into
   ``can.Message`` frames and classifies received frames: a frame is either decoded, or
@@ -13,9 +16,14 @@ Layers
   (:mod:`bike_controller.drive_emulator`) use it, so both ends speak the same layout.
 * :class:`DriveProtocol` -- the abstract host side of "a drive on CAN": setpoints and
   requests out, protocol-neutral :class:`Measurement` objects in, counters, link
-  supervision (heartbeat) and watchdog feeding. VESC or CANopen CiA 402 can be added
-  as further subclasses without touching the node.
+  supervision (heartbeat) and watchdog feeding. CANopen CiA 402 can be added as a
+  further subclass without touching the node.
 * :class:`OdriveCanSimple` -- the ODrive implementation.
+* :class:`VescCan` -- VESC (CAN mode VESC, vedderb/bldc documentation/comm_can.md) over
+  ``vesc_can.dbc``: 29-bit ids ``command_id << 8 | vesc_id``, big-endian payloads; no
+  heartbeat, arming or requests (the STATUS broadcasts are the sign of life; commands feed
+  the VESC's command timeout). Decode a log of any VESC ID with
+  ``python -m cantools decode --frame-id-mask 0x1FFFFF00 vesc_can.dbc``.
 
 Frame ids and the DBC
 ---------------------
@@ -300,7 +308,7 @@ class _EchoFilter:
 class DbcCodec:
     """Bus-free codec of one drive's messages over a DBC whose frame ids are those of node 0.
 
-    Subclasses say how a node's frame id is formed (:meth:`_compose` / :meth:`_split`), which
+    Subclasses say how a node's frame id is formed (:meth:`compose_id` / :meth:`split_id`), which
     id format the protocol uses (``extended_id``), which messages each side sends and which
     the host may request by RTR. Encoding checks every signal against the DBC's [min|max];
     :meth:`classify` turns any frame python-can can construct into a :class:`Decoded` or the
@@ -325,7 +333,7 @@ class DbcCodec:
         missing = (self.host_to_drive | self.drive_to_host) - set(self.messages)
         if missing:
             raise ValueError(f"DBC lacks message(s) {', '.join(sorted(missing))}")
-        self._by_cmd = {self._command_id(m.frame_id): m for m in self.db.messages}
+        self._by_cmd = {self.command_id_of(m.frame_id): m for m in self.db.messages}
         if any(cmd > self.cmd_max for cmd in self._by_cmd):
             raise ValueError(f"DBC frame ids must be node-0 ids (command ids 0..{self.cmd_max:#x})")
         self._signals = {m.name: [(s.name, s.is_float, s.minimum, s.maximum) for s in m.signals]
@@ -336,28 +344,29 @@ class DbcCodec:
                               if not s.is_float and s.scale == 1 and s.offset == 0}
 
     # ------------------------------------------------------------ id scheme (per protocol)
-    def _command_id(self, node0_frame_id: int) -> int:
+    def command_id_of(self, node0_frame_id: int) -> int:
         """The command id of a DBC frame id (the DBC holds node 0's ids)."""
         return node0_frame_id
 
-    def _compose(self, cmd: int) -> int:
+    def compose_id(self, cmd: int) -> int:
+        """This node's frame id of command ``cmd``."""
         raise NotImplementedError
 
-    def _split(self, arbitration_id: int) -> tuple[int, int]:
+    def split_id(self, arbitration_id: int) -> tuple[int, int]:
         """(node id, command id) of a frame id of this protocol's format."""
         raise NotImplementedError
 
     # ------------------------------------------------------------ encode
     def arbitration_id(self, name: str) -> int:
         """Frame id of message ``name`` for this node."""
-        return self._compose(self._command_id(self.messages[name].frame_id))
+        return self.compose_id(self.command_id_of(self.messages[name].frame_id))
 
     def message_name(self, arbitration_id) -> str | None:
         """The name of this node's message with id ``arbitration_id`` (None: another
         node's, or no message of the DBC); the inverse of :meth:`arbitration_id`."""
         if not isinstance(arbitration_id, int) or not 0 <= arbitration_id <= self.id_max:
             return None
-        node, cmd = self._split(arbitration_id)
+        node, cmd = self.split_id(arbitration_id)
         if node != self.node_id:
             return None
         message = self._by_cmd.get(cmd)
@@ -410,7 +419,7 @@ class DbcCodec:
         arb = msg.arbitration_id
         if not isinstance(arb, int) or arb < 0 or arb > self.id_max:
             return "unknown_id"
-        node, cmd = self._split(arb)
+        node, cmd = self.split_id(arb)
         if node != self.node_id:
             return "other_node"
         message = self._by_cmd.get(cmd)
@@ -450,10 +459,10 @@ class OdriveCanSimpleCodec(DbcCodec):
     requestable = REQUESTABLE
     min_dlc = MIN_DLC
 
-    def _compose(self, cmd: int) -> int:
+    def compose_id(self, cmd: int) -> int:
         return (self.node_id << CMD_ID_BITS) | cmd
 
-    def _split(self, arbitration_id: int) -> tuple[int, int]:
+    def split_id(self, arbitration_id: int) -> tuple[int, int]:
         return arbitration_id >> CMD_ID_BITS, arbitration_id & CMD_ID_MASK
 
 
@@ -824,13 +833,13 @@ class VescCanCodec(DbcCodec):
     drive_to_host = VESC_DRIVE_TO_HOST
     min_dlc = VESC_MIN_DLC
 
-    def _command_id(self, node0_frame_id: int) -> int:
+    def command_id_of(self, node0_frame_id: int) -> int:
         return node0_frame_id >> VESC_CMD_SHIFT
 
-    def _compose(self, cmd: int) -> int:
+    def compose_id(self, cmd: int) -> int:
         return (cmd << VESC_CMD_SHIFT) | self.node_id
 
-    def _split(self, arbitration_id: int) -> tuple[int, int]:
+    def split_id(self, arbitration_id: int) -> tuple[int, int]:
         return arbitration_id & VESC_ID_MASK, arbitration_id >> VESC_CMD_SHIFT
 
 
