@@ -676,7 +676,7 @@ class CanBackend:
             key.append(("drops", tuple(sorted(self.watch_own_drops))))
             parts.append(f"{sum(self.watch_own_drops.values())} Heartbeat frames of node {p.node_id} dropped "
                          f"({reasons}): not the {p.protocol} layout?")
-        others = sorted(m.message for k, m in self.drive.last.items() if k != "status")
+        others = sorted({m.message for k, m in self.drive.last.items() if k != "status"})   # (VESC: 2 kinds a frame)
         if not self.seen and others and not self.watch_own_drops:
             key.append(("no_heartbeat", tuple(others)))
             status = self.drive.status_message
