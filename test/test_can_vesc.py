@@ -367,6 +367,9 @@ def test_a_machine_without_a_bldc_kt_needs_the_torque_constant():
                       interface="virtual", channel=uuid.uuid4().hex)
     with pytest.raises(ConfigError, match="torque_constant_nm_per_a"):
         CanBackend(cfg)
+    cfg["can"]["torque_constant_nm_per_a"] = 0.001       # 1000 A (SET_CURRENT's range) = 1 N m < Tmax
+    with pytest.raises(ConfigError, match="exceeds what vesc_can can command"):
+        CanBackend(cfg)
     cfg["can"]["torque_constant_nm_per_a"] = 0.1
     b = CanBackend(cfg)
     try:

@@ -344,6 +344,13 @@ class CanBackend:
                 raise
         self.drive = drive_cls(_BusTap(bus, self), p.node_id, heartbeat_timeout_s=p.heartbeat_timeout_s,
                                watchdog_feed_interval_s=p.watchdog_feed_s, clock=clock, **motor)
+        if self.torque_limit_nm > self.drive.max_torque_nm:
+            # a setpoint the protocol cannot encode would raise in the node's callback: refuse at start
+            self._shutdown_bus()
+            raise ConfigError(f"the torque clamp ({self.torque_limit_nm:g} N m: can.torque_limit_nm, else "
+                              f"controller.tmax_nm) exceeds what {p.protocol} can command "
+                              f"({self.drive.max_torque_nm:g} N m); set can.torque_limit_nm", path,
+                              "can.torque_limit_nm")
         self.counters: collections.Counter = collections.Counter()
         self.events: list[tuple[str, str]] = []
         # link / arming state

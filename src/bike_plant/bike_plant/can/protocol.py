@@ -565,6 +565,11 @@ class DriveProtocol(abc.ABC):
         """Measurements in ``msg`` or the reason it is dropped; may raise (receive() guards)."""
 
     @property
+    def max_torque_nm(self) -> float:
+        """Largest |torque setpoint| the protocol can encode (inf: the drive limits it)."""
+        return math.inf
+
+    @property
     @abc.abstractmethod
     def active_errors(self) -> int:
         """Latest error bits reported by the drive (0 = none or unknown)."""
@@ -951,6 +956,11 @@ class VescCan(DriveProtocol):
             position_rev = float(values["tachometer"]) / (VESC_TACHO_PER_EREV * self.pole_pairs)
             out.append(Measurement("position", {"position_rev": position_rev}, now_s, stamp, result.name))
         return out
+
+    @property
+    def max_torque_nm(self) -> float:
+        """kt x the largest current SET_CURRENT carries in the DBC (its plausibility range)."""
+        return self.torque_constant_nm_per_a * self.codec.messages["Set_Current"].get_signal_by_name("Current").maximum
 
     @property
     def active_errors(self) -> int:
