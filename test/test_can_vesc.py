@@ -84,6 +84,20 @@ def test_status_byte_layouts_are_big_endian_with_the_docs_scales():
     assert rpm.arbitration_id == (3 << 8) | 5 and bytes(rpm.data) == struct.pack(">i", -3000)
 
 
+def test_a_dbc_for_one_vesc_id_for_tools_without_an_id_mask(tmp_path):
+    from bike_plant.can.protocol import main
+    out = tmp_path / "vesc23.dbc"
+    assert main(["--protocol", "vesc_can", "--export-dbc", "23", str(out)]) == 0
+    db = cantools.database.load_file(str(out))
+    current = db.get_message_by_name("Set_Current")
+    assert current.frame_id == 0x0117 and current.is_extended_frame
+    assert current.decode(bytes.fromhex("0000C738"))["Current"] == pytest.approx(51.0)
+    assert db.get_message_by_name("Status_5").frame_id == (27 << 8) | 23
+    assert "VESC ID 23 (already added)" in out.read_text()
+    with pytest.raises(SystemExit):
+        main(["--protocol", "vesc_can", "--export-dbc", "255", str(out)])      # the broadcast id: refused
+
+
 @pytest.mark.parametrize("name", sorted(VESC_HOST_TO_DRIVE | VESC_DRIVE_TO_HOST))
 def test_every_message_round_trips(name):
     codec = VescCanCodec(200)

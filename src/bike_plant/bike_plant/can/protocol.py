@@ -230,24 +230,25 @@ class Decoded:
 
 # ---------------------------------------------------------------------------------------
 # DBC helpers
-def load_database(node_id: int = 0, dbc_path: str | pathlib.Path | None = None):
-    """The cantools database of the DBC with the frame ids of ``node_id`` (node 0 = the file)."""
-    _check_node_id(node_id)
-    db = cantools.database.load_file(str(dbc_path or DBC_PATH))
+def load_database(node_id: int = 0, dbc_path: str | pathlib.Path | None = None, protocol: str | None = None):
+    """The cantools database of the DBC with the frame ids of ``node_id`` (node 0 = the file);
+    ``protocol``: a key of :data:`CODECS` (default ODrive CANSimple)."""
+    codec = CODECS[protocol or DEFAULT_PROTOCOL](node_id, dbc_path)
     if node_id:
-        for message in db.messages:
-            message.frame_id = (node_id << CMD_ID_BITS) | message.frame_id
-        db.refresh()
-    return db
+        ids = {m.name: codec.arbitration_id(m.name) for m in codec.db.messages}
+        for message in codec.db.messages:
+            message.frame_id = ids[message.name]
+        codec.db.refresh()
+    return codec.db
 
 
-def export_dbc(node_id: int, path: str | pathlib.Path, dbc_path: str | pathlib.Path | None = None) -> pathlib.Path:
+def export_dbc(node_id: int, path: str | pathlib.Path, dbc_path: str | pathlib.Path | None = None,
+               protocol: str | None = None) -> pathlib.Path:
     """Write a DBC with the ids of ``node_id`` (for CAN tools that cannot mask ids)."""
-    db = load_database(node_id, dbc_path)
-    db.version = f"bike_plant odrive-cansimple 0.6.x node{node_id}"
-    text = db.as_dbc_string().replace(
-        "Frame ids in this file are for NODE 0: on the bus",
-        f"Frame ids in this file are for NODE {node_id} (already shifted): on the bus")
+    codec_class = CODECS[protocol or DEFAULT_PROTOCOL]
+    db = load_database(node_id, dbc_path, protocol)
+    db.version = codec_class.dbc_version.format(node_id=node_id)
+    text = db.as_dbc_string().replace(codec_class.dbc_node0_note, codec_class.dbc_node_note.format(node_id=node_id))
     out = pathlib.Path(path)
     out.write_text(text)
     return out
@@ -452,6 +453,11 @@ class DbcCodec:
 
 class OdriveCanSimpleCodec(DbcCodec):
     """Bus-free ODrive CANSimple 0.6.x codec for one node over the DBC (node 0 ids + node_id << 5)."""
+
+    # export_dbc: the version string and the DBC comment's note on the ids, for a node
+    dbc_version = "bike_plant odrive-cansimple 0.6.x node{node_id}"
+    dbc_node0_note = "Frame ids in this file are for NODE 0: on the bus"
+    dbc_node_note = "Frame ids in this file are for NODE {node_id} (already shifted): on the bus"
 
     default_dbc = DBC_PATH
     host_to_drive = HOST_TO_DRIVE
@@ -830,6 +836,9 @@ class VescCanCodec(DbcCodec):
     """
 
     default_dbc = VESC_DBC_PATH
+    dbc_version = "bike_plant vesc-can id{node_id}"
+    dbc_node0_note = "the ids in this file are for VESC ID 0 (the command ids shifted by 8)"
+    dbc_node_note = "the ids in this file are for VESC ID {node_id} (already added)"
     extended_id = True
     id_max = EXTENDED_ID_MAX
     node_id_max = VESC_ID_MAX
@@ -972,6 +981,10 @@ class VescCan(DriveProtocol):
         return "status" in self.last
 
 
+#: Bus-free codecs by protocol name (export_dbc, load_database)
+CODECS: dict[str, type[DbcCodec]] = {"odrive_cansimple_0.6": OdriveCanSimpleCodec, "vesc_can": VescCanCodec}
+DEFAULT_PROTOCOL = "odrive_cansimple_0.6"
+
 #: Host-side protocols by name (the ``can.protocol`` parameter of the plant's backend). A
 #: second protocol (VESC, CANopen CiA 402) is a DriveProtocol subclass registered here.
 PROTOCOLS: dict[str, type[DriveProtocol]] = {OdriveCanSimple.protocol_name: OdriveCanSimple,
@@ -979,17 +992,20 @@ PROTOCOLS: dict[str, type[DriveProtocol]] = {OdriveCanSimple.protocol_name: Odri
 
 
 def main(argv: Iterable[str] | None = None) -> int:
-    """``python -m bike_plant.can.protocol --export-dbc NODE_ID OUT.dbc``."""
+    """``python -m bike_plant.can.protocol [--protocol vesc_can] --export-dbc NODE_ID OUT.dbc``."""
     import argparse
 
     parser = argparse.ArgumentParser(prog="python -m bike_plant.can.protocol",
-                                     description="ODrive CANSimple 0.6.x DBC tools")
+                                     description="ODrive CANSimple 0.6.x and VESC DBC tools")
     parser.add_argument("--export-dbc", nargs=2, metavar=("NODE_ID", "OUT"), required=True,
-                        help="write a DBC whose frame ids are those of NODE_ID (node_id << 5 | cmd_id)")
+                        help="write a DBC whose frame ids are those of NODE_ID (ODrive: node_id << 5 | cmd_id; "
+                             "VESC: cmd_id << 8 | vesc_id)")
+    parser.add_argument("--protocol", choices=sorted(CODECS), default=DEFAULT_PROTOCOL,
+                        help="the protocol's DBC (default odrive_cansimple_0.6)")
     args = parser.parse_args(list(argv) if argv is not None else None)
     try:
         node_id = int(args.export_dbc[0], 0)
-        out = export_dbc(node_id, args.export_dbc[1])
+        out = export_dbc(node_id, args.export_dbc[1], protocol=args.protocol)
     except (ValueError, OSError) as exc:
         parser.error(str(exc))
     print(out)
