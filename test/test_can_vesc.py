@@ -25,7 +25,7 @@ from bike_session.bags import read_topic
 from bike_session.report import summarise
 from conftest import bike_command
 from node_harness import stamp_ns
-from test_can_emulator import Emulator
+from test_can_emulator import GROUP, Emulator
 from test_can_graph import _port, write_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -504,3 +504,37 @@ def test_a_workout_on_a_vesc_through_the_can_path_end_to_end(tmp_path, ros_domai
     ids = {m.arbitration_id for m in logged if m.is_extended_id}
     assert {0x100, 0x900, 0x1000, 0x1B00} <= ids, "SET_CURRENT and STATUS / _4 / _5 of VESC ID 0 in the log"
     assert "(vesc_can)" in result.stdout and "status frames" in result.stdout, "the report's CAN section"
+
+
+@pytest.mark.slow
+def test_the_backend_loses_a_vesc_process_that_falls_silent(tmp_path):
+    """The plant's backend against the emulated VESC as a process (udp_multicast): alive on its
+    STATUS frames, FAULT_DRIVE_LOST with sim time stopped once they stop (--silent-after-s)."""
+    emu = Emulator(tmp_path, "--protocol", "vesc_can", "--physics", "average", "--heartbeat-ms", "10",
+                   "--silent-after-s", "3", config=VESC_CONFIG, host_factory=_vesc_host)
+    cfg = load_config(VESC_CONFIG)
+    cfg["can"].update(interface="udp_multicast", channel=GROUP, port=emu.port, emulator=False)
+    b = CanBackend(cfg)
+    try:
+        end = time.monotonic() + 2.5
+        while not b.drive_enabled and time.monotonic() < end:
+            b.service()
+            time.sleep(0.005)
+        assert b.drive_enabled, b.diagnostic()
+        end = time.monotonic() + 6.0
+        while not b.lost and time.monotonic() < end:
+            msg = Cmd(-0.5)
+            b.submit(msg)
+            b.service()
+            b.apply(msg)
+            time.sleep(0.005)
+        assert b.lost and b.faults & FAULT_DRIVE_LOST and b.time_frozen
+        t_lost = b.time_s
+        b.apply(Cmd(-0.5))
+        assert t_lost > 0 and b.time_s == t_lost, "sim time ran while alive and stands while lost"
+        assert b.stats()["setpoints"] > 50 and b.stats()["dropped"] == 0
+        assert any("no Status for" in text for _, text in b.pop_events())
+    finally:
+        b.close()
+        rc, summary = emu.stop()
+    assert rc == 0 and summary["tx_suppressed"] > 0 and summary["rx:Set_Current"] > 50
