@@ -308,9 +308,8 @@ def test_telemetry_power_of_a_crank_that_barely_turns_takes_the_time_window():
 
 def _connection():
     control = ftms.FtmsControl(UNITS)
-    tel = Telemetry(35.0)
-    return dircon.DirconConnection(services_for(control, tel.encode,
-                                                lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]))
+    return dircon.DirconConnection(services_for(
+        control, lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]))
 
 
 def test_dircon_discovery_read_subscribe_and_a_write_answered_with_its_notification():
@@ -355,8 +354,7 @@ def test_a_heart_rate_target_comes_with_its_supported_heart_rate_range_and_only_
     targets the Control Point takes (40..220 bpm, bike_plant.heart)."""
     for heart_rate in (True, False):
         control = ftms.FtmsControl(UNITS, heart_rate=heart_rate)
-        tel = Telemetry(35.0)
-        conn = dircon.DirconConnection(services_for(control, tel.encode, lambda data, client: []))
+        conn = dircon.DirconConnection(services_for(control, lambda data, client: []))
         chars = _characteristics(conn, ftms.FTMS_SERVICE)
         claims = bool(struct.unpack("<II", control.encode_feature())[1] & ftms.TARGET_HEART_RATE)
         assert claims == heart_rate and (ftms.HEART_RATE_RANGE in chars) == heart_rate
@@ -405,7 +403,7 @@ def test_the_server_closes_only_a_broken_connection_and_drops_an_app_that_reads_
     logs = []
     control = ftms.FtmsControl(UNITS)
     tel = Telemetry(35.0)
-    server = dircon.DirconServer("127.0.0.1", 0, services_for(control, tel.encode, lambda d, client: []),
+    server = dircon.DirconServer("127.0.0.1", 0, services_for(control, lambda d, client: []),
                                  lambda text, warning: logs.append((text, warning)))
     stop = [False]
     import threading
@@ -463,9 +461,8 @@ def test_control_is_one_apps_until_it_resets_or_disconnects():
     assert control.write(bytes([ftms.OP_REQUEST_CONTROL]), a).response[2] == ftms.RESULT_SUCCESS
 
     control = ftms.FtmsControl(UNITS)
-    tel = Telemetry(35.0)
     server = dircon.DirconServer("127.0.0.1", 0, services_for(
-        control, tel.encode, lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]),
+        control, lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]),
         lambda text, warning: None, on_close=control.release)
     stop = [False]
     import threading
@@ -697,3 +694,99 @@ def test_bike_trainer_sends_a_heart_rate_steps_target_and_a_bike_with_a_rider_ta
     control = ftms.FtmsControl(UNITS, heart_rate=True)
     control.write(bytes([ftms.OP_REQUEST_CONTROL]))
     assert control.write(bytes([op]) + param).target.heart_rate_bpm == 140.0
+
+
+def test_a_resistance_level_is_echoed_in_the_width_the_app_wrote_never_clamped():
+    """FTMS 1.0, Table 4.15: Set Target Resistance Level takes a uint8 in 0.1 steps (at most 25.5);
+    Fitness Machine Status 0x07 is a uint8 in FTMS 1.0 and a sint16 in 1.0.1 (Table 4.26). This
+    bike's levels go to 100, which apps (GoldenCheetah, QZ) reach with a sint16: the status
+    echoes each app's own width. Before, 45.5 written as a sint16 was echoed as the uint8 25.5,
+    a target the bike was not riding."""
+    control = controlled()
+    top_uint8 = control.write(bytes([ftms.OP_TARGET_RESISTANCE, 255]))            # 25.5: the uint8's end
+    assert top_uint8.response[2] == ftms.RESULT_SUCCESS and top_uint8.target.command == pytest.approx(0.255)
+    assert top_uint8.status == bytes([ftms.STATUS_RESISTANCE_CHANGED, 255])
+    for tenths in (256, 455, 1000):                                              # 25.6, 45.5, 100: sint16
+        reply = control.write(cp(ftms.OP_TARGET_RESISTANCE, "h", tenths))
+        assert reply.response[2] == ftms.RESULT_SUCCESS and reply.target.command == pytest.approx(tenths / 1000)
+        assert reply.status == bytes([ftms.STATUS_RESISTANCE_CHANGED]) + struct.pack("<h", tenths), tenths
+    assert control.write(cp(ftms.OP_TARGET_RESISTANCE, "h", 20)).status == bytes([0x07]) + struct.pack("<h", 20)
+    for tenths in (1001, -1):                                                   # beyond 0..100: refused, said
+        bad = control.write(cp(ftms.OP_TARGET_RESISTANCE, "h", tenths))
+        assert bad.response[2] == ftms.RESULT_INVALID_PARAMETER and bad.status is None and bad.target is None
+        assert "refused: outside [0, 100]" in bad.message
+
+
+def test_the_training_status_follows_the_session_and_the_apps_target_stop_and_reset():
+    """FTMS 1.0, 4.10 (Training Status: flags, status, string), Table 4.13, and 4.16.2.2 (a Reset
+    sets it to Idle): idle before the ride; the session's Command when the app set no target
+    (its free ride is manual mode, a workout's ERG watt control); the app's target when it set
+    one; idle while stopped and after a reset; post-workout once the session is done. Notified
+    once per change."""
+    control = ftms.FtmsControl(UNITS, heart_rate=True)
+    assert control.encode_training_status() == bytes([0x00, ftms.TS_IDLE])            # no session yet
+    assert control.training_status_change() == bytes([0x00, ftms.TS_IDLE])
+    assert control.training_status_change() is None                                     # said once
+    control.follow_session(ftms.SESSION_WAITING, MODES["resistance"], 0.0)
+    assert control.training_status_change() is None
+    control.follow_session(ftms.SESSION_RUNNING, MODES["resistance"], 0.0)              # the app ride's free ride
+    assert control.training_status_change() == bytes([0x00, ftms.TS_MANUAL_MODE])
+    for mode, bpm, want in ((MODES["erg"], 0.0, ftms.TS_WATT_CONTROL),
+                            (MODES["erg"], 140.0, ftms.TS_HEART_RATE_CONTROL),
+                            (MODES["slope"], 0.0, ftms.TS_MANUAL_MODE)):
+        control.follow_session(ftms.SESSION_RUNNING, mode, bpm)                      # a workout the session rides
+        assert control.training_status() == (want, ""), (mode, bpm)
+    control.follow_session(ftms.SESSION_RUNNING, MODES["isokinetic"], 0.0)
+    assert control.encode_training_status() == bytes([ftms.TS_FLAG_STRING, ftms.TS_OTHER]) + b"isokinetic"
+    assert ftms.training_status_text(control.encode_training_status()) == "other (isokinetic)"
+    # the app's target wins over the session's Command it has not reached yet
+    control.follow_session(ftms.SESSION_RUNNING, MODES["resistance"], 0.0)
+    control.write(bytes([ftms.OP_REQUEST_CONTROL]))
+    assert control.training_status() == (ftms.TS_MANUAL_MODE, "")
+    control.write(cp(ftms.OP_TARGET_POWER, "h", 150))
+    assert control.training_status() == (ftms.TS_WATT_CONTROL, "")
+    control.write(bytes([ftms.OP_TARGET_HEART_RATE, 130]))
+    assert control.training_status() == (ftms.TS_HEART_RATE_CONTROL, "")
+    control.write(cp(ftms.OP_SIMULATION, "hhBB", 0, 300, 40, 51))
+    assert control.training_status() == (ftms.TS_MANUAL_MODE, "")
+    control.write(bytes([ftms.OP_STOP_PAUSE, 2]))
+    assert control.training_status() == (ftms.TS_IDLE, "")
+    control.write(cp(ftms.OP_TARGET_POWER, "h", 200))                                # kept for the resume: idle
+    assert control.training_status() == (ftms.TS_IDLE, "")
+    control.write(bytes([ftms.OP_START_RESUME]))
+    assert control.training_status() == (ftms.TS_WATT_CONTROL, "")
+    control.write(bytes([ftms.OP_SPIN_DOWN, 1]))
+    assert control.training_status() == (ftms.TS_OTHER, "spindown")
+    control.training_status_change()
+    control.write(bytes([ftms.OP_RESET]))
+    assert control.training_status_change() == bytes([0x00, ftms.TS_IDLE])            # 4.16.2.2
+    control.follow_session(ftms.SESSION_RUNNING, MODES["resistance"], 0.0)              # the reset's brake release
+    assert control.training_status() == (ftms.TS_IDLE, "")
+    control.write(bytes([ftms.OP_REQUEST_CONTROL]))
+    control.write(cp(ftms.OP_TARGET_POWER, "h", 120))
+    assert control.training_status_change() == bytes([0x00, ftms.TS_WATT_CONTROL])
+    control.follow_session(ftms.SESSION_DONE, MODES["erg"], 0.0)
+    assert control.training_status_change() == bytes([0x00, ftms.TS_POST_WORKOUT])
+    assert ftms.decode_training_status(bytes([0x00, ftms.TS_POST_WORKOUT])) == (ftms.TS_POST_WORKOUT, "")
+    with pytest.raises(ValueError, match="at least 2"):
+        ftms.decode_training_status(b"\x00")
+
+
+def test_indoor_bike_data_is_notify_only_and_the_training_status_is_read_and_notify():
+    """FTMS 1.0.1, 4, Table 4.1: Indoor Bike Data's one property is Notify (every other is
+    excluded; a read is refused as a characteristic that cannot be read), Training Status's are
+    Read and Notify. An app discovers them so, subscribes, and reads the training status."""
+    conn = _connection()
+    chars = _characteristics(conn, ftms.FTMS_SERVICE)
+    assert chars[ftms.INDOOR_BIKE_DATA] == dircon.PROP_NOTIFY
+    assert chars[ftms.TRAINING_STATUS] == dircon.PROP_READ | dircon.PROP_NOTIFY
+    (read,) = dircon.split_messages(bytearray(conn.feed(dircon.encode(dircon.MSG_READ, 3,
+                                                                      dircon.uuid128(ftms.INDOOR_BIKE_DATA)))))
+    assert read.code == dircon.RESP_NOT_SUPPORTED and "cannot be read" in conn.log[-1]
+    for uuid in (ftms.INDOOR_BIKE_DATA, ftms.TRAINING_STATUS):
+        (sub,) = dircon.split_messages(bytearray(conn.feed(dircon.encode(dircon.MSG_ENABLE_NOTIFICATIONS, 4,
+                                                                         dircon.uuid128(uuid) + b"\x01"))))
+        assert sub.code == dircon.RESP_SUCCESS
+    (status,) = dircon.split_messages(bytearray(conn.feed(dircon.encode(dircon.MSG_READ, 5,
+                                                                        dircon.uuid128(ftms.TRAINING_STATUS)))))
+    assert status.code == dircon.RESP_SUCCESS and status.data[16:] == bytes([0x00, ftms.TS_IDLE])

@@ -8,10 +8,18 @@ Characteristics served (values little endian, as in BLE):
 - Fitness Machine Feature 0x2ACC (read): 32-bit machine features (cadence, total distance,
   resistance level, heart rate, elapsed time, power) and 32-bit target-setting features (inclination,
   resistance, power, indoor bike simulation, spin down, targeted cadence).
-- Indoor Bike Data 0x2AD2 (notify): speed 0.01 km/h, cadence 0.5 rpm, total distance m
+- Indoor Bike Data 0x2AD2 (notify only: FTMS 1.0.1, 4 Table 4.1 lists Notify as its one
+  property and excludes every other; trainers serve it so): speed 0.01 km/h, cadence 0.5 rpm, total distance m
   (uint24), resistance level (whole levels: this field has no decimal, unlike the Control
   Point's and the range's 0.1), power W, heart rate uint8 bpm (only while the PlantState has
   one: the simulated rider's, or a strap's on a CAN bike), elapsed time s.
+- Training Status 0x2AD3 (read, notify; FTMS 4.10: flags uint8, status uint8, an optional
+  UTF-8 string): idle before the ride, after a Reset (4.16.2.2 asks for it) and while stopped;
+  watt control in ERG, heart rate control holding a heart rate, manual mode (quick start) in
+  resistance and slope (a free ride, the app's grade or level); other, named by the string, in
+  the modes FTMS has no status for; post-workout once the session is done. From the app's
+  target in force, else the session's Command (:meth:`FtmsControl.training_status`); notified
+  when it changes.
 - Supported Inclination / Resistance Level / Power Range 0x2AD5 / 0x2AD6 / 0x2AD8 (read):
   the bike's Command ranges (bike_session.profiles.ModeUnits), so an app never has to guess.
 - Supported Heart Rate Range 0x2AD7 (read; uint8 min, max, increment bpm): only on a bike with
@@ -30,7 +38,7 @@ What a control request does (:class:`FtmsControl`):
 | 0x00 | Request Control | (none; needed before any other op, else result 5; one app at a time) |
 | 0x01 | Reset | resistance 0 (brake released), control given up |
 | 0x03 | Target Inclination, sint16 0.1 % | slope, grade mapped onto [grade_min, grade_max] |
-| 0x04 | Target Resistance Level, uint8 or sint16, 0.1 | resistance, level / 100 |
+| 0x04 | Target Resistance Level, uint8 or sint16, 0.1 | resistance, level / 100 (see :meth:`FtmsControl._resistance`) |
 | 0x05 | Target Power, sint16 W | erg, P / erg_power_max_w |
 | 0x06 | Target Heart Rate, uint8 bpm | erg holding that heart rate (Command.heart_rate_bpm: the power follows it), from the ERG power in force (else from the rider's); only on a bike with a heart rate (a rider) |
 | 0x07 / 0x08 | Start or Resume / Stop or Pause | the target before the stop again / resistance 0 |
@@ -61,12 +69,13 @@ import struct
 
 from bike_plant.heart import HEART_RATE_TARGET_MAX_BPM, HEART_RATE_TARGET_MIN_BPM, heart_rate_target_problem
 from bike_plant.mechanics import rider_cadence_problem
-from bike_session.profiles import MODES, ModeUnits
+from bike_session.profiles import MODE_NAMES, MODES, ModeUnits
 
 # 16-bit UUIDs (Bluetooth SIG assigned numbers)
 FTMS_SERVICE = 0x1826
 FEATURE = 0x2ACC
 INDOOR_BIKE_DATA = 0x2AD2
+TRAINING_STATUS = 0x2AD3
 INCLINATION_RANGE = 0x2AD5
 RESISTANCE_RANGE = 0x2AD6
 HEART_RATE_RANGE = 0x2AD7
@@ -146,6 +155,25 @@ IBD_ELAPSED = 1 << 11
 IBD_FLAGS = IBD_CADENCE | IBD_DISTANCE | IBD_RESISTANCE | IBD_POWER | IBD_ELAPSED    # always present
 
 RESISTANCE_LEVEL_MAX = 100.0    # levels 0..100 (0.1 steps) = resistance Command 0..1
+RESISTANCE_UINT8_MAX = 25.5     # the most the spec's uint8 in 0.1 steps carries (Control Point 0x04)
+
+# Training Status values (FTMS 1.0, 4.10.1.2, Table 4.13); the ones this bike says
+TS_OTHER = 0x00
+TS_IDLE = 0x01
+TS_HEART_RATE_CONTROL = 0x07
+TS_WATT_CONTROL = 0x0C
+TS_MANUAL_MODE = 0x0D
+TS_POST_WORKOUT = 0x0F
+TRAINING_STATUS_NAMES = {0x00: "other", 0x01: "idle", 0x02: "warming up", 0x03: "low intensity interval",
+                         0x04: "high intensity interval", 0x05: "recovery interval", 0x06: "isometric",
+                         0x07: "heart rate control", 0x08: "fitness test",
+                         0x09: "speed outside of control region - low", 0x0A: "speed outside of control region - high",
+                         0x0B: "cool down", 0x0C: "watt control", 0x0D: "manual mode (quick start)",
+                         0x0E: "pre-workout", 0x0F: "post-workout"}
+TS_FLAG_STRING = 1 << 0         # Training Status flags bit 0: the string is present (Table 4.12)
+
+# the session's state (bike_msgs/SessionStatus STATE_*; no ROS here)
+SESSION_WAITING, SESSION_RUNNING, SESSION_DONE = 0, 1, 2
 
 
 def encode_feature(heart_rate: bool = False) -> bytes:
@@ -156,6 +184,30 @@ def encode_feature(heart_rate: bool = False) -> bytes:
     target = (TARGET_INCLINATION | TARGET_RESISTANCE | TARGET_POWER | TARGET_SIMULATION | TARGET_SPIN_DOWN
               | TARGET_CADENCE | (TARGET_HEART_RATE if heart_rate else 0))
     return struct.pack("<II", machine, target)
+
+
+def encode_training_status(status: int, text: str = "") -> bytes:
+    """Training Status (0x2AD3, FTMS 1.0, 4.10, Table 4.11): flags uint8, status uint8, then the
+    Training Status String (UTF-8) when ``text`` is given (flags bit 0). The strings here are a
+    mode's name, far below the MTU, so the Extended String bit (1) is never needed."""
+    raw = text.encode("utf-8")
+    return bytes([TS_FLAG_STRING if raw else 0, status]) + raw
+
+
+def decode_training_status(data: bytes) -> tuple[int, str]:
+    """(status, string or "") of a Training Status value; ValueError when it is shorter than its
+    two octets."""
+    if len(data) < 2:
+        raise ValueError(f"Training Status of {len(data)} bytes (at least 2): {bytes(data).hex()}")
+    text = bytes(data[2:]).decode("utf-8", "replace") if data[0] & TS_FLAG_STRING else ""
+    return data[1], text
+
+
+def training_status_text(data: bytes) -> str:
+    """A Training Status value as a line says it, e.g. "watt control" or "other (spindown)"."""
+    status, text = decode_training_status(data)
+    name = TRAINING_STATUS_NAMES.get(status, f"status 0x{status:02x}")
+    return f"{name} ({text})" if text else name
 
 
 def _fit(value: float, lo: int, hi: int) -> int:
@@ -306,6 +358,11 @@ class FtmsControl:
         self.cadence_rpm = 0.0                        # Set Targeted Cadence: rides with every target
         self.spindown_said: int | None = None         # the last spin-down status sent; None: none running
         self.spindown_tag = 0.0                       # the spindown Command's value: a new one per request
+        # Training Status: the session's (state, mode, heart-rate target) and whether the app put
+        # the bike at rest (Reset, Stop or Pause: idle whatever it rides), and the value last notified
+        self.session: tuple[int, int | None, float] = (SESSION_WAITING, None, 0.0)
+        self.at_rest = False
+        self.training_said: bytes | None = None
 
     # ---- the read-only characteristics
     def encode_feature(self) -> bytes:
@@ -321,6 +378,47 @@ class FtmsControl:
 
     def encode_resistance_range(self) -> bytes:
         return struct.pack("<hhH", 0, int(RESISTANCE_LEVEL_MAX * 10), 1)
+
+    # ---- Training Status (FTMS 1.0, 4.10)
+    def follow_session(self, state: int, mode: int, heart_rate_bpm: float) -> None:
+        """The session's progress (SessionStatus: its state, the Command in force's mode and ERG
+        heart-rate target), which the Training Status follows when no app target is in force."""
+        self.session = (int(state), int(mode), float(heart_rate_bpm))
+
+    def training_status(self) -> tuple[int, str]:
+        """(Training Status value, string) now (Table 4.13): post-workout once the session is
+        done; idle before it runs and while the app has the bike at rest (a Reset sets Idle,
+        4.16.2.2; a Stop or Pause releases the brake); else by the mode of the app's target in
+        force, or the session's Command when the app set none: ERG is watt control, or heart
+        rate control with a heart-rate target; resistance and slope are manual mode (quick
+        start: the rider rides the level or the road, no program holds a figure); the modes
+        FTMS has no value for (isokinetic, motoring, spindown) are other, named by the string."""
+        state, mode, heart_rate_bpm = self.session
+        if state == SESSION_DONE:
+            return TS_POST_WORKOUT, ""
+        if state != SESSION_RUNNING or self.at_rest:
+            return TS_IDLE, ""
+        target = self.running_target
+        if target is not None:
+            mode, heart_rate_bpm = target.mode, target.heart_rate_bpm
+        if mode == MODES["erg"]:
+            return (TS_HEART_RATE_CONTROL if heart_rate_bpm > 0 else TS_WATT_CONTROL), ""
+        if mode in (MODES["resistance"], MODES["slope"]):
+            return TS_MANUAL_MODE, ""
+        return TS_OTHER, MODE_NAMES.get(mode, f"mode {mode}")
+
+    def encode_training_status(self) -> bytes:
+        """The Training Status characteristic's value now (what a read returns)."""
+        return encode_training_status(*self.training_status())
+
+    def training_status_change(self) -> bytes | None:
+        """The Training Status value to notify when it differs from the one last notified (4.10.1:
+        notified when a new training status is available), else None."""
+        value = self.encode_training_status()
+        if value == self.training_said:
+            return None
+        self.training_said = value
+        return value
 
     def encode_heart_rate_range(self) -> bytes:
         """The heart-rate targets Set Target Heart Rate takes (bike_plant.heart), whole bpm."""
@@ -377,6 +475,7 @@ class FtmsControl:
     def _set(self, op, target: Target, status: bytes, message: str | None = None, warning: bool = False) -> Reply:
         target = dataclasses.replace(target, cadence_rpm=self.cadence_rpm)
         self.running_target = target
+        self.at_rest = self.stopped
         if self.stopped:          # a new target while stopped is kept for the Resume
             return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=status, message=message or
                          f"{target.text} (kept: stopped until Start or Resume)", warning=warning)
@@ -428,7 +527,13 @@ class FtmsControl:
                             STATUS_INCLINE_CHANGED)
 
     def _resistance(self, op, name, param) -> Reply:
-        # the spec's uint8 (0.1 steps, so at most 25.5); several apps write a sint16 instead
+        """Set Target Resistance Level (FTMS 1.0, 4.16.2.5, Table 4.15): the spec's parameter is a
+        uint8 in 0.1 steps, so it ends at 25.5, below this bike's 0..100 (the range 0x2AD6 is
+        sint16 in 0.1); GoldenCheetah and QZ write a sint16 instead to reach it, and both are
+        taken. Fitness Machine Status 0x07 echoes the new target in the width the app wrote: a
+        uint8 as FTMS 1.0 gives that op code's parameter (Table 4.26; every uint8 level fits),
+        a sint16 as FTMS 1.0.1 does. A level above 25.5 was echoed as 25.5 (min(tenths, 255)):
+        the app was told another target than the one in force. Beyond 0..100: result 3."""
         bad = self._sized(op, name, param, (1, 2))
         if bad:
             return bad
@@ -436,9 +541,10 @@ class FtmsControl:
         level = tenths / 10
         if not 0.0 <= level <= RESISTANCE_LEVEL_MAX:
             return self._refuse(op, f"{name} {level:g} refused: outside [0, {RESISTANCE_LEVEL_MAX:g}]")
+        # the app's own bytes: a uint8 stays one byte, a sint16 two (Status 0x07 of 1.0 / 1.0.1)
         return self._set(op, Target(MODES["resistance"], level / RESISTANCE_LEVEL_MAX,
                                     f"target resistance level {level:g}"),
-                         bytes([STATUS_RESISTANCE_CHANGED, min(tenths, 255)]))
+                         bytes([STATUS_RESISTANCE_CHANGED]) + param)
 
     def _simulation(self, op, name, param) -> Reply:
         bad = self._sized(op, name, param, (6,))
@@ -526,6 +632,7 @@ class FtmsControl:
         self.cadence_rpm = 0.0
         self.stopped = False
         self.running_target = None
+        self.at_rest = True             # Training Status Idle (FTMS 1.0, 4.16.2.2) until a new target
         target = Target(MODES["resistance"], 0.0, "reset: brake released, control given up")
         return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=bytes([STATUS_RESET]), target=target,
                      message=target.text)
@@ -536,14 +643,14 @@ class FtmsControl:
             return bad
         if param[0] not in (1, 2):
             return self._refuse(op, f"{name}: parameter {param[0]} (1 stop, 2 pause)")
-        self.stopped = True
+        self.stopped = self.at_rest = True
         word = "stop" if param[0] == 1 else "pause"
         return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=bytes([STATUS_STOPPED_PAUSED, param[0]]),
                      target=Target(MODES["resistance"], 0.0, f"{word}: brake released"),
                      message=f"{word}: brake released")
 
     def _start(self, op, name, param) -> Reply:
-        self.stopped = False
+        self.stopped = self.at_rest = False
         target = self.running_target
         return Reply(bytes([OP_RESPONSE, op, RESULT_SUCCESS]), status=bytes([STATUS_STARTED_RESUMED]),
                      target=target, message="start or resume" + (f": {target.text}" if target else ""))

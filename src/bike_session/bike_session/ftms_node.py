@@ -14,6 +14,9 @@ app (Zwift, FulGaz, Rouvy, Wahoo SYSTM, MyWhoosh, QZ, ...) rides it over Wahoo D
   / load.gear_ratio, speed and distance = the virtual bike's (ControllerStatus.virtual_speed_mps,
   which follows the virtual gear), heart rate = the PlantState's (the rider's; left out of
   the data while it is 0), elapsed = the session's.
+- The Training Status (FTMS 4.10, bike_session.ftms.FtmsControl.training_status) follows the
+  session (SessionStatus: waiting, running the Command of a mode, done) and the app's target,
+  stop and reset; it is notified when it changes (checked with the Control Point's poll).
 
 Parameters: ``config_path`` (the bike's ranges and gear), ``ftms.host`` (127.0.0.1: only this
 host, like DDS discovery; 0.0.0.0 to let an app on the network in), ``ftms.port`` (36866;
@@ -41,15 +44,17 @@ class SetupError(Exception):
     """A start-up problem reported as one line on stderr (exit code 2)."""
 
 
-def services_for(control: ftms.FtmsControl, telemetry, on_control_point) -> dict:
+def services_for(control: ftms.FtmsControl, on_control_point) -> dict:
     """The GATT table served over DIRCON: the Fitness Machine Service and the Cycling Power
-    Service."""
+    Service, each characteristic with the properties FTMS 1.0.1, 4 (Table 4.1) gives it."""
     C, R, W, N = dircon.Characteristic, dircon.PROP_READ, dircon.PROP_WRITE, dircon.PROP_NOTIFY
     # the heart-rate range with the heart-rate target it bounds (a bike with a rider's heart rate)
     heart = [C(ftms.HEART_RATE_RANGE, R, read=control.encode_heart_rate_range)] if control.heart_rate else []
     return {ftms.FTMS_SERVICE: [
         C(ftms.FEATURE, R, read=control.encode_feature),
-        C(ftms.INDOOR_BIKE_DATA, R | N, read=telemetry),
+        # notify only: Table 4.1 excludes a read (it was served; no app reads it, trainers refuse it)
+        C(ftms.INDOOR_BIKE_DATA, N),
+        C(ftms.TRAINING_STATUS, R | N, read=control.encode_training_status),
         C(ftms.INCLINATION_RANGE, R, read=control.encode_inclination_range),
         C(ftms.RESISTANCE_RANGE, R, read=control.encode_resistance_range),
         *heart,
@@ -293,7 +298,7 @@ def _make_node_class():
             self._set_road = set_command_road
             try:
                 self.server = dircon.DirconServer(host, int(port), services_for(
-                    self.control, self.telemetry.encode, self._on_control_point), self._log, self._on_app_gone)
+                    self.control, self._on_control_point), self._log, self._on_app_gone)
             except OSError as exc:
                 raise SetupError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
             # apps find a trainer by mDNS; on loopback only (the default) nobody else could reach it
@@ -321,6 +326,7 @@ def _make_node_class():
         # ---- ROS side
         def _on_session(self, msg) -> None:
             self.session_elapsed_s = float(msg.elapsed_s)
+            self.control.follow_session(int(msg.state), int(msg.mode), float(msg.heart_rate_bpm))
 
         def _log(self, text: str, warning: bool) -> None:
             if warning:      # one call site per severity (rclpy's logger insists)
@@ -363,6 +369,11 @@ def _make_node_class():
             self.server.poll(0.0)
             while self.pending_status:            # after the writer's response: to every app
                 self.server.broadcast(ftms.STATUS, self.pending_status.pop(0))
+            # a new training status (the app's target, its stop or reset, the session's progress)
+            training = self.control.training_status_change()
+            if training is not None:
+                self._log(f"FTMS training status: {ftms.training_status_text(training)}", False)
+                self.server.broadcast(ftms.TRAINING_STATUS, training)
 
         def _notify(self) -> None:
             states = _take_all(self.sub_plant)

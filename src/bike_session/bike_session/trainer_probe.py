@@ -1,7 +1,8 @@
 """`./bike trainer`: the app's end of FTMS over DIRCON, for a quick look at a trainer on the
 network, this testbed's (`./bike run --ftms`) or a real one (a KICKR, a Neo, a SmartSpin2k):
-find trainers by mDNS, list a trainer's services, characteristics and FTMS ranges, optionally
-take control and set a target, and print the Indoor Bike Data it notifies, once a second.
+find trainers by mDNS, list a trainer's services, characteristics, FTMS ranges and training
+status, optionally take control and set a target, and print the Indoor Bike Data it notifies,
+once a second (and its Training Status when it changes).
 
     ./bike trainer --find                         # trainers announced on the network (3 s)
     ./bike trainer [--host H] [--port P]          # what the trainer at H:P serves, then 5 s of data
@@ -98,6 +99,10 @@ def describe(app: dircon.DirconClient, say) -> bool:
                 say(f"{label} range {lo * scale:g} .. {hi * scale:g}{unit_text} in steps of {step * scale:g}")
             except (ValueError, struct.error):
                 say(f"{label} range: not served")
+        try:        # optional in FTMS (4.10); a trainer that serves it answers a read
+            say(f"training status: {ftms.training_status_text(app.read(ftms.TRAINING_STATUS))}")
+        except ValueError:
+            say("training status: not served")
     return has_ftms
 
 
@@ -469,6 +474,7 @@ def main(opts) -> int:
         if not ok:
             return 1
         app.subscribe(ftms.INDOOR_BIKE_DATA)
+        app.subscribe(ftms.TRAINING_STATUS)       # a trainer without it refuses: nothing to print then
         end = time.monotonic() + opts.seconds
         next_print = 0.0
         while time.monotonic() < end:
@@ -476,6 +482,11 @@ def main(opts) -> int:
                 value = app.wait_notification(ftms.INDOOR_BIKE_DATA, max(0.1, end - time.monotonic()))
             except TimeoutError:
                 break
+            for status in app.take_notifications(ftms.TRAINING_STATUS):
+                try:
+                    say(f"training status: {ftms.training_status_text(status)}")
+                except ValueError as exc:
+                    say(f"training status: {exc}")
             if time.monotonic() < next_print:
                 continue
             next_print = time.monotonic() + 1.0
