@@ -421,7 +421,7 @@ def test_run_rides_the_configs_values_of_the_parameters_the_launch_file_sets(tmp
     from bike_session import cli, launcher
 
     launched = []
-    monkeypatch.setattr(launcher, "run", lambda _launch, args: launched.append(dict(args)) or 0)
+    monkeypatch.setattr(launcher, "run", lambda _launch, args, **_kw: launched.append(dict(args)) or 0)
     monkeypatch.setenv("ROS_DOMAIN_ID", "0")         # no domain lock for a run that starts nothing
     can_config = ROOT / "config" / "bldc_can.yaml"
 

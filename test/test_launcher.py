@@ -125,6 +125,27 @@ def test_launcher_stops_all_when_shutdown_node_exits_and_forwards_sigint(tmp_pat
     assert "[waiter] waiting\n" in out.lines
 
 
+def test_a_line_watcher_says_what_a_nodes_line_tells_and_a_failing_watcher_is_said_not_fatal():
+    """./bike run learns from a node's output what only the node knows (the FTMS bridge's port
+    when the OS picked it): the watcher's line follows the node's; a watcher that raises is one
+    warning and the node's output goes on (a dead pump would leave the node blocked on a full pipe)."""
+    out = _Sink()
+
+    def watch(name, line):
+        if "boom" in line:
+            raise RuntimeError("bad watcher")
+        return f"[bike] {name} is on port 4242" if "port 4242" in line else None
+
+    code = "for t in ('listening on port 4242', 'boom', 'after'): print(t, flush=True)"
+    launch = Launcher([_Script("talker", code, shutdown=True)], stdout=out, on_line=watch)
+    launch.start()
+    assert launch.wait(timeout_s=20) == {"talker": 0}
+    text = out.text()
+    assert "[talker] listening on port 4242\n[bike] talker is on port 4242\n" in text, text
+    assert "[launcher] warning: the output watcher failed on a line of 'talker': RuntimeError: bad watcher" in text
+    assert text.endswith("[talker] after\n"), text
+
+
 def test_launcher_escalates_to_sigkill_for_a_node_that_ignores_signals():
     launch = Launcher([_Script("stubborn", STUBBORN)], grace_s=0.5, stdout=open("/dev/null", "w"))
     launch.start()

@@ -21,6 +21,7 @@ import datetime
 import math
 import os
 import pathlib
+import re
 import sys
 
 PAPERS = {
@@ -164,8 +165,9 @@ def _cmd_run(opts) -> int:
         if calibrated is None:
             return 2
         config, cfg = calibrated
+    ftms_port_said = None
     if ftms_on:
-        _ftms_run_args(opts, cfg, args)
+        ftms_port_said = _ftms_run_args(opts, cfg, args)
     can_params = None
     if str(cfg.get("backend", "sim")) == "can":
         can_params = _can_run_args(cfg, args)
@@ -202,7 +204,7 @@ def _cmd_run(opts) -> int:
     print(f"[bike] config {source_config}{copy}, {duration_s:g} s simulated, namespace /{namespace}"
           + (f", recording to {bag_path}" if bag_path else ""), flush=True)
     try:
-        code = launcher.run(str(opts.launch or default_launch_file()), args)
+        code = launcher.run(str(opts.launch or default_launch_file()), args, on_line=ftms_port_said)
     except launcher.LaunchError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -477,9 +479,29 @@ def _ftms_address_ok(host: str, port: int) -> bool:
     return True
 
 
-def _ftms_run_args(opts, cfg, args: dict) -> None:
+FTMS_LISTENING = re.compile(r"FTMS over DIRCON on (\S+):(\d+) \(service ")     # the bridge node's line
+
+
+def _ftms_port_said(host: str):
+    """--ftms-port 0: a Launcher line watcher that says the port the OS gave the bridge, from the
+    bridge node's own line (``ftms``: "FTMS over DIRCON on HOST:PORT (service ..."), as the
+    [bike] line a user looks for; once. The mDNS advert carries that port already (the node
+    advertises the port it listens on)."""
+    said = []
+
+    def watch(node: str, line: str) -> str | None:
+        found = FTMS_LISTENING.search(line) if node == "ftms" and not said else None
+        if found is None:
+            return None
+        said.append(found.group(2))
+        return f"[bike] FTMS over DIRCON on {host}:{found.group(2)}: connect a training app to it"
+    return watch
+
+
+def _ftms_run_args(opts, cfg, args: dict):
     """--ftms: the bridge node's launch arguments; an app rides on the wall clock, so a lockstep
-    config runs in real time (a parameter file every node takes after the config)."""
+    config runs in real time (a parameter file every node takes after the config). Returns the
+    launcher's line watcher that says the port when the OS picks it (--ftms-port 0), else None."""
     import atexit
     import shutil
     import tempfile
@@ -494,8 +516,14 @@ def _ftms_run_args(opts, cfg, args: dict) -> None:
         path.write_text("/**:\n  ros__parameters:\n    sync_mode: realtime\n")
         args["overrides"] = str(path)
         note = "; sync_mode realtime (the config's lockstep overridden: an app rides on the wall clock)"
+    if opts.ftms_port == 0:
+        # the port is the bridge's to learn when it listens: said then, from its line
+        print(f"[bike] FTMS over DIRCON on {opts.ftms_host}, on a port the OS picks (said here once the bridge "
+              f"listens){note}", flush=True)
+        return _ftms_port_said(opts.ftms_host)
     print(f"[bike] FTMS over DIRCON on {opts.ftms_host}:{opts.ftms_port}: connect a training app to it{note}",
           flush=True)
+    return None
 
 
 def _can_run_args(cfg, args: dict):

@@ -30,6 +30,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import yaml
 
@@ -250,8 +251,11 @@ class Launcher:
     """Starts NodeSpecs as processes and supervises them."""
 
     def __init__(self, nodes: list[NodeSpec | ExecutableSpec], *, prefix_output: bool = True, grace_s: float = 10.0,
-                 stdout=None):
+                 stdout=None, on_line: Callable[[str, str], str | None] | None = None):
         self.nodes = nodes
+        # on_line(node name, line): a line of the caller's own to print after it, or None. How
+        # ./bike run learns what only a node knows (the FTMS bridge's port when the OS picked it)
+        self.on_line = on_line
         self.prefix_output = prefix_output
         self.grace_s = grace_s
         self.ended_normally = False      # wait(): the graph ended by itself, every node so far with 0
@@ -276,9 +280,20 @@ class Launcher:
 
     def _pump(self, name: str, proc: subprocess.Popen) -> None:
         for line in proc.stdout:
+            said = self._watch(name, line)
             with self._lock:
                 self.stdout.write(f"[{name}] {line}" if self.prefix_output else line)
+                if said:
+                    self.stdout.write(said.rstrip("\n") + "\n")
                 self.stdout.flush()
+
+    def _watch(self, name: str, line: str) -> str | None:
+        if self.on_line is None:
+            return None
+        try:
+            return self.on_line(name, line)
+        except Exception as exc:  # noqa: BLE001 - a dead pump leaves the node blocked on a full pipe
+            return f"[launcher] warning: the output watcher failed on a line of '{name}': {type(exc).__name__}: {exc}"
 
     def request_stop(self, signum: int | None = None, _frame=None) -> None:
         if signum is not None and self.stopped_by_signal is None:
@@ -366,11 +381,13 @@ def failed_nodes(launcher: Launcher, codes: dict[str, int]) -> dict[str, int]:
     return bad
 
 
-def run(launch_file: str, args: dict[str, str] | None = None, timeout_s: float | None = None) -> int:
+def run(launch_file: str, args: dict[str, str] | None = None, timeout_s: float | None = None,
+        on_line: Callable[[str, str], str | None] | None = None) -> int:
     """Launch, supervise and stop the graph; returns 0 when every node ended cleanly, 1 when
     one failed, and 128 + the signal's number when the user stopped the run (Ctrl-C: 130,
-    SIGTERM: 143; a shell or CI job must not take an interrupted session for a finished one)."""
-    launcher = Launcher(parse_launch(launch_file, args))
+    SIGTERM: 143; a shell or CI job must not take an interrupted session for a finished one).
+    ``on_line``: see :class:`Launcher`."""
+    launcher = Launcher(parse_launch(launch_file, args), on_line=on_line)
     previous = {sig: signal.signal(sig, launcher.request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         launcher.start()
