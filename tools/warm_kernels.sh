@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Compile the numba kernels into their on-disk cache (numba cache=True, beside the sources)
-# by running what uses them: both bikes' node graphs (plant and controller warm-ups), the
-# offline paper experiments of both machines and the fleet kernel. On a fresh clone this takes
+# by running what uses them: both bikes' node graphs (plant and controller warm-ups), their CAN
+# drive emulator, the offline paper experiments of both machines and the fleet kernel. On a fresh clone this takes
 # a few minutes of one core; afterwards every node and test loads the kernels in a fraction of
 # a second. CI runs it before the suite, beside the Python 3.12 set-up (.ci/run); nothing
 # needs it, it only moves the compile out of the first tests.
@@ -24,6 +24,10 @@ step() {
 }
 step ./bike run --duration 0.2
 step ./bike run --config config/spmsm_default.yaml --duration 0.2
+# the CAN drive emulator's physics kernels (both bikes; the CAN tests start it ~30 times)
+emulator_bench='set +u; source tools/env.sh; exec python -m bike_controller.drive_emulator --bench-s 0.05 --config "$0"'
+step bash -c "$emulator_bench" config/bldc_default.yaml
+step bash -c "$emulator_bench" config/spmsm_default.yaml
 step ./bike paper seed1-current --out "$tmp/p1"
 step ./bike paper seed2-table1 --out "$tmp/p2"
 step ./bike fleet --bikes 4 --seconds 0.01 --show 0
