@@ -125,6 +125,7 @@ class NodeProcess:
         self._log = open(self.log_path, "w")
         self.proc = subprocess.Popen([executable_path(pkg, exe), *args], stdout=self._log, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, start_new_session=True)
+        self._interrupted = False
 
     @property
     def pid(self) -> int:
@@ -138,9 +139,15 @@ class NodeProcess:
         os.killpg(self.proc.pid, signal.SIGKILL)
         self.proc.wait()
 
+    def interrupt(self) -> None:
+        """SIGINT, once (stop() then only waits): several nodes stopping at once overlap."""
+        if self.proc.poll() is None and not self._interrupted:
+            self._interrupted = True
+            os.killpg(self.proc.pid, signal.SIGINT)
+
     def stop(self, timeout: float = 10.0) -> int:
         if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGINT)
+            self.interrupt()
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:

@@ -111,6 +111,26 @@ class NodeProcess:
         return self.proc.returncode
 
 
+def stop_all(procs, timeout: float = 5.0) -> list[int | None]:
+    """NodeProcess.stop for several nodes at once: SIGINT to every one first, then each is
+    waited for up to ``timeout`` from that signal (SIGKILL after it), so that their shutdowns
+    (~0.4 s each, seconds on a loaded host) overlap instead of adding up. Returns each one's
+    exit code as stop() does (None: it had to be killed)."""
+    procs = list(procs)
+    for p in procs:
+        p.signal(signal.SIGINT)
+    end = time.monotonic() + timeout
+    codes = []
+    for p in procs:
+        if p.wait(max(0.0, end - time.monotonic())) is None:
+            p.signal(signal.SIGKILL)
+            p.wait(5.0)
+            codes.append(None)
+        else:
+            codes.append(p.proc.returncode)
+    return codes
+
+
 class Collector:
     """The test's own node: records what the bike publishes, publishes what the test needs."""
 

@@ -75,6 +75,7 @@ class Emulator:
             [sys.executable, "-m", "bike_controller.drive_emulator", "--interface", "udp_multicast", "--channel", GROUP,
              "--port", str(port), "--config", str(config), *args],
             stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+        self._terminated = False
         # the first start on a fresh clone compiles the plant kernels (cold numba cache)
         end = time.monotonic() + 120.0
         try:
@@ -93,10 +94,16 @@ class Emulator:
         os.killpg(self.proc.pid, signal.SIGKILL)
         self.proc.wait()
 
+    def terminate(self) -> None:
+        """SIGTERM, once (stop() then only waits)."""
+        if self.proc.poll() is None and not self._terminated:
+            self._terminated = True
+            os.killpg(self.proc.pid, signal.SIGTERM)
+
     def stop(self) -> dict:
         """SIGTERM; the exit summary (counters, axis state, errors) it prints."""
         if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGTERM)
+            self.terminate()
             try:
                 self.proc.wait(15)
             except subprocess.TimeoutExpired:
@@ -224,6 +231,17 @@ class Rig:
 
     def close(self):
         self._commanding = False
+        # every process told to stop first, then each waited for: their shutdowns overlap
+        for p in self.procs:
+            try:
+                p.interrupt()
+            except Exception:  # noqa: BLE001
+                pass
+        for e in self.emulators:
+            try:
+                e.terminate()
+            except Exception:  # noqa: BLE001
+                pass
         self.cmd_thread.join(2.0)
         for p in self.procs:
             try:

@@ -30,7 +30,7 @@ import sys
 import time
 
 import pytest
-from node_harness import CONFIG, Collector, NodeProcess, stamp_ns  # noqa: F401
+from node_harness import CONFIG, Collector, NodeProcess, stamp_ns, stop_all  # noqa: F401
 
 from bike_msgs.msg import ControllerStatus, PlantState, SessionStatus  # noqa: E402
 from bike_session.bags import open_bag, read_topic  # noqa: E402
@@ -306,8 +306,7 @@ def test_kill_9_and_restart_resumes_the_session(tmp_path, victim, ros_domain):
         assert abs(stamp_ns(states[-1].header.stamp) * 1e-9 - duration) < 1e-6
         assert not any(m.faults & PlantState.FAULT_BAD_COMMAND for m in states)
     finally:
-        for p in everyone:
-            p.stop()
+        stop_all(everyone)
         col.close()
     if victim == "recorder":
         first = pathlib.Path(recover(tmp_path / "run")["out"])
@@ -365,9 +364,9 @@ def test_kill_9_of_the_plant_and_restart_the_session_follows_the_new_run(tmp_pat
         procs["recorder"].signal(signal.SIGINT)
         assert procs["recorder"].wait(15) == 0, procs["recorder"].output()
     finally:
-        codes = {name: p.stop() for name, p in procs.items() if name != "plant"}
-        for p in everyone[len(procs):]:
-            p.stop()
+        rest = [name for name in procs if name != "plant"]
+        codes = dict(zip(rest, stop_all(procs[name] for name in rest)))
+        stop_all(everyone[len(procs):])
         col.close()
     assert codes["controller"] == 0, codes
     # two bags: the first run up to the kill (no end_of_run: the plant died), the new run whole
@@ -436,8 +435,7 @@ def test_lockstep_controller_killed_for_good_ends_the_run_with_one_error(tmp_pat
                                                                                    "plant"))
         assert procs["session"].alive(), "the session waits (its clock stopped); it is not crashed"
     finally:
-        for p in procs.values():
-            p.stop()
+        stop_all(procs.values())
         col.close()
 
 
@@ -457,7 +455,8 @@ def test_plant_killed_the_controller_says_so_and_stays_up(tmp_path, ros_domain):
                      10, "the controller's 'plant stopped' diagnostic", others)
         assert all(p.alive() for p in others)
     finally:
-        codes = {name: p.stop() for name, p in procs.items() if name != "plant"}
+        rest = [name for name in procs if name != "plant"]
+        codes = dict(zip(rest, stop_all(procs[name] for name in rest)))
         col.close()
     assert codes == {"controller": 0, "session": 0}, codes
 

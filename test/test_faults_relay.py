@@ -21,7 +21,7 @@ import time
 import numpy as np
 import pytest
 from node_harness import (CONFIG, ROOT, Collector, NodeProcess, domain,  # noqa: F401
-                          log_file, publish_wall_times, stamp_ns)
+                          log_file, publish_wall_times, stamp_ns, stop_all)
 
 from bike_msgs.msg import Command, PlantState  # noqa: E402
 from bike_plant import msgconv  # noqa: E402
@@ -171,8 +171,7 @@ def test_loss_and_delay_hold_setpoints_and_time_out_to_safe_state(domain):
         assert procs[0].alive() and relay.alive()
         states, received = list(states), list(stamps)
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
     print(relay.output())
     # when the plant made each state, on the wall clock, not when the test got it: the test

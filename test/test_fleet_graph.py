@@ -147,7 +147,7 @@ def test_controller_matched_after_the_first_commands_still_gets_them():
     the ride then starts with the session's Command for t = 0, not after command_wait_s
     without it."""
     from bike_msgs.msg import DriveCommand, PlantState, SessionStatus
-    from node_harness import CONFIG, Collector, NodeProcess
+    from node_harness import CONFIG, Collector, NodeProcess, stop_all
 
     from bike_session import domains
 
@@ -169,7 +169,6 @@ def test_controller_matched_after_the_first_commands_still_gets_them():
         assert "Commands from t = 0 s sent again" in procs[1].output(), procs[1].output()[-2000:]
         assert "no Command for t=0s" not in ctrl.output(), ctrl.output()[-2000:]
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
         domains.release(dom)

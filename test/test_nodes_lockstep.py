@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns  # noqa: F401
+from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns, stop_all  # noqa: F401
 
 from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState  # noqa: E402
 from bike_plant import msgconv  # noqa: E402
@@ -166,8 +166,7 @@ def test_lockstep_closed_loop(domain):
         ctrl.signal(signal.SIGINT)
         assert ctrl.wait(10.0) == 0, ctrl.output()
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -194,8 +193,7 @@ def test_lockstep_rate(domain, n, duration):
         print(f"\nlockstep N={n}: {rate:.0f} batches/s = {rate * n * DT:.2f} x real time")
         assert rate > 100, rate
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -237,8 +235,7 @@ def test_lockstep_stops_polling_while_observed(domain):
             p.signal(signal.SIGINT)
             assert p.wait(10.0) == 0, p.output()
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         observer.destroy_node()
         rclpy.try_shutdown(context=ctx)
         col.close()
@@ -299,8 +296,7 @@ def test_lockstep_rejects_malformed_drive_command(domain):
         assert any(s.level == DiagnosticStatus.OK for a in col.data["/diagnostics"] for s in a.status
                    if s.name.endswith("plant") and stamp_ns(a.header.stamp) > 12 * n * DT * 1e9 - 1000)
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -320,8 +316,7 @@ def _run_once(domain, duration, commands):
         assert plant.wait(5.0) == 0
         return [msgconv.snapshot_from_msg(m) | {"stamp": stamp_ns(m.header.stamp)} for m in dedupe(col.data["plant_state"])]
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -377,8 +372,7 @@ def test_lockstep_controller_waits_for_the_session(domain):
             expected = 0.3 if t_of[int(s.seq)] < PERIOD - 1e-9 else 0.6
             assert s.command == expected, (t_of[int(s.seq)], s.command)
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -426,6 +420,5 @@ def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
         msgs = [s.message for a in col.data["/diagnostics"] for s in a.status if s.level == DiagnosticStatus.ERROR]
         assert any("recorder went silent" in m for m in msgs), msgs
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import pytest
-from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns, tool_module  # noqa: F401
+from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns, stop_all, tool_module  # noqa: F401
 
 from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus  # noqa: E402
 from bike_plant import msgconv, shm_ports  # noqa: E402
@@ -197,8 +197,7 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
         ctrl2.signal(signal.SIGINT)
         assert ctrl2.wait(10.0) == 0, ctrl2.output()
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -239,8 +238,7 @@ def test_realtime_controller_without_commands_says_so(domain):
                      "the controller's OK diagnostic after the Command", procs)
         assert ctrl.output().count("no Command received") == 1, ctrl.output()
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -268,8 +266,7 @@ def test_a_controller_fed_nothing_by_a_matched_plant_state_writer_says_so(domain
         assert "(on the re-created subscription)" in ctrl.output()
         assert ctrl.output().count("no PlantState") == 1, ctrl.output()
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -295,8 +292,7 @@ def test_realtime_without_controller_stays_safe_and_ends(domain):
         assert any("sim time held at 0" in s.message for s in warns), "the start hold says so"
         assert "sim time starts without a controller" in plant.output()
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -333,8 +329,7 @@ def test_realtime_start_holds_t0_until_a_late_session_is_heard(domain):
         t_end = stamp_ns(states[-1].header.stamp) * 1e-9
         assert t_end == pytest.approx(duration, abs=1e-6)
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -414,8 +409,7 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
         col.wait_for(lambda: braking() and len(states) > k + 50, 60, "braking again", [plant, ctrl2])
         _started_over(ctrl2, plant.pid)
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -457,8 +451,7 @@ def test_a_plant_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_po
         col.wait_for(lambda: braking(k) and states[-1].seq > 50, 60, "the new run braking", [ctrl, plant2])
         _started_over(plant2, ctrl.pid)
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -494,8 +487,7 @@ def test_a_session_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_
         col.wait_for(running, 30, "the restarted session running again", [plant, ctrl, session2])
         _started_over(session2, plant.pid)
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
 
 
@@ -562,6 +554,5 @@ def test_a_recorder_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh
         bag = re.search(r"the empty bag (\S+) is made again", out).group(1)
         assert len(read_topic(bag, "plant_state")) > 50, rec2.output()[-3000:]
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()

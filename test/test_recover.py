@@ -196,7 +196,7 @@ def test_kill_9_of_the_real_recorder_mid_session(tmp_path):
     """The node graph (plant, controller, session, recorder: separate processes, real DDS),
     the recorder killed with SIGKILL mid-session; the recovered bag holds every batch from
     the start up to at most 1 s of sim time before the kill, plus the session metadata."""
-    from node_harness import CONFIG, Collector, NodeProcess
+    from node_harness import CONFIG, Collector, NodeProcess, stop_all
 
     from bike_msgs.msg import PlantState
 
@@ -224,8 +224,7 @@ def test_kill_9_of_the_real_recorder_mid_session(tmp_path):
         col.wait_for(lambda: states[-1].faults & PlantState.FAULT_RECORDER_LOST, 10, "FAULT_RECORDER_LOST",
                      procs[1:])
     finally:
-        for p in procs:
-            p.stop()
+        stop_all(procs)
         col.close()
     bag = tmp_path / "crash"
     assert not (bag / "metadata.yaml").exists()
