@@ -61,25 +61,19 @@ if [ "$(cat install/.bike-src 2>/dev/null)" != "$src_hash" ]; then
   fi
   echo "$src_hash" > install/.bike-src
 fi
-# 3. both bikes' graph kernels (and their CAN drive emulator's) compiled into numba's cache
-# (skipped when no source of the physics and control packages changed). A node that compiles
-# its kernels itself keeps LLVM's compile memory for the whole run (~270 MB steady, ~300 MB
-# peak, against ~140 MB for a node that loads them from the cache: issue 6's target is 200
-# MB), so set-up compiles them in four short runs whose processes exit. A failure here costs
-# memory, not correctness: the nodes then compile at their first run, as they did before.
-# BIKE_SETUP_WARM=0 skips this step.
+# 3. both bikes' graph kernels compiled into numba's cache (skipped when no source of the
+# physics and control packages changed). A node that compiles its kernels itself keeps LLVM's
+# compile memory for the whole run (~270 MB steady, ~300 MB peak, against ~140 MB for a node
+# that loads them from the cache: issue 6's target is 200 MB), so set-up compiles them in two
+# short runs whose processes exit. A failure here costs memory, not correctness: the nodes
+# then compile at their first run, as they did before. BIKE_SETUP_WARM=0 skips this step.
 kernel_hash=$( (find src/bike_plant src/bike_controller -name '*.py' -print0 | sort -z | xargs -0 sha256sum
                 echo "$req_hash"; "$venv/bin/python" --version) | sha256sum | cut -c1-16)
 if [ "${BIKE_SETUP_WARM:-1}" != 0 ] && [ "$(cat install/.bike-kernels 2>/dev/null)" != "$kernel_hash" ]; then
   log "compiling the bikes' numba kernels into numba's cache (after a change of their sources: up to a minute)"
   warm_log=$(mktemp)
-  # the CAN drive emulator's physics (the CAN tests start it ~30 times; cold, each bike's
-  # kernels took 12-30 s of the first one)
-  emulator_bench='set +u; source tools/env.sh; exec python -m bike_controller.drive_emulator --bench-s 0.05 --config "$0"'
   if ./bike run --duration 0.2 > "$warm_log" 2>&1 \
-      && ./bike run --config config/spmsm_default.yaml --duration 0.2 >> "$warm_log" 2>&1 \
-      && bash -c "$emulator_bench" config/bldc_default.yaml >> "$warm_log" 2>&1 \
-      && bash -c "$emulator_bench" config/spmsm_default.yaml >> "$warm_log" 2>&1; then
+      && ./bike run --config config/spmsm_default.yaml --duration 0.2 >> "$warm_log" 2>&1; then
     echo "$kernel_hash" > install/.bike-kernels
   else
     tail -20 "$warm_log" >&2
