@@ -233,8 +233,9 @@ def session_mode(k, erg_targets=(90.0, 120.0)):
 def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
                       status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None,
                       modes=None, virtual_mps=None, segment=None, friction=None, cadence=None, heart=None,
-                      hr_target=None):
-    """A 1 kHz session of n PlantStates (t = i ms): 100 rad/s, 1 N m of braking (100 W),
+                      hr_target=None, lead=0):
+    """A 1 kHz session of n PlantStates (t = i ms; with ``lead``, t = (i - lead) ms after ``lead``
+    PlantStates at t = 0, the first half at speed 0: a drive on CAN not yet heard, then its speed): 100 rad/s, 1 N m of braking (100 W),
     rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()
     (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given (else
     ROAD_MPS, what a controller reports for 100 rad/s on CONFIG_TEXT's bike);
@@ -253,14 +254,14 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
     sink.write(_full("session_info"), 0, serialize_message(String(data=json.dumps(info))))
     ms = 1_000_000
     for i in range(n):
-        t_ns = i * ms
+        t_ns = max(i - lead, 0) * ms
         m = PlantState()
         m.header.stamp.sec, m.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
         m.seq = i
         m.machine, m.backend = "bldc", "sim"
         m.end_of_run = i == n - 1
-        m.speed_rad_s = W
-        m.speed_rpm = W * RPM_PER_RAD_S
+        m.speed_rad_s = W if i >= lead // 2 else 0.0
+        m.speed_rpm = m.speed_rad_s * RPM_PER_RAD_S
         m.torque_em_nm = -1.0 if i else 0.0
         m.phase_current_a = [1.0, -0.5, -0.5]
         m.current_samples_a = [0.0] * 60
@@ -270,7 +271,7 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
         m.hall_edge_states = [1, 3] if i % 3 == 0 else []
         m.dc_bus_v = 50.0
         m.battery_soc = 0.5 + 0.01 * i / 1000
-        t = i / 1000
+        t = t_ns * 1e-9
         m.energy_mech_in_j, m.energy_battery_j = 150.0 * t, 80.0 * t
         m.energy_resistor_j, m.energy_loss_j = 5.0 * t, 15.0 * t
         m.faults = 2 if i in (3, 4) else 0
@@ -558,6 +559,19 @@ def test_power_accuracy_compares_the_trainers_estimate_with_the_riders_ledger(tm
     assert acc["mean_w"] == pytest.approx(-45.0, rel=1e-6) and acc["mean_pct"] == pytest.approx(-30.0, rel=1e-6)
     assert "trainer power error:   mean -45.00 W (-30.00 %)" in format_summary(s)
     assert analyse(write_session_bag(tmp_path / "b")).summary["power_accuracy"] is None
+
+
+def test_power_accuracy_counts_the_flywheel_from_the_start_of_sim_time(tmp_path):
+    """A drive on CAN: the plant publishes PlantStates at t = 0 before it hears the drive (speed
+    0), then the drive's first speed (100 rad/s), and only then sim time runs. That step is no
+    energy of the rider's: the estimate (100 W brake, steady flywheel) is -50 W against the
+    150 W ledger, as without the lead-in (it read ~+7 % in the first window of a CAN ride when
+    1/2 J w^2 of the first speed counted)."""
+    from bike_session.report import analyse
+    s = analyse(write_session_bag(tmp_path / "a", n=10001 + 40, lead=40)).summary
+    acc = s["power_accuracy"]
+    assert acc["windows"] == 1
+    assert acc["mean_w"] == pytest.approx(-50.0, rel=1e-6) and acc["mean_pct"] == pytest.approx(-100.0 / 3.0, rel=1e-6)
 
 
 def test_erg_response_times_each_target_step():

@@ -667,6 +667,7 @@ class _Analyser:
         self.relay_switch_overs = 0
         self.end_of_run = False
         self.n_intervals = 0
+        self.sim_time_ran = False      # an interval with dt > 0 seen: the flywheel term counts from there
         self.scatter = {k: [] for k in ("rpm", "torque", "mode", "command")}
         self.res_commands: dict = {}
 
@@ -932,9 +933,15 @@ class _Analyser:
         p_erg = erg_power_w(-t_brake, w_mid, friction)
         bins.add("e_erg", b, p_erg * dt)
         # the trainer's estimate of the rider's power adds the flywheel's energy change (inertia
-        # compensated, as direct-drive trainers report it)
+        # compensated, as direct-drive trainers report it). It counts from the interval in which sim
+        # time first runs, where the ledger starts: before that a drive on CAN is not yet heard
+        # (PlantStates at t = 0 with speed 0, then its first speed), which is no change of the
+        # flywheel's energy (it made the first 10 s window of a CAN ride read ~+7 %)
         w0, w1 = q[:-1, C + P_W], q[1:, C + P_W]
-        bins.add("e_est", b, p_erg * dt + 0.5 * mc["inertia_kgm2"] * (w1 * w1 - w0 * w0))
+        running = self.sim_time_ran | (np.cumsum(dt > 0) > 0)
+        self.sim_time_ran = bool(running[-1])
+        flywheel_j = np.where(running, 0.5 * mc["inertia_kgm2"] * (w1 * w1 - w0 * w0), 0.0)
+        bins.add("e_est", b, p_erg * dt + flywheel_j)
         # the road speed: the controller's virtual speed (in slope mode the virtual bike's, which
         # a shift does not change while the brake takes the flywheel to the new gear), else the
         # flywheel's through the gear in force (0 / NaN: the config's; an older bag has none)
