@@ -235,7 +235,8 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
                       modes=None, virtual_mps=None, segment=None, friction=None, cadence=None, heart=None,
                       hr_target=None, lead=0):
     """A 1 kHz session of n PlantStates (t = i ms; with ``lead``, t = (i - lead) ms after ``lead``
-    PlantStates at t = 0, the first half at speed 0: a drive on CAN not yet heard, then its speed): 100 rad/s, 1 N m of braking (100 W),
+    PlantStates at t = 0, the first half at speed 0: a drive on CAN not yet heard, then its speed):
+    100 rad/s, 1 N m of braking (100 W),
     rider 150 W, battery 80 W, resistor 5 W, losses 15 W (ledger); modes as session_mode()
     (or ``modes(k)``), ControllerStatus.virtual_speed_mps ``virtual_mps(k)`` when given (else
     ROAD_MPS, what a controller reports for 100 rad/s on CONFIG_TEXT's bike);
@@ -572,6 +573,15 @@ def test_power_accuracy_counts_the_flywheel_from_the_start_of_sim_time(tmp_path)
     acc = s["power_accuracy"]
     assert acc["windows"] == 1
     assert acc["mean_w"] == pytest.approx(-50.0, rel=1e-6) and acc["mean_pct"] == pytest.approx(-100.0 / 3.0, rel=1e-6)
+
+
+def test_power_accuracy_of_a_drive_on_can_says_its_ledger_is_not_the_truth():
+    """On CAN the ledger is the plant's own figure from the drive's estimates: the report says so."""
+    acc = {"windows": 6, "window_s": 10.0, "mean_w": 0.01, "rms_w": 0.05, "max_abs_w": 0.08, "mean_pct": 0.0}
+    assert "drive on CAN" not in format_summary({"power_accuracy": acc})
+    text = format_summary({"power_accuracy": dict(acc, ledger_from_drive=True)})
+    assert "drive on CAN: the ledger is the plant's, from the drive's torque estimate (kt Iq)" in text
+    assert "not the rider's true power" in text
 
 
 def test_erg_response_times_each_target_step():

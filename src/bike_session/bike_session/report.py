@@ -49,6 +49,9 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
 - ``power_accuracy``       the trainer's power estimate (braking power + the bike's friction as the
   laws model it + d(1/2 J w^2)/dt, J of the config) - the rider's (ledger), over 10 s windows where the rider gives > 20 W:
   mean / rms / max_abs [W], mean_pct (:func:`power_accuracy`); None without such a window.
+  ``ledger_from_drive`` True for a drive on CAN: its ledger is made of the drive's Torque_Estimate
+  and speed (bike_plant.can.backend), not the physics' truth, so an error of the drive's kt Iq
+  (the BLDC's true torque ~2-3 % below it) is in neither side.
 - ``erg_response``         ERG target steps (a change of more than 10 W and 5 % between
   tracking windows) and the time from each until the ERG power (as ``erg_power``) stays within
   max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
@@ -1089,6 +1092,9 @@ class _Analyser:
             out["erg_response"] = erg_response(bins, self.bin_s)
             out["shift_response"] = shift_response(bins, self.origin_s, self.bin_s, self.slope_shifts())
             out["power_accuracy"] = power_accuracy(bins, self.bin_s)
+            if out["power_accuracy"] and self.can:
+                # a drive on CAN: the ledger is the host's, from the drive's own estimates (backend docs)
+                out["power_accuracy"]["ledger_from_drive"] = True
             out["mean_heart_rate_bpm"], out["max_heart_rate_bpm"] = heart_rate_figures(bins)
             out["heart_rate_erg"] = heart_rate_erg(bins, self.origin_s, self.bin_s, self.hr_stretches())
             if self.friction_seen:
@@ -1487,6 +1493,11 @@ def format_summary(summary: dict) -> str:
         lines.append(f"trainer power error:   mean {acc['mean_w']:+.2f} W ({acc['mean_pct']:+.2f} %), rms "
                      f"{acc['rms_w']:.2f} W over {acc['windows']} {acc['window_s']:g} s windows (brake + modelled "
                      f"friction + flywheel energy, against the rider's ledger power)")
+        if acc.get("ledger_from_drive"):
+            lines.append("                       drive on CAN: the ledger is the plant's, from the drive's torque "
+                         "estimate (kt Iq) and speed,")
+            lines.append("                       not the rider's true power: a torque estimate error (BLDC: true "
+                         "torque ~2-3 % below kt Iq) is in neither (README, \"Trainer power on CAN\")")
     friction = s.get("friction") or []
     if len(friction) > 1:                       # a spin-down changed the laws' friction
         changes = ", ".join(f"B {f['friction_nms']:.3e} N m s, Tc {f['dry_friction_nm']:.4f} N m from {f['t']:.1f} s"

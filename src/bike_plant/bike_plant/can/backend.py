@@ -37,9 +37,15 @@ What it does
   Hall and timer fields stay empty / zero; battery_soc and battery_ocv_v are NaN (a drive
   does not know them).
 * Energy ledger, integrated over the batches while sim time runs (J):
-  battery = int V I_charge dt; stored = 1/2 J (w^2 - w0^2) (J, B from ``mechanics`` of
-  the config); mech_in = int (-T_em w + B w^2) dt + stored; loss = mech_in - battery -
-  stored (copper, inverter and friction losses); resistor = 0 (not observable on CAN).
+  battery = int V I_charge dt; stored = 1/2 J (w^2 - w0^2); mech_in = int (-T_em w + T_f(w) w)
+  dt + stored, T_f = B w + Tc tanh(w / w_s) (bike_plant.mechanics.friction_torque_nm; J, B
+  from ``mechanics`` of the config, Tc the SPMSM's ``spmsm.dry_friction_nm``: the bike's
+  physics, not the laws' figures); loss = mech_in - battery - stored (copper, inverter and
+  friction losses); resistor = 0 (not observable on CAN). The rider's work is not on the
+  bus: mech_in is the host's figure from the drive's Torque_Estimate (kt Iq) and
+  Vel_Estimate, not the physics' truth, so the report's trainer power error compares it with
+  an estimate made of the same measurements (an error of kt Iq, e.g. the BLDC's commutation
+  dips, shows in neither).
 * Time: sim time advances one batch per :meth:`apply` / :meth:`safe_batch` only while the
   drive is alive and in closed-loop control (:attr:`time_frozen` is False). The node then
   stops /clock, so the session node (which plays on /clock) pauses by itself.
@@ -90,12 +96,14 @@ from typing import Callable
 
 import can
 
+from .. import mechanics
 from ..config import ConfigError, build_dataclass, section
 from .protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND,
                        PROTOCOLS, AxisState, ODriveError, ProcedureResult, error_names)
 
 TWO_PI = 2.0 * math.pi
 RPM_PER_REV_S = 60.0
+RPM_PER_RAD_S = 60.0 / TWO_PI
 
 # PlantState fault bits (bike_msgs/PlantState; numbers duplicated so this module stays ROS-free)
 FAULT_OVERVOLTAGE = 4
@@ -312,6 +320,12 @@ class CanBackend:
         self.pole_pairs = int(_number(cfg, f"{self.machine}.pole_pairs", 1.0))
         self.inertia_kgm2 = _number(cfg, "mechanics.inertia_kgm2", 0.0)
         self.friction_nms = _number(cfg, "mechanics.friction_nms", 0.0)
+        # Coulomb friction: the SPMSM bike's (spmsm.dry_friction_nm, as bike_plant.spmsm and the drive
+        # emulator's physics have it); the BLDC model has none
+        spmsm = self.machine == "spmsm"
+        self.dry_friction_nm = _number(cfg, "spmsm.dry_friction_nm", 0.0) if spmsm else 0.0
+        dry_rpm = _number(cfg, "spmsm.dry_friction_speed_rpm", 1.0) if spmsm else 1.0
+        self.dry_friction_speed_rad_s = dry_rpm / RPM_PER_RAD_S
         limit = p.torque_limit_nm or _number(cfg, "controller.tmax_nm", 0.0)
         self.torque_limit_nm = limit if limit > 0 else math.inf
         self.clock = clock
@@ -1039,7 +1053,8 @@ class CanBackend:
         if "bus_voltage_v" in v and "bus_current_a" in v:   # (VESC: two status messages)
             self.e_battery_j += float(v["bus_voltage_v"]) * -float(v["bus_current_a"]) * dt
         self.e_shaft_j += -t_em * w * dt
-        self.e_friction_j += self.friction_nms * w * w * dt
+        self.e_friction_j += mechanics.friction_torque_nm(w, self.friction_nms, self.dry_friction_nm,
+                                                          self.dry_friction_speed_rad_s) * w * dt
         self.time_s += dt
 
     # ------------------------------------------------------------------ PlantState
