@@ -82,21 +82,27 @@ class TrainerPowerMeter:
         self.friction = friction             # (B, Tc, w_s [r/min]): set_friction follows the controller
         self.energy_j = 0.0
         self.last: tuple[int, float, float] | None = None    # (stamp_ns, T_em, w) of the last state
+        self.running = False                 # the stamp has advanced since the start (of this run)
 
     def set_friction(self, friction_nms: float, dry_friction_nm: float) -> None:
         self.friction = (float(friction_nms), float(dry_friction_nm), self.friction[2])
 
     def add(self, stamp_ns: int, torque_em_nm: float, speed_rad_s: float) -> float:
         """One plant state (in order; T_em the mean over the batch ending at it): the cumulative
-        estimate [J]. A stamp going back (a new run) starts again from there."""
+        estimate [J]. A stamp going back (a new run) starts again from there. Until the stamp first
+        advances (sim time runs) the newest state is the start: a drive on CAN not yet heard gives
+        states at t = 0 with speed 0, and its first speed is no energy of the rider's."""
         if not (math.isfinite(torque_em_nm) and math.isfinite(speed_rad_s)):
             return self.energy_j
+        if self.last is not None and stamp_ns < self.last[0]:
+            self.running = False
         if self.last is not None and stamp_ns > self.last[0]:
+            self.running = True
             t0, _, w0 = self.last
             w_mid = 0.5 * (w0 + speed_rad_s)
             self.energy_j += (float(self._erg_power_w(torque_em_nm, w_mid, self.friction)) * (stamp_ns - t0) * 1e-9
                               + 0.5 * self.inertia_kgm2 * (speed_rad_s * speed_rad_s - w0 * w0))
-        if self.last is None or stamp_ns != self.last[0]:
+        if self.last is None or stamp_ns != self.last[0] or not self.running:
             self.last = (stamp_ns, torque_em_nm, speed_rad_s)
         return self.energy_j
 
