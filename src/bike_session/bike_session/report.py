@@ -51,7 +51,7 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   mean / rms / max_abs [W], mean_pct (:func:`power_accuracy`); None without such a window.
   ``ledger_from_drive`` True for a drive on CAN: its ledger is made of the drive's Torque_Estimate
   and speed (bike_plant.can.backend), not the physics' truth, so an error of the drive's kt Iq
-  (the BLDC's true torque ~2-3 % below it) is in neither side.
+  (the BLDC's, braking: -1 % at 0.5 N m .. +7 % at 2 N m of its true torque; README) is in neither side.
 - ``erg_response``         ERG target steps (a change of more than 10 W and 5 % between
   tracking windows) and the time from each until the ERG power (as ``erg_power``) stays within
   max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
@@ -1496,8 +1496,8 @@ def format_summary(summary: dict) -> str:
         if acc.get("ledger_from_drive"):
             lines.append("                       drive on CAN: the ledger is the plant's, from the drive's torque "
                          "estimate (kt Iq) and speed,")
-            lines.append("                       not the rider's true power: a torque estimate error (BLDC: true "
-                         "torque ~2-3 % below kt Iq) is in neither (README, \"Trainer power on CAN\")")
+            lines.append("                       not the rider's true power: an error of kt Iq (the BLDC's: -1 % at "
+                         "0.5 N m .. +7 % at 2 N m) is in neither (README, \"Trainer power on CAN\")")
     friction = s.get("friction") or []
     if len(friction) > 1:                       # a spin-down changed the laws' friction
         changes = ", ".join(f"B {f['friction_nms']:.3e} N m s, Tc {f['dry_friction_nm']:.4f} N m from {f['t']:.1f} s"
