@@ -470,9 +470,10 @@ PLANT_SPEC = (
     ("energy_loss_j", "value", NAN), ("faults", "value", 0), ("interlock_blanked_count", "value", 0),
     ("phase_current_a", "absmax", 0.0), ("current_samples_a", "absmax", 0.0), ("relay_state", "value", 0),
     ("heart_rate_bpm", "value", 0.0),            # 0 (none) in bags recorded before the field
+    ("measured_by_drive", "value", False),       # a drive (on CAN) supplies the data
 )
 (P_SEC, P_NSEC, P_SEQ, P_EOR, P_RPM, P_W, P_TEM, P_TLOAD, P_VBUS, P_OCV, P_SOC, P_IBAT, P_EMECH, P_EBAT, P_ERES,
- P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP, P_RELAY, P_HR) = range(len(PLANT_SPEC))
+ P_ELOSS, P_FAULTS, P_ILOCK, P_IPH, P_ISMP, P_RELAY, P_HR, P_DRIVE) = range(len(PLANT_SPEC))
 STATUS_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("mode", "value", 0),
                ("command", "value", NAN), ("mode_target", "value", NAN), ("mode_saturated", "value", False),
                ("virtual_speed_mps", "value", NAN), ("virtual_gear_ratio", "value", NAN),
@@ -670,7 +671,7 @@ class _Analyser:
         self.relay_switch_overs = 0
         self.end_of_run = False
         self.n_intervals = 0
-        self.sim_time_ran = False      # an interval with dt > 0 seen: the flywheel term counts from there
+        self.sim_time_ran = 0          # 1: an interval with dt > 0 seen, the flywheel term counts after it
         self.scatter = {k: [] for k in ("rpm", "torque", "mode", "command")}
         self.res_commands: dict = {}
 
@@ -936,13 +937,16 @@ class _Analyser:
         p_erg = erg_power_w(-t_brake, w_mid, friction)
         bins.add("e_erg", b, p_erg * dt)
         # the trainer's estimate of the rider's power adds the flywheel's energy change (inertia
-        # compensated, as direct-drive trainers report it). It counts from the interval in which sim
-        # time first runs, where the ledger starts: before that a drive on CAN is not yet heard
-        # (PlantStates at t = 0 with speed 0, then its first speed), which is no change of the
-        # flywheel's energy (it made the first 10 s window of a CAN ride read ~+7 %)
+        # compensated, as direct-drive trainers report it), from where the ledger starts. A drive's
+        # (bike_plant.can.backend) starts at the speed of its first batch in which sim time runs:
+        # before it, the drive may not be heard yet (PlantStates with speed 0, its first speed at
+        # t = 0 or within that batch), which is no change of the flywheel's energy (it made the
+        # first 10 s window of a CAN ride read ~+7 %). The simulated plant's starts at t = 0.
         w0, w1 = q[:-1, C + P_W], q[1:, C + P_W]
-        running = self.sim_time_ran | (np.cumsum(dt > 0) > 0)
-        self.sim_time_ran = bool(running[-1])
+        ran = self.sim_time_ran + np.cumsum(dt > 0)
+        self.sim_time_ran = int(ran[-1] > 0)
+        drive = q[1:, C + P_DRIVE] > 0
+        running = np.where(drive, (ran - (dt > 0)) > 0, True)
         flywheel_j = np.where(running, 0.5 * mc["inertia_kgm2"] * (w1 * w1 - w0 * w0), 0.0)
         bins.add("e_est", b, p_erg * dt + flywheel_j)
         # the road speed: the controller's virtual speed (in slope mode the virtual bike's, which
