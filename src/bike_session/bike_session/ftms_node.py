@@ -90,18 +90,21 @@ class TrainerPowerMeter:
     def add(self, stamp_ns: int, torque_em_nm: float, speed_rad_s: float) -> float:
         """One plant state (in order; T_em the mean over the batch ending at it): the cumulative
         estimate [J]. A stamp going back (a new run) starts again from there. Until the stamp first
-        advances (sim time runs) the newest state is the start: a drive on CAN not yet heard gives
-        states at t = 0 with speed 0, and its first speed is no energy of the rider's."""
+        advances (sim time runs) the newest state is the start, and the flywheel counts from the end
+        of that first batch: a drive on CAN not yet heard gives states with speed 0, and its first
+        speed (at t = 0, or within the first batch) is no energy of the rider's."""
         if not (math.isfinite(torque_em_nm) and math.isfinite(speed_rad_s)):
             return self.energy_j
         if self.last is not None and stamp_ns < self.last[0]:
             self.running = False
         if self.last is not None and stamp_ns > self.last[0]:
-            self.running = True
             t0, _, w0 = self.last
             w_mid = 0.5 * (w0 + speed_rad_s)
-            self.energy_j += (float(self._erg_power_w(torque_em_nm, w_mid, self.friction)) * (stamp_ns - t0) * 1e-9
-                              + 0.5 * self.inertia_kgm2 * (speed_rad_s * speed_rad_s - w0 * w0))
+            # the flywheel from the end of the first batch (a VESC is heard within it, as the CAN ledger has it)
+            flywheel_j = 0.5 * self.inertia_kgm2 * (speed_rad_s * speed_rad_s - w0 * w0) if self.running else 0.0
+            self.energy_j += float(self._erg_power_w(torque_em_nm, w_mid, self.friction)) * (stamp_ns - t0) * 1e-9 \
+                + flywheel_j
+            self.running = True
         if self.last is None or stamp_ns != self.last[0] or not self.running:
             self.last = (stamp_ns, torque_em_nm, speed_rad_s)
         return self.energy_j
