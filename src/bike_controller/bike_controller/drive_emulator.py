@@ -57,8 +57,9 @@ Modelling choices (what a host sees):
   and angle; Iq_Measured is the mean over the last batch of the plant's q current (SPMSM)
   or of the hysteresis law's feedback current (|ia| + |ib| + |ic|) / 2, signed by the
   quadrant (BLDC); Torque_Estimate = kt * Iq_Measured, as an ODrive estimates it (the
-  plant's true mean torque is Mechanical_Power / speed; for the BLDC it is ~2-3 % below
-  kt I because of the commutation dips, paper 000 section 4.3); Iq_Setpoint is the
+  plant's true mean torque is Mechanical_Power / speed; for the BLDC braking at 2600-2800
+  r/min kt I overstates it by -1 % at 0.5 N m, +2.6 % at 1 N m, +6.6 % at 2 N m, because of
+  the commutation dips, paper 000 section 4.3; SPMSM within 0.5 %); Iq_Setpoint is the
   current loop's reference (SPMSM: after the current / voltage-limit region logic;
   BLDC: the signed hysteresis command); Bus_Voltage the plant's DC link (BLDC: battery
   OCV - R i with the brake resistor; SPMSM: the 24 V battery set); Bus_Current = minus
