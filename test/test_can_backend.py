@@ -42,20 +42,40 @@ class Cmd:
         self.current_cmd_a = current_a
 
 
+class FakeWallClock:
+    """The wall clock of a fake-clock rig: the frames' receive stamps, on another timebase than the
+    host clock (as time.time and time.monotonic are) but running with it. Without it, a frame's real
+    queueing delay (a preempted test thread) would be subtracted from the fake time."""
+
+    OFFSET_S = 1.7e9
+
+    def __init__(self, clock: Clock):
+        self.host = clock
+
+    def __call__(self) -> float:
+        return self.host.t + self.OFFSET_S
+
+
 class Rig:
-    """A CanBackend and the drive's end of the same virtual bus (scripted frames)."""
+    """A CanBackend and the drive's end of the same virtual bus (scripted frames). With a fake
+    clock, frames sent by :meth:`send` carry receive stamps of the fake wall clock; frames sent
+    straight on ``drive_bus`` carry none and are dated at the backend's own time."""
 
     def __init__(self, clock=None, config=CAN_CONFIG, **can_changes):
         self.cfg = load_config(config)
         self.channel = uuid.uuid4().hex
         can_changes.setdefault("arm_ramp_nm_per_s", 0.0)   # exact setpoints; the ramp has its own test
         self.cfg["can"].update(interface="virtual", channel=self.channel, **can_changes)
-        self.drive_bus = can.Bus(interface="virtual", channel=self.channel)
+        self.wall = FakeWallClock(clock) if clock else None
+        self.drive_bus = can.Bus(interface="virtual", channel=self.channel, preserve_timestamps=bool(clock))
         self.codec = OdriveCanSimpleCodec(0)
-        self.backend = CanBackend(self.cfg, **({"clock": clock} if clock else {}))
+        self.backend = CanBackend(self.cfg, **({"clock": clock, "wall_clock": self.wall} if clock else {}))
 
     def send(self, name: str, **signals) -> None:
-        self.drive_bus.send(self.codec.encode(name, signals))
+        msg = self.codec.encode(name, signals)
+        if self.wall is not None:
+            msg.timestamp = self.wall()
+        self.drive_bus.send(msg)
 
     def heartbeat(self, state: int = AxisState.CLOSED_LOOP_CONTROL, error: int = 0) -> None:
         self.send("Heartbeat", Axis_Error=error, Axis_State=int(state), Procedure_Result=0, Trajectory_Done_Flag=1)
@@ -506,7 +526,32 @@ def test_a_heartbeat_gap_seen_late_by_a_delayed_loop_is_still_a_lost_drive(rig):
     clock.t += 0.005
     b.service()
     assert not b.lost and b.faults == 0 and b.stats()["drive_back"] == 1
-    # the same with real time: both heartbeats wait in the queue, their receive stamps tell the gap
+    # both heartbeats wait in the queue (the loop stalls across them): their receive stamps tell the gap
+    clock.t += 0.05
+    r.heartbeat()
+    clock.t += 0.35
+    r.heartbeat()
+    clock.t += 0.05
+    b.pop_events()
+    b.service()
+    assert b.lost and b.faults & FAULT_DRIVE_LOST and b.stats()["heartbeat_gaps"] == 2
+    events = b.pop_events()
+    assert any("seen late" in text and "0.350s" in text for _, text in events), "the gap by the stamps: " + \
+        str(events)
+    # a gap within the timeout is not a loss, also when the loop sees it late
+    r.heartbeat()
+    b.service()
+    clock.t += 0.2
+    r.heartbeat()
+    b.service()
+    clock.t += 0.25
+    r.heartbeat()
+    clock.t += 0.25
+    r.heartbeat()
+    clock.t += 0.1
+    b.service()
+    assert not b.lost and b.stats()["heartbeat_gaps"] == 2
+    # the same with real time (python-can's wall-clock stamps): a 350 ms gap only grows under load
     r2 = armed(rig)
     b2 = r2.backend
     time.sleep(0.05)
@@ -515,13 +560,44 @@ def test_a_heartbeat_gap_seen_late_by_a_delayed_loop_is_still_a_lost_drive(rig):
     r2.heartbeat()
     b2.service()
     assert b2.lost and b2.faults & FAULT_DRIVE_LOST and b2.stats()["heartbeat_gaps"] == 1
-    # a gap within the timeout is not a loss
-    r2.heartbeat()
-    b2.service()
-    time.sleep(0.2)
-    r2.heartbeat()
-    b2.service()
-    assert not b2.lost and b2.stats()["heartbeat_gaps"] == 1
+
+
+def test_heartbeats_that_come_while_a_preempted_loop_drains_the_queue_are_dated_when_they_came(rig):
+    """The loop loses the CPU for 350 ms while it drains the queue (a loaded plant host) and the
+    drive's heartbeats go on meanwhile: they are dated by their receive stamps, after the loop's
+    own time, so at the next service the newest is 60 ms old. Dated by the time they were read,
+    they were 350 ms too old: FAULT_DRIVE_LOST, zero torque, for a drive that never paused."""
+    clock = Clock()
+    r = armed(rig, clock)
+    b = r.backend
+    recv = b.bus.recv
+    stalls = []
+
+    def preempted_recv(timeout=None):
+        msg = recv(timeout=timeout)
+        if not stalls:                                  # after the first frame: 350 ms without the CPU
+            stalls.append(clock.t)
+            for _ in range(3):
+                clock.t += 0.1
+                r.heartbeat()
+            clock.t += 0.05
+        return msg
+
+    b.bus.recv = preempted_recv
+    b.submit(Cmd(-0.8))
+    r.host_frames()
+    clock.t += 0.09
+    r.heartbeat()
+    b.service()
+    assert stalls and not b.lost
+    clock.t += 0.01                                     # the next batch: 360 ms after the last service began
+    b.service()
+    b.apply(Cmd(-0.8))
+    assert not b.lost and b.faults == 0, "the newest heartbeat came 60 ms ago"
+    assert b.stats()["drive_lost"] == 0 and b.stats()["heartbeat_gaps"] == 0
+    assert b.stats()["heartbeat_gap_max_ms"] == pytest.approx(100.0)
+    assert b.diagnostic()[2]["can_heartbeat_age_ms"] == "60"
+    assert 0.0 not in r.torques(), "no zero-torque setpoint"
 
 
 def test_old_speed_and_torque_estimates_flag_the_state_stale(rig):
@@ -760,12 +836,14 @@ def test_against_the_drive_emulator_in_process(rig):
     seen = {}
     try:
         for torque in (-1.0, 0.6):
-            end = time.monotonic() + 1.0
-            while time.monotonic() < end:
+            # 1 s and 100 batches at least: a loaded machine runs fewer 5 ms batches a second
+            end, batches, give_up = time.monotonic() + 1.0, 0, time.monotonic() + 30.0
+            while (time.monotonic() < end or batches < 100) and time.monotonic() < give_up:
                 msg = Cmd(torque)
                 b.submit(msg)
                 b.service()
                 b.apply(msg)
+                batches += 1
                 time.sleep(0.005)
             seen[torque] = (b.snapshot(), b.time_s)
     finally:

@@ -234,12 +234,18 @@ class VescRig:
         channel = uuid.uuid4().hex
         can_changes.setdefault("arm_ramp_nm_per_s", 0.0)
         self.cfg["can"].update(interface="virtual", channel=channel, **can_changes)
-        self.drive_bus = can.Bus(interface="virtual", channel=channel)
+        # a fake clock: STATUS frames carry receive stamps of a fake wall clock running with it (else
+        # a frame's real queueing delay, a preempted test thread, is subtracted from the fake time)
+        self.wall = (lambda: clock.t + 1.7e9) if clock else None
+        self.drive_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=bool(clock))
         self.codec = VescCanCodec(0)
-        self.backend = CanBackend(self.cfg, **({"clock": clock} if clock else {}))
+        self.backend = CanBackend(self.cfg, **({"clock": clock, "wall_clock": self.wall} if clock else {}))
 
     def status(self, erpm: int = 4000, current_a: float = 0.0) -> None:
-        self.drive_bus.send(self.codec.encode("Status", {"Erpm": erpm, "Current": current_a, "Duty_Cycle": 0.3}))
+        msg = self.codec.encode("Status", {"Erpm": erpm, "Current": current_a, "Duty_Cycle": 0.3})
+        if self.wall is not None:
+            msg.timestamp = self.wall()
+        self.drive_bus.send(msg)
 
     def currents(self) -> list[float]:
         out = []

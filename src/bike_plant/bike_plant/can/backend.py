@@ -60,7 +60,9 @@ What it does
     longer than the timeout is a lost drive even when this loop, delayed itself (a loaded
     machine), only drains both afterwards: FAULT_DRIVE_LOST for that batch (zero torque, the
     controller drops its trim), back at the next, counted (``heartbeat_gaps``,
-    ``heartbeat_gap_max_ms``) and logged;
+    ``heartbeat_gap_max_ms``) and logged. The stamps go onto the host clock by one pair of
+    readings (host clock, wall clock) per :meth:`service`, so a frame that came while the queue
+    was drained (the loop preempted mid-drain) is dated when it came, not earlier;
   - stale measurements: while the drive is armed and its newest speed (Get_Encoder_Estimates)
     or torque estimate (Get_Torques, if it arrives at all) is older than
     ``measurement_timeout_s`` (heartbeats may still be on time: a stalled drive or emulator),
@@ -118,6 +120,8 @@ SPEED_MISSING_AFTER_S = 0.5
 # a frame's own receive timestamp (wall clock, e.g. the kernel's on socketcan / udp_multicast) is
 # trusted for the receipt time when it is at most this old and not in the future
 RX_STAMP_MAX_AGE_S = 5.0
+# a frame read within this of its receive stamp is dated at the loop's own time (no jitter)
+RX_STAMP_PROMPT_S = 1e-3
 
 # diagnostic levels (diagnostic_msgs/DiagnosticStatus)
 OK, WARN, ERROR = 0, 1, 2
@@ -305,7 +309,7 @@ class CanBackend:
     safe_state_text = "zero torque, then the drive's watchdog is no longer fed"
 
     def __init__(self, cfg: dict, *, bus: can.BusABC | None = None, log_file: str | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time):
         path = cfg.get("_config_path")
         self.params = p = can_params_from_config(cfg)
         if log_file:
@@ -329,6 +333,9 @@ class CanBackend:
         limit = p.torque_limit_nm or _number(cfg, "controller.tmax_nm", 0.0)
         self.torque_limit_nm = limit if limit > 0 else math.inf
         self.clock = clock
+        # the clock of the frames' receive stamps (python-can: wall time); with an injected `clock`,
+        # inject this one too, or a frame's real queueing delay is subtracted from a fake time
+        self.wall_clock = wall_clock
         self._own_bus = bus is None
         if bus is None:
             try:
@@ -503,7 +510,7 @@ class CanBackend:
         """Receive what the bus holds, supervise the link, (re-)arm, request, keep alive.
         Call once per batch tick; never blocks, never raises for bus trouble."""
         now = self.clock() if now_s is None else now_s
-        self._receive(now, max_frames)
+        self._receive(now, self.wall_clock(), max_frames)
         drive = self.drive
         alive = drive.link_alive(now)
         late_gap, self.late_gap_s = self.late_gap_s, None
@@ -564,20 +571,25 @@ class CanBackend:
                 if drive.keepalive(now):
                     self.counters["keepalive"] += 1
 
-    @staticmethod
-    def _receipt_s(msg: can.Message, now: float) -> float:
-        """When ``msg`` arrived, on the host clock: ``now`` unless the frame's own timestamp
-        (wall clock: the kernel's receive time on socketcan / udp_multicast, python-can's on
-        virtual) says it waited in the queue for more than a millisecond (this loop was
-        delayed); timestamps in the future or older than RX_STAMP_MAX_AGE_S (hardware clocks
-        of other interfaces) are not trusted."""
+    def _receipt_s(self, msg: can.Message, now: float, wall_now_s: float) -> float:
+        """When ``msg`` arrived, on the host clock: its own receive stamp (wall clock: the kernel's
+        on socketcan / udp_multicast, python-can's on virtual) moved onto the host clock by the
+        pair (``now``, ``wall_now_s``) read when :meth:`service` began. So a frame that waited in
+        the queue (this loop was late) is dated before ``now``, and one that came while the queue
+        was drained (the loop preempted mid-drain) after it: not by the time it was read, which
+        would date it too early by the preemption and make the drive look silent at the next
+        service. Within RX_STAMP_PROMPT_S of ``wall_now_s``: ``now``. Stamps in the future (read
+        at the frame) or older than RX_STAMP_MAX_AGE_S (hardware clocks of other interfaces) are
+        not trusted: ``now``."""
         stamp = getattr(msg, "timestamp", 0.0) or 0.0
-        waited = time.time() - stamp
-        if 1e-3 < waited <= RX_STAMP_MAX_AGE_S:
-            return now - waited
-        return now
+        waited_s = wall_now_s - stamp
+        if abs(waited_s) <= RX_STAMP_PROMPT_S or waited_s > RX_STAMP_MAX_AGE_S:
+            return now
+        if waited_s < 0.0 and stamp > self.wall_clock():
+            return now
+        return now - waited_s
 
-    def _receive(self, now: float, max_frames: int) -> None:
+    def _receive(self, now: float, wall_now_s: float, max_frames: int) -> None:
         drive = self.drive
         for _ in range(max_frames):
             try:
@@ -588,7 +600,7 @@ class CanBackend:
             if msg is None:
                 return
             echoes = drive.counters["echo"]
-            rx_s = self._receipt_s(msg, now)
+            rx_s = self._receipt_s(msg, now, wall_now_s)
             measurements = drive.receive(msg, rx_s)
             for m in measurements:
                 if m.kind == "status":
