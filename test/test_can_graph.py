@@ -691,8 +691,12 @@ def test_a_disarmed_drive_pauses_the_session_is_re_armed_and_given_up_on(rig):
     time.sleep(1.0)
     arms = _frames_after(r.listener, t1, 0x07, 8)
     attempts = int(value(r.diagnostics()[-1], "can_enable_attempts")) - attempts_before
-    assert attempts == 3, f"the plant's own count: exactly enable_max_attempts attempts, {attempts} (frames {arms})"
-    assert len(arms) == 3, f"exactly enable_max_attempts attempts on the bus: {arms}"
+    # what started another episode, if one did (a lost drive back, DriveCommands back after a timeout)
+    why = "\n".join(line for line in r.plant.output().splitlines()
+                    if any(w in line for w in ("re-arming again", "silent", "is back", "DriveCommand", "gave up")))
+    assert attempts == 3, \
+        f"the plant's own count: exactly enable_max_attempts attempts, {attempts} (frames {arms})\n{why}"
+    assert len(arms) == 3, f"exactly enable_max_attempts attempts on the bus: {arms}\n{why}"
     assert [b - a for a, b in zip(arms, arms[1:])] == [pytest.approx(0.2, abs=0.12), pytest.approx(0.4, abs=0.15)]
     assert r.states[-1].faults & DISARMED and not r.states[-1].faults & LOST
     assert r.plant.proc.poll() is None and r.controller.proc.poll() is None
