@@ -384,8 +384,9 @@ def test_garbage_is_counted_then_a_silent_drive_pauses_the_session(rig):
                "garbage counted")
     s = r.diagnostics(n)[-1]
     assert int(value(s, "can_other_node") or 0) > 0 and value(s, "can_link") == "alive"
-    assert r.braking(), ("garbage changes nothing", [(m.faults, round(m.torque_em_nm, 2)) for m in r.states[-20:]],
-                         emu.out.read_text()[-500:])
+    # garbage changes nothing: braking, fault-free, while it goes on. Waited for, not sampled once: a
+    # loaded machine can stall the emulator past measurement_timeout_s (a true FAULT_DRIVE_STALE)
+    r.wait_for(r.braking, 3, "braking through the drive with the garbage counted (garbage changes nothing)")
     print("plant CAN counters under garbage:", {kv.key: kv.value for kv in s.values if kv.key.startswith("can_d")})
     # --silent-after-s: the emulator keeps running but sends nothing more
     k = len(r.states)
