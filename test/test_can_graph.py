@@ -388,7 +388,10 @@ def test_garbage_is_counted_then_a_silent_drive_pauses_the_session(rig):
     # loaded machine can stall the emulator past measurement_timeout_s (a true FAULT_DRIVE_STALE)
     r.wait_for(r.braking, 3, "braking through the drive with the garbage counted (garbage changes nothing)")
     print("plant CAN counters under garbage:", {kv.key: kv.value for kv in s.values if kv.key.startswith("can_d")})
-    # --silent-after-s: the emulator keeps running but sends nothing more
+    # --silent-after-s: the emulator keeps running but sends nothing more. Wait for its own word: a
+    # loaded machine can stall it past heartbeat_timeout_s before (a true, brief FAULT_DRIVE_LOST after
+    # which sim time runs on), which is not the silence this part is about
+    r.wait_for(lambda: "silent: no longer transmitting" in emu.out.read_text(), 10, "the emulator silent")
     k = len(r.states)
     r.wait_for(lambda: any(m.faults & LOST for m in r.states[k:]), 10, "FAULT_DRIVE_LOST of a silent drive")
     i = next(i for i in range(k, len(r.states)) if r.states[i].faults & LOST)
