@@ -518,23 +518,48 @@ def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer()
         dircon.host_addresses("0.0.0.0") == ["127.0.0.1"]
 
 
+IFF_UP, IFF_MULTICAST = 0x1, 0x1000        # linux/if.h
+
+
+def _multicast_address() -> str:
+    """An IPv4 address whose interface carries multicast: 127.0.0.1 when loopback does, else the
+    first such address of this host. Two mDNS responders on a loopback without the MULTICAST
+    flag (some hosts' lo) never hear each other's probes, so no name conflict could be seen."""
+    import ifaddr
+
+    def flags(name: str) -> int:
+        try:
+            return int(open(f"/sys/class/net/{name}/flags").read(), 16)
+        except (OSError, ValueError):
+            return 0
+    if flags("lo") & IFF_MULTICAST:
+        return "127.0.0.1"
+    for adapter in sorted(ifaddr.get_adapters(), key=lambda a: a.name):
+        if flags(adapter.name) & (IFF_UP | IFF_MULTICAST) == IFF_UP | IFF_MULTICAST:
+            for ip in adapter.ips:
+                if isinstance(ip.ip, str) and not ip.ip.startswith("127."):
+                    return ip.ip
+    return "127.0.0.1"
+
+
 def test_a_second_bike_of_the_same_name_is_advertised_as_name_2_and_both_are_found():
     """Two testbeds with one namespace on a network: the second bike's name is taken, so it is
     advertised as "bike twin-2" (mDNS's rename), says so, and an app finds both at their ports.
     Before, the second registration failed (NonUniqueNameException): no advert at all."""
     from zeroconf import IPVersion, Zeroconf
     name = f"bike twin{os.getpid()}"
+    address = _multicast_address()
     logs = []
-    first = dircon.Advertiser(name, ["127.0.0.1"], 36997, "bike-36997", lambda t, w: logs.append((t, w)))
+    first = dircon.Advertiser(name, [address], 36997, "bike-36997", lambda t, w: logs.append((t, w)))
     second = app = None
     try:
         assert first.done.wait(20) and first.error is None and first.advertised_name == name, logs
-        second = dircon.Advertiser(name, ["127.0.0.1"], 36998, "bike-36998", lambda t, w: logs.append((t, w)))
+        second = dircon.Advertiser(name, [address], 36998, "bike-36998", lambda t, w: logs.append((t, w)))
         assert second.done.wait(20) and second.error is None, logs
         assert second.advertised_name == f"{name}-2", logs
-        assert (f"advertised as '{name}-2' ({dircon.MDNS_SERVICE} on 127.0.0.1); '{name}' is taken on this "
+        assert (f"advertised as '{name}-2' ({dircon.MDNS_SERVICE} on {address}); '{name}' is taken on this "
                 "network", True) in logs
-        app = Zeroconf(interfaces=["127.0.0.1"], ip_version=IPVersion.V4Only)
+        app = Zeroconf(interfaces=[address], ip_version=IPVersion.V4Only)
         ports = [getattr(app.get_service_info(dircon.MDNS_SERVICE, f"{n}.{dircon.MDNS_SERVICE}", timeout=5000),
                          "port", None) for n in (name, f"{name}-2")]
         assert ports == [36997, 36998]
