@@ -56,6 +56,57 @@ def test_eq1_speed_from_capture_counts():
     assert est.edge(1000 + 2500) == pytest.approx(2500.0)
 
 
+def test_eq1_takes_no_interval_across_edges_it_did_not_see():
+    """A realtime controller that skipped PlantStates lost their Hall edges: Eq. 1 over the
+    gap would be 11 intervals long (1/11 of the speed). The first edge after it only starts an
+    interval; the speed holds until the second."""
+    nc = 2260                                    # 2765 rpm at 1.25 MHz, 2 pole pairs
+    est = HallSpeedEstimator(1.25e6, 2)
+    for k in range(5):
+        est.edge(k * nc)
+    held_rpm = est.speed_rpm
+    assert held_rpm == pytest.approx(speed_rpm_from_counts(nc, 1.25e6, 2))
+    # edges 5..14 lost with the skipped states; the state taken carries edges from count 15 nc - 100
+    est.edges_lost_before(15 * nc - 100)
+    assert est.edge(15 * nc) == held_rpm         # not Eq. 1 of 11 nc
+    assert est.edge(16 * nc) == pytest.approx(held_rpm)
+    # no loss said: the interval is taken as it comes (what lockstep, which sees every edge, does)
+    plain = HallSpeedEstimator(1.25e6, 2)
+    plain.edge(0)
+    assert plain.edge(11 * nc) == pytest.approx(held_rpm / 11)
+
+
+@pytest.mark.parametrize("skipped", [5, 30, 200])
+def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(cfg, skipped):
+    """Realtime: the controller reads the newest PlantState only, so one descheduled for
+    ``skipped`` batches (the plant runs on with the held DriveCommand) never sees their Hall
+    edges. Its speed estimate, the ERG's virtual speed and an app's km/h, fell to 3-30 % of the
+    shaft's for a batch or two (seen: 2-9 km/h of ~28 at 79 rpm cadence): the interval of the
+    first edge after the gap spanned every lost edge, and the speed bound counted the gap as
+    time without an edge. No physical deceleration does that in a few ms."""
+    from bike_plant import params as P
+    from bike_plant.sim import BldcPlant
+    speed_rpm = 79.0 * 35.0                           # the app ride's cadence on the 35:1 gear
+    c = config_variant(cfg, load={"speed_rpm": speed_rpm})
+    plant = BldcPlant(P.plant_params_from_config(c))
+    ctrl = C.BatchController(c)
+    ctrl.set_command(0.1, 0)
+    seen, estimates = 0, []
+    for k in range(150 + skipped):
+        if 60 <= k < 60 + skipped:
+            plant.step_batch(ga, gb, sp)                 # held command, the state goes unread
+            continue
+        ga, gb, sp, status = ctrl.decide(plant.snapshot())
+        seen += 1
+        if seen > 20:                                    # past the first Hall intervals
+            # what the ControllerStatus says and what the mode laws take next (end of batch)
+            estimates += [status["speed_est_rpm"], float(ctrl.cs[C.C_SPEED_EST])]
+        plant.step_batch(ga, gb, sp)
+    assert min(estimates) > 0.97 * speed_rpm and max(estimates) < 1.03 * speed_rpm, \
+        (min(estimates), max(estimates))
+    assert ctrl.skipped_state_gaps == 1               # the gap was seen as one
+
+
 def test_eq2_pmax_and_the_printed_value():
     assert TMAX == pytest.approx(2.942, abs=1e-3)
     p = pmax_w(TMAX, 3300.0)

@@ -69,6 +69,9 @@ C_KTG = 10
 C_ICMD = 11
 C_REGION = 12
 C_QUADRANT = 13
+# capture count from which every Hall edge reached the controller (Eq. 1 needs consecutive edges):
+# 0 in lockstep; a realtime controller that skipped PlantStates (newest-only reader) lost their edges
+C_EDGES_FROM = 14
 C_SIZE = 16
 
 
@@ -127,8 +130,10 @@ def update_command(cs, q):
 
 @njit(**JIT)
 def process_edge(cs, q, count):
-    """A captured Hall edge: Eq. 1 with nc = counts since the previous edge."""
-    if cs[C_HAVE_EDGE] != 0.0 and count > cs[C_LAST_EDGE]:
+    """A captured Hall edge: Eq. 1 with nc = counts since the previous edge. A previous edge
+    older than C_EDGES_FROM only starts a new interval: edges between them went unseen, and nc
+    over them would be several intervals (the speed a fraction of the true one)."""
+    if cs[C_HAVE_EDGE] != 0.0 and count > cs[C_LAST_EDGE] and cs[C_LAST_EDGE] >= cs[C_EDGES_FROM]:
         cs[C_NC] = count - cs[C_LAST_EDGE]
         cs[C_SPEED_EST] = speed_rpm_from_counts(cs[C_NC], q[Q_FC], q[Q_PP])
         update_command(cs, q)
@@ -138,11 +143,16 @@ def process_edge(cs, q, count):
 
 @njit(**JIT_INLINE)
 def _bound_speed(cs, q, model, p):
-    """No edge for longer than the last interval: Eq. 1 of the elapsed count bounds the speed."""
+    """No edge for longer than the last interval: Eq. 1 of the elapsed count bounds the speed.
+    Elapsed since the last edge seen or C_EDGES_FROM, whichever is later: before that, edges may
+    have gone unseen, so their absence says nothing of the speed."""
     if cs[C_HAVE_EDGE] != 0.0:
         # the plant's timer formula (np.floor: a float floor, no int64 round trip per period)
         now = np.floor(model[K.S_PERIODS] * (p[P.P_TIMER_HZ] * p[P.P_DT]))
-        elapsed = now - cs[C_LAST_EDGE]
+        since = cs[C_LAST_EDGE]
+        if cs[C_EDGES_FROM] > since:
+            since = cs[C_EDGES_FROM]
+        elapsed = now - since
         if elapsed > cs[C_NC] and elapsed > 0.0:
             bound = speed_rpm_from_counts(elapsed, q[Q_FC], q[Q_PP])
             if bound < cs[C_SPEED_EST]:
@@ -408,6 +418,8 @@ class BatchController:
         update_command(self.cs, self.q)
         self.model = None
         self._est_saved = None
+        self._next_periods: float | None = None   # period index of the PlantState after the last one decided
+        self.skipped_state_gaps = 0               # decides after skipped PlantStates (realtime)
         self.command_rejected = False
         self.last_status: dict = {}
         self.seq = 0
@@ -473,6 +485,21 @@ class BatchController:
         m[K.S_PERIODS] = float(math.ceil(int(snap["timer_count"]) / fc_dt - 1e-9))
         return err
 
+    def _note_skipped_states(self, snapshot: dict) -> None:
+        """A PlantState later than the one after the last decided (realtime: the controller reads
+        the newest only, and skips what came while it was descheduled): the Hall edges of the
+        skipped batches are lost. This state carries the edges of the batch before it only, so
+        Eq. 1 intervals start again from that batch's start (C_EDGES_FROM). Left as it was, the
+        first edge after the gap measured nc over every lost edge: a third of the speed or less
+        for a batch or two (ERG's virtual speed, an app's km/h, fell to 2-9 of ~28 km/h)."""
+        periods = self.model[K.S_PERIODS]
+        if self._next_periods is None or periods <= self._next_periods:
+            return
+        n_before = int(snapshot.get("batch_periods") or self.batch_periods)
+        fc_dt = self.nominal.hall.timer_hz * self.nominal.control_period_s
+        self.cs[C_EDGES_FROM] = math.floor(max(periods - n_before, 0.0) * fc_dt)
+        self.skipped_state_gaps += 1
+
     def decide(self, snapshot: dict, n: int | None = None):
         """N periods of (gates_a, gates_b, split) answering PlantState `snapshot`, + status."""
         n = self.batch_periods if n is None else int(n)
@@ -480,11 +507,13 @@ class BatchController:
         # measured Hall edges replace the ones predicted during the previous batch
         if self._est_saved is not None:
             self.cs[C_LAST_EDGE:C_SPEED_EST + 1] = self._est_saved
+        self._note_skipped_states(snapshot)
         for c in snapshot.get("hall_edge_counts", ()):
             process_edge(self.cs, self.q, float(c))
         update_command(self.cs, self.q)
         _bound_speed(self.cs, self.q, self.model, self.p)
         self._est_saved = self.cs[C_LAST_EDGE:C_SPEED_EST + 1].copy()
+        self._next_periods = self.model[K.S_PERIODS] + n
         status = self.status(snapshot.get("seq", 0), err)
         ga = np.zeros(n, np.uint8)
         gb = np.zeros(n, np.uint8)

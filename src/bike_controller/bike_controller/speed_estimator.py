@@ -32,7 +32,8 @@ def speed_upper_bound_rpm(counts_since_edge, timer_hz, pole_pairs):
 
 
 class HallSpeedEstimator:
-    """Plain-Python estimator for tools and tests (the inner loop uses the numba functions)."""
+    """Plain-Python estimator for tools and tests (the inner loop uses the numba functions, with
+    the same rule for lost edges: bldc_control.process_edge / C_EDGES_FROM)."""
 
     def __init__(self, timer_hz: float, pole_pairs: int):
         self.timer_hz = float(timer_hz)
@@ -40,10 +41,21 @@ class HallSpeedEstimator:
         self.last_count = None
         self.nc = 0
         self.speed_rpm = 0.0
+        self.edges_from_count = 0     # every edge from this capture count on is seen
+
+    def edges_lost_before(self, count: int) -> None:
+        """Edges before capture count ``count`` may have gone unseen (a realtime controller that
+        skipped PlantStates): the next edge only starts an interval, and the speed holds until
+        then. nc across unseen edges would span several intervals and put Eq. 1 at a fraction
+        of the speed."""
+        self.edges_from_count = max(self.edges_from_count, int(count))
 
     def edge(self, count: int) -> float:
+        """Eq. 1 of paper 000 with nc = counts since the previous edge, when no edge between
+        them can have been lost."""
         count = int(count)
-        if self.last_count is not None and count > self.last_count:
+        if (self.last_count is not None and count > self.last_count
+                and self.last_count >= self.edges_from_count):
             self.nc = count - self.last_count
             self.speed_rpm = speed_rpm_from_counts(self.nc, self.timer_hz, self.pole_pairs)
         self.last_count = count
