@@ -412,3 +412,37 @@ def test_no_assist_holds_motoring_and_keeps_braking(cfg, family):
     pm = variant(cfg, load={"kind": "prime_mover", "speed_rpm": 300.0})
     out = C.run_spmsm_offline(pm, 0.3, 100.0, None, controller=family, record_every=10, no_assist=True)
     assert np.mean(out["torque"][out["t"] > 0.2]) < -0.3, "braking is kept"
+
+
+@pytest.mark.parametrize("estimator", ["observer", "m"])
+@pytest.mark.parametrize("skipped", [10, 45])
+def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(estimator, skipped):
+    """Realtime: the controller reads the newest PlantState only, so one descheduled for
+    ``skipped`` batches (1 ms each, under command_timeout_s; the plant runs on with the held
+    DriveCommand) never sees them. The observer's prediction stopped at the end of the last
+    batch, so the angle the shaft turned in the gap was an angle error to it: its speed rose to
+    1.2x (10 skipped) - 2x (45) the shaft's for ~0.1 s, and ERG's virtual speed (an app's km/h)
+    with it. The M method took the gap's counts over one sample: 11x - 46x. A rider on the
+    resistance brake; the estimate must stay as near the shaft's as before the gap."""
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant.config import load_config
+    from conftest import SPMSM_CONFIG
+    c = variant(load_config(SPMSM_CONFIG), controller={"speed_estimator": estimator})
+    plant = M.SpmsmPlant(M.plant_params_from_config(c))
+    ctrl = ModedSpmsmController(c)
+    ctrl.set_command(0.1, 0)
+    gap_at = 1000
+    ratios, vspeed_before, vspeed_after = [], [], []
+    for k in range(gap_at + skipped + 300):
+        if gap_at <= k < gap_at + skipped:
+            plant.step_batch(duties, relay, buck)          # held command, the state goes unread
+            continue
+        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)   # as a PlantState gives it
+        duties, relay, buck, status = ctrl.decide(snap)
+        if k >= gap_at - 300:
+            ratios.append(status["speed_est_rpm"] / snap["speed_rpm"])
+            (vspeed_before if k < gap_at else vspeed_after).append(status["virtual_speed_mps"])
+        plant.step_batch(duties, relay, buck)
+    assert 0.95 < min(ratios) and max(ratios) < 1.05, (min(ratios), max(ratios))
+    assert max(vspeed_after) < 1.05 * max(vspeed_before), (max(vspeed_before), max(vspeed_after))
+    assert ctrl.inner.skipped_state_gaps == 1 and ctrl.inner.skipped_periods == skipped * ctrl.batch_periods
