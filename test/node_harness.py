@@ -55,11 +55,13 @@ class NodeProcess:
     dumps_stacks = True
 
     def __init__(self, pkg: str, exe: str, domain: int, params: dict | None = None, ns: str = "/bike",
-                 remaps: dict | None = None):
+                 remaps: dict | None = None, config: pathlib.Path | None = None):
         args = [executable(pkg, exe), "--ros-args", "-r", f"__ns:={ns}"]
         for old, new in (remaps or {}).items():
             args += ["-r", f"{old}:={new}"]
-        args += ["--params-file", str(CONFIG)]
+        args += ["--params-file", str(config or CONFIG)]
+        if config is not None:
+            args += ["-p", f"config_path:={config}"]      # the defaults of the parameters it does not set
         for key, value in (params or {}).items():
             args += ["-p", f"{key}:={value}"]
         env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",

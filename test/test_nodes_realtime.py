@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import pytest
-from node_harness import CONFIG, Collector, NodeProcess, domain, stamp_ns, stop_all, tool_module  # noqa: F401
+from node_harness import CONFIG, ROOT, Collector, NodeProcess, domain, stamp_ns, stop_all, tool_module  # noqa: F401
 
 from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus  # noqa: E402
 from bike_plant import msgconv, shm_ports  # noqa: E402
@@ -20,6 +20,7 @@ from sensor_msgs.msg import BatteryState  # noqa: E402
 pytestmark = pytest.mark.timeout(60)
 
 CFG = load_config(CONFIG)
+SPMSM_CONFIG = ROOT / "config" / "spmsm_default.yaml"
 N = CFG["batch_periods"]
 DT = CFG["control_period_s"]
 TIMEOUT = CFG["command_timeout_s"]
@@ -202,27 +203,30 @@ def test_realtime_timeout_safe_state_and_recovery(domain):
 
 
 @pytest.mark.timeout(120)
-def test_a_stalled_controller_keeps_its_speed_estimate_through_the_plant_states_it_skipped(domain):
+@pytest.mark.parametrize("config", [CONFIG, SPMSM_CONFIG], ids=["bldc", "spmsm"])
+def test_a_stalled_controller_keeps_its_speed_estimate_through_the_plant_states_it_skipped(domain, config):
     """Realtime: the controller reads the newest PlantState only, so a host stall of its
     process (SIGSTOP for 30 ms, under command_timeout_s) skips PlantStates and their Hall edges.
     Its speed estimate (Eq. 1), the ERG's virtual speed and an app's km/h, fell to a few % of
-    the shaft's for a batch or two after each (2-9 km/h of ~28 in the FTMS app ride). Every
+    the shaft's for a batch or two after each (2-9 km/h of ~28 in the FTMS app ride); the
+    SPMSM bike's speed observer rose to ~1.7x for ~0.1 s (paper 001's 1 ms batches). Every
     ControllerStatus must stay near the plant's own speed of that batch: the shaft (10 kg cm^2
     behind a 35:1 gear) cannot lose 15 % in the ms an estimate lags."""
     col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus})
     procs = []
     try:
         cmd_pub = col.publisher(Command, "command")
-        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0), config=config)
         procs.append(plant)
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT, config=config)
         procs.append(ctrl)
         col.wait_for(lambda: cmd_pub.get_subscription_count() >= 1, 20, "controller's command subscription", procs)
         states, statuses = col.data["plant_state"], col.data["controller_status"]
+        pedalling_rpm = 1000.0 if config == CONFIG else 200.0    # the SPMSM's 4:1 gear: ~320 r/min at 80 rpm
 
         def pedalling():
             cmd_pub.publish(msgconv.command_msg(0.1, 0, 0))       # the app ride's free-ride resistance
-            return len(statuses) > 500 and statuses[-1].speed_est_rpm > 1000.0
+            return len(statuses) > 500 and statuses[-1].speed_est_rpm > pedalling_rpm
         col.wait_for(pedalling, 30, "the rider pedalling under realtime control", procs)
         from_seq = int(statuses[-1].seq)
         for _ in range(5):
@@ -236,10 +240,11 @@ def test_a_stalled_controller_keeps_its_speed_estimate_through_the_plant_states_
         assert sum(1 for a, b in zip(seqs, seqs[1:]) if b - a > 1) >= 1, "the stalls skipped no PlantState"
         worst = min(((m.speed_est_rpm / plant_rpm[int(m.seq)], int(m.seq)) for m in statuses
                      if int(m.seq) > from_seq and int(m.seq) in plant_rpm), default=None)
-        assert worst is not None and worst[0] > 0.85, worst
+        worst_high = max(((m.speed_est_rpm / plant_rpm[int(m.seq)], int(m.seq)) for m in statuses
+                          if int(m.seq) > from_seq and int(m.seq) in plant_rpm), default=None)
+        assert worst is not None and worst[0] > 0.85 and worst_high[0] < 1.15, (worst, worst_high)
     finally:
-        for proc in reversed(procs):
-            proc.stop()
+        stop_all(procs)
         col.close()
 
 
