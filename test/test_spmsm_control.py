@@ -415,11 +415,11 @@ def test_no_assist_holds_motoring_and_keeps_braking(cfg, family):
 
 
 @pytest.mark.parametrize("estimator", ["observer", "m"])
-@pytest.mark.parametrize("skipped", [10, 45])
+@pytest.mark.parametrize("skipped", [10, 45, 200])
 def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(estimator, skipped):
     """Realtime: the controller reads the newest PlantState only, so one descheduled for
-    ``skipped`` batches (1 ms each, under command_timeout_s; the plant runs on with the held
-    DriveCommand) never sees them. The observer's prediction stopped at the end of the last
+    ``skipped`` batches (1 ms each; the plant runs on with the held DriveCommand, here past
+    command_timeout_s too: 200, where the observer starts afresh) never sees them. The observer's prediction stopped at the end of the last
     batch, so the angle the shaft turned in the gap was an angle error to it: its speed rose to
     1.2x (10 skipped) - 2x (45) the shaft's for ~0.1 s, and ERG's virtual speed (an app's km/h)
     with it. The M method took the gap's counts over one sample: 11x - 46x. A rider on the

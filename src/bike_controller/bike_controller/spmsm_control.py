@@ -910,6 +910,10 @@ class SpmsmController:
         self.model = None
         self.ws = np.zeros(M.WS_SIZE)
         self._next_periods: float | None = None   # S_PERIODS of the plant state after the last one decided
+        # longest gap the observer predicts over: past the command timeout the plant no longer
+        # applies the held command (safe state), so the torque the prediction assumes is gone
+        timeout_s = float(cfg.get("command_timeout_s", 0.05))
+        self.max_bridged_periods = max(int(timeout_s / self.nominal.control_period_s), 1)
         self.skipped_state_gaps = 0               # decides after skipped plant states (realtime)
         self.skipped_periods = 0                  # ... and the control periods they covered
 
@@ -918,7 +922,7 @@ class SpmsmController:
         self.cs = init_controller_state(self.q, self.cp, plant_state)
         self._next_periods = None
 
-    def _bridge_skipped_periods(self, periods: int) -> None:
+    def _bridge_skipped_periods(self, periods: int, count: float) -> None:
         """The plant ran ``periods`` control periods this controller never saw (realtime: it reads
         the newest plant state only, and skips what came while it was descheduled).
 
@@ -930,9 +934,14 @@ class SpmsmController:
         law's virtual speed, an app's km/h, with it). M method: its count difference would span
         the gap too (the speed that many times too high): the next sample starts afresh and the
         estimate holds until the one after. M/T needs nothing: its counts and capture ticks
-        span the same time."""
+        span the same time. A gap longer than ``max_bridged_periods``: the observer starts
+        afresh at the encoder angle ``count`` with the gap's mean speed (its counts over its time)."""
         cs, q = self.cs, self.q
-        if q[Q_OBSERVER] != 0.0 and cs[C_OBS_INIT] != 0.0:
+        if q[Q_OBSERVER] != 0.0 and cs[C_OBS_INIT] != 0.0 and periods > self.max_bridged_periods:
+            # C_CNT: the count of the last period decided, one period before the gap
+            cs[C_SPEED_EST] = (count - cs[C_CNT]) * q[Q_RAD_PER_COUNT] / ((periods + 1) * q[Q_DT])
+            cs[C_OBS_INIT] = 0.0                     # observer_update re-initialises from it
+        elif q[Q_OBSERVER] != 0.0 and cs[C_OBS_INIT] != 0.0:
             h, h2, kt, bn, inv_j = q[Q_DT], q[Q_HALF_DT2], q[Q_KT], q[Q_BN], q[Q_INV_JN]
             th, w, d, iq_ff = cs[C_OBS_TH], cs[C_OBS_W], cs[C_OBS_D], cs[C_OBS_IQFF]
             for _ in range(periods):                 # observer_update's prediction, no correction
@@ -987,7 +996,7 @@ class SpmsmController:
         periods = float(self.model[M.S_PERIODS])
         if self._next_periods is not None and periods > self._next_periods:
             gap = int(periods - self._next_periods)
-            self._bridge_skipped_periods(gap)
+            self._bridge_skipped_periods(gap, float(self.model[M.S_COUNT]))
             self.skipped_state_gaps += 1
             self.skipped_periods += gap
         self._next_periods = periods + n
