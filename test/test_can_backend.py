@@ -13,7 +13,7 @@ import uuid
 import can
 import pytest
 
-from bike_plant.can import HOST_TO_DRIVE, AxisState, ODriveError, OdriveCanSimpleCodec
+from bike_plant.can import AxisState, ODriveError, OdriveCanSimpleCodec
 from bike_plant.can.backend import (FAULT_DRIVE_DISARMED, FAULT_DRIVE_LOST, FAULT_DRIVE_STALE, CanBackend,
                                     can_params_from_config,
                                     emulator_args_from_config)
@@ -61,14 +61,14 @@ class Rig:
     clock, frames sent by :meth:`send` carry receive stamps of the fake wall clock; frames sent
     straight on ``drive_bus`` carry none and are dated at the backend's own time."""
 
-    def __init__(self, clock=None, config=CAN_CONFIG, **can_changes):
+    def __init__(self, clock=None, config=CAN_CONFIG, codec_class=OdriveCanSimpleCodec, **can_changes):
         self.cfg = load_config(config)
         self.channel = uuid.uuid4().hex
         can_changes.setdefault("arm_ramp_nm_per_s", 0.0)   # exact setpoints; the ramp has its own test
         self.cfg["can"].update(interface="virtual", channel=self.channel, **can_changes)
         self.wall = FakeWallClock(clock) if clock else None
         self.drive_bus = can.Bus(interface="virtual", channel=self.channel, preserve_timestamps=bool(clock))
-        self.codec = OdriveCanSimpleCodec(0)
+        self.codec = codec_class(0)
         self.backend = CanBackend(self.cfg, **({"clock": clock, "wall_clock": self.wall} if clock else {}))
 
     def send(self, name: str, **signals) -> None:
@@ -87,7 +87,7 @@ class Rig:
             msg = self.drive_bus.recv(timeout=0.0)
             if msg is None:
                 return out
-            r = self.codec.classify(msg, HOST_TO_DRIVE, answers_requests=True)
+            r = self.codec.classify(msg, self.codec.host_to_drive, answers_requests=True)
             assert not isinstance(r, str), f"host sent a frame the drive rejects: {r} {msg}"
             out.append((r.name, "RTR" if r.is_request else dict(r.signals)))
 

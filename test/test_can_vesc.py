@@ -25,6 +25,7 @@ from bike_session.bags import read_topic
 from bike_session.report import summarise
 from conftest import bike_command
 from node_harness import stamp_ns
+from test_can_backend import Rig
 from test_can_emulator import GROUP, Emulator
 from test_can_graph import _port, write_config
 
@@ -226,40 +227,21 @@ def test_odrive_codec_is_unchanged_by_the_generalisation():
 
 
 # ----------------------------------------------------------------------------- the plant's backend
-class VescRig:
+class VescRig(Rig):
     """CanBackend with protocol vesc_can and the VESC's end of a virtual bus (scripted STATUS)."""
 
     def __init__(self, clock=None, **can_changes):
-        self.cfg = load_config(VESC_CONFIG)
-        channel = uuid.uuid4().hex
-        can_changes.setdefault("arm_ramp_nm_per_s", 0.0)
-        self.cfg["can"].update(interface="virtual", channel=channel, **can_changes)
-        # a fake clock: STATUS frames carry receive stamps of a fake wall clock running with it (else
-        # a frame's real queueing delay, a preempted test thread, is subtracted from the fake time)
-        self.wall = (lambda: clock.t + 1.7e9) if clock else None
-        self.drive_bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=bool(clock))
-        self.codec = VescCanCodec(0)
-        self.backend = CanBackend(self.cfg, **({"clock": clock, "wall_clock": self.wall} if clock else {}))
+        super().__init__(clock, VESC_CONFIG, VescCanCodec, **can_changes)
 
     def status(self, erpm: int = 4000, current_a: float = 0.0) -> None:
-        msg = self.codec.encode("Status", {"Erpm": erpm, "Current": current_a, "Duty_Cycle": 0.3})
-        if self.wall is not None:
-            msg.timestamp = self.wall()
-        self.drive_bus.send(msg)
+        self.send("Status", Erpm=erpm, Current=current_a, Duty_Cycle=0.3)
 
     def currents(self) -> list[float]:
         out = []
-        while (msg := self.drive_bus.recv(timeout=0.0)) is not None:
-            r = self.codec.classify(msg, VESC_HOST_TO_DRIVE, answers_requests=True)
-            assert not isinstance(r, str), f"the host sent a frame a VESC rejects: {r}"
-            assert r.name == "Set_Current", r.name
-            out.append(r.signals["Current"])
+        for name, signals in self.host_frames():
+            assert name == "Set_Current", name
+            out.append(signals["Current"])
         return out
-
-    def close(self) -> None:
-        self.backend.close()
-        self.backend.bus.shutdown()
-        self.drive_bus.shutdown()
 
 
 @pytest.fixture
