@@ -414,35 +414,53 @@ def test_no_assist_holds_motoring_and_keeps_braking(cfg, family):
     assert np.mean(out["torque"][out["t"] > 0.2]) < -0.3, "braking is kept"
 
 
+@pytest.mark.parametrize("command", [0.1, 0.5])
 @pytest.mark.parametrize("estimator", ["observer", "m"])
-@pytest.mark.parametrize("skipped", [10, 45, 200])
-def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(estimator, skipped):
+@pytest.mark.parametrize("skipped", [10, 45, 60, 75, 200])
+def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(estimator, skipped, command):
     """Realtime: the controller reads the newest PlantState only, so one descheduled for
-    ``skipped`` batches (1 ms each; the plant runs on with the held DriveCommand, here past
-    command_timeout_s too: 200, where the observer starts afresh) never sees them. The observer's prediction stopped at the end of the last
-    batch, so the angle the shaft turned in the gap was an angle error to it: its speed rose to
-    1.2x (10 skipped) - 2x (45) the shaft's for ~0.1 s, and ERG's virtual speed (an app's km/h)
-    with it. The M method took the gap's counts over one sample: 11x - 46x. A rider on the
-    resistance brake; the estimate must stay as near the shaft's as before the gap."""
+    ``skipped`` batches (1 ms each) never sees them. The plant runs on with the held
+    DriveCommand, and past command_timeout_s (50 batches) in its safe state: gates off, the
+    bridge a diode rectifier that brakes at 5-7 N m from ~330 r/min (the relay back on the
+    inverter). Before: the observer's prediction stopped at the end of the last batch, so the
+    gap's angle was an angle error to it, 1.2x (10 skipped) - 2x (45) the shaft's speed for
+    ~0.1 s, and ERG's virtual speed (an app's km/h) with it; past the timeout 0.26x - 1.33x
+    (62-75 ms stalls of the graph under load). The M method took the gap's counts over one
+    sample: 11x - 46x. A rider on the resistance brake (Command 0.1, and a heavy 0.5); the
+    estimate must stay about as near the shaft's as in the 300 ms before the gap."""
     from bike_controller.spmsm_session import ModedSpmsmController
     from bike_plant.config import load_config
     from conftest import SPMSM_CONFIG
     c = variant(load_config(SPMSM_CONFIG), controller={"speed_estimator": estimator})
     plant = M.SpmsmPlant(M.plant_params_from_config(c))
     ctrl = ModedSpmsmController(c)
-    ctrl.set_command(0.1, 0)
+    ctrl.set_command(command, 0)
+    n = ctrl.batch_periods
     gap_at = 1000
-    ratios, vspeed_before, vspeed_after = [], [], []
+    before, after, vspeed_before, vspeed_after = [], [], [], []
+    timeout_batches = round(c["command_timeout_s"] / (n * c["control_period_s"]))
     for k in range(gap_at + skipped + 300):
         if gap_at <= k < gap_at + skipped:
-            plant.step_batch(duties, relay, buck)          # held command, the state goes unread
+            if k - gap_at < timeout_batches:
+                plant.step_batch(duties, relay, buck)      # held command, the state goes unread
+            else:                                          # the plant node's safe_batch
+                plant.set_safe_state()
+                plant.step_batch(np.zeros((n, 3)), 0.0, 0.0)
             continue
-        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)   # as a PlantState gives it
+        plant.clear_safe_state()
+        snap = dict(plant.snapshot(), batch_periods=n)     # as a PlantState gives it
         duties, relay, buck, status = ctrl.decide(snap)
         if k >= gap_at - 300:
-            ratios.append(status["speed_est_rpm"] / snap["speed_rpm"])
+            (before if k < gap_at else after).append(status["speed_est_rpm"] / snap["speed_rpm"] - 1.0)
             (vspeed_before if k < gap_at else vspeed_after).append(status["virtual_speed_mps"])
         plant.step_batch(duties, relay, buck)
-    assert 0.95 < min(ratios) and max(ratios) < 1.05, (min(ratios), max(ratios))
-    assert max(vspeed_after) < 1.05 * max(vspeed_before), (max(vspeed_before), max(vspeed_after))
-    assert ctrl.inner.skipped_state_gaps == 1 and ctrl.inner.skipped_periods == skipped * ctrl.batch_periods
+    # worse than before, measured: within the timeout < 0.5 % (both estimators); past it the
+    # observer up to 5.4 %, the M method up to 32 %: the gap's mean speed stands for its first
+    # sample (the safe state's braking puts the mean up to 1.33x the end speed)
+    worst_before, worst_after = max(map(abs, before)), max(map(abs, after))
+    within = skipped < timeout_batches
+    margin = 0.03 if within else 0.1 if estimator == "observer" else 0.4
+    assert worst_after < worst_before + margin, (worst_before, worst_after)
+    if within:      # (past the timeout the braked rider speeds up again, the virtual bike with him)
+        assert max(vspeed_after) < 1.05 * max(vspeed_before), (max(vspeed_before), max(vspeed_after))
+    assert ctrl.inner.skipped_state_gaps == 1 and ctrl.inner.skipped_periods == skipped * n

@@ -157,7 +157,9 @@ Q_REF_ALPHA = 49        # reference trajectory: the error kept per speed sample 
 Q_RAD_PER_COUNT = 50    # 2 pi / counts per turn (mechanical rad per encoder count)
 Q_INV_JN = 51           # 1 / nominal J
 Q_INV_ILSB = 52         # 1 / ADC step (0 without the ADC)
-Q_SIZE = 53
+# the observer's gains while it re-acquires after skipped plant states, and for how many periods
+Q_OBS_F1, Q_OBS_F2, Q_OBS_F3, Q_OBS_ACQ_N = 53, 54, 55, 56
+Q_SIZE = 57
 
 (C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
  C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
@@ -174,7 +176,9 @@ C_NO_ASSIST = 64
 # torque control: the plan's margin learned at the voltage edge [V], and whether the last speed
 # period's miss counted (speed_loop)
 C_DV_FLOOR_V, C_DV_MISSED = 65, 66
-C_SIZE = 67
+# the encoder angle a re-acquisition of the observer started from (observer_restart)
+C_OBS_TH0 = 67
+C_SIZE = 68
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -218,6 +222,8 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_DELAY_COMP] = 1.0 if cp.speed_delay_compensation else 0.0
     q[Q_OBSERVER] = 1.0 if cp.speed_estimator == "observer" else 0.0
     q[Q_OBS_L1], q[Q_OBS_L2], q[Q_OBS_L3] = observer_gains(cp.observer_pole_hz, dt)
+    q[Q_OBS_F1], q[Q_OBS_F2], q[Q_OBS_F3] = observer_gains(cp.observer_reacquire_pole_hz, dt)
+    q[Q_OBS_ACQ_N] = max(round(2.0 / (cp.observer_reacquire_pole_hz * dt)), 1)   # ~5 time constants
     q[Q_JN] = nominal.mech.inertia_kgm2
     q[Q_BN] = nominal.mech.friction_nms
     q[Q_SPEED_KF] = -math.expm1(-TWO_PI * cp.speed_filter_hz * ts) if cp.speed_filter_hz > 0 else 0.0
@@ -516,21 +522,48 @@ def observer_update(cs, q, meas, iq_a):
     count), then predict one period with the measured torque Kt iq (nominal Kt, J, B; pass
     iq_a = 0 for a pure tracking filter)."""
     th_meas = (meas[M.S_COUNT] + 0.5) * q[Q_RAD_PER_COUNT]
-    if cs[C_OBS_INIT] == 0.0:
-        cs[C_OBS_TH] = th_meas
-        cs[C_OBS_W] = cs[C_SPEED_EST]
-        cs[C_OBS_D] = 0.0
-        cs[C_OBS_INIT] = 1.0
+    l1, l2, l3 = q[Q_OBS_L1], q[Q_OBS_L2], q[Q_OBS_L3]
+    if cs[C_OBS_INIT] != 1.0:
+        if observer_restart(cs, q, th_meas):
+            l1, l2, l3 = q[Q_OBS_F1], q[Q_OBS_F2], q[Q_OBS_F3]
     e = th_meas - cs[C_OBS_TH]
-    th = cs[C_OBS_TH] + q[Q_OBS_L1] * e
-    w = cs[C_OBS_W] + q[Q_OBS_L2] * e
-    d = cs[C_OBS_D] + q[Q_OBS_L3] * e
+    th = cs[C_OBS_TH] + l1 * e
+    w = cs[C_OBS_W] + l2 * e
+    d = cs[C_OBS_D] + l3 * e
     cs[C_SPEED_EST] = w
     h = q[Q_DT]
     acc = (q[Q_KT] * iq_a - q[Q_BN] * w) * q[Q_INV_JN] + d
     cs[C_OBS_TH] = th + h * w + q[Q_HALF_DT2] * acc
     cs[C_OBS_W] = w + h * acc
     cs[C_OBS_D] = d
+
+
+@njit(**JIT_HOT)
+def observer_restart(cs, q, th_meas):
+    """The observer's start (C_OBS_INIT 0: the run's first period) and its re-acquisition after
+    skipped plant states (C_OBS_INIT 2 + the periods since, set by
+    SpmsmController._bridge_skipped_periods). Re-acquiring: the angle from the encoder at once;
+    one speed sample on (Ns - 1 periods: inside the batch, so the batch's status has it) the
+    speed from the counts between; and the fast gains (observer_reacquire_pole_hz) for Q_OBS_ACQ_N
+    periods, which find the disturbance again (the skipped time may have held a command timeout's
+    safe state, and the relay moved). The disturbance itself is kept: a stalled controller does
+    not stop the rider. Returns whether this period uses the fast gains."""
+    k = cs[C_OBS_INIT]
+    if k == 0.0:
+        cs[C_OBS_TH] = th_meas
+        cs[C_OBS_W] = cs[C_SPEED_EST]
+        cs[C_OBS_D] = 0.0
+        cs[C_OBS_INIT] = 1.0
+        return False
+    if k == 2.0:
+        cs[C_OBS_TH0] = th_meas
+        cs[C_OBS_TH] = th_meas
+    elapsed = k - 2.0
+    if elapsed == max(q[Q_NS] - 1.0, 1.0):
+        cs[C_OBS_W] = (th_meas - cs[C_OBS_TH0]) / (elapsed * q[Q_DT])
+        cs[C_OBS_TH] = th_meas
+    cs[C_OBS_INIT] = 1.0 if elapsed >= max(q[Q_OBS_ACQ_N], q[Q_NS]) else k + 1.0
+    return True
 
 
 @njit(**JIT_HOT)
@@ -719,19 +752,25 @@ def control_period(cs, q, meas):
     cs[C_IQ_SUM] += iqm
     cs[C_IQ_N] += 1.0
     cs[C_THETA_E] = th
+    draining = relay == M.REL_DRAIN and meas[M.S_RELAY_FROM] == M.REL_INVERTER
     if q[Q_OBSERVER] != 0.0:
         # torque feed-forward only while the inverter controls the machine; on the rectifier
         # path the observer is a pure encoder tracking filter (a stiff prime mover would
         # otherwise make every braking-torque change look like an acceleration)
-        inv = relay == M.REL_INVERTER or (relay == M.REL_DRAIN and meas[M.S_RELAY_FROM] == M.REL_INVERTER)
+        inv = relay == M.REL_INVERTER or draining
         iq_ff = iqm if inv else 0.0
-        inv_f = 1.0 if inv else 0.0
-        if cs[C_OBS_INIT] != 0.0 and inv_f != cs[C_OBS_INV]:
+        was = cs[C_OBS_INV]                            # 0 off, 1 inverter, 2 draining
+        if cs[C_OBS_INIT] != 0.0 and inv != (was != 0.0):
             # feed-forward switched on / off (relay): the disturbance state takes over the
-            # torque the feed-forward stops (or starts) explaining, so the estimate is bumpless
-            cs[C_OBS_D] += q[Q_KT] * (cs[C_OBS_IQFF] - iq_ff) / q[Q_JN]
+            # torque the feed-forward stops (or starts) explaining, so the estimate is bumpless.
+            # Not off after a drain: its current (driven to zero, or above the link voltage's
+            # speed the back-EMF's through the diodes, 4-6 N m of braking, the relay then
+            # forced open) stops with the relay. Carried over, the estimate fell to 0.5x the
+            # shaft's in ~50 ms (a command timeout's safe state put the relay on the inverter)
+            if inv or was != 2.0:
+                cs[C_OBS_D] += q[Q_KT] * (cs[C_OBS_IQFF] - iq_ff) / q[Q_JN]
         cs[C_OBS_IQFF] = iq_ff
-        cs[C_OBS_INV] = inv_f
+        cs[C_OBS_INV] = 2.0 if draining else 1.0 if inv else 0.0
         observer_update(cs, q, meas, iq_ff)
     ns = q[Q_NS]
     if cs[C_SUB] == 0.0:
@@ -746,7 +785,6 @@ def control_period(cs, q, meas):
     sub = cs[C_SUB] + 1.0
     cs[C_SUB] = 0.0 if sub >= ns else sub            # (no integer modulo in the hot path)
     cs[C_TORQUE_EST] = q[Q_TORQUE_K] * iqm
-    draining = relay == M.REL_DRAIN and meas[M.S_RELAY_FROM] == M.REL_INVERTER
     if draining:
         # relay switch-over pending: the inverter drives the current to zero first
         cs[C_ID_REF] = 0.0
@@ -910,10 +948,6 @@ class SpmsmController:
         self.model = None
         self.ws = np.zeros(M.WS_SIZE)
         self._next_periods: float | None = None   # S_PERIODS of the plant state after the last one decided
-        # longest gap the observer predicts over: past the command timeout the plant no longer
-        # applies the held command (safe state), so the torque the prediction assumes is gone
-        timeout_s = float(cfg.get("command_timeout_s", 0.05))
-        self.max_bridged_periods = max(int(timeout_s / self.nominal.control_period_s), 1)
         self.skipped_state_gaps = 0               # decides after skipped plant states (realtime)
         self.skipped_periods = 0                  # ... and the control periods they covered
 
@@ -933,24 +967,26 @@ class SpmsmController:
         rose to 1.7x the shaft's after 30 ms skipped, 5.8x after 200 ms, for ~0.1 s (the mode
         law's virtual speed, an app's km/h, with it). M method: its count difference would span
         the gap too (the speed that many times too high): the next sample starts afresh and the
-        estimate holds until the one after. M/T needs nothing: its counts and capture ticks
-        span the same time. A gap longer than ``max_bridged_periods``: the observer starts
-        afresh at the encoder angle ``count`` with the gap's mean speed (its counts over its time)."""
+        gap's mean speed stands until the one after. M/T needs nothing: its counts and capture ticks
+        span the same time.
+
+        Observer: it re-acquires (:func:`observer_restart`): the angle from the encoder, the
+        speed from the counts of the next speed sample, the gap's mean speed until then. Its
+        prediction run over the gap (Kt iq fed forward, the disturbance held) did for gaps
+        within the plant's command timeout; past it the plant's safe state (gates off: a diode
+        rectifier, 5-7 N m of braking at 330 r/min) is a torque the model has no input for, and
+        after a 62-75 ms stall under load the estimate read 0.26x - 1.33x the shaft's for ~0.1 s
+        (restarted at the gap's mean speed with the disturbance zeroed), 0.6x - 3x (predicted,
+        or fitted to the count)."""
         cs, q = self.cs, self.q
-        if q[Q_OBSERVER] != 0.0 and cs[C_OBS_INIT] != 0.0 and periods > self.max_bridged_periods:
-            # C_CNT: the count of the last period decided, one period before the gap
-            cs[C_SPEED_EST] = (count - cs[C_CNT]) * q[Q_RAD_PER_COUNT] / ((periods + 1) * q[Q_DT])
-            cs[C_OBS_INIT] = 0.0                     # observer_update re-initialises from it
-        elif q[Q_OBSERVER] != 0.0 and cs[C_OBS_INIT] != 0.0:
-            h, h2, kt, bn, inv_j = q[Q_DT], q[Q_HALF_DT2], q[Q_KT], q[Q_BN], q[Q_INV_JN]
-            th, w, d, iq_ff = cs[C_OBS_TH], cs[C_OBS_W], cs[C_OBS_D], cs[C_OBS_IQFF]
-            for _ in range(periods):                 # observer_update's prediction, no correction
-                acc = (kt * iq_ff - bn * w) * inv_j + d
-                th += h * w + h2 * acc
-                w += h * acc
-            cs[C_OBS_TH], cs[C_OBS_W] = th, w
+        # the gap's mean speed (C_CNT: the count of the last period decided, one before the gap)
+        gap_mean = (count - cs[C_CNT]) * q[Q_RAD_PER_COUNT] / ((periods + 1) * q[Q_DT])
+        if q[Q_OBSERVER] != 0.0 and cs[C_OBS_INIT] != 0.0:
+            cs[C_OBS_W] = gap_mean
+            cs[C_OBS_INIT] = 2.0
         if q[Q_MMETHOD] != 0.0:
             cs[C_HAVE_REF] = 0.0
+            cs[C_SPEED_EST] = gap_mean
 
     def set_speed_ref(self, speed_rpm: float, next_speed_rpm: float | None = None) -> None:
         """Speed command; the predictive law's cost uses the reference one speed sample ahead."""
