@@ -100,7 +100,7 @@ import can
 
 from .. import mechanics
 from ..config import ConfigError, build_dataclass, section
-from .protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND,
+from .protocol import (DRIVE_TO_HOST, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND,
                        PROTOCOLS, AxisState, ODriveError, ProcedureResult, error_names)
 
 TWO_PI = 2.0 * math.pi
@@ -610,7 +610,7 @@ class CanBackend:
                 if not self.link_alive:
                     self._watch_bus(msg, bool(measurements))
                 if not measurements and not msg.is_remote_frame and \
-                        bool(msg.is_extended_id) == getattr(drive.codec, "extended_id", False):
+                        bool(msg.is_extended_id) == drive.codec.extended_id:
                     self._foreign_command(msg, now)
 
     def _reset_bus_watch(self) -> None:
@@ -630,8 +630,8 @@ class CanBackend:
         if msg.is_error_frame:
             self.watch_error_frames += 1
             return
-        codec = getattr(self.drive, "codec", None)
-        if decoded or codec is None or msg.is_remote_frame or msg.is_fd:
+        codec = self.drive.codec
+        if decoded or msg.is_remote_frame or msg.is_fd:
             return
         if "Heartbeat" not in codec.messages:
             self._watch_other_status(msg, codec)
@@ -677,9 +677,9 @@ class CanBackend:
         """A command frame to our node that this plant did not send (its own echoes are already
         filtered): another host drives the same axis (a script, ros_odrive, a second plant).
         Counted; warned about at most every 10 s."""
-        codec = getattr(self.drive, "codec", None)
-        name = codec.message_name(msg.arbitration_id) if codec is not None else None
-        if name not in getattr(codec, "host_to_drive", HOST_TO_DRIVE):
+        codec = self.drive.codec
+        name = codec.message_name(msg.arbitration_id)
+        if name not in codec.host_to_drive:
             return
         self.counters["foreign_commands"] += 1
         if now - self.foreign_warned_s >= 10.0:

@@ -513,6 +513,9 @@ class DriveProtocol(abc.ABC):
     uses_motor_constants = False
     #: largest node id of the protocol's id scheme
     node_id_max = NODE_ID_MAX
+    #: the frames' codec (set by the subclass's constructor): its id format (``extended_id``),
+    #: messages and which side sends which (``host_to_drive``)
+    codec: DbcCodec
 
     def __init__(self, bus: can.BusABC, node_id: int, *, heartbeat_timeout_s: float = 0.5,
                  watchdog_feed_interval_s: float = 0.1, clock: Callable[[], float] = time.monotonic,
