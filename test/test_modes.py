@@ -522,6 +522,41 @@ def test_plant_isokinetic_holds_cadence_against_a_rider_who_wants_80():
     assert ctrl.last_out.target == pytest.approx(60.0)
 
 
+@pytest.mark.parametrize("pole_hz", [None, 5.0])
+def test_spmsm_isokinetic_holds_the_shaft_not_only_its_estimate(pole_hz):
+    """The SPMSM bike's isokinetic mode (80 rpm, 320 r/min at the motor) against the rider: its
+    speed observer feeds the measured torque forward and sees the rider's pedal strokes (a 2-5
+    Hz disturbance) through its pole. At the paper's 5 Hz (fitted to Table 1's load step) the
+    estimate lagged the shaft by 24 r/min rms (93 at 50 rpm, where the speed loop then held
+    the estimate at 200 r/min while the shaft ran 150-440), and the shaft swung 25 r/min rms;
+    at the isokinetic pole (isokinetic_observer_pole_hz, 40 Hz) the estimate follows within
+    ~1 r/min and the cadence holds within ~2 r/min rms. (pole_hz 5: the same ride with the
+    paper's pole, to show what the test tells apart.)"""
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    cfg = _spmsm_cfg()
+    if pole_hz is not None:
+        cfg["controller"] = dict(cfg["controller"], isokinetic_observer_pole_hz=pole_hz)
+    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+    ctrl = ModedSpmsmController(cfg)
+    ctrl.set_command(0.6, MODE_ISOKINETIC)          # 20 + 0.6 x (120 - 20) = 80 rpm
+    shaft, est = [], []
+    for k in range(3000):
+        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)
+        duties, relay, buck, status = ctrl.decide(snap)
+        if k >= 1000:
+            shaft.append(snap["speed_rpm"])
+            est.append(status["speed_est_rpm"])
+        plant.step_batch(duties, relay, buck)
+    shaft, est = np.array(shaft), np.array(est)
+    target_rpm = 80.0 * cfg["load"]["gear_ratio"]
+    est_rms, swing_rms = np.sqrt(np.mean((est - shaft) ** 2)), np.sqrt(np.mean((shaft - target_rpm) ** 2))
+    if pole_hz is None:
+        assert est_rms < 3.0 and swing_rms < 6.0, (est_rms, swing_rms)
+    else:
+        assert est_rms > 10.0 and swing_rms > 12.0, (est_rms, swing_rms)
+
+
 def test_plant_slope_uphill_brakes_and_downhill_assists():
     r, ctrl = _ride_plant(lambda t: (0.5 + 0.04 / 0.4, MODE_SLOPE), 5.0, {"virtual_inertia": False})
     m, w, p_brake = _tail(r, 3.0)

@@ -951,6 +951,12 @@ class SpmsmController:
         self.skipped_state_gaps = 0               # decides after skipped plant states (realtime)
         self.skipped_periods = 0                  # ... and the control periods they covered
 
+    def set_observer_pole(self, pole_hz: float) -> None:
+        """The speed observer's triple pole from now on (its angle, speed and disturbance carry
+        over, so the switch is bumpless)."""
+        q = self.q
+        q[Q_OBS_L1], q[Q_OBS_L2], q[Q_OBS_L3] = observer_gains(pole_hz, self.nominal.control_period_s)
+
     def reset_from(self, plant_state: np.ndarray) -> None:
         """Start as an already running drive at the plant's state (offline runs)."""
         self.cs = init_controller_state(self.q, self.cp, plant_state)

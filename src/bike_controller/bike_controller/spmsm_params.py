@@ -38,6 +38,7 @@ class SpmsmControllerParams:
     speed_estimator: str = "observer"     # observer | mt (M/T method from the encoder capture)
     observer_pole_hz: float = 5.0         # triple pole of the speed observer (config comment)
     observer_reacquire_pole_hz: float = 40.0  # ... while it re-acquires after skipped plant states
+    isokinetic_observer_pole_hz: float = 40.0  # ... while a session's isokinetic speed loop runs
     speed_delay_compensation: bool = False  # mt only: extrapolate the M/T estimate by half a sample
     speed_filter_hz: float = 0.0          # first-order low-pass on the speed the speed law sees (0: off)
     speed_reference_pole_hz: float = 10.0  # predictive: first-order path towards the command (0: off)
@@ -73,6 +74,7 @@ class SpmsmControllerParams:
             raise ValueError(f"speed_reference_pole_hz must be a finite number >= 0, got {self.speed_reference_pole_hz!r}")
         require_positive(self, "observer_pole_hz")
         require_positive(self, "observer_reacquire_pole_hz")
+        require_positive(self, "isokinetic_observer_pole_hz")
         if self.brake_torque0_nm < 0:
             raise ValueError("brake_torque0_nm must be >= 0")
         if not (math.isfinite(self.relay_hold_s) and self.relay_hold_s >= 0.0):
