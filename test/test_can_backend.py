@@ -746,6 +746,63 @@ def test_arm_and_trip_cycles_are_bounded_too(rig):
     assert len(arms) >= 6 and not r2.backend.gave_up, arms
 
 
+def _controller_stall(r, clock, seconds: float, state=AxisState.IDLE, error: int = DRV_FAULT) -> None:
+    """The node's DriveCommand timeout (a controller stalled under load): the safe state for
+    ``seconds`` of batches with heartbeats, then DriveCommands resume."""
+    b = r.backend
+    b.set_safe(True)
+    end = clock.t + seconds
+    while clock.t < end - 1e-9:
+        clock.t += 0.05
+        r.heartbeat(state, error=error)
+        b.service()
+        b.safe_batch(1)
+    b.set_safe(False)
+
+
+def test_a_give_up_stands_through_a_controller_stall_and_a_late_gap_until_the_drive_reboots(rig):
+    """After the give-up the plant stays disarmed with one ERROR until something changes at the
+    drive: DriveCommands that stop for 0.25 s and resume (a controller stalled under load) send
+    no arming frame, nor does a heartbeat gap the stalled loop finds only late; a drive silent
+    while the loop looks and back with the same error (a reboot) gets a new bounded episode."""
+    clock = Clock()
+    r = armed(rig, clock, enable_retry_s=0.2, enable_max_attempts=3)
+    b = r.backend
+    _ride(r, clock, 0.2, AxisState.CLOSED_LOOP_CONTROL)
+    frames = _ride(r, clock, 3.0, AxisState.IDLE, DRV_FAULT)              # trips, refuses 3 times
+    assert len(_arm_times(frames)) == 3 and b.gave_up
+    b.pop_events()
+    _controller_stall(r, clock, 0.25)
+    frames = _ride(r, clock, 3.0, AxisState.IDLE, DRV_FAULT)
+    assert _arm_times(frames) == [], "a controller stall restarted arming after the give-up"
+    assert b.gave_up and b.faults == FAULT_DRIVE_DISARMED and b.diagnostic()[2]["can_arming"] == "gave_up"
+    clock.t += 0.39                                        # this loop stalls across a heartbeat gap
+    r.heartbeat(AxisState.IDLE, error=DRV_FAULT)
+    b.service()
+    assert b.lost, "a late gap: lost for one batch"
+    frames = _ride(r, clock, 3.0, AxisState.IDLE, DRV_FAULT)
+    assert _arm_times(frames) == [] and b.gave_up and not b.lost
+    events = b.pop_events()
+    assert not any("gave up" in text or "re-arming again" in text for _, text in events), events
+    assert b.stats()["arm_gave_up"] == 1 and b.stats()["enable_attempts"] == 3
+    for _ in range(8):                                     # silent while the loop looks: lost, then back
+        clock.t += 0.05
+        b.service()
+    assert b.lost
+    frames = _ride(r, clock, 3.0, AxisState.IDLE, DRV_FAULT)
+    assert len(_arm_times(frames)) == 3 and b.gave_up and b.stats()["arm_gave_up"] == 2
+    assert any("re-arming again: the drive is back" in text for _, text in b.pop_events())
+    # a stall while armed: the watchdog trip that follows is this plant's doing, not a failed attempt
+    r2 = armed(rig, clock, enable_retry_s=0.2, enable_max_attempts=3)
+    b2 = r2.backend
+    frames = _ride(r2, clock, 0.3, AxisState.IDLE, DRV_FAULT)            # refused twice ...
+    frames += _ride(r2, clock, 0.3, AxisState.CLOSED_LOOP_CONTROL)        # ... then armed (not yet stable)
+    assert len(_arm_times(frames)) == 2 and b2.drive_enabled
+    _controller_stall(r2, clock, 0.25, AxisState.IDLE, WATCHDOG)
+    frames = _ride(r2, clock, 0.05, AxisState.IDLE, WATCHDOG)
+    assert len(_arm_times(frames)) == 1 and b2.diagnostic()[2]["can_arming"] == "attempt 1"
+
+
 def test_an_idle_drive_is_only_a_fault_when_it_should_be_armed(rig):
     clock = Clock()
     r = rig(clock)

@@ -74,8 +74,10 @@ What it does
     (Clear_Errors + Set_Controller_Mode + Set_Axis_State, Set_Limits if configured) with a
     bounded policy: ``enable_retry_s`` doubling per failed attempt, at most
     ``enable_max_attempts`` in a row (an arm that does not hold for ``armed_stable_s``
-    counts as failed), then it gives up until the drive's errors change, the drive was
-    lost and is back, or DriveCommands resume after the safe state;
+    counts as failed), then it gives up until the drive's errors change, it reaches closed
+    loop by other means, or it was lost and is back (a reboot; not a late gap, a blip seen
+    only after the fact), or in a new run; DriveCommands that stop and resume (a stalled
+    controller) change nothing at the drive, so they neither restart nor add to the count;
   - :meth:`set_safe` (the node's DriveCommand timeout): zero torque, then the watchdog is
     no longer fed, so the drive disarms itself after its own watchdog timeout
     (WATCHDOG_TIMER_EXPIRED, reported in the diagnostic); re-armed when commands return;
@@ -398,6 +400,7 @@ class CanBackend:
         self.sent_msg = None           # DriveCommand whose setpoint went out last
         self.started_s = clock()
         self.lost_since_s = None
+        self.lost_late = False         # the current loss is a late gap (seen only after the drive was back)
         self.arm_errors_logged = None
         # supervision on receipt times (a frame's own wall-clock timestamp when the loop was late)
         self.last_heartbeat_rx_s = None    # receipt time of the newest Heartbeat (host clock)
@@ -532,15 +535,24 @@ class CanBackend:
         if self.seen:
             if not alive and not self.lost:
                 self._on_lost(now)
-            elif alive and self.lost:
+            elif not alive:
+                self.lost_late = False       # still silent now that this loop looks: seen live
+            elif self.lost:
                 self.lost = False
                 self.configured = False      # it may have rebooted, into a mode of its own
                 self._reset_bus_watch()
                 self.counters["drive_back"] += 1
                 gone = now - self.lost_since_s if self.lost_since_s is not None else math.nan
-                self._event("info", f"the drive is back after {gone:.2f}s ({self._axis_text()}, errors "
-                                    f"{error_names(drive.active_errors) or 'none'}): re-arming when DriveCommands flow")
-                self._new_arming_episode("the drive is back")
+                if self.lost_late:
+                    # a blip this loop found only after the drive was back (it stalled itself, as
+                    # under load): no sign of a reboot, so the arming count and a give-up stand
+                    self._event("info", f"the drive is back after {gone:.2f}s (a late gap, no reboot assumed: "
+                                        + ("still given up on arming)" if self.gave_up else "arming count kept)"))
+                else:
+                    self._event("info", f"the drive is back after {gone:.2f}s ({self._axis_text()}, errors "
+                                        f"{error_names(drive.active_errors) or 'none'}): re-arming when "
+                                        "DriveCommands flow")
+                    self._new_arming_episode("the drive is back")
         if self.link_alive:
             enabled = drive.enabled
             if enabled and not self.was_enabled:
@@ -830,6 +842,7 @@ class CanBackend:
     def _on_lost(self, now: float, gap_s: float | None = None, late: bool = False) -> None:
         self.lost = True
         self.lost_since_s = now
+        self.lost_late = late
         self.was_enabled = False
         self.armed_since_s = None
         self.counters["drive_lost"] += 1
@@ -868,9 +881,12 @@ class CanBackend:
         ``enable_max_attempts`` attempts in a row that did not hold (the drive refused, or
         tripped again within ``armed_stable_s``) the plant gives up: FAULT_DRIVE_DISARMED
         stays, an ERROR diagnostic says why, no more frames are sent to arm it. It starts
-        over when the drive's error bits change (cleared or changed by someone else), when
-        the drive was lost and is back (rebooted, replugged), or when DriveCommands resume
-        after the safe state (a new controller).
+        over only on a change at the drive: its error bits change (cleared or changed by
+        someone else), it reaches closed loop by other means, or it was lost and is back
+        (rebooted, replugged; a late gap is a blip, not a reboot) -- or in a new run (a new
+        plant). Not when DriveCommands stop and resume: a controller stalled under load for
+        command_timeout_s changes nothing at the drive, and restarting there let a loaded
+        machine re-arm a refusing drive again and again (see :meth:`set_safe`).
         """
         p = self.params
         drive = self.drive
@@ -898,7 +914,7 @@ class CanBackend:
             self._event("error", f"gave up arming the drive after {self.arm_attempts} attempts ("
                                  f"{self._axis_text()}, errors {errors}): "
                                  "FAULT_DRIVE_DISARMED stays, sim time paused; fix the drive, then the plant re-arms "
-                                 "when its errors change, after it reboots or when DriveCommands resume")
+                                 "when its errors change or after it reboots (or in a new run)")
             return
         self._arm(now)
 
@@ -1035,8 +1051,17 @@ class CanBackend:
 
     def set_safe(self, on: bool) -> None:
         """The node's DriveCommand timeout: zero torque and stop feeding the watchdog (the
-        drive disarms itself after its watchdog timeout); off: re-arm with the next command."""
+        drive disarms itself after its watchdog timeout); off: re-arm with the next command.
+
+        A stalled controller is no news about the drive: a drive armed when the safe state
+        begins is released by this plant (its watchdog trip is no failed attempt), so its
+        count starts over; one that was refusing keeps its count and backoff, and a give-up
+        stands when DriveCommands resume (see :meth:`_arming`)."""
         if on and not self.safe:
+            if self.drive_enabled:
+                self.arm_attempts = 0
+                self.first_attempt_s = None
+                self.last_enable_s = -math.inf
             self.safe = True
             self.commanded = False
             self.setpoint_nm = 0.0
@@ -1047,7 +1072,6 @@ class CanBackend:
             self.counters["safe_state"] += 1
         elif not on and self.safe:
             self.safe = False
-            self._new_arming_episode("DriveCommands resumed")
 
     # ------------------------------------------------------------------ time and ledger
     def _advance(self) -> None:
@@ -1188,7 +1212,7 @@ class CanBackend:
                 max_attempts = p.enable_max_attempts or "unlimited"
                 if self.gave_up:
                     why = (f"gave up re-arming after {self.arm_attempts} attempts; the plant tries again when the "
-                           "drive's errors change, after it reboots or when DriveCommands resume")
+                           "drive's errors change or after it reboots (or in a new run)")
                 elif self.commanded and not self.safe:
                     why = (f"re-arming (Clear_Errors + closed loop), attempt {self.arm_attempts} of {max_attempts}, "
                            f"next in {max(0.0, self.last_enable_s + self.retry_interval_s() - now):.1f}s")
