@@ -414,53 +414,63 @@ def test_no_assist_holds_motoring_and_keeps_braking(cfg, family):
     assert np.mean(out["torque"][out["t"] > 0.2]) < -0.3, "braking is kept"
 
 
-@pytest.mark.parametrize("command", [0.1, 0.5])
-@pytest.mark.parametrize("estimator", ["observer", "m"])
+@pytest.mark.parametrize("ride", [(0.1, 0, "observer"), (0.5, 0, "observer"), (0.6, 4, "observer"), (0.1, 0, "m"),
+                                  (0.5, 0, "m")],
+                         ids=["resistance-0.1", "resistance-0.5", "isokinetic-80rpm", "resistance-0.1-m",
+                              "resistance-0.5-m"])
 @pytest.mark.parametrize("skipped", [10, 45, 60, 75, 200])
-def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(estimator, skipped, command):
+def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(skipped, ride):
     """Realtime: the controller reads the newest PlantState only, so one descheduled for
     ``skipped`` batches (1 ms each) never sees them. The plant runs on with the held
-    DriveCommand, and past command_timeout_s (50 batches) in its safe state: gates off, the
-    bridge a diode rectifier that brakes at 5-7 N m from ~330 r/min (the relay back on the
-    inverter). Before: the observer's prediction stopped at the end of the last batch, so the
-    gap's angle was an angle error to it, 1.2x (10 skipped) - 2x (45) the shaft's speed for
-    ~0.1 s, and ERG's virtual speed (an app's km/h) with it; past the timeout 0.26x - 1.33x
-    (62-75 ms stalls of the graph under load). The M method took the gap's counts over one
-    sample: 11x - 46x. A rider on the resistance brake (Command 0.1, and a heavy 0.5); the
-    estimate must stay about as near the shaft's as in the 300 ms before the gap."""
+    DriveCommand, and past command_timeout_s (50 batches) in its safe state: gates and buck
+    off; on the rectifier path (resistance) the rider freewheels, on the inverter
+    (isokinetic) its diodes brake at 4-6 N m above ~180 r/min. Before: the observer's
+    prediction stopped at the end of the last batch, so the gap's angle was an angle error to
+    it, 1.2x (10 skipped) - 2x (45) the shaft's speed for ~0.1 s, and ERG's virtual speed (an
+    app's km/h) with it; past the timeout 0.26x - 1.33x (62-75 ms stalls of the graph under
+    load, when the safe state still took the relay to the inverter). The M method took the
+    gap's counts over one sample: 11x - 46x. A rider on the resistance brake (Command 0.1, and
+    a heavy 0.5) and held to 80 rpm (observer only: the speed loop cannot run on the M
+    method's 6 r/min steps). Measured against the same ride with a controller that read every
+    plant state of the gap (its answers there dropped, so the plant does the same): the
+    estimate after the gap must be about as near the shaft's."""
     from bike_controller.spmsm_session import ModedSpmsmController
     from bike_plant.config import load_config
     from conftest import SPMSM_CONFIG
+    command, mode, estimator = ride
     c = variant(load_config(SPMSM_CONFIG), controller={"speed_estimator": estimator})
-    plant = M.SpmsmPlant(M.plant_params_from_config(c))
-    ctrl = ModedSpmsmController(c)
-    ctrl.set_command(command, 0)
-    n = ctrl.batch_periods
+    timeout_batches = round(c["command_timeout_s"] / (c["batch_periods"] * c["control_period_s"]))
     gap_at = 1000
-    before, after, vspeed_before, vspeed_after = [], [], [], []
-    timeout_batches = round(c["command_timeout_s"] / (n * c["control_period_s"]))
-    for k in range(gap_at + skipped + 300):
-        if gap_at <= k < gap_at + skipped:
-            if k - gap_at < timeout_batches:
-                plant.step_batch(duties, relay, buck)      # held command, the state goes unread
-            else:                                          # the plant node's safe_batch
+
+    def run(skips: bool):
+        plant = M.SpmsmPlant(M.plant_params_from_config(c))
+        ctrl = ModedSpmsmController(c)
+        ctrl.set_command(command, mode)
+        n = ctrl.batch_periods
+        errors = []
+        for k in range(gap_at + skipped + 300):
+            snap = dict(plant.snapshot(), batch_periods=n)     # as a PlantState gives it
+            in_gap = gap_at <= k < gap_at + skipped
+            if not (skips and in_gap):
+                answer = ctrl.decide(snap)
+                if k >= gap_at + skipped:
+                    errors.append(answer[3]["speed_est_rpm"] / snap["speed_rpm"] - 1.0)
+            if not in_gap:
+                duties, relay, buck, _ = answer
+                plant.clear_safe_state()
+                plant.step_batch(duties, relay, buck)
+            elif k - gap_at < timeout_batches:
+                plant.step_batch(duties, relay, buck)          # the held command
+            else:                                              # the plant node's safe_batch
                 plant.set_safe_state()
-                plant.step_batch(np.zeros((n, 3)), 0.0, 0.0)
-            continue
-        plant.clear_safe_state()
-        snap = dict(plant.snapshot(), batch_periods=n)     # as a PlantState gives it
-        duties, relay, buck, status = ctrl.decide(snap)
-        if k >= gap_at - 300:
-            (before if k < gap_at else after).append(status["speed_est_rpm"] / snap["speed_rpm"] - 1.0)
-            (vspeed_before if k < gap_at else vspeed_after).append(status["virtual_speed_mps"])
-        plant.step_batch(duties, relay, buck)
-    # worse than before, measured: within the timeout < 0.5 % (both estimators); past it the
-    # observer up to 5.4 %, the M method up to 32 %: the gap's mean speed stands for its first
-    # sample (the safe state's braking puts the mean up to 1.33x the end speed)
-    worst_before, worst_after = max(map(abs, before)), max(map(abs, after))
-    within = skipped < timeout_batches
-    margin = 0.03 if within else 0.1 if estimator == "observer" else 0.4
-    assert worst_after < worst_before + margin, (worst_before, worst_after)
-    if within:      # (past the timeout the braked rider speeds up again, the virtual bike with him)
-        assert max(vspeed_after) < 1.05 * max(vspeed_before), (max(vspeed_before), max(vspeed_after))
-    assert ctrl.inner.skipped_state_gaps == 1 and ctrl.inner.skipped_periods == skipped * n
+                plant.step_safe_batch(n)
+        return np.array(errors), ctrl
+
+    errors, ctrl = run(True)
+    errors_ref, _ = run(False)
+    # measured, the worst estimate error after the gap minus the reference's (the 300 ms after
+    # it): the observer -0.05..+0.033, the M method up to 0.13 (the gap's mean speed stands for
+    # its first sample)
+    worst, worst_ref = np.max(np.abs(errors)), np.max(np.abs(errors_ref))
+    assert worst < worst_ref + (0.04 if estimator == "observer" else 0.15), (worst_ref, worst)
+    assert ctrl.inner.skipped_state_gaps == 1 and ctrl.inner.skipped_periods == skipped * ctrl.batch_periods

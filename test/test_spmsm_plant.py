@@ -315,6 +315,29 @@ def test_rectifier_steady_state_threshold_and_braking_sign():
     assert abs(v - ((r + 1j * we * lh) * i + 1j * we * lam)) < 1e-9
 
 
+@pytest.mark.parametrize("path", ["rectifier", "inverter"])
+def test_the_safe_state_keeps_the_rectifier_path_and_there_no_current_flows(cfg, path):
+    """A lost controller's safe state (the plant node's safe_batch) at 330 r/min, the rider's
+    speed: gates and buck off. On the rectifier path the relay stays there and no current
+    flows once the buck's input has charged, so the rider freewheels; it used to go to the
+    inverter, whose diodes then braked at 4-6 N m (330 -> 250 r/min in 25 ms in a ride). On
+    the inverter (isokinetic, assist) that braking is physics above the link voltage's speed:
+    it stays, flagged."""
+    plant = plant_with(cfg, load={"kind": "prime_mover", "speed_rpm": 330.0})
+    for _ in range(40):                                  # settled on the path, braking lightly
+        plant.step_batch(np.full((10, 3), 0.5), relay_request=1.0 if path == "rectifier" else 0.0, buck_duty=0.2)
+    plant.set_safe_state()
+    plant.step_safe_batch(10)                            # the first ms: the buck's input charges
+    res = [plant.step_safe_batch(10) for _ in range(50)]
+    if path == "rectifier":
+        assert plant.state[M.S_RELAY] == M.REL_RECTIFIER
+        assert max(abs(r.torque_em_nm) for r in res) < 0.01 and not any(r.faults for r in res)
+    else:
+        assert plant.state[M.S_RELAY] == M.REL_INVERTER
+        assert np.mean([r.torque_em_nm for r in res]) < -1.0        # (the paper's Rs 6.84 ohm here)
+        assert all(r.faults & M.FAULT_OVERSPEED_DIODES for r in res)
+
+
 def _relay_trace(plant, requests, buck=0.8):
     states = []
     for req in requests:

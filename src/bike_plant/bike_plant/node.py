@@ -235,10 +235,9 @@ class SpmsmSimBackend:
         self.plant.step_batch(duties, relay, buck)
 
     def safe_batch(self, n: int) -> None:
-        import numpy as np
         self.plant.set_safe_state()
         try:
-            self.plant.step_batch(np.zeros((n, 3)), 0.0, 0.0)
+            self.plant.step_safe_batch(n)
         finally:
             if not self._safe:
                 self.plant.clear_safe_state()

@@ -1467,6 +1467,18 @@ class SpmsmPlant:
         return SpmsmBatchResult(float(sums[0] / nn), float(sums[1] / nn), float(sums[2] / nn), samples,
                                 int(self.state[S_FAULTS]))
 
+    def step_safe_batch(self, n: int) -> SpmsmBatchResult:
+        """N periods of the safe state (a lost controller; :meth:`set_safe_state` holds the
+        gates off): buck off, and the relay kept on the rectifier path when it is there or on
+        its way (the braking modes), where with the buck off no current flows and the rider
+        freewheels. Otherwise it goes to the inverter, whose diodes brake the machine above
+        the link voltage's speed (uncontrolled generation, flagged). The safe state used to
+        take the relay to the inverter from the rectifier too: 4-6 N m of braking at 330
+        r/min, the shaft 330 -> 250 r/min in 25 ms, on every command timeout of a ride."""
+        s = self.state
+        rect = s[S_RELAY] == REL_RECTIFIER or (s[S_RELAY] in (REL_DRAIN, REL_DEAD) and s[S_RELAY_TO] == REL_RECTIFIER)
+        return self.step_batch(np.zeros((n, 3)), 1.0 if rect else 0.0, 0.0)
+
     def advance_heart(self) -> None:
         """The rider's heart to the plant's time, on the ledger's rider energy (after every
         batch; the CAN drive emulator calls it after its own kernels step the state)."""
