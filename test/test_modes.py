@@ -1437,3 +1437,52 @@ def test_spmsm_descent_switch_to_the_inverter_does_not_wind_the_slope_law_up():
     assert limited > 20, f"{limited} batches at the inverter's limit: the ride does not test the hold"
     assert min(integral) > -2.0, min(integral)
     assert math.sqrt(np.mean(np.square(err))) < 0.17
+
+
+@pytest.mark.parametrize("machine", ["bldc", "spmsm"])
+def test_the_mode_laws_clocks_count_the_time_of_skipped_plant_states(machine):
+    """Realtime: a controller descheduled for 100 batches (0.1 s) skips their plant states and
+    answers the newest. The mode laws stepped the batch's time only (1 ms), so every stall
+    stopped their clocks: the spin-down's was 0.1 s behind a ride without the stall (and with
+    it the BLDC coast's time axis, test_spindown). Now the clocks count the stall
+    (session_control.skipped_time_s); ERG's ramp, a rate limit on what the rider feels, goes
+    on from where it was (through the stall the rider felt the brake held)."""
+    from bike_controller.modes import MODE_SPINDOWN
+    from bike_controller.session_control import MAX_SKIPPED_S, ModedController, skipped_time_s
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import config_variant, load_config
+    from bike_plant.params import plant_params_from_config
+    from bike_plant.sim import BldcPlant
+    root = pathlib.Path(__file__).resolve().parents[1] / "config"
+    cfg = config_variant(load_config(root / f"{machine}_default.yaml"), modes={"erg_ramp_w_per_s": 50.0})
+    gap_at, skipped, switch_at, end = 400, 100, 300, 520
+
+    def ride(mode, gap: bool):
+        if machine == "bldc":
+            plant, ctrl = BldcPlant(plant_params_from_config(cfg)), ModedController(cfg)
+        else:
+            plant, ctrl = M.SpmsmPlant(M.plant_params_from_config(cfg)), ModedSpmsmController(cfg)
+        ctrl.set_command(100.0 / ctrl.law.erg_power_max_w if mode == MODE_ERG else 0.5, mode)
+        seen = {}
+        for k in range(end):
+            if k == switch_at and mode == MODE_ERG:
+                ctrl.set_command(300.0 / ctrl.law.erg_power_max_w, mode)
+            if not (gap and gap_at <= k < gap_at + skipped):     # else: held command, the state goes unread
+                answer = ctrl.decide(dict(plant.snapshot(), batch_periods=ctrl.batch_periods))[:3]
+                sd = ctrl.law.spindown
+                seen[k] = ctrl.law.erg_ramp_w if mode == MODE_ERG else sd.elapsed_s if sd.running else None
+            plant.step_batch(*answer)
+        assert (ctrl.skipped_state_gaps, ctrl.skipped_periods) == ((1, skipped * ctrl.batch_periods) if gap else (0, 0))
+        return seen
+
+    plain, stalled = ride(MODE_SPINDOWN, False), ride(MODE_SPINDOWN, True)
+    assert stalled[gap_at - 1] == plain[gap_at - 1] and plain[end - 1] > 0.5      # its clock runs (spin-up)
+    for k in range(gap_at + skipped, end):
+        assert stalled[k] == pytest.approx(plain[k], abs=1e-9), (k, stalled[k], plain[k])
+    plain, stalled = ride(MODE_ERG, False), ride(MODE_ERG, True)
+    assert 100.0 < plain[end - 1] < 300.0                                          # still on its way
+    for k in range(gap_at + skipped, end):
+        assert stalled[k] == pytest.approx(plain[k - skipped], abs=1e-9), (k, stalled[k], plain[k - skipped])
+    # at most MAX_SKIPPED_S at once; no gap (lockstep) adds nothing
+    assert skipped_time_s(10 ** 6, 5e-5) == MAX_SKIPPED_S and skipped_time_s(0, 5e-5) == 0.0

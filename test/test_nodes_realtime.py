@@ -214,8 +214,11 @@ def test_a_stalled_controller_keeps_its_speed_estimate_through_the_plant_states_
     state then brakes through its diodes (330 -> 250 r/min): its observer read 0.26x - 1.33x
     until it re-acquired after every gap. Every ControllerStatus must stay near the plant's own
     speed of that batch: the shaft (10 kg cm^2 behind a 35:1 gear) cannot lose 15 % in the ms
-    an estimate lags."""
-    col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus})
+    an estimate lags. The controller's periodic diagnostic counts the gaps it answered after
+    and the control periods they covered (skipped_state_gaps, skipped_periods, skipped_time_s):
+    as many as the ControllerStatus seqs it skipped between two of its diagnostics."""
+    col = Collector(domain, {"plant_state": PlantState, "controller_status": ControllerStatus,
+                             "/diagnostics": DiagnosticArray})
     procs = []
     try:
         cmd_pub = col.publisher(Command, "command")
@@ -252,9 +255,31 @@ def test_a_stalled_controller_keeps_its_speed_estimate_through_the_plant_states_
             f"no stall within the timeout skipped a PlantState ({len(timeouts)} timeout states)"
         ratios = [(m.speed_est_rpm / plant_rpm[int(m.seq)], int(m.seq)) for m in judged]
         assert min(ratios)[0] > 0.85 and max(ratios)[0] < 1.15, (min(ratios), max(ratios), len(timeouts))
+        _check_skipped_state_diagnostics(col, states, load_config(config)["control_period_s"])
     finally:
         stop_all(procs)
         col.close()
+
+
+def _check_skipped_state_diagnostics(col, states, period_s: float) -> None:
+    """Between the first periodic (OK) controller diagnostic after the test's first
+    ControllerStatus and the last one, the skipped_* counts rose by the seqs the statuses
+    skipped (a diagnostic goes out after the batch of its stamp was answered)."""
+    statuses = sorted(col.data["controller_status"], key=lambda m: int(m.seq))
+    diags = [(stamp_ns(a.header.stamp), {kv.key: kv.value for kv in s.values}) for a in list(col.data["/diagnostics"])
+             for s in a.status if s.name.endswith("controller") and s.level == DiagnosticStatus.OK]
+    first = stamp_ns(statuses[0].header.stamp)
+    diags = [d for d in diags if d[0] > first]
+    assert len(diags) >= 2, f"{len(diags)} periodic controller diagnostics"
+    (s1, v1), (s2, v2) = diags[0], diags[-1]
+    n = {int(m.seq): int(m.batch_periods) for m in states}
+    jumps = [(int(a.seq), int(b.seq)) for a, b in zip(statuses, statuses[1:])
+             if int(b.seq) - int(a.seq) > 1 and s1 < stamp_ns(b.header.stamp) <= s2]
+    gaps = int(v2["skipped_state_gaps"]) - int(v1["skipped_state_gaps"])
+    periods = int(v2["skipped_periods"]) - int(v1["skipped_periods"])
+    assert gaps == len(jumps) >= 1, (gaps, jumps)
+    assert periods == sum((b - a - 1) * n.get(a, int(states[-1].batch_periods)) for a, b in jumps), (periods, jumps)
+    assert float(v2["skipped_time_s"]) == pytest.approx(int(v2["skipped_periods"]) * period_s, rel=1e-5)
 
 
 def _warnings(col, node: str) -> list[str]:

@@ -420,6 +420,7 @@ class BatchController:
         self._est_saved = None
         self._next_periods: float | None = None   # period index of the PlantState after the last one decided
         self.skipped_state_gaps = 0               # decides after skipped PlantStates (realtime)
+        self.skipped_periods = 0                  # ... and the control periods they covered
         self.command_rejected = False
         self.last_status: dict = {}
         self.seq = 0
@@ -480,10 +481,23 @@ class BatchController:
         m[K.S_SOC] = float(snap["battery_soc"])
         m[K.S_S0] = 1.0 if snap["brake_resistor_on"] else 0.0
         m[K.S_HALL] = float(snap["hall_state"])
-        fc_dt = self.nominal.hall.timer_hz * self.nominal.control_period_s
-        # period index from the capture timer (timer = floor(periods * fc * T), fc * T >= 1)
-        m[K.S_PERIODS] = float(math.ceil(int(snap["timer_count"]) / fc_dt - 1e-9))
+        m[K.S_PERIODS] = self._periods_of(snap)
         return err
+
+    def _periods_of(self, snap: dict) -> float:
+        """The plant state's period index, from the capture timer (timer = floor(periods * fc * T),
+        fc * T >= 1)."""
+        fc_dt = self.nominal.hall.timer_hz * self.nominal.control_period_s
+        return float(math.ceil(int(snap["timer_count"]) / fc_dt - 1e-9))
+
+    def gap_periods(self, snapshot: dict) -> int:
+        """Control periods of the PlantStates skipped before ``snapshot`` (realtime: the plant ran
+        them while this controller was descheduled); 0 for the state after the last one decided
+        (lockstep, always)."""
+        periods = self._periods_of(snapshot)
+        if self._next_periods is None or periods <= self._next_periods:
+            return 0
+        return int(periods - self._next_periods)
 
     def _note_skipped_states(self, snapshot: dict) -> None:
         """A PlantState later than the one after the last decided (realtime: the controller reads
@@ -499,6 +513,7 @@ class BatchController:
         fc_dt = self.nominal.hall.timer_hz * self.nominal.control_period_s
         self.cs[C_EDGES_FROM] = math.floor(max(periods - n_before, 0.0) * fc_dt)
         self.skipped_state_gaps += 1
+        self.skipped_periods += int(periods - self._next_periods)
 
     def decide(self, snapshot: dict, n: int | None = None):
         """N periods of (gates_a, gates_b, split) answering PlantState `snapshot`, + status."""

@@ -5,7 +5,9 @@ Topics (relative names, namespace /bike by default; docs/DESIGN.md):
              session_status (bike_msgs/SessionStatus)
   publishes  drive_command (bike_msgs/DriveCommand, one per PlantState, same seq),
              controller_status (bike_msgs/ControllerStatus, one per batch while a reader is matched),
-             /diagnostics (WARN on a rejected Command, OK every ``diagnostics_period_s``)
+             /diagnostics (WARN on a rejected Command, OK every ``diagnostics_period_s``;
+             realtime: skipped_state_gaps / skipped_periods / skipped_time_s count the PlantStates
+             skipped while the process was descheduled)
 
 The law is bike_controller.session_control.ModedController: the session modes of
 bike_controller.modes on top of bldc_control.BatchController (nominal params from the config).
@@ -416,6 +418,13 @@ class ControllerNode(Node):
         values = {"command": f"{cmd['command']:g}", "mode": str(cmd["mode"]),
                   "command_rejected": str(self.rejected).lower(), "last_seq": str(self.last_seq)}
         values.update({k: str(v) for k, v in self.stats.items()})
+        # realtime: answers that followed PlantStates skipped while this process was descheduled
+        # (the law reads the newest only), and the control periods / sim time those covered. A
+        # count, not a WARN: the laws bridge a gap (speed estimate, mode laws' time step), and a
+        # stall past the plant's command_timeout_s is the plant's WARN. 0 in lockstep.
+        values.update(skipped_state_gaps=str(self.ctrl.skipped_state_gaps),
+                      skipped_periods=str(self.ctrl.skipped_periods),
+                      skipped_time_s=f"{self.ctrl.skipped_periods * self.ctrl.inner.nominal.control_period_s:.6g}")
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         arr = DiagnosticArray(status=[status])
         if stamp is not None:

@@ -46,6 +46,7 @@ FAULT_DRIVE_LOST = 16        # bike_msgs/PlantState.FAULT_DRIVE_LOST (this modul
 FAULT_DRIVE_DISARMED = 256   # bike_msgs/PlantState.FAULT_DRIVE_DISARMED: held like a lost drive
 FAULT_DRIVE_STALE = 1024     # bike_msgs/PlantState.FAULT_DRIVE_STALE: the drive's estimates are old, hold
 HELD_MEASUREMENT_S = 0.05    # speed and torque bit-identical this long (stamp time): a held value, not fresh
+MAX_SKIPPED_S = 0.5          # the most skipped time the mode laws' clocks count at once (skipped_time_s)
 
 
 _log = logging.getLogger("bike_controller.session_control")
@@ -90,6 +91,21 @@ class EmptyPackGuard:
             return 0.0
         self.active = self.active and empty
         return brake_torque_nm
+
+
+def skipped_time_s(gap_periods: int, control_period_s: float) -> float:
+    """The time of the plant states skipped before the one answered (realtime: the controller
+    reads the newest plant state only, and skips what came while it was descheduled; the inner
+    laws count them, ``gap_periods``), which the mode laws' clocks count
+    (:meth:`.modes.ModeLaw.step`'s ``skipped_s``). Before, a stall stopped them: the
+    spin-down's clock and its coast's time axis (the BLDC bike's) fell behind by every stall.
+    At most MAX_SKIPPED_S: a longer jump of the period count is no host stall (the plant has
+    been in its safe state since its command timeout, 0.05 s in sim, 0.25 s on CAN), and one
+    step must not run out a spin-down's timeout or the automatic shifting's hold. 0 without
+    a gap (lockstep, always): the laws step as before, bit for bit."""
+    if gap_periods <= 0:
+        return 0.0
+    return min(gap_periods * control_period_s, MAX_SKIPPED_S)
 
 
 def validate_session_command(command, mode) -> None:
@@ -258,13 +274,25 @@ class ModedController(SessionCommand):
     def cs(self):
         return self.inner.cs
 
+    @property
+    def skipped_state_gaps(self) -> int:
+        """Decides after skipped PlantStates (realtime, :class:`BatchController`)."""
+        return self.inner.skipped_state_gaps
 
-    def _apply_mode(self, dt_s: float, snapshot: dict) -> None:
+    @property
+    def skipped_periods(self) -> int:
+        """Control periods the skipped PlantStates covered."""
+        return self.inner.skipped_periods
+
+    def _apply_mode(self, dt_s: float, snapshot: dict, skipped_s: float = 0.0) -> None:
+        """``dt_s``: the batch's time; ``skipped_s``: of the plant states skipped before this one
+        (:func:`skipped_time_s`), which the mode law's clocks count."""
         inner = self.inner
         speed_rpm = float(inner.cs[C_SPEED_EST])
         measured = snapshot.get("torque_em_nm")
         out = self.law.step(self.command, self.mode, speed_rpm, dt_s, speed_valid=inner.cs[C_NC] > 0,
-                            measured_em_torque_nm=measured, heart_rate_bpm=snapshot.get("heart_rate_bpm", 0.0))
+                            measured_em_torque_nm=measured, heart_rate_bpm=snapshot.get("heart_rate_bpm", 0.0),
+                            skipped_s=skipped_s)
         self.last_out = out
         if self.mode == MODE_RESISTANCE and not out.ramping:
             self.trim.reset()
@@ -290,7 +318,8 @@ class ModedController(SessionCommand):
         if snapshot.get("measured_by_drive"):
             return self._decide_torque(snapshot)
         n_eff = self.inner.batch_periods if n is None else int(n)
-        self._apply_mode(n_eff * self.inner.nominal.control_period_s, snapshot)
+        period_s = self.inner.nominal.control_period_s
+        self._apply_mode(n_eff * period_s, snapshot, skipped_time_s(self.inner.gap_periods(snapshot), period_s))
         ga, gb, sp, status = self.inner.decide(snapshot, n)
         return ga, gb, sp, self._status(status)
 

@@ -1027,6 +1027,15 @@ class SpmsmController:
         self.cs[C_TORQUE_MODE] = 1.0
         self.cs[C_TORQUE_CMD] = float(torque_nm)
 
+    def gap_periods(self, plant_state: np.ndarray) -> int:
+        """Control periods of the plant states skipped before ``plant_state`` (realtime: the plant
+        ran them while this controller was descheduled); 0 for the state after the last one
+        decided (lockstep, always)."""
+        periods = float(plant_state[M.S_PERIODS])
+        if self._next_periods is None or periods <= self._next_periods:
+            return 0
+        return int(periods - self._next_periods)
+
     def decide(self, plant_state: np.ndarray, n: int | None = None):
         """N periods of (duties N x 3, relay request N, buck duty N) answering a measured
         plant state vector (layout bike_plant.spmsm.S_*), + status."""
@@ -1036,8 +1045,8 @@ class SpmsmController:
         # a plant state later than the one after the last decided: the ones between were skipped
         # (lockstep never skips, and a state without a period count never says so)
         periods = float(self.model[M.S_PERIODS])
-        if self._next_periods is not None and periods > self._next_periods:
-            gap = int(periods - self._next_periods)
+        gap = self.gap_periods(self.model)
+        if gap > 0:
             self._bridge_skipped_periods(gap, float(self.model[M.S_COUNT]))
             self.skipped_state_gaps += 1
             self.skipped_periods += gap

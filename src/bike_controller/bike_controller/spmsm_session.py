@@ -37,7 +37,7 @@ from bike_plant.params import RPM_PER_RAD_S
 
 from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, MODE_SPINDOWN, ModeLaw, ModeOutput, TorqueTrim,
                     machine_figures, modes_from_config)
-from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status
+from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status, skipped_time_s
 from .spmsm_control import C_IQ_REF, C_TORQUE_MODE, SpmsmController, controller_params_from_config
 from .spindown import EncoderSpeed
 
@@ -105,13 +105,15 @@ class RelayPath:
         self.mean_nm = 0.0
         self.since_s = 0.0
 
-    def choose(self, brake_torque_nm: float, dt_s: float) -> bool:
-        """True: the rectifier path for the next ``dt_s``, False: the inverter."""
+    def choose(self, brake_torque_nm: float, dt_s: float, skipped_s: float = 0.0) -> bool:
+        """True: the rectifier path for the next ``dt_s``, False: the inverter. ``skipped_s``:
+        the time of plant states skipped before this one (realtime), which the relay spent on its
+        path (its hold counts it; the mean, of the torques asked, does not)."""
         if self.rectifier is None:
             self.rectifier = brake_torque_nm >= 0.0
             self.mean_nm = brake_torque_nm
             return self.rectifier
-        self.since_s += dt_s
+        self.since_s += dt_s + skipped_s
         k = min(dt_s / self.hold_s, 1.0) if self.hold_s > 0.0 else 1.0
         self.mean_nm += k * (brake_torque_nm - self.mean_nm)
         if self.since_s >= self.hold_s - 1e-9:
@@ -193,11 +195,24 @@ class ModedSpmsmController(SessionCommand):
     def batch_periods(self) -> int:
         return self.inner.batch_periods
 
+    @property
+    def skipped_state_gaps(self) -> int:
+        """Decides after skipped plant states (realtime, :class:`SpmsmController`)."""
+        return self.inner.skipped_state_gaps
+
+    @property
+    def skipped_periods(self) -> int:
+        """Control periods the skipped plant states covered."""
+        return self.inner.skipped_periods
+
     def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm, sensor_sample=None,
-                    heart_rate_bpm: float = 0.0) -> None:
+                    heart_rate_bpm: float = 0.0, skipped_s: float = 0.0) -> None:
+        """``dt_s``: the batch's time; ``skipped_s``: of the plant states skipped before this one
+        (:func:`.session_control.skipped_time_s`), which the mode law's clocks and the relay's
+        hold count."""
         inner = self.inner
         out = self.law.step(self.command, self.mode, speed_rpm, dt_s, measured_em_torque_nm=measured_em_torque_nm,
-                            sensor_sample=sensor_sample, heart_rate_bpm=heart_rate_bpm)
+                            sensor_sample=sensor_sample, heart_rate_bpm=heart_rate_bpm, skipped_s=skipped_s)
         self.last_out = out
         inner.set_no_assist(self.pack.empty(self.battery_soc))
         full = self._pack_full()
@@ -238,7 +253,7 @@ class ModedSpmsmController(SessionCommand):
                                    released=self.mode == MODE_SPINDOWN)
         torque = self.pack.limit(torque, self.battery_soc)
         clipped = False
-        if self.relay.choose(torque, dt_s):
+        if self.relay.choose(torque, dt_s, skipped_s):
             # the rectifier path brakes only: an assist wanted before the relay may switch is not given
             clipped = torque < -self.clip_tolerance_nm
             torque = max(torque, 0.0)
@@ -291,8 +306,9 @@ class ModedSpmsmController(SessionCommand):
             sample = self.encoder_speed.sample(snapshot.get("encoder_count", 0), snapshot.get("encoder_edge_ticks", 0))
         else:
             self.encoder_speed.ref = None      # its next spin-down starts from a fresh edge
-        self._apply_mode(speed_rpm, n_eff * inner.nominal.control_period_s, snapshot.get("torque_em_nm"), sample,
-                         snapshot.get("heart_rate_bpm", 0.0))
+        period_s = inner.nominal.control_period_s
+        self._apply_mode(speed_rpm, n_eff * period_s, snapshot.get("torque_em_nm"), sample,
+                         snapshot.get("heart_rate_bpm", 0.0), skipped_time_s(inner.gap_periods(model), period_s))
         duties, relay, buck, status = inner.decide(model, n_eff)
         # beyond reach: the region logic clipped iq* (not the current loop's saturated periods:
         # near the voltage edge the trim still gets more torque out of them, 4.96 N m for 4.94 at
