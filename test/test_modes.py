@@ -1486,3 +1486,40 @@ def test_the_mode_laws_clocks_count_the_time_of_skipped_plant_states(machine):
         assert stalled[k] == pytest.approx(plain[k - skipped], abs=1e-9), (k, stalled[k], plain[k - skipped])
     # at most MAX_SKIPPED_S at once; no gap (lockstep) adds nothing
     assert skipped_time_s(10 ** 6, 5e-5) == MAX_SKIPPED_S and skipped_time_s(0, 5e-5) == 0.0
+
+
+@pytest.mark.parametrize("machine", ["bldc", "spmsm"])
+def test_the_torque_trim_holds_on_the_batch_after_skipped_plant_states(machine):
+    """The trim closes the torque loop on the measured torque of the plant's last batch. After
+    skipped plant states that batch ran on the held command or, past command_timeout_s, in the
+    safe state (no torque): not on the torque the trim asked, so it holds for that answer (it
+    took the safe state's missing torque as a 3 N m shortfall) and integrates again on the next."""
+    from bike_controller.session_control import ModedController
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import load_config
+    from bike_plant.params import plant_params_from_config
+    from bike_plant.sim import BldcPlant
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / f"{machine}_default.yaml")
+    if machine == "bldc":
+        plant, ctrl = BldcPlant(plant_params_from_config(cfg)), ModedController(cfg)
+    else:
+        plant, ctrl = M.SpmsmPlant(M.plant_params_from_config(cfg)), ModedSpmsmController(cfg)
+    ctrl.set_command(100.0 / ctrl.law.erg_power_max_w, MODE_ERG)     # within the brake's reach: trimmed
+    n = ctrl.batch_periods
+    trims = []
+    for k in range(1200):
+        if 1000 <= k < 1050:                         # skipped: the held command
+            plant.step_batch(*answer)
+            continue
+        if 1050 <= k < 1100:                         # ... then the safe state (command_timeout_s)
+            plant.set_safe_state()
+            plant.step_batch(*plant.safe_gates(n)) if machine == "bldc" else plant.step_safe_batch(n)
+            continue
+        plant.clear_safe_state()
+        answer = ctrl.decide(dict(plant.snapshot(), batch_periods=n))[:3]
+        trims.append((k, ctrl.trim.trim_nm, ctrl.trim.held_steps))
+        plant.step_batch(*answer)
+    by_k = {k: (t, h) for k, t, h in trims}
+    assert by_k[1100] == (by_k[999][0], by_k[999][1] + 1), "the answer after the gap holds the trim"
+    assert by_k[1101][0] != by_k[1100][0] and by_k[1101][1] == by_k[1100][1], "the next integrates"

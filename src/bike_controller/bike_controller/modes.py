@@ -848,7 +848,9 @@ class TorqueTrim:
 
     * the trim integrates over fresh measurement time only: with ``fresh`` False (the
       plant flags the measurement stale, or it repeats a held value) it holds, so it does
-      not wind up on a frozen torque estimate (``held_steps`` counts those steps);
+      not wind up on a frozen torque estimate (``held_steps`` counts those steps); so does
+      the answer after skipped plant states (realtime), whose measurement is of a batch
+      the plant ran on the held command or in its safe state;
     * ``brake_only`` (ERG and the resistance mode: the laws' torque is a brake, >= 0 by
       design, Eq. 2-5 of paper 000 and P*/w): the trimmed torque never becomes motoring.
       The trim is clamped so that brake + trim >= 0 and the clamp is counted

@@ -300,8 +300,11 @@ class ModedController(SessionCommand):
             inner.cs[C_IOVERRIDE] = -1.0                         # no override: Eq. 2-9 inside the batch
             inner.set_command(self.command, MODE_RESISTANCE)
             return
-        torque = self.trim.correct(out.brake_torque_nm, measured, dt_s, brake_only=self.mode in BRAKE_ONLY_MODES,
-                                   saturated=out.saturated, released=self.mode == MODE_SPINDOWN)
+        # after skipped plant states the measured torque is of a batch the plant ran on the held
+        # command or in its safe state, not on the torque asked: no trim on it
+        torque = self.trim.correct(out.brake_torque_nm, measured, dt_s, fresh=skipped_s == 0.0,
+                                   brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated,
+                                   released=self.mode == MODE_SPINDOWN)
         torque = self.pack.limit(torque, snapshot.get("battery_soc"))
         if self.pack.active and not out.saturated:
             self.last_out = out = dataclasses.replace(out, saturated=True)

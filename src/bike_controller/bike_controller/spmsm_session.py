@@ -248,7 +248,9 @@ class ModedSpmsmController(SessionCommand):
             # the shortfall of a torque the inverter could not reach is no model error: a trim
             # wound up on it (to its 30 % of Tmax) gave 2.6x the assist asked once the speed fell
             self.trim.hold_last()
-        torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s,
+        # after skipped plant states the measured torque is of a batch the plant ran on the held
+        # command or in its safe state, not on the torque asked: no trim on it
+        torque = self.trim.correct(out.brake_torque_nm, measured_em_torque_nm, dt_s, fresh=skipped_s == 0.0,
                                    brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated,
                                    released=self.mode == MODE_SPINDOWN)
         torque = self.pack.limit(torque, self.battery_soc)
