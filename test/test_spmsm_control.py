@@ -460,7 +460,7 @@ def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(skipped
                 plant.clear_safe_state()
                 plant.step_batch(duties, relay, buck)
             elif k - gap_at < timeout_batches:
-                plant.step_batch(duties, relay, buck)          # the held command
+                plant.step_held_batch()                        # the held command (the node's)
             else:                                              # the plant node's safe_batch
                 plant.set_safe_state()
                 plant.step_safe_batch(n)
@@ -469,7 +469,7 @@ def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(skipped
     errors, ctrl = run(True)
     errors_ref, _ = run(False)
     # measured, the worst estimate error after the gap minus the reference's (the 300 ms after
-    # it): the observer -0.05..+0.033, the M method up to 0.13 (the gap's mean speed stands for
+    # it): the observer -0.05..+0.03, the M method up to 0.13 (the gap's mean speed stands for
     # its first sample)
     worst, worst_ref = np.max(np.abs(errors)), np.max(np.abs(errors_ref))
     assert worst < worst_ref + (0.04 if estimator == "observer" else 0.15), (worst_ref, worst)

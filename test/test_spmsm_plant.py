@@ -315,6 +315,37 @@ def test_rectifier_steady_state_threshold_and_braking_sign():
     assert abs(v - ((r + 1j * we * lh) * i + 1j * we * lam)) < 1e-9
 
 
+def test_a_held_command_keeps_its_rotor_frame_voltage(cfg):
+    """Realtime: a batch with no new command re-applies the last one (the node's held
+    DriveCommand). Its duties hold their rotor-frame voltage (turned by the angle the rotor
+    turned since), so the machine makes the torque the fresh command would: here a fixed dq
+    voltage at 300 r/min, held for 40 batches against one computed afresh each batch. Replayed
+    as they were (fixed in the stator frame while the rotor turned) they gave ripple of several
+    N m and a mean far from it."""
+    def run(hold: bool):
+        plant = plant_with(cfg, load={"kind": "prime_mover", "speed_rpm": 300.0})
+        pp, dt, n = plant.p[M.P_PP], plant.params.control_period_s, 10
+        we = pp * 300.0 / 60.0 * 2.0 * math.pi
+        vdc = float(plant.snapshot()["dc_bus_v"])
+
+        def fresh():                     # vd = -2 V, vq = 8 V in the rotor frame
+            th = plant.state[M.S_THETA_M] * pp + we * dt * (np.arange(n) + 0.5)
+            v_al, v_be = -2.0 * np.cos(th) - 8.0 * np.sin(th), -2.0 * np.sin(th) + 8.0 * np.cos(th)
+            v = np.stack([v_al, -0.5 * v_al + 0.5 * math.sqrt(3.0) * v_be,
+                          -0.5 * v_al - 0.5 * math.sqrt(3.0) * v_be], axis=1)
+            return 0.5 + v / vdc
+        for _ in range(30):
+            plant.step_batch(fresh(), 0.0, 0.0)
+        return np.array([(plant.step_held_batch() if hold else plant.step_batch(fresh(), 0.0, 0.0)).torque_em_nm
+                         for _ in range(40)])
+    fresh_nm, held_nm = run(False), run(True)
+    assert abs(np.mean(fresh_nm)) > 0.2, "the voltage makes a torque"
+    assert np.mean(held_nm) == pytest.approx(np.mean(fresh_nm), rel=0.05, abs=0.02)
+    assert np.std(held_nm) < 0.05 + 2.0 * np.std(fresh_nm)
+    replay = M.rotate_duties(np.array([[0.7, 0.4, 0.4]]), 0.0)
+    assert np.allclose(replay, [[0.65, 0.35, 0.35]]), "angle 0: the same line voltages, centred"
+
+
 @pytest.mark.parametrize("path", ["rectifier", "inverter"])
 def test_the_safe_state_keeps_the_rectifier_path_and_there_no_current_flows(cfg, path):
     """A lost controller's safe state (the plant node's safe_batch) at 330 r/min, the rider's

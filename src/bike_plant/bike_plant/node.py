@@ -162,8 +162,13 @@ class SimBackend:
         return msgconv.drive_command_problem(msg, n)
 
     def apply(self, msg) -> None:
-        """A DriveCommand that passed problem(): its arrays go to the kernel as they are."""
+        """A DriveCommand that passed problem(): its arrays go to the kernel as they are; the
+        same one again (held, realtime) relative to the rotor (BldcPlant.step_held_batch)."""
         self.plant.set_rider_cadence(msg.rider_cadence_rpm, stop=bool(msg.rider_stops_pedalling))
+        if msg is self.applied and self.plant.last_inputs is not None:
+            self.plant.step_held_batch()
+            return
+        self.applied = msg
         self.plant.step_batch(*msgconv.drive_arrays(msg), checked=True)
 
     def __init__(self, cfg: dict, seed: int):
@@ -171,6 +176,7 @@ class SimBackend:
         from .sim import BldcPlant
 
         self.plant = BldcPlant(plant_params_from_config(cfg), seed=seed)
+        self.applied = None          # the DriveCommand applied last (the node re-applies it when held)
 
     @property
     def time_s(self) -> float:
@@ -180,6 +186,7 @@ class SimBackend:
         return self.plant.snapshot()
 
     def safe_batch(self, n: int) -> None:
+        self.applied = None
         self.plant.step_batch(*self.plant.safe_gates(n))
 
     def warm_up(self, n: int) -> None:
@@ -209,6 +216,7 @@ class SpmsmSimBackend:
         except ValueError as exc:
             raise ConfigError(str(exc), cfg.get("_config_path")) from None
         self.n_last = 0
+        self.applied = None          # the DriveCommand applied last (the node re-applies it when held)
 
     @property
     def time_s(self) -> float:
@@ -230,11 +238,15 @@ class SpmsmSimBackend:
         return msgconv.spmsm_drive_problem(msg, n)
 
     def apply(self, msg) -> None:
-        duties, relay, buck = msgconv.spmsm_drive_arrays(msg)
         self.plant.set_rider_cadence(msg.rider_cadence_rpm, stop=bool(msg.rider_stops_pedalling))
-        self.plant.step_batch(duties, relay, buck)
+        if msg is self.applied and self.plant.last_inputs is not None:
+            self.plant.step_held_batch()         # realtime: held, its rotor-frame voltage kept
+            return
+        self.applied = msg
+        self.plant.step_batch(*msgconv.spmsm_drive_arrays(msg))
 
     def safe_batch(self, n: int) -> None:
+        self.applied = None
         self.plant.set_safe_state()
         try:
             self.plant.step_safe_batch(n)

@@ -60,6 +60,24 @@ def as_gate_arrays(gates_a, gates_b, split):
     return ga.astype(np.uint8), gb.astype(np.uint8), sp
 
 
+def _sector_rotations() -> np.ndarray:
+    """ROTATE[k, g]: gate byte g (bit 2i: leg i high, bit 2i + 1: leg i low; legs U, V, W)
+    turned k sectors (k x 60 deg electrical) forward. One sector is the legs' states negated
+    (high <-> low) and moved one leg back (U takes V's, V takes W's, W takes U's: 240 deg):
+    U+ V- (sector 1) -> U+ W- (sector 2) of the six-step sequence (paper 000, Fig. 6)."""
+    table = np.zeros((6, 256), np.uint8)
+    for g in range(256):
+        x = g & 0x3F
+        for k in range(6):
+            table[k, g] = x
+            legs = [((x >> (2 * i)) & 1) << 1 | ((x >> (2 * i + 1)) & 1) for i in range(3)]   # negated
+            x = legs[1] | legs[2] << 2 | legs[0] << 4
+    return table
+
+
+ROTATE_SECTORS = _sector_rotations()
+
+
 class BldcPlant:
     """The authoritative plant model (docs/DESIGN.md, Physics API)."""
 
@@ -82,6 +100,10 @@ class BldcPlant:
         self._last = BatchResult(np.zeros(0, np.uint64), np.zeros(0, np.uint8), 0.0, 0.0, 0.0,
                                  np.zeros((0, 3)), 0, 0, 0)
         self.safe = False
+        # the last batch's gate arrays and the Hall sectors passed since it began, for
+        # step_held_batch (which keeps them those of the batch it holds)
+        self.last_inputs = None
+        self.sectors_since = 0
 
     # ------------------------------------------------------------------ time
     @property
@@ -123,6 +145,8 @@ class BldcPlant:
         # per-batch fault bits: set again by the kernel if it happens in this batch
         self.state[K.S_FAULTS] = float(int(self.state[K.S_FAULTS]) & ~(K.FAULT_INTERLOCK | K.FAULT_OVERCURRENT))
         ne = K.step_batch(self.state, self.p, ga, gb, sp, edge_counts, edge_states, samples, sums)
+        self.last_inputs = (ga, gb, sp)
+        self.sectors_since = ne if self.state[K.S_OMEGA] >= 0.0 else -ne
         self.advance_heart()
         self.seq += 1
         self.batch_periods = n
@@ -134,6 +158,20 @@ class BldcPlant:
             faults=int(self.state[K.S_FAULTS]), interlock_blanked_count=int(self.state[K.S_INTERLOCK]),
             interlock_blanked_in_batch=int(self.state[K.S_INTERLOCK]) - blanked0)
         return self._last
+
+    def step_held_batch(self) -> BatchResult:
+        """The last batch's gate decisions once more (realtime: no new command came in time),
+        turned by the Hall sectors the rotor has passed since that batch began
+        (:data:`ROTATE_SECTORS`): the same decisions relative to the rotor, to a sector. Replayed
+        as they were, they switched the phases of a sector long past: a held resistance brake
+        of 0.87 N m gave 0.20, a held 0.89 N m assist braked at 1.5 N m (3.8 N m ripple)."""
+        if self.last_inputs is None:
+            raise ValueError("no batch to hold yet")
+        (ga, gb, sp), since = self.last_inputs, self.sectors_since
+        k = since % 6
+        result = self.step_batch(ROTATE_SECTORS[k][ga], ROTATE_SECTORS[k][gb], sp, checked=True)
+        self.last_inputs, self.sectors_since = (ga, gb, sp), since + self.sectors_since   # still the original's
+        return result
 
     def advance_heart(self) -> None:
         """The rider's heart to the plant's time, on the ledger's rider energy (after every
