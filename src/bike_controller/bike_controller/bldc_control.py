@@ -506,14 +506,14 @@ class BatchController:
         Eq. 1 intervals start again from that batch's start (C_EDGES_FROM). Left as it was, the
         first edge after the gap measured nc over every lost edge: a third of the speed or less
         for a batch or two (ERG's virtual speed, an app's km/h, fell to 2-9 of ~28 km/h)."""
-        periods = self.model[K.S_PERIODS]
-        if self._next_periods is None or periods <= self._next_periods:
+        gap = self.gap_periods(snapshot)
+        if gap == 0:
             return
         n_before = int(snapshot.get("batch_periods") or self.batch_periods)
         fc_dt = self.nominal.hall.timer_hz * self.nominal.control_period_s
-        self.cs[C_EDGES_FROM] = math.floor(max(periods - n_before, 0.0) * fc_dt)
+        self.cs[C_EDGES_FROM] = math.floor(max(self.model[K.S_PERIODS] - n_before, 0.0) * fc_dt)
         self.skipped_state_gaps += 1
-        self.skipped_periods += int(periods - self._next_periods)
+        self.skipped_periods += gap
 
     def decide(self, snapshot: dict, n: int | None = None):
         """N periods of (gates_a, gates_b, split) answering PlantState `snapshot`, + status."""

@@ -217,6 +217,16 @@ class SessionCommand:
     mode: int = MODE_RESISTANCE
     command_rejected: bool = False
 
+    @property
+    def skipped_state_gaps(self) -> int:
+        """Decides after skipped plant states (realtime; counted by the inner law)."""
+        return self.inner.skipped_state_gaps
+
+    @property
+    def skipped_periods(self) -> int:
+        """Control periods the skipped plant states covered."""
+        return self.inner.skipped_periods
+
     def set_command(self, command: float, mode: int = MODE_RESISTANCE, virtual_gear_ratio: float = 0.0,
                     road: tuple[float, float, float] | None = None, heart_rate_bpm: float = 0.0) -> None:
         """The Command in force; ``virtual_gear_ratio`` shifts the virtual bike
@@ -273,16 +283,6 @@ class ModedController(SessionCommand):
     @property
     def cs(self):
         return self.inner.cs
-
-    @property
-    def skipped_state_gaps(self) -> int:
-        """Decides after skipped PlantStates (realtime, :class:`BatchController`)."""
-        return self.inner.skipped_state_gaps
-
-    @property
-    def skipped_periods(self) -> int:
-        """Control periods the skipped PlantStates covered."""
-        return self.inner.skipped_periods
 
     def _apply_mode(self, dt_s: float, snapshot: dict, skipped_s: float = 0.0) -> None:
         """``dt_s``: the batch's time; ``skipped_s``: of the plant states skipped before this one

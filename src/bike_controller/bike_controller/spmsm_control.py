@@ -223,7 +223,8 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_OBSERVER] = 1.0 if cp.speed_estimator == "observer" else 0.0
     q[Q_OBS_L1], q[Q_OBS_L2], q[Q_OBS_L3] = observer_gains(cp.observer_pole_hz, dt)
     q[Q_OBS_F1], q[Q_OBS_F2], q[Q_OBS_F3] = observer_gains(cp.observer_reacquire_pole_hz, dt)
-    q[Q_OBS_ACQ_N] = max(round(2.0 / (cp.observer_reacquire_pole_hz * dt)), 1)   # ~5 time constants
+    # for 2 / pole (50 ms at 40 Hz: ~12 time constants of the pole, the triple pole's settling)
+    q[Q_OBS_ACQ_N] = max(round(2.0 / (cp.observer_reacquire_pole_hz * dt)), 1)
     q[Q_JN] = nominal.mech.inertia_kgm2
     q[Q_BN] = nominal.mech.friction_nms
     q[Q_SPEED_KF] = -math.expm1(-TWO_PI * cp.speed_filter_hz * ts) if cp.speed_filter_hz > 0 else 0.0
@@ -524,8 +525,9 @@ def observer_update(cs, q, meas, iq_a):
     th_meas = (meas[M.S_COUNT] + 0.5) * q[Q_RAD_PER_COUNT]
     l1, l2, l3 = q[Q_OBS_L1], q[Q_OBS_L2], q[Q_OBS_L3]
     if cs[C_OBS_INIT] != 1.0:
-        if observer_restart(cs, q, th_meas):
-            l1, l2, l3 = q[Q_OBS_F1], q[Q_OBS_F2], q[Q_OBS_F3]
+        gains = observer_restart(cs, q, th_meas)
+        if gains != 0:
+            l1, l2, l3 = q[Q_OBS_F1], q[Q_OBS_F2], q[Q_OBS_F3] if gains == 1 else 0.0
     e = th_meas - cs[C_OBS_TH]
     th = cs[C_OBS_TH] + l1 * e
     w = cs[C_OBS_W] + l2 * e
@@ -542,28 +544,33 @@ def observer_update(cs, q, meas, iq_a):
 def observer_restart(cs, q, th_meas):
     """The observer's start (C_OBS_INIT 0: the run's first period) and its re-acquisition after
     skipped plant states (C_OBS_INIT 2 + the periods since, set by
-    SpmsmController._bridge_skipped_periods). Re-acquiring: the angle from the encoder at once;
-    one speed sample on (Ns - 1 periods: inside the batch, so the batch's status has it) the
-    speed from the counts between; and the fast gains (observer_reacquire_pole_hz) for Q_OBS_ACQ_N
-    periods, which find the disturbance again (the skipped time may have held a command timeout's
-    safe state, and the relay moved). The disturbance itself is kept: a stalled controller does
-    not stop the rider. Returns whether this period uses the fast gains."""
+    SpmsmController._bridge_skipped_periods). Re-acquiring: the angle from the encoder count at
+    once; one speed sample on (Ns - 1 periods: inside the batch, so the batch's status has it)
+    the speed from the counts between (the batch's counts, as the controller's model of the
+    plant gives them from the measured speed); and the fast gains (observer_reacquire_pole_hz)
+    for Q_OBS_ACQ_N periods, which find the disturbance again (the skipped time may have held a
+    command timeout's safe state, and the relay moved). The disturbance itself is kept (a
+    stalled controller does not stop the rider) and frozen until the speed is taken: the
+    corrections against the gap's mean speed before it put -46 rad/s^2 into it for a 10 rad/s
+    start error. Returns the gains of this period: 0 the usual, 1 the fast ones, 2 the fast
+    ones with the disturbance frozen."""
     k = cs[C_OBS_INIT]
     if k == 0.0:
         cs[C_OBS_TH] = th_meas
         cs[C_OBS_W] = cs[C_SPEED_EST]
         cs[C_OBS_D] = 0.0
         cs[C_OBS_INIT] = 1.0
-        return False
+        return 0
     if k == 2.0:
         cs[C_OBS_TH0] = th_meas
         cs[C_OBS_TH] = th_meas
     elapsed = k - 2.0
-    if elapsed == max(q[Q_NS] - 1.0, 1.0):
+    speed_at = max(q[Q_NS] - 1.0, 1.0)
+    if elapsed == speed_at:
         cs[C_OBS_W] = (th_meas - cs[C_OBS_TH0]) / (elapsed * q[Q_DT])
         cs[C_OBS_TH] = th_meas
     cs[C_OBS_INIT] = 1.0 if elapsed >= max(q[Q_OBS_ACQ_N], q[Q_NS]) else k + 1.0
-    return True
+    return 2 if elapsed < speed_at else 1
 
 
 @njit(**JIT_HOT)
@@ -760,7 +767,9 @@ def control_period(cs, q, meas):
         inv = relay == M.REL_INVERTER or draining
         iq_ff = iqm if inv else 0.0
         was = cs[C_OBS_INV]                            # 0 off, 1 inverter, 2 draining
-        if cs[C_OBS_INIT] != 0.0 and inv != (was != 0.0):
+        # (not as the observer re-acquires after skipped plant states: the relay may have moved
+        # while they were skipped, and the current before them says nothing of now)
+        if cs[C_OBS_INIT] != 0.0 and cs[C_OBS_INIT] != 2.0 and inv != (was != 0.0):
             # feed-forward switched on / off (relay): the disturbance state takes over the
             # torque the feed-forward stops (or starts) explaining, so the estimate is bumpless.
             # Not off after a drain: its current (driven to zero, or above the link voltage's
@@ -966,24 +975,21 @@ class SpmsmController:
         """The plant ran ``periods`` control periods this controller never saw (realtime: it reads
         the newest plant state only, and skips what came while it was descheduled).
 
-        Observer: its prediction step (Kt iq fed forward through the nominal J and B, the
-        disturbance held) runs over them, so the encoder angle it is corrected with next is the
-        angle of the same instant. Left at the end of the last batch, the angle the shaft turned
-        in the gap was an angle error to the observer's gains (a 5 Hz triple pole): its speed
-        rose to 1.7x the shaft's after 30 ms skipped, 5.8x after 200 ms, for ~0.1 s (the mode
-        law's virtual speed, an app's km/h, with it). M method: its count difference would span
-        the gap too (the speed that many times too high): the next sample starts afresh and the
-        gap's mean speed stands until the one after. M/T needs nothing: its counts and capture ticks
-        span the same time.
+        Left at the end of the last batch, the observer took the angle the shaft turned in the
+        gap as an angle error to its gains (a 5 Hz triple pole): its speed rose to 1.7x the
+        shaft's after 30 ms skipped, 5.8x after 200 ms, for ~0.1 s (the mode law's virtual
+        speed, an app's km/h, with it). Now it re-acquires (:func:`observer_restart`): the angle
+        from the encoder, the speed from the counts of the next speed sample, the gap's mean
+        speed until then. A prediction run over the gap (Kt iq fed forward, the disturbance
+        held) did for gaps within the plant's command timeout, but past it the plant's safe
+        state then (gates off, the relay on the inverter: 5-7 N m of diode braking at 330
+        r/min) was a torque the model has no input for: after a 62-75 ms stall under load the
+        estimate read 0.26x - 1.33x the shaft's for ~0.1 s (restarted at the gap's mean speed
+        with the disturbance zeroed), 0.6x - 3x (predicted, or fitted to the count).
 
-        Observer: it re-acquires (:func:`observer_restart`): the angle from the encoder, the
-        speed from the counts of the next speed sample, the gap's mean speed until then. Its
-        prediction run over the gap (Kt iq fed forward, the disturbance held) did for gaps
-        within the plant's command timeout; past it the plant's safe state (gates off: a diode
-        rectifier, 5-7 N m of braking at 330 r/min) is a torque the model has no input for, and
-        after a 62-75 ms stall under load the estimate read 0.26x - 1.33x the shaft's for ~0.1 s
-        (restarted at the gap's mean speed with the disturbance zeroed), 0.6x - 3x (predicted,
-        or fitted to the count)."""
+        M method: its count difference would span the gap too (the speed that many times too
+        high): the next sample starts afresh and the gap's mean speed stands until the one
+        after. M/T needs nothing: its counts and capture ticks span the same time."""
         cs, q = self.cs, self.q
         # the gap's mean speed (C_CNT: the count of the last period decided, one before the gap)
         gap_mean = (count - cs[C_CNT]) * q[Q_RAD_PER_COUNT] / ((periods + 1) * q[Q_DT])

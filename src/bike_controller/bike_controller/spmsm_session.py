@@ -195,16 +195,6 @@ class ModedSpmsmController(SessionCommand):
     def batch_periods(self) -> int:
         return self.inner.batch_periods
 
-    @property
-    def skipped_state_gaps(self) -> int:
-        """Decides after skipped plant states (realtime, :class:`SpmsmController`)."""
-        return self.inner.skipped_state_gaps
-
-    @property
-    def skipped_periods(self) -> int:
-        """Control periods the skipped plant states covered."""
-        return self.inner.skipped_periods
-
     def _apply_mode(self, speed_rpm: float, dt_s: float, measured_em_torque_nm, sensor_sample=None,
                     heart_rate_bpm: float = 0.0, skipped_s: float = 0.0) -> None:
         """``dt_s``: the batch's time; ``skipped_s``: of the plant states skipped before this one

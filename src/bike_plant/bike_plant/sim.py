@@ -63,8 +63,11 @@ def as_gate_arrays(gates_a, gates_b, split):
 def _sector_rotations() -> np.ndarray:
     """ROTATE[k, g]: gate byte g (bit 2i: leg i high, bit 2i + 1: leg i low; legs U, V, W)
     turned k sectors (k x 60 deg electrical) forward. One sector is the legs' states negated
-    (high <-> low) and moved one leg back (U takes V's, V takes W's, W takes U's: 240 deg):
-    U+ V- (sector 1) -> U+ W- (sector 2) of the six-step sequence (paper 000, Fig. 6)."""
+    (high <-> low, 180 deg) and moved one leg back (U takes V's, V takes W's, W takes U's:
+    -120 deg): U+ V- -> U+ W-, the next step of the six-step sequence (paper 000, Fig. 6;
+    bldc.HALL_TO_SECTOR's sectors 0 -> 1). For odd k a pattern becomes its high / low mirror
+    (a freewheel on the low switches becomes one on the high ones): the same voltages on this
+    model's symmetric bridge."""
     table = np.zeros((6, 256), np.uint8)
     for g in range(256):
         x = g & 0x3F
@@ -100,10 +103,9 @@ class BldcPlant:
         self._last = BatchResult(np.zeros(0, np.uint64), np.zeros(0, np.uint8), 0.0, 0.0, 0.0,
                                  np.zeros((0, 3)), 0, 0, 0)
         self.safe = False
-        # the last batch's gate arrays and the Hall sectors passed since it began, for
-        # step_held_batch (which keeps them those of the batch it holds)
+        # the last batch's gate arrays and the Hall sector it began in, for step_held_batch
+        # (which keeps them those of the batch it holds)
         self.last_inputs = None
-        self.sectors_since = 0
 
     # ------------------------------------------------------------------ time
     @property
@@ -144,9 +146,8 @@ class BldcPlant:
         blanked0 = int(self.state[K.S_INTERLOCK])
         # per-batch fault bits: set again by the kernel if it happens in this batch
         self.state[K.S_FAULTS] = float(int(self.state[K.S_FAULTS]) & ~(K.FAULT_INTERLOCK | K.FAULT_OVERCURRENT))
+        self.last_inputs = (ga.copy(), gb.copy(), sp.copy(), self._sector())   # (the caller may reuse them)
         ne = K.step_batch(self.state, self.p, ga, gb, sp, edge_counts, edge_states, samples, sums)
-        self.last_inputs = (ga, gb, sp)
-        self.sectors_since = ne if self.state[K.S_OMEGA] >= 0.0 else -ne
         self.advance_heart()
         self.seq += 1
         self.batch_periods = n
@@ -161,17 +162,23 @@ class BldcPlant:
 
     def step_held_batch(self) -> BatchResult:
         """The last batch's gate decisions once more (realtime: no new command came in time),
-        turned by the Hall sectors the rotor has passed since that batch began
+        turned by the Hall sectors the rotor has moved since that batch began
         (:data:`ROTATE_SECTORS`): the same decisions relative to the rotor, to a sector. Replayed
         as they were, they switched the phases of a sector long past: a held resistance brake
         of 0.87 N m gave 0.20, a held 0.89 N m assist braked at 1.5 N m (3.8 N m ripple)."""
         if self.last_inputs is None:
             raise ValueError("no batch to hold yet")
-        (ga, gb, sp), since = self.last_inputs, self.sectors_since
-        k = since % 6
+        held = self.last_inputs
+        ga, gb, sp, sector0 = held
+        now = self._sector()
+        k = (now - sector0) % 6 if now >= 0 and sector0 >= 0 else 0    # (an invalid Hall code: as it was)
         result = self.step_batch(ROTATE_SECTORS[k][ga], ROTATE_SECTORS[k][gb], sp, checked=True)
-        self.last_inputs, self.sectors_since = (ga, gb, sp), since + self.sectors_since   # still the original's
+        self.last_inputs = held                         # still the held batch's
         return result
+
+    def _sector(self) -> int:
+        """The Hall sector the rotor is in (bldc.HALL_TO_SECTOR; -1: an invalid code)."""
+        return int(K.HALL_TO_SECTOR[int(self.state[K.S_HALL])])
 
     def advance_heart(self) -> None:
         """The rider's heart to the plant's time, on the ledger's rider energy (after every

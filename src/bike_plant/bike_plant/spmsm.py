@@ -1388,7 +1388,8 @@ class RiderLoad:
 def rotate_duties(duties: np.ndarray, angle_rad: float) -> np.ndarray:
     """Leg duties (N x 3) whose phase voltages are the given ones' turned by ``angle_rad``
     (electrical, Clarke / inverse Clarke of the duties without their common mode), centred
-    again by min-max common mode (as the controller's modulator) and clipped to [0, 1]."""
+    again by min-max common mode (SVPWM's; a sine-triangle modulator's held duties get it too,
+    which leaves the line voltages, and so the currents, as they are) and clipped to [0, 1]."""
     v = duties - duties.mean(axis=1, keepdims=True)
     alpha, beta = v[:, 0], (v[:, 1] - v[:, 2]) * (1.0 / math.sqrt(3.0))
     c, s = math.cos(angle_rad), math.sin(angle_rad)
@@ -1479,7 +1480,7 @@ class SpmsmPlant:
         if n and not (np.all(np.isfinite(rr)) and np.all(np.isfinite(bd))):
             raise ValueError("relay_request and buck_duty must be finite")
         self.before_batch(n)
-        self.last_inputs = (d, rr, bd, self.rotor_turned_rad)
+        self.last_inputs = (d.copy(), rr, bd, self.rotor_turned_rad)      # (the caller may reuse d)
         samples = np.zeros((n, 3))
         sums = np.zeros(3)
         self.state[S_FAULTS] = 0.0
