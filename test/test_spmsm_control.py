@@ -273,6 +273,51 @@ def test_generating_mode_brakes_with_the_demanded_torque(cfg):
     assert led["energy_battery_j"] > 0 and abs(led["residual_j"]) < 1e-9
 
 
+def _drain_torques(c, torque_nm, speed_rpm=340.0):
+    """Inverter torque command against a prime mover, then the relay to the rectifier: the
+    mean torques of the batches through the drain (5 ms timeout), the faults, the ledger."""
+    c = variant(c, spmsm={"rs_ohm": LOW_R}, load={"kind": "prime_mover", "speed_rpm": speed_rpm},
+                mechanics={"speed0_rpm": speed_rpm})
+    plant = M.SpmsmPlant(M.plant_params_from_config(c))
+    ctrl = C.SpmsmController(c)
+    ctrl.reset_from(plant.state)
+    ctrl.set_torque_command(torque_nm)
+    torques, faults = [], 0
+    for k in range(60):
+        if k == 40:
+            ctrl.set_relay(True)
+        res = plant.step_batch(*ctrl.decide(plant.state, 10)[:3])
+        if k >= 40:
+            torques.append(res.torque_em_nm)
+            faults |= res.faults
+    return np.array(torques), faults, plant.ledger()
+
+
+@pytest.mark.parametrize("torque_nm", [0.0, 2.0])
+def test_a_drain_above_the_base_speed_does_not_brake(cfg, torque_nm):
+    """Above ~180 r/min the 24 V link cannot drive the current to zero against the back-EMF,
+    and the relay opens under current after its drain timeout. The drain holds iq at zero in
+    flux weakening meanwhile: with id* = 0 the inverter generated, from no torque to -3.5 N m
+    at 340 r/min when the relay opened (-3.6 from a 2 N m assist)."""
+    torques, faults, led = _drain_torques(cfg, torque_nm)
+    drain = torques[1:5]                 # the relay opens in the 6th batch
+    assert drain.min() > -0.7 and abs(torques[4]) < 0.3, torques
+    assert faults & M.FAULT_RELAY_FORCED and abs(led["residual_j"]) < 1e-9
+
+
+def test_the_drains_id_is_zero_below_the_base_speed_and_on_the_voltage_limit_above(cfg):
+    q = C.pack_controller(C.controller_params_from_config(variant(cfg, spmsm={"rs_ohm": LOW_R})),
+                          M.nominal_params_from_config(variant(cfg, spmsm={"rs_ohm": LOW_R})))
+    vlim = q[C.Q_VMARGIN] * q[C.Q_VMAX]
+    for rpm in (50.0, 150.0):
+        assert C.drain_id_reference(q[C.Q_PP] * rpm / M.RPM_PER_RAD_S, vlim, q) == 0.0
+    for rpm in (250.0, 340.0, 500.0):
+        we = q[C.Q_PP] * rpm / M.RPM_PER_RAD_S
+        idr = C.drain_id_reference(we, vlim, q)
+        assert idr < 0.0
+        assert abs(M.steady_state_voltage(idr, 0.0, we, q[C.Q_R], q[C.Q_L], q[C.Q_LAM])) == pytest.approx(vlim)
+
+
 def test_switching_model_runs_the_same_loop(cfg):
     c = variant(cfg, spmsm={"rs_ohm": LOW_R}, load={"kind": "dynamometer", "dyno_time_s": [0.0],
                                                     "dyno_torque_nm": [1.0]},

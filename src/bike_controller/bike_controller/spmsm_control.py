@@ -487,6 +487,32 @@ def limit_voltage(vd, vq, id_a, iq_a, we, vmax, q):
     return vs.real + alpha * dx, vs.imag + alpha * dy
 
 
+@njit(**JIT_INLINE)
+def drain_id_reference(we, vlim, q):
+    """id* of a relay drain (iq* = 0): the one closest to zero whose steady-state voltage
+    (R + j we L) id + j we lambda is within vlim, at most Imax. Below the base speed 0; above,
+    the flux-weakening id of no torque, ~-(lambda - vlim / we) / L: there zero current is out
+    of the link's reach, and id* = 0 turned the machine into a generator through the inverter
+    until the drain timeout forced the relay open (340 r/min from no torque: -3.5 N m at the
+    opening, -1.2 on the 5 ms mean; from a 2 N m assist -3.6; now 0.0). A braking current the
+    drain starts from still decays only as fast as the voltage left over the back-EMF lets it
+    (~0.04 A per period near the edge): -5 N m at 340 r/min is -2.5 at the opening (was -3.8).
+    With the Imax clip, the link's voltage beyond it (over speed) is the limiter's to share."""
+    r = q[Q_R]
+    xl = we * q[Q_L]
+    e = we * q[Q_LAM]
+    # |(r + j xl) id + j e|^2 = vlim^2: (r^2 + xl^2) id^2 + 2 xl e id + e^2 - vlim^2 = 0
+    if e * e <= vlim * vlim:
+        return 0.0
+    a = r * r + xl * xl
+    disc = xl * xl * e * e - a * (e * e - vlim * vlim)
+    if disc < 0.0:
+        idr = -xl * e / a           # iq = 0 beyond the voltage disc: its least-voltage id
+    else:
+        idr = (-xl * e + math.sqrt(disc)) / a
+    return max(idr, -q[Q_IMAX])
+
+
 @njit(**JIT_HOT)
 def speed_sample(cs, q, meas):
     """M/T speed estimate from the encoder count and the last edge's capture time."""
@@ -795,8 +821,11 @@ def control_period(cs, q, meas):
     cs[C_SUB] = 0.0 if sub >= ns else sub            # (no integer modulo in the hot path)
     cs[C_TORQUE_EST] = q[Q_TORQUE_K] * iqm
     if draining:
-        # relay switch-over pending: the inverter drives the current to zero first
-        cs[C_ID_REF] = 0.0
+        # relay switch-over pending: the inverter drives the current to zero first, or, above
+        # the base speed, where the link cannot oppose the back-EMF, to no torque (iq = 0 at the
+        # flux-weakening id, drain_id_reference) until the relay opens
+        cs[C_ID_REF] = drain_id_reference(pp * cs[C_SPEED_EST], q[Q_VMARGIN] * q[Q_VMAX], q) \
+            if q[Q_FW] != 0.0 else 0.0
         cs[C_IQ_REF] = 0.0
         cs[C_SPEED_ACTIVE] = 0.0
     elif relay != M.REL_INVERTER:
