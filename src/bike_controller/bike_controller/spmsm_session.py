@@ -150,7 +150,7 @@ class ModedSpmsmController(SessionCommand):
         # the observer's pole: the paper's (fitted to Table 1's load step), and the isokinetic
         # speed loop's (see _apply_mode)
         self.observer_poles_hz = (cp.observer_pole_hz, cp.isokinetic_observer_pole_hz)
-        self.observer_fast = False
+        self.speed_loop_active = False
         self.kt = float(nominal.spmsm.torque_constant_nm_per_a)
         fig = machine_figures(cfg)
         tmax, base = fig.tmax_nm, fig.base_speed_rpm
@@ -207,14 +207,14 @@ class ModedSpmsmController(SessionCommand):
         inner.set_no_assist(self.pack.empty(self.battery_soc))
         full = self._pack_full()
         speed_loop = self.mode == MODE_ISOKINETIC and not out.ramping and not full
-        if speed_loop != self.observer_fast:
+        if speed_loop != self.speed_loop_active:
             # The speed loop closes on the observer's estimate, and the rider's pedal strokes (a
             # 2-5 Hz load torque) reach the estimate through the observer's pole: at the paper's
             # 5 Hz the estimate lagged the shaft by 24 r/min rms at 80 rpm; at 50 rpm (a rider
             # who wants 80) by 93, and the loop held the estimate at 200 r/min while the shaft
             # ran 150-440. The other modes' laws were tuned on the 5 Hz estimate (a faster one
             # makes the virtual bike's descent track 0.20 m/s rms for 0.14), so they keep it.
-            self.observer_fast = speed_loop
+            self.speed_loop_active = speed_loop
             inner.set_observer_pole(self.observer_poles_hz[int(speed_loop)])
         if speed_loop:
             self.trim.reset()
@@ -310,7 +310,11 @@ class ModedSpmsmController(SessionCommand):
             # the law's integrators hold on it as the trim does (hold_last): no wind-up on an
             # assist the 24 V link cannot give
             self.law.hold_integral()
-        if self.inverter_limited and self.last_out is not None and not self.last_out.saturated:
+        # ... and so is the isokinetic speed loop's torque, which the region logic clipped at the
+        # current or the link's voltage limit: a rider who outpushes the brake (one who wants 80
+        # rpm held at 50 averaged 75 rpm, and nothing said so)
+        limited = self.inverter_limited or (self.speed_loop_active and int(status["limits"]) != 0)
+        if limited and self.last_out is not None and not self.last_out.saturated:
             self.last_out = dataclasses.replace(self.last_out, saturated=True)
         return duties, relay, buck, self._status(status)
 
