@@ -1530,32 +1530,31 @@ def test_a_held_command_keeps_its_torque_relative_to_the_rotor(machine, ride):
     rectifier path's buck duty needs no turning). Held relative to the rotor (BLDC to a Hall
     sector, SPMSM by the angle turned) they give the torque the controller would have asked
     over 45 held batches, of the same sign: BLDC within 30 % (sector quantisation), SPMSM
-    within 10 %."""
+    within 10 %. Run through the plant node's backend and the DriveCommand's CDR view, as the
+    node's realtime loop applies them (``apply(msg, held=True)`` for a held batch)."""
     from bike_controller.session_control import ModedController
     from bike_controller.spmsm_session import ModedSpmsmController
-    from bike_plant import spmsm as M
+    from bike_plant import msgconv
     from bike_plant.config import load_config
-    from bike_plant.params import plant_params_from_config
-    from bike_plant.sim import BldcPlant
+    from bike_plant.node import make_backend
     cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / f"{machine}_default.yaml")
+    build = msgconv.drive_command_cdr if machine == "bldc" else msgconv.spmsm_drive_cdr
 
     def run(hold: str):
-        if machine == "bldc":
-            plant, ctrl = BldcPlant(plant_params_from_config(cfg)), ModedController(cfg)
-        else:
-            plant, ctrl = M.SpmsmPlant(M.plant_params_from_config(cfg)), ModedSpmsmController(cfg)
+        backend = make_backend("sim", cfg, 0)
+        ctrl = ModedController(cfg) if machine == "bldc" else ModedSpmsmController(cfg)
         ctrl.set_command(ride[1], ride[0])
         torques = []
         for k in range(1045):
             if k < 1000 or hold == "fresh":
-                answer = ctrl.decide(dict(plant.snapshot(), batch_periods=ctrl.batch_periods))[:3]
-                result = plant.step_batch(*answer)
-            elif hold == "held":
-                result = plant.step_held_batch()
-            else:                                        # replayed as it was
-                result = plant.step_batch(*answer)
+                answer = ctrl.decide(dict(backend.plant.snapshot(), batch_periods=ctrl.batch_periods))[:3]
+                msg = msgconv.DriveCommandView(build(k, *answer, msgconv.seconds_to_ns(backend.time_s)))
+                assert backend.problem(msg, ctrl.batch_periods) is None
+                backend.apply(msg)
+            else:                                        # held, or replayed as it was
+                backend.apply(msg, held=hold == "held")
             if k >= 1000:
-                torques.append(result.torque_em_nm)
+                torques.append(backend.plant.snapshot()["torque_em_nm"])
         return float(np.mean(torques))
     fresh, held, replayed = run("fresh"), run("held"), run("replayed")
     assert abs(fresh) > 0.2 and held * fresh > 0.0, (fresh, held)

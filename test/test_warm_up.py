@@ -76,8 +76,8 @@ def check_plant(config):
                                         np.full(n, 0.3, np.float32), 0)
     view = msgconv.DriveCommandView(raw)
     assert backend.problem(view, n) is None
-    for _ in range(3):
-        backend.apply(view)
+    for held in (False, False, True, True):        # fresh, fresh, held twice (realtime)
+        backend.apply(view, held=held)
     backend.safe_batch(n)
     backend.snapshot()
     assert backend.time_s > 0

@@ -153,7 +153,7 @@ class StartupTimeout(ConfigError):
 # ---------------------------------------------------------------- backends
 class SimBackend:
     """The simulated BLDC bike (bike_plant.sim.BldcPlant) behind the node's backend interface:
-    time_s, snapshot(), problem(msg, n), apply(msg), safe_batch(n), set_safe(on)."""
+    time_s, snapshot(), problem(msg, n), apply(msg, held), safe_batch(n), set_safe(on)."""
 
     name = "sim"
     measured_by_drive = False
@@ -161,14 +161,14 @@ class SimBackend:
     def problem(self, msg, n: int) -> str | None:
         return msgconv.drive_command_problem(msg, n)
 
-    def apply(self, msg) -> None:
-        """A DriveCommand that passed problem(): its arrays go to the kernel as they are; the
-        same one again (held, realtime) relative to the rotor (BldcPlant.step_held_batch)."""
+    def apply(self, msg, held: bool = False) -> None:
+        """A DriveCommand that passed problem(): its arrays go to the kernel as they are; held
+        (realtime: the loop re-applies last batch's command) relative to the rotor
+        (BldcPlant.step_held_batch)."""
         self.plant.set_rider_cadence(msg.rider_cadence_rpm, stop=bool(msg.rider_stops_pedalling))
-        if msg is self.applied and self.plant.last_inputs is not None:
+        if held and self.plant.last_inputs is not None:
             self.plant.step_held_batch()
             return
-        self.applied = msg
         self.plant.step_batch(*msgconv.drive_arrays(msg), checked=True)
 
     def __init__(self, cfg: dict, seed: int):
@@ -176,7 +176,6 @@ class SimBackend:
         from .sim import BldcPlant
 
         self.plant = BldcPlant(plant_params_from_config(cfg), seed=seed)
-        self.applied = None          # the DriveCommand applied last (the node re-applies it when held)
 
     @property
     def time_s(self) -> float:
@@ -186,7 +185,6 @@ class SimBackend:
         return self.plant.snapshot()
 
     def safe_batch(self, n: int) -> None:
-        self.applied = None
         self.plant.step_batch(*self.plant.safe_gates(n))
 
     def warm_up(self, n: int) -> None:
@@ -216,7 +214,6 @@ class SpmsmSimBackend:
         except ValueError as exc:
             raise ConfigError(str(exc), cfg.get("_config_path")) from None
         self.n_last = 0
-        self.applied = None          # the DriveCommand applied last (the node re-applies it when held)
 
     @property
     def time_s(self) -> float:
@@ -237,16 +234,15 @@ class SpmsmSimBackend:
     def problem(self, msg, n: int) -> str | None:
         return msgconv.spmsm_drive_problem(msg, n)
 
-    def apply(self, msg) -> None:
+    def apply(self, msg, held: bool = False) -> None:
+        """As SimBackend.apply; held keeps the command's rotor-frame voltage (SpmsmPlant.step_held_batch)."""
         self.plant.set_rider_cadence(msg.rider_cadence_rpm, stop=bool(msg.rider_stops_pedalling))
-        if msg is self.applied and self.plant.last_inputs is not None:
-            self.plant.step_held_batch()         # realtime: held, its rotor-frame voltage kept
+        if held and self.plant.last_inputs is not None:
+            self.plant.step_held_batch()
             return
-        self.applied = msg
         self.plant.step_batch(*msgconv.spmsm_drive_arrays(msg))
 
     def safe_batch(self, n: int) -> None:
-        self.applied = None
         self.plant.set_safe_state()
         try:
             self.plant.step_safe_batch(n)
@@ -620,8 +616,9 @@ class PlantNode(Node):
         self.pub_diag.publish(arr)
 
     # ------------------------------------------------------------ applying commands
-    def _apply(self, msg: DriveCommand | None) -> bool:
-        """Apply batch k: a valid DriveCommand, or all gates off (None / a rejected command).
+    def _apply(self, msg: DriveCommand | None, held: bool = False) -> bool:
+        """Apply batch k: a valid DriveCommand, or all gates off (None / a rejected command);
+        ``held``: ``msg`` is last batch's command again (realtime, no new one came).
         Returns False if ``msg`` was rejected."""
         try:
             if msg is None:
@@ -630,7 +627,7 @@ class PlantNode(Node):
             problem = self.backend.problem(msg, self.n)
             if problem is None:
                 try:
-                    self.backend.apply(msg)
+                    self.backend.apply(msg, held)
                     self.node_faults &= ~PlantState.FAULT_BAD_COMMAND
                     return True
                 except ValueError as exc:       # the model's own validation
@@ -912,10 +909,11 @@ class PlantNode(Node):
                         self.node_faults &= ~PlantState.FAULT_COMMAND_TIMEOUT
                         timed_out = False
                     msg = self.latest
-                    if msg is applied:
-                        self.stats["held_batches"] += 1
+            held = msg is not None and msg is applied
+            if held:
+                self.stats["held_batches"] += 1
             applied = msg
-            if not self._apply(msg) and self.latest is msg:
+            if not self._apply(msg, held) and self.latest is msg:
                 self.latest = None           # do not hold a rejected command
             if self._finished():
                 self._end_of_run()

@@ -1032,8 +1032,10 @@ class CanBackend:
             self.submit_latency_s.append(self.clock() - t0)
         return ok
 
-    def apply(self, msg) -> None:
-        """One batch with DriveCommand ``msg`` (validated by :meth:`problem`)."""
+    def apply(self, msg, held: bool = False) -> None:  # noqa: ARG002
+        """One batch with DriveCommand ``msg`` (validated by :meth:`problem`). ``held`` needs
+        nothing here: the drive's own current loop holds a torque setpoint, and a setpoint is
+        sent once (again only while ramping or after it was cleared)."""
         self.setpoint_nm = self._torque_of(msg)
         self.commanded = True
         if self.drive_enabled and (msg is not self.sent_msg or self.ramping):
