@@ -572,6 +572,54 @@ def test_a_session_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_
         col.close()
 
 
+def test_a_running_session_that_its_peers_cannot_reach_starts_over_on_fresh_ports(domain):
+    """Running, the session hears the plant's /clock, yet a peer writes to a deleted segment of
+    its port: after a kill -9 a restarted session took the killed one's port, the plant's
+    watchdog re-opened it but the test's reader never did, and its SessionStatus never reached
+    the test (CI, 2026-12-07). The signature is forced here without the kill: the test process
+    maps the running session's port segments and removes their names, as the new participant
+    that takes a killed one's port does (the plant and controller, which write to it, then map
+    a deleted segment too). Seen at two looks in a row (DEAF_CHECK_S apart) it is no healing
+    watchdog's: the session says so, names the writers, starts over on fresh ports and goes on
+    following /clock: its statuses and Commands reach the test again."""
+    import mmap
+    import os
+    col = Collector(domain, {"session_status": SessionStatus, "command": Command})
+    procs = []
+    maps = []
+    try:
+        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+        session = NodeProcess("bike_session", "session_node", domain,
+                              {"duration_s": 600.0, "config_path": str(CONFIG)})
+        procs += [plant, ctrl, session]
+        statuses = col.data["session_status"]
+        col.wait_for(lambda: any(m.state == SessionStatus.STATE_RUNNING for m in statuses), 30,
+                     "the session running", procs)
+        ports = shm_ports.own_ports(session.pid)
+        assert ports, "the session's shared-memory ports"
+        for port in ports:
+            path = os.path.join(shm_ports.SHM_DIR, f"fastrtps_port{port}")
+            with open(path, "r+b") as f:
+                maps.append(mmap.mmap(f.fileno(), 0))
+            os.unlink(path)
+        col.wait_for(lambda: "on fresh shared-memory ports" in session.output(), 30,
+                     "the session starting over on fresh ports", procs)
+        out = session.output()
+        assert re.search(rf"pid\(s\) [\d, ]*\b{os.getpid()}\b[\d, ]* still write to a deleted segment", out), out[-3000:]
+        mark, commands = len(statuses), col.data["command"]
+        command_mark = len(commands)
+        col.wait_for(lambda: any(m.state == SessionStatus.STATE_RUNNING for m in statuses[mark:]), 30,
+                     "the started-over session's RUNNING status at the test", procs)
+        col.wait_for(lambda: len(commands) > command_mark + 10, 30, "the started-over session's Commands", procs)
+        _started_over(session, plant.pid)
+    finally:
+        stop_all(procs)
+        col.close()
+        for m in maps:
+            m.close()
+
+
 def test_a_session_without_a_plant_says_waiting_every_second(domain):
     """Before the first /clock the session re-publishes its WAITING status every second (and
     looks for a stale port then): its timer runs on the steady clock, because under the
