@@ -914,7 +914,8 @@ class CanBackend:
             self._event("error", f"gave up arming the drive after {self.arm_attempts} attempts ("
                                  f"{self._axis_text()}, errors {errors}): "
                                  "FAULT_DRIVE_DISARMED stays, sim time paused; fix the drive, then the plant re-arms "
-                                 "when its errors change or after it reboots (or in a new run)")
+                                 "when its errors change or after it reboots (or in a new run), or takes it over "
+                                 "when it is armed by other means (odrivetool)")
             return
         self._arm(now)
 
@@ -1214,7 +1215,8 @@ class CanBackend:
                 max_attempts = p.enable_max_attempts or "unlimited"
                 if self.gave_up:
                     why = (f"gave up re-arming after {self.arm_attempts} attempts; the plant tries again when the "
-                           "drive's errors change or after it reboots (or in a new run)")
+                           "drive's errors change or after it reboots (or in a new run), or takes it over when it "
+                           "is armed by other means")
                 elif self.commanded and not self.safe:
                     why = (f"re-arming (Clear_Errors + closed loop), attempt {self.arm_attempts} of {max_attempts}, "
                            f"next in {max(0.0, self.last_enable_s + self.retry_interval_s() - now):.1f}s")
