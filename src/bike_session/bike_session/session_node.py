@@ -594,9 +594,10 @@ def _make_node_class():
             After a kill -9 the killed node's peers keep such a handle until their port watchdog
             re-opens the port: 0.5-3 s after a restarted node took it (measured here, 6 of 8
             restarts), for good when the kill landed in the listener's window (bike_plant.shm_ports).
-            The /clock writer may be healed while another is not: seen in CI, a restarted session
-            that followed the plant's /clock but whose SessionStatus never reached the test's
-            reader (its discovery data went into the deleted segment). It says so and starts over
+            The /clock writer may be healed while another is not: seen once in CI, a restarted
+            session that followed the plant's /clock but whose SessionStatus never reached the
+            test's reader (most likely its handle, and with it its discovery data, stayed on the
+            deleted segment). It says so and starts over
             on fresh ports (main()): the profile is a function of sim time, so the new participant
             follows /clock with the same Commands. Looked for STALE_PEER_CHECKS times from
             start-up; a handle on a deleted segment is one taken before this node started."""
