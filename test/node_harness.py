@@ -133,6 +133,23 @@ def stop_all(procs, timeout: float = 5.0) -> list[int | None]:
     return codes
 
 
+def _writers_to_deleted_ports_of(pid: int) -> dict:
+    """{port: [pid, ...]} of live processes, this test's included, that map a deleted segment
+    of one of ``pid``'s shared-memory ports ({} when it has none or is gone)."""
+    from bike_plant import shm_ports
+    try:
+        ports = shm_ports.own_ports(pid)
+        found = shm_ports.writers_to_deleted(ports)
+        with open(f"/proc/{os.getpid()}/maps", "rb") as f:
+            mine = f.read()
+    except OSError:
+        return {}
+    for port in ports:
+        if f"/fastrtps_port{port} (deleted)".encode() in mine:
+            found.setdefault(port, []).append(os.getpid())
+    return found
+
+
 class Collector:
     """The test's own node: records what the bike publishes, publishes what the test needs."""
 
@@ -217,6 +234,11 @@ class Collector:
         logs = []
         for p in procs:
             logs.append(f"--- {p.name}:\n{p.output()[-3000:]}")
+            stale = _writers_to_deleted_ports_of(p.pid)
+            if stale:
+                logs.append(f"--- {p.name}: live processes still write to deleted segments of its shared-memory "
+                            f"ports (Fast DDS stale port, bike_plant.shm_ports; this test is pid {os.getpid()}): "
+                            f"{stale}")
             stacks = p.stacks()
             if stacks:
                 logs.append(f"--- {p.name}, its threads at the timeout:\n{stacks[-6000:]}")
