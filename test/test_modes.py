@@ -838,13 +838,55 @@ def test_spmsm_descent_with_the_virtual_bike_does_not_chatter_the_relay():
     gives in flux weakening (it was held 30 % low), 3 times, twice under current. With the
     hold 0 this had grown to 33 switch-overs, 16 under current, the law's sign flipping 129
     times: each drain's id* = 0 made the inverter generate, up to -3.5 N m, which the virtual
-    bike took for the rider's. Since the drain holds iq at 0 in flux weakening: 5, twice, 7.)"""
+    bike took for the rider's. Since the drain holds iq at 0 in flux weakening: 5, twice, 7.
+    The inverter's pre-drain (relay_predrain_s) leaves this ride as it was: those two forced
+    openings carried the flux-weakening id at 0.01-0.02 N m.)"""
     switches, forced, flips, ctrl = _spmsm_ride(0.5)
     assert flips > 10, f"the law's torque changed sign {flips} times: the ride does not test the relay"
     assert switches <= 1 and forced == 0, (switches, forced)
     assert ctrl.last_out is not None
     switches, forced, _, _ = _spmsm_ride(0.0)
     assert switches >= 3 and forced >= 2, (switches, forced)
+
+
+def _spmsm_switch_to_resistance(predrain_s: float):
+    """The default SPMSM bike (rider): 3 s of the isokinetic speed loop (Command 0.5), which
+    brakes on the inverter, then resistance (Command 0.8), which moves the relay to the
+    rectifier after its hold. Returns the mean torques of the batches the relay drained in,
+    the batches it was forced open in, and the relay's switch-overs."""
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import load_config
+
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+    cfg["controller"] = dict(cfg["controller"], relay_predrain_s=predrain_s)
+    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+    ctrl = ModedSpmsmController(cfg)
+    ctrl.set_command(0.5, MODE_ISOKINETIC)
+    drain, forced = [], 0
+    for k in range(4000):
+        if k == 3000:
+            ctrl.set_command(0.8, MODE_RESISTANCE)
+        draining = plant.state[M.S_RELAY] == M.REL_DRAIN
+        res = _spmsm_batch(plant, ctrl)
+        if draining:
+            drain.append(res.torque_em_nm)
+        forced += bool(res.faults & M.FAULT_RELAY_FORCED)
+    return np.array(drain), forced, ctrl.relay.switches
+
+
+def test_spmsm_switch_over_from_an_inverter_brake_drains_no_braking_current():
+    """Paper 001, Fig. 2/8: the session law moves the relay from the inverter, braking for the
+    isokinetic loop at ~340 r/min, to the rectifier. The inverter takes iq to zero before it asks
+    the relay: the drain's batches then hold no torque (-0.12 N m on the mean, cogging and EMF
+    harmonics within +-0.72) and the forced opening (above the base speed) carries the
+    flux-weakening id only (-0.2 N m of iq, was -3.2). Asked at once, the drain's batches braked
+    at -2.9 N m on the mean (-3.3 to -3.8 until the relay opened)."""
+    drain, forced, switches = _spmsm_switch_to_resistance(0.05)
+    assert switches == 1 and forced == 1 and len(drain) >= 4, (drain, forced, switches)
+    assert abs(drain.mean()) < 0.5 and np.all(np.abs(drain) < 1.0), drain
+    drain, forced, switches = _spmsm_switch_to_resistance(0.0)
+    assert switches == 1 and forced == 1 and drain.mean() < -2.5, (drain, forced, switches)
 
 
 def test_spmsm_full_pack_brakes_through_the_dump_resistor(caplog, monkeypatch):

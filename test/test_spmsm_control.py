@@ -305,6 +305,68 @@ def test_a_drain_above_the_base_speed_does_not_brake(cfg, torque_nm):
     assert faults & M.FAULT_RELAY_FORCED and abs(led["residual_j"]) < 1e-9
 
 
+def _relay_opening(c, torque_nm, speed_rpm, predrain_s=None):
+    """Inverter torque command against a prime mover (0.8 s: the speed observer settled), then
+    the relay to the rectifier, stepped period by period. Returns the torque Kt iq and the
+    currents just before the relay opened, whether the opening was forced, and the times from
+    the request to the relay's drain and to the opening [s]."""
+    ctl = {} if predrain_s is None else {"relay_predrain_s": predrain_s}
+    c = variant(c, spmsm={"rs_ohm": LOW_R}, load={"kind": "prime_mover", "speed_rpm": speed_rpm},
+                mechanics={"speed0_rpm": speed_rpm}, controller=ctl)
+    plant = M.SpmsmPlant(M.plant_params_from_config(c))
+    ctrl = C.SpmsmController(c)
+    ctrl.reset_from(plant.state)
+    ctrl.set_torque_command(torque_nm)
+    s = plant.state
+    for _ in range(800):
+        plant.step_batch(*ctrl.decide(s, 10)[:3])
+    ctrl.set_relay(True)
+    kt = ctrl.q[C.Q_KT]
+    out = {"drain_s": None}
+    for k in range(600):
+        duties, relay, buck = ctrl.decide(s, 10)[:3]
+        for j in range(10):
+            t = (10 * k + j) * 1e-4
+            if out["drain_s"] is None and relay[j] >= 0.5:
+                out["drain_s"] = t
+            rel, i_d, i_q = s[M.S_RELAY], s[M.S_ID], s[M.S_IQ]
+            res = plant.step_batch(duties[j:j + 1], relay[j:j + 1], buck[j:j + 1])
+            if rel != M.REL_DEAD and s[M.S_RELAY] == M.REL_DEAD:
+                return out | {"torque_nm": kt * i_q, "id_a": i_d, "iq_a": i_q, "open_s": t,
+                              "forced": bool(res.faults & M.FAULT_RELAY_FORCED)}
+    raise AssertionError("the relay never opened")
+
+
+@pytest.mark.parametrize("torque_nm,speed_rpm", [(-5.0, 340.0), (-16.0, 340.0), (2.0, 340.0), (-5.0, 100.0),
+                                                 (-2.0, 150.0)])
+def test_a_switch_over_from_the_inverter_takes_iq_to_zero_before_the_relay_moves(cfg, torque_nm, speed_rpm):
+    """Paper 001, Fig. 2/8 relay path: the inverter takes iq to zero first and asks the relay
+    after (relay_predrain_s). Asked at once, a braking current decayed only as fast as the
+    voltage over the back-EMF let it, and the 5 ms drain timeout forced the relay open under
+    it: -5 N m at 340 r/min was -3.1 N m at the opening (-6.0 from -16 N m); at 100 r/min -0.6,
+    forced, where zero current is reachable. Above the base speed the opening stays forced
+    (the flux-weakening id of no torque), now without torque; below it the relay opens itself."""
+    o = _relay_opening(cfg, torque_nm, speed_rpm)
+    assert abs(o["torque_nm"]) < 0.1, o
+    assert o["drain_s"] <= 0.015 and o["open_s"] <= 0.02, o       # predrain_s 50 ms: iq got there
+    if speed_rpm > 200.0:
+        assert o["forced"] and o["id_a"] < -5.0, o
+    else:
+        assert not o["forced"] and math.hypot(o["id_a"], o["iq_a"]) < 0.02, o
+    if torque_nm < 0.0:
+        # without the pre-drain the same switch-over opens under the braking current
+        old = _relay_opening(cfg, torque_nm, speed_rpm, predrain_s=0.0)
+        assert old["forced"] and old["torque_nm"] < -0.25 and old["drain_s"] == 0.0, old
+
+
+def test_the_pre_drain_asks_the_relay_after_relay_predrain_s_at_most(cfg):
+    """A current the inverter cannot take to zero in time does not hold the relay for longer
+    than relay_predrain_s: the relay's drain and its timeout follow as before."""
+    o = _relay_opening(cfg, -5.0, 340.0, predrain_s=0.003)
+    assert o["drain_s"] == pytest.approx(0.003, abs=1e-9) and o["forced"], o
+    assert o["open_s"] == pytest.approx(0.008, abs=1e-9) and o["torque_nm"] < -1.0, o
+
+
 def test_the_drains_id_is_zero_below_the_base_speed_and_on_the_voltage_limit_above(cfg):
     q = C.pack_controller(C.controller_params_from_config(variant(cfg, spmsm={"rs_ohm": LOW_R})),
                           M.nominal_params_from_config(variant(cfg, spmsm={"rs_ohm": LOW_R})))

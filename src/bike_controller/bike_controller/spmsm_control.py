@@ -99,7 +99,9 @@ load torque is seen and with it the load-step drop and recovery of both families
 default 5 Hz is calibrated on the paper's Fig. 11b (config comment).
 
 Generating (relay on the rectifier path): the braking torque demand sets the buck duty by
-inverting the rectifier's steady state (bike_plant.spmsm.rectifier_steady_state).
+inverting the rectifier's steady state (bike_plant.spmsm.rectifier_steady_state). A switch-over
+from the inverter (paper 001, Fig. 2/8) first takes iq towards zero on the inverter, and only then
+asks the relay to move (at most ``relay_predrain_s``): the relay's drain then starts from no torque.
 """
 from __future__ import annotations
 
@@ -159,7 +161,11 @@ Q_INV_JN = 51           # 1 / nominal J
 Q_INV_ILSB = 52         # 1 / ADC step (0 without the ADC)
 # the observer's gains while it re-acquires after skipped plant states, and for how many periods
 Q_OBS_F1, Q_OBS_F2, Q_OBS_F3, Q_OBS_ACQ_N = 53, 54, 55, 56
-Q_SIZE = 57
+# a switch-over from the inverter: the periods iq may take to reach zero before the relay is asked
+# anyway, the |iq| [A] at which it is asked, and the voltage [V] its id is planned below the drain's
+# (control_period)
+Q_PREDRAIN_N, Q_PREDRAIN_IQ, Q_PREDRAIN_DV = 57, 58, 59
+Q_SIZE = 60
 
 (C_SUB, C_SPEED_EST, C_SPEED_PREV, C_REF_COUNT, C_REF_TICKS, C_HAVE_REF, C_SPEED_REF, C_SPEED_REF_NEXT,
  C_IQ_DEMAND, C_ID_REF, C_IQ_REF, C_IQ_REF_PREV, C_E_SPEED_PREV, C_ID, C_IQ, C_ID_PREV, C_IQ_PREV, C_VDP_PREV,
@@ -178,7 +184,9 @@ C_NO_ASSIST = 64
 C_DV_FLOOR_V, C_DV_MISSED = 65, 66
 # the encoder angle a re-acquisition of the observer started from (observer_restart)
 C_OBS_TH0 = 67
-C_SIZE = 68
+# periods the inverter has held the relay request back while taking iq to zero (control_period)
+C_PREDRAIN_N = 68
+C_SIZE = 69
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -239,6 +247,12 @@ def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> n
     q[Q_VMAX] = q[Q_VMAX_FACTOR] * q[Q_VDC]
     q[Q_HALF_DT2] = 0.5 * dt * dt
     q[Q_TORQUE_K] = 1.5 * q[Q_PP] * q[Q_LAM]
+    q[Q_PREDRAIN_N] = round(cp.relay_predrain_s / dt)
+    # 1 % of Imax (0.16 N m): above the EMF harmonics' iq ripple at the voltage edge (~0.06 A).
+    # (Handed over at 1 A, the drain's 5 ms took the rest on a prime mover, but in a session,
+    # the shaft speeding up once the brake went, 0.4-0.5 N m were left at the opening, 0.2 now)
+    q[Q_PREDRAIN_IQ] = 0.01 * cp.current_limit_a
+    q[Q_PREDRAIN_DV] = 0.2 * q[Q_VMAX]
     return q
 
 
@@ -494,9 +508,10 @@ def drain_id_reference(we, vlim, q):
     the flux-weakening id of no torque, ~-(lambda - vlim / we) / L: there zero current is out
     of the link's reach, and id* = 0 turned the machine into a generator through the inverter
     until the drain timeout forced the relay open (340 r/min from no torque: -3.5 N m at the
-    opening, -1.2 on the 5 ms mean; from a 2 N m assist -3.6; now 0.0). A braking current the
-    drain starts from still decays only as fast as the voltage left over the back-EMF lets it
-    (~0.04 A per period near the edge): -5 N m at 340 r/min is -2.5 at the opening (was -3.8).
+    opening, -1.2 on the 5 ms mean; from a 2 N m assist -3.6; now 0.0). A braking current decays
+    only as fast as the voltage left over the back-EMF lets it, so the inverter takes it towards
+    zero before it asks for the relay (the pre-drain, :func:`control_period`, with vlim 20 % of
+    the modulator's circle lower; -5 N m at 340 r/min was -3.1 N m at the opening, now 0.04).
     With the Imax clip, the link's voltage beyond it (over speed) is the limiter's to share."""
     r = q[Q_R]
     xl = we * q[Q_L]
@@ -786,6 +801,21 @@ def control_period(cs, q, meas):
     cs[C_IQ_N] += 1.0
     cs[C_THETA_E] = th
     draining = relay == M.REL_DRAIN and meas[M.S_RELAY_FROM] == M.REL_INVERTER
+    # Relay path of paper 001, Fig. 2/8: asked to leave the inverter for the rectifier, the
+    # inverter first takes iq towards zero (the pre-drain: the drain's references), and passes
+    # the request on once |iq| is within Q_PREDRAIN_IQ (or after Q_PREDRAIN_N periods). Passed
+    # at once, the relay's 5 ms drain timeout came before a braking current had decayed (only as
+    # fast as the voltage left over the back-EMF lets it): -5 N m at 340 r/min was -3.1 N m when
+    # the relay was forced open, now 0.04 (forced still: above the base speed id is not zero);
+    # at 100 r/min -0.6 forced, now 0.003 and the relay opens on its own
+    req = cs[C_RELAY_REQ]
+    predrain = False
+    if relay != M.REL_INVERTER or req < 0.5:
+        cs[C_PREDRAIN_N] = 0.0
+    elif cs[C_PREDRAIN_N] < q[Q_PREDRAIN_N] and abs(iqm) > q[Q_PREDRAIN_IQ]:
+        predrain = True
+        cs[C_PREDRAIN_N] += 1.0
+        req = 0.0
     if q[Q_OBSERVER] != 0.0:
         # torque feed-forward only while the inverter controls the machine; on the rectifier
         # path the observer is a pure encoder tracking filter (a stiff prime mover would
@@ -811,7 +841,13 @@ def control_period(cs, q, meas):
     if cs[C_SUB] == 0.0:
         if q[Q_OBSERVER] == 0.0:
             speed_sample(cs, q, meas)
-        if relay == M.REL_INVERTER:
+        if predrain:
+            # (its saturated periods say nothing of the speed loop's plan: counted, each of its
+            # saturated ms would take 0.2 V off the plan when the speed loop next ran)
+            cs[C_VSAT] = 0.0
+            cs[C_IQ_SUM] = 0.0
+            cs[C_IQ_N] = 0.0
+        elif relay == M.REL_INVERTER:
             speed_loop(cs, q)
         else:
             cs[C_SPEED_ACTIVE] = 0.0
@@ -820,12 +856,15 @@ def control_period(cs, q, meas):
     sub = cs[C_SUB] + 1.0
     cs[C_SUB] = 0.0 if sub >= ns else sub            # (no integer modulo in the hot path)
     cs[C_TORQUE_EST] = q[Q_TORQUE_K] * iqm
-    if draining:
+    if draining or predrain:
         # relay switch-over pending: the inverter drives the current to zero first, or, above
         # the base speed, where the link cannot oppose the back-EMF, to no torque (iq = 0 at the
-        # flux-weakening id, drain_id_reference) until the relay opens
-        cs[C_ID_REF] = drain_id_reference(pp * cs[C_SPEED_EST], q[Q_VMARGIN] * q[Q_VMAX], q) \
-            if q[Q_FW] != 0.0 else 0.0
+        # flux-weakening id, drain_id_reference) until the relay opens. The pre-drain plans its id
+        # with 20 % of the modulator's circle less: what moves iq is the voltage left over the
+        # back-EMF, and at the drain's own id a braking current took 2.4x as long (-5 N m at
+        # 340 r/min: 28.2 ms to |iq| < 0.15 A, now 11.7 ms; -16 N m: 19.2, now 10.7)
+        vlim = q[Q_VMARGIN] * q[Q_VMAX] - (q[Q_PREDRAIN_DV] if predrain else 0.0)
+        cs[C_ID_REF] = drain_id_reference(pp * cs[C_SPEED_EST], vlim, q) if q[Q_FW] != 0.0 else 0.0
         cs[C_IQ_REF] = 0.0
         cs[C_SPEED_ACTIVE] = 0.0
     elif relay != M.REL_INVERTER:
@@ -903,7 +942,7 @@ def control_period(cs, q, meas):
     cs[C_DA] = da
     cs[C_DB] = db
     cs[C_DC] = dc
-    return oa, ob, oc, cs[C_RELAY_REQ], cs[C_BUCK_DUTY]
+    return oa, ob, oc, req, cs[C_BUCK_DUTY]
 
 
 def init_controller_state(q: np.ndarray, cp: SpmsmControllerParams, meas: np.ndarray | None = None) -> np.ndarray:

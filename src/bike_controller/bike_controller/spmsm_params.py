@@ -50,6 +50,10 @@ class SpmsmControllerParams:
     # session modes: time constant of the torque's running mean whose sign picks the relay path,
     # and the least time on a path (spmsm_session.RelayPath; 0: follow every batch's sign)
     relay_hold_s: float = 0.5
+    # a switch-over from the inverter to the rectifier path (paper 001, Fig. 2/8): the inverter
+    # first takes iq to zero, and only then asks the relay to move, for at most this long (0: the
+    # request goes to the relay at once; spmsm_control.control_period)
+    relay_predrain_s: float = 0.05
 
     def validate(self) -> None:
         if self.family not in FAMILIES:
@@ -79,6 +83,8 @@ class SpmsmControllerParams:
             raise ValueError("brake_torque0_nm must be >= 0")
         if not (math.isfinite(self.relay_hold_s) and self.relay_hold_s >= 0.0):
             raise ValueError(f"relay_hold_s must be a finite number >= 0, got {self.relay_hold_s!r}")
+        if not (math.isfinite(self.relay_predrain_s) and self.relay_predrain_s >= 0.0):
+            raise ValueError(f"relay_predrain_s must be a finite number >= 0, got {self.relay_predrain_s!r}")
 
 
 def controller_params_from_config(cfg: dict) -> SpmsmControllerParams:
