@@ -101,6 +101,73 @@ def test_the_emulated_rider_takes_a_cadence_target_and_stops_when_told(params, p
     assert model.load_torque_nm > 0.0 and cadence() > coasted
 
 
+class TruthDisplay:
+    """What RiderDisplay gives the emulator's tick (no ROS): the plant's /clock as heard, the truth."""
+
+    latest = (0.0, False)
+
+    def __init__(self):
+        self.sim_clock_ns = None
+        self.truth: list[tuple[int, dict]] = []
+
+    def publish_truth(self, stamp_ns: int, fields: dict) -> None:
+        self.truth.append((stamp_ns, fields))
+
+    def publish_heart_rate(self, bpm: float) -> None:
+        pass
+
+
+@pytest.mark.parametrize("config,physics", [(CONFIG, "average"), (CONFIG, "plant"), (SPMSM_CONFIG, "plant")])
+def test_the_truth_is_the_physics_one_sample_per_clock_of_the_plant(config, physics):
+    """--truth-topic: a DriveTruth per new /clock value heard (none while the plant's sim time
+    stands still), stamped with it; its energies balance at the shaft (rider + T_em w = friction
+    + 1/2 J w^2, each summed by the physics on its own), its rider power is the rider's work
+    between samples over the physics time, and kt Iq (torque_estimate_nm) is the drive's
+    estimate of shaft_torque_nm, not it (the BLDC's commutation dips)."""
+    model = make_drive_model(load_config(config), physics)
+    fw = DriveFirmware(model, watchdog_timeout_s=0.0)
+    display = TruthDisplay()
+    emu = DriveEmulator(can.Bus(interface="virtual", channel=uuid.uuid4().hex), fw, 0, cyclic_s={}, rider=display)
+    emu.tick(0.0)
+    fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.0)
+    fw.set_input_torque(-1.0, 0.0)
+    clocks = []
+    for ms in range(1, 3001):
+        if ms % 10 == 0 and not 1000 <= ms < 1500:       # the plant paused for 0.5 s: no /clock
+            display.sim_clock_ns = (ms - (500 if ms > 1500 else 0)) * 1_000_000
+            clocks.append(display.sim_clock_ns)
+        emu.tick(ms * 1e-3)
+        if ms == 1000:
+            emu.tick(ms * 1e-3)                          # no new clock: no sample
+    display.sim_clock_ns = 2 ** 80                      # a stamp no header holds: counted, the drive runs on
+    display.publish_truth = lambda stamp_ns, fields: divmod(stamp_ns, 1)[0].to_bytes(4, "little")
+    emu.tick(3.001)
+    assert emu.counters["truth_not_published"] == 1
+    emu.bus.shutdown()
+    assert [stamp for stamp, _ in display.truth] == clocks
+    samples = [f for _, f in display.truth]
+    kinetic0 = samples[0]["kinetic_energy_j"] - (samples[0]["rider_energy_j"] + samples[0]["shaft_energy_j"]
+                                                 - samples[0]["friction_energy_j"])
+    last = samples[-1]
+    assert last["rider_energy_j"] > 100.0 and last["shaft_energy_j"] < -100.0, "the rider pedals, the drive brakes"
+    for f in samples:
+        balance = (f["rider_energy_j"] + f["shaft_energy_j"] - f["friction_energy_j"]
+                   - (f["kinetic_energy_j"] - kinetic0))
+        assert abs(balance) < 1e-3 * last["rider_energy_j"], (f, balance)
+        assert f["armed"] and f["speed_rpm"] > 100.0
+    for a, b in zip(samples, samples[1:]):
+        span_s = b["physics_time_s"] - a["physics_time_s"]
+        assert span_s > 0 and b["rider_power_w"] == pytest.approx((b["rider_energy_j"] - a["rider_energy_j"]) / span_s)
+    paused = next(b for a, b in zip(samples, samples[1:]) if b["physics_time_s"] - a["physics_time_s"] > 0.4)
+    assert paused["physics_time_s"] == pytest.approx(1.5, abs=2e-3), "the physics ran on through the pause"
+    est = sum(f["torque_estimate_nm"] for f in samples) / len(samples)
+    true = sum(f["shaft_torque_nm"] for f in samples) / len(samples)
+    print(f"{config.name} {physics}: kt Iq {est:.4f} N m, true {true:.4f} N m ({est / true - 1:+.2%})")
+    assert est == pytest.approx(-1.0, rel=0.05) and true == pytest.approx(-1.0, rel=0.1)
+    if physics == "average":
+        assert true == pytest.approx(est, rel=1e-9), "the average model's torque is kt iq"
+
+
 def test_bus_sags_when_motoring_and_rises_when_braking(params):
     for torque_nm, sign in ((2.0, 1.0), (-2.0, -1.0)):
         fw = DriveFirmware(model_with(params, load_kind="prime_mover"), watchdog_timeout_s=0.0)
@@ -649,6 +716,11 @@ def test_spmsm_plant_physics_over_the_bus_with_its_realtime_margin(emulator_fact
 
 
 @pytest.mark.parametrize("args,words", [(["--rider-topic", "bad topic!"], "--rider-topic 'bad topic!': Invalid topic"),
+                                        (["--truth-topic", "bad topic!"], "--truth-topic 'bad topic!': Invalid topic"),
+                                        (["--heart-rate-topic", "/bike/hr", "--truth-topic", "/bike/hr"],
+                                         "--truth-topic '/bike/hr': the topic of --heart-rate-topic too"),
+                                        (["--truth-topic", "clock"], "--truth-topic 'clock': the topic of the plant "
+                                                                     "/clock too"),
                                         (["--node-id", "64"], "--node-id must be in 0..63")])
 def test_a_bad_option_is_one_error_and_exit_2(args, words):
     """Bad options are one line naming the option, exit 2, no traceback (before any bus work)."""

@@ -326,6 +326,62 @@ def test_a_workout_through_the_can_path_end_to_end(tmp_path, ros_domain):
     assert "CAN:" in result.stdout and "CAN log:" in result.stdout, "the report shows the CAN statistics"
 
 
+def test_a_can_rides_report_compares_the_trainers_power_with_the_emulated_riders_true_power(tmp_path, ros_domain):
+    """`./bike run` starts the emulator with --truth-topic: its physics' truth (DriveTruth, one
+    sample per /clock it hears, stamped with it) is in the bag, and the report's trainer power
+    error is against the rider's true power. The truth is checked against itself (the shaft's
+    energy balance: rider + T_em w = friction + 1/2 J w^2, each summed by the physics), against
+    an independent mean of its samples, and against the plant (the same speed at the same sim
+    time; the BLDC's kt Iq, the plant's ledger, a few % over the true torque: README)."""
+    port = _port()
+    profile = {"name": "truth", "segments": [
+        {"kind": "step", "duration_s": 11.0, "command": 0.5, "mode": "resistance", "label": "resistance"}]}
+    config = write_config(tmp_path, port, emulator=True, profile=profile)
+    result = bike_command("run", "--config", str(config), "--duration", "11", "--record", str(tmp_path / "runs"),
+                          timeout=120)
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out[-6000:]
+    bag = next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
+    from bike_session.bags import read_topic
+    from bike_session.report import summarise
+
+    t = lambda m: stamp_ns(m.header.stamp) * 1e-9  # noqa: E731
+    truth = read_topic(bag, "drive_truth")
+    stamps = [t(m) for m in truth]
+    assert len(truth) > 700 and stamps == sorted(stamps) and 0.0 <= stamps[0] < 0.5 and stamps[-1] <= 11.0, \
+        (len(truth), stamps[:3], stamps[-3:])
+    assert all(m.armed for m in truth if 0.1 < t(m) < 10.9)
+    # the shaft's energy balance, sample by sample
+    m0 = truth[0]
+    offset = m0.rider_energy_j + m0.shaft_energy_j - m0.friction_energy_j - m0.kinetic_energy_j
+    for m in truth:
+        balance = m.rider_energy_j + m.shaft_energy_j - m.friction_energy_j - m.kinetic_energy_j - offset
+        assert abs(balance) < 1e-6 * truth[-1].rider_energy_j, (t(m), balance)
+    # the report's true power over the 10 s window: the samples' own mean power over their physics time
+    acc = summarise(bag)["power_accuracy"]
+    print("trainer power on CAN:", {k: (round(v, 3) if isinstance(v, float) else v) for k, v in acc.items()})
+    inside = [m for m in truth if t(m) <= 10.0]
+    true_w = (inside[-1].rider_energy_j - inside[0].rider_energy_j) / (inside[-1].physics_time_s
+                                                                      - inside[0].physics_time_s)
+    assert acc["against"] == "drive_truth" and acc["windows"] == 1 and acc["compared_s"] > 9.5
+    assert acc["true_rider_power_w"] == pytest.approx(true_w, rel=0.005) and 150.0 < true_w < 600.0
+    # the estimate's error against the truth = its error against the ledger + the ledger's own
+    assert acc["mean_w"] == pytest.approx(acc["ledger"]["mean_w"] + acc["ledger_error_pct"] / 100.0 * true_w,
+                                          abs=0.01 * true_w)
+    assert abs(acc["ledger"]["mean_pct"]) < 0.2, "the estimate and the plant's ledger agree (the same kt Iq)"
+    assert 0.5 < acc["ledger_error_pct"] < 8.0, "the BLDC's kt Iq overstates its true braking torque"
+    # the same sim time is the same moment at the plant and in the physics: the speeds agree
+    states = read_topic(bag, "plant_state")
+    plant_rpm = {round(t(m), 3): m.speed_rpm for m in states if 1.0 < t(m) < 10.5}
+    pairs = [(plant_rpm[round(t(m), 3)], m.speed_rpm) for m in truth if round(t(m), 3) in plant_rpm]
+    assert len(pairs) > 500
+    diff = sum(abs(a - b) for a, b in pairs) / len(pairs)
+    mean_rpm = sum(b for _, b in pairs) / len(pairs)
+    print(f"speed at the same sim time: plant - truth mean |diff| {diff:.1f} rpm of {mean_rpm:.0f} rpm")
+    assert diff < 0.02 * mean_rpm, (diff, mean_rpm)
+    assert "against the rider's true power" in result.stdout and "drive_truth" in result.stdout
+
+
 def test_emulator_killed_drive_lost_session_paused_then_recovered(rig):
     r = rig()
     r.wait_for(lambda: len(r.states) > 10, 30, "PlantState while waiting for the drive")

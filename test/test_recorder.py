@@ -285,7 +285,7 @@ def test_recorder_sqlite3_stops_after_silence(tmp_path, ros_domain, procs):
     from bike_session.bags import open_bag
 
     with open_bag(tmp_path / "quiet") as bag:
-        assert len(bag.topics) == 9 and sum(bag.message_counts().values()) == 0
+        assert len(bag.topics) == 10 and sum(bag.message_counts().values()) == 0   # with drive_truth
     assert list((tmp_path / "quiet").glob("*.db3"))
     # the same bag name again: refused with one line, exit 2
     again = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=quiet"], tmp_path)

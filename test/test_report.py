@@ -105,7 +105,7 @@ def test_summary_numbers(tmp_path, storage):
     assert s["session_state"] == "DONE" and s["profile_name"] == "unit"
     expected = {"/clock": N, "/bike/plant_state": N, "/bike/command": 3, "/bike/session_status": 1,
                 "/bike/session_info": 1, "/bike/drive_command": 0, "/bike/controller_status": 0,
-                "/bike/battery": 0, "/diagnostics": 0}
+                "/bike/battery": 0, "/diagnostics": 0, "/bike/drive_truth": 0}
     assert s["messages"] == expected
     text = format_summary(s)
     assert "20.00 W" in text and "12.00 J" in text and "7.50 A" in text and "command_timeout 2" in text
@@ -233,7 +233,7 @@ def session_mode(k, erg_targets=(90.0, 120.0)):
 def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
                       status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None,
                       modes=None, virtual_mps=None, segment=None, friction=None, cadence=None, heart=None,
-                      hr_target=None, lead=0, heard_at=None):
+                      hr_target=None, lead=0, heard_at=None, truth=None):
     """A 1 kHz session of n PlantStates (t = i ms; with ``lead``, a drive on CAN: t = (i - lead) ms
     after ``lead`` PlantStates at t = 0, at speed 0 before the ``heard_at``-th): 100 rad/s, 1 N m
     of braking (100 W),
@@ -243,7 +243,8 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
     with ``segment(k)``, a RUNNING SessionStatus every 100 ms in that profile segment;
     ``friction(k)``: the laws' (B, Tc) the statuses carry (else 0, 0); ``cadence(k)``: the
     Commands' rider cadence target (else 0); ``heart(k)``: the PlantStates' heart rate and
-    ``hr_target(k)`` the Commands' heart-rate target (else 0, none)."""
+    ``hr_target(k)`` the Commands' heart-rate target (else 0, none); ``truth(k)``: an emulated
+    drive's DriveTruth every 10 ms, (physics time [s], rider energy [J]) or None (no sample)."""
     from bike_msgs.msg import Command, ControllerStatus, PlantState, SessionStatus
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import BatteryState
@@ -306,6 +307,12 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
             st = SessionStatus(profile_name="modes", state=SessionStatus.STATE_RUNNING, segment_index=segment(i))
             st.header.stamp = m.header.stamp
             sink.write(_full("session_status"), t_ns, serialize_message(st))
+        if truth is not None and i % 10 == 0 and truth(i) is not None:
+            from bike_msgs.msg import DriveTruth
+            physics_s, energy_j = truth(i)
+            d = DriveTruth(physics_time_s=float(physics_s), rider_energy_j=float(energy_j))
+            d.header.stamp = m.header.stamp
+            sink.write(_full("drive_truth"), t_ns, serialize_message(d))
         if i % 10 == 0:
             b = BatteryState(voltage=50.0, current=1.6, percentage=m.battery_soc)
             b.header.stamp = m.header.stamp
@@ -577,6 +584,51 @@ def test_power_accuracy_counts_the_flywheel_from_where_a_drives_ledger_starts(tm
     assert acc["windows"] == 1
     # (heard with the first batch: its brake power takes the mean of 0 and 100 rad/s, 0.05 J less)
     assert acc["mean_w"] == pytest.approx(-50.0, abs=0.01) and acc["mean_pct"] == pytest.approx(-100.0 / 3.0, abs=0.01)
+
+
+def emulated_truth(k):
+    """An emulated drive's truth at t = k ms (physics time, rider energy): the rider gives 140 W (the
+    ledger says 150 W); the emulator's physics ran 3 s before sim time started and runs 2 % faster
+    than it (a loaded plant); at 3 s the plant pauses for 2 s of physics (a lost drive: no /clock,
+    no sample; the rider spins up meanwhile, 1000 W); at 6 s the emulator restarts (physics and
+    energy from 0); its samples start at 0.3 s (when the emulator first heard the plant's /clock) and
+    end at 14 s."""
+    t = k / 1000.0
+    if not 0.3 <= t <= 14.0:
+        return None
+    if t >= 6.0:
+        return 1.02 * (t - 6.0), 140.0 * 1.02 * (t - 6.0)
+    physics_s = 3.0 + 1.02 * t + (2.0 if t > 3.0 else 0.0)
+    return physics_s, 140.0 * (physics_s - (2.0 if t > 3.0 else 0.0)) + (2000.0 if t > 3.0 else 0.0)
+
+
+def test_power_accuracy_against_an_emulated_drives_true_power(tmp_path):
+    """With a DriveTruth in the bag the trainer's estimate (100 W) is compared with the rider's
+    true power (140 W: -40 W, -28.57 %), not with the ledger (150 W: -50 W, the ledger +7.14 % off
+    the truth), in the windows the truth covers: the first 10 s from 0.3 s (its pause and the
+    emulator's restart left out), not the second (its samples end at 14 s: less than half of it).
+    Powers over the physics' own time, so its 2 % faster clock changes nothing."""
+    from bike_session.report import analyse
+    s = analyse(write_session_bag(tmp_path / "a", n=20001, truth=emulated_truth)).summary
+    acc = s["power_accuracy"]
+    assert acc["against"] == "drive_truth" and acc["windows"] == 1 and acc["windows_without_truth"] == 1
+    assert acc["true_rider_power_w"] == pytest.approx(140.0, rel=1e-9)
+    assert acc["mean_w"] == pytest.approx(-40.0, rel=1e-9) and acc["mean_pct"] == pytest.approx(-200.0 / 7.0, rel=1e-9)
+    assert acc["ledger"]["mean_w"] == pytest.approx(-50.0, rel=1e-9) and acc["ledger"]["windows"] == 1
+    assert acc["ledger_error_pct"] == pytest.approx(50.0 / 7.0, rel=1e-9)
+    assert acc["truth_samples"] == 1371 and acc["compared_s"] == pytest.approx(9.7)
+    text = format_summary(s)
+    assert "trainer power error:   mean -40.00 W (-28.57 %)" in text and "against the rider's true power" in text
+    assert "true rider power 140.00 W (drive_truth" in text
+    assert "it reads -50.00 W (-33.33 %), the ledger +7.14 % off" in text
+    assert "1 window(s) without the truth left out" in text
+    # truth that covers no whole window: the ledger's figures, said so
+    s = analyse(write_session_bag(tmp_path / "b", n=20001, truth=lambda k: emulated_truth(k) if k >= 6000 else None)
+                ).summary
+    acc = s["power_accuracy"]
+    assert acc["against"] == "ledger" and acc["windows"] == 2 and acc["windows_without_truth"] == 2
+    assert acc["mean_w"] == pytest.approx(-50.0, rel=1e-9)
+    assert "against the rider's ledger power" in format_summary(s)
 
 
 def test_power_accuracy_of_a_drive_on_can_says_its_ledger_is_not_the_truth():

@@ -46,6 +46,11 @@ rider display below):
   cadence target, a spin-down's "stop pedalling", from the controller's DriveCommand; and
   with ``--heart-rate-topic`` his heart rate (bike_plant.heart) goes out once a second as a
   chest strap's would (bike_msgs/HeartRate), which the plant node puts into the PlantState.
+  ``--truth-topic``: the physics' ground truth (bike_msgs/DriveTruth: the rider's true power
+  and work, the shaft's true torque, speed and energy balance, next to the kt Iq it reports),
+  one sample per new /clock of the plant heard, stamped with it: the plant's sim time stands
+  still while the drive is not armed, this physics' clock does not, and the report puts the
+  truth on the plant's time line by those stamps (bike_session.report).
   Fault injection: --silent-after-s, --garbage-rate,
   --fault-at-s / SIGUSR1 with --fault (an error that disarms the axis, or IDLE) and
   --fault-persist (Clear_Errors that do not clear it).
@@ -145,6 +150,8 @@ PHYSICS = ("plant", "average")     # --physics: the bike_plant kernels | the ave
 DEFAULT_SPEED_OBSERVER_HZ = 160.0  # SPMSM drive's speed observer pole (~ ODrive encoder bandwidth 1000 rad/s)
 CURRENT_LOOPS = ("pi", "predictive")   # SPMSM current-loop family (bike_controller.spmsm_control)
 HEART_RATE_PERIOD_S = 1.0         # the emulated rider's chest strap: one reading a second
+# --truth-topic: samples a late-matching reader (the recorder) still gets, 10 s at a 10 ms /clock
+TRUTH_HISTORY = 1000
 
 
 # =======================================================================================
@@ -239,6 +246,11 @@ class _DriveReadouts:
         """kt x Iq_Measured, as an ODrive estimates its torque."""
         return self.params.torque_constant_nm_per_a * self.iq_a
 
+    @property
+    def kinetic_energy_j(self) -> float:
+        """1/2 J w^2 of the shaft (J of the config's mechanics)."""
+        return 0.5 * self.params.inertia_kgm2 * self.speed_rad_s ** 2
+
 
 class AverageTorqueDrive(_DriveReadouts):
     """Motor (average torque, first-order current loop) + shaft + load + battery.
@@ -268,7 +280,10 @@ class AverageTorqueDrive(_DriveReadouts):
         self.rider_target_rpm = load.rider_target_cadence_rpm   # set_rider_instruction moves it
         self.rider_stopped = False
         self.heart = RiderHeart(load.heart_params()) if p.load_kind == "rider" else None
+        # the shaft's ledger (the truth of --truth-topic): rider (load) work, int T_em w dt, friction loss
         self.rider_energy_j = 0.0
+        self.shaft_energy_j = 0.0
+        self.friction_energy_j = 0.0
         self.torque_em_nm = 0.0
         self.load_torque_nm = 0.0
         self.mechanical_power_w = 0.0
@@ -333,10 +348,13 @@ class AverageTorqueDrive(_DriveReadouts):
         t_em = p.torque_constant_nm_per_a * self.iq_a
         omega = self.speed_rad_s
         kind = p.load_kind
+        t_friction = self._friction_nm(omega)
         if kind == "prime_mover":
             # speed held exactly; the prime mover supplies whatever torque that takes
-            t_load = self._friction_nm(omega) - t_em
+            t_load = t_friction - t_em
             omega_new = self._scheduled_speed_rpm(self.time_s + dt_s) / RPM_PER_RAD_S
+            # a schedule step: the prime mover supplies the flywheel's energy too (as the plant's ledger)
+            self.rider_energy_j += 0.5 * p.inertia_kgm2 * (omega_new * omega_new - omega * omega)
         else:
             if kind == "rider":
                 t_load = self._rider_torque_nm(omega, dt_s)
@@ -344,8 +362,11 @@ class AverageTorqueDrive(_DriveReadouts):
                 t_load = -self._dyno_torque_nm(self.time_s)
             else:
                 t_load = 0.0
-            omega_new = omega + dt_s * (t_em + t_load - self._friction_nm(omega)) / p.inertia_kgm2
+            omega_new = omega + dt_s * (t_em + t_load - t_friction) / p.inertia_kgm2
         omega_avg = 0.5 * (omega + omega_new)
+        self.rider_energy_j += t_load * omega_avg * dt_s
+        self.shaft_energy_j += t_em * omega_avg * dt_s
+        self.friction_energy_j += t_friction * omega_avg * dt_s
         self.speed_rad_s = omega_new
         self.position_rev += omega_avg * dt_s / TWO_PI
         self.torque_em_nm = t_em
@@ -355,7 +376,6 @@ class AverageTorqueDrive(_DriveReadouts):
         self._dc_bus(dt_s)
         self.time_s += dt_s
         if self.heart is not None:
-            self.rider_energy_j += t_load * omega_avg * dt_s
             self.heart.advance(self.rider_energy_j, self.time_s)
 
     @property
@@ -386,8 +406,10 @@ class AverageTorqueDrive(_DriveReadouts):
 # =======================================================================================
 # physics: the bike_plant machine models behind the drive's own current loop
 # sums over a batch's periods, filled by the batch kernels
-(A_TEM, A_IQ, A_ID, A_IBATT, A_OMEGA, A_TLOAD, A_PMECH, A_VDC) = range(8)
-A_SIZE = 8
+(A_TEM, A_IQ, A_ID, A_IBATT, A_OMEGA, A_TLOAD, A_PMECH, A_VDC, A_PSHAFT) = range(9)
+A_SIZE = 9
+# A_PSHAFT: T_em x the period's mean speed, the plant's own ledger form, so that the truth's shaft,
+# rider, friction and kinetic energies balance (A_PMECH takes the speed at the period's end)
 
 
 @njit(**M.JIT)
@@ -406,7 +428,9 @@ def spmsm_drive_batch(state, p, cs, q, n, enabled, ws, acc):
             db = 0.5
             dc = 0.5
             bd = 1.0
+        w0 = state[M.S_OMEGA]
         M.step_period(state, p, da, db, dc, 0.0, bd, ws)
+        acc[A_PSHAFT] += state[M.S_TEM] * 0.5 * (w0 + state[M.S_OMEGA])
         acc[A_TEM] += state[M.S_TEM]
         acc[A_IQ] += state[M.S_IQ]
         acc[A_ID] += state[M.S_ID]
@@ -432,7 +456,9 @@ def bldc_drive_batch(state, p, cs, q, n, acc):
     c = K.plant_constants(p)
     sign = 1.0 if cs[BC.C_MODE] == torque_command.MODE_MOTORING else -1.0
     for _ in range(n):
+        w0 = state[K.S_OMEGA]
         BC.closed_loop_period(cs, q, state, p, c, ws, wi, ec, es)
+        acc[A_PSHAFT] += state[K.S_TEM] * 0.5 * (w0 + state[K.S_OMEGA])
         acc[A_TEM] += state[K.S_TEM]
         acc[A_IQ] += sign * 0.5 * (abs(state[K.S_IA]) + abs(state[K.S_IB]) + abs(state[K.S_IC]))
         acc[A_IBATT] += state[K.S_IBATT]
@@ -466,6 +492,7 @@ class _PlantDrive(_DriveReadouts):
         self.position_rev = 0.0
         self.enabled = False
         self.current_limit_a = params.current_limit_a
+        self.shaft_energy_j = 0.0          # int T_em w dt (the truth's; the plant's ledger has no such sum)
 
     def set_rider_instruction(self, cadence_rpm: float, stop: bool) -> None:
         """What the rider is told (a workout's cadence, 0: his own; a spin-down's stop)."""
@@ -497,6 +524,7 @@ class _PlantDrive(_DriveReadouts):
         self.mechanical_power_w = float(a[A_PMECH])
         self.bus_current_a = -float(a[A_IBATT])
         self.electrical_power_w = float(a[A_VDC]) * self.bus_current_a
+        self.shaft_energy_j += float(self.acc[A_PSHAFT]) * self.period_s
         self.position_rev = self._position_rev(float(a[A_OMEGA]) * n * self.period_s)
         self.plant.advance_heart()     # the kernels step the plant's state, not its step_batch
 
@@ -504,6 +532,15 @@ class _PlantDrive(_DriveReadouts):
     def heart_rate_bpm(self) -> float:
         """The rider's heart rate (the plant's own rider; 0: no rider)."""
         return self.plant.heart.bpm if self.plant.heart is not None else 0.0
+
+    @property
+    def rider_energy_j(self) -> float:
+        """The rider's (load's) work into the shaft: the plant kernel's own ledger, exact per period."""
+        return float(self.plant.state[self._S_E_MECH])
+
+    @property
+    def friction_energy_j(self) -> float:
+        return float(self.plant.state[self._S_E_FRIC])
 
     def _position_rev(self, dtheta_rad: float) -> float:
         return self.position_rev + dtheta_rad / TWO_PI
@@ -518,6 +555,8 @@ class SpmsmPlantDrive(_PlantDrive):
     :func:`spmsm_drive_batch`. The torque setpoint reaches the current loop as its iq
     demand (iq* = T / kt), limited by the region logic to the drive's current limit and
     the voltage the 24 V inverter can make at the present speed (flux weakening, MTPV)."""
+
+    _S_E_MECH, _S_E_FRIC = M.S_E_MECH, M.S_E_FRIC
 
     def __init__(self, cfg: dict, params: DriveModelParams, *, current_loop: str = "pi", load_kind: str | None = None,
                  speed_observer_hz: float = DEFAULT_SPEED_OBSERVER_HZ):
@@ -590,6 +629,8 @@ class BldcPlantDrive(_PlantDrive):
     generating (its lower switch: the winding boosts into the battery; forward rotation
     only, as the paper's quadrants I and II -- at standstill or backwards no braking
     current is commanded). The hysteresis band is controller.hysteresis_a."""
+
+    _S_E_MECH, _S_E_FRIC = K.S_E_MECH, K.S_E_FRIC
 
     def __init__(self, cfg: dict, params: DriveModelParams, *, load_kind: str | None = None):
         pp = P.plant_params_from_config(cfg)
@@ -956,16 +997,21 @@ class RiderDisplay:
     target, a spin-down's "stop pedalling"), and a drive on CAN never sees it -- a real rider
     reads it off a screen. This reads it off the ROS topic, in a thread of its own (rclpy only
     here, imported on use); :attr:`latest` is (cadence target [rpm], 0 = his own; stop).
-    ``heart_rate_topic``: his chest strap, :meth:`publish_heart_rate` (either topic may be None)."""
+    ``heart_rate_topic``: his chest strap, :meth:`publish_heart_rate`. ``truth_topic``: the
+    physics' ground truth (bike_msgs/DriveTruth, :meth:`publish_truth`), stamped with the plant's
+    /clock, which this then follows (:attr:`sim_clock_ns`: the newest heard, None before one).
+    Any topic may be None."""
 
-    def __init__(self, topic: str | None, heart_rate_topic: str | None = None):
+    def __init__(self, topic: str | None, heart_rate_topic: str | None = None, truth_topic: str | None = None):
         import rclpy
-        from bike_msgs.msg import DriveCommand, HeartRate
+        from bike_msgs.msg import DriveCommand, DriveTruth, HeartRate
         from rclpy.executors import SingleThreadedExecutor
-        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
         from rclpy.signals import SignalHandlerOptions
+        from rosgraph_msgs.msg import Clock
 
         self.latest = (0.0, False)
+        self.sim_clock_ns: int | None = None
         self.context = rclpy.Context()
         # the emulator's own SIGINT / SIGTERM handlers stay in charge
         rclpy.init(context=self.context, signal_handler_options=SignalHandlerOptions.NO)
@@ -976,6 +1022,16 @@ class RiderDisplay:
         self._heart_rate_msg = HeartRate
         self.heart_rate_pub = (self.node.create_publisher(HeartRate, heart_rate_topic, 10)
                                if heart_rate_topic else None)
+        self._truth_msg = DriveTruth
+        self.truth_pub = None
+        if truth_topic:
+            # transient_local: a recorder whose reader matches late still gets the first samples
+            self.truth_pub = self.node.create_publisher(DriveTruth, truth_topic, QoSProfile(
+                depth=TRUTH_HISTORY, reliability=ReliabilityPolicy.RELIABLE,
+                durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            # the plant's sim time (it stands still while the drive is not armed): the truth's stamps
+            self.node.create_subscription(Clock, "/clock", self._on_clock,
+                                          QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, name="rider-display", daemon=True)
@@ -985,6 +1041,19 @@ class RiderDisplay:
         cadence = float(msg.rider_cadence_rpm)
         if math.isfinite(cadence) and cadence >= 0.0:        # the controller checked it; a bad one is ignored
             self.latest = (cadence, bool(msg.rider_stops_pedalling))
+
+    def _on_clock(self, msg) -> None:
+        self.sim_clock_ns = int(msg.clock.sec) * 1_000_000_000 + int(msg.clock.nanosec)
+
+    def publish_truth(self, stamp_ns: int, fields: dict) -> None:
+        """One DriveTruth stamped ``stamp_ns`` (the plant's sim time); ``fields`` by name."""
+        if self.truth_pub is None:
+            return
+        msg = self._truth_msg()
+        msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        for name, value in fields.items():
+            setattr(msg, name, value)
+        self.truth_pub.publish(msg)
 
     def publish_heart_rate(self, bpm: float) -> None:
         """One strap reading (a no-op without ``heart_rate_topic``)."""
@@ -1040,6 +1109,8 @@ class DriveEmulator:
         self.rider = rider                  # what the controller tells the rider (None: nothing)
         self.rider_told = (0.0, False)
         self.next_heart_rate_s = 0.0        # physics time of the rider's next strap reading
+        self.truth_clock_ns = None          # the /clock value the last truth sample was stamped with
+        self._truth_prev = None             # (physics time, rider energy) of the last truth sample
         self.codec = self.codec_class(node_id)
         self.node_id = node_id
         cyclic = dict(self.default_cyclic_s) if cyclic_s is None else dict(cyclic_s)
@@ -1212,6 +1283,15 @@ class DriveEmulator:
                 n -= k
                 self.physics_s += k * q
             self.physics_wall_s += time.perf_counter() - t_wall
+        if self.rider is not None:
+            # one truth sample per new /clock of the plant (none while its sim time stands still)
+            clock_ns = self.rider.sim_clock_ns
+            if clock_ns is not None and clock_ns != self.truth_clock_ns:
+                self.truth_clock_ns = clock_ns
+                try:
+                    self.rider.publish_truth(clock_ns, self.truth_sample())
+                except Exception:  # noqa: BLE001 -- telemetry (a stamp out of range, rclpy closing) never stops it
+                    self._count("truth_not_published")
         self._faults_due(now_s)
         fw.check_watchdog(now_s)
         for name, period in self.cyclic_s.items():
@@ -1226,6 +1306,22 @@ class DriveEmulator:
         while now_s >= self._next_garbage_s:
             self._send(self._garbage_frame(), now_s, "garbage")
             self._next_garbage_s += self.rng.expovariate(self.garbage_rate_hz)
+
+    def truth_sample(self) -> dict:
+        """The physics as they are now (bike_msgs/DriveTruth's fields but the header):
+        rider_power_w is the rider's mean power since the previous sample (the first: since the
+        start), the energies are cumulative since the start."""
+        m = self.firmware.model
+        energy = float(m.rider_energy_j)
+        prev_s, prev_j = self._truth_prev if self._truth_prev is not None else (0.0, 0.0)
+        span_s = self.physics_s - prev_s
+        power = (energy - prev_j) / span_s if span_s > 0 else float(m.load_torque_nm * m.speed_rad_s)
+        self._truth_prev = (self.physics_s, energy)
+        return {"physics_time_s": float(self.physics_s), "armed": bool(self.firmware.armed),
+                "speed_rpm": float(m.speed_rad_s * RPM_PER_RAD_S), "shaft_torque_nm": float(m.torque_em_nm),
+                "torque_estimate_nm": float(m.torque_estimate_nm), "rider_torque_nm": float(m.load_torque_nm),
+                "rider_power_w": float(power), "rider_energy_j": energy, "shaft_energy_j": float(m.shaft_energy_j),
+                "friction_energy_j": float(m.friction_energy_j), "kinetic_energy_j": float(m.kinetic_energy_j)}
 
     def _garbage_frame(self) -> can.Message:
         """A random malformed or foreign frame. Never a valid command for any node: the
@@ -1469,6 +1565,11 @@ def build_arg_parser() -> argparse.ArgumentParser:
                     help="publish the emulated rider's heart rate (bike_msgs/HeartRate, once a second, as a chest "
                          "strap) on this topic (e.g. /bike/heart_rate, where the plant node reads it; ./bike run "
                          "sets it)")
+    ap.add_argument("--truth-topic", default=None, metavar="TOPIC",
+                    help="publish the physics' ground truth (bike_msgs/DriveTruth: the rider's true power and work, "
+                         "the shaft's true torque and speed; e.g. /bike/drive_truth, which the recorder records and "
+                         "the report compares the trainer's power with; ./bike run sets it), one sample per /clock "
+                         "of the plant, stamped with it")
     ap.add_argument("--duration-s", type=float, default=None, help="exit 0 after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="no event log on stderr")
     return ap
@@ -1554,6 +1655,16 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--fault-at-s must be >= 0, got {args.fault_at_s}")
         if args.bench_s is not None and not (math.isfinite(args.bench_s) and args.bench_s > 0):
             raise ValueError(f"--bench-s must be > 0, got {args.bench_s}")
+        topics = {}
+        for flag, topic in (("--rider-topic", args.rider_topic), ("--heart-rate-topic", args.heart_rate_topic),
+                            ("--truth-topic", args.truth_topic)):
+            if topic:
+                # one message type per topic (the node has no namespace: a relative name is absolute)
+                full = topic if topic.startswith("/") else "/" + topic
+                if full in topics or full == "/clock":
+                    raise ValueError(f"{flag} {topic!r}: the topic of {topics.get(full, 'the plant /clock')} too "
+                                     "(each carries its own message type)")
+                topics[full] = flag
         cfg = load_config(args.config)
         model = make_drive_model(cfg, args.physics, load_kind=None if args.load == "config" else args.load,
                                  current_tau_s=args.current_tau_s, current_loop=args.current_loop,
@@ -1563,6 +1674,19 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError) as exc:
         print(f"bike-drive-emulator: {exc}", file=sys.stderr)
         return 2
+    rider = None
+    if (args.rider_topic or args.heart_rate_topic or args.truth_topic) and args.bench_s is None:
+        # before the warm-up: DDS discovery (~0.5 s) then overlaps it, and the truth's first sample
+        # (at the first /clock heard) comes as the plant's sim time starts, not 0.3-0.6 s into it
+        try:
+            rider = RiderDisplay(args.rider_topic, args.heart_rate_topic, args.truth_topic)
+        except Exception as exc:  # noqa: BLE001 -- rclpy's error for a bad topic name or an init failure
+            given = " / ".join(f"{name} {value!r}" for name, value in (("--rider-topic", args.rider_topic),
+                                                                      ("--heart-rate-topic", args.heart_rate_topic),
+                                                                      ("--truth-topic", args.truth_topic))
+                               if value)
+            print(f"bike-drive-emulator: {given}: {str(exc).splitlines()[0]}", file=sys.stderr)
+            return 2
     if hasattr(model, "warm_up"):
         # compile (or load from numba's cache) before serving the bus, LLVM's library pages
         # dropped as it goes, as the nodes do (bike_plant.memory)
@@ -1591,18 +1715,9 @@ def main(argv: list[str] | None = None) -> int:
         bus = can.Bus(**_bus_kwargs(args))
     except Exception as exc:  # noqa: BLE001 -- report any interface problem as a usage error
         print(f"bike-drive-emulator: cannot open bus {_bus_kwargs(args)}: {exc}", file=sys.stderr)
+        if rider is not None:
+            rider.close()
         return 2
-    rider = None
-    if args.rider_topic or args.heart_rate_topic:
-        try:
-            rider = RiderDisplay(args.rider_topic, args.heart_rate_topic)
-        except Exception as exc:  # noqa: BLE001 -- rclpy's error for a bad topic name or an init failure
-            given = " / ".join(f"{name} {value!r}" for name, value in (("--rider-topic", args.rider_topic),
-                                                                      ("--heart-rate-topic", args.heart_rate_topic))
-                               if value)
-            print(f"bike-drive-emulator: {given}: {str(exc).splitlines()[0]}", file=sys.stderr)
-            bus.shutdown()
-            return 2
     try:
         emu = emulator_class(bus, firmware, args.node_id, cyclic_s={k: v / 1000.0 for k, v in cyclic.items()},
                             tick_s=1.0 / args.physics_hz, substeps=args.substeps,

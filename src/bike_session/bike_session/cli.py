@@ -540,10 +540,12 @@ def _can_run_args(cfg, args: dict):
         return None
     if params.emulator:
         # its rider follows what the controller tells the plant's rider (a real one reads a screen),
-        # and his chest strap sends his heart rate where the plant node reads it
+        # his chest strap sends his heart rate where the plant node reads it, and its physics' truth
+        # (the rider's true power) goes where the recorder records it, for the report
         def topic(name: str) -> str:
             return "/" + "/".join(x for x in (args.get("namespace", ""), name) if x)
-        rider = ["--rider-topic", topic("drive_command"), "--heart-rate-topic", topic("heart_rate")]
+        rider = ["--rider-topic", topic("drive_command"), "--heart-rate-topic", topic("heart_rate"),
+                 "--truth-topic", topic("drive_truth")]
         args.update(emulator="true",
                     emulator_args=" ".join(shlex.quote(a) for a in emulator_args_from_config(cfg) + rider))
     print(f"[bike] drive on CAN: {params.describe()}"

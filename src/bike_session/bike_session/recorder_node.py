@@ -62,12 +62,15 @@ TOPICS: tuple[tuple[str, str, bool], ...] = (
     ("battery", "sensor_msgs/msg/BatteryState", True),
     ("/clock", "rosgraph_msgs/msg/Clock", True),         # Clock's first field is a Time, like a header
     ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", True),
+    # an emulated drive's physics (bike-drive-emulator --truth-topic): the report's true rider power
+    ("drive_truth", "bike_msgs/msg/DriveTruth", True),
 )
 LATCHED_TOPICS = {"session_info"}
-# The session publishes these transient_local (keep_last 100): a recorder whose reader matches
-# late still receives the first commands. If a volatile publisher appears on one of them (a
-# replayer), the incompatible-QoS event switches that subscription to volatile.
-PREFER_LATCHED = {"command", "session_status"}
+# The session publishes these transient_local (keep_last 100), and the drive emulator its truth
+# (keep_last 1000): a recorder whose reader matches late still receives the first ones. If a
+# volatile publisher appears on one of them (a replayer), the incompatible-QoS event switches
+# that subscription to volatile.
+PREFER_LATCHED = {"command", "session_status", "drive_truth"}
 QOS_DEPTH = 1000
 PROGRESS_EVERY = 10
 RESENT_COMMAND_WINDOW = 16          # the session re-sends at most the 2 Commands in force

@@ -52,6 +52,10 @@ the same stamp and seq, e.g. republished by a lockstep plant, counts once):
   ``ledger_from_drive`` True for a drive on CAN: its ledger is made of the drive's Torque_Estimate
   and speed (bike_plant.can.backend), not the physics' truth, so an error of the drive's kt Iq
   (the BLDC's, braking: -1 % at 0.5 N m .. +7 % at 2 N m of its true torque; README) is in neither side.
+  An emulated drive's truth in the bag (``drive_truth``, bike_msgs/DriveTruth from bike-drive-emulator
+  --truth-topic, stamped with the plant's /clock): the figures are against the rider's true power
+  (``against`` "drive_truth", ``true_rider_power_w``; the ledger's figures in ``ledger``, its own
+  error against the truth in ``ledger_error_pct``), in the windows the truth covers.
 - ``erg_response``         ERG target steps (a change of more than 10 W and 5 % between
   tracking windows) and the time from each until the ERG power (as ``erg_power``) stays within
   max(5 % of the target, 5 W) for 1 s (:func:`erg_response`); None without a step.
@@ -484,6 +488,8 @@ COMMAND_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "valu
                 ("heart_rate_bpm", "value", 0.0))
 BATTERY_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("voltage", "value", NAN),
                 ("current", "value", NAN), ("percentage", "value", NAN))
+TRUTH_SPEC = (("header.stamp.sec", "value", 0), ("header.stamp.nanosec", "value", 0), ("physics_time_s", "value", NAN),
+              ("rider_energy_j", "value", NAN))
 
 
 # ============================================================================ streaming analysis
@@ -509,7 +515,8 @@ BIN_SUMS = ["dt", "e_brake", "e_erg", "e_est", "e_mech", "tq_dt", "rpm_dt", "roa
             *[f"target_dt{m}" for m in (*MODE_NAMES, CADENCE_TARGET)],
             *[f"sat_dt{m}" for m in (*MODE_NAMES, CADENCE_TARGET)],
             *[f"trk_dt{m}" for m, *_ in TRACKED], *[f"err_dt{m}" for m, *_ in TRACKED],
-            *[f"err2_dt{m}" for m, *_ in TRACKED]]
+            *[f"err2_dt{m}" for m, *_ in TRACKED],
+            "e_true", "t_true", "t_truth"]     # an emulated drive's truth (_Analyser._truth_block)
 BIN_LAST = ["E_mech", "E_bat", "E_res", "E_loss"]
 BIN_MAX = ["ipk", "hrmax", *[f"errmax{m}" for m, *_ in TRACKED]]
 
@@ -610,7 +617,8 @@ class _Analyser:
         self.bag = bag
         counts = bag.message_counts()
         self.topic = {}
-        for key in ("plant_state", "controller_status", "command", "battery", "session_status", "session_info"):
+        for key in ("plant_state", "controller_status", "command", "battery", "session_status", "session_info",
+                    "drive_truth"):
             try:
                 self.topic[key] = bag.resolve(key)
             except BagError:
@@ -636,7 +644,7 @@ class _Analyser:
         self.readers = {}
         ts = bag.typestore
         for key, spec in (("plant_state", PLANT_SPEC), ("controller_status", STATUS_SPEC),
-                          ("command", COMMAND_SPEC), ("battery", BATTERY_SPEC)):
+                          ("command", COMMAND_SPEC), ("battery", BATTERY_SPEC), ("drive_truth", TRUTH_SPEC)):
             t = self.topic[key]
             if t:
                 self.readers[t] = FieldReader(ts, bag.topics[t][0], spec)
@@ -644,6 +652,9 @@ class _Analyser:
         self.status_rows: list = []
         self.command_rows: list = []
         self.battery_rows: list = []
+        self.truth_rows: list = []                # an emulated drive's physics (bike_msgs/DriveTruth)
+        self.truth_carry = None
+        self.truth_samples = 0
         self.command_blocks: list = []
         self.cadence_blocks: list = []            # (t, the rider's cadence target; 0: none) per Command
         self.hr_target_blocks: list = []          # (t, the heart-rate ERG target; 0: none) per Command
@@ -679,6 +690,7 @@ class _Analyser:
     def run(self) -> None:
         tp, tcs, tcmd = self.topic["plant_state"], self.topic["controller_status"], self.topic["command"]
         tbat, tss, tinfo = self.topic["battery"], self.topic["session_status"], self.topic["session_info"]
+        ttruth = self.topic["drive_truth"]
         tdiag = self.topic_diag
         rd = self.readers
         n = 0
@@ -707,6 +719,10 @@ class _Analyser:
                 elif topic == tbat:
                     self.battery_rows.append(rd[tbat](raw))
                     if len(self.battery_rows) >= 4 * CHUNK:
+                        self.flush()
+                elif topic == ttruth:
+                    self.truth_rows.append(rd[ttruth](raw))
+                    if len(self.truth_rows) >= 4 * CHUNK:
                         self.flush()
                 elif topic == tss:
                     self.last_status_raw = raw
@@ -777,6 +793,8 @@ class _Analyser:
                 bins.add(key + "_n", bi[ok], 1.0)
             okc = np.isfinite(b[:, 3])
             bins.add("bat_i", bi[okc], b[okc, 3])
+        if self.truth_rows:
+            self._truth_block()
         status = self._status_block()
         if not self.plant_rows:
             return
@@ -812,6 +830,36 @@ class _Analyser:
             self._rows(new)
         if len(q) > 1:
             self._intervals(q, status)
+
+    def _truth_block(self) -> None:
+        """An emulated drive's truth (DriveTruth, stamped with the plant's /clock as the emulator
+        heard it) onto the plant's time line: between two samples, the rider's mean power over
+        the emulator's physics time (its own clock, which runs on while the plant's sim time
+        stands still) counts for the sim time between their stamps (``e_true`` / ``t_true``). A
+        stretch in which sim time stood still (drive not armed: the emulator hears no /clock) is
+        left out, as in the plant's ledger: the physics ran TRUTH_PAUSE_S longer than sim time
+        between the two (also a stall of the machine: 0.26 s of physics in 10 ms of sim time once
+        in a 60 s ride here); it still counts as covered (``t_truth``), the truth was there. A
+        sim time that runs slower or faster than the physics (a loaded plant: 1.4 % slower in a
+        15 s ride here) changes no power. Samples out of order (a restarted emulator) are skipped."""
+        r = np.array(self.truth_rows, dtype=float).reshape(-1, len(TRUTH_SPEC))
+        self.truth_rows.clear()
+        self.truth_samples += len(r)
+        r = np.column_stack([r[:, 0] + r[:, 1] * 1e-9, r[:, 2], r[:, 3]])     # stamp, physics time, energy
+        if self.truth_carry is not None:
+            r = np.vstack([self.truth_carry, r])
+        self.truth_carry = r[-1:].copy()
+        if len(r) < 2:
+            return
+        d_stamp, d_phys, d_energy = np.diff(r[:, 0]), np.diff(r[:, 1]), np.diff(r[:, 2])
+        ordered = (d_stamp > 0) & (d_phys > 0) & np.isfinite(d_energy)
+        if not ordered.any():
+            return
+        b = self.bins.index(0.5 * (r[:-1, 0] + r[1:, 0])[ordered])
+        self.bins.add("t_truth", b, d_stamp[ordered])
+        ran = (d_phys - d_stamp < TRUTH_PAUSE_S)[ordered]
+        self.bins.add("e_true", b[ran], (d_energy / d_phys * d_stamp)[ordered][ran])
+        self.bins.add("t_true", b[ran], d_stamp[ordered][ran])
 
     def _status_block(self) -> np.ndarray:
         """Statuses (t, mode, command, target, saturated, virtual speed, virtual gear: 0 or NaN
@@ -1099,6 +1147,8 @@ class _Analyser:
             if out["power_accuracy"] and self.can:
                 # a drive on CAN: the ledger is the host's, from the drive's own estimates (backend docs)
                 out["power_accuracy"]["ledger_from_drive"] = True
+            if out["power_accuracy"] and self.truth_samples:
+                out["power_accuracy"]["truth_samples"] = int(self.truth_samples)
             out["mean_heart_rate_bpm"], out["max_heart_rate_bpm"] = heart_rate_figures(bins)
             out["heart_rate_erg"] = heart_rate_erg(bins, self.origin_s, self.bin_s, self.hr_stretches())
             if self.friction_seen:
@@ -1262,6 +1312,10 @@ ERG_HOLD_S = 1.0              # ... for this long
 
 ACCURACY_WINDOW_S = 10.0      # power accuracy: windows long enough that the flywheel's energy swings average out
 ACCURACY_MIN_W = 20.0         # ... in which the rider pedals
+TRUTH_COVERAGE = 0.98         # ... and, against a drive's truth (DriveTruth), that covers this much of the window
+# between two truth samples the physics ran this much longer than sim time: the plant paused (a drive
+# lost or not armed: its ledger stood still too; the heartbeat timeout alone is 0.3 s), not jitter
+TRUTH_PAUSE_S = 0.1
 
 
 def power_accuracy(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | None:
@@ -1270,7 +1324,15 @@ def power_accuracy(bins: dict, bin_s: float, n_bins: int | None = None) -> dict 
     inertia compensated as a direct-drive trainer reports it), against the rider's
     own from the plant's ledger, over ACCURACY_WINDOW_S windows in which the rider gave more
     than ACCURACY_MIN_W. A friction figure that is off (before a spin-down) shows here; trainers
-    state +-1..2 %. None without such a window."""
+    state +-1..2 %. None without such a window.
+
+    With an emulated drive's truth in the bag (``e_true`` / ``t_true``, :meth:`_Analyser._truth_block`)
+    the figures are against the rider's true power instead, in those of the windows that the
+    truth covers, each from its first to its last truth (at least half of the window, TRUTH_COVERAGE
+    of that span covered): ``against`` "drive_truth" (else "ledger"), ``true_rider_power_w``,
+    ``ledger`` (the estimate against the ledger over the same spans), ``ledger_error_pct`` (the
+    ledger's own error against the truth: on CAN the drive's kt Iq), ``compared_s`` (the spans' sim
+    time), ``windows_without_truth``."""
     n = len(bins["dt"]) if n_bins is None else int(n_bins)
     k = max(1, int(round(ACCURACY_WINDOW_S / bin_s)))
     dt = _rebin(bins["dt"][:n], k, "sum")
@@ -1280,10 +1342,42 @@ def power_accuracy(bins: dict, bin_s: float, n_bins: int | None = None) -> dict 
     sel = full & np.isfinite(est) & np.isfinite(rider) & (rider > ACCURACY_MIN_W)
     if not sel.any():
         return None
-    err = est[sel] - rider[sel]
-    return {"windows": int(sel.sum()), "window_s": k * bin_s, "mean_w": float(err.mean()),
-            "rms_w": float(np.sqrt(np.mean(err ** 2))), "max_abs_w": float(np.abs(err).max()),
-            "mean_pct": float(100.0 * err.mean() / rider[sel].mean())}
+
+    def figures(estimate: np.ndarray, against: np.ndarray, where: np.ndarray) -> dict:
+        err = estimate[where] - against[where]
+        return {"windows": int(where.sum()), "window_s": k * bin_s, "mean_w": float(err.mean()),
+                "rms_w": float(np.sqrt(np.mean(err ** 2))), "max_abs_w": float(np.abs(err).max()),
+                "mean_pct": float(100.0 * err.mean() / against[where].mean())}
+
+    out = figures(est, rider, sel) | {"against": "ledger"}
+    t_truth = bins["t_truth"][:n] if "t_truth" in bins else np.zeros(n)
+    if not t_truth.sum() > 0:
+        return out
+    # each window from its first to its last base bin with the truth (the emulator's first sample
+    # comes when it first hears the plant's /clock: 0.3 s into a ride here), if that is half of it
+    # and the truth covers it; the estimate and the ledger over the same span
+    est_t, rider_t, true_t, span_t = (np.full(len(dt), np.nan) for _ in range(4))
+    for j in np.flatnonzero(sel):
+        has = np.flatnonzero(t_truth[j * k:(j + 1) * k] > 0)
+        if not has.size:
+            continue
+        lo, hi = j * k + has[0], j * k + has[-1] + 1
+        span = bins["dt"][lo:hi].sum()
+        if (span >= 0.5 * k * bin_s and t_truth[lo:hi].sum() >= TRUTH_COVERAGE * span
+                and bins["t_true"][lo:hi].sum() > 0):
+            span_t[j] = span
+            est_t[j] = bins["e_est"][lo:hi].sum() / span
+            rider_t[j] = bins["e_mech"][lo:hi].sum() / span
+            true_t[j] = bins["e_true"][lo:hi].sum() / bins["t_true"][lo:hi].sum()
+    covered = sel & np.isfinite(true_t)
+    out["windows_without_truth"] = int(sel.sum() - covered.sum())
+    if covered.any():
+        out = figures(est_t, true_t, covered) | {
+            "against": "drive_truth", "windows_without_truth": int(sel.sum() - covered.sum()),
+            "true_rider_power_w": float(true_t[covered].mean()), "ledger": figures(est_t, rider_t, covered),
+            "ledger_error_pct": float(100.0 * (rider_t[covered] - true_t[covered]).mean() / true_t[covered].mean()),
+            "compared_s": float(np.nansum(np.where(covered, span_t, np.nan)))}
+    return out
 
 
 def erg_response(bins: dict, bin_s: float, n_bins: int | None = None) -> dict | None:
@@ -1494,14 +1588,24 @@ def format_summary(summary: dict) -> str:
         lines.append(f"virtual gear:          {gear['first']:g}{shifted}; distance {s.get('distance_m', 0.0):.0f} m")
     acc = s.get("power_accuracy")
     if acc:
+        against = "rider's true power" if acc.get("against") == "drive_truth" else "rider's ledger power"
         lines.append(f"trainer power error:   mean {acc['mean_w']:+.2f} W ({acc['mean_pct']:+.2f} %), rms "
                      f"{acc['rms_w']:.2f} W over {acc['windows']} {acc['window_s']:g} s windows (brake + modelled "
-                     f"friction + flywheel energy, against the rider's ledger power)")
-        if acc.get("ledger_from_drive"):
+                     f"friction + flywheel energy, against the {against})")
+        if acc.get("against") == "drive_truth":
+            led = acc["ledger"]
+            lines.append(f"                       true rider power {acc['true_rider_power_w']:.2f} W (drive_truth: the "
+                         "drive emulator's physics); against the plant's")
+            lines.append(f"                       ledger (the drive's kt Iq and speed) it reads {led['mean_w']:+.2f} W "
+                         f"({led['mean_pct']:+.2f} %), the ledger {acc['ledger_error_pct']:+.2f} % off the truth"
+                         + (f"; {acc['windows_without_truth']} window(s) without the truth left out"
+                            if acc.get("windows_without_truth") else ""))
+        elif acc.get("ledger_from_drive"):
             lines.append("                       drive on CAN: the ledger is the plant's, from the drive's torque "
                          "estimate (kt Iq) and speed,")
             lines.append("                       not the rider's true power: an error of kt Iq (the BLDC's: -1 % at "
-                         "0.5 N m .. +7 % at 2 N m) is in neither (README, \"Trainer power on CAN\")")
+                         "0.5 N m .. +7 % at 2 N m) is in neither (README, \"Trainer power on CAN\")"
+                         + ("; drive_truth covers no whole window" if acc.get("windows_without_truth") else ""))
     friction = s.get("friction") or []
     if len(friction) > 1:                       # a spin-down changed the laws' friction
         changes = ", ".join(f"B {f['friction_nms']:.3e} N m s, Tc {f['dry_friction_nm']:.4f} N m from {f['t']:.1f} s"
