@@ -109,6 +109,7 @@ def test_summary_numbers(tmp_path, storage):
     assert s["messages"] == expected
     text = format_summary(s)
     assert "20.00 W" in text and "12.00 J" in text and "7.50 A" in text and "command_timeout 2" in text
+    assert "/bike/battery" in text and "drive_truth" not in text, "an empty optional topic is not listed"
 
 
 def test_read_helpers(tmp_path):

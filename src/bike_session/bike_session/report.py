@@ -1643,10 +1643,15 @@ def format_summary(summary: dict) -> str:
         lines.append(f"warning: {w}")
     lines.append("messages:")
     for topic, count in (s.get("messages") or {}).items():
+        if count == 0 and topic.rsplit("/", 1)[-1] in ONLY_WHEN_THERE:
+            continue
         lines.append(f"  {topic:<32} {count}")
     return "\n".join(lines)
 
 
+# topics the recorder always subscribes to but only some rides have (an emulated drive's truth):
+# the text lists them when they have messages (the summary's "messages" keeps every count)
+ONLY_WHEN_THERE = ("drive_truth",)
 HR_ERG_LINES = 8              # stretches listed one by one in the text (a workout may have many)
 
 
