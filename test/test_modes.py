@@ -1026,6 +1026,29 @@ def test_brake_envelope_rejects_a_malformed_table():
                     brake_envelope=bad)
 
 
+def test_brake_cap_is_np_interp_bit_for_bit():
+    """brake_cap_nm looks the envelope up without numpy (modes._interp, per batch): the same
+    float as np.interp everywhere, at the grid points, between them, beyond the ends and at nan."""
+    from bike_controller.modes import _interp, machine_figures
+    rng = np.random.default_rng(3)
+    tables = [tuple(np.asarray(v, float) for v in ENVELOPE),
+              tuple(np.asarray(v, float) for v in machine_figures(_spmsm_cfg()).brake_envelope)]
+    for _ in range(20):
+        xp = np.cumsum(rng.exponential(1.0, rng.integers(2, 30)) + 1e-3) - rng.uniform(0.0, 5.0)
+        tables.append((xp, rng.normal(0.0, 10.0, xp.size) * 10.0 ** rng.uniform(-3, 3, xp.size)))
+    for xp, fp in tables:
+        xs = np.concatenate([rng.uniform(xp[0] - 1.0, xp[-1] + 1.0, 3000), xp, np.nextafter(xp, np.inf),
+                             np.nextafter(xp, -np.inf), [np.inf, -np.inf, np.nan, -0.0, 1e300, -1e300]])
+        got = np.array([_interp(float(x), xp.tolist(), fp.tolist()) for x in xs])
+        want = np.interp(xs, xp, fp)
+        assert np.array_equal(got.view(np.int64), want.view(np.int64)), "bit for bit, nan included"
+    law = ModeLaw(ModeParams(), gear_ratio=GEAR, inertia_kgm2=J, tmax_nm=TMAX, pmax_w=PMAX, base_speed_rpm=WB,
+                  brake_envelope=ENVELOPE)
+    for rpm in (0.0, 999.0, 1000.0, 1500.0, 2000.0, 3000.0, 9000.0):
+        w = rpm / RPM_PER_RAD_S
+        assert law.brake_cap_nm(w) == min(TMAX, float(np.interp(w * RPM_PER_RAD_S, *ENVELOPE)))
+
+
 def _spmsm_cfg():
     from bike_plant.config import load_config
     return load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")

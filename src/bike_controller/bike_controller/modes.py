@@ -92,6 +92,7 @@ passed straight through once the ramp is over, so the paper's curves are unchang
 """
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from dataclasses import dataclass
@@ -238,6 +239,26 @@ def _nearest_gear(gears, ratio: float) -> int:
     return min(range(len(gears)), key=lambda i: abs(math.log(gears[i] / ratio)))
 
 
+def _interp(x: float, xp: list, fp: list) -> float:
+    """float(np.interp(x, xp, fp)) for one x, bit for bit (numpy's arithmetic: the same slope,
+    the same product and sum, fp[j] at a grid point, the ends held), on lists: np.interp took
+    ~1.3 us of the SPMSM law's ~20 us a batch for one value, this ~0.5. ``xp`` strictly
+    increasing, ``fp`` finite (the brake envelope is checked so), so numpy's fallback for a nan
+    slope never applies."""
+    if x != x:
+        return x
+    j = bisect.bisect_right(xp, x) - 1
+    if j < 0:
+        return fp[0]
+    if j >= len(xp) - 1:
+        return fp[-1]
+    x0 = xp[j]
+    if x0 == x:
+        return fp[j]
+    y0 = fp[j]
+    return (fp[j + 1] - y0) / (xp[j + 1] - x0) * (x - x0) + y0
+
+
 @dataclass
 class ModeOutput:
     brake_torque_nm: float     # to the current loop (after the rate limit); > 0 brakes, < 0 assists
@@ -269,6 +290,8 @@ class ModeLaw:
                     or not np.all(np.isfinite(nm)) or np.any(nm < 0):
                 raise ValueError("brake_envelope must be (increasing speeds, torques >= 0) of equal length >= 2")
             self.envelope_rpm, self.envelope_nm = rpm, nm
+            # as lists for brake_cap_nm's per-batch look-up (_interp)
+            self._envelope = (rpm.tolist(), nm.tolist())
         # the machine's friction (nominal figures): the ERG brake leaves it to the rider, the
         # virtual bike's observer counts it as the rider's torque
         self.friction_nms = float(friction_nms)
@@ -473,7 +496,7 @@ class ModeLaw:
         machine's braking envelope is lower (held at its last value beyond the table)."""
         if self.envelope_rpm is None:
             return self.tmax_nm
-        return min(self.tmax_nm, float(np.interp(w * RPM_PER_RAD_S, self.envelope_rpm, self.envelope_nm)))
+        return min(self.tmax_nm, _interp(w * RPM_PER_RAD_S, *self._envelope))
 
     # ---------------------------------------------------------------- the laws
     def road_force_n(self, grade: float, v_mps: float) -> float:

@@ -119,6 +119,7 @@ class ControllerNode(Node):
         except ValueError as exc:
             raise ConfigError(str(exc), path) from None
         self.n = self.ctrl.batch_periods
+        self.build_drive = msgconv.spmsm_drive_cdr if self.machine == "spmsm" else msgconv.drive_command_cdr
         # before the node joins the graph (see the plant's warm-up)
         warm_up_kernels(self.get_logger(), lambda: warm_up_law(self._make_law, cfg, self.machine, self.n))
         take_sim_time_from_messages(self)
@@ -335,10 +336,9 @@ class ControllerNode(Node):
         torque = float(status.get("torque_cmd_nm", 0.0))
         if int(status.get("quadrant", 0)) == ControllerStatus.QUADRANT_GENERATING:
             torque = -torque                              # motoring positive, like torque_em_nm
-        build = msgconv.spmsm_drive_cdr if self.machine == "spmsm" else msgconv.drive_command_cdr
         # the rider is told the Command's cadence, or what a spin-down asks of him
         rider = self.ctrl.law.rider_instruction() or (self.rider_cadence_rpm, False)
-        drive = build(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)), *rider)
+        drive = self.build_drive(msg.seq, a, b, c, t_ns, torque, float(status.get("current_cmd_a", 0.0)), *rider)
         self.pub_drive.publish(drive)
         # ControllerStatus is volatile: with no reader matched (the bare graph, no recorder) it
         # is neither built nor sent (about 20 us per batch)

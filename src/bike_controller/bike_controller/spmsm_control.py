@@ -974,16 +974,23 @@ def advance_angle_rad(cs):
 
 
 def status_of(cs: np.ndarray) -> dict:
+    # read from one list of the state's head (Python floats, the same values): fifteen numpy
+    # scalar reads and float() calls cost twice as much, once per batch
+    c = cs[:_STATUS_SPAN].tolist()
     return {
-        "speed_est_rpm": float(cs[C_SPEED_EST] * RPM_PER_RAD_S),
-        "speed_ref_rpm": float(cs[C_SPEED_REF] * RPM_PER_RAD_S),
-        "id_a": float(cs[C_ID]), "iq_a": float(cs[C_IQ]),
-        "id_ref_a": float(cs[C_ID_REF]), "iq_ref_a": float(cs[C_IQ_REF]), "iq_demand_a": float(cs[C_IQ_DEMAND]),
-        "vd_v": float(cs[C_VD]), "vq_v": float(cs[C_VQ]),
-        "region": int(cs[C_REGION]), "limits": int(cs[C_LIMITS]),
-        "torque_est_nm": float(cs[C_TORQUE_EST]), "advance_angle_rad": float(advance_angle_rad(cs)),
-        "relay_request": int(cs[C_RELAY_REQ]), "buck_duty": float(cs[C_BUCK_DUTY]),
+        "speed_est_rpm": c[C_SPEED_EST] * RPM_PER_RAD_S,
+        "speed_ref_rpm": c[C_SPEED_REF] * RPM_PER_RAD_S,
+        "id_a": c[C_ID], "iq_a": c[C_IQ],
+        "id_ref_a": c[C_ID_REF], "iq_ref_a": c[C_IQ_REF], "iq_demand_a": c[C_IQ_DEMAND],
+        "vd_v": c[C_VD], "vq_v": c[C_VQ],
+        "region": int(c[C_REGION]), "limits": int(c[C_LIMITS]),
+        "torque_est_nm": c[C_TORQUE_EST], "advance_angle_rad": float(advance_angle_rad(cs)),
+        "relay_request": int(c[C_RELAY_REQ]), "buck_duty": c[C_BUCK_DUTY],
     }
+
+
+_STATUS_SPAN = max(C_SPEED_EST, C_SPEED_REF, C_ID, C_IQ, C_ID_REF, C_IQ_REF, C_IQ_DEMAND, C_VD, C_VQ, C_REGION,
+                   C_LIMITS, C_TORQUE_EST, C_RELAY_REQ, C_BUCK_DUTY) + 1
 
 
 @njit(**JIT)

@@ -33,6 +33,9 @@ _PRIMITIVES = {  # rosidl name -> (struct code, size, numpy dtype)
     "double": ("d", 8, np.float64),
 }
 MAX_STRING_BYTES = 1 << 20            # hostile lengths are refused, not allocated
+# the lengths of strings and sequences, packed by one compiled Struct (struct.pack_into('<I', ...)
+# looked the format up in struct's cache at each of a message's ~6 lengths)
+_U32 = struct.Struct("<I")
 
 
 class CdrError(ValueError):
@@ -81,7 +84,7 @@ class Codec:
         size_terms = []
         fixed_bytes = 0
         env: dict = {"np": np, "struct": struct, "CdrError": CdrError, "MAX": MAX_STRING_BYTES, "HEADER": HEADER,
-                     "NAME": self.name}
+                     "NAME": self.name, "PACK_U32": _U32.pack_into, "UNPACK_U32": _U32.unpack_from}
         run: list[tuple[str, str, int, int, bool]] = []       # (field, code, size, count, is_header)
         k = 0
 
@@ -138,32 +141,40 @@ class Codec:
                 size_terms.append(f"len(b{k})")
                 fixed_bytes += 3 + 4 + 1
                 enc.append(f"pos += (-pos) & 3; n = len(b{k}) + 1")
-                enc.append(f"struct.pack_into('<I', mv, pos, n); pos += 4; mv[pos:pos + n - 1] = b{k}; pos += n")
+                enc.append(f"PACK_U32(mv, pos, n); pos += 4; mv[pos:pos + n - 1] = b{k}; pos += n")
                 dec.append("pos += (-pos) & 3")
                 dec.append("if pos + 4 > end: raise CdrError(f'{NAME}: truncated at byte {pos}')")
-                dec.append("n = struct.unpack_from('<I', raw, pos)[0]; pos += 4")
+                dec.append("n = UNPACK_U32(raw, pos)[0]; pos += 4")
                 dec.append(f"if n < 1 or n > MAX or pos + n > end: raise CdrError(f'{{NAME}}: bad string length {{n}} "
                            f"({field})')")
-                dec.append(f"{dst} = bytes(raw[pos:pos + n - 1]).decode('utf-8', 'replace'); pos += n")
+                # an empty string (the frame_id, mostly) is not sliced and decoded
+                dec.append(f"{dst} = bytes(raw[pos:pos + n - 1]).decode('utf-8', 'replace') if n > 1 else ''; "
+                           "pos += n")
             elif ftype.startswith("sequence<") and ftype[9:-1] in _PRIMITIVES:
                 code, size, dtype = _PRIMITIVES[ftype[9:-1]]
                 env[f"D{k}"] = np.dtype(dtype).newbyteorder("<")
                 env[f"E{k}"] = np.zeros(0, env[f"D{k}"])
-                pre.append(f"a{k} = np.ascontiguousarray(v.get({field!r}, E{k}), dtype=D{k}).reshape(-1)")
+                env[f"R{k}"] = np.zeros(0, env[f"D{k}"])
+                env[f"R{k}"].flags.writeable = False
+                # a field not given is the empty sequence itself, not converted (the DriveCommand of
+                # either machine leaves the other's three out)
+                pre.append(f"a{k} = np.ascontiguousarray(v[{field!r}], dtype=D{k}).reshape(-1) if {field!r} in v "
+                           f"else E{k}")
                 size_terms.append(f"a{k}.nbytes")
                 fixed_bytes += 3 + 4 + 7
-                enc.append(f"pos += (-pos) & 3; n = a{k}.size; struct.pack_into('<I', mv, pos, n); pos += 4")
+                enc.append(f"pos += (-pos) & 3; n = a{k}.size; PACK_U32(mv, pos, n); pos += 4")
                 if size > 1:
                     enc.append(f"pos += (-pos) & {size - 1} if n else 0")
                 enc.append(f"mv[pos:pos + n * {size}] = a{k}.tobytes(); pos += n * {size}")
                 dec.append("pos += (-pos) & 3")
                 dec.append("if pos + 4 > end: raise CdrError(f'{NAME}: truncated at byte {pos}')")
-                dec.append("n = struct.unpack_from('<I', raw, pos)[0]; pos += 4")
+                dec.append("n = UNPACK_U32(raw, pos)[0]; pos += 4")
                 if size > 1:
                     dec.append(f"pos += (-pos) & {size - 1} if n else 0")
                 dec.append(f"if pos + n * {size} > end: raise CdrError(f'{{NAME}}: {field} claims {{n}} elements "
                            f"past the end')")
-                dec.append(f"v[{field!r}] = np.frombuffer(raw, D{k}, n, pos); pos += n * {size}")
+                # an empty one is a shared read-only empty array, as a view of raw would be
+                dec.append(f"v[{field!r}] = np.frombuffer(raw, D{k}, n, pos) if n else R{k}; pos += n * {size}")
             else:
                 raise TypeError(f"{self.name}.{field}: {ftype} is not supported by bike_plant.cdr")
             k += 1
