@@ -1627,6 +1627,45 @@ def test_a_held_command_keeps_its_torque_relative_to_the_rotor(machine, ride):
     assert abs(held - fresh) < 0.5 * abs(replayed - fresh), (fresh, held, replayed)
 
 
+@pytest.mark.parametrize("mode, command", [(MODE_ISOKINETIC, 0.6), (MODE_RESISTANCE, 0.5)],
+                         ids=["isokinetic", "resistance"])
+def test_the_spmsm_mode_law_steps_on_the_gaps_mean_speed_after_skipped_plant_states(mode, command):
+    """After skipped plant states (realtime: 60 batches the plant ran, past command_timeout_s in
+    its safe state) the speed estimate is of the shaft before them: the observer re-acquires
+    inside the next batch, but the mode law steps before it. It now steps on the gap's mean
+    speed from the encoder: isokinetic, the diodes braked 321 r/min to 296 (the estimate read
+    321); resistance, the freed rider sped up from 316 to 440 (the estimate read 297, the mean
+    393). The law's speed is within half the estimate's error of the shaft's."""
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import load_config
+    from bike_plant.params import RPM_PER_RAD_S
+    from bike_controller.spmsm_control import C_SPEED_EST
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+    plant, ctrl = M.SpmsmPlant(M.plant_params_from_config(cfg)), ModedSpmsmController(cfg)
+    ctrl.set_command(command, mode)
+    seen = []
+    step = ctrl.law.step
+
+    def spy(command, mode, speed_rpm, *args, **kwargs):          # the speed the law is given
+        seen.append(speed_rpm)
+        return step(command, mode, speed_rpm, *args, **kwargs)
+    ctrl.law.step = spy
+    n = ctrl.batch_periods
+    for k in range(1061):
+        if 1000 <= k < 1060:
+            plant.set_safe_state()
+            plant.step_safe_batch(n)
+            continue
+        plant.clear_safe_state()
+        snap = plant.snapshot()
+        before_rpm = float(ctrl.inner.cs[C_SPEED_EST]) * RPM_PER_RAD_S
+        plant.step_batch(*ctrl.decide(dict(snap, batch_periods=n))[:3])
+    shaft_rpm = snap["speed_rpm"]
+    assert abs(before_rpm - shaft_rpm) > 20.0, (before_rpm, shaft_rpm)      # the gap moved the shaft
+    assert abs(seen[-1] - shaft_rpm) < 0.5 * abs(before_rpm - shaft_rpm), (seen[-1], before_rpm, shaft_rpm)
+
+
 @pytest.mark.parametrize("machine", ["bldc", "spmsm"])
 def test_the_torque_trim_holds_on_the_batch_after_skipped_plant_states(machine):
     """The trim closes the torque loop on the measured torque of the plant's last batch. After

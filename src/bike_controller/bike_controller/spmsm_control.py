@@ -1066,14 +1066,18 @@ class SpmsmController:
         high): the next sample starts afresh and the gap's mean speed stands until the one
         after. M/T needs nothing: its counts and capture ticks span the same time."""
         cs, q = self.cs, self.q
-        # the gap's mean speed (C_CNT: the count of the last period decided, one before the gap)
-        gap_mean = (count - cs[C_CNT]) * q[Q_RAD_PER_COUNT] / ((periods + 1) * q[Q_DT])
+        gap_mean = self.gap_mean_speed_rad_s(periods, count)
         if q[Q_OBSERVER] != 0.0 and cs[C_OBS_INIT] != 0.0:
             cs[C_OBS_W] = gap_mean
             cs[C_OBS_INIT] = 2.0
         if q[Q_MMETHOD] != 0.0:
             cs[C_HAVE_REF] = 0.0
             cs[C_SPEED_EST] = gap_mean
+
+    def gap_mean_speed_rad_s(self, periods: int, count: float) -> float:
+        """The shaft's mean speed over ``periods`` skipped control periods and the one before
+        them, from the encoder count then (C_CNT: the count of the last period decided) and now."""
+        return (count - self.cs[C_CNT]) * self.q[Q_RAD_PER_COUNT] / ((periods + 1) * self.q[Q_DT])
 
     def set_speed_ref(self, speed_rpm: float, next_speed_rpm: float | None = None) -> None:
         """Speed command; the predictive law's cost uses the reference one speed sample ahead."""

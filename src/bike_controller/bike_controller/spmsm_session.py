@@ -313,8 +313,15 @@ class ModedSpmsmController(SessionCommand):
         if not self.started:
             inner.reset_from(model)            # bumpless: the drive starts at the measured speed
             self.started = True
-        # the speed estimate alone (status_of's value): the whole status dict cost ~1.5 us a batch
-        speed_rpm = float(inner.cs[C_SPEED_EST] * RPM_PER_RAD_S)
+        gap = inner.gap_periods(model)
+        if gap:
+            # after skipped plant states the estimate is of the shaft before them (the observer
+            # re-acquires inside this batch): the law steps on the gap's mean speed, from the
+            # encoder (a 50 ms safe state braked 330 r/min to 250)
+            speed_rpm = inner.gap_mean_speed_rad_s(gap, float(model[M.S_COUNT])) * RPM_PER_RAD_S
+        else:
+            # the speed estimate alone (status_of's value): the whole status dict cost ~1.5 us a batch
+            speed_rpm = float(inner.cs[C_SPEED_EST] * RPM_PER_RAD_S)
         self.battery_soc = snapshot.get("battery_soc")
         sample = None
         if self.mode == MODE_SPINDOWN:         # only the spin-down's fit takes the encoder's speed
@@ -323,7 +330,7 @@ class ModedSpmsmController(SessionCommand):
             self.encoder_speed.ref = None      # its next spin-down starts from a fresh edge
         period_s = inner.nominal.control_period_s
         self._apply_mode(speed_rpm, n_eff * period_s, snapshot.get("torque_em_nm"), sample,
-                         snapshot.get("heart_rate_bpm", 0.0), skipped_time_s(inner.gap_periods(model), period_s))
+                         snapshot.get("heart_rate_bpm", 0.0), skipped_time_s(gap, period_s))
         duties, relay, buck, status = inner.decide(model, n_eff)
         # beyond reach: the region logic clipped iq* (not the current loop's saturated periods:
         # near the voltage edge the trim still gets more torque out of them, 4.96 N m for 4.94 at
