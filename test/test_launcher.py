@@ -176,11 +176,14 @@ def test_a_node_stuck_after_the_users_ctrl_c_is_named_and_a_warning(capsys):
     """The user stopped the run: it ends as interrupted (the caller's 130), also when a node
     had to be killed on the way out; the launcher says which node, and when."""
     out = _Sink()
-    launch = Launcher([_Script("plant", "import time; time.sleep(60)", shutdown=True), _Script("stubborn", STUBBORN)],
-                      grace_s=0.5, stdout=out)
+    # both say 'ready' once their interpreter runs their code: a SIGINT that lands while Python
+    # still starts up ends it with 1, not by the signal (CI under load: the plant's code had not
+    # started when the stubborn one was ready)
+    launch = Launcher([_Script("plant", "import time; print('ready', flush=True); time.sleep(60)", shutdown=True),
+                       _Script("stubborn", STUBBORN)], grace_s=0.5, stdout=out)
     launch.start()
     end = time.monotonic() + 30
-    while "[stubborn] ready\n" not in out.lines and time.monotonic() < end:
+    while not {"[stubborn] ready\n", "[plant] ready\n"} <= set(out.lines) and time.monotonic() < end:
         time.sleep(0.05)
     launch.request_stop(signal.SIGINT)
     codes = launch.wait(timeout_s=30)
