@@ -156,7 +156,8 @@ def test_launcher_escalates_to_sigkill_for_a_node_that_ignores_signals():
 
 def test_a_node_stuck_after_a_normal_end_is_a_warning_but_a_killed_node_fails_the_run(capsys):
     # the run ends by itself (the shutdown node exits 0); the stubborn node is then SIGKILLed
-    launch = Launcher([_Script("plant", "import time; time.sleep(0.5)", shutdown=True), _Script("stubborn", STUBBORN)],
+    # (2 s: on a loaded host an interpreter's start-up, before it ignores SIGINT, can take a second)
+    launch = Launcher([_Script("plant", "import time; time.sleep(2.0)", shutdown=True), _Script("stubborn", STUBBORN)],
                       grace_s=0.5, stdout=open("/dev/null", "w"))
     launch.start()
     codes = launch.wait(timeout_s=30)
