@@ -165,6 +165,42 @@ def test_the_plant_applies_checked_read_only_arrays_like_validated_ones():
     assert np.array_equal(np.frombuffer(view.gates_a, np.uint8), ga), "the message's bytes stay as sent"
 
 
+def test_the_spmsm_plant_applies_checked_arrays_like_validated_ones_and_the_check_words_each_problem():
+    """The SPMSM node's path: spmsm_drive_problem's compiled check, then the message's float64
+    conversions applied without a second validation and kept (SpmsmPlant.step_batch(checked=True));
+    the state is the validated path's, held and safe batches after it too. A bad array is
+    refused with the words the numpy check gave."""
+    from bike_plant import spmsm as M
+    from bike_plant.config import load_config
+
+    cfg = load_config(msgconv_root() / "config" / "spmsm_default.yaml")
+    rng = np.random.default_rng(7)
+    n = 10
+    plants = [M.SpmsmPlant(M.plant_params_from_config(cfg)) for _ in range(2)]
+    for batch in range(8):
+        relay = (rng.random(n) > 0.7).astype(np.float32)
+        view = msgconv.DriveCommandView(msgconv.spmsm_drive_cdr(batch, rng.random((n, 3)), relay, rng.random(n), 0))
+        assert msgconv.spmsm_drive_problem(view, n) is None
+        plants[0].step_batch(*msgconv.spmsm_drive_arrays(view))
+        plants[1].step_batch(*msgconv.spmsm_drive_arrays(view), checked=True)
+        assert plants[1].last_inputs[0].flags.writeable, "kept: a conversion, not a view of the message"
+        for plant in plants:
+            if batch == 5:
+                plant.step_held_batch()
+            if batch == 6:
+                plant.set_safe_state()
+                plant.step_safe_batch(n)
+                plant.clear_safe_state()
+        assert np.array_equal(plants[0].state, plants[1].state)
+    for k, name in enumerate(("duty_abc", "relay_request", "buck_duty")):
+        for value, words in ((np.nan, "holds a non-finite value"), (-np.inf, "holds a non-finite value"),
+                             (-0.25, "outside [0, 1] (-0.25 .. "), (1.5, "outside [0, 1] (")):
+            arrays = [np.full(3 * n, 0.5, np.float32), np.zeros(n, np.float32), np.ones(n, np.float32)]
+            arrays[k][-1] = value
+            problem = msgconv.spmsm_drive_problem(msgconv.DriveCommandView(msgconv.spmsm_drive_cdr(0, *arrays, 0)), n)
+            assert problem.startswith(f"{name} {words}"), (name, value, problem)
+
+
 def test_controller_status_encodes_like_the_message_path():
     status = {"seq": 9, "command": 0.5, "mode": 2, "command_rejected": False, "speed_est_rpm": np.float64(812.5),
               "region": np.float64(1.0), "quadrant": 1, "family": "predictive", "not_a_field": object(),

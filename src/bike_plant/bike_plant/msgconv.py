@@ -266,22 +266,39 @@ def spmsm_drive_msg(seq: int, duties, relay, buck, stamp: int, torque_cmd_nm: fl
     return msg
 
 
+def _f64(v) -> np.ndarray:
+    """A float32 sequence field as a new float64 array."""
+    return np.frombuffer(v, dtype=np.float32).astype(np.float64) if len(v) else np.zeros(0)
+
+
 def spmsm_drive_arrays(msg: DriveCommand):
-    """(duties float64[N, 3], relay float64[N], buck float64[N]) of an SPMSM DriveCommand."""
-    def arr(v):
-        return np.frombuffer(v, dtype=np.float32).astype(np.float64) if len(v) else np.zeros(0)
-    return arr(msg.duty_abc).reshape(-1, 3), arr(msg.relay_request), arr(msg.buck_duty)
+    """(duties float64[N, 3], relay float64[N], buck float64[N]) of an SPMSM DriveCommand (new
+    arrays: SpmsmPlant.step_batch(..., checked=True) may keep them)."""
+    return _f64(msg.duty_abc).reshape(-1, 3), _f64(msg.relay_request), _f64(msg.buck_duty)
+
+
+_unit_interval_check = None     # bike_plant.spmsm.unit_interval_check, imported at first use
+_gate_split_check = None        # bike_plant.bldc.gate_split_check, the same
 
 
 def spmsm_drive_problem(msg: DriveCommand, batch_periods: int) -> str | None:
-    """Why an SPMSM DriveCommand cannot be applied (None: it can). Never raises."""
+    """Why an SPMSM DriveCommand cannot be applied (None: it can). Never raises. One compiled
+    pass checks the arrays (the plant runs this on every batch); numpy words the problem."""
+    global _unit_interval_check
+    if _unit_interval_check is None:
+        # numba: imported at first use and kept, as in drive_command_problem
+        from .spmsm import unit_interval_check as _unit_interval_check
     try:
         n = int(batch_periods)
-        if len(msg.duty_abc) != 3 * n:
-            return f"duty_abc has {len(msg.duty_abc)} entries, 3 x batch_periods is {3 * n}"
+        duty_abc, relay_request, buck_duty = msg.duty_abc, msg.relay_request, msg.buck_duty
+        if len(duty_abc) != 3 * n:
+            return f"duty_abc has {len(duty_abc)} entries, 3 x batch_periods is {3 * n}"
         for name in ("relay_request", "buck_duty"):
             if len(getattr(msg, name)) != n:
                 return f"{name} has {len(getattr(msg, name))} entries, batch_periods is {n}"
+        if _unit_interval_check(np.frombuffer(duty_abc, np.float32), np.frombuffer(relay_request, np.float32),
+                                np.frombuffer(buck_duty, np.float32)):
+            return _drive_scalars_problem(msg)
         duties, relay, buck = spmsm_drive_arrays(msg)
         for name, a in (("duty_abc", duties), ("relay_request", relay), ("buck_duty", buck)):
             if a.size and not np.all(np.isfinite(a)):
@@ -308,9 +325,12 @@ def _drive_scalars_problem(msg) -> str | None:
 def drive_command_problem(msg: DriveCommand, batch_periods: int) -> str | None:
     """Why a (BLDC) DriveCommand cannot be applied (None: it can). Never raises. One compiled
     pass checks the arrays (the plant runs this on every batch); numpy words the problem."""
-    # the check is a numba kernel: imported here, so that the session and FTMS nodes (which use
-    # this module's other conversions) never load numba, 0.4 s of CPU at the run's start
-    from .bldc import gate_split_check
+    # the check is a numba kernel: imported at first use, so that the session and FTMS nodes
+    # (which use this module's other conversions) never load numba, 0.4 s of CPU at the run's
+    # start; kept (an import statement per batch cost a microsecond)
+    global _gate_split_check
+    if _gate_split_check is None:
+        from .bldc import gate_split_check as _gate_split_check
     try:
         n = int(batch_periods)
         for name in ("gates_a", "gates_b", "split"):
@@ -319,7 +339,7 @@ def drive_command_problem(msg: DriveCommand, batch_periods: int) -> str | None:
         ga = np.frombuffer(msg.gates_a, dtype=np.uint8) if n else np.zeros(0, np.uint8)
         gb = np.frombuffer(msg.gates_b, dtype=np.uint8) if n else np.zeros(0, np.uint8)
         sp = np.frombuffer(msg.split, dtype=np.float32) if n else np.zeros(0, np.float32)
-        code = gate_split_check(ga, gb, sp, GATE_LIMIT)
+        code = _gate_split_check(ga, gb, sp, GATE_LIMIT)
         if code == 1:
             return f"gates_a holds {int(ga.max())} (gate values must be < {GATE_LIMIT})"
         if code == 2:

@@ -157,6 +157,10 @@ class SimBackend:
 
     name = "sim"
     measured_by_drive = False
+    # the CAN backend's optional hooks, absent here: the node's getattr(backend, name, None) per
+    # batch then finds them at once (a missing attribute raised and caught an AttributeError)
+    submit = diagnostic_level = None
+    time_frozen = False
 
     def problem(self, msg, n: int) -> str | None:
         return msgconv.drive_command_problem(msg, n)
@@ -205,30 +209,36 @@ class SpmsmSimBackend:
 
     name = "sim"
     measured_by_drive = False
+    submit = diagnostic_level = None        # as SimBackend's
+    time_frozen = False
 
     def __init__(self, cfg: dict, seed: int):  # noqa: ARG002 - the SPMSM model has no random part
-        from .spmsm import SpmsmPlant, plant_params_from_config
+        from . import spmsm as M
 
         try:
-            self.plant = SpmsmPlant(plant_params_from_config(cfg))
+            self.plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
         except ValueError as exc:
             raise ConfigError(str(exc), cfg.get("_config_path")) from None
         self.n_last = 0
+        # the model's own fault bits -> the PlantState bits (the numbers differ), looked up once
+        self._fault_bits = ((M.FAULT_RELAY_FORCED, PlantState.FAULT_RELAY_FORCED),
+                            (M.FAULT_OVERSPEED_DIODES, PlantState.FAULT_UNCONTROLLED_GENERATION),
+                            (M.FAULT_PACK_OVERCHARGE, PlantState.FAULT_OVERVOLTAGE))
 
     @property
     def time_s(self) -> float:
         return self.plant.time_s
 
     def snapshot(self) -> dict:
-        from . import spmsm as M
         snap = self.plant.snapshot()
         snap["relay_state"] = min(int(snap.get("relay_state", 0)), PlantState.RELAY_SWITCHING)
-        # the model's own fault bits -> the PlantState bits (the numbers differ)
         model_faults = int(snap.get("faults", 0))
-        snap["faults"] = ((PlantState.FAULT_RELAY_FORCED if model_faults & M.FAULT_RELAY_FORCED else 0)
-                          | (PlantState.FAULT_UNCONTROLLED_GENERATION if model_faults & M.FAULT_OVERSPEED_DIODES
-                             else 0)
-                          | (PlantState.FAULT_OVERVOLTAGE if model_faults & M.FAULT_PACK_OVERCHARGE else 0))
+        faults = 0
+        if model_faults:
+            for model_bit, bit in self._fault_bits:
+                if model_faults & model_bit:
+                    faults |= bit
+        snap["faults"] = faults
         return snap
 
     def problem(self, msg, n: int) -> str | None:
@@ -240,7 +250,8 @@ class SpmsmSimBackend:
         if held and self.plant.last_inputs is not None:
             self.plant.step_held_batch()
             return
-        self.plant.step_batch(*msgconv.spmsm_drive_arrays(msg))
+        # checked: problem() passed the arrays, and their conversions are new (the plant may keep them)
+        self.plant.step_batch(*msgconv.spmsm_drive_arrays(msg), checked=True)
 
     def safe_batch(self, n: int) -> None:
         self.plant.set_safe_state()
@@ -268,14 +279,15 @@ class SpmsmSimBackend:
 
 def _warm_up_twin(backend, raw: bytes, n: int) -> None:
     """Run the node's per-batch path once on a copy of ``backend``'s plant: the DriveCommand
-    ``raw`` through the CDR view, the check, a batch; the safe batch; the snapshot. numba then
-    compiles or loads the kernels now, not inside the run."""
+    ``raw`` through the CDR view, the check, a batch, the same batch held; the safe batch; the
+    snapshot. numba then compiles or loads the kernels now, not inside the run."""
     import copy
     twin = copy.copy(backend)
     twin.plant = copy.deepcopy(backend.plant)
     view = msgconv.DriveCommandView(raw)
     if twin.problem(view, n) is None:
         twin.apply(view)
+        twin.apply(view, held=True)             # (the SPMSM plant turns held duties in a kernel of its own)
     twin.safe_batch(n)
     twin.snapshot()
 

@@ -184,7 +184,8 @@ class BldcPlant:
         """The rider's heart to the plant's time, on the ledger's rider energy (after every
         batch; the CAN drive emulator calls it after its own kernels step the state)."""
         if self.heart is not None:
-            self.heart.advance(self.state[K.S_E_MECH], self.time_s)
+            # a Python float: the same value, and the heart's arithmetic is not numpy scalars'
+            self.heart.advance(float(self.state[K.S_E_MECH]), self.time_s)
 
     def set_rider_cadence(self, cadence_rpm: float, stop: bool = False) -> None:
         """The rider's cadence target from now on (a workout's; 0: the config's own); ``stop``:

@@ -1330,6 +1330,22 @@ def step_batch(state, p, duties, relay_request, buck_duty, samples, sums):
         sums[2] += state[S_IBATT]
 
 
+@njit(**JIT_INLINE)
+def _in_unit_interval(a):  # pragma: no cover - compiled
+    for i in range(a.shape[0]):
+        x = a[i]
+        if not (x >= 0.0 and x <= 1.0):      # NaN fails too
+            return False
+    return True
+
+
+@njit(**JIT_HOT)
+def unit_interval_check(duty_abc, relay_request, buck_duty):  # pragma: no cover - compiled
+    """An SPMSM DriveCommand's arrays in one pass (bike_plant.msgconv.spmsm_drive_problem, every
+    batch): True when every value is finite and in [0, 1]."""
+    return _in_unit_interval(duty_abc) and _in_unit_interval(relay_request) and _in_unit_interval(buck_duty)
+
+
 # =======================================================================================
 # Python shell
 # =======================================================================================
@@ -1386,20 +1402,42 @@ class RiderLoad:
 
 
 def rotate_duties(duties: np.ndarray, angle_rad: float) -> np.ndarray:
-    """Leg duties (N x 3) whose phase voltages are the given ones' turned by ``angle_rad``
+    """Leg duties (float64 N x 3) whose phase voltages are the given ones' turned by ``angle_rad``
     (electrical, Clarke / inverse Clarke of the duties without their common mode), centred
     again by min-max common mode (SVPWM's; a sine-triangle modulator's held duties get it too,
     which leaves the line voltages, and so the currents, as they are) and clipped to [0, 1]."""
-    v = duties - duties.mean(axis=1, keepdims=True)
-    alpha, beta = v[:, 0], (v[:, 1] - v[:, 2]) * (1.0 / math.sqrt(3.0))
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    a2, b2 = alpha * c - beta * s, alpha * s + beta * c
-    out = np.empty_like(v)
-    out[:, 0] = a2
-    out[:, 1] = -0.5 * a2 + 0.5 * math.sqrt(3.0) * b2
-    out[:, 2] = -0.5 * a2 - 0.5 * math.sqrt(3.0) * b2
-    out += 0.5 - 0.5 * (out.max(axis=1, keepdims=True) + out.min(axis=1, keepdims=True))
-    return np.clip(out, 0.0, 1.0)
+    # the row means by numpy (its summation order), the rest compiled: the same operations in
+    # the same order, rounded alike (_rotate_rows); ~20 numpy calls on N x 3 took 26 us a batch
+    d = np.ascontiguousarray(duties, dtype=np.float64)
+    out = np.empty_like(d)
+    _rotate_rows(d, d.mean(axis=1), math.cos(angle_rad), math.sin(angle_rad), out)
+    return out
+
+
+_INV_SQRT3 = 1.0 / math.sqrt(3.0)
+_HALF_SQRT3 = 0.5 * math.sqrt(3.0)
+
+
+@njit(cache=True, error_model="numpy")   # no fastmath: no FMA contraction, numpy's rounding exactly
+def _rotate_rows(duties, mean, c, s, out):  # pragma: no cover - compiled
+    """rotate_duties' rows, as its numpy expressions were: v = d - mean, alpha = v0, beta =
+    (v1 - v2) / sqrt 3, turned by (c, s), back to three legs, min-max centred at 0.5, clipped."""
+    for k in range(duties.shape[0]):
+        m = mean[k]
+        alpha = duties[k, 0] - m
+        beta = ((duties[k, 1] - m) - (duties[k, 2] - m)) * _INV_SQRT3
+        a2 = alpha * c - beta * s
+        b2 = alpha * s + beta * c
+        o0 = a2
+        o1 = -0.5 * a2 + _HALF_SQRT3 * b2
+        o2 = -0.5 * a2 - _HALF_SQRT3 * b2
+        shift = 0.5 - 0.5 * (max(o0, max(o1, o2)) + min(o0, min(o1, o2)))
+        o0 += shift
+        o1 += shift
+        o2 += shift
+        out[k, 0] = min(max(o0, 0.0), 1.0)
+        out[k, 1] = min(max(o1, 0.0), 1.0)
+        out[k, 2] = min(max(o2, 0.0), 1.0)
 
 
 @dataclasses.dataclass
@@ -1466,32 +1504,41 @@ class SpmsmPlant:
             self.state[S_TEXT] = float(self.load_hook(self.time_s, float(self.state[S_OMEGA]),
                                                       n_periods * self.params.control_period_s))
 
-    def step_batch(self, duties, relay_request=0.0, buck_duty=1.0) -> SpmsmBatchResult:
+    def step_batch(self, duties, relay_request=0.0, buck_duty=1.0, checked: bool = False) -> SpmsmBatchResult:
         """Apply N control periods: duties (N x 3, each in [0, 1]), relay request (0 inverter,
-        1 rectifier) and buck duty, scalars or length-N arrays."""
-        d = np.asarray(duties, dtype=np.float64)
-        if d.ndim != 2 or d.shape[1] != 3:
-            raise ValueError(f"duties must be N x 3, got shape {d.shape}")
-        if d.size and not (np.all(d >= 0.0) and np.all(d <= 1.0)):     # NaN fails too
-            raise ValueError("duties must be finite and in [0, 1]")
-        n = d.shape[0]
-        rr = np.broadcast_to(np.asarray(relay_request, dtype=np.float64), (n,)).copy()
-        bd = np.broadcast_to(np.asarray(buck_duty, dtype=np.float64), (n,)).copy()
-        if n and not (np.all(np.isfinite(rr)) and np.all(np.isfinite(bd))):
-            raise ValueError("relay_request and buck_duty must be finite")
+        1 rectifier) and buck duty, scalars or length-N arrays. ``checked``: float64 arrays
+        (N x 3, N, N) whose values already passed msgconv.spmsm_drive_problem, which the plant
+        may keep (the node's path: fresh conversions of the message; no second validation and
+        no copies per batch)."""
+        if checked:
+            d, rr, bd = duties, relay_request, buck_duty
+            n = d.shape[0]
+        else:
+            d = np.asarray(duties, dtype=np.float64)
+            if d.ndim != 2 or d.shape[1] != 3:
+                raise ValueError(f"duties must be N x 3, got shape {d.shape}")
+            if d.size and not (np.all(d >= 0.0) and np.all(d <= 1.0)):     # NaN fails too
+                raise ValueError("duties must be finite and in [0, 1]")
+            n = d.shape[0]
+            rr = np.broadcast_to(np.asarray(relay_request, dtype=np.float64), (n,)).copy()
+            bd = np.broadcast_to(np.asarray(buck_duty, dtype=np.float64), (n,)).copy()
+            if n and not (np.all(np.isfinite(rr)) and np.all(np.isfinite(bd))):
+                raise ValueError("relay_request and buck_duty must be finite")
+            d = d.copy()                                # (the caller may reuse d)
         self.before_batch(n)
-        self.last_inputs = (d.copy(), rr, bd, self.rotor_turned_rad)      # (the caller may reuse d)
+        self.last_inputs = (d, rr, bd, self.rotor_turned_rad)
         samples = np.zeros((n, 3))
         sums = np.zeros(3)
-        self.state[S_FAULTS] = 0.0
-        step_batch(self.state, self.p, d, rr, bd, samples, sums)
+        state = self.state
+        state[S_FAULTS] = 0.0
+        step_batch(state, self.p, d, rr, bd, samples, sums)
         self.advance_heart()
         self.seq += 1
         nn = max(n, 1)
+        tem, tload, ibatt = sums.tolist()               # Python floats: the same values, cheaper arithmetic
         if n:
-            self.last_torque_em_nm = float(sums[0] / nn)
-        return SpmsmBatchResult(float(sums[0] / nn), float(sums[1] / nn), float(sums[2] / nn), samples,
-                                int(self.state[S_FAULTS]))
+            self.last_torque_em_nm = tem / nn
+        return SpmsmBatchResult(tem / nn, tload / nn, ibatt / nn, samples, int(state[S_FAULTS]))
 
     def step_held_batch(self) -> SpmsmBatchResult:
         """The last batch's command once more (realtime: no new one came in time): its relay
@@ -1504,7 +1551,8 @@ class SpmsmPlant:
             raise ValueError("no batch to hold yet")
         d, rr, bd, turned_rad = self.last_inputs
         held = rotate_duties(d, self.p[P_PP] * (self.rotor_turned_rad - turned_rad))
-        result = self.step_batch(held, rr, bd)
+        # checked: rotate_duties clips to [0, 1], the relay and buck arrays passed when first applied
+        result = self.step_batch(held, rr, bd, checked=True)
         self.last_inputs = (d, rr, bd, turned_rad)      # held again: still from the original batch
         return result
 
@@ -1518,13 +1566,14 @@ class SpmsmPlant:
         r/min, the shaft 330 -> 250 r/min in 25 ms, on every command timeout of a ride."""
         s = self.state
         rect = s[S_RELAY] == REL_RECTIFIER or (s[S_RELAY] in (REL_DRAIN, REL_DEAD) and s[S_RELAY_TO] == REL_RECTIFIER)
-        return self.step_batch(np.zeros((n, 3)), 1.0 if rect else 0.0, 0.0)
+        return self.step_batch(np.zeros((n, 3)), np.full(n, 1.0 if rect else 0.0), np.zeros(n), checked=True)
 
     def advance_heart(self) -> None:
         """The rider's heart to the plant's time, on the ledger's rider energy (after every
         batch; the CAN drive emulator calls it after its own kernels step the state)."""
         if self.heart is not None:
-            self.heart.advance(self.state[S_E_MECH], self.time_s)
+            # a Python float: the same value, and the heart's arithmetic is not numpy scalars'
+            self.heart.advance(float(self.state[S_E_MECH]), self.time_s)
 
     def set_rider_cadence(self, cadence_rpm: float, stop: bool = False) -> None:
         """The rider's cadence target from now on (a workout's; 0: the config's own); ``stop``:
@@ -1546,35 +1595,41 @@ class SpmsmPlant:
 
     def snapshot(self) -> dict:
         """Measured quantities at the start of the next batch (PlantState names where they exist)."""
-        s = self.state
-        led = self.ledger()
+        # the state as Python floats in one call: the same values as float(state[i]) each, and
+        # the arithmetic below (IEEE double, the same operations) gives the same bits as on numpy
+        # scalars; the ledger's figures are ledger_of's (every batch: ~20 numpy scalar reads and
+        # a ledger dict cost a tenth of the batch)
+        s = self.state.tolist()
+        p = self.p
+        e_mech = s[S_E_MECH]
+        e_loss = s[S_E_CU] + s[S_E_FRIC] + s[S_E_CONV]
         return {
             "seq": int(self.seq),
             "control_period_s": float(self.params.control_period_s),
             "machine": "spmsm",
             "backend": "sim",
-            "phase_current_a": [float(s[S_IA]), float(s[S_IB]), float(s[S_IC])],
-            "rotor_angle_elec_rad": float((self.p[P_PP] * s[S_THETA_M]) % TWO_PI),
+            "phase_current_a": [s[S_IA], s[S_IB], s[S_IC]],
+            "rotor_angle_elec_rad": (float(p[P_PP]) * s[S_THETA_M]) % TWO_PI,
             # the controller rebuilds its model's angle from it (spmsm_session.model_state_from_snapshot)
-            "rotor_angle_mech_rad": float(s[S_THETA_M]),
-            "speed_rad_s": float(s[S_OMEGA]),
-            "speed_rpm": float(s[S_OMEGA] * RPM_PER_RAD_S),
+            "rotor_angle_mech_rad": s[S_THETA_M],
+            "speed_rad_s": s[S_OMEGA],
+            "speed_rpm": s[S_OMEGA] * RPM_PER_RAD_S,
             "encoder_count": int(s[S_COUNT]),
             "encoder_edge_ticks": int(s[S_EDGE_TICKS]),
-            "dc_bus_v": float(self.p[P_VDC]),
+            "dc_bus_v": float(p[P_VDC]),
             "relay_state": int(s[S_RELAY]),
             # the batch's mean, as PlantState.msg and the BLDC plant give it: the last period's
             # torque alone is biased on the inverter path (+0.025 N m in assist at 50 r/min, which
             # the session's torque trim then closed on)
-            "torque_em_nm": float(s[S_TEM]) if self.last_torque_em_nm is None else self.last_torque_em_nm,
-            "load_torque_nm": float(s[S_TLOAD]),
-            "battery_soc": float(s[S_SOC]),
-            "battery_current_a": float(s[S_IBATT]),
-            "energy_mech_in_j": led["energy_mech_in_j"],
-            "energy_battery_j": led["energy_battery_j"],
-            "energy_resistor_j": led["energy_resistor_j"],
-            "energy_loss_j": led["energy_loss_j"],
-            "energy_stored_j": led["energy_stored_j"],
+            "torque_em_nm": s[S_TEM] if self.last_torque_em_nm is None else self.last_torque_em_nm,
+            "load_torque_nm": s[S_TLOAD],
+            "battery_soc": s[S_SOC],
+            "battery_current_a": s[S_IBATT],
+            "energy_mech_in_j": e_mech,
+            "energy_battery_j": s[S_E_BATT],
+            "energy_resistor_j": s[S_E_RES],
+            "energy_loss_j": e_loss,
+            "energy_stored_j": stored_energy(self.state, p) - s[S_E_STORED0],
             "heart_rate_bpm": self.heart.bpm if self.heart is not None else 0.0,
             "faults": int(s[S_FAULTS]),
         }
