@@ -128,11 +128,16 @@ class StalePortWatch:
     def start_over(self, now: float | None = None) -> str:
         """The writers to a deleted segment of this node's ports, named (stale_port_check's
         ``why``), when the node should start over on fresh ports now; "" otherwise."""
+        return self.look(now) or ""
+
+    def look(self, now: float | None = None) -> str | None:
+        """None when the next look is not due yet; else :meth:`start_over`'s answer ("" when
+        this look found nothing to start over for)."""
         now = time.monotonic() if now is None else now
         if self.since is None:
             self.since, self.next_at = now, now + self.period_s
         if now < self.next_at:
-            return ""
+            return None
         self.next_at = now + self.period_s
         why, fresh = stale_port_check()
         return why if fresh else ""

@@ -298,7 +298,7 @@ def _make_node_class():
             self.deaf_watch = shm_ports.StalePortWatch(since=self.started_wall)
             self.stale_checks = 0            # running: looks for a stale peer done (_check_stale_peers)
             self.stale_in_a_row = 0          # ... of which the last ones in a row found one
-            self.stale_next_at = self.started_wall + shm_ports.DEAF_CHECK_S
+            self.peer_watch = shm_ports.StalePortWatch(since=self.started_wall)
             self.no_clock_warned = False
             self.commands_published = 0
             self.readers_at_publish = 0      # matched Command readers when the last Command went out
@@ -601,14 +601,12 @@ def _make_node_class():
             on fresh ports (main()): the profile is a function of sim time, so the new participant
             follows /clock with the same Commands. Looked for STALE_PEER_CHECKS times from
             start-up; a handle on a deleted segment is one taken before this node started."""
-            from bike_plant.shm_ports import DEAF_CHECK_S, stale_port_check
-            now = time.monotonic()
-            if self.fresh_ports_wanted or now < self.stale_next_at:
+            from bike_plant.shm_ports import DEAF_CHECK_S
+            why = None if self.fresh_ports_wanted else self.peer_watch.look()
+            if why is None:                              # (not due yet)
                 return
-            self.stale_next_at = now + DEAF_CHECK_S
             self.stale_checks += 1
-            why, fresh = stale_port_check()
-            self.stale_in_a_row = self.stale_in_a_row + 1 if why and fresh else 0
+            self.stale_in_a_row = self.stale_in_a_row + 1 if why else 0
             if self.stale_in_a_row >= 2:
                 text = (f"{why}, {(self.stale_in_a_row - 1) * DEAF_CHECK_S:g}s after it was first seen: starting "
                         "over with a new DDS participant on fresh ports (the profile follows /clock on)")
