@@ -1622,6 +1622,9 @@ def _bus_kwargs(args) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Console entry ``bike-drive-emulator``; SIGINT / SIGTERM end it with exit code 0."""
     args = build_arg_parser().parse_args(argv)
+    # the ROS topics the emulator may use (RiderDisplay), by flag
+    topic_flags = (("--rider-topic", args.rider_topic), ("--heart-rate-topic", args.heart_rate_topic),
+                   ("--truth-topic", args.truth_topic))
     stop = threading.Event()
 
     def on_signal(signum, _frame):
@@ -1656,8 +1659,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.bench_s is not None and not (math.isfinite(args.bench_s) and args.bench_s > 0):
             raise ValueError(f"--bench-s must be > 0, got {args.bench_s}")
         topics = {}
-        for flag, topic in (("--rider-topic", args.rider_topic), ("--heart-rate-topic", args.heart_rate_topic),
-                            ("--truth-topic", args.truth_topic)):
+        for flag, topic in topic_flags:
             if topic:
                 # one message type per topic (the node has no namespace: a relative name is absolute)
                 full = topic if topic.startswith("/") else "/" + topic
@@ -1675,16 +1677,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bike-drive-emulator: {exc}", file=sys.stderr)
         return 2
     rider = None
-    if (args.rider_topic or args.heart_rate_topic or args.truth_topic) and args.bench_s is None:
+    if any(topic for _, topic in topic_flags) and args.bench_s is None:
         # before the warm-up: DDS discovery (~0.5 s) then overlaps it, and the truth's first sample
         # (at the first /clock heard) comes as the plant's sim time starts, not 0.3-0.6 s into it
         try:
             rider = RiderDisplay(args.rider_topic, args.heart_rate_topic, args.truth_topic)
         except Exception as exc:  # noqa: BLE001 -- rclpy's error for a bad topic name or an init failure
-            given = " / ".join(f"{name} {value!r}" for name, value in (("--rider-topic", args.rider_topic),
-                                                                      ("--heart-rate-topic", args.heart_rate_topic),
-                                                                      ("--truth-topic", args.truth_topic))
-                               if value)
+            given = " / ".join(f"{name} {value!r}" for name, value in topic_flags if value)
             print(f"bike-drive-emulator: {given}: {str(exc).splitlines()[0]}", file=sys.stderr)
             return 2
     if hasattr(model, "warm_up"):
