@@ -1370,10 +1370,10 @@ def power_accuracy(bins: dict, bin_s: float, n_bins: int | None = None) -> dict 
             rider_t[j] = bins["e_mech"][lo:hi].sum() / span
             true_t[j] = bins["e_true"][lo:hi].sum() / bins["t_true"][lo:hi].sum()
     covered = sel & np.isfinite(true_t)
-    out["windows_without_truth"] = int(sel.sum() - covered.sum())
+    out["windows_without_truth"] = without = int(sel.sum() - covered.sum())
     if covered.any():
         out = figures(est_t, true_t, covered) | {
-            "against": "drive_truth", "windows_without_truth": int(sel.sum() - covered.sum()),
+            "against": "drive_truth", "windows_without_truth": without,
             "true_rider_power_w": float(true_t[covered].mean()), "ledger": figures(est_t, rider_t, covered),
             "ledger_error_pct": float(100.0 * (rider_t[covered] - true_t[covered]).mean() / true_t[covered].mean()),
             "compared_s": float(np.nansum(np.where(covered, span_t, np.nan)))}
