@@ -65,6 +65,16 @@ def write_config(tmp_path: pathlib.Path, port: int, emulator: bool = False, prof
     return out
 
 
+def recorded_run(tmp_path: pathlib.Path, config: pathlib.Path, duration_s: float, timeout: float) -> tuple:
+    """`./bike run --config CONFIG --duration D --record TMP/runs`, which must exit 0: (the finished
+    process, its stdout + stderr, the bag)."""
+    result = bike_command("run", "--config", str(config), "--duration", f"{duration_s:g}", "--record",
+                          str(tmp_path / "runs"), timeout=timeout)
+    out = result.stdout + result.stderr
+    assert result.returncode == 0, out[-6000:]
+    return result, out, next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
+
+
 class Emulator:
     """bike-drive-emulator as a process on the test's port."""
 
@@ -287,12 +297,8 @@ def test_a_workout_through_the_can_path_end_to_end(tmp_path, ros_domain):
         {"kind": "step", "duration_s": 2.5, "command": 0.5, "mode": "resistance", "label": "resistance"},
         {"kind": "step", "duration_s": 2.5, "target": 150, "mode": "erg", "label": "ERG 150 W"}]}
     config = write_config(tmp_path, port, emulator=True, profile=profile)
-    result = bike_command("run", "--config", str(config), "--duration", "5", "--record", str(tmp_path / "runs"),
-                          timeout=100)
-    out = result.stdout + result.stderr
-    assert result.returncode == 0, out[-6000:]
+    result, out, bag = recorded_run(tmp_path, config, 5, timeout=100)
     assert "bike-drive-emulator ready" in out and "drive in closed-loop torque control" in out
-    bag = next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
     from bike_session.bags import read_topic
     from bike_session.report import summarise
 
@@ -337,11 +343,7 @@ def test_a_can_rides_report_compares_the_trainers_power_with_the_emulated_riders
     profile = {"name": "truth", "segments": [
         {"kind": "step", "duration_s": 11.0, "command": 0.5, "mode": "resistance", "label": "resistance"}]}
     config = write_config(tmp_path, port, emulator=True, profile=profile)
-    result = bike_command("run", "--config", str(config), "--duration", "11", "--record", str(tmp_path / "runs"),
-                          timeout=120)
-    out = result.stdout + result.stderr
-    assert result.returncode == 0, out[-6000:]
-    bag = next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
+    result, out, bag = recorded_run(tmp_path, config, 11, timeout=120)
     from bike_session.bags import read_topic
     from bike_session.report import summarise
 
@@ -615,14 +617,11 @@ def test_the_emulated_rider_follows_the_trainers_instructions_and_a_spin_down_wo
     doc = yaml.safe_load(config.read_text())
     doc["/**"]["ros__parameters"].setdefault("modes", {}).update(friction_nms=0.0025, dry_friction_nm=0.0)
     config.write_text(yaml.safe_dump(doc, sort_keys=False))
-    result = bike_command("run", "--config", str(config), "--duration", "12", "--record", str(tmp_path / "runs"),
-                          timeout=120)
-    out = result.stdout + result.stderr
-    assert result.returncode == 0 and "killed by" not in out, out[-6000:]
+    result, out, bag = recorded_run(tmp_path, config, 12, timeout=120)
+    assert "killed by" not in out, out[-6000:]
     assert "spin-down done" in out, out[-6000:]
     emulator_exit = json.loads(out.split("bike-drive-emulator: exit ", 1)[1].splitlines()[0])
     assert emulator_exit["rider_instructions"] >= 3, emulator_exit     # cadence, spin up, stop, done
-    bag = next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
     from bike_session.bags import read_topic
     t = lambda m: stamp_ns(m.header.stamp) * 1e-9  # noqa: E731
     states = read_topic(bag, "plant_state")

@@ -23,11 +23,10 @@ from bike_plant.config import ConfigError, load_config
 from bike_controller.drive_emulator import AverageTorqueDrive, DriveModelParams, VescEmulator, VescFirmware
 from bike_session.bags import read_topic
 from bike_session.report import summarise
-from conftest import bike_command
 from node_harness import stamp_ns
 from test_can_backend import Rig
 from test_can_emulator import GROUP, Emulator
-from test_can_graph import _port, write_config
+from test_can_graph import _port, recorded_run, write_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 VESC_CONFIG = ROOT / "config" / "bldc_vesc.yaml"
@@ -469,12 +468,8 @@ def test_a_workout_on_a_vesc_through_the_can_path_end_to_end(tmp_path, ros_domai
     profile = {"name": "vesc_smoke", "segments": [
         {"kind": "step", "duration_s": 4.0, "command": 0.5, "mode": "resistance", "label": "resistance"}]}
     config = write_config(tmp_path, port, emulator=True, profile=profile, base=VESC_CONFIG)
-    result = bike_command("run", "--config", str(config), "--duration", "4", "--record", str(tmp_path / "runs"),
-                          timeout=150)
-    out = result.stdout + result.stderr
-    assert result.returncode == 0, out[-6000:]
+    result, out, bag = recorded_run(tmp_path, config, 4, timeout=150)
     assert "protocol=vesc_can" in out and "drive alive (Status arriving" in out
-    bag = next(p for p in (tmp_path / "runs").iterdir() if p.is_dir())
     states = read_topic(bag, "plant_state")
     status = read_topic(bag, "controller_status")
     assert states[-1].end_of_run and all(m.measured_by_drive and m.backend == "can" for m in states)
