@@ -18,6 +18,7 @@ from bike_plant.can.backend import (FAULT_DRIVE_DISARMED, FAULT_DRIVE_LOST, FAUL
                                     can_params_from_config,
                                     emulator_args_from_config)
 from bike_controller.drive_emulator import AverageTorqueDrive, DriveEmulator, DriveFirmware, DriveModelParams
+from bike_plant.can.torque_map import TorqueMap
 from bike_plant.config import ConfigError, load_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -197,6 +198,75 @@ def test_setpoints_go_out_at_once_clamped_and_bad_ones_are_refused(rig):
         assert not b.submit(bad)
     assert r.torques() == []
     assert b.problem(Cmd(0.2), 100) is None
+
+
+def _torque_map_file(tmp_path) -> pathlib.Path:
+    """A drive whose shaft torque is 0.9 x its estimate at 1200 rpm and 0.8 x at 3600 rpm (both
+    signs), its estimate 1.02 x the setpoint."""
+    sp = [-3.0, -1.0, 0.0, 1.0, 3.0]
+    m = TorqueMap([1200.0, 3600.0], sp, [[1.02 * x for x in sp]] * 2,
+                  [[0.9 * 1.02 * x for x in sp], [0.8 * 1.02 * x for x in sp]], source="test")
+    m.save(tmp_path / "map.yaml")
+    return tmp_path / "map.yaml"
+
+
+def test_a_torque_map_makes_the_setpoint_and_the_reported_torque_the_shafts(rig, tmp_path):
+    """With can.torque_map_file the controller's torque is the shaft's: the setpoint is the map's
+    inverse at the drive's speed, and the PlantState's torque and the ledger are the map's shaft
+    torque for the drive's estimate; lookups outside the map are counted and the diagnostic
+    names the map (bike_plant.can.torque_map)."""
+    _torque_map_file(tmp_path)
+    r = armed(rig, torque_map_file=str(tmp_path / "map.yaml"))
+    b = r.backend
+    r.send("Get_Encoder_Estimates", Pos_Estimate=0.0, Vel_Estimate=40.0)        # 2400 rpm: ratio 0.85
+    r.send("Get_Torques", Torque_Target=-1.0, Torque_Estimate=-1.2)
+    b.service()
+    assert b.submit(Cmd(-0.85))
+    assert r.torques() == [pytest.approx(-0.85 / (0.85 * 1.02))]                # the setpoint for -0.85 at the shaft
+    assert b.snapshot()["torque_em_nm"] == pytest.approx(-1.2 * 0.85)
+    for _ in range(10):
+        b.apply(Cmd(-0.85))
+    w = 40.0 * 2 * math.pi
+    assert b.snapshot()["energy_mech_in_j"] == pytest.approx((1.2 * 0.85 + 1e-4 * w) * w * b.time_s)
+    assert b.stats()["torque_map_outside"] == 0
+    # beyond the map: the nearest row (3600 rpm) and its end ratio hold, counted
+    r.send("Get_Encoder_Estimates", Pos_Estimate=0.0, Vel_Estimate=80.0)        # 4800 rpm
+    r.send("Get_Torques", Torque_Target=-1.0, Torque_Estimate=-3.5)
+    b.service()
+    assert b.snapshot()["torque_em_nm"] == pytest.approx(-3.5 * 0.8)
+    assert b.stats()["torque_map_outside"] >= 2
+    _, _, values = b.diagnostic()
+    assert "map.yaml: 2 speeds 1200-3600 rpm" in values["can_torque_map"]
+    assert values["can_torque_estimate_nm"] == "-3.5000"
+    # the clamp still holds after the map: -2.9 N m at the shaft needs more than Tmax
+    r.host_frames()
+    assert b.submit(Cmd(-2.9))
+    assert r.torques() == [pytest.approx(-TMAX)]
+
+
+def test_a_torque_map_that_cannot_be_used_is_one_config_error(rig, tmp_path):
+    """Missing, malformed, or without an inverse: one ConfigError naming can.torque_map_file and
+    what is wrong, before the bus is opened."""
+    good = _torque_map_file(tmp_path).read_text()
+    cases = {"missing.yaml": None, "junk.yaml": "drive_torque_map: [1, 2",
+             "flat.yaml": good.replace("true_nm: [-2.754", "true_nm: [2.754"),
+             "short.yaml": good.replace("speed_rpm: [1200.0, 3600.0]", "speed_rpm: [1200.0, 2400.0, 3600.0]")}
+    for name, text in cases.items():
+        if text is not None:
+            assert text != good
+            (tmp_path / name).write_text(text)
+        with pytest.raises(ConfigError) as err:
+            rig(torque_map_file=str(tmp_path / name))
+        text = str(err.value)
+        assert "can.torque_map_file" in text and name in text and "\n" not in text, text
+    cfg = load_config(CAN_CONFIG)       # relative paths resolve against the config file's folder
+    cfg["can"]["torque_map_file"] = "no_such_map.yaml"
+    bus = can.Bus(interface="virtual", channel=uuid.uuid4().hex)
+    try:
+        with pytest.raises(ConfigError, match="config/no_such_map.yaml: cannot read it"):
+            CanBackend(cfg, bus=bus)
+    finally:
+        bus.shutdown()
 
 
 def test_arming_clear_errors_closed_loop_then_the_setpoint(rig):

@@ -24,10 +24,13 @@ What it does
   called from the node's subscription callback), not at the next batch tick, and repeated
   every ``watchdog_feed_s`` so the drive's watchdog stays fed. After the drive (re-)arms the
   setpoint ramps up from zero at ``arm_ramp_nm_per_s`` (no torque step for the rider).
+  With a torque map (``torque_map_file``, :mod:`bike_plant.can.torque_map`) the controller's
+  torque is the shaft's: the setpoint is the map's inverse at the drive's speed (then clamped).
 * Measurements -> PlantState (``measured_by_drive`` true, no gate-level data):
   speed from Get_Encoder_Estimates (motor rev/s -> rad/s and rpm), rotor angle from the
   position (mechanical = 2 pi frac(pos), electrical = pole_pairs x that), torque_em_nm =
-  Get_Torques' Torque_Estimate (motoring positive), dc_bus_v = Bus_Voltage,
+  Get_Torques' Torque_Estimate (motoring positive; through the torque map if one is given:
+  the shaft's torque for that estimate at that speed), dc_bus_v = Bus_Voltage,
   battery_current_a = -Bus_Current (ODrive: positive = drawn from the bus; PlantState:
   charging positive). Messages that are not cyclic on the drive are requested by RTR every
   ``request_period_s`` (``request``: torque, bus, current; a kind that arrives cyclically
@@ -42,10 +45,11 @@ What it does
   from ``mechanics`` of the config, Tc the SPMSM's ``spmsm.dry_friction_nm``: the bike's
   physics, not the laws' figures); loss = mech_in - battery - stored (copper, inverter and
   friction losses); resistor = 0 (not observable on CAN). The rider's work is not on the
-  bus: mech_in is the host's figure from the drive's Torque_Estimate (kt Iq) and
-  Vel_Estimate, not the physics' truth, so the report's trainer power error compares it with
-  an estimate made of the same measurements (an error of kt Iq, e.g. the BLDC's commutation
-  dips, shows in neither).
+  bus: mech_in is the host's figure from the drive's Torque_Estimate (kt Iq, or the torque
+  map's shaft torque) and Vel_Estimate, not the physics' truth, so the report's trainer power
+  error compares it with an estimate made of the same measurements (an error of kt Iq, e.g. the
+  BLDC's commutation dips, shows in neither; the emulator's DriveTruth shows it, and a torque
+  map measured on the drive removes it).
 * Time: sim time advances one batch per :meth:`apply` / :meth:`safe_batch` only while the
   drive is alive and in closed-loop control (:attr:`time_frozen` is False). The node then
   stops /clock, so the session node (which plays on /clock) pauses by itself.
@@ -104,6 +108,7 @@ from .. import mechanics
 from ..config import ConfigError, build_dataclass, section
 from .protocol import (DRIVE_TO_HOST, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND,
                        PROTOCOLS, AxisState, ODriveError, ProcedureResult, error_names)
+from .torque_map import TorqueMap, TorqueMapError, load_torque_map
 
 TWO_PI = 2.0 * math.pi
 RPM_PER_REV_S = 60.0
@@ -158,6 +163,8 @@ class CanParams:
     disarm_grace_s: float = 0.5         # first arming: not yet a fault while it takes less than this
     arm_ramp_nm_per_s: float = 20.0     # after (re-)arming, |setpoint| <= this x time in closed loop (0: no ramp)
     torque_limit_nm: float = 0.0        # clamp of the torque setpoint; 0: controller.tmax_nm (none if absent)
+    torque_map_file: str = ""           # the drive's torque map (bike_plant.can.torque_map), relative to the
+                                        # config file; "" = the drive's kt Iq is the shaft's torque
     current_limit_a: float = 0.0        # > 0: Set_Limits at arming (with velocity_limit_rev_s; both or neither)
     velocity_limit_rev_s: float = 0.0   # > 0: Set_Limits at arming (with current_limit_a)
     log_file: str = ""                  # .asc or .blf: log every frame sent / received ("" = off)
@@ -233,6 +240,21 @@ def can_params_from_config(cfg: dict) -> CanParams:
     """The ``can:`` section (every key optional); ConfigError names the key."""
     path = cfg.get("_config_path")
     return build_dataclass(CanParams, section(cfg, "can", path), "can", path)
+
+
+def torque_map_of(cfg: dict, p: CanParams) -> TorqueMap | None:
+    """The drive's torque map of ``can.torque_map_file`` (relative: to the config file's folder),
+    None without one; ConfigError naming the key for a map that cannot be used."""
+    if not p.torque_map_file:
+        return None
+    path = cfg.get("_config_path")
+    file = pathlib.Path(p.torque_map_file).expanduser()
+    if not file.is_absolute():
+        file = (pathlib.Path(path).resolve().parent if path else pathlib.Path.cwd()) / file
+    try:
+        return load_torque_map(file)
+    except TorqueMapError as exc:
+        raise ConfigError(str(exc), path, "can.torque_map_file") from None
 
 
 def emulator_args_from_config(cfg: dict) -> list[str]:
@@ -334,6 +356,7 @@ class CanBackend:
         self.dry_friction_speed_rad_s = dry_rpm / RPM_PER_RAD_S
         limit = p.torque_limit_nm or _number(cfg, "controller.tmax_nm", 0.0)
         self.torque_limit_nm = limit if limit > 0 else math.inf
+        self.torque_map = torque_map_of(cfg, p)
         self.clock = clock
         # the clock of the frames' receive stamps (python-can: wall time); with an injected `clock`,
         # inject this one too, or a frame's real queueing delay is subtracted from a fake time
@@ -1002,6 +1025,14 @@ class CanBackend:
         if abs(t) > lim:
             self.counters["torque_clamped"] += 1
             t = math.copysign(lim, t)
+        if self.torque_map is not None and t != 0.0:
+            # the controller asks for torque at the shaft: the setpoint the drive needs for it at
+            # today's speed (the map's inverse); still within the clamp
+            speed_rpm = float(self.drive.values().get("speed_rev_s", 0.0)) * RPM_PER_REV_S
+            t = self.torque_map.setpoint_nm_for(speed_rpm, t)
+            if abs(t) > lim:
+                self.counters["torque_clamped"] += 1
+                t = math.copysign(lim, t)
         self.clamp_msg, self.clamp_nm = msg, t
         return t
 
@@ -1088,13 +1119,20 @@ class CanBackend:
         w = float(v.get("speed_rev_s", 0.0)) * TWO_PI
         if self.omega0 is None:
             self.omega0 = w
-        t_em = float(v.get("torque_estimate_nm", 0.0))
+        t_em = self._shaft_torque_nm(v)
         if "bus_voltage_v" in v and "bus_current_a" in v:   # (VESC: two status messages)
             self.e_battery_j += float(v["bus_voltage_v"]) * -float(v["bus_current_a"]) * dt
         self.e_shaft_j += -t_em * w * dt
         self.e_friction_j += mechanics.friction_torque_nm(w, self.friction_nms, self.dry_friction_nm,
                                                           self.dry_friction_speed_rad_s) * w * dt
         self.time_s += dt
+
+    def _shaft_torque_nm(self, v: dict) -> float:
+        """The shaft's torque: the drive's estimate (kt Iq), through the torque map if there is one."""
+        t = float(v.get("torque_estimate_nm", 0.0))
+        if self.torque_map is None or t == 0.0:
+            return t
+        return self.torque_map.true_nm_at(float(v.get("speed_rev_s", 0.0)) * RPM_PER_REV_S, t)
 
     # ------------------------------------------------------------------ PlantState
     def snapshot(self) -> dict:
@@ -1126,7 +1164,7 @@ class CanBackend:
             "brake_resistor_on": False,
             "hall_edge_counts": [],
             "hall_edge_states": [],
-            "torque_em_nm": float(v.get("torque_estimate_nm", 0.0)),
+            "torque_em_nm": self._shaft_torque_nm(v),
             "load_torque_nm": math.nan,
             "current_samples_a": [],
             "battery_ocv_v": math.nan,
@@ -1169,6 +1207,8 @@ class CanBackend:
             out["log_frames"] = self.log_frames
         if self.counters["log_errors"]:
             out["log_errors"] = self.counters["log_errors"]
+        if self.torque_map is not None:
+            out["torque_map_outside"] = self.torque_map.outside
         if self.submit_latency_s:
             lat = sorted(self.submit_latency_s)
             out["submit_latency_p50_us"] = round(lat[len(lat) // 2] * 1e6, 1)
@@ -1243,6 +1283,9 @@ class CanBackend:
             values["can_protocol"] = p.protocol
         if "torque_target_nm" in v:
             values["can_torque_target_nm"] = f"{v['torque_target_nm']:.4f}"
+        if self.torque_map is not None:
+            values["can_torque_map"] = self.torque_map.describe()
+            values["can_torque_estimate_nm"] = f"{float(v.get('torque_estimate_nm', 0.0)):.4f}"
         if self.log_path is not None:
             values["can_log_file"] = str(self.log_path)
         return level, reasons, values

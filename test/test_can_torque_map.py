@@ -1,0 +1,78 @@
+"""bike_plant.can.torque_map: the drive's torque map, its lookups and its file (no bus)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bike_plant.can.torque_map import TorqueMap, TorqueMapError, load_torque_map
+
+SETPOINTS = [-3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0]
+
+
+def _map(**kw) -> TorqueMap:
+    """Shaft torque falls behind the estimate with the current (0.97 .. 0.89 at 3 N m) and more
+    at the higher speed; the estimate runs 2 % over the setpoint."""
+    sp = np.array(SETPOINTS)
+    rep = 1.02 * sp
+    rows_true = [rep * (1.0 - k * np.abs(sp)) for k in (0.01, 0.035)]
+    return TorqueMap([1000.0, 4000.0], sp, [rep, rep], rows_true, **kw)
+
+
+def test_the_setpoint_for_a_shaft_torque_gives_that_torque():
+    m = _map()
+    for speed in (1000.0, 1700.0, 2500.0, 4000.0):
+        for wanted in (-2.7, -1.3, -0.2, 0.0, 0.4, 2.5):
+            sp = m.setpoint_nm_for(speed, wanted)
+            # the drive reports ~1.02 x its setpoint: what the map then reads as the shaft's
+            reported = float(np.interp(sp, SETPOINTS, 1.02 * np.array(SETPOINTS)))
+            assert m.true_nm_at(speed, reported) == pytest.approx(wanted, abs=2e-3)
+            assert sp * wanted >= 0.0 and (sp == 0.0) == (wanted == 0.0)
+    assert m.outside == 0
+    assert m.setpoint_nm_for(4000.0, -2.0) < -2.0 * 1.05         # 7 % short at 4000 rpm: asked for more
+
+
+def test_lookups_interpolate_in_speed_and_hold_the_edges_counted():
+    m = _map()
+    lo, hi = m.true_nm_at(1000.0, -2.04), m.true_nm_at(4000.0, -2.04)
+    assert lo == pytest.approx(-2.04 * 0.98) and hi == pytest.approx(-2.04 * 0.93)
+    assert m.true_nm_at(2500.0, -2.04) == pytest.approx((lo + hi) / 2)
+    assert m.true_nm_at(-2500.0, -2.04) == pytest.approx((lo + hi) / 2)   # |speed|
+    assert m.outside == 0
+    assert m.true_nm_at(6000.0, -2.04) == pytest.approx(hi)              # nearest row
+    assert m.outside == 1
+    # beyond the largest setpoint: its ratio holds (torque proportional to current)
+    assert m.true_nm_at(4000.0, -6.12) == pytest.approx(-6.12 * 0.895)
+    assert m.setpoint_nm_for(4000.0, -6.0) == pytest.approx(-6.0 * 3.0 / (3.06 * 0.895))
+    assert m.outside == 3
+
+
+def test_the_file_round_trips_and_bad_maps_are_one_error(tmp_path):
+    m = _map(source="unit test")
+    path = tmp_path / "m.yaml"
+    m.save(path)
+    back = load_torque_map(path)
+    assert back.source == "unit test" and back.path == str(path)
+    for name in ("speed_rpm", "setpoint_nm", "reported_nm", "true_nm"):
+        np.testing.assert_allclose(getattr(back, name), getattr(m, name), rtol=1e-6)
+    bad = {
+        "no inverse": dict(true=[[0.0, 1.0, 0.5]]),
+        "opposite sign": dict(true=[[0.5, 0.0, 1.0]], sp=[-1.0, 0.0, 1.0]),
+        "no zero": dict(sp=[1.0, 2.0, 3.0]),
+        "descending speeds": dict(speed=[2000.0, 1000.0], rep=[[0, 1, 2]] * 2, true=[[0, 1, 2]] * 2),
+        "shape": dict(true=[[0.0, 1.0]]),
+        "nan": dict(true=[[0.0, np.nan, 2.0]]),
+    }
+    for why, kw in bad.items():
+        args = dict(speed=[1000.0], sp=[0.0, 1.0, 2.0], rep=[[0.0, 1.0, 2.0]], true=[[0.0, 0.9, 1.8]])
+        args.update(kw)
+        with pytest.raises(TorqueMapError) as err:
+            TorqueMap(args["speed"], args["sp"], args["rep"], args["true"], path="x.yaml")
+        assert str(err.value).startswith("x.yaml: ") and "\n" not in str(err.value), why
+    for text in ("", "drive_torque_map: {speed_rpm: [1]}", "drive_torque_map: {speed_rpm: ['a'], setpoint_nm: [0, 1], "
+                 "reported_nm: [0, 1], true_nm: [0, 1]}", "\x00\x01"):
+        path.write_text(text)
+        with pytest.raises(TorqueMapError, match="m.yaml: "):
+            load_torque_map(path)
+    path.write_bytes(b"#" * (2 << 20))
+    with pytest.raises(TorqueMapError, match="more than a torque map can be"):
+        load_torque_map(path)
