@@ -1577,6 +1577,9 @@ def format_summary(summary: dict) -> str:
                      f"{can.get('drive_lost', '?')}x, armed {can.get('armed', '?')}x, disarmed {can.get('disarmed', 0)}x, "
                      f"gave up arming {can.get('arm_gave_up', 0)}x, ERROR diagnostics "
                      f"{can.get('error_diagnostics', 0)}, last axis error {can.get('axis_error', '?')}")
+        if can.get("torque_map"):
+            lines.append(f"                       {can['torque_map']}; {can.get('torque_map_outside', '?')} lookups "
+                         "outside it (nearest speed row / last ratio held)")
         if can.get("log_file"):
             lines.append(f"CAN log:               {can['log_file']} ({can.get('log_frames', '?')} frames)")
     modes = s.get("time_in_mode_s") or {}
@@ -1588,6 +1591,7 @@ def format_summary(summary: dict) -> str:
         lines.append(f"virtual gear:          {gear['first']:g}{shifted}; distance {s.get('distance_m', 0.0):.0f} m")
     acc = s.get("power_accuracy")
     if acc:
+        drive_torque = "the drive's torque map" if (can or {}).get("torque_map") else "the drive's kt Iq"
         against = "rider's true power" if acc.get("against") == "drive_truth" else "rider's ledger power"
         lines.append(f"trainer power error:   mean {acc['mean_w']:+.2f} W ({acc['mean_pct']:+.2f} %), rms "
                      f"{acc['rms_w']:.2f} W over {acc['windows']} {acc['window_s']:g} s windows (brake + modelled "
@@ -1596,10 +1600,16 @@ def format_summary(summary: dict) -> str:
             led = acc["ledger"]
             lines.append(f"                       true rider power {acc['true_rider_power_w']:.2f} W (drive_truth: the "
                          "drive emulator's physics); against the plant's")
-            lines.append(f"                       ledger (the drive's kt Iq and speed) it reads {led['mean_w']:+.2f} W "
+            lines.append(f"                       ledger ({drive_torque} and speed) it reads {led['mean_w']:+.2f} W "
                          f"({led['mean_pct']:+.2f} %), the ledger {acc['ledger_error_pct']:+.2f} % off the truth"
                          + (f"; {acc['windows_without_truth']} window(s) without the truth left out"
                             if acc.get("windows_without_truth") else ""))
+        elif acc.get("ledger_from_drive") and (can or {}).get("torque_map"):
+            lines.append("                       drive on CAN: the ledger is the plant's, from the drive's torque "
+                         "estimate through its torque map and speed:")
+            lines.append("                       the rider's power as well as the map is measured (README, \"Trainer "
+                         "power on CAN\")" + ("; drive_truth covers no whole window"
+                                              if acc.get("windows_without_truth") else ""))
         elif acc.get("ledger_from_drive"):
             lines.append("                       drive on CAN: the ledger is the plant's, from the drive's torque "
                          "estimate (kt Iq) and speed,")
