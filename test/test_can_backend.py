@@ -238,10 +238,18 @@ def test_a_torque_map_makes_the_setpoint_and_the_reported_torque_the_shafts(rig,
     _, _, values = b.diagnostic()
     assert "map.yaml: 2 speeds 1200-3600 rpm" in values["can_torque_map"]
     assert values["can_torque_estimate_nm"] == "-3.5000"
-    # the clamp still holds after the map: -2.9 N m at the shaft needs more than Tmax
+    # the clamp is of the shaft's torque (Tmax), and the setpoint stays within the map's: -2.9 N m
+    # at the shaft needs -3.34 from this drive at 2400 rpm, beyond the -3 N m it was measured at
+    r.send("Get_Encoder_Estimates", Pos_Estimate=0.0, Vel_Estimate=40.0)
+    b.service()
     r.host_frames()
+    clamped = b.stats()["torque_clamped"]
+    assert b.submit(Cmd(-2.5))
+    assert r.torques() == [pytest.approx(-2.5 / (0.85 * 1.02))]                 # -2.88: more than asked
     assert b.submit(Cmd(-2.9))
-    assert r.torques() == [pytest.approx(-TMAX)]
+    assert b.submit(Cmd(-5.0))
+    assert r.torques() == [pytest.approx(-3.0)] * 2
+    assert b.stats()["torque_clamped"] == clamped + 3                            # -5: twice (shaft, setpoint)
 
 
 def test_a_torque_map_that_cannot_be_used_is_one_config_error(rig, tmp_path):

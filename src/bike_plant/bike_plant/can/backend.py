@@ -25,7 +25,8 @@ What it does
   every ``watchdog_feed_s`` so the drive's watchdog stays fed. After the drive (re-)arms the
   setpoint ramps up from zero at ``arm_ramp_nm_per_s`` (no torque step for the rider).
   With a torque map (``torque_map_file``, :mod:`bike_plant.can.torque_map`) the controller's
-  torque is the shaft's: the setpoint is the map's inverse at the drive's speed (then clamped).
+  torque is the shaft's: ``torque_limit_nm`` clamps it, and the setpoint is the map's inverse
+  at the drive's speed, within the setpoints the map was measured at.
 * Measurements -> PlantState (``measured_by_drive`` true, no gate-level data):
   speed from Get_Encoder_Estimates (motor rev/s -> rad/s and rpm), rotor angle from the
   position (mechanical = 2 pi frac(pos), electrical = pole_pairs x that), torque_em_nm =
@@ -162,7 +163,8 @@ class CanParams:
     armed_stable_s: float = 2.0         # closed loop this long resets the attempt count (bounds arm/trip cycles)
     disarm_grace_s: float = 0.5         # first arming: not yet a fault while it takes less than this
     arm_ramp_nm_per_s: float = 20.0     # after (re-)arming, |setpoint| <= this x time in closed loop (0: no ramp)
-    torque_limit_nm: float = 0.0        # clamp of the torque setpoint; 0: controller.tmax_nm (none if absent)
+    torque_limit_nm: float = 0.0        # clamp of the torque setpoint (with a torque map: of the shaft's
+                                        # torque); 0: controller.tmax_nm (none if absent)
     torque_map_file: str = ""           # the drive's torque map (bike_plant.can.torque_map), relative to the
                                         # config file; "" = the drive's kt Iq is the shaft's torque
     current_limit_a: float = 0.0        # > 0: Set_Limits at arming (with velocity_limit_rev_s; both or neither)
@@ -397,6 +399,10 @@ class CanBackend:
                               f"controller.tmax_nm) exceeds what {p.protocol} can command "
                               f"({self.drive.max_torque_nm:g} N m); set can.torque_limit_nm", path,
                               "can.torque_limit_nm")
+        if self.torque_map is not None:
+            sp = self.torque_map.setpoint_nm
+            self.setpoint_range_nm = (max(float(sp[0]), -self.drive.max_torque_nm),
+                                      min(float(sp[-1]), self.drive.max_torque_nm))
         self.counters: collections.Counter = collections.Counter()
         self.events: list[tuple[str, str]] = []
         # link / arming state
@@ -1026,13 +1032,15 @@ class CanBackend:
             self.counters["torque_clamped"] += 1
             t = math.copysign(lim, t)
         if self.torque_map is not None and t != 0.0:
-            # the controller asks for torque at the shaft: the setpoint the drive needs for it at
-            # today's speed (the map's inverse); still within the clamp
+            # the clamp is of the shaft's torque (the machine's rating); the setpoint the drive
+            # needs for it at today's speed is the map's inverse, within the setpoints the map
+            # was measured at (what the drive is known to deliver) and what the protocol encodes
             speed_rpm = float(self.drive.values().get("speed_rev_s", 0.0)) * RPM_PER_REV_S
             t = self.torque_map.setpoint_nm_for(speed_rpm, t)
-            if abs(t) > lim:
+            lo, hi = self.setpoint_range_nm
+            if not lo <= t <= hi:
                 self.counters["torque_clamped"] += 1
-                t = math.copysign(lim, t)
+                t = min(max(t, lo), hi)
         self.clamp_msg, self.clamp_nm = msg, t
         return t
 
