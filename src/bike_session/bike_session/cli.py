@@ -13,6 +13,7 @@
     ./bike paper NAME --out DIR                                reproduce a figure of a paper
     ./bike bench [--json FILE] [--only SECTION] [--memory-s S] speed / memory figures and ratios, peers
     ./bike fleet [--bikes N] [--seconds S] [--graph K [--netns bikeK=NS]]  many bikes: batched kernel or DDS graph
+    ./bike torque-map --config FILE --out MAP.yaml             measure the drive's torque map on the emulator
 """
 from __future__ import annotations
 
@@ -798,6 +799,57 @@ def _cmd_shift(opts) -> int:
     return press(opts.gears, opts.namespace, opts.domain)
 
 
+def _cmd_torque_map(opts) -> int:
+    """The drive's torque map (true vs reported torque per speed and setpoint) measured on the drive
+    emulator's physics (bike_controller.drive_torque_map), written for can.torque_map_file."""
+    from bike_plant.can.torque_map import TorqueMapError
+    from bike_plant.config import ConfigError, load_config
+
+    from bike_controller import drive_torque_map as DTM
+
+    config = pathlib.Path(opts.config or repo_root() / "config" / "bldc_can.yaml")
+    try:
+        cfg = load_config(config)
+        probe = DTM.make_drive_model(DTM.prime_mover_config(cfg, 1.0), "plant", load_kind="prime_mover")
+        kt, limit_a = probe.params.torque_constant_nm_per_a, probe.params.current_limit_a
+    except (ConfigError, ValueError) as exc:
+        print(f"error: {exc}" if str(config) in str(exc) else f"error: {config}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        speeds = DTM.parse_grid(opts.speeds_rpm, "--speeds-rpm") if opts.speeds_rpm else DTM.default_speeds_rpm(cfg)
+        setpoints = (DTM.parse_grid(opts.setpoints_nm, "--setpoints-nm") if opts.setpoints_nm
+                     else DTM.default_setpoints_nm(DTM.torque_clamp_nm(cfg, kt, limit_a)))
+        DTM.check_grid(speeds, setpoints, limit_a * kt)    # before the output file is touched
+        for flag, value in (("--settle-s", opts.settle_s), ("--window-s", opts.window_s)):
+            if not (math.isfinite(value) and 0 < value <= DTM.MAX_SECONDS):
+                raise ValueError(f"{flag} must be in (0, {DTM.MAX_SECONDS:g}] s, got {value}")
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if not output_file_ok(opts.out, "--out"):
+        return 2
+    try:
+        m = DTM.measure_grid(cfg, speeds, setpoints, settle_s=opts.settle_s, window_s=opts.window_s)
+        problem = m.rising_problem()
+        if problem:
+            raise ValueError(problem)
+        tmap = m.to_map(DTM.describe_source(m, config.name))
+    except (ConfigError, ValueError, TorqueMapError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"torque map of {config} ({m.machine}, kt {m.kt_nm_per_a:.5g} N m/A): {m.speed_rpm.size} speeds x "
+          f"{m.setpoint_nm.size} setpoints in {m.wall_s:.2f} s; speed held within "
+          f"{float(m.speed_spread_rpm.max()):.3g} rpm (mean off by <= {float(abs(m.speed_error_rpm).max()):.3g} rpm)")
+    print(DTM.summary_table(m))
+    try:
+        tmap.save(opts.out)
+    except OSError as exc:
+        print(f"error: --out {opts.out}: cannot write ({exc.strerror or exc})", file=sys.stderr)
+        return 2
+    print(f"  wrote {opts.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="bike", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -950,6 +1002,21 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--csv", metavar="FILE", type=path_arg,
                      help="with --workout: write every Indoor Bike Data sample here")
     trn.set_defaults(func=_cmd_trainer)
+
+    tqm = sub.add_parser("torque-map", help="measure the drive's torque map (true vs reported torque per speed and "
+                                            "setpoint) on the emulated drive: can.torque_map_file")
+    tqm.add_argument("--config", type=path_arg, help="bike config (default config/bldc_can.yaml)")
+    tqm.add_argument("--out", required=True, type=path_arg, help="map file to write (YAML)")
+    tqm.add_argument("--speeds-rpm", nargs="+", metavar="RPM",
+                     help="motor speeds: numbers, comma lists or START:STOP:STEP (default: the rider's cadence "
+                          "span x the gear, e.g. 1000..4500 every 500)")
+    tqm.add_argument("--setpoints-nm", nargs="+", metavar="NM",
+                     help="torque setpoints, 0 added (default: both signs up to the torque clamp, ~10 a side); "
+                          "a range starting with '-' as --setpoints-nm=-3:3:0.5")
+    tqm.add_argument("--settle-s", type=float, default=0.05, help="settling time per point (default 0.05 s)")
+    tqm.add_argument("--window-s", type=float, default=0.1,
+                     help="averaging window per point, rounded up to whole electrical revolutions (default 0.1 s)")
+    tqm.set_defaults(func=_cmd_torque_map)
     return parser
 
 

@@ -1,0 +1,311 @@
+"""The emulated dynamometer: a drive's torque map measured on the drive emulator's physics.
+
+A drive on CAN reports its torque as kt x its measured current (Torque_Estimate). On the BLDC
+of paper 000 that overstates the shaft's true mean torque by a share that grows with the
+current: the commutation dips and the (|ia| + |ib| + |ic|) / 2 current feedback (section
+4.3), the same effect the paper corrects with its factor k (Eq. 7, the torque per ampere it
+measured). :func:`measure_torque_map` measures it as a test stand would: a prime mover holds
+the shaft at each speed of a grid, the drive is given each torque setpoint of a grid, and once
+settled the drive's mean reported torque and the shaft's mean true torque (the physics' own
+electromagnetic torque, where a real stand has a torque sensor) are written into a
+:class:`bike_plant.can.torque_map.TorqueMap`, which the plant's CAN backend uses
+(``can.torque_map_file``) to report the true torque and to ask for the setpoint that gives a
+wanted one.
+
+The physics is the emulator's (:func:`bike_controller.drive_emulator.make_drive_model`,
+``plant`` physics with a prime-mover load): the BLDC's hysteresis current law on the
+bike_plant.bldc kernel, or the SPMSM's current loop on bike_plant.spmsm. The torque setpoint
+reaches it as the emulated firmware turns it into a current (iq* = T / kt, kt of
+:class:`~bike_controller.drive_emulator.DriveModelParams`, the one
+:meth:`DriveFirmware.step` divides by and Torque_Estimate multiplies with).
+
+No rclpy here: ``./bike torque-map`` (bike_session.cli) and the tests call it directly.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from bike_plant.can.torque_map import MAX_POINTS, TorqueMap
+from bike_controller.drive_emulator import RPM_PER_RAD_S, make_drive_model, pole_pairs_of
+
+DEFAULT_SETTLE_S = 0.05       # current loop and bus settle (BLDC ~ms; the SPMSM's PI at its pole, tens of ms)
+DEFAULT_WINDOW_S = 0.1        # at least this long, rounded up to whole electrical revolutions
+MAX_SECONDS = 10.0            # per point, settle or window: more is a typo, not a measurement
+TICK_S = 1.0e-3               # the emulator's tick: speed samples, and batches of the compiled kernel
+# default speed grid: the rider's cadence span (bike_plant rider 40-120 r/min, some margin) x the gear
+DEFAULT_CADENCE_RPM = (30.0, 125.0)
+DEFAULT_SPEED_STEPS = 7       # ~8 speeds over that span
+DEFAULT_SETPOINT_STEPS = 10   # ~10 setpoints on each side of 0 up to the drive's torque clamp
+NICE_STEPS = (1.0, 2.0, 2.5, 5.0, 10.0)
+
+
+@dataclasses.dataclass
+class TorqueMapMeasurement:
+    """A measured grid with what the map file does not keep: how well the speed was held, how long it took."""
+    speed_rpm: np.ndarray           # (n,) the prime mover's speeds
+    setpoint_nm: np.ndarray         # (m,) the torque setpoints, 0 among them
+    reported_nm: np.ndarray         # (n, m) mean Torque_Estimate (kt Iq)
+    true_nm: np.ndarray             # (n, m) mean T_em of the physics (the shaft's torque sensor)
+    speed_spread_rpm: np.ndarray    # (n, m) max - min of the speed sampled every tick over the window
+    speed_error_rpm: np.ndarray     # (n, m) mean speed over the window - the speed asked
+    window_s: np.ndarray            # (n,) the averaging window actually used (whole electrical revolutions)
+    settle_s: float
+    kt_nm_per_a: float
+    machine: str
+    wall_s: float = 0.0
+
+    @property
+    def ratio(self) -> np.ndarray:
+        """true / reported (1 where nothing was reported: setpoint 0)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = self.true_nm / self.reported_nm
+        return np.where(np.abs(self.reported_nm) > 1e-9, r, 1.0)
+
+    def rising_problem(self) -> str | None:
+        """The first row whose reported or true torque does not rise with the setpoint (the drive
+        does not deliver the larger setpoints there: current or voltage limit), as a message; None."""
+        for i, speed in enumerate(self.speed_rpm):
+            for name in ("reported_nm", "true_nm"):
+                row = getattr(self, name)[i]
+                bad = np.flatnonzero(np.diff(row) <= 0)
+                if bad.size:
+                    j = int(bad[0])
+                    return (f"at {speed:g} rpm the drive does not deliver the setpoints beyond "
+                            f"{self.setpoint_nm[j]:g} .. {self.setpoint_nm[j + 1]:g} N m: its {name.split('_')[0]} "
+                            f"torque goes {row[j]:.4g} -> {row[j + 1]:.4g} N m (leave that speed out or narrow "
+                            "the setpoints)")
+        return None
+
+    def to_map(self, source: str) -> TorqueMap:
+        return TorqueMap(self.speed_rpm, self.setpoint_nm, self.reported_nm, self.true_nm, source=source)
+
+
+# ---------------------------------------------------------------------------------------- grids
+def parse_grid(tokens, name: str) -> list[float]:
+    """Numbers from command-line tokens: each a number, a comma-separated list, or START:STOP:STEP
+    (STOP included when on the grid). ValueError naming the option on anything else."""
+    values: list[float] = []
+    for token in tokens:
+        for part in str(token).replace(",", " ").split():
+            values += _range(part, name) if ":" in part else [_number(part, name)]
+    if not values:
+        raise ValueError(f"{name}: no values given")
+    return values
+
+
+def _number(text: str, name: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{name}: {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{name}: {text!r} is not a finite number")
+    return value
+
+
+def _range(text: str, name: str) -> list[float]:
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError(f"{name}: {text!r} is not START:STOP:STEP")
+    start, stop, step = (_number(p, name) for p in parts)
+    if step <= 0 or stop < start:
+        raise ValueError(f"{name}: {text!r} needs STEP > 0 and STOP >= START")
+    count = int(math.floor((stop - start) / step + 1e-9)) + 1
+    if count > MAX_POINTS:
+        raise ValueError(f"{name}: {text!r} gives {count} values, more than {MAX_POINTS}")
+    return [round(start + k * step, 9) for k in range(count)]
+
+
+def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted speeds and setpoints (0 added: the map's zero is measured too), or ValueError:
+    speeds must be > 0 (braking needs forward rotation; the map is looked up by |speed|), no value
+    twice, no setpoint beyond what the drive's current limit lets through (the firmware clamps it:
+    a flat row, no inverse)."""
+    speeds = np.asarray([float(s) for s in speeds_rpm], dtype=float)
+    setpoints = np.asarray(sorted({float(t) for t in setpoints_nm} | {0.0}), dtype=float)
+    if speeds.size == 0 or not np.all(np.isfinite(speeds)) or not np.all(np.isfinite(setpoints)):
+        raise ValueError("speeds and setpoints must be finite numbers, at least one speed")
+    if np.any(speeds <= 0):
+        raise ValueError(f"speeds must be > 0 rpm (braking needs forward rotation), got {speeds.min():g} rpm")
+    speeds = np.sort(speeds)
+    if np.any(np.diff(speeds) == 0):
+        raise ValueError(f"speed {speeds[np.flatnonzero(np.diff(speeds) == 0)[0]]:g} rpm is given twice")
+    if setpoints.size < 2:
+        raise ValueError("at least one setpoint besides 0 is needed")
+    if speeds.size * setpoints.size > MAX_POINTS:
+        raise ValueError(f"{speeds.size} x {setpoints.size} points, more than {MAX_POINTS}")
+    worst = float(np.max(np.abs(setpoints)))
+    if worst > max_setpoint_nm * (1.0 + 1e-9):
+        raise ValueError(f"setpoint {worst:g} N m is beyond the drive's current limit ({max_setpoint_nm:.4g} N m): "
+                         "it would be clamped there")
+    return speeds, setpoints
+
+
+def torque_clamp_nm(cfg: dict, kt_nm_per_a: float, current_limit_a: float) -> float:
+    """The largest setpoint the plant sends: can.torque_limit_nm, else controller.tmax_nm (the
+    CAN backend's clamp), within the drive's current limit x kt (can.current_limit_a when set)."""
+    can = cfg.get("can") if isinstance(cfg.get("can"), dict) else {}
+    ctrl = cfg.get("controller") if isinstance(cfg.get("controller"), dict) else {}
+    limit_a = _positive(can.get("current_limit_a")) or current_limit_a
+    drive_nm = limit_a * kt_nm_per_a
+    asked = _positive(can.get("torque_limit_nm")) or _positive(ctrl.get("tmax_nm")) or drive_nm
+    return min(asked, drive_nm)
+
+
+def _positive(value) -> float:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0 else 0.0
+
+
+def nice_step(span: float, steps: int) -> float:
+    """A round step (1, 2, 2.5 or 5 x 10^k) giving about ``steps`` steps over ``span``."""
+    raw = span / steps
+    decade = 10.0 ** math.floor(math.log10(raw))
+    return min((n * decade for n in NICE_STEPS), key=lambda s: abs(s - raw))
+
+
+def default_speeds_rpm(cfg: dict) -> list[float]:
+    """Motor speeds over the rider's cadence span (DEFAULT_CADENCE_RPM x load.gear_ratio) on a
+    round step: config/bldc_can.yaml 1000..4500 every 500 rpm."""
+    gear = _positive((cfg.get("load") or {}).get("gear_ratio")) or 1.0
+    lo, hi = (c * gear for c in DEFAULT_CADENCE_RPM)
+    step = nice_step(hi - lo, DEFAULT_SPEED_STEPS)
+    first = max(step, math.floor(lo / step) * step)
+    last = math.ceil(hi / step - 1e-9) * step
+    return [round(first + k * step, 6) for k in range(int(round((last - first) / step)) + 1)]
+
+
+def default_setpoints_nm(clamp_nm: float) -> list[float]:
+    """Both signs up to the torque clamp on a round step, the clamp itself (to 3 decimals, down)
+    last: config/bldc_can.yaml -2.941, -2.75 .. 2.75, 2.941 every 0.25 N m."""
+    step = nice_step(clamp_nm, DEFAULT_SETPOINT_STEPS)
+    top = math.floor(clamp_nm * 1000.0 + 1e-6) / 1000.0
+    side = [round(k * step, 9) for k in range(1, int(math.floor(top / step + 1e-9)) + 1)]
+    if top - (side[-1] if side else 0.0) > 0.2 * step:
+        side.append(top)
+    return sorted([-s for s in side] + [0.0] + side)
+
+
+# ---------------------------------------------------------------------------------------- measurement
+def prime_mover_config(cfg: dict, speed_rpm: float) -> dict:
+    """The config with its load a prime mover at ``speed_rpm`` (no schedule): the kernels start
+    there and hold the shaft at S_SPEED_TARGET exactly, whatever torque the drive makes."""
+    cfg = copy.deepcopy(cfg)
+    load = dict(cfg.get("load") or {})
+    load.update(kind="prime_mover", speed_rpm=float(speed_rpm), schedule_time_s=[], schedule_speed_rpm=[])
+    cfg["load"] = load
+    return cfg
+
+
+def window_for(speed_rpm: float, pole_pairs: int, window_s: float) -> float:
+    """At least ``window_s``, whole electrical revolutions (the commutation pattern repeats per
+    revolution; part of one biases the mean by its dips)."""
+    rev_s = 60.0 / (abs(speed_rpm) * pole_pairs)
+    return max(1, math.ceil(window_s / rev_s - 1e-9)) * rev_s
+
+
+@dataclasses.dataclass
+class _Point:
+    reported_nm: float
+    true_nm: float
+    speed_spread_rpm: float
+    speed_error_rpm: float
+
+
+def measure_point(cfg: dict, speed_rpm: float, setpoint_nm: float, settle_s: float, window_s: float) -> _Point:
+    """One point on a fresh model (no history from the previous setpoint: no bus voltage, brake
+    resistor or controller state carried over): settle, then period-weighted means over the window."""
+    model = make_drive_model(prime_mover_config(cfg, speed_rpm), "plant", load_kind="prime_mover")
+    iq_a = setpoint_nm / model.params.torque_constant_nm_per_a
+    model.step(settle_s, iq_a, enabled=True)
+    sums = np.zeros(2)
+    speeds = []
+    start = model.periods
+    ticks = max(1, int(round(window_s / TICK_S)))
+    for k in range(ticks):
+        before = model.periods
+        # tick ends at fractions of the window: the model carries the remainder, the window ends on time
+        model.step(window_s * (k + 1) / ticks - window_s * k / ticks, iq_a, enabled=True)
+        n = model.periods - before
+        sums += n * np.array([model.torque_estimate_nm, model.torque_em_nm])
+        speeds.append(model.speed_rad_s * RPM_PER_RAD_S)
+    reported, true = sums / max(model.periods - start, 1)
+    return _Point(float(reported), float(true), float(np.ptp(speeds)), float(np.mean(speeds) - speed_rpm))
+
+
+def measure_grid(cfg: dict, speeds_rpm, setpoints_nm, *, settle_s: float = DEFAULT_SETTLE_S,
+                 window_s: float = DEFAULT_WINDOW_S) -> TorqueMapMeasurement:
+    """Every (speed, setpoint) of the grid on the emulator's physics (see :func:`measure_torque_map`).
+    ValueError / ConfigError on bad input; rows that do not rise are left to the caller
+    (:meth:`TorqueMapMeasurement.rising_problem`)."""
+    for name, value in (("settle_s", settle_s), ("window_s", window_s)):
+        if not (math.isfinite(value) and 0 < value <= MAX_SECONDS):
+            raise ValueError(f"{name} must be in (0, {MAX_SECONDS:g}] s, got {value!r}")
+    probe = make_drive_model(prime_mover_config(cfg, 1.0), "plant", load_kind="prime_mover")
+    kt = probe.params.torque_constant_nm_per_a
+    speeds, setpoints = check_grid(speeds_rpm, setpoints_nm, probe.params.current_limit_a * kt)
+    pole_pairs = pole_pairs_of(cfg)
+    shape = (speeds.size, setpoints.size)
+    out = {key: np.zeros(shape) for key in ("reported_nm", "true_nm", "speed_spread_rpm", "speed_error_rpm")}
+    windows = np.array([window_for(s, pole_pairs, window_s) for s in speeds])
+    t0 = time.perf_counter()
+    for i, speed in enumerate(speeds):
+        for j, setpoint in enumerate(setpoints):
+            point = measure_point(cfg, float(speed), float(setpoint), settle_s, float(windows[i]))
+            for key in out:
+                out[key][i, j] = getattr(point, key)
+    return TorqueMapMeasurement(speed_rpm=speeds, setpoint_nm=setpoints, window_s=windows, settle_s=float(settle_s),
+                                kt_nm_per_a=float(kt), machine=probe.params.machine,
+                                wall_s=time.perf_counter() - t0, **out)
+
+
+def measure_torque_map(cfg: dict, speeds_rpm, setpoints_nm, *, settle_s: float = DEFAULT_SETTLE_S,
+                       window_s: float = DEFAULT_WINDOW_S, source: str | None = None) -> TorqueMap:
+    """The drive's torque map on the emulated dynamometer (paper 000 section 4.3; the map is the
+    paper's Eq. 7 factor k measured per speed and torque): for each speed a prime mover holds the
+    shaft (a fresh ``make_drive_model(cfg, "plant", load_kind="prime_mover")`` per point), the drive
+    steps with iq* = setpoint / kt, enabled; after ``settle_s`` the mean reported torque
+    (``torque_estimate_nm``: kt Iq, what Torque_Estimate carries) and the mean true torque
+    (``torque_em_nm``: the physics' T_em) over ``window_s`` rounded up to whole electrical revolutions.
+
+    Setpoint 0 is always measured (added when not given). ValueError for a bad grid (speeds <= 0,
+    setpoints beyond the drive's current limit) or a row the drive does not deliver (its reported
+    or true torque stops rising: the current or voltage limit at that speed); ConfigError for a
+    config the emulator cannot run."""
+    m = measure_grid(cfg, speeds_rpm, setpoints_nm, settle_s=settle_s, window_s=window_s)
+    problem = m.rising_problem()
+    if problem:
+        raise ValueError(problem)
+    return m.to_map(source if source is not None else describe_source(m, cfg.get("_config_path")))
+
+
+def describe_source(m: TorqueMapMeasurement, config_name) -> str:
+    """The map file's ``source``: what measured it and how."""
+    return (f"./bike torque-map: the drive emulator's plant physics ({m.machine}, bike_controller.drive_emulator) "
+            f"of {config_name or 'a config'}, prime mover holding each speed, a fresh model per point: "
+            f"settle {m.settle_s:g} s, then means over >= {float(np.min(m.window_s)):.3g} s (whole electrical "
+            f"revolutions); reported = kt Iq (kt {m.kt_nm_per_a:.5g} N m/A), true = the physics' mean T_em")
+
+
+def summary_table(m: TorqueMapMeasurement, columns: int = 8) -> str:
+    """Per speed, true / reported at a few setpoints (the largest and about 2/3, 1/3, 1/6 of it, both signs)."""
+    top = float(np.max(np.abs(m.setpoint_nm)))
+    picked = []
+    for f in (-1.0, -2 / 3, -1 / 3, -1 / 6, 1 / 6, 1 / 3, 2 / 3, 1.0):
+        j = int(np.argmin(np.abs(m.setpoint_nm - f * top)))
+        if m.setpoint_nm[j] != 0.0 and j not in picked:
+            picked.append(j)
+    picked = sorted(picked)[:columns]
+    head = "  speed rpm | true / reported at setpoint [N m]: " + " ".join(f"{m.setpoint_nm[j]:>7.3g}" for j in picked)
+    lines = [head]
+    ratio = m.ratio
+    pad = len("  speed rpm | true / reported at setpoint [N m]: ")
+    for i, speed in enumerate(m.speed_rpm):
+        cells = " ".join(f"{ratio[i, j]:>7.4f}" for j in picked)
+        lines.append(f"  {speed:>9g} |".ljust(pad) + cells)
+    return "\n".join(lines)
+
