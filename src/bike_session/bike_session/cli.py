@@ -830,7 +830,7 @@ def _cmd_torque_map(opts) -> int:
         return 2
     try:
         m = DTM.measure_grid(cfg, speeds, setpoints, settle_s=opts.settle_s, window_s=opts.window_s)
-        problem = m.rising_problem()
+        problem = m.problem()
         if problem:
             raise ValueError(problem)
         tmap = m.to_map(DTM.describe_source(m, config.name))
@@ -838,7 +838,8 @@ def _cmd_torque_map(opts) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"torque map of {config} ({m.machine}, kt {m.kt_nm_per_a:.5g} N m/A): {m.speed_rpm.size} speeds x "
-          f"{m.setpoint_nm.size} setpoints in {m.wall_s:.2f} s; speed held within "
+          f"{m.setpoint_nm.size} setpoints in {m.wall_s:.2f} s (settled within {float(m.settled_s.max()):.3g} s); "
+          f"speed held within "
           f"{float(m.speed_spread_rpm.max()):.3g} rpm (mean off by <= {float(abs(m.speed_error_rpm).max()):.3g} rpm)")
     print(DTM.summary_table(m))
     try:
