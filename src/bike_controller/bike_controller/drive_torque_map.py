@@ -34,7 +34,7 @@ from bike_plant.can.torque_map import MAX_POINTS, TorqueMap
 from bike_controller.drive_emulator import RPM_PER_RAD_S, make_drive_model, pole_pairs_of
 
 DEFAULT_SETTLE_S = 0.05       # current loop and bus settle (BLDC ~ms; the SPMSM's PI at its pole, tens of ms)
-DEFAULT_WINDOW_S = 0.1        # at least this long, rounded up to whole electrical revolutions
+DEFAULT_WINDOW_S = 0.1        # at least this long, rounded up to an even number of electrical revolutions
 MAX_SECONDS = 10.0            # per point, settle or window: more is a typo, not a measurement
 MAX_EXTRA_SETTLE_S = 1.0      # a drifting point is measured again for at most this much longer
 DRIFT_ABS_NM = 0.005          # settled: the halves of the window agree within these (drift_tolerance_nm)
@@ -218,6 +218,9 @@ def default_speeds_rpm(cfg: dict) -> list[float]:
 def default_setpoints_nm(clamp_nm: float) -> list[float]:
     """Both signs up to the torque clamp on a round step, the clamp itself (to 3 decimals, down)
     last: config/bldc_can.yaml -2.941, -2.75 .. 2.75, 2.941 every 0.25 N m."""
+    if not (math.isfinite(clamp_nm) and clamp_nm > 0):
+        raise ValueError(f"the drive's torque clamp must be > 0 N m (controller.tmax_nm, can.torque_limit_nm, "
+                         f"the current limit x kt), got {clamp_nm:g}: give --setpoints-nm")
     step = nice_step(clamp_nm, DEFAULT_SETPOINT_STEPS)
     top = math.floor(clamp_nm * 1000.0 + 1e-6) / 1000.0
     side = [round(k * step, 9) for k in range(1, int(math.floor(top / step + 1e-9)) + 1)]
@@ -300,8 +303,8 @@ def measure_point(cfg: dict, speed_rpm: float, setpoint_nm: float, settle_s: flo
 def measure_grid(cfg: dict, speeds_rpm, setpoints_nm, *, settle_s: float = DEFAULT_SETTLE_S,
                  window_s: float = DEFAULT_WINDOW_S) -> TorqueMapMeasurement:
     """Every (speed, setpoint) of the grid on the emulator's physics (see :func:`measure_torque_map`).
-    ValueError / ConfigError on bad input; rows that do not rise are left to the caller
-    (:meth:`TorqueMapMeasurement.problem`)."""
+    ValueError / ConfigError on bad input; points not delivered, still drifting, or rows that do not
+    rise are left to the caller (:meth:`TorqueMapMeasurement.problem`)."""
     for name, value in (("settle_s", settle_s), ("window_s", window_s)):
         if not (math.isfinite(value) and 0 < value <= MAX_SECONDS):
             raise ValueError(f"{name} must be in (0, {MAX_SECONDS:g}] s, got {value!r}")
