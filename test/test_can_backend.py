@@ -66,6 +66,7 @@ class Rig:
         self.cfg = load_config(config)
         self.channel = uuid.uuid4().hex
         can_changes.setdefault("arm_ramp_nm_per_s", 0.0)   # exact setpoints; the ramp has its own test
+        can_changes.setdefault("torque_map_file", "")       # the drive's figures as they are; the map: its tests
         self.cfg["can"].update(interface="virtual", channel=self.channel, **can_changes)
         self.wall = FakeWallClock(clock) if clock else None
         self.drive_bus = can.Bus(interface="virtual", channel=self.channel, preserve_timestamps=bool(clock))

@@ -54,6 +54,8 @@ def write_config(tmp_path: pathlib.Path, port: int, emulator: bool = False, prof
     doc = yaml.safe_load(base.read_text())
     p = doc["/**"]["ros__parameters"]
     p["can"].update(port=port, channel=GROUP, emulator=emulator, **can_changes)
+    if p["can"].get("torque_map_file"):                   # relative to the config it came from
+        p["can"]["torque_map_file"] = str(base.parent / p["can"]["torque_map_file"])
     if profile is not None:
         path = tmp_path / "profile.yaml"
         path.write_text(yaml.safe_dump(profile))
@@ -332,17 +334,22 @@ def test_a_workout_through_the_can_path_end_to_end(tmp_path, ros_domain):
     assert "CAN:" in result.stdout and "CAN log:" in result.stdout, "the report shows the CAN statistics"
 
 
-def test_a_can_rides_report_compares_the_trainers_power_with_the_emulated_riders_true_power(tmp_path, ros_domain):
+@pytest.mark.parametrize("torque_map", ["shipped", "none"])
+def test_a_can_rides_report_compares_the_trainers_power_with_the_emulated_riders_true_power(tmp_path, ros_domain,
+                                                                                           torque_map):
     """`./bike run` starts the emulator with --truth-topic: its physics' truth (DriveTruth, one
     sample per /clock it hears, stamped with it) is in the bag, and the report's trainer power
     error is against the rider's true power. The truth is checked against itself (the shaft's
     energy balance: rider + T_em w = friction + 1/2 J w^2, each summed by the physics), against
     an independent mean of its samples, and against the plant (the same speed at the same sim
-    time; the BLDC's kt Iq, the plant's ledger, a few % over the true torque: README)."""
+    time). Without a torque map the BLDC's kt Iq, and so the plant's ledger, is a few % over the
+    true torque and the brake a few % short of the asked one (README); with the shipped map
+    (config/bldc_can_torque_map.yaml, the config's default) both are within 1 %."""
     port = _port()
     profile = {"name": "truth", "segments": [
         {"kind": "step", "duration_s": 11.0, "command": 0.5, "mode": "resistance", "label": "resistance"}]}
-    config = write_config(tmp_path, port, emulator=True, profile=profile)
+    config = write_config(tmp_path, port, emulator=True, profile=profile,
+                          **({"torque_map_file": ""} if torque_map == "none" else {}))
     result, out, bag = recorded_run(tmp_path, config, 11, timeout=120)
     from bike_session.bags import read_topic
     from bike_session.report import summarise
@@ -378,8 +385,20 @@ def test_a_can_rides_report_compares_the_trainers_power_with_the_emulated_riders
     # the estimate's error against the truth = its error against the ledger + the ledger's own
     assert acc["mean_w"] == pytest.approx(acc["ledger"]["mean_w"] + acc["ledger_error_pct"] / 100.0 * true_w,
                                           abs=0.01 * true_w)
-    assert abs(acc["ledger"]["mean_pct"]) < 0.2, "the estimate and the plant's ledger agree (the same kt Iq)"
-    assert 0.5 < acc["ledger_error_pct"] < 8.0, "the BLDC's kt Iq overstates its true braking torque"
+    assert abs(acc["ledger"]["mean_pct"]) < 0.2, "the estimate and the plant's ledger agree (the same torque)"
+    # the brake the rider feels against the one the controller asked for
+    asked = [m.torque_cmd_nm for m in read_topic(bag, "drive_command") if 1.0 < t(m) < 10.0]
+    felt = [m.shaft_torque_nm for m in truth if 1.0 < t(m) < 10.0]
+    short_pct = 100.0 * (1.0 - (sum(felt) / len(felt)) / (sum(asked) / len(asked)))
+    print(f"torque map {torque_map}: ledger {acc['ledger_error_pct']:+.2f} % off the truth, brake {short_pct:.2f} % "
+          f"short of the asked {sum(asked) / len(asked):.3f} N m")
+    if torque_map == "none":
+        assert 0.5 < acc["ledger_error_pct"] < 8.0, "the BLDC's kt Iq overstates its true braking torque"
+        assert 1.0 < short_pct < 8.0, "and the brake falls short of the asked torque"
+    else:
+        assert abs(acc["ledger_error_pct"]) < 1.0, "the map's shaft torque is the true one"
+        assert abs(short_pct) < 1.5, "the map's setpoint gives the asked torque"
+        assert "torque map" in result.stdout and "bldc_can_torque_map.yaml" in result.stdout
     # the same sim time is the same moment at the plant and in the physics: the speeds agree
     states = read_topic(bag, "plant_state")
     plant_rpm = {round(t(m), 3): m.speed_rpm for m in states if 1.0 < t(m) < 10.5}

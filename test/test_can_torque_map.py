@@ -76,3 +76,25 @@ def test_the_file_round_trips_and_bad_maps_are_one_error(tmp_path):
     path.write_bytes(b"#" * (2 << 20))
     with pytest.raises(TorqueMapError, match="more than a torque map can be"):
         load_torque_map(path)
+
+
+def test_a_copy_of_a_can_config_still_finds_its_torque_map(tmp_path):
+    """`./bike run --set ...` (and replay, bench, the CAN latency rig) write the config elsewhere:
+    the map's path, relative to the original, is made absolute in the copy (as the profile's)."""
+    import pathlib
+
+    import yaml
+    from bike_plant.config import absolute_file_paths
+    from bike_session import cli
+
+    config = pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_can.yaml"
+    doc = yaml.safe_load(config.read_text())
+    assert doc["/**"]["ros__parameters"]["can"]["torque_map_file"] == "bldc_can_torque_map.yaml"
+    path, cfg = cli._config_copy(config, doc, "test")
+    assert path.parent != config.parent
+    assert cfg["can"]["torque_map_file"] == str(config.parent / "bldc_can_torque_map.yaml")
+    assert cfg["session"]["profile"] == str(config.parent / "profiles" / "demo_intervals.yaml")
+    params = {"can": {"torque_map_file": "/abs/m.yaml"}, "session": {"profile": "~/p.yaml"}}
+    absolute_file_paths(params, tmp_path)
+    assert params["can"]["torque_map_file"] == "/abs/m.yaml"
+    assert params["session"]["profile"] == "~/p.yaml"                 # home-relative: the nodes expand it

@@ -99,15 +99,19 @@ def test_default_grids_of_the_can_bike_cover_the_riders_cadences_and_the_torque_
     cfg = load_config(BLDC_CAN)
     assert DTM.default_speeds_rpm(cfg) == [1000.0 + 500.0 * k for k in range(8)]   # 30-125 r/min x gear 35
     clamp = DTM.torque_clamp_nm(cfg, 0.05204, 120.0)
-    assert clamp == pytest.approx(2.941995)                                          # controller.tmax_nm
+    assert clamp == pytest.approx(1.25 * 2.941995)          # controller.tmax_nm and the headroom beyond it
+    cfg["can"]["current_limit_a"] = 60.0
+    assert DTM.torque_clamp_nm(cfg, 0.05204, 120.0) == pytest.approx(60.0 * 0.05204)  # the drive's current limit
     setpoints = DTM.default_setpoints_nm(clamp)
-    assert setpoints[0] == -2.941 and setpoints[-1] == 2.941 and 0.0 in setpoints and 0.25 in setpoints
+    assert setpoints[0] == -3.677 and setpoints[-1] == 3.677 and 0.0 in setpoints and 0.25 in setpoints
 
 
 def test_the_shipped_map_is_the_can_bikes_measured_one():
     tmap = load_torque_map(ROOT / "config" / "bldc_can_torque_map.yaml")
     assert tmap.speed_rpm[0] <= 1400.0 and tmap.speed_rpm[-1] >= 4200.0       # cadence 40-120 r/min x 35
-    assert tmap.setpoint_nm[0] <= -2.94 and tmap.setpoint_nm[-1] >= 2.94
+    assert tmap.setpoint_nm[0] <= -3.6 and tmap.setpoint_nm[-1] >= 3.6      # Tmax at the shaft within reach
+    for speed in tmap.speed_rpm:
+        assert tmap.setpoint_nm_for(speed, -2.941995) > tmap.setpoint_nm[0] and tmap.outside == 0
     reported = tmap.reported_nm[:, np.flatnonzero(tmap.setpoint_nm == -2.0)[0]]
     true = tmap.true_nm[:, np.flatnonzero(tmap.setpoint_nm == -2.0)[0]]
     assert np.all((true / reported > 0.88) & (true / reported < 0.97))

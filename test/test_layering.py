@@ -33,7 +33,8 @@ def test_physics_and_control_modules_import_no_rclpy():
                "bike_plant.can.protocol", "bike_controller.bldc_control", "bike_controller.spmsm_control",
                "bike_controller.session_control", "bike_controller.spmsm_session", "bike_controller.modes",
                "bike_controller.closed_loop", "bike_controller.fleet", "bike_controller.drive_emulator",
-               "bike_controller.node_params"]
+               "bike_controller.node_params", "bike_controller.drive_torque_map", "bike_plant.can.torque_map",
+               "bike_plant.can.backend"]
     code = ("import importlib, sys\n"
             f"for m in {modules!r}: importlib.import_module(m)\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] == 'rclpy'))\n")

@@ -48,6 +48,9 @@ TICK_S = 1.0e-3               # the emulator's tick: speed samples, and batches 
 DEFAULT_CADENCE_RPM = (30.0, 125.0)
 DEFAULT_SPEED_STEPS = 7       # ~8 speeds over that span
 DEFAULT_SETPOINT_STEPS = 10   # ~10 setpoints on each side of 0 up to the drive's torque clamp
+# the setpoint grid reaches this x the shaft's torque clamp: the BLDC braking at Tmax needs 1.12 x
+# (true / reported 0.89 there); a grid that stops at the clamp leaves Tmax out of the map's reach
+SETPOINT_HEADROOM = 1.25
 NICE_STEPS = (1.0, 2.0, 2.5, 5.0, 10.0)
 
 
@@ -183,14 +186,16 @@ def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float) -> tuple[np.nda
 
 
 def torque_clamp_nm(cfg: dict, kt_nm_per_a: float, current_limit_a: float) -> float:
-    """The largest setpoint the plant sends: can.torque_limit_nm, else controller.tmax_nm (the
-    CAN backend's clamp), within the drive's current limit x kt (can.current_limit_a when set)."""
+    """The largest setpoint the map should cover: SETPOINT_HEADROOM x the shaft torque the plant
+    asks at most (can.torque_limit_nm, else controller.tmax_nm: the CAN backend's clamp, which a
+    map makes the shaft's, so the setpoint for it is larger where the drive falls short), within
+    the drive's current limit x kt (can.current_limit_a when set)."""
     can = cfg.get("can") if isinstance(cfg.get("can"), dict) else {}
     ctrl = cfg.get("controller") if isinstance(cfg.get("controller"), dict) else {}
     limit_a = _positive(can.get("current_limit_a")) or current_limit_a
     drive_nm = limit_a * kt_nm_per_a
-    asked = _positive(can.get("torque_limit_nm")) or _positive(ctrl.get("tmax_nm")) or drive_nm
-    return min(asked, drive_nm)
+    asked = _positive(can.get("torque_limit_nm")) or _positive(ctrl.get("tmax_nm"))
+    return min(asked * SETPOINT_HEADROOM, drive_nm) if asked else drive_nm
 
 
 def _positive(value) -> float:
@@ -217,7 +222,7 @@ def default_speeds_rpm(cfg: dict) -> list[float]:
 
 def default_setpoints_nm(clamp_nm: float) -> list[float]:
     """Both signs up to the torque clamp on a round step, the clamp itself (to 3 decimals, down)
-    last: config/bldc_can.yaml -2.941, -2.75 .. 2.75, 2.941 every 0.25 N m."""
+    last: config/bldc_can.yaml -3.677, -3.5 .. 3.5, 3.677 every 0.25 N m."""
     if not (math.isfinite(clamp_nm) and clamp_nm > 0):
         raise ValueError(f"the drive's torque clamp must be > 0 N m (controller.tmax_nm, can.torque_limit_nm, "
                          f"the current limit x kt), got {clamp_nm:g}: give --setpoints-nm")

@@ -92,6 +92,24 @@ def load_config(path: str | os.PathLike | None = None, node_name: str | None = N
     return merged
 
 
+# parameters naming a file relative to the config's folder: a copy of the config written
+# elsewhere (./bike run --set, replay, bench, the CAN latency rig) makes them absolute
+RELATIVE_FILE_KEYS = (("session", "profile"), ("can", "torque_map_file"))
+
+
+def absolute_file_paths(params: dict, base_dir: str | os.PathLike) -> dict:
+    """Make the RELATIVE_FILE_KEYS of one ``ros__parameters`` mapping absolute against
+    ``base_dir`` (the folder of the config they came from), in place; returns ``params``."""
+    for sect, key in RELATIVE_FILE_KEYS:
+        body = params.get(sect) if isinstance(params, dict) else None
+        value = body.get(key) if isinstance(body, dict) else None
+        if isinstance(value, str) and value:
+            path = pathlib.Path(os.path.expanduser(value))
+            if not path.is_absolute():
+                body[key] = str((pathlib.Path(base_dir) / path).resolve())
+    return params
+
+
 def _list_kind(item) -> str | None:
     """The ROS parameter type of one list item (None: none, as a list or mapping)."""
     if isinstance(item, bool):

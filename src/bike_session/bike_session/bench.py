@@ -32,7 +32,6 @@ Timing assertions live here, not in the tests: this machine is shared and noisy.
 from __future__ import annotations
 
 import json
-import os
 import pathlib
 import re
 import sys
@@ -41,6 +40,7 @@ import threading
 import time
 
 import yaml
+from bike_plant.config import absolute_file_paths
 
 TARGET_INNER_LOOP_REAL_TIME = 1000.0
 TARGET_GRAPH_SHARE_OF_PINGPONG = 0.80  # the lockstep graph vs the DDS ping-pong limit (issue 6)
@@ -67,14 +67,12 @@ def spin_in_background(executor):
 
 
 def _config_with(batch_periods: int, duration_s: float, base: pathlib.Path, out_dir: pathlib.Path) -> pathlib.Path:
-    """A copy of the base config with another batch size (profile path made absolute)."""
+    """A copy of the base config with another batch size (its file paths made absolute)."""
     doc = yaml.safe_load(base.read_text())
     params = doc["/**"]["ros__parameters"]
     params["batch_periods"] = batch_periods
     params["duration_s"] = duration_s
-    profile = params.get("session", {}).get("profile")
-    if profile and not os.path.isabs(profile):
-        params["session"]["profile"] = str((base.parent / profile).resolve())
+    absolute_file_paths(params, base.parent)
     path = out_dir / f"bench_n{batch_periods}.yaml"
     path.write_text(yaml.safe_dump(doc))
     return path

@@ -34,6 +34,7 @@ import threading
 import time
 
 import yaml
+from bike_plant.config import absolute_file_paths
 
 GROUP = "239.74.163.2"
 SET_INPUT_TORQUE = 0x0E
@@ -52,10 +53,10 @@ def _config(base: pathlib.Path, out_dir: pathlib.Path, port: int) -> pathlib.Pat
     p["backend"] = "can"
     p["sync_mode"] = "realtime"
     can_section = p.setdefault("can", {})
-    can_section.update(interface="udp_multicast", channel=GROUP, port=port, emulator=False, log_file="")
-    profile = p.get("session", {}).get("profile")
-    if profile and not os.path.isabs(profile):
-        p["session"]["profile"] = str((base.parent / profile).resolve())
+    # no torque map: each command is found on the bus by its exact torque value
+    can_section.update(interface="udp_multicast", channel=GROUP, port=port, emulator=False, log_file="",
+                       torque_map_file="")
+    absolute_file_paths(p, base.parent)
     path = out_dir / f"can_latency_{port}.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path

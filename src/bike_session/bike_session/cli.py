@@ -263,8 +263,9 @@ def _config_launch_args(cfg: dict, args: dict, recording: bool) -> bool:
 
 def _config_copy(config: pathlib.Path, doc: dict, note: str):
     """Write ``doc`` (the parameter file of ``config``, changed) as this run's config: a copy in
-    a temporary folder (the bag records its text), with a relative ``session.profile`` made
-    absolute so it is still found. Returns (path, loaded config); ConfigError / ValueError /
+    a temporary folder (the bag records its text), with its relative file paths
+    (bike_plant.config.RELATIVE_FILE_KEYS: the profile, a CAN drive's torque map) made absolute
+    so they are still found. Returns (path, loaded config); ConfigError / ValueError /
     OSError when the copy is not a config the bike takes (checked as far as it can be without
     starting a node: structure, the modes section, the machine's parameters)."""
     import atexit
@@ -272,17 +273,13 @@ def _config_copy(config: pathlib.Path, doc: dict, note: str):
     import tempfile
 
     import yaml
-    from bike_plant.config import load_config
-
-    from bike_session.session_node import resolve_profile_path
+    from bike_plant.config import absolute_file_paths, load_config
 
     for body in doc.values():
         params = body.get("ros__parameters") if isinstance(body, dict) else None
-        session = params.get("session") if isinstance(params, dict) else None
-        profile = session.get("profile") if isinstance(session, dict) else None
-        if isinstance(profile, str) and profile:
-            # as the session node resolves it against the original's folder
-            session["profile"] = str(resolve_profile_path(profile, str(config)))
+        if isinstance(params, dict):
+            # as the nodes resolve them, against the original's folder
+            absolute_file_paths(params, config.resolve().parent)
     folder = tempfile.mkdtemp(prefix="bike-config-")
     atexit.register(shutil.rmtree, folder, True)
     path = pathlib.Path(folder) / config.name

@@ -149,7 +149,7 @@ def _machine_only_load_keys(recorded_machine, other_machine) -> set:
 
 def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded") -> dict:
     """Write the replay's profile and config into out_dir; returns their paths + facts."""
-    from bike_plant.config import ConfigError, load_config
+    from bike_plant.config import ConfigError, absolute_file_paths, load_config
 
     if load not in ("recorded", "config"):
         raise ValueError(f"load must be 'recorded' or 'config', got {load!r}")
@@ -187,7 +187,8 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
                 for key in _machine_only_load_keys(recorded["/**"]["ros__parameters"].get("machine", "bldc"),
                                                    params.get("machine", "bldc")):
                     params["load"].pop(key, None)
-    # relative paths in the config (none needed now, but keep them resolvable)
+    # relative paths in the config (a CAN drive's torque map), against the config's folder
+    absolute_file_paths(params, base_dir)
     params.setdefault("session", {})
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
