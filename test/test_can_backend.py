@@ -219,6 +219,9 @@ def test_a_torque_map_makes_the_setpoint_and_the_reported_torque_the_shafts(rig,
     _torque_map_file(tmp_path)
     r = armed(rig, torque_map_file=str(tmp_path / "map.yaml"))
     b = r.backend
+    events = b.pop_events()
+    assert ("info", f"setpoints and torque through the drive's {b.torque_map.describe()}") in events
+    assert not any("torque map" in text for level, text in events if level == "warning")   # not the emulator's
     r.send("Get_Encoder_Estimates", Pos_Estimate=0.0, Vel_Estimate=40.0)        # 2400 rpm: ratio 0.85
     r.send("Get_Torques", Torque_Target=-1.0, Torque_Estimate=-1.2)
     b.service()
@@ -251,6 +254,17 @@ def test_a_torque_map_makes_the_setpoint_and_the_reported_torque_the_shafts(rig,
     assert b.submit(Cmd(-5.0))
     assert r.torques() == [pytest.approx(-3.0)] * 2
     assert b.stats()["torque_clamped"] == clamped + 3                            # -5: twice (shaft, setpoint)
+
+
+def test_the_emulators_torque_map_on_a_real_drive_is_warned_about(rig):
+    """config/bldc_can.yaml's map was measured on the drive emulator: copied for a real drive
+    (can.emulator false) it would correct that drive with the emulated BLDC's figures."""
+    shipped = str(ROOT / "config" / "bldc_can_torque_map.yaml")
+    for emulator in (True, False):
+        b = rig(torque_map_file=shipped, emulator=emulator, emulator_watchdog_s=0.0).backend
+        warnings = [text for level, text in b.pop_events() if level == "warning" and "torque map" in text]
+        assert bool(warnings) == (not emulator), warnings
+    assert "measured on the drive emulator" in warnings[0] and 'torque_map_file: ""' in warnings[0]
 
 
 def test_a_torque_map_that_cannot_be_used_is_one_config_error(rig, tmp_path):

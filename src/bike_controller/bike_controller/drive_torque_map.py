@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from bike_plant.can.torque_map import MAX_POINTS, TorqueMap
+from bike_plant.can.torque_map import EMULATED_SOURCE_MARK, MAX_POINTS, TorqueMap
 from bike_controller.drive_emulator import RPM_PER_RAD_S, make_drive_model, pole_pairs_of
 
 DEFAULT_SETTLE_S = 0.05       # current loop and bus settle (BLDC ~ms; the SPMSM's PI at its pole, tens of ms)
@@ -355,7 +355,7 @@ def measure_torque_map(cfg: dict, speeds_rpm, setpoints_nm, *, settle_s: float =
 
 def describe_source(m: TorqueMapMeasurement, config_name) -> str:
     """The map file's ``source``: what measured it and how."""
-    return (f"./bike torque-map: the drive emulator's plant physics ({m.machine}, bike_controller.drive_emulator) "
+    return (f"./bike torque-map: {EMULATED_SOURCE_MARK} ({m.machine}, bike_controller.drive_emulator) "
             f"of {config_name or 'a config'}, prime mover holding each speed, a fresh model per point: "
             f"settle {m.settle_s:g} s (longer while the torque drifted), then means over >= "
             f"{float(np.min(m.window_s)):.3g} s (whole electrical revolutions); reported = kt Iq "

@@ -109,7 +109,7 @@ from .. import mechanics
 from ..config import ConfigError, build_dataclass, section
 from .protocol import (DRIVE_TO_HOST, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND,
                        PROTOCOLS, AxisState, ODriveError, ProcedureResult, error_names)
-from .torque_map import TorqueMap, TorqueMapError, load_torque_map
+from .torque_map import EMULATED_SOURCE_MARK, TorqueMap, TorqueMapError, load_torque_map
 
 TWO_PI = 2.0 * math.pi
 RPM_PER_REV_S = 60.0
@@ -405,6 +405,12 @@ class CanBackend:
                                       min(float(sp[-1]), self.drive.max_torque_nm))
         self.counters: collections.Counter = collections.Counter()
         self.events: list[tuple[str, str]] = []
+        if self.torque_map is not None:
+            self._event("info", f"setpoints and torque through the drive's {self.torque_map.describe()}")
+            if not p.emulator and EMULATED_SOURCE_MARK in self.torque_map.source:
+                self._event("warning", f"the torque map {self.torque_map.path} was measured on the drive emulator "
+                            "(its source says so), not on this drive (can.emulator is false): its corrections are "
+                            "the emulated machine's; measure your drive's, or set can.torque_map_file: \"\"")
         # link / arming state
         self.seen = False              # a heartbeat arrived once
         self.lost = False              # seen, then silent for heartbeat_timeout_s

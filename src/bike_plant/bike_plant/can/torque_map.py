@@ -51,6 +51,9 @@ import numpy as np
 import yaml
 
 MAP_KEY = "drive_torque_map"
+# in the ``source`` of a map measured on bike-drive-emulator's physics (./bike torque-map): a real
+# drive with such a map gets the emulated machine's corrections, which the plant warns about
+EMULATED_SOURCE_MARK = "the drive emulator's plant physics"
 MAX_MAP_BYTES = 1 << 20          # a map is a few kB; refuse anything absurd before parsing
 MAX_POINTS = 100_000
 
