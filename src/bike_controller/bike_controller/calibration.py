@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import yaml
 
+from bike_plant.config import YamlFileError, read_yaml_file
 from bike_plant.params import friction_problem
 
 MAX_CALIBRATION_BYTES = 64 * 1024   # the file is a few hundred bytes; refuse anything absurd unparsed
@@ -90,18 +91,9 @@ def read_calibration(path, machine: str) -> Calibration:
     carries a figure outside bike_plant.params.friction_problem's range."""
     path = pathlib.Path(path)
     try:
-        size = path.stat().st_size
-        if size > MAX_CALIBRATION_BYTES:
-            raise CalibrationError(f"file too large ({size} bytes > {MAX_CALIBRATION_BYTES})", path)
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise CalibrationError(f"cannot read it ({exc.strerror or exc})", path) from None
-    except UnicodeDecodeError:
-        raise CalibrationError("not a text file", path) from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" at line {mark.line + 1}" if mark else ""
-        raise CalibrationError(f"not valid YAML{line}", path) from None
+        doc = read_yaml_file(path, MAX_CALIBRATION_BYTES)
+    except YamlFileError as exc:
+        raise CalibrationError(str(exc), path) from None
     if not isinstance(doc, dict) or not isinstance(doc.get("modes"), dict):
         raise CalibrationError("expected a mapping with a 'modes:' mapping of friction_nms and dry_friction_nm "
                                "(a file the controller wrote after a spin-down)", path)

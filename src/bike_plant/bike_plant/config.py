@@ -47,6 +47,33 @@ def default_config_path() -> pathlib.Path:
     raise ConfigError("default config not found; set BIKE_ROOT or pass --config")
 
 
+class YamlFileError(ValueError):
+    """Why a small YAML file could not be read (the reason only: callers add the file)."""
+
+
+def read_yaml_file(path: pathlib.Path, max_bytes: int, what: str = "it") -> Any:
+    """``yaml.safe_load`` of a file that must be at most ``max_bytes`` (refused before parsing:
+    a hostile or mistaken file is not read into memory). YamlFileError with one reason: cannot
+    read ``what``, too large, not valid YAML (line and column), not a text file."""
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise YamlFileError(f"cannot read {what} ({exc.strerror or exc})") from None
+    if size > max_bytes:
+        raise YamlFileError(f"file too large ({size} bytes > {max_bytes})")
+    try:
+        return yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise YamlFileError(f"not valid YAML{line}: {getattr(exc, 'problem', exc)}") from None
+    except UnicodeDecodeError:
+        raise YamlFileError("not a text file") from None
+    except OSError as exc:
+        # a directory, or a file stat could see but not read
+        raise YamlFileError(f"cannot read {what} ({exc.strerror or exc})") from None
+
+
 def load_config(path: str | os.PathLike | None = None, node_name: str | None = None) -> dict:
     """Read a parameter file and return the merged nested parameter dict.
 
@@ -56,22 +83,9 @@ def load_config(path: str | os.PathLike | None = None, node_name: str | None = N
     """
     path = pathlib.Path(path) if path else default_config_path()
     try:
-        size = path.stat().st_size
-    except OSError as exc:
-        raise ConfigError(f"cannot read config ({exc.strerror})", path) from None
-    if size > MAX_CONFIG_BYTES:
-        raise ConfigError(f"file too large ({size} bytes > {MAX_CONFIG_BYTES})", path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ConfigError(f"not valid YAML{line}: {getattr(exc, 'problem', exc)}", path) from None
-    except UnicodeDecodeError:
-        raise ConfigError("not a text file", path) from None
-    except OSError as exc:
-        # a directory (--config /some/folder) or a file stat could see but not read
-        raise ConfigError(f"cannot read config ({exc.strerror or exc})", path) from None
+        doc = read_yaml_file(path, MAX_CONFIG_BYTES, "config")
+    except YamlFileError as exc:
+        raise ConfigError(str(exc), path) from None
     if not isinstance(doc, dict):
         raise ConfigError("expected a mapping of node names to 'ros__parameters'", path)
     merged: dict = {}

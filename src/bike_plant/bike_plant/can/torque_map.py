@@ -50,6 +50,8 @@ import pathlib
 import numpy as np
 import yaml
 
+from ..config import YamlFileError, read_yaml_file
+
 MAP_KEY = "drive_torque_map"
 # in the ``source`` of a map measured on bike-drive-emulator's physics (./bike torque-map): a real
 # drive with such a map gets the emulated machine's corrections, which the plant warns about
@@ -182,16 +184,9 @@ def load_torque_map(path: str | os.PathLike) -> TorqueMap:
     """Read a map file; TorqueMapError (one message naming the file) on any problem."""
     path = pathlib.Path(path)
     try:
-        size = path.stat().st_size
-        if size > MAX_MAP_BYTES:
-            raise TorqueMapError(f"{size} bytes, more than a torque map can be ({MAX_MAP_BYTES})", path)
-        doc = yaml.safe_load(path.read_text())
-    except TorqueMapError:
-        raise
-    except OSError as exc:
-        raise TorqueMapError(f"cannot read it ({exc.strerror or exc})", path) from None
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise TorqueMapError(f"not a YAML file ({str(exc).splitlines()[0]})", path) from None
+        doc = read_yaml_file(path, MAX_MAP_BYTES)
+    except YamlFileError as exc:
+        raise TorqueMapError(str(exc), path) from None
     body = doc.get(MAP_KEY) if isinstance(doc, dict) else None
     if not isinstance(body, dict):
         raise TorqueMapError(f"expected a mapping '{MAP_KEY}:' at the top", path)
