@@ -98,3 +98,39 @@ def test_a_copy_of_a_can_config_still_finds_its_torque_map(tmp_path):
     absolute_file_paths(params, tmp_path)
     assert params["can"]["torque_map_file"] == "/abs/m.yaml"
     assert params["session"]["profile"] == "~/p.yaml"                 # home-relative: the nodes expand it
+
+
+def test_a_real_drives_map_from_a_dynamometers_points(tmp_path):
+    """`./bike torque-map --from-csv`: the points a dynamometer with a torque sensor logged (any
+    order, repeated points averaged, extra columns ignored) make the map; a missing point, a
+    missing column or a bad number is one error line and no map file."""
+    from conftest import bike_command
+
+    rows = ["setpoint_nm,speed_rpm,reported_nm,true_nm,sensor_temp_c"]
+    for speed in (1500.0, 3000.0):
+        for sp in (-2.0, 0.0, 2.0):
+            k = 0.9 if speed > 2000 else 0.95
+            rows.append(f"{sp},{speed},{1.01 * sp},{k * 1.01 * sp + 0.001},25")
+    rows.append("2.0,1500,2.02,1.921,26")             # a repeat: averaged with 1.9199
+    csv_path = tmp_path / "dyno.csv"
+    csv_path.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "map.yaml"
+    result = bike_command("torque-map", "--from-csv", str(csv_path), "--out", str(out), timeout=120)
+    assert result.returncode == 0, result.stderr
+    m = load_torque_map(out)
+    np.testing.assert_allclose(m.speed_rpm, [1500.0, 3000.0])
+    np.testing.assert_allclose(m.setpoint_nm, [-2.0, 0.0, 2.0])
+    assert m.true_nm[0, 2] == pytest.approx((0.95 * 2.02 + 0.001 + 1.921) / 2)
+    assert m.true_nm_at(3000.0, -2.02) == pytest.approx(0.9 * -2.02 + 0.001)
+    assert "dyno.csv (7 rows" in m.source
+    for name, text, words in (
+            ("gap.csv", "\n".join(rows[:-2]) + "\n", "1 missing: 2 N m at 3000 rpm"),
+            ("cols.csv", "speed_rpm,setpoint_nm,true_nm\n1,0,0\n", "missing reported_nm"),
+            ("nan.csv", rows[0] + "\n0,1500,x,0,1\n", "line 2: not four numbers")):
+        (tmp_path / name).write_text(text)
+        bad_out = tmp_path / f"{name}.yaml"
+        result = bike_command("torque-map", "--from-csv", str(tmp_path / name), "--out", str(bad_out), timeout=120)
+        lines = result.stderr.strip().splitlines()
+        assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and words in lines[0], \
+            result.stderr
+        assert not bad_out.exists()

@@ -14,6 +14,7 @@
     ./bike bench [--json FILE] [--only SECTION] [--memory-s S] speed / memory figures and ratios, peers
     ./bike fleet [--bikes N] [--seconds S] [--graph K [--netns bikeK=NS]]  many bikes: batched kernel or DDS graph
     ./bike torque-map --config FILE --out MAP.yaml             measure the drive's torque map on the emulator
+    ./bike torque-map --from-csv DYNO.csv --out MAP.yaml       a real drive's map from a dynamometer's points
 """
 from __future__ import annotations
 
@@ -799,11 +800,26 @@ def _cmd_shift(opts) -> int:
 def _cmd_torque_map(opts) -> int:
     """The drive's torque map (true vs reported torque per speed and setpoint) measured on the drive
     emulator's physics (bike_controller.drive_torque_map), written for can.torque_map_file."""
-    from bike_plant.can.torque_map import TorqueMapError
+    from bike_plant.can.torque_map import TorqueMapError, torque_map_from_csv
     from bike_plant.config import ConfigError, load_config
 
     from bike_controller import drive_torque_map as DTM
 
+    if opts.from_csv:
+        # a real drive's map: the points a dynamometer with a torque sensor logged
+        try:
+            tmap = torque_map_from_csv(opts.from_csv)
+            if not output_file_ok(opts.out, "--out"):
+                return 2
+            tmap.save(opts.out)
+        except TorqueMapError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        except OSError as exc:
+            print(f"error: --out {opts.out}: cannot write ({exc.strerror or exc})", file=sys.stderr)
+            return 2
+        print(f"{tmap.describe()}: {tmap.source}\n  wrote {opts.out}")
+        return 0
     config = pathlib.Path(opts.config or repo_root() / "config" / "bldc_can.yaml")
     try:
         cfg = load_config(config)
@@ -1011,6 +1027,9 @@ def build_parser() -> argparse.ArgumentParser:
     tqm.add_argument("--setpoints-nm", nargs="+", metavar="NM",
                      help="torque setpoints, 0 added (default: both signs up to the torque clamp, ~10 a side); "
                           "a range starting with '-' as --setpoints-nm=-3:3:0.5")
+    tqm.add_argument("--from-csv", metavar="FILE", type=path_arg,
+                     help="a real drive's map instead: a dynamometer's points (columns speed_rpm, setpoint_nm, "
+                          "reported_nm, true_nm: the drive's Torque_Estimate and the torque sensor)")
     tqm.add_argument("--settle-s", type=float, default=0.05, help="settling time per point (default 0.05 s)")
     tqm.add_argument("--window-s", type=float, default=0.1,
                      help="averaging window per point, rounded up to whole electrical revolutions (default 0.1 s)")

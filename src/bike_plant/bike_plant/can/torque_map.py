@@ -200,6 +200,60 @@ def load_torque_map(path: str | os.PathLike) -> TorqueMap:
     return TorqueMap(**values, source=str(source), path=str(path))
 
 
+CSV_COLUMNS = ("speed_rpm", "setpoint_nm", "reported_nm", "true_nm")
+MAX_CSV_BYTES = 16 << 20        # a dynamometer log of points, not a raw trace
+
+
+def torque_map_from_csv(path: str | os.PathLike) -> TorqueMap:
+    """A map from a dynamometer's points: a CSV file with the header ``speed_rpm, setpoint_nm,
+    reported_nm, true_nm`` (more columns are ignored) and one row per measured point (the drive's
+    mean Torque_Estimate and the torque sensor's mean at a held speed and a torque setpoint).
+    Repeated points are averaged; every speed needs every setpoint (0 included: measure it, a
+    drive at rest reports its offset). TorqueMapError with one reason (and the line) otherwise."""
+    import csv
+
+    path = pathlib.Path(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_CSV_BYTES:
+            raise TorqueMapError(f"file too large ({size} bytes > {MAX_CSV_BYTES})", path)
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.DictReader(fh, skipinitialspace=True)
+            missing = [c for c in CSV_COLUMNS if c not in (reader.fieldnames or [])]
+            if missing:
+                raise TorqueMapError(f"needs the columns {', '.join(CSV_COLUMNS)}; missing {', '.join(missing)}", path)
+            points: dict[tuple[float, float], list[tuple[float, float]]] = {}
+            for row in reader:
+                try:
+                    speed, setpoint, reported, true = (float(row[c]) for c in CSV_COLUMNS)
+                except (TypeError, ValueError):
+                    raise TorqueMapError(f"line {reader.line_num}: not four numbers "
+                                         f"({', '.join(str(row.get(c)) for c in CSV_COLUMNS)})", path) from None
+                if not all(math.isfinite(x) for x in (speed, setpoint, reported, true)):
+                    raise TorqueMapError(f"line {reader.line_num}: a value that is not finite", path)
+                points.setdefault((speed, setpoint), []).append((reported, true))
+    except TorqueMapError:
+        raise
+    except OSError as exc:
+        raise TorqueMapError(f"cannot read it ({exc.strerror or exc})", path) from None
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise TorqueMapError(f"not a CSV text file ({exc})", path) from None
+    if not points:
+        raise TorqueMapError("no points", path)
+    speeds = sorted({k[0] for k in points})
+    setpoints = sorted({k[1] for k in points})
+    gaps = [(s, t) for s in speeds for t in setpoints if (s, t) not in points]
+    if gaps:
+        shown = ", ".join(f"{t:g} N m at {s:g} rpm" for s, t in gaps[:5]) + (", ..." if len(gaps) > 5 else "")
+        raise TorqueMapError(f"every speed needs every setpoint; {len(gaps)} missing: {shown}", path)
+    mean = {k: np.mean(np.array(v), axis=0) for k, v in points.items()}
+    reported = [[mean[(s, t)][0] for t in setpoints] for s in speeds]
+    true = [[mean[(s, t)][1] for t in setpoints] for s in speeds]
+    n_rows = sum(len(v) for v in points.values())
+    return TorqueMap(speeds, setpoints, reported, true, path=str(path),
+                     source=f"dynamometer points of {path.name} ({n_rows} rows, repeated points averaged)")
+
+
 def _floats(a: np.ndarray) -> list[float]:
     return [float(f"{x:.6g}") for x in np.ravel(a)]
 
