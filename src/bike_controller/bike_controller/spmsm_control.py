@@ -53,6 +53,17 @@ not deliver (cascade anti-windup; an occasional saturated period, e.g. at a back
 harmonic's peak, does not count: resetting on it would freeze the speed integral; without
 the anti-windup the speed loop winds up in flux weakening, where the voltage headroom and
 with it the torque slew rate are small, and limit-cycles through MTPV).
+Under torque control (the session's assist, the CAN drive emulator) a current loop that was
+voltage limited during a whole speed period with id more than EDGE_ID_MISS x Imax off its
+reference is stuck at the edge (C_EDGE): :func:`limit_voltage` then gives the increment's share
+along the voltage circle priority over its outward share. The region logic's references (Fig.
+5-7) are feasible, but with the voltage the model does not know (dead time, the back-EMF's 5th /
+7th harmonics: ~3 V peak in dq at 500 r/min) the true edge lies a little inside the planned one,
+and there the decoupled PIs both push outward (id* more negative AND iq* higher); cut along their
+own direction the currents did not move: at 500 r/min, 1 N m (of the ~1.7 N m the link gives),
+id stayed at -8.8 A against the MTPV reference's -11.9 A and the drive made 0.42 N m for good.
+Along the edge, id goes down trading some iq, the steady-state voltage falls (-we L per A of id
+on the q axis) and iq comes back: 0.98 N m, steady. Speed control never sets C_EDGE.
 
 Operating regions (paper 001, section 5, Fig. 5-7) by :func:`current_reference`, with the
 stator resistance kept in the voltage limit (Rs = 6.84 ohm is 6x we L at 180 r/min; the
@@ -130,6 +141,9 @@ REGION_FLUX_WEAKENING = 1
 REGION_MTPV = 2
 LIMIT_CURRENT = 1     # torque demand cut by the current limit
 LIMIT_VOLTAGE = 2     # ... by the voltage limit
+# torque control: |id* - id| beyond this x Imax with the whole speed period voltage limited: the
+# current loop is stuck at the voltage edge (speed_loop, C_EDGE)
+EDGE_ID_MISS = 0.03
 
 
 def pi_gains_pole_placement(a: float, b: float, pole_hz: float, dt_s: float) -> tuple[float, float]:
@@ -186,7 +200,10 @@ C_DV_FLOOR_V, C_DV_MISSED = 65, 66
 C_OBS_TH0 = 67
 # periods the inverter has held the relay request back while taking iq to zero (control_period)
 C_PREDRAIN_N = 68
-C_SIZE = 69
+# torque control: 1 while the current loop was voltage limited during the whole last speed period
+# (stuck at the edge): limit_voltage then moves along the edge first (speed_loop, control_period)
+C_EDGE = 69
+C_SIZE = 70
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -477,13 +494,20 @@ def _modulate_g(valpha, vbeta, g, modulation):
 
 
 @njit(**JIT_HOT)
-def limit_voltage(vd, vq, id_a, iq_a, we, vmax, q):
+def limit_voltage(vd, vq, id_a, iq_a, we, vmax, q, along_edge=False):
     """Keep the voltage command inside the modulator's circle |v| <= vmax by shortening it
     along the segment from the steady-state voltage of the present currents,
     v_ss = (R + j we L) i + j we lambda (bike_plant.spmsm.steady_state_voltage), towards the
     command. The back-EMF compensation is kept and only the dynamic part is cut: a plain
     d-axis-first clip would, in flux weakening, leave vq ~ 0 against a 15 V back-EMF and
-    drive iq (and the torque) the wrong way. If even v_ss is out of reach, scale radially."""
+    drive iq (and the torque) the wrong way. If even v_ss is out of reach, scale radially.
+
+    ``along_edge`` (torque control, the current loop stuck at the voltage edge: C_EDGE, module
+    doc): of the dynamic part v - v_ss, the component along the circle |v| = |v_ss| first, then
+    as much of the outward (radial) component as fits. Paper 001, section 5 (the voltage limit
+    of Eq. 68-71, here with R kept, a circle in the dq voltage plane; Fig. 6-7): along it id and iq trade
+    at constant voltage towards the flux-weakening / MTPV reference, where the segment towards
+    the command stalls when the model's edge lies outside the machine's."""
     v2 = vd * vd + vq * vq
     if v2 <= vmax * vmax:
         return vd, vq
@@ -492,9 +516,27 @@ def limit_voltage(vd, vq, id_a, iq_a, we, vmax, q):
     if s2 >= vmax * vmax:
         g = vmax / math.sqrt(v2)
         return vd * g, vq * g
-    # |vs + alpha (v - vs)| = vmax, alpha in (0, 1)
     dx = vd - vs.real
     dy = vq - vs.imag
+    if along_edge:
+        # the dynamic part's outward (radial) share last: its component along the edge first,
+        # then as much of the radial one as fits (module doc, "Operating regions")
+        sn = math.sqrt(s2)
+        if sn > 0.0:
+            nx = vs.real / sn
+            ny = vs.imag / sn
+            rad = dx * nx + dy * ny
+            if rad > 0.0:
+                tx = dx - rad * nx
+                ty = dy - rad * ny
+                t2 = tx * tx + ty * ty
+                room2 = vmax * vmax - s2
+                if t2 >= room2:
+                    g = math.sqrt(room2 / t2)
+                    return vs.real + g * tx, vs.imag + g * ty
+                rr = math.sqrt(vmax * vmax - t2) - sn
+                return vs.real + tx + rr * nx, vs.imag + ty + rr * ny
+    # |vs + alpha (v - vs)| = vmax, alpha in (0, 1)
     a2 = dx * dx + dy * dy
     b1 = vs.real * dx + vs.imag * dy
     alpha = (-b1 + math.sqrt(b1 * b1 + a2 * (vmax * vmax - s2))) / a2
@@ -682,6 +724,10 @@ def speed_loop(cs, q):
     if cs[C_TORQUE_MODE] != 0.0 and cs[C_LIMITS] == 0.0 and dv < cs[C_DV_FLOOR_V]:
         dv = max(dv, min(cs[C_DV], cs[C_DV_FLOOR_V]))
     cs[C_DV] = min(max(dv, 0.0), 0.3 * vmax_mod)
+    # torque control: a current loop voltage limited the whole speed period with id off its
+    # reference is stuck at the edge (limit_voltage then moves along it first)
+    cs[C_EDGE] = 1.0 if (cs[C_TORQUE_MODE] != 0.0 and cs[C_VSAT] >= q[Q_NS]
+                         and abs(cs[C_ID_REF] - cs[C_ID]) > EDGE_ID_MISS * q[Q_IMAX]) else 0.0
     if cs[C_VSAT] >= q[Q_NS] and cs[C_IQ_N] > 0.0:
         # the current loop was voltage limited during the whole last speed period: continue
         # from the iq it delivered (its mean over the period), not from the reference it could
@@ -906,7 +952,7 @@ def control_period(cs, q, meas):
     vq = cs[C_VQP_PREV] + dvq + cpl_q
     vmax = q[Q_VMAX]
     if vd * vd + vq * vq > vmax * vmax:
-        vd, vq = limit_voltage(vd, vq, idm, iqm, we, vmax, q)
+        vd, vq = limit_voltage(vd, vq, idm, iqm, we, vmax, q, cs[C_EDGE] != 0.0 and not (draining or predrain))
         cs[C_VSAT] += 1.0
     cs[C_VDP_PREV] = vd - cpl_d          # anti-windup: the applied voltage, decoupled
     cs[C_VQP_PREV] = vq - cpl_q
