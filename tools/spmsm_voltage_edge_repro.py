@@ -47,9 +47,10 @@ def run(speed, setpoint, dur=3.0, every=0.05, quiet=False):
             r = a[j].copy()
             r[1:5] = a[j - step + 1:j + 1, 1:5].mean(axis=0)   # window means (torque ripple aliases)
             r[11] = a[j - step + 1:j + 1, 11].max()
-            print(f"{r[0]:5.2f} {r[1]:6.3f} {r[2]:6.3f} {r[3]:6.3f} {r[4]:6.2f} {r[5]:6.3f} {r[6]:6.2f} {int(r[7]):3d} {int(r[8]):3d} "
-                  f"{r[9]:5.3f} {r[10]:5.3f} {r[11]:5.3f} {r[12]:7.2f} {r[13]:7.2f}")
+            print(f"{r[0]:5.2f} {r[1]:6.3f} {r[2]:6.3f} {r[3]:6.3f} {r[4]:6.2f} {r[5]:6.3f} {r[6]:6.2f} "
+                  f"{int(r[7]):3d} {int(r[8]):3d} {r[9]:5.3f} {r[10]:5.3f} {r[11]:5.3f} {r[12]:7.2f} {r[13]:7.2f}")
     return a
+
 
 if __name__ == "__main__":
     args = [float(x) for x in sys.argv[1:]]
