@@ -98,10 +98,10 @@ def test_grid_tokens_take_lists_and_ranges():
 def test_default_grids_of_the_can_bike_cover_the_riders_cadences_and_the_torque_clamp():
     cfg = load_config(BLDC_CAN)
     assert DTM.default_speeds_rpm(cfg) == [1000.0 + 500.0 * k for k in range(8)]   # 30-125 r/min x gear 35
-    clamp = DTM.torque_clamp_nm(cfg, 0.05204, 120.0)
+    clamp = DTM.setpoint_top_nm(cfg, 0.05204, 120.0)
     assert clamp == pytest.approx(1.25 * 2.941995)          # controller.tmax_nm and the headroom beyond it
     cfg["can"]["current_limit_a"] = 60.0
-    assert DTM.torque_clamp_nm(cfg, 0.05204, 120.0) == pytest.approx(60.0 * 0.05204)  # the drive's current limit
+    assert DTM.setpoint_top_nm(cfg, 0.05204, 120.0) == pytest.approx(60.0 * 0.05204)  # the drive's current limit
     setpoints = DTM.default_setpoints_nm(clamp)
     assert setpoints[0] == -3.677 and setpoints[-1] == 3.677 and 0.0 in setpoints and 0.25 in setpoints
 

@@ -31,7 +31,7 @@ import time
 import numpy as np
 
 from bike_plant.can.torque_map import EMULATED_SOURCE_MARK, MAX_POINTS, TorqueMap
-from bike_controller.drive_emulator import RPM_PER_RAD_S, make_drive_model, pole_pairs_of
+from bike_controller.drive_emulator import RPM_PER_RAD_S, DriveModelParams, make_drive_model, pole_pairs_of
 
 DEFAULT_SETTLE_S = 0.05       # current loop and bus settle (BLDC ~ms; the SPMSM's PI at its pole, tens of ms)
 DEFAULT_WINDOW_S = 0.1        # at least this long, rounded up to an even number of electrical revolutions
@@ -160,6 +160,13 @@ def _range(text: str, name: str) -> list[float]:
     return [round(start + k * step, 9) for k in range(count)]
 
 
+def check_times(settle_s: float, window_s: float, names=("settle_s", "window_s")) -> None:
+    """ValueError unless both times are in (0, MAX_SECONDS] s (``names``: how the caller calls them)."""
+    for name, value in zip(names, (settle_s, window_s)):
+        if not (math.isfinite(value) and 0 < value <= MAX_SECONDS):
+            raise ValueError(f"{name} must be in (0, {MAX_SECONDS:g}] s, got {value!r}")
+
+
 def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float) -> tuple[np.ndarray, np.ndarray]:
     """Sorted speeds and setpoints (0 added: the map's zero is measured too), or ValueError:
     speeds must be > 0 (braking needs forward rotation; the map is looked up by |speed|), no value
@@ -185,7 +192,7 @@ def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float) -> tuple[np.nda
     return speeds, setpoints
 
 
-def torque_clamp_nm(cfg: dict, kt_nm_per_a: float, current_limit_a: float) -> float:
+def setpoint_top_nm(cfg: dict, kt_nm_per_a: float, current_limit_a: float) -> float:
     """The largest setpoint the map should cover: SETPOINT_HEADROOM x the shaft torque the plant
     asks at most (can.torque_limit_nm, else controller.tmax_nm: the CAN backend's clamp, which a
     map makes the shaft's, so the setpoint for it is larger where the drive falls short), within
@@ -220,14 +227,14 @@ def default_speeds_rpm(cfg: dict) -> list[float]:
     return [round(first + k * step, 6) for k in range(int(round((last - first) / step)) + 1)]
 
 
-def default_setpoints_nm(clamp_nm: float) -> list[float]:
+def default_setpoints_nm(top_nm: float) -> list[float]:
     """Both signs up to the torque clamp on a round step, the clamp itself (to 3 decimals, down)
     last: config/bldc_can.yaml -3.677, -3.5 .. 3.5, 3.677 every 0.25 N m."""
-    if not (math.isfinite(clamp_nm) and clamp_nm > 0):
+    if not (math.isfinite(top_nm) and top_nm > 0):
         raise ValueError(f"the drive's torque clamp must be > 0 N m (controller.tmax_nm, can.torque_limit_nm, "
-                         f"the current limit x kt), got {clamp_nm:g}: give --setpoints-nm")
-    step = nice_step(clamp_nm, DEFAULT_SETPOINT_STEPS)
-    top = math.floor(clamp_nm * 1000.0 + 1e-6) / 1000.0
+                         f"the current limit x kt), got {top_nm:g}: give --setpoints-nm")
+    step = nice_step(top_nm, DEFAULT_SETPOINT_STEPS)
+    top = math.floor(top_nm * 1000.0 + 1e-6) / 1000.0
     side = [round(k * step, 9) for k in range(1, int(math.floor(top / step + 1e-9)) + 1)]
     if top - (side[-1] if side else 0.0) > 0.2 * step:
         side.append(top)
@@ -310,12 +317,10 @@ def measure_grid(cfg: dict, speeds_rpm, setpoints_nm, *, settle_s: float = DEFAU
     """Every (speed, setpoint) of the grid on the emulator's physics (see :func:`measure_torque_map`).
     ValueError / ConfigError on bad input; points not delivered, still drifting, or rows that do not
     rise are left to the caller (:meth:`TorqueMapMeasurement.problem`)."""
-    for name, value in (("settle_s", settle_s), ("window_s", window_s)):
-        if not (math.isfinite(value) and 0 < value <= MAX_SECONDS):
-            raise ValueError(f"{name} must be in (0, {MAX_SECONDS:g}] s, got {value!r}")
-    probe = make_drive_model(prime_mover_config(cfg, 1.0), "plant", load_kind="prime_mover")
-    kt = probe.params.torque_constant_nm_per_a
-    speeds, setpoints = check_grid(speeds_rpm, setpoints_nm, probe.params.current_limit_a * kt)
+    check_times(settle_s, window_s)
+    drive = DriveModelParams.from_config(cfg)
+    kt = drive.torque_constant_nm_per_a
+    speeds, setpoints = check_grid(speeds_rpm, setpoints_nm, drive.current_limit_a * kt)
     pole_pairs = pole_pairs_of(cfg)
     shape = (speeds.size, setpoints.size)
     out = {key: np.zeros(shape) for key in ("reported_nm", "true_nm", "drift_nm", "settled_s", "speed_spread_rpm",
@@ -328,7 +333,7 @@ def measure_grid(cfg: dict, speeds_rpm, setpoints_nm, *, settle_s: float = DEFAU
             for key in out:
                 out[key][i, j] = getattr(point, key)
     return TorqueMapMeasurement(speed_rpm=speeds, setpoint_nm=setpoints, window_s=windows, settle_s=float(settle_s),
-                                kt_nm_per_a=float(kt), machine=probe.params.machine,
+                                kt_nm_per_a=float(kt), machine=drive.machine,
                                 wall_s=time.perf_counter() - t0, **out)
 
 

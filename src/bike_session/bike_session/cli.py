@@ -823,19 +823,17 @@ def _cmd_torque_map(opts) -> int:
     config = pathlib.Path(opts.config or repo_root() / "config" / "bldc_can.yaml")
     try:
         cfg = load_config(config)
-        probe = DTM.make_drive_model(DTM.prime_mover_config(cfg, 1.0), "plant", load_kind="prime_mover")
-        kt, limit_a = probe.params.torque_constant_nm_per_a, probe.params.current_limit_a
+        drive = DTM.DriveModelParams.from_config(cfg)
+        kt, limit_a = drive.torque_constant_nm_per_a, drive.current_limit_a
     except (ConfigError, ValueError) as exc:
         print(f"error: {exc}" if str(config) in str(exc) else f"error: {config}: {exc}", file=sys.stderr)
         return 2
     try:
         speeds = DTM.parse_grid(opts.speeds_rpm, "--speeds-rpm") if opts.speeds_rpm else DTM.default_speeds_rpm(cfg)
         setpoints = (DTM.parse_grid(opts.setpoints_nm, "--setpoints-nm") if opts.setpoints_nm
-                     else DTM.default_setpoints_nm(DTM.torque_clamp_nm(cfg, kt, limit_a)))
+                     else DTM.default_setpoints_nm(DTM.setpoint_top_nm(cfg, kt, limit_a)))
         DTM.check_grid(speeds, setpoints, limit_a * kt)    # before the output file is touched
-        for flag, value in (("--settle-s", opts.settle_s), ("--window-s", opts.window_s)):
-            if not (math.isfinite(value) and 0 < value <= DTM.MAX_SECONDS):
-                raise ValueError(f"{flag} must be in (0, {DTM.MAX_SECONDS:g}] s, got {value}")
+        DTM.check_times(opts.settle_s, opts.window_s, ("--settle-s", "--window-s"))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
