@@ -809,17 +809,13 @@ def _cmd_torque_map(opts) -> int:
         # a real drive's map: the points a dynamometer with a torque sensor logged
         try:
             tmap = torque_map_from_csv(opts.from_csv)
-            if not output_file_ok(opts.out, "--out"):
-                return 2
-            tmap.save(opts.out)
         except TorqueMapError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-        except OSError as exc:
-            print(f"error: --out {opts.out}: cannot write ({exc.strerror or exc})", file=sys.stderr)
+        if not output_file_ok(opts.out, "--out"):
             return 2
-        print(f"{tmap.describe()}: {tmap.source}\n  wrote {opts.out}")
-        return 0
+        print(f"{tmap.describe()}: {tmap.source}")
+        return _save_torque_map(tmap, opts.out)
     config = pathlib.Path(opts.config or repo_root() / "config" / "bldc_can.yaml")
     try:
         cfg = load_config(config)
@@ -853,12 +849,17 @@ def _cmd_torque_map(opts) -> int:
           f"speed held within "
           f"{float(m.speed_spread_rpm.max()):.3g} rpm (mean off by <= {float(abs(m.speed_error_rpm).max()):.3g} rpm)")
     print(DTM.summary_table(m))
+    return _save_torque_map(tmap, opts.out)
+
+
+def _save_torque_map(tmap, out) -> int:
+    """Write the map to ``out`` (checked by output_file_ok first); the command's exit code."""
     try:
-        tmap.save(opts.out)
+        tmap.save(out)
     except OSError as exc:
-        print(f"error: --out {opts.out}: cannot write ({exc.strerror or exc})", file=sys.stderr)
+        print(f"error: --out {out}: cannot write ({exc.strerror or exc})", file=sys.stderr)
         return 2
-    print(f"  wrote {opts.out}")
+    print(f"  wrote {out}")
     return 0
 
 
