@@ -106,6 +106,16 @@ def load_config(path: str | os.PathLike | None = None, node_name: str | None = N
     return merged
 
 
+def resolve_config_path(value: str, config_path: str | os.PathLike | None) -> pathlib.Path:
+    """A file a config names (a profile, a CAN drive's torque map): ``~`` expanded, a relative
+    path against the config file's folder (the working directory without a file)."""
+    path = pathlib.Path(os.path.expanduser(value))
+    if path.is_absolute():
+        return path
+    base = pathlib.Path(config_path).resolve().parent if config_path else pathlib.Path.cwd()
+    return base / path
+
+
 # parameters naming a file relative to the config's folder: a copy of the config written
 # elsewhere (./bike run --set, replay, bench, the CAN latency rig) makes them absolute
 RELATIVE_FILE_KEYS = (("session", "profile"), ("can", "torque_map_file"))

@@ -95,11 +95,8 @@ def software_version() -> str:
 
 def resolve_profile_path(profile: str, config_path: str = "") -> pathlib.Path:
     """Resolve ``session.profile`` against the config file's folder (or the cwd)."""
-    p = pathlib.Path(os.path.expanduser(profile))
-    if p.is_absolute():
-        return p
-    base = pathlib.Path(config_path).resolve().parent if config_path else pathlib.Path.cwd()
-    return base / p
+    from bike_plant.config import resolve_config_path
+    return resolve_config_path(profile, config_path)
 
 
 def collect_seeds(config_path: str) -> dict:

@@ -106,7 +106,7 @@ from typing import Callable
 import can
 
 from .. import mechanics
-from ..config import ConfigError, build_dataclass, section
+from ..config import ConfigError, build_dataclass, resolve_config_path, section
 from .protocol import (DRIVE_TO_HOST, MALFORMED_REASONS, MEASUREMENT_KINDS, MESSAGE_OF_KIND,
                        PROTOCOLS, AxisState, ODriveError, ProcedureResult, error_names)
 from .torque_map import EMULATED_SOURCE_MARK, TorqueMap, TorqueMapError, load_torque_map
@@ -250,11 +250,8 @@ def torque_map_of(cfg: dict, p: CanParams) -> TorqueMap | None:
     if not p.torque_map_file:
         return None
     path = cfg.get("_config_path")
-    file = pathlib.Path(p.torque_map_file).expanduser()
-    if not file.is_absolute():
-        file = (pathlib.Path(path).resolve().parent if path else pathlib.Path.cwd()) / file
     try:
-        return load_torque_map(file)
+        return load_torque_map(resolve_config_path(p.torque_map_file, path))
     except TorqueMapError as exc:
         raise ConfigError(str(exc), path, "can.torque_map_file") from None
 
