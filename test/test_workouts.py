@@ -302,6 +302,38 @@ def test_a_relative_target_without_an_ftp_says_where_the_rider_gives_it():
         assert str(info.value).count("error:") == 0 and str(info.value).startswith(f"w.{fmt}: ")
 
 
+def test_run_rides_the_configs_ftp_and_max_heart_rate_when_the_options_are_not_given(tmp_path, capsys):
+    """The hint above names session.ftp_w, but ./bike run read the workout with --ftp alone and passed
+    ftp 0.0 to the launch file, whose argument replaces the config's parameter: a config with
+    session.ftp_w: 250 got "pass the rider's ftp_w (session.ftp_w; ...)", and an .erg with FTP = 200
+    rode its watts as written instead of rescaled to 250. The same for session.max_hr_bpm."""
+    from bike_plant.config import load_config
+    from bike_session import cli
+    from fit_files import fit_workout_bytes, heart_rate_step
+    cfg = load_config(ROOT / "config" / "bldc_default.yaml")
+    cfg["session"] = dict(cfg.get("session") or {}, ftp_w=250.0, max_hr_bpm=200.0)
+    path = write(tmp_path, zwo('<SteadyState Duration="60" Power="0.5"/>'), "a.zwo")
+    opts = cli.build_parser().parse_args(["run", "--workout", str(path)])
+    assert cli._load_workout_for_run(opts, cfg).segments[0].target_start_w == pytest.approx(125.0)
+    assert cli._rider_figures(opts, cfg) == (250.0, 200.0)          # what the launch file is given
+    opts = cli.build_parser().parse_args(["run", "--workout", str(path), "--ftp", "200", "--max-hr", "180"])
+    assert cli._load_workout_for_run(opts, cfg).segments[0].target_start_w == pytest.approx(100.0)
+    assert cli._rider_figures(opts, cfg) == (200.0, 180.0)          # the options win
+    erg = tmp_path / "erg_smoke.erg"
+    erg.write_bytes((DATA / "erg_smoke.erg").read_bytes())
+    opts = cli.build_parser().parse_args(["run", "--workout", str(erg)])
+    assert "FTP = 200" in erg.read_text()
+    assert cli._load_workout_for_run(opts, cfg).segments[0].target_start_w == pytest.approx(100.0 * 250 / 200)
+    hr = tmp_path / "hr.fit"
+    hr.write_bytes(fit_workout_bytes([heart_rate_step(60, 70, 80)]))
+    opts = cli.build_parser().parse_args(["run", "--workout", str(hr)])
+    assert cli._load_workout_for_run(opts, cfg).segments[0].heart_rate_bpm == pytest.approx(150.0)
+    del cfg["session"]["ftp_w"]
+    opts = cli.build_parser().parse_args(["run", "--workout", str(path)])
+    assert cli._load_workout_for_run(opts, cfg) is None
+    assert "session.ftp_w; ./bike run --ftp W" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("file_name, name", [("C:\\Users\\me\\Workouts\\Sweet Spot.erg", "Sweet Spot"),
                                              ("workouts/Baxter.ERG", "Baxter"), ("Over-unders 2.5", "Over-unders 2.5"),
                                              ("Tempo 3x12.mrc", "Tempo 3x12"), ("", "n")])

@@ -176,10 +176,11 @@ def _cmd_run(opts) -> int:
         if can_params is None:
             return 2
     if workout is not None:
-        args.update(workout=str(pathlib.Path(opts.workout).resolve()), ftp=repr(float(opts.ftp or 0.0)))
-        if getattr(opts, "max_hr", None):
+        ftp_w, max_hr_bpm = _rider_figures(opts, cfg)
+        args.update(workout=str(pathlib.Path(opts.workout).resolve()), ftp=repr(float(ftp_w or 0.0)))
+        if max_hr_bpm:
             # only when given: a --launch file of its own need not declare the argument
-            args.update(max_hr=repr(float(opts.max_hr)))
+            args.update(max_hr=repr(float(max_hr_bpm)))
     bag_path = None
     if opts.record:
         record_dir = output_dir(pathlib.Path(opts.record).resolve(), "--record")
@@ -595,6 +596,18 @@ def _config_profile_ok(cfg: dict, config: pathlib.Path, source_config: pathlib.P
     return True
 
 
+def _rider_figures(opts, cfg) -> tuple[float | None, float | None]:
+    """The rider's FTP and maximum heart rate for the workout: --ftp / --max-hr, else the config's
+    session.ftp_w / session.max_hr_bpm (0 or absent: not given; _check_config has checked them).
+    The launch file's ftp / max_hr arguments replace the config's parameters, so the config's
+    figures were never ridden, while the error for a missing FTP named session.ftp_w."""
+    session = cfg.get("session") if isinstance(cfg.get("session"), dict) else {}
+    ftp_w = opts.ftp if opts.ftp is not None else (session.get("ftp_w") or None)
+    max_hr = getattr(opts, "max_hr", None)
+    max_hr_bpm = max_hr if max_hr is not None else (session.get("max_hr_bpm") or None)
+    return ftp_w, max_hr_bpm
+
+
 def _load_workout_for_run(opts, cfg):
     """Read the workout once before anything starts: a bad file is one error, nothing runs."""
     import warnings
@@ -614,8 +627,9 @@ def _load_workout_for_run(opts, cfg):
             warnings.simplefilter("always", WorkoutWarning)
             # the config's over_range as the session node reads the workout: an error there
             # refuses a target beyond the machine's range now, not once the graph has started
-            workout = load_workout(opts.workout, ftp_w=opts.ftp, pmax_w=pmax_w_from_config(cfg),
-                                   units=mode_units_from_config(cfg), max_hr_bpm=max_hr,
+            ftp_w, max_hr_bpm = _rider_figures(opts, cfg)
+            workout = load_workout(opts.workout, ftp_w=ftp_w, pmax_w=pmax_w_from_config(cfg),
+                                   units=mode_units_from_config(cfg), max_hr_bpm=max_hr_bpm,
                                    over_range=(cfg.get("session") or {}).get("over_range", "warn"))
     except (ProfileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
