@@ -132,8 +132,9 @@ def ride(m: ModeLaw, command, mode, rider_fn, w0, seconds, delay_batches=0):
 
 
 def test_slope_rides_the_road_a_command_gives_and_the_configs_otherwise():
-    """A training app's road (Crr, Cw = 1/2 rho CdA, wind): the slope law's road load on it; None
-    gives the config's road back; a bad road is refused and changes nothing."""
+    """A training app's road (Crr, Cw = rho CdA as FTMS and FE-C define it, wind): the slope law's
+    road load on it, the drag 1/2 Cw v^2; None gives the config's road back; a bad road is refused
+    and changes nothing."""
     m = law(virtual_inertia=False)
     mp = m.mp
     cadence = 80.0
@@ -146,7 +147,8 @@ def test_slope_rides_the_road_a_command_gives_and_the_configs_otherwise():
     assert m.road_from_command
     app = settle(m, command, MODE_SLOPE, cadence * GEAR).brake_torque_nm
     a = math.atan(grade)
-    f_app = (mp.rider_mass_kg + mp.bike_mass_kg) * G_MPS2 * (math.sin(a) + 0.006 * math.cos(a)) + 0.51 * (v + 4.0) ** 2
+    f_app = ((mp.rider_mass_kg + mp.bike_mass_kg) * G_MPS2 * (math.sin(a) + 0.006 * math.cos(a))
+             + 0.5 * 0.51 * (v + 4.0) ** 2)
     assert app * w == pytest.approx(f_app * v, rel=1e-9)
     assert app > config_road * 1.3
     with pytest.raises(ValueError, match="crr"):
@@ -157,6 +159,24 @@ def test_slope_rides_the_road_a_command_gives_and_the_configs_otherwise():
     m.set_road(None)
     assert not m.road_from_command
     assert settle(m, command, MODE_SLOPE, cadence * GEAR).brake_torque_nm == pytest.approx(config_road)
+
+
+def test_an_apps_cw_is_rho_cda_as_ftms_and_fe_c_define_it():
+    """Zwift's Cw 0.51 kg/m is FE-C's default road bike, 1.275 kg/m^3 x 0.40 m^2 x Cd 1.0 (research
+    notes 2.2; GoldenCheetah #3800: FTMS's Wind Resistance Coefficient is Cd A rho, the drag
+    1/2 Cw v^2). It was taken as 1/2 rho CdA, the drag Cw v^2: an app's road had twice the air
+    drag of a 0.40 m^2 rider. Now that road and a config of CdA 0.40 m^2 at 1.275 kg/m^3 load
+    the slope mode alike."""
+    cadence = 90.0
+    brake = []
+    for road in ((0.004, 0.51, 0.0), None):
+        m = law(virtual_inertia=False, crr=0.004, cda_m2=0.40, air_density_kg_m3=1.275, wind_mps=0.0)
+        m.set_road(road)
+        brake.append(settle(m, 0.5 + 0.02 / 0.4, MODE_SLOPE, cadence * GEAR).brake_torque_nm)
+        v = cadence * GEAR / RPM_PER_RAD_S * m.mp.wheel_radius_m * m.mp.virtual_gear_ratio / GEAR
+        assert m.road_force_n(0.0, v) == pytest.approx(
+            (m.mp.rider_mass_kg + m.mp.bike_mass_kg) * G_MPS2 * 0.004 + 0.5 * 1.275 * 0.40 * v * v, rel=1e-12)
+    assert brake[0] == pytest.approx(brake[1], rel=1e-9)
 
 
 def test_a_command_with_a_bad_road_is_rejected_whole():

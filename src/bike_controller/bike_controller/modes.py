@@ -56,7 +56,7 @@ Modes (``bike_msgs/Command``):
   isokinetic gains). Negative F (downhill)
   gives assist torque, at most ``assist_max_nm`` and only above ``assist_min_cadence_rpm``
   (the motor never starts turning the cranks of a rider who stopped).
-  The road (Crr, Cw = 1/2 rho CdA, wind) is the config's, or the Command's where it gives one
+  The road (Crr, Cw = rho CdA as FTMS and FE-C define it, wind) is the config's, or the Command's where it gives one
   (``road_from_command``: a training app's Indoor Bike Simulation, :meth:`ModeLaw.set_road`).
   Virtual shifting: a Command may carry a ``virtual_gear_ratio`` (0: the config's). A shift
   keeps the virtual bike's road speed, v = w_v r_wheel gear_virtual / gear_ratio, so the
@@ -421,11 +421,13 @@ class ModeLaw:
 
     def set_road(self, road: tuple[float, float, float] | None) -> None:
         """The road of the slope mode and of ERG's flat road: (crr, cw_kg_m, wind_mps) as a
-        Command gives it (Cw = 1/2 rho CdA, the FTMS Indoor Bike Simulation's figure), or None
-        for the config's (crr, 1/2 air_density_kg_m3 cda_m2, wind_mps). ValueError: unchanged."""
+        Command gives it (Cw = rho CdA, the FTMS Indoor Bike Simulation's and FE-C's wind
+        resistance coefficient: Zwift's 0.51 kg/m is 1.275 kg/m^3 x 0.40 m^2, research notes 2.2,
+        GoldenCheetah #3800; the drag is 1/2 Cw v^2), or None for the config's
+        (crr, air_density_kg_m3 cda_m2, wind_mps). ValueError: unchanged."""
         if road is None:
             mp = self.mp
-            road = (mp.crr, 0.5 * mp.air_density_kg_m3 * mp.cda_m2, mp.wind_mps)
+            road = (mp.crr, mp.air_density_kg_m3 * mp.cda_m2, mp.wind_mps)
             self.road_from_command = False
         else:
             problem = road_problem(*road)
@@ -505,7 +507,7 @@ class ModeLaw:
         a = math.atan(grade)
         va = v_mps + self.wind_mps
         return (self.m_total_kg * G_MPS2 * (math.sin(a) + self.crr * math.cos(a))
-                + self.cw_kg_m * va * abs(va))
+                + 0.5 * self.cw_kg_m * va * abs(va))
 
     def _erg_speed_mps(self, w: float, dt_s: float) -> float:
         """ERG with ``erg_speed_from_power``: the virtual bike's speed from the rider's power on a

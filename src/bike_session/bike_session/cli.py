@@ -1012,7 +1012,7 @@ def build_parser() -> argparse.ArgumentParser:
     trn.add_argument("--crr", type=float, help="the road sent with a grade: rolling resistance "
                                                               "(default 0.004, as Zwift sends)")
     trn.add_argument("--cw", type=float, metavar="KG_PER_M",
-                     help="... air resistance 1/2 rho CdA in kg/m (default 0.51, as Zwift sends)")
+                     help="... wind resistance rho CdA in kg/m (default 0.51, as Zwift sends)")
     trn.add_argument("--wind", type=float, metavar="MPS", help="... head wind in m/s (default 0)")
     trn.add_argument("--difficulty", type=float, metavar="PCT",
                      help="send grades as Zwift does at this trainer difficulty: scaled by it, descents halved "

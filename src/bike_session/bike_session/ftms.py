@@ -56,10 +56,11 @@ message, except the simulation grade: apps send the road's grade as it comes, so
 beyond the bike's range is ridden at the range's end, and said (the message names both).
 The simulation's wind, Crr and Cw become the Command's road (bike_msgs/Command
 ``road_from_command``: the slope mode's road load uses them in place of the config's modes.crr,
-cda_m2 and wind_mps), said once per change; all three zero, as apps that send only the grade
-do, keeps the config's road, and that is said. Ops this bike does not do (target speed, wheel
-circumference, ...) get result 2 (not supported), and so does a heart-rate target on a bike
-without a heart rate (no rider: a prime mover or a dynamometer).
+cda_m2 and wind_mps; Cw is rho CdA, the drag 1/2 Cw v^2, as FTMS and FE-C have it), said
+once per change; all three zero, as apps that send only the grade do, keeps the config's road,
+and that is said. Ops this bike does not do (target speed, wheel circumference, ...) get
+result 2 (not supported), and so does a heart-rate target on a bike without a heart rate (no
+rider: a prime mover or a dynamometer).
 """
 from __future__ import annotations
 

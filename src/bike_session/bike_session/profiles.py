@@ -30,11 +30,12 @@ the children of ``intervals`` / ``repeat``; it stays in force until a later segm
 another (:meth:`Profile.gear_at`; 0 before any). It shapes slope mode's road load (virtual
 shifting, bike_controller.modes) and the virtual speed of every mode.
 
-Any segment may give ``road``: ``{crr: 0.004, cw_kg_m: 0.51, wind_mps: 3}`` (rolling resistance,
-air resistance 1/2 rho CdA in kg/m, head wind in m/s; all three) or ``config`` (the config's
-``modes`` road again), inherited and kept in force like ``gear`` (:meth:`Profile.road_at`; the
-config's before any). It shapes slope mode's road load (and ERG's flat road with
-``modes.erg_speed_from_power``); ``./bike replay`` writes the road a training app gave.
+Any segment may give ``road``: ``{crr: 0.004, cw_kg_m: 0.51, wind_mps: 3}`` (rolling resistance;
+wind resistance rho CdA in kg/m as FTMS and FE-C give it, the drag 1/2 Cw v^2; head wind in m/s;
+all three) or ``config`` (the config's ``modes`` road again), inherited and kept in force like
+``gear`` (:meth:`Profile.road_at`; the config's before any). It shapes slope mode's road load
+(and ERG's flat road with ``modes.erg_speed_from_power``); ``./bike replay`` writes the road a
+training app gave.
 
 Any segment may give ``cadence``: the rider's cadence target in rpm (10 .. 250; 0: none, the
 rider's own), for that segment only (the children of ``intervals`` / ``repeat`` inherit it), as a
