@@ -334,6 +334,38 @@ def test_run_rides_the_configs_ftp_and_max_heart_rate_when_the_options_are_not_g
     assert "session.ftp_w; ./bike run --ftp W" in capsys.readouterr().err
 
 
+def test_run_rides_the_configs_session_workout(tmp_path):
+    """A config's session.workout is ridden instead of session.profile (the session node's rule), but
+    ./bike run passed the launch file's workout "" over it: the config's profile was ridden without a
+    word. Now ./bike run reads it, resolved like session.profile against the config's folder (a --set
+    copy of the config written elsewhere included): a bad one is one error naming it, nothing starts."""
+    import subprocess
+
+    import yaml
+    from bike_plant.config import load_config
+    from bike_session import cli
+    doc = yaml.safe_load((ROOT / "config" / "bldc_default.yaml").read_text())
+    params = doc["/**"]["ros__parameters"]
+    params["session"].update(profile=str(ROOT / "config" / "profiles" / "demo_intervals.yaml"),
+                             workout="w/bad.zwo")
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "bad.zwo").write_text(zwo('<SteadyState Duration="60" Power="0.5"/>'))
+    config = tmp_path / "rider.yaml"
+    config.write_text(yaml.safe_dump(doc))
+    assert cli._config_workout(load_config(config), config) == str(tmp_path / "w" / "bad.zwo")
+    for extra in ([], ["--set", "session.period_s=0.1"]):          # the config, and a --set copy of it
+        run = subprocess.run([str(ROOT / "bike"), "run", "--config", str(config), "--duration", "0.5", *extra],
+                             capture_output=True, text=True, timeout=120)
+        errors = [line for line in run.stderr.splitlines() if line.strip()]
+        assert run.returncode == 2 and len(errors) == 1, (run.returncode, run.stdout[-2000:], run.stderr[-2000:])
+        assert errors[0].startswith(f"error: {tmp_path / 'w' / 'bad.zwo'}: ") and "session.ftp_w" in errors[0]
+    params["session"]["ftp_w"] = 200.0
+    config.write_text(yaml.safe_dump(doc))
+    opts = cli.build_parser().parse_args(["run", "--config", str(config)])
+    opts.workout = cli._config_workout(load_config(config), config)
+    assert cli._load_workout_for_run(opts, load_config(config)).segments[0].target_start_w == pytest.approx(100.0)
+
+
 @pytest.mark.parametrize("file_name, name", [("C:\\Users\\me\\Workouts\\Sweet Spot.erg", "Sweet Spot"),
                                              ("workouts/Baxter.ERG", "Baxter"), ("Over-unders 2.5", "Over-unders 2.5"),
                                              ("Tempo 3x12.mrc", "Tempo 3x12"), ("", "n")])

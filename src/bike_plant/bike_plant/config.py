@@ -118,7 +118,7 @@ def resolve_config_path(value: str, config_path: str | os.PathLike | None) -> pa
 
 # parameters naming a file relative to the config's folder: a copy of the config written
 # elsewhere (./bike run --set, replay, bench, the CAN latency rig) makes them absolute
-RELATIVE_FILE_KEYS = (("session", "profile"), ("can", "torque_map_file"))
+RELATIVE_FILE_KEYS = (("session", "profile"), ("session", "workout"), ("can", "torque_map_file"))
 
 
 def absolute_file_paths(params: dict, base_dir: str | os.PathLike) -> dict:

@@ -132,6 +132,8 @@ def _cmd_run(opts) -> int:
         config, cfg = changed
     workout = None
     ftms_on = getattr(opts, "ftms", False)
+    if not opts.workout:
+        opts.workout = _config_workout(cfg, config)
     if ftms_on and not opts.workout:
         opts.workout = str(repo_root() / "config" / "profiles" / "app_ride.yaml")
     if ftms_on and not 0 <= opts.ftms_port <= 65535:
@@ -594,6 +596,18 @@ def _config_profile_ok(cfg: dict, config: pathlib.Path, source_config: pathlib.P
         print(f"error: {where}session.profile: {exc}", file=sys.stderr)
         return False
     return True
+
+
+def _config_workout(cfg: dict, config: pathlib.Path) -> str | None:
+    """The config's session.workout (ridden instead of session.profile, as the session node
+    does), resolved like session.profile against the config's folder; None when not set. The
+    launch file's workout argument ("" without --workout) replaced it: the config's workout
+    was never ridden, the profile was, without a word."""
+    from bike_plant.config import resolve_config_path
+
+    session = cfg.get("session") if isinstance(cfg.get("session"), dict) else {}
+    value = session.get("workout")
+    return str(resolve_config_path(value, config)) if isinstance(value, str) and value.strip() else None
 
 
 def _rider_figures(opts, cfg) -> tuple[float | None, float | None]:

@@ -5,7 +5,7 @@ Node name ``session`` (namespace ``/bike`` by default). Parameters:
 - ``session.profile`` (string): profile YAML; a relative path resolves against the
   directory of ``config_path`` when that is set, else against the working directory.
 - ``session.workout`` (string, ""): a workout file (.zwo, .erg, .mrc, .fit or a profile .yaml)
-  ridden instead of ``session.profile`` when set (bike_session.workouts); power targets
+  ridden instead of ``session.profile`` when set, resolved like it (bike_session.workouts); power targets
   ride in ERG mode. ``session.ftp_w`` (0 = the file's own FTP) is the rider's FTP,
   ``session.max_hr_bpm`` (0 = not given) his maximum heart rate (a FIT heart-rate target in
   percent of it) and ``session.over_range`` (warn | error) what to do with targets beyond the
@@ -227,7 +227,8 @@ def _make_node_class():
             config_path = p["config_path"]
             cfg = _bike_config(config_path)
             if p["session.workout"]:
-                profile_path = pathlib.Path(os.path.expanduser(p["session.workout"])).resolve()
+                # like session.profile: against the config's folder (./bike run gives it absolute)
+                profile_path = resolve_profile_path(p["session.workout"], config_path).resolve()
                 self.profile = self._load_workout(profile_path, config_path, p, _units(cfg))
             else:
                 profile_path = resolve_profile_path(p["session.profile"], config_path)
