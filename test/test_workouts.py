@@ -366,6 +366,20 @@ def test_run_rides_the_configs_session_workout(tmp_path):
     assert cli._load_workout_for_run(opts, load_config(config)).segments[0].target_start_w == pytest.approx(100.0)
 
 
+@pytest.mark.parametrize("setting, words", [("session.ftp_w=-5", "session.ftp_w: must be in [0, 2000] W"),
+                                             ("session.max_hr_bpm=400", "session.max_hr_bpm: must be in [0, 250] bpm")])
+def test_a_configs_bad_rider_figure_is_one_error_naming_its_key(tmp_path, setting, words):
+    """Now that ./bike run rides the config's FTP and maximum heart rate, a bad one is refused by the
+    config check, naming the key, not by the workout reader as its parameter ftp_w / max_hr_bpm."""
+    import subprocess
+    path = write(tmp_path, zwo('<SteadyState Duration="60" Power="0.5"/>'), "a.zwo")
+    run = subprocess.run([str(ROOT / "bike"), "run", "--workout", str(path), "--set", setting, "--duration", "0.5"],
+                         capture_output=True, text=True, timeout=120)
+    errors = [line for line in run.stderr.splitlines() if line.strip()]
+    assert run.returncode == 2 and len(errors) == 1, (run.returncode, run.stdout[-2000:], run.stderr[-2000:])
+    assert words in errors[0] and "Traceback" not in run.stderr, errors
+
+
 @pytest.mark.parametrize("file_name, name", [("C:\\Users\\me\\Workouts\\Sweet Spot.erg", "Sweet Spot"),
                                              ("workouts/Baxter.ERG", "Baxter"), ("Over-unders 2.5", "Over-unders 2.5"),
                                              ("Tempo 3x12.mrc", "Tempo 3x12"), ("", "n")])

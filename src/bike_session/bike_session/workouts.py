@@ -134,7 +134,8 @@ SESSION_KEYS = ("profile", "period_s", "duration_s", "workout", "ftp_w", "max_hr
 def session_number_problem(name: str, value) -> str | None:
     """What is wrong with the session node's number parameter ``name`` (session.period_s,
     duration_s, session.duration_s, session.ftp_w, session.max_hr_bpm), None when it is good:
-    each a finite number, the period > 0 and the durations >= 0. The session node and ./bike
+    each a finite number, the period > 0, the durations >= 0, the FTP and maximum heart rate
+    0 (not given) up to what load_workout takes. The session node and ./bike
     run (before a node starts) check them with it."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         return f"must be a finite number, got {value!r}"
@@ -142,6 +143,10 @@ def session_number_problem(name: str, value) -> str | None:
         return f"must be > 0, got {value!r}"
     if name.endswith("duration_s") and value < 0:
         return f"must be >= 0 (0 = profile length), got {value!r}"
+    # the rider's figures ./bike run also reads from the config (0: not given; else load_workout's bounds)
+    upper = {"session.ftp_w": (MAX_FTP_W, "W"), "session.max_hr_bpm": (MAX_HR_BPM, "bpm")}.get(name)
+    if upper is not None and not 0 <= value <= upper[0]:
+        return f"must be in [0, {upper[0]:g}] {upper[1]} (0 = not given), got {value!r}"
     return None
 
 
