@@ -366,6 +366,23 @@ def test_run_rides_the_configs_session_workout(tmp_path):
     assert cli._load_workout_for_run(opts, load_config(config)).segments[0].target_start_w == pytest.approx(100.0)
 
 
+def test_a_replay_rides_the_recorded_commands_not_the_recorded_configs_workout(tmp_path, monkeypatch):
+    """A ride of a config's session.workout records that config; its replay writes the recorded
+    config with the replay's profile, and ./bike run, which rides a config's session.workout in place
+    of its profile, would have ridden the workout file again instead of the recorded Commands."""
+    import yaml
+    from bike_plant.config import load_config
+    from bike_session import cli, replay
+    recorded = yaml.safe_load((ROOT / "config" / "bldc_default.yaml").read_text())
+    recorded["/**"]["ros__parameters"]["session"]["workout"] = str(DATA / "over_unders.zwo")
+    info = {"duration_s": 1.0, "period_s": 0.1, "config_text": yaml.safe_dump(recorded)}
+    monkeypatch.setattr(replay, "command_timeline", lambda _bag: ([(0, 0.5, 0, 0.0, None)], info))
+    prep = replay.prepare(tmp_path / "session_x", tmp_path / "runs", None, "recorded")
+    cfg = load_config(prep["config"])
+    assert cfg["session"]["profile"] == str(prep["profile"].resolve())
+    assert cli._config_workout(cfg, prep["config"]) is None
+
+
 @pytest.mark.parametrize("setting, words", [("session.ftp_w=-5", "session.ftp_w: must be in [0, 2000] W"),
                                              ("session.max_hr_bpm=400", "session.max_hr_bpm: must be in [0, 250] bpm")])
 def test_a_configs_bad_rider_figure_is_one_error_naming_its_key(tmp_path, setting, words):

@@ -203,6 +203,9 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     profile = profile_from_timeline(timeline, duration_s, f"replay of {bag_path.name}")
     profile_path.write_text(yaml.safe_dump(profile, sort_keys=False))
     params["session"]["profile"] = str(profile_path.resolve())
+    # the recorded Commands are the ride: a workout the recorded config names (./bike run rides a
+    # config's session.workout in place of its profile) must not be ridden instead of them
+    params["session"].pop("workout", None)
     if "period_s" in info:
         params["session"]["period_s"] = float(info["period_s"])
     params["duration_s"] = duration_s
