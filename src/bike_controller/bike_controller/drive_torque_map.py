@@ -46,8 +46,17 @@ SHORTFALL_REL = 0.1
 TICK_S = 1.0e-3               # the emulator's tick: speed samples, and batches of the compiled kernel
 # default speed grid: the rider's cadence span (bike_plant rider 40-120 r/min, some margin) x the gear
 DEFAULT_CADENCE_RPM = (30.0, 125.0)
-DEFAULT_SPEED_STEPS = 7       # ~8 speeds over that span
+# ~140 steps (25 rpm on config/bldc_can.yaml): the BLDC's true / reported ratio is no smooth function
+# of speed; at a torque-dependent speed it steps by up to 3 % within 20 rpm (0.5 N m braking: 1.032 at
+# 2600 rpm, 1.002 at 2620), and a 500 rpm grid read a 2800 rpm ERG ride's brake 1-2 % high
+DEFAULT_SPEED_STEPS = 140
 DEFAULT_SETPOINT_STEPS = 10   # ~10 setpoints on each side of 0 up to the drive's torque clamp
+# finer near zero: there the hysteresis band is a large, fast-changing share of the current (braking at
+# 2800 rpm the ratio is 1.19 at 0.25 N m, 1.01 at 0.5); every FINE step of ~clamp / 40 (0.1 N m) from
+# 2 FINE steps up to clamp / 6 (0.6 N m). Not below 2 steps: there the drive may deliver nothing at
+# some speed (a setpoint within the band: a flat row, no inverse)
+FINE_SETPOINT_STEPS = 40
+FINE_SETPOINT_SHARE = 1.0 / 6.0
 # the setpoint grid reaches this x the shaft's torque clamp: the BLDC braking at Tmax needs 1.12 x
 # (true / reported 0.89 there); a grid that stops at the clamp leaves Tmax out of the map's reach
 SETPOINT_HEADROOM = 1.25
@@ -218,7 +227,7 @@ def nice_step(span: float, steps: int) -> float:
 
 def default_speeds_rpm(cfg: dict) -> list[float]:
     """Motor speeds over the rider's cadence span (DEFAULT_CADENCE_RPM x load.gear_ratio) on a
-    round step: config/bldc_can.yaml 1000..4500 every 500 rpm."""
+    round step (DEFAULT_SPEED_STEPS): config/bldc_can.yaml 1050..4375 every 25 rpm."""
     gear = _positive((cfg.get("load") or {}).get("gear_ratio")) or 1.0
     lo, hi = (c * gear for c in DEFAULT_CADENCE_RPM)
     step = nice_step(hi - lo, DEFAULT_SPEED_STEPS)
@@ -229,7 +238,8 @@ def default_speeds_rpm(cfg: dict) -> list[float]:
 
 def default_setpoints_nm(top_nm: float) -> list[float]:
     """Both signs up to the torque clamp on a round step, the clamp itself (to 3 decimals, down)
-    last: config/bldc_can.yaml -3.677, -3.5 .. 3.5, 3.677 every 0.25 N m."""
+    last, and a finer step near zero (FINE_SETPOINT_STEPS): config/bldc_can.yaml -3.677, -3.5 .. 3.5,
+    3.677 every 0.25 N m, and 0.2 .. 0.6 every 0.1 N m of either sign."""
     if not (math.isfinite(top_nm) and top_nm > 0):
         raise ValueError(f"the drive's torque clamp must be > 0 N m (controller.tmax_nm, can.torque_limit_nm, "
                          f"the current limit x kt), got {top_nm:g}: give --setpoints-nm")
@@ -238,6 +248,9 @@ def default_setpoints_nm(top_nm: float) -> list[float]:
     side = [round(k * step, 9) for k in range(1, int(math.floor(top / step + 1e-9)) + 1)]
     if top - (side[-1] if side else 0.0) > 0.2 * step:
         side.append(top)
+    fine = nice_step(top_nm, FINE_SETPOINT_STEPS)
+    side = sorted(set(side) | {round(k * fine, 9) for k in range(2, int(math.floor(FINE_SETPOINT_SHARE * top / fine
+                                                                                    + 1e-9)) + 1)})
     return sorted([-s for s in side] + [0.0] + side)
 
 
@@ -367,8 +380,9 @@ def describe_source(m: TorqueMapMeasurement, config_name) -> str:
             f"(kt {m.kt_nm_per_a:.5g} N m/A), true = the physics' mean T_em")
 
 
-def summary_table(m: TorqueMapMeasurement, columns: int = 8) -> str:
-    """Per speed, true / reported at a few setpoints (the largest and about 2/3, 1/3, 1/6 of it, both signs)."""
+def summary_table(m: TorqueMapMeasurement, columns: int = 8, rows: int = 15) -> str:
+    """Per speed (at most ``rows`` of them, evenly picked, the last always), true / reported at a few
+    setpoints (the largest and about 2/3, 1/3, 1/6 of it, both signs)."""
     top = float(np.max(np.abs(m.setpoint_nm)))
     picked = []
     for f in (-1.0, -2 / 3, -1 / 3, -1 / 6, 1 / 6, 1 / 3, 2 / 3, 1.0):
@@ -380,7 +394,12 @@ def summary_table(m: TorqueMapMeasurement, columns: int = 8) -> str:
     lines = [head]
     ratio = m.ratio
     pad = len("  speed rpm | true / reported at setpoint [N m]: ")
-    for i, speed in enumerate(m.speed_rpm):
+    every = max(1, math.ceil(m.speed_rpm.size / rows))
+    shown = sorted(set(range(0, m.speed_rpm.size, every)) | {m.speed_rpm.size - 1})
+    if every > 1:
+        lines[0] += f"  (every {every}th speed)"
+    for i in shown:
+        speed = m.speed_rpm[i]
         cells = " ".join(f"{ratio[i, j]:>7.4f}" for j in picked)
         lines.append(f"  {speed:>9g} |".ljust(pad) + cells)
     return "\n".join(lines)
