@@ -6,7 +6,8 @@
 ``bag``: a ride recorded with ``./bike run --config config/bldc_can.yaml ... --record DIR`` (the bag holds
 /bike/drive_truth). Per window (sim time, the first ``--skip-s`` left out: the ERG step's settling) the
 rider's true power (drive_truth's rider_energy_j over the physics time), the true brake power and the
-plant's (PlantState torque_em_nm x speed: the map's shaft torque), and the torques: the plant's mean,
+plant's (PlantState torque_em_nm x speed: the map's shaft torque), and the torques: the asked (the
+DriveCommands' shaft torque, before the map's inverse), the plant's mean,
 the truth's mean T_em, the drive's mean kt Iq, and the map applied to those kt Iq samples at their speed
 and to their mean (the two agree when the ride's torque / speed ripple does not matter). The torques are
 means of 10 ms samples of ~1 ms means (~0.3 % noise at 450 W: the commutation ripple); the powers are
@@ -37,26 +38,31 @@ def _stamp_s(msg) -> float:
     return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
 
-def read_bag(path) -> tuple[dict, dict]:
-    """(plant, truth): arrays of the PlantStates (sim time of the batch, torque, speed) and of the
-    DriveTruth samples (their /clock stamp and the physics' figures)."""
+def read_bag(path) -> tuple[dict, dict, dict]:
+    """(plant, truth, asked): arrays of the PlantStates (sim time of the batch, torque, speed), of the
+    DriveTruth samples (their /clock stamp and the physics' figures) and of the DriveCommands (the
+    shaft torque the controller asked)."""
     plant = {k: [] for k in ("t", "torque_nm", "speed_rad_s")}
+    asked = {k: [] for k in ("t", "torque_nm")}
     truth = {k: [] for k in ("t", "physics_s", "true_nm", "est_nm", "rpm", "rider_j", "shaft_j")}
     with open_bag(path) as bag:
-        for topic, _, m in bag.messages(["plant_state", "drive_truth"]):
-            if topic.endswith("plant_state"):
+        for topic, _, m in bag.messages(["plant_state", "drive_truth", "drive_command"]):
+            if topic.endswith("drive_command"):
+                asked["t"].append(_stamp_s(m))
+                asked["torque_nm"].append(m.torque_cmd_nm)
+            elif topic.endswith("plant_state"):
                 for k, v in zip(plant, (_stamp_s(m), m.torque_em_nm, m.speed_rad_s)):
                     plant[k].append(v)
             else:
                 for k, v in zip(truth, (_stamp_s(m), m.physics_time_s, m.shaft_torque_nm, m.torque_estimate_nm,
                                         m.speed_rpm, m.rider_energy_j, m.shaft_energy_j)):
                     truth[k].append(v)
-    return ({k: np.asarray(v) for k, v in plant.items()}, {k: np.asarray(v) for k, v in truth.items()})
+    return tuple({k: np.asarray(v) for k, v in d.items()} for d in (plant, truth, asked))
 
 
 def bag_windows(path, windows, skip_s: float, targets, map_path) -> None:
     tmap = load_torque_map(map_path)
-    plant, truth = read_bag(path)
+    plant, truth, asked = read_bag(path)
     for k, (start, end) in enumerate(windows):
         a, b = start + skip_s, end
         p = (plant["t"] >= a) & (plant["t"] < b)
@@ -68,6 +74,7 @@ def bag_windows(path, windows, skip_s: float, targets, map_path) -> None:
         rider_w = (truth["rider_j"][j - 1] - truth["rider_j"][i]) / phys_s
         brake_true_w = -(truth["shaft_j"][j - 1] - truth["shaft_j"][i]) / phys_s
         brake_plant_w = float(np.mean(-plant["torque_nm"][p] * plant["speed_rad_s"][p]))
+        asked_nm = float(np.mean(asked["torque_nm"][(asked["t"] >= a) & (asked["t"] < b)]))
         s = slice(i + 1, j)       # a sample's T_em and kt Iq are of the physics batch before it
         est, rpm = truth["est_nm"][s], truth["rpm"][s]
         mapped = np.mean([tmap.true_nm_at(r, e) for r, e in zip(rpm, est)])
@@ -75,8 +82,9 @@ def bag_windows(path, windows, skip_s: float, targets, map_path) -> None:
         print(f"{a:g}-{b:g} s: rider's true power {rider_w:.2f} W{target}; brake true {brake_true_w:.2f} W, "
               f"plant's {brake_plant_w:.2f} W ({100.0 * (brake_plant_w / brake_true_w - 1.0):+.2f} %); "
               f"{np.mean(rpm):.0f} rpm (sd {np.std(rpm):.0f})")
-        print(f"    torque [N m]: plant {np.mean(plant['torque_nm'][p]):+.4f}, "
-              f"true {np.mean(truth['true_nm'][s]):+.4f}, "
+        true_nm = float(np.mean(truth["true_nm"][s]))
+        print(f"    torque [N m]: asked {asked_nm:+.4f} (true {100.0 * (true_nm / asked_nm - 1.0):+.2f} %), "
+              f"plant {np.mean(plant['torque_nm'][p]):+.4f}, true {true_nm:+.4f}, "
               f"kt Iq {np.mean(est):+.4f} (sd {np.std(est):.3f}); map of the samples {mapped:+.4f}, of their mean "
               f"{tmap.true_nm_at(float(np.mean(rpm)), float(np.mean(est))):+.4f}")
 
