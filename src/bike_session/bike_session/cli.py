@@ -1050,7 +1050,7 @@ def build_parser() -> argparse.ArgumentParser:
     tqm.add_argument("--out", required=True, type=path_arg, help="map file to write (YAML)")
     tqm.add_argument("--speeds-rpm", nargs="+", metavar="RPM",
                      help="motor speeds: numbers, comma lists or START:STOP:STEP (default: the rider's cadence "
-                          "span x the gear, e.g. 1000..4500 every 500)")
+                          "span x the gear on a fine step, e.g. 1050..4375 every 25)")
     tqm.add_argument("--setpoints-nm", nargs="+", metavar="NM",
                      help="torque setpoints, 0 added (default: both signs up to the torque clamp, ~10 a side); "
                           "a range starting with '-' as --setpoints-nm=-3:3:0.5")
