@@ -105,8 +105,8 @@ def test_default_grids_of_the_can_bike_cover_the_riders_cadences_and_the_torque_
     assert DTM.setpoint_top_nm(cfg, 0.05204, 120.0) == pytest.approx(60.0 * 0.05204)  # the drive's current limit
     setpoints = DTM.default_setpoints_nm(clamp)
     assert setpoints[0] == -3.677 and setpoints[-1] == 3.677 and 0.0 in setpoints and 0.25 in setpoints
-    # finer near zero (0.2 .. 0.6 every 0.1 N m), where the hysteresis band's share changes fast
-    assert [t for t in setpoints if -0.7 < t < 0] == [-0.6, -0.5, -0.4, -0.3, -0.25, -0.2]
+    # finer near zero (0.2 .. 0.6 every 0.05 N m), where the hysteresis band's share changes fast
+    assert [t for t in setpoints if -0.7 < t < 0] == pytest.approx([-0.6 + 0.05 * k for k in range(9)])
 
 
 def test_the_bldc_ratio_steps_with_speed_within_a_few_tens_of_rpm():

@@ -1,7 +1,7 @@
 """The drive's torque map against the emulated drive's truth: where does a CAN ride's power go wrong?
 
     python tools/torque_map_truth.py bag BAG [--windows 0:10,10:20,20:30] [--skip-s 4] [--targets 150,300,450]
-    python tools/torque_map_truth.py scan [--map FILE] [--speeds-rpm 2500:3000:20] [--setpoints-nm -1.5,-1,-0.47]
+    python tools/torque_map_truth.py scan [--map FILE] [--speeds-rpm 2500:3000:20] [--setpoints-nm=-1.5,-1,-0.47]
 
 ``bag``: a ride recorded with ``./bike run --config config/bldc_can.yaml ... --record DIR`` (the bag holds
 /bike/drive_truth). Per window (sim time, the first ``--skip-s`` left out: the ERG step's settling) the

@@ -52,10 +52,12 @@ DEFAULT_CADENCE_RPM = (30.0, 125.0)
 DEFAULT_SPEED_STEPS = 140
 DEFAULT_SETPOINT_STEPS = 10   # ~10 setpoints on each side of 0 up to the drive's torque clamp
 # finer near zero: there the hysteresis band is a large, fast-changing share of the current (braking at
-# 2800 rpm the ratio is 1.19 at 0.25 N m, 1.01 at 0.5); every FINE step of ~clamp / 40 (0.1 N m) from
-# 2 FINE steps up to clamp / 6 (0.6 N m). Not below 2 steps: there the drive may deliver nothing at
-# some speed (a setpoint within the band: a flat row, no inverse)
-FINE_SETPOINT_STEPS = 40
+# 2800 rpm the ratio is 1.19 at 0.25 N m, 1.01 at 0.5; a straight line from 0.4 to 0.5 N m is 0.4 % off
+# at 0.47); every FINE step of ~clamp / 80 (0.05 N m) from FINE_FIRST steps (0.2 N m) up to clamp / 6
+# (0.6 N m). Not closer to zero: the drive delivers nothing below ~0.08 N m (a setpoint within the
+# band), a flat row without an inverse
+FINE_SETPOINT_STEPS = 80
+FINE_FIRST = 4
 FINE_SETPOINT_SHARE = 1.0 / 6.0
 # the setpoint grid reaches this x the shaft's torque clamp: the BLDC braking at Tmax needs 1.12 x
 # (true / reported 0.89 there); a grid that stops at the clamp leaves Tmax out of the map's reach
@@ -239,7 +241,7 @@ def default_speeds_rpm(cfg: dict) -> list[float]:
 def default_setpoints_nm(top_nm: float) -> list[float]:
     """Both signs up to the torque clamp on a round step, the clamp itself (to 3 decimals, down)
     last, and a finer step near zero (FINE_SETPOINT_STEPS): config/bldc_can.yaml -3.677, -3.5 .. 3.5,
-    3.677 every 0.25 N m, and 0.2 .. 0.6 every 0.1 N m of either sign."""
+    3.677 every 0.25 N m, and 0.2 .. 0.6 every 0.05 N m of either sign."""
     if not (math.isfinite(top_nm) and top_nm > 0):
         raise ValueError(f"the drive's torque clamp must be > 0 N m (controller.tmax_nm, can.torque_limit_nm, "
                          f"the current limit x kt), got {top_nm:g}: give --setpoints-nm")
@@ -249,8 +251,8 @@ def default_setpoints_nm(top_nm: float) -> list[float]:
     if top - (side[-1] if side else 0.0) > 0.2 * step:
         side.append(top)
     fine = nice_step(top_nm, FINE_SETPOINT_STEPS)
-    side = sorted(set(side) | {round(k * fine, 9) for k in range(2, int(math.floor(FINE_SETPOINT_SHARE * top / fine
-                                                                                    + 1e-9)) + 1)})
+    last = int(math.floor(FINE_SETPOINT_SHARE * top / fine + 1e-9))
+    side = sorted(set(side) | {round(k * fine, 9) for k in range(FINE_FIRST, last + 1)})
     return sorted([-s for s in side] + [0.0] + side)
 
 
