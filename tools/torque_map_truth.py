@@ -5,7 +5,8 @@
 
 ``bag``: a ride recorded with ``./bike run --config config/bldc_can.yaml ... --record DIR`` (the bag holds
 /bike/drive_truth). Per window (sim time, the first ``--skip-s`` left out: the ERG step's settling) the
-rider's true power (drive_truth's rider_energy_j over the physics time), the true brake power and the
+rider's true power (drive_truth's rider_energy_j over the physics time, a pause left out as the report
+does), the true brake power and the
 plant's (PlantState torque_em_nm x speed: the map's shaft torque), and the torques: the asked (the
 DriveCommands' shaft torque, before the map's inverse), the plant's mean,
 the truth's mean T_em, the drive's mean kt Iq, and the map applied to those kt Iq samples at their speed
@@ -32,6 +33,7 @@ from bike_session.bags import open_bag
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 MAP = ROOT / "config" / "bldc_can_torque_map.yaml"
+PAUSE_S = 0.1        # the report's (bike_session.report power_accuracy): physics this much ahead of sim time
 
 
 def _stamp_s(msg) -> float:
@@ -60,6 +62,20 @@ def read_bag(path) -> tuple[dict, dict, dict]:
     return tuple({k: np.asarray(v) for k, v in d.items()} for d in (plant, truth, asked))
 
 
+def _true_powers(truth: dict, i: int, j: int) -> tuple[float, float, float]:
+    """(rider's, brake's) true mean power over samples i..j-1 and the physics time left out: as the
+    report counts it, each pair of samples' mean power over their physics time weighted by the sim time
+    between their stamps, a pair whose physics ran PAUSE_S longer than sim time left out (a stalled
+    plant, the drive holding its setpoint or released: no part of the ride's power)."""
+    d_sim = np.diff(truth["t"][i:j])
+    d_phys = np.diff(truth["physics_s"][i:j])
+    ok = (d_sim > 0) & (d_phys > 0) & (d_phys < d_sim + PAUSE_S)
+    rider = np.diff(truth["rider_j"][i:j])[ok] / d_phys[ok] * d_sim[ok]
+    brake = -np.diff(truth["shaft_j"][i:j])[ok] / d_phys[ok] * d_sim[ok]
+    span = float(np.sum(d_sim[ok]))
+    return float(np.sum(rider)) / span, float(np.sum(brake)) / span, float(np.sum(d_phys[~ok]))
+
+
 def bag_windows(path, windows, skip_s: float, targets, map_path) -> None:
     tmap = load_torque_map(map_path)
     plant, truth, asked = read_bag(path)
@@ -70,18 +86,19 @@ def bag_windows(path, windows, skip_s: float, targets, map_path) -> None:
         if not p.any() or j - i < 2:
             print(f"{start:g}-{end:g} s: no data")
             continue
-        phys_s = truth["physics_s"][j - 1] - truth["physics_s"][i]
-        rider_w = (truth["rider_j"][j - 1] - truth["rider_j"][i]) / phys_s
-        brake_true_w = -(truth["shaft_j"][j - 1] - truth["shaft_j"][i]) / phys_s
+        rider_w, brake_true_w, paused_s = _true_powers(truth, i, j)
+        span_w = (truth["rider_j"][j - 1] - truth["rider_j"][i]) / (truth["physics_s"][j - 1] - truth["physics_s"][i])
         brake_plant_w = float(np.mean(-plant["torque_nm"][p] * plant["speed_rad_s"][p]))
         asked_nm = float(np.mean(asked["torque_nm"][(asked["t"] >= a) & (asked["t"] < b)]))
         s = slice(i + 1, j)       # a sample's T_em and kt Iq are of the physics batch before it
         est, rpm = truth["est_nm"][s], truth["rpm"][s]
         mapped = np.mean([tmap.true_nm_at(r, e) for r, e in zip(rpm, est)])
-        target = f" target {targets[k]:g} W: {100.0 * (rider_w / targets[k] - 1.0):+.2f} %" if k < len(targets) else ""
+        target = (f" target {targets[k]:g} W: {100.0 * (rider_w / targets[k] - 1.0):+.2f} % (over the whole "
+                  f"physics span {100.0 * (span_w / targets[k] - 1.0):+.2f} %)" if k < len(targets) else "")
         print(f"{a:g}-{b:g} s: rider's true power {rider_w:.2f} W{target}; brake true {brake_true_w:.2f} W, "
               f"plant's {brake_plant_w:.2f} W ({100.0 * (brake_plant_w / brake_true_w - 1.0):+.2f} %); "
-              f"{np.mean(rpm):.0f} rpm (sd {np.std(rpm):.0f})")
+              f"{np.mean(rpm):.0f} rpm (sd {np.std(rpm):.0f})"
+              + (f"; {paused_s:.2f} s paused, left out" if paused_s else ""))
         true_nm = float(np.mean(truth["true_nm"][s]))
         print(f"    torque [N m]: asked {asked_nm:+.4f} (true {100.0 * (true_nm / asked_nm - 1.0):+.2f} %), "
               f"plant {np.mean(plant['torque_nm'][p]):+.4f}, true {true_nm:+.4f}, "
