@@ -48,7 +48,9 @@ TICK_S = 1.0e-3               # the emulator's tick: speed samples, and batches 
 DEFAULT_CADENCE_RPM = (30.0, 125.0)
 # ~140 steps (25 rpm on config/bldc_can.yaml): the BLDC's true / reported ratio is no smooth function
 # of speed; at a torque-dependent speed it steps by up to 3 % within 20 rpm (0.5 N m braking: 1.032 at
-# 2600 rpm, 1.002 at 2620), and a 500 rpm grid read a 2800 rpm ERG ride's brake 1-2 % high
+# 2600 rpm, 1.002 at 2620), and a 500 rpm grid read a 2800 rpm ERG ride's brake 1-2 % high. The step
+# sits at a number of 50 us control periods per commutation sector (with 45 us it moves x 50/45): the
+# one-edge-per-period current law's pattern, not measurement noise
 DEFAULT_SPEED_STEPS = 140
 DEFAULT_SETPOINT_STEPS = 10   # ~10 setpoints on each side of 0 up to the drive's torque clamp
 # finer near zero: there the hysteresis band is a large, fast-changing share of the current (braking at
