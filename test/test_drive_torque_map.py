@@ -4,6 +4,7 @@ correction of its Eq. 7 factor k), the prime mover holds the speed, setpoint 0 g
 and the CLI's file reads back as measured."""
 from __future__ import annotations
 
+import copy
 import pathlib
 import subprocess
 import sys
@@ -116,6 +117,22 @@ def test_the_bldc_ratio_steps_with_speed_within_a_few_tens_of_rpm():
     m = DTM.measure_grid(load_config(BLDC_CAN), [2600.0, 2640.0], [-0.5])
     ratio = m.true_nm[:, 0] / m.reported_nm[:, 0]      # setpoints -0.5 and the 0 added
     assert ratio[0] - ratio[1] > 0.015
+
+
+def test_the_ratio_steps_at_a_number_of_control_periods_per_commutation_sector():
+    # the README's cause: the one-edge-per-period current law. A 45 us period moves the step at
+    # 2600-2610 rpm by 50/45 (to ~2890 rpm); at 2890 rpm the 50 us law has no step
+    cfg = load_config(BLDC_CAN)
+    fast = copy.deepcopy(cfg)
+    fast["control_period_s"] = 4.5e-5
+
+    def step(config, lo_rpm):
+        m = DTM.measure_grid(config, [lo_rpm, lo_rpm + 20.0], [-0.5])
+        r = m.true_nm[:, 0] / m.reported_nm[:, 0]
+        return float(r[0] - r[1])
+
+    assert step(cfg, 2595.0) > 0.015 and step(fast, 2595.0 * 50.0 / 45.0) > 0.015
+    assert abs(step(cfg, 2595.0 * 50.0 / 45.0)) < 0.01
 
 
 def test_the_shipped_map_holds_between_its_rows_where_the_ratio_steps():
