@@ -401,7 +401,7 @@ def summary_table(m: TorqueMapMeasurement, columns: int = 8, rows: int = 15) -> 
     every = max(1, math.ceil(m.speed_rpm.size / rows))
     shown = sorted(set(range(0, m.speed_rpm.size, every)) | {m.speed_rpm.size - 1})
     if every > 1:
-        lines[0] += f"  (every {every}th speed)"
+        lines[0] += f"  (one speed in {every})"
     for i in shown:
         speed = m.speed_rpm[i]
         cells = " ".join(f"{ratio[i, j]:>7.4f}" for j in picked)
