@@ -38,6 +38,8 @@ def test_flatten_roundtrip():
     ("/**:\n  x: 1\n", "'ros__parameters' mapping"),
     ("plant:\n  ros__parameters: {}\n", "no '/\\*\\*: ros__parameters:' section"),
     ("!!python/object/apply:os.system ['true']", "not valid YAML"),
+    # PyYAML's constructors recurse per level: a RecursionError traceback before
+    ("/**:\n  ros__parameters:\n    a: " + "[" * 2000 + "]" * 2000 + "\n", "nested too deeply"),
 ])
 def test_malformed_config_names_the_file_and_problem(tmp_path, text, message):
     path = tmp_path / "bad.yaml"

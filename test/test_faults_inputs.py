@@ -856,3 +856,20 @@ def test_fast_dds_profile_is_selected_and_parses():
     res = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(path)),
                          capture_output=True, text=True, timeout=60)
     assert "made" in res.stdout and "XML" not in res.stdout + res.stderr, res.stdout + res.stderr
+
+
+def test_a_bags_recorded_config_nested_too_deeply_is_one_error(tmp_path, monkeypatch, capsys):
+    """A bag's session_info carries the config as text: nested 2000 levels deep, PyYAML's
+    constructors ran out of recursion and the report and the replay ended in a traceback. Now
+    one error each: the report's config figures say why, the replay exits 2 with one line."""
+    from bike_session import replay
+    from bike_session.report import config_params
+
+    deep = "/**:\n  ros__parameters:\n    a: " + "[" * 2000 + "]" * 2000 + "\n"
+    with pytest.raises(ValueError, match="^config_text is nested too deeply$"):
+        config_params(deep)
+    info = {"duration_s": 1.0, "period_s": 0.1, "config_text": deep}
+    monkeypatch.setattr(replay, "command_timeline", lambda _bag: ([(0, 0.5, 0, 0.0, None)], info))
+    code = replay.main([str(tmp_path / "session_x"), "--record", str(tmp_path / "runs")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "the recorded config is nested too deeply" in err[0], err

@@ -62,6 +62,7 @@ launch:
     ("launch:\n- node: {pkg: p, exec: e, if: maybe}", "condition must be true or false"),
     ("launch:\n- include: {file: x}", "unsupported entry 'include'"),
     ("launch: [", "not valid YAML"),
+    ("launch: " + "[" * 2000 + "]" * 2000, "nested too deeply"),
     ("launch:\n- node: {pkg: p, exec: e, name: '$(python 1+1)'}", "unsupported substitution"),
 ])
 def test_malformed_launch_files_give_one_clear_error(tmp_path, text, message):

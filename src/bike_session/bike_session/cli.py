@@ -353,7 +353,7 @@ def _set_run_config(sets: list[str], config: pathlib.Path):
     ros__parameters set to VALUE (read as YAML: numbers, true / false, lists, text). Returns
     (config path, loaded config) or None after one error."""
     import yaml
-    from bike_plant.config import ConfigError
+    from bike_plant.config import ConfigError, YamlFileError, parse_yaml_text
 
     try:
         doc = yaml.safe_load(config.read_text())
@@ -364,9 +364,9 @@ def _set_run_config(sets: list[str], config: pathlib.Path):
             if not eq or not all(part.strip() for part in parts):
                 raise ValueError(f"{item!r}: expected KEY=VALUE with a dotted KEY, e.g. modes.auto_shift=true")
             try:
-                value = yaml.safe_load(text)
-            except yaml.YAMLError:
-                raise ValueError(f"{item!r}: the value is not valid YAML") from None
+                value = parse_yaml_text(text)
+            except YamlFileError as exc:
+                raise ValueError(f"{item!r}: the value is {exc}") from None
             if value is None or isinstance(value, dict):
                 raise ValueError(f"{item!r}: give one value (a number, true / false, a list or text)")
             if isinstance(value, str):

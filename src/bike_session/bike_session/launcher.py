@@ -32,7 +32,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-import yaml
+from bike_plant.config import YamlFileError, parse_yaml_text
 
 _SUBST = re.compile(r"\$\(([a-z-]+)((?:\s+[^()\s]+)*)\s*\)")
 TRUE_WORDS = {"true", "1", "yes", "on"}
@@ -185,11 +185,13 @@ def parse_launch(path: str, overrides: dict[str, str] | None = None) -> list[Nod
     """Read a YAML launch file; return the nodes to start (conditions applied)."""
     try:
         with open(path) as stream:
-            doc = yaml.safe_load(stream)
+            doc = parse_yaml_text(stream.read())
     except OSError as exc:
         raise LaunchError(f"{path}: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise LaunchError(f"{path}: not valid YAML: {exc}") from None
+    except UnicodeDecodeError:
+        raise LaunchError(f"{path}: not a text file") from None
+    except YamlFileError as exc:
+        raise LaunchError(f"{path}: {exc}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("launch"), list):
         raise LaunchError(f"{path}: expected a top-level 'launch:' list")
     overrides = dict(overrides or {})

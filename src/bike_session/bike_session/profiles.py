@@ -71,6 +71,7 @@ import pathlib
 from typing import Any, Mapping
 
 import yaml
+from bike_plant.config import YamlFileError, parse_yaml_text
 from bike_plant.heart import heart_rate_target_problem
 from bike_plant.mechanics import rider_cadence_problem, road_problem, virtual_gear_problem
 
@@ -335,13 +336,9 @@ def parse_profile_text(text: str, source: str = "<profile>", default_name: str =
     if len(text.encode("utf-8", "surrogatepass")) > MAX_PROFILE_BYTES:
         raise ProfileError(f"profile too large (> {MAX_PROFILE_BYTES} bytes)", source)
     try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise ProfileError(f"not valid YAML{line}: {getattr(exc, 'problem', None) or exc}", source) from None
-    except RecursionError:
-        raise ProfileError("YAML nested too deeply", source) from None
+        doc = parse_yaml_text(text)
+    except YamlFileError as exc:
+        raise ProfileError(str(exc), source) from None
     profile = parse_profile(doc, source=source, default_name=default_name, units=units)
     profile.text = text
     return profile

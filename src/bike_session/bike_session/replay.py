@@ -23,6 +23,7 @@ import pathlib
 
 import yaml
 
+from bike_plant.config import YamlFileError, parse_yaml_text
 from bike_session.bags import BagError, open_bag
 from bike_session.profiles import MODE_NAMES as MODE_TO_NAME
 
@@ -119,9 +120,9 @@ def _recorded_config(info: dict, bag_path) -> dict:
     if not text:
         raise BagError("the bag has no recorded config (session_info.config_text); give --config", bag_path)
     try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError:
-        raise BagError("the recorded config is not valid YAML", bag_path) from None
+        doc = parse_yaml_text(text)
+    except YamlFileError as exc:
+        raise BagError(f"the recorded config is {exc}", bag_path) from None
     if not isinstance(doc, dict) or not isinstance((doc.get("/**") or {}).get("ros__parameters"), dict):
         raise BagError("the recorded config has no '/**: ros__parameters:' section", bag_path)
     return doc

@@ -173,14 +173,14 @@ MACHINE_KEYS = {
 def config_params(config_text: str | None) -> dict:
     """Flat ``{'controller.tmax_nm': 2.94, ...}`` of a ROS 2 parameter file's text (all
     ``ros__parameters`` sections merged, ``/**`` first). ValueError if it is not one."""
-    import yaml
+    from bike_plant.config import YamlFileError, parse_yaml_text
 
     if not config_text:
         return {}
     try:
-        doc = yaml.safe_load(config_text)
-    except yaml.YAMLError as exc:
-        raise ValueError(f"config_text is not valid YAML: {str(exc).splitlines()[0]}") from None
+        doc = parse_yaml_text(config_text)
+    except YamlFileError as exc:
+        raise ValueError(f"config_text is {exc}") from None
     if not isinstance(doc, dict):
         raise ValueError("config_text is not a ROS 2 parameter file")
     flat: dict = {}
