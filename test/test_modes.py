@@ -1274,6 +1274,33 @@ def test_erg_speed_from_power_is_the_flat_roads_and_does_not_follow_the_gear():
         mode_params_from_config({"modes": {"erg_speed_from_power": 1}})
 
 
+def test_erg_bike_starts_at_the_targets_speed_and_rolls_on_through_a_lost_drive():
+    """ERG's virtual bike (erg_speed_from_power) where the rider-torque observer has not yet
+    seen the rider (the law's first batch, or after a reset): it starts at the flat road's speed
+    of the ERG target, not of the bike's friction that the fresh observer reads (7.4 km/h for a
+    rider at 200 W, 34.4 km/h on the road); and a reset in ERG (a lost drive) keeps its speed.
+    A later switch into ERG from another mode starts afresh, at the rider's power then."""
+    p_w, cadence = 200.0, 80.0
+    w = cadence * GEAR / RPM_PER_RAD_S
+    m = law(erg_speed_from_power=True)
+    v_road = m._flat_speed_mps(p_w)
+    out = m.step(p_w / PMAX, MODE_ERG, cadence * GEAR, DT, measured_em_torque_nm=-(p_w / w))
+    assert out.virtual_speed_mps == pytest.approx(v_road, rel=1e-3)
+    for _ in range(2000):                            # 2 s: the rider at 200 W, the brake taking it
+        out = m.step(p_w / PMAX, MODE_ERG, cadence * GEAR, DT, measured_em_torque_nm=-(p_w / w))
+    v_before = out.virtual_speed_mps
+    m.reset(0.0)
+    m.last_mode = -1                                 # session_control after a lost drive
+    out = m.step(p_w / PMAX, MODE_ERG, cadence * GEAR, DT, measured_em_torque_nm=0.0)
+    assert out.virtual_speed_mps == pytest.approx(v_before, rel=1e-3)
+    # resistance, then ERG again: the rider's power then (the observer has run), not the old bike's
+    settle(m, 0.2, MODE_RESISTANCE, cadence * GEAR, n=200)
+    m.rider_torque_nm = 50.0 / w
+    m._observe = lambda *a: None                     # held: the rider's power at the switch is 50 W
+    out = m.step(p_w / PMAX, MODE_ERG, cadence * GEAR, DT)
+    assert out.virtual_speed_mps == pytest.approx(m._flat_speed_mps(50.0), rel=1e-3)
+
+
 def test_plant_erg_speed_from_power_rides_the_same_distance_in_any_gear():
     """The plant and its rider in ERG at 200 W for 8 s, in two virtual gears: with
     erg_speed_from_power the virtual bike (and so the distance) is the same within 2 %, the

@@ -321,6 +321,8 @@ class ModeLaw:
         self.hr_erg = HeartRateErg(mp.heart_params(), mp.hr_closed_loop_s, self.erg_power_max_w)
         self.heart_rate_target_bpm = 0.0      # the Command's (0: plain ERG)
         self.heart_rate_bpm = 0.0             # the rider's, measured with the batch's speed
+        self.erg_ke_j = 0.0                   # ERG with erg_speed_from_power: the virtual bike's kinetic energy
+        self.last_mode = None
         self.reset()
 
     def reset(self, torque_nm: float = 0.0) -> None:
@@ -328,6 +330,7 @@ class ModeLaw:
         self.offset_nm = 0.0                  # what is left of a mode switch's step
         self.integral_nm = 0.0
         self.integral_step_nm = 0.0           # what the last step added to integral_nm (hold_integral)
+        self.last_mode_before_reset = self.last_mode
         self.last_mode = None
         self.obs_w = None                     # observer: low-passed speed ...
         self.obs_tb = float(torque_nm)        # ... and low-passed applied braking torque
@@ -335,7 +338,10 @@ class ModeLaw:
         self.rider_power_avg_w = 0.0          # its power, averaged over RIDER_POWER_AVG_S
         self.erg_brake_limited = False        # the last ERG batch asked past the braking envelope
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
-        self.erg_ke_j = 0.0                   # ERG with erg_speed_from_power: the virtual bike's kinetic energy
+        self.observed_s = 0.0                 # the rider-torque observer's time since it started
+        # ERG with erg_speed_from_power: the virtual bike's kinetic energy is kept across a reset
+        # (a lost drive): it rolled on meanwhile, and rolls on when ERG comes back (_start_erg_bike)
+        self.erg_bike_rolling = self.last_mode_before_reset == MODE_ERG
         self.erg_ramp_w = None                # ERG smoothing: the power the brake takes now (None: the target)
         # (the heart-rate ERG keeps its power across a reset, e.g. a lost drive: the switch ramp
         # brings the torque back, the heart has not changed)
@@ -441,6 +447,7 @@ class ModeLaw:
         derivative as J (w - w_lp) / tau: no differentiation of the quantised estimate)."""
         if self.obs_w is None:
             self.obs_w = w
+        self.observed_s += dt_s
         tau = self.mp.observer_tau_s
         a = dt_s / (tau + dt_s)
         self.obs_w += a * (w - self.obs_w)
@@ -521,12 +528,24 @@ class ModeLaw:
         self.erg_ke_j = max(self.erg_ke_j + (p_rider_w - self.road_force_n(0.0, v) * v) * dt_s, 0.0)
         return math.sqrt(2.0 * self.erg_ke_j / self.m_total_kg)
 
-    def _start_erg_bike(self, w: float, from_slope: bool) -> None:
+    def _start_erg_bike(self, w: float, from_slope: bool, target_w: float) -> None:
         """ERG's virtual bike at the switch into ERG: the slope mode's virtual bike rolls on when
-        that came before, else it starts at the flat road's steady speed for the rider's power
-        then (not the gear's speed, which would put the gear into the distance for the ~20 s the
-        bike's mass takes to settle)."""
-        v0 = self.virtual_w * self.mps_per_rad_s if from_slope else self._flat_speed_mps(self.rider_torque_nm * w)
+        that came before, and ERG's own when a reset (a lost drive) interrupted ERG; else it
+        starts at the flat road's steady speed for the rider's power then (not the gear's speed,
+        which would put the gear into the distance for the ~20 s the bike's mass takes to
+        settle). Where the observer has not yet run 5 time constants (the law's first batches,
+        after a reset) it still reads the bike's friction, not the rider: the bike then starts
+        at the speed of the ERG target ``target_w``, the power the brake will hold him at. From
+        the observer's first batch, a session that started in ERG at 200 W rode off at 7.4 km/h
+        (34.4 km/h for 200 W), and a lost drive took ERG's bike from 34.4 to 7.4 km/h."""
+        if from_slope:
+            v0 = self.virtual_w * self.mps_per_rad_s
+        elif self.erg_bike_rolling:
+            return
+        elif self.observed_s < 5.0 * self.mp.observer_tau_s:
+            v0 = self._flat_speed_mps(target_w)
+        else:
+            v0 = self._flat_speed_mps(self.rider_torque_nm * w)
         self.erg_ke_j = 0.5 * self.m_total_kg * v0 * v0
 
     def _flat_speed_mps(self, p_w: float) -> float:
@@ -698,9 +717,10 @@ class ModeLaw:
                 self.integral_nm = 0.0              # the virtual bike starts at the real speed
                 self.virtual_w = w
             elif mode == MODE_ERG and self.mp.erg_speed_from_power:
-                self._start_erg_bike(w, from_slope=self.last_mode == MODE_SLOPE)
+                self._start_erg_bike(w, self.last_mode == MODE_SLOPE, command * self.erg_power_max_w)
             self.hr_erg.started = False           # a heart-rate ERG starts from this Command's power
             self.erg_ramp_w = None                # ERG smoothing starts at the target
+            self.erg_bike_rolling = False         # only the first mode after a reset may roll on
         if mode == MODE_SPINDOWN and (mode != self.last_mode or (command != self.spindown_command
                                                                 and not self.spindown.running)):
             self.spindown.start()
