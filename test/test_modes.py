@@ -1274,6 +1274,18 @@ def test_erg_speed_from_power_is_the_flat_roads_and_does_not_follow_the_gear():
         mode_params_from_config({"modes": {"erg_speed_from_power": 1}})
 
 
+def test_the_configs_road_is_held_to_the_bounds_of_a_commands_road():
+    """modes.crr / wind_mps / air_density_kg_m3 x cda_m2 take the bounds a profile's or an app's
+    road is held to (mechanics.road_problem): one error naming the key. A Crr of 0.5 (a
+    percentage taken for the fraction), which a profile's road refuses, was ridden from the config."""
+    for section, key in (({"crr": 0.5}, "crr 0.5 outside"), ({"wind_mps": -50.0}, "wind_mps -50.0 outside"),
+                         ({"cda_m2": 3.0}, "cda_m2 = 3.612 kg/m")):
+        with pytest.raises(ValueError, match=key):
+            mode_params_from_config({"modes": section})
+    mp = mode_params_from_config({"modes": {"crr": 0.05, "wind_mps": -40.0, "cda_m2": 2.4}})
+    assert (mp.crr, mp.wind_mps, mp.cda_m2) == (0.05, -40.0, 2.4)
+
+
 def test_erg_bike_starts_at_the_targets_speed_and_rolls_on_through_a_lost_drive():
     """ERG's virtual bike (erg_speed_from_power) where the rider-torque observer has not yet
     seen the rider (the law's first batch, or after a reset): it starts at the flat road's speed

@@ -101,7 +101,8 @@ import numpy as np
 
 from bike_plant.mechanics import VIRTUAL_GEAR_MAX, VIRTUAL_GEAR_MIN, virtual_gear_problem  # noqa: F401
 from bike_plant.heart import HeartParams, heart_rate_target_problem
-from bike_plant.mechanics import friction_torque_nm, road_problem
+from bike_plant.mechanics import (ROAD_CRR_MAX, ROAD_CW_MAX_KG_M, ROAD_WIND_MAX_MPS, friction_torque_nm,
+                                  road_problem)
 from bike_plant.params import RPM_PER_RAD_S, MechParams, friction_problem
 
 from .heart_erg import HeartRateErg
@@ -196,6 +197,17 @@ class ModeParams:
                 raise ValueError(problem)
         if not (isinstance(self.wind_mps, (int, float)) and math.isfinite(self.wind_mps)):
             raise ValueError(f"wind_mps must be a finite number, got {self.wind_mps!r}")
+        # the bounds of a road a Command or a profile may give (mechanics.road_problem: any real
+        # road): the config's road was ridden as given, Crr 0.5 that a profile's road refuses
+        # (a percentage taken for the fraction) or a wind in km/h
+        for name, value, lo, hi in (("crr", self.crr, 0.0, ROAD_CRR_MAX),
+                                    ("wind_mps", self.wind_mps, -ROAD_WIND_MAX_MPS, ROAD_WIND_MAX_MPS)):
+            if not lo <= value <= hi:
+                raise ValueError(f"{name} {value!r} outside [{lo:g}, {hi:g}] (a real road)")
+        cw_kg_m = self.air_density_kg_m3 * self.cda_m2
+        if cw_kg_m > ROAD_CW_MAX_KG_M:
+            raise ValueError(f"air_density_kg_m3 x cda_m2 = {cw_kg_m:g} kg/m (Cw = rho CdA) above "
+                             f"{ROAD_CW_MAX_KG_M:g} kg/m (a real road: 0.3-0.9)")
         if not (-1.0 <= self.grade_min < self.grade_max <= 1.0):
             raise ValueError(f"need -1 <= grade_min < grade_max <= 1, got {self.grade_min!r}, {self.grade_max!r}")
         if not self.isokinetic_cadence_min_rpm < self.isokinetic_cadence_max_rpm:
