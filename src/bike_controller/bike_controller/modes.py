@@ -348,6 +348,7 @@ class ModeLaw:
         self.obs_tb = float(torque_nm)        # ... and low-passed applied braking torque
         self.rider_torque_nm = 0.0            # observer output
         self.rider_power_avg_w = 0.0          # its power, averaged over RIDER_POWER_AVG_S
+        self.rider_power_weight = 0.0         # ... of which the observer's time makes up this much (-> 1)
         self.erg_brake_limited = False        # the last ERG batch asked past the braking envelope
         self.virtual_w = 0.0                  # virtual bike, motor-equivalent rad/s
         self.observed_s = 0.0                 # the rider-torque observer's time since it started
@@ -468,8 +469,9 @@ class ModeLaw:
                                 + self.friction_nm(self.obs_w))
         # his power over a few pedal strokes (the torque swings +-50 % within one): where a
         # heart-rate ERG without a power of its own starts
-        self.rider_power_avg_w += dt_s / (RIDER_POWER_AVG_S + dt_s) * (self.rider_torque_nm * w
-                                                                       - self.rider_power_avg_w)
+        a_avg = dt_s / (RIDER_POWER_AVG_S + dt_s)
+        self.rider_power_avg_w += a_avg * (self.rider_torque_nm * w - self.rider_power_avg_w)
+        self.rider_power_weight += a_avg * (1.0 - self.rider_power_weight)
 
     def set_friction(self, friction_nms: float, dry_friction_nm: float) -> None:
         """The bike's friction from now on (a spin-down's figures); ValueError: unchanged."""
@@ -540,24 +542,26 @@ class ModeLaw:
         self.erg_ke_j = max(self.erg_ke_j + (p_rider_w - self.road_force_n(0.0, v) * v) * dt_s, 0.0)
         return math.sqrt(2.0 * self.erg_ke_j / self.m_total_kg)
 
-    def _start_erg_bike(self, w: float, from_slope: bool, target_w: float) -> None:
+    def _start_erg_bike(self, from_slope: bool, target_w: float) -> None:
         """ERG's virtual bike at the switch into ERG: the slope mode's virtual bike rolls on when
         that came before, and ERG's own when a reset (a lost drive) interrupted ERG; else it
         starts at the flat road's steady speed for the rider's power then (not the gear's speed,
         which would put the gear into the distance for the ~20 s the bike's mass takes to
-        settle). Where the observer has not yet run 5 time constants (the law's first batches,
-        after a reset) it still reads the bike's friction, not the rider: the bike then starts
-        at the speed of the ERG target ``target_w``, the power the brake will hold him at. From
-        the observer's first batch, a session that started in ERG at 200 W rode off at 7.4 km/h
-        (34.4 km/h for 200 W), and a lost drive took ERG's bike from 34.4 to 7.4 km/h."""
+        settle), his mean over the last RIDER_POWER_AVG_S (the EMA's start-up weight divided
+        out), a few pedal strokes. The stroke's instant swings +-50 %: from it, the plant's
+        rider at 170-182 W (33 km/h) started the bike at 24.5-37.3 km/h, as the switch fell in
+        the stroke. Where the observer has not seen RIDER_POWER_AVG_S yet (a ride's start, after
+        a reset) the bike starts at the speed of the ERG target ``target_w``, the power the brake
+        will hold him at: from the fresh observer's friction, a ride that started in ERG at 200 W
+        rode off at 7.4 km/h (34.4 km/h for 200 W), and a lost drive took ERG's bike there."""
         if from_slope:
             v0 = self.virtual_w * self.mps_per_rad_s
         elif self.erg_bike_rolling:
             return
-        elif self.observed_s < 5.0 * self.mp.observer_tau_s:
+        elif self.observed_s < RIDER_POWER_AVG_S:
             v0 = self._flat_speed_mps(target_w)
         else:
-            v0 = self._flat_speed_mps(self.rider_torque_nm * w)
+            v0 = self._flat_speed_mps(self.rider_power_avg_w / self.rider_power_weight)
         self.erg_ke_j = 0.5 * self.m_total_kg * v0 * v0
 
     def _flat_speed_mps(self, p_w: float) -> float:
@@ -729,7 +733,7 @@ class ModeLaw:
                 self.integral_nm = 0.0              # the virtual bike starts at the real speed
                 self.virtual_w = w
             elif mode == MODE_ERG and self.mp.erg_speed_from_power:
-                self._start_erg_bike(w, self.last_mode == MODE_SLOPE, command * self.erg_power_max_w)
+                self._start_erg_bike(self.last_mode == MODE_SLOPE, command * self.erg_power_max_w)
             self.hr_erg.started = False           # a heart-rate ERG starts from this Command's power
             self.erg_ramp_w = None                # ERG smoothing starts at the target
             self.erg_bike_rolling = False         # only the first mode after a reset may roll on
