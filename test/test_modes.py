@@ -214,6 +214,33 @@ def test_slope_virtual_bike_feels_like_the_rider_mass():
     assert accel < 0.3 * 0.5 / J
 
 
+def test_slope_virtual_bike_reaches_the_textbook_speed_of_a_riders_power():
+    """A rider holding 250 W rides the slope mode's virtual bike (rider + bike 85 kg, Crr 0.004,
+    CdA 0.32 m^2, rho 1.204, the defaults) to the speed of the road-load equation (research notes
+    section 3, Gribble, no drivetrain loss) P = v [m g (sin a + Crr cos a) + 1/2 rho CdA v^2],
+    a = atan(G), solved in closed form (Cardano: one real root): 37.36 km/h on the flat and
+    18.07 km/h at 5 %; checked against the physics, not against the law's own road_force_n."""
+    def textbook_mps(p_w, grade):
+        a = math.atan(grade)
+        k = 0.5 * 1.204 * 0.32
+        f0 = 85.0 * 9.80665 * (math.sin(a) + 0.004 * math.cos(a))
+        half_q, third_p = -p_w / k / 2.0, f0 / k / 3.0
+        root = math.sqrt(half_q ** 2 + third_p ** 3)
+        return math.cbrt(-half_q + root) + math.cbrt(-half_q - root)
+
+    assert textbook_mps(250.0, 0.0) * 3.6 == pytest.approx(37.36, abs=0.01)
+    assert textbook_mps(250.0, 0.05) * 3.6 == pytest.approx(18.07, abs=0.01)
+    for grade in (0.0, 0.05):
+        m = ModeLaw(ModeParams(), gear_ratio=GEAR, inertia_kgm2=J, tmax_nm=TMAX, pmax_w=PMAX, base_speed_rpm=WB,
+                    friction_nms=B)
+        w, brake_nm, dt = 80.0 * GEAR / RPM_PER_RAD_S, 0.0, 2e-3
+        for _ in range(int(150.0 / dt)):             # the 85 kg bike settles within ~60 s
+            out = m.step((grade + 0.2) / 0.4, MODE_SLOPE, w * RPM_PER_RAD_S, dt, measured_em_torque_nm=-brake_nm)
+            brake_nm = out.brake_torque_nm
+            w += (250.0 / w - brake_nm - B * w) / J * dt  # the flywheel: the rider's 250 W, the brake, friction
+        assert out.virtual_speed_mps == pytest.approx(textbook_mps(250.0, grade), rel=2e-3), grade
+
+
 def test_slope_virtual_bike_does_not_dissipate_the_pedal_stroke_ripple():
     """Two torque peaks per crank turn: the mean braking power equals the road power at the
     mean speed (no energy lost to the emulation), and the speed ripples like a heavy bike."""
