@@ -1359,6 +1359,22 @@ def test_erg_bike_starts_at_the_riders_mean_power_wherever_the_switch_falls_in_t
     assert max(starts) - min(starts) < 0.02 * max(starts)
 
 
+def test_heart_rate_erg_without_a_power_starts_at_the_riders_mean_power():
+    """A heart-rate ERG Command at C = 0 starts its PI at the rider's mean power over the last
+    RIDER_POWER_AVG_S, unbiased from the ride's start: after 3 s at 200 W it started at 155 W
+    (the EMA, started at 0, had 1 - e^-1.5 of his power)."""
+    cadence = 80.0
+    w = cadence * GEAR / RPM_PER_RAD_S
+    m = law()
+    settle(m, 0.2, MODE_RESISTANCE, cadence * GEAR, n=1)
+    for _ in range(3000):                            # 3 s: the brake takes 200 W, the flywheel held
+        m.step(0.2, MODE_RESISTANCE, cadence * GEAR, DT, measured_em_torque_nm=-(200.0 / w))
+    m.set_heart_rate_target(140.0)
+    m.step(0.0, MODE_ERG, cadence * GEAR, DT, measured_em_torque_nm=-(200.0 / w), heart_rate_bpm=140.0)
+    assert m.hr_erg.started
+    assert m.hr_erg.power_w == pytest.approx(200.0 + m.friction_nm(w) * w, rel=0.01)   # at the target: no Kp e
+
+
 def test_plant_erg_speed_from_power_rides_the_same_distance_in_any_gear():
     """The plant and its rider in ERG at 200 W for 8 s, in two virtual gears: with
     erg_speed_from_power the virtual bike (and so the distance) is the same within 2 %, the

@@ -473,6 +473,11 @@ class ModeLaw:
         self.rider_power_avg_w += a_avg * (self.rider_torque_nm * w - self.rider_power_avg_w)
         self.rider_power_weight += a_avg * (1.0 - self.rider_power_weight)
 
+    def _rider_power_mean_w(self) -> float:
+        """The rider's mean power over the last RIDER_POWER_AVG_S (the EMA over the observer's time
+        so far, its start-up weight divided out: unbiased from the first batch on)."""
+        return self.rider_power_avg_w / self.rider_power_weight if self.rider_power_weight > 0.0 else 0.0
+
     def set_friction(self, friction_nms: float, dry_friction_nm: float) -> None:
         """The bike's friction from now on (a spin-down's figures); ValueError: unchanged."""
         for name, v in (("friction_nms", friction_nms), ("dry_friction_nm", dry_friction_nm)):
@@ -561,7 +566,7 @@ class ModeLaw:
         elif self.observed_s < RIDER_POWER_AVG_S:
             v0 = self._flat_speed_mps(target_w)
         else:
-            v0 = self._flat_speed_mps(self.rider_power_avg_w / self.rider_power_weight)
+            v0 = self._flat_speed_mps(self._rider_power_mean_w())
         self.erg_ke_j = 0.5 * self.m_total_kg * v0 * v0
 
     def _flat_speed_mps(self, p_w: float) -> float:
@@ -598,7 +603,9 @@ class ModeLaw:
             hr_sat = False
             if self.heart_rate_target_bpm > 0.0:
                 if not self.hr_erg.started:
-                    self.hr_erg.start(p_w if p_w > 0.0 else self.rider_power_avg_w)
+                    # C = 0: the rider's mean power, the EMA's start-up weight divided out (a rider at
+                    # 200 W for 3 s of a ride had it start at 155 W, the EMA's 1 - e^-1.5 of his power)
+                    self.hr_erg.start(p_w if p_w > 0.0 else self._rider_power_mean_w())
                 # while the brake could not take the power (the last batch at its envelope), the
                 # rider's power is what the bike takes (heart_erg: no unwinding from beyond it)
                 p_w = self.hr_erg.step(self.heart_rate_target_bpm, self.heart_rate_bpm, clock_s,
