@@ -1017,6 +1017,9 @@ def test_config_section_and_emulator_arguments(tmp_path):
     args = emulator_args_from_config(cfg)
     assert args[args.index("--port") + 1] == str(p.port) and args[args.index("--heartbeat-ms") + 1] == "100"
     for key, value, text in (("node_id", 64, "node_id"), ("log_file", "x.txt", ".asc or .blf"),
+                             # ODrive 0.6.x: 0x3F is the broadcast id (ODriveResources examples/can_enumerate.py)
+                             ("node_id", 63, r"0\.\.62 for odrive_cansimple_0\.6, got 63 \(63 = 0x3F is the ODrive "
+                                             "broadcast id"),
                              ("request", ["torque", "nope"], "unknown kind"), ("bogus", 1, "unknown parameter"),
                              ("heartbeat_timeout_s", 0.0, "> 0"), ("protocol", "vesc", "unknown 'vesc'"),
                              ("enable_max_attempts", -1, ">= 0"), ("arm_ramp_nm_per_s", -5.0, ">= 0"),

@@ -731,7 +731,10 @@ def test_spmsm_plant_physics_over_the_bus_with_its_realtime_margin(emulator_fact
                                          "--truth-topic '/bike/hr': the topic of --heart-rate-topic too"),
                                         (["--truth-topic", "clock"], "--truth-topic 'clock': the topic of the plant "
                                                                      "/clock too"),
-                                        (["--node-id", "64"], "--node-id must be in 0..63")])
+                                        (["--node-id", "64"], "--node-id must be in 0..62"),
+                                        # 0x3F: ODrive 0.6.x broadcast id (ODriveResources can_enumerate.py)
+                                        (["--node-id", "63"], "0..62 for odrive_cansimple_0.6, got 63 (63 = 0x3F "
+                                                              "is the ODrive broadcast id")])
 def test_a_bad_option_is_one_error_and_exit_2(args, words):
     """Bad options are one line naming the option, exit 2, no traceback (before any bus work)."""
     import contextlib

@@ -92,6 +92,19 @@ def test_node_id_shift_examples():
         OdriveCanSimpleCodec(64)
 
 
+def test_the_odrive_broadcast_node_id_is_refused_for_a_host(vbus):
+    """ODrive 0.6.x: node id 0x3F is the broadcast address and the id of unaddressed drives
+    (odriverobotics/ODriveResources examples/can_enumerate.py), so a host commanding it would
+    drive every such ODrive on the bus. The bus-free codec still reads that id's frames."""
+    host, _ = vbus
+    assert OdriveCanSimple.node_id_max == 0x3E
+    OdriveCanSimple(host, node_id=0x3E)
+    with pytest.raises(ValueError, match=r"0\.\.62, got 63 \(63 = 0x3F is the ODrive broadcast id"):
+        OdriveCanSimple(host, node_id=0x3F)
+    hb = struct.pack("<IBBBx", 0, 1, 0, 1)
+    assert OdriveCanSimpleCodec(0x3F).classify(frame(0x7E1, hb), DRIVE_TO_HOST, False).name == "Heartbeat"
+
+
 def test_short_payloads_senders_use_are_accepted_by_the_drive_side():
     codec = OdriveCanSimpleCodec(0)
     d = codec.classify(frame(0x07, struct.pack("<I", 8)), HOST_TO_DRIVE, True)        # ODrive's python example

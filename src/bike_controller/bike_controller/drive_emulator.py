@@ -1499,7 +1499,8 @@ def build_arg_parser() -> argparse.ArgumentParser:
                           "(default: the interface's default)")
     bus.add_argument("--port", type=int, default=None, help="udp_multicast UDP port (one per test / bench)")
     bus.add_argument("--bitrate", type=int, default=1000000, help="CAN bitrate (real interfaces)")
-    bus.add_argument("--node-id", type=int, default=0, help="ODrive node id 0..63 / VESC ID 0..254 (default 0)")
+    bus.add_argument("--node-id", type=int, default=0,
+                     help="ODrive node id 0..62 / VESC ID 0..254, not the broadcast id (default 0)")
     bus.add_argument("--protocol", choices=sorted(EMULATED_PROTOCOLS), default=OdriveCanSimple.protocol_name,
                      help="what the drive speaks: odrive_cansimple_0.6 (default) or vesc_can (a VESC: STATUS .. "
                           "STATUS_5 broadcast every --heartbeat-ms, SET_CURRENT / SET_RPM, --watchdog-s is its "
@@ -1640,7 +1641,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         node_id_max = PROTOCOLS[args.protocol].node_id_max
         if not 0 <= args.node_id <= node_id_max:
-            raise ValueError(f"--node-id must be in 0..{node_id_max} for {args.protocol}, got {args.node_id}")
+            raise ValueError(f"--node-id must be in 0..{node_id_max} for {args.protocol}, got {args.node_id}"
+                             + PROTOCOLS[args.protocol].node_id_note)
         for name in ("heartbeat_ms", "encoder_ms", "iq_ms", "bus_ms", "torques_ms", "powers_ms", "error_ms",
                      "watchdog_s", "garbage_rate"):
             value = getattr(args, name)

@@ -149,7 +149,7 @@ class CanParams:
     channel: str = "can0"               # can0 / a virtual channel name / a multicast group (239.74.163.2)
     port: int = 0                       # udp_multicast UDP port (0: python-can's default 43113)
     bitrate: int = 1000000              # interfaces that set it (pcan, kvaser, ...); socketcan: `ip link`
-    node_id: int = 0                    # ODrive axis node id 0..63 / VESC ID 0..254
+    node_id: int = 0                    # ODrive axis node id 0..62 / VESC ID 0..254 (not broadcast)
     protocol: str = "odrive_cansimple_0.6"   # bike_plant.can.protocol.PROTOCOLS (odrive_cansimple_0.6, vesc_can)
     torque_constant_nm_per_a: float = 0.0    # vesc_can: torque -> SET_CURRENT; 0: the bldc section's kt
     heartbeat_period_s: float = 0.1     # the drive's heartbeat_msg_rate_ms (a slower drive is logged, with the fix)
@@ -183,7 +183,8 @@ class CanParams:
             raise ValueError(f"protocol: unknown {self.protocol!r} (known: {', '.join(sorted(PROTOCOLS))})")
         drive = PROTOCOLS[self.protocol]
         if not 0 <= self.node_id <= drive.node_id_max:
-            raise ValueError(f"node_id must be in 0..{drive.node_id_max} for {self.protocol}, got {self.node_id}")
+            raise ValueError(f"node_id must be in 0..{drive.node_id_max} for {self.protocol}, got {self.node_id}"
+                             + drive.node_id_note)
         if not (math.isfinite(self.torque_constant_nm_per_a) and self.torque_constant_nm_per_a >= 0):
             raise ValueError(f"torque_constant_nm_per_a must be >= 0, got {self.torque_constant_nm_per_a!r}")
         if not drive.can_request and self.request:

@@ -71,6 +71,11 @@ RPM_PER_REV_S = 60.0
 CMD_ID_BITS = 5
 CMD_ID_MASK = (1 << CMD_ID_BITS) - 1     # 0x1F
 NODE_ID_MAX = 0x3F                       # 6 bits of an 11-bit id
+#: ODrive 0.6.x reserves node id 0x3F: it is the broadcast address (every ODrive acts on it) and the
+#: id of an unaddressed drive, so a host must not command it (odriverobotics/ODriveResources
+#: examples/can_enumerate.py: BROADCAST_NODE_ID = 0x3f, MAX_NODE_ID = 0x3e)
+ODRIVE_BROADCAST_NODE_ID = 0x3F
+ODRIVE_NODE_ID_MAX = ODRIVE_BROADCAST_NODE_ID - 1
 STANDARD_ID_MAX = 0x7FF
 
 
@@ -254,9 +259,9 @@ def export_dbc(node_id: int, path: str | pathlib.Path, dbc_path: str | pathlib.P
     return out
 
 
-def _check_node_id(node_id: int, node_id_max: int = NODE_ID_MAX) -> None:
+def _check_node_id(node_id: int, node_id_max: int = NODE_ID_MAX, note: str = "") -> None:
     if isinstance(node_id, bool) or not isinstance(node_id, int) or not 0 <= node_id <= node_id_max:
-        raise ValueError(f"node_id must be an integer in 0..{node_id_max}, got {node_id!r}")
+        raise ValueError(f"node_id must be an integer in 0..{node_id_max}, got {node_id!r}{note}")
 
 
 class _EchoFilter:
@@ -511,8 +516,10 @@ class DriveProtocol(abc.ABC):
     #: True: the constructor takes ``pole_pairs`` and ``torque_constant_nm_per_a`` (the drive
     #: speaks electrical rpm and amperes, not rev/s and N m)
     uses_motor_constants = False
-    #: largest node id of the protocol's id scheme
+    #: largest node id a host may command (the id scheme's largest, less a broadcast id)
     node_id_max = NODE_ID_MAX
+    #: why ids above node_id_max are refused (appended to the error)
+    node_id_note = ""
     #: the frames' codec (set by the subclass's constructor): its id format (``extended_id``),
     #: messages and which side sends which (``host_to_drive``)
     codec: DbcCodec
@@ -707,10 +714,14 @@ class OdriveCanSimple(DriveProtocol):
 
     protocol_name = "odrive_cansimple_0.6"
     status_message = "Heartbeat"
+    node_id_max = ODRIVE_NODE_ID_MAX
+    node_id_note = (f" ({ODRIVE_BROADCAST_NODE_ID} = 0x{ODRIVE_BROADCAST_NODE_ID:X} is the ODrive broadcast id: "
+                    "commands to it reach every ODrive on the bus)")
 
     def __init__(self, bus: can.BusABC, node_id: int = 0, *, heartbeat_timeout_s: float = 0.5,
                  watchdog_feed_interval_s: float = 0.1, dbc_path: str | pathlib.Path | None = None,
                  clock: Callable[[], float] = time.monotonic, filter_echo: bool = True):
+        _check_node_id(node_id, self.node_id_max, self.node_id_note)
         super().__init__(bus, node_id, heartbeat_timeout_s=heartbeat_timeout_s,
                          watchdog_feed_interval_s=watchdog_feed_interval_s, clock=clock, filter_echo=filter_echo)
         self.codec = OdriveCanSimpleCodec(node_id, dbc_path)
@@ -887,6 +898,7 @@ class VescCan(DriveProtocol):
     can_request = False
     uses_motor_constants = True
     node_id_max = VESC_ID_MAX
+    node_id_note = " (255 is the VESC broadcast id: commands to it reach every VESC on the bus)"
 
     def __init__(self, bus: can.BusABC, node_id: int = 0, *, pole_pairs: int, torque_constant_nm_per_a: float,
                  heartbeat_timeout_s: float = 0.5, watchdog_feed_interval_s: float = 0.1,
