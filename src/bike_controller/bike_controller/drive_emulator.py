@@ -914,8 +914,9 @@ class VescFirmware(DriveFirmware):
     """What a VESC does with CAN commands (vedderb/bldc documentation/comm_can.md), on the axis
     logic above: there is no armed state on the bus -- any SET_CURRENT / SET_RPM runs the motor
     (the axis enters closed loop, a fault the protections latched is dropped as a VESC's clears
-    itself) -- and when no command arrived for the command timeout (``watchdog_timeout_s``, app
-    timeout 0.5 s by default) the motor is released (gates off) without an error.
+    itself) -- and when no command arrived for the command timeout (``watchdog_timeout_s``; a real
+    VESC's app timeout is 1 s by default, vedderb/bldc appconf/appconf_default.h APPCONF_TIMEOUT_MSEC)
+    the motor is released (gates off) without an error.
 
     Readouts of the status broadcasts: ERPM = motor rpm x pole pairs; tachometer = 6 counts
     per electrical revolution; amp / watt hours integrated from the bus current (drawn when

@@ -876,8 +876,8 @@ class VescCan(DriveProtocol):
 
     Source: vedderb/bldc documentation/comm_can.md. A VESC has no heartbeat, no axis state
     and no request / response: it broadcasts STATUS .. STATUS_5 at its CAN status rate and
-    runs the last command until none arrived for its timeout (0.5 s by default), then
-    releases the motor. So:
+    runs the last command until none arrived for its app timeout (1 s by default: vedderb/bldc
+    appconf/appconf_default.h APPCONF_TIMEOUT_MSEC 1000), then releases the motor. So:
 
     * link alive = STATUS frames arriving (the 'status' measurement; ``heartbeat_timeout_s``);
     * :attr:`enabled` is True once a STATUS arrived (nothing to arm); :meth:`enable`,
