@@ -346,6 +346,10 @@ def test_malformed_frames_are_counted_and_ignored(rig):
     s = b.snapshot()
     assert s["speed_rpm"] == pytest.approx(1800.0) and s["faults"] == 0 and b.drive_enabled
     assert b.diagnostic()[2]["can_dropped"] == "8"
+    # a drive with temperature_msg_rate_ms set: valid Get_Temperature frames are not malformed ones
+    r.drive_bus.send(can.Message(arbitration_id=0x15, data=struct.pack("<ff", 40.0, 30.0), is_extended_id=False))
+    b.service()
+    assert b.stats()["dropped"] == 8 and b.stats()["unused_message"] == 1
 
 
 def test_no_heartbeat_of_our_node_says_what_the_bus_carries(rig):

@@ -158,6 +158,20 @@ def test_host_drops_and_counts_each_bad_frame(vbus, reason, msg):
     assert host.counters["decoded"] == 0 and host.last == {}
 
 
+def test_valid_odrive_messages_the_plant_does_not_use_are_not_malformed(vbus):
+    """A 0.6.x drive with temperature_msg_rate_ms set sends Get_Temperature (0x15, two floats:
+    ros_odrive can_simple_messages.hpp); Get_Version, Address, Set_Input_Pos, Reboot ... are valid
+    CANSimple too. They are counted as unused_message (ignored), not as malformed frames."""
+    host = OdriveCanSimple(vbus[0], 3, filter_echo=False)
+    assert host.receive(frame(3 << 5 | 0x15, struct.pack("<ff", 41.5, 35.0))) == []
+    assert host.receive(frame(3 << 5 | 0x00, bytes([2, 4, 4, 58, 0, 6, 10, 0]))) == []       # Get_Version
+    assert host.receive(frame(3 << 5 | 0x15, is_remote_frame=True, dlc=8)) == []            # another host asks
+    assert host.counters["unused_message"] == 3 and host.dropped == 0, dict(host.counters)
+    assert host.receive(frame(3 << 5 | 0x1E, bytes(8))) == [] and host.counters["unknown_cmd"] == 1
+    drive = OdriveCanSimpleCodec(3)
+    assert drive.classify(frame(3 << 5 | 0x0C, bytes(8)), HOST_TO_DRIVE, True) == "unused_message"  # Set_Input_Pos
+
+
 def test_drive_side_classification_of_bad_frames():
     codec = OdriveCanSimpleCodec(0)
     assert codec.classify(frame(0x0E, is_remote_frame=True, dlc=8), HOST_TO_DRIVE, True) == "unexpected_rtr"

@@ -1330,8 +1330,8 @@ class DriveEmulator:
         rng = self.rng
         node = self.node_id << 5
         kind = rng.randrange(8)
-        if kind == 0:       # unknown command id of this node
-            known = {m.frame_id for m in self.codec.db.messages}
+        if kind == 0:       # unknown command id of this node (no CANSimple message: never a real command)
+            known = {m.frame_id for m in self.codec.db.messages} | set(self.codec.unused_cmds)
             cmd = rng.choice([c for c in range(32) if c not in known])
             return can.Message(arbitration_id=node | cmd, data=rng.randbytes(rng.randrange(9)), is_extended_id=False)
         if kind == 1:       # measurement with the wrong length

@@ -1215,6 +1215,8 @@ class CanBackend:
         for reason in MALFORMED_REASONS:
             if c[reason]:
                 out[f"dropped_{reason}"] = c[reason]
+        if c["unused_message"]:       # valid frames this plant has no use for (e.g. Get_Temperature)
+            out["unused_message"] = c["unused_message"]
         if self.logger is not None:
             out["log_frames"] = self.log_frames
         if self.counters["log_errors"]:

@@ -205,7 +205,19 @@ MESSAGE_OF_KIND = {kind: name for name, (kind, _) in MEASUREMENT_OF.items()}
 MALFORMED_REASONS = ("error_frame", "fd_frame", "extended_id", "unknown_id", "unknown_cmd", "bad_dlc",
                      "non_finite", "out_of_range", "unexpected_rtr", "decode_error", "bus_error", "standard_id")
 #: Reasons a received frame is ignored although nothing is wrong with it.
-IGNORED_REASONS = ("other_node", "other_direction", "echo")
+IGNORED_REASONS = ("other_node", "other_direction", "echo", "unused_message")
+
+#: CANSimple 0.6.x messages that are valid on the bus but not used here (cmd id -> name): a drive
+#: sends Get_Temperature / Get_Version cyclically when its temperature_msg_rate_ms / version_msg_rate_ms
+#: are set (ros_odrive's /odrive_status needs temperature), other hosts send the rest. Ignored, not
+#: malformed. Sources: odriverobotics/ros_odrive odrive_base/include/can_simple_messages.hpp (generated
+#: from the 0.6 DBC) and the message table of docs.odriverobotics.com/v/latest/manual/can-protocol.html
+#: (RxSdo 0x04, TxSdo 0x05).
+ODRIVE_UNUSED_MESSAGES = {0x00: "Get_Version", 0x02: "Estop", 0x04: "RxSdo", 0x05: "TxSdo", 0x06: "Address",
+                          0x0C: "Set_Input_Pos", 0x11: "Set_Traj_Vel_Limit", 0x12: "Set_Traj_Accel_Limits",
+                          0x13: "Set_Traj_Inertia", 0x15: "Get_Temperature", 0x16: "Reboot",
+                          0x19: "Set_Absolute_Position", 0x1A: "Set_Pos_Gain", 0x1B: "Set_Vel_Gains",
+                          0x1F: "Enter_DFU_Mode"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -330,6 +342,8 @@ class DbcCodec:
     drive_to_host: frozenset = frozenset()
     requestable: frozenset = frozenset()
     min_dlc: Mapping[str, int] = {}
+    #: command ids of the protocol's messages that are not in the DBC (valid, not used): "unused_message"
+    unused_cmds: Mapping[int, str] = {}
 
     def __init__(self, node_id: int = 0, dbc_path: str | pathlib.Path | None = None):
         _check_node_id(node_id, self.node_id_max)
@@ -430,7 +444,7 @@ class DbcCodec:
             return "other_node"
         message = self._by_cmd.get(cmd)
         if message is None:
-            return "unknown_cmd"
+            return "unused_message" if cmd in self.unused_cmds else "unknown_cmd"
         name = message.name
         if msg.is_remote_frame:
             if name in self.requestable:
@@ -469,6 +483,7 @@ class OdriveCanSimpleCodec(DbcCodec):
     drive_to_host = DRIVE_TO_HOST
     requestable = REQUESTABLE
     min_dlc = MIN_DLC
+    unused_cmds = ODRIVE_UNUSED_MESSAGES
 
     def compose_id(self, cmd: int) -> int:
         return (self.node_id << CMD_ID_BITS) | cmd
