@@ -169,7 +169,9 @@ def test_malformed_and_foreign_frames_are_counted_never_raised(buses):
         "standard_id": can.Message(arbitration_id=0x123, data=bytes(8), is_extended_id=False),
         "bad_dlc": can.Message(arbitration_id=status_id, data=bytes(5), is_extended_id=True),
         "other_node": VescCanCodec(8).encode("Status", {"Erpm": 1, "Current": 1.0, "Duty_Cycle": 0.0}),
-        "unknown_cmd": can.Message(arbitration_id=(60 << 8) | 7, data=bytes(8), is_extended_id=True),
+        "unknown_cmd": can.Message(arbitration_id=(100 << 8) | 7, data=bytes(8), is_extended_id=True),
+        # STATUS_6 (58, vedderb/bldc datatypes.h): a valid packet this plant does not use, not malformed
+        "unused_message": can.Message(arbitration_id=(58 << 8) | 7, data=bytes(8), is_extended_id=True),
         "unexpected_rtr": can.Message(arbitration_id=status_id, is_remote_frame=True, dlc=8, is_extended_id=True),
         "error_frame": can.Message(is_error_frame=True, arbitration_id=0, data=bytes(8)),
         "fd_frame": can.Message(arbitration_id=status_id, data=bytes(12), is_fd=True, is_extended_id=True),

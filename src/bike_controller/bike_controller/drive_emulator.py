@@ -122,8 +122,8 @@ from bike_plant import mechanics
 from bike_plant import params as P
 from bike_plant import spmsm as M
 from bike_plant.can.protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, PROTOCOLS,
-                                     RPM_PER_REV_S, VESC_DRIVE_TO_HOST, VESC_HOST_TO_DRIVE, VESC_ID_MAX,
-                                     VESC_TACHO_PER_EREV, AxisState, ControlMode, InputMode, ODriveError,
+                                     RPM_PER_REV_S, VESC_CAN_PACKET_ID_MAX, VESC_DRIVE_TO_HOST, VESC_HOST_TO_DRIVE,
+                                     VESC_ID_MAX, VESC_TACHO_PER_EREV, AxisState, ControlMode, InputMode, ODriveError,
                                      OdriveCanSimple, OdriveCanSimpleCodec, ProcedureResult, VescCan, VescCanCodec,
                                      _EchoFilter, error_names)
 from bike_plant.config import ConfigError, load_config, section
@@ -1432,9 +1432,8 @@ class VescEmulator(DriveEmulator):
         rng = self.rng
         vid = self.node_id
         kind = rng.randrange(6)
-        if kind == 0:       # unknown command id of this VESC
-            known = {self.codec.command_id_of(m.frame_id) for m in self.codec.db.messages}
-            cmd = rng.choice([c for c in range(64) if c not in known])
+        if kind == 0:       # unknown command id of this VESC (no VESC CAN packet: never a real command)
+            cmd = rng.randrange(VESC_CAN_PACKET_ID_MAX + 1, 256)
             return can.Message(arbitration_id=(cmd << 8) | vid, data=rng.randbytes(rng.randrange(9)),
                                is_extended_id=True)
         if kind == 1:       # status with the wrong length

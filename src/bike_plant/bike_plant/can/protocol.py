@@ -59,7 +59,7 @@ import enum
 import math
 import pathlib
 import time
-from typing import Callable, Iterable, Mapping
+from typing import Callable, Collection, Iterable, Mapping
 
 import can
 import cantools
@@ -343,7 +343,7 @@ class DbcCodec:
     requestable: frozenset = frozenset()
     min_dlc: Mapping[str, int] = {}
     #: command ids of the protocol's messages that are not in the DBC (valid, not used): "unused_message"
-    unused_cmds: Mapping[int, str] = {}
+    unused_cmds: Collection[int] = frozenset()
 
     def __init__(self, node_id: int = 0, dbc_path: str | pathlib.Path | None = None):
         _check_node_id(node_id, self.node_id_max)
@@ -843,6 +843,11 @@ VESC_HOST_TO_DRIVE = frozenset({"Set_Duty", "Set_Current", "Set_Current_Brake", 
 VESC_DRIVE_TO_HOST = frozenset({"Status", "Status_2", "Status_3", "Status_4", "Status_5"})
 #: Every command resets the VESC's command timeout; STATUS_5's two reserved bytes are not required.
 VESC_MIN_DLC = {"Status_5": 6}
+#: Every id 0..68 is a VESC CAN packet (vedderb/bldc datatypes.h CAN_PACKET_ID: buffer forwarding 5-8 of
+#: VESC Tool, PING / PONG 17 / 18, NOTIFY_BOOT 57, STATUS_6 58, BMS, IO board, GNSS ...): those not in
+#: vesc_can.dbc are valid, not used here ("unused_message"), not malformed.
+VESC_CAN_PACKET_ID_MAX = 68
+VESC_UNUSED_MESSAGES = frozenset(range(VESC_CAN_PACKET_ID_MAX + 1))
 #: Measurement kinds and neutral value names of the VESC status broadcasts. STATUS also yields
 #: 'motion' (speed_rev_s), 'torque' (torque_estimate_nm = kt x motor current) and 'current'
 #: (iq_measured_a = motor current), STATUS_5 also 'position' (position_rev from the tachometer).
@@ -875,6 +880,7 @@ class VescCanCodec(DbcCodec):
     host_to_drive = VESC_HOST_TO_DRIVE
     drive_to_host = VESC_DRIVE_TO_HOST
     min_dlc = VESC_MIN_DLC
+    unused_cmds = VESC_UNUSED_MESSAGES     # (the DBC's own ids are matched first)
 
     def command_id_of(self, node0_frame_id: int) -> int:
         return node0_frame_id >> VESC_CMD_SHIFT
