@@ -179,6 +179,9 @@ def test_session_and_recorder_processes(tmp_path, ros_domain, procs):
         # time source would add a second one to each, and the plant delivers every /clock to it)
         spin(0.5)
         assert pub_clock.get_subscription_count() == 2
+        # what the session's own writers offer, for the bag's offered_qos_profiles below
+        live_durability = {t: {i.qos_profile.durability for i in node.get_publishers_info_by_topic(f"{NS}/{t}")}
+                           for t in ("command", "session_status", "session_info")}
 
         for name, pub in others.items():
             msg = pub.msg_type()
@@ -245,6 +248,20 @@ def test_session_and_recorder_processes(tmp_path, ros_domain, procs):
     recorded = sorted((t, m.command, m.mode) for t, m in by_topic[f"{NS}/command"])
     assert recorded == [(t, pytest.approx(c, abs=1e-12), m) for t, c, m in expected]
 
+    # ---- offered QoS as rosbag2 records it: the publishers' own. `ros2 bag play` offers it again
+    # (rosbag2_storage qos.cpp): a transient_local topic recorded volatile (as /command and
+    # /session_status were) replays without the history a late subscriber gets live
+    import yaml
+    from rclpy.qos import DurabilityPolicy
+
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    offered = {t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"]
+               for t in meta["topics_with_message_count"]}
+    for topic, live in live_durability.items():
+        assert live == {DurabilityPolicy.TRANSIENT_LOCAL}, (topic, live)
+        assert [q["durability"] for q in offered[f"{NS}/{topic}"]] == ["transient_local"], topic
+    assert [q["durability"] for q in offered[f"{NS}/plant_state"]] == ["volatile"]     # the test's writer
+
     # ---- and with an independent decoder (mcap_ros2)
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -255,6 +272,8 @@ def test_session_and_recorder_processes(tmp_path, ros_domain, procs):
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         for schema, channel, message, decoded in reader.iter_decoded_messages():
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if channel.topic == f"{NS}/command":    # the data file's channel says the same
+                assert "durability: transient_local" in channel.metadata["offered_qos_profiles"]
             if channel.topic == f"{NS}/plant_state":
                 assert message.log_time == decoded.header.stamp.sec * 1_000_000_000 + decoded.header.stamp.nanosec
                 assert schema.name == "bike_msgs/msg/PlantState" and schema.encoding == "ros2msg"

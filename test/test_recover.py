@@ -104,6 +104,32 @@ def test_recover_refuses_bad_input_with_one_clear_error(tmp_path):
     assert not (tmp_path / "notsqlite.recovered").exists()
 
 
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_the_recovered_bag_offers_the_qos_the_crashed_one_recorded(tmp_path, storage):
+    """rosbag2 replays a topic with its recorded offered QoS: recovery keeps each topic's (it
+    recorded every topic that was not latched as volatile keep_last 1000, /command too)."""
+    import yaml
+
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    topics = [("/bike/command", "bike_msgs/msg/Command", True, False),
+              ("/bike/session_info", "std_msgs/msg/String", False, True),
+              ("/clock", "rosgraph_msgs/msg/Clock", True, False)]
+    sink = BagSink(tmp_path / "b", storage, ts, topics, durable={"/bike/command"})
+    for topic, *_ in topics:
+        sink.write(topic, 1, bytes.fromhex("00010000") + bytes(96))     # copied, never decoded here
+    sink.flush()                      # then killed: no metadata.yaml
+    res = recover(tmp_path / "b")
+    meta = yaml.safe_load((pathlib.Path(res["out"]) / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    offered = {t["topic_metadata"]["name"]: [(q["durability"], q["depth"]) for q in
+                                             t["topic_metadata"]["offered_qos_profiles"]]
+               for t in meta["topics_with_message_count"]}
+    assert offered == {"/bike/command": [("transient_local", 1000)], "/bike/session_info": [("transient_local", 1)],
+                       "/clock": [("volatile", 1000)]}
+    assert res["messages"] == 3
+
+
 def test_recover_refuses_a_complete_bag(tmp_path):
     from bike_session.recorder_node import BagSink, build_typestore
 

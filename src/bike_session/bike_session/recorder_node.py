@@ -50,6 +50,7 @@ import signal
 import struct
 import sys
 import time
+from typing import Iterable
 
 # (topic relative to the bike namespace unless absolute, ROS type, has std_msgs/Header first)
 TOPICS: tuple[tuple[str, str, bool], ...] = (
@@ -69,7 +70,7 @@ LATCHED_TOPICS = {"session_info"}
 # The session publishes these transient_local (keep_last 100), and the drive emulator its truth
 # (keep_last 1000): a recorder whose reader matches late still receives the first ones. If a
 # volatile publisher appears on one of them (a replayer), the incompatible-QoS event switches
-# that subscription to volatile.
+# that subscription to volatile. The bag records them as offered transient_local (BagSink).
 PREFER_LATCHED = {"command", "session_status", "drive_truth"}
 QOS_DEPTH = 1000
 PROGRESS_EVERY = 10
@@ -177,12 +178,17 @@ def default_bag_name() -> str:
     return "session_" + _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S_%fZ")
 
 
-def _rosbags_qos(latched: bool):
+def _rosbags_qos(latched: bool, durable: bool | None = None):
+    """The offered QoS a topic's bag connection records (``durable``: transient_local, default
+    ``latched``). rosbag2 records what the publishers offered, and ``ros2 bag play`` offers it
+    again (rosbag2_storage qos.cpp, adapt_offer_to_recorded_offers): a transient_local topic
+    recorded as volatile replays without the history a late subscriber gets live."""
     from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                     QosTime)
     zero = QosTime(0, 0)
+    durable = latched if durable is None else durable
     return Qos(QosHistory.KEEP_LAST, QOS_DEPTH if not latched else 1, QosReliability.RELIABLE,
-               QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE,
+               QosDurability.TRANSIENT_LOCAL if durable else QosDurability.VOLATILE,
                zero, zero, QosLiveliness.AUTOMATIC, zero, False)
 
 
@@ -194,7 +200,7 @@ class BagSink:
     (through the storage objects of the pinned rosbags version, checked at open)."""
 
     def __init__(self, path: pathlib.Path, storage: str, typestore, topics: list[tuple[str, str, bool, bool]],
-                 flush_period_s: float = 0.5):
+                 flush_period_s: float = 0.5, durable: Iterable[str] = ()):
         from rosbags.rosbag2 import StoragePlugin, Writer
 
         if storage not in STORAGES:
@@ -213,9 +219,11 @@ class BagSink:
         except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds
             raise SetupError(f"cannot open bag {path}: {exc}") from None
         self.connections = {}
+        durable = set(durable)      # not latched, but offered transient_local (PREFER_LATCHED)
         for topic, msgtype, _has_header, latched in topics:
+            qos = _rosbags_qos(latched, latched or topic in durable)
             self.connections[topic] = self.writer.add_connection(
-                topic, msgtype, typestore=typestore, offered_qos_profiles=[_rosbags_qos(latched)])
+                topic, msgtype, typestore=typestore, offered_qos_profiles=[qos])
         self.counts = {topic: 0 for topic, *_ in topics}
         self.closed = False
         self.storage = storage
@@ -306,9 +314,11 @@ def _make_node_class():
                 raise SetupError(f"cannot load bike_msgs definitions: {exc}") from None
             if not isinstance(flush_period_s, (int, float)) or isinstance(flush_period_s, bool):
                 raise SetupError(f"flush_period_s must be a number, got {flush_period_s!r}")
-            self.sink = BagSink(path, storage, typestore, topics, float(flush_period_s))
+            # the topics our own publishers offer transient_local (session, drive emulator)
+            durable = {self.resolve_topic_name(t) for t in PREFER_LATCHED}
+            self.sink = BagSink(path, storage, typestore, topics, float(flush_period_s), durable)
             # what a new run's bag is made with (a restarted plant: _next_run_bag)
-            self._bag_args = (storage, typestore, topics, float(flush_period_s))
+            self._bag_args = (storage, typestore, topics, float(flush_period_s), durable)
             self.bag_paths = [path]           # the first, then one per restarted plant's run
             self.run_seq_max = -1             # highest PlantState seq of the run being written
             self._latched_raw: dict[str, bytes] = {}

@@ -89,7 +89,7 @@ class _Out:
         self.writer.open()
         self.typestore = get_typestore(Stores.EMPTY)
 
-    def add(self, key, topic: str, msgtype: str, msgdef: str, latched: bool) -> None:
+    def add(self, key, topic: str, msgtype: str, msgdef: str, qos_text: str | None) -> None:
         from rosbags.typesys import get_types_from_msg
 
         from bike_session.recorder_node import _rosbags_qos
@@ -101,9 +101,18 @@ class _Out:
         except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds
             raise BagError(f"embedded definition of {msgtype} ({topic}) cannot be parsed: {exc}") from None
         self.typestore.register({k: v for k, v in types.items() if k not in self.typestore.types})
+        # the crashed bag's own offered QoS, as rosbag2 would replay it; unreadable: a guess
+        # from its durability (latched: depth 1)
+        try:
+            from rosbags.rosbag2.metadata import parse_qos
+            qos = parse_qos(qos_text or "")
+        except Exception:  # noqa: BLE001 - ReaderError, a malformed or foreign entry
+            qos = []
+        if not qos:
+            qos = [_rosbags_qos("transient_local" in (qos_text or ""))]
         try:
             self.conns[key] = self.writer.add_connection(topic, msgtype, typestore=self.typestore,
-                                                         offered_qos_profiles=[_rosbags_qos(latched)])
+                                                         offered_qos_profiles=qos)
         except Exception as exc:  # noqa: BLE001
             raise self._failed(exc) from None
         self.counts.setdefault(topic, 0)
@@ -157,8 +166,8 @@ def _recover_mcap(src: pathlib.Path, out: _Out) -> str:
                     if schema is None or schema.encoding != "ros2msg" or rec.message_encoding != "cdr":
                         raise BagError(f"channel {rec.topic!r} has no ros2msg schema: not a ROS 2 bag", src)
                     channels[rec.id] = rec
-                    latched = "transient_local" in (rec.metadata.get("offered_qos_profiles", "") or "")
-                    out.add(rec.id, rec.topic, schema.name, schema.data.decode("utf-8", "replace"), latched)
+                    out.add(rec.id, rec.topic, schema.name, schema.data.decode("utf-8", "replace"),
+                            rec.metadata.get("offered_qos_profiles"))
                 elif isinstance(rec, Message):
                     if rec.channel_id not in channels:
                         raise BagError(f"message on unknown channel {rec.channel_id}", src)
@@ -187,7 +196,7 @@ def _recover_sqlite3(src: pathlib.Path, out: _Out) -> str:
                     "SELECT id, name, type, offered_qos_profiles FROM topics ORDER BY id"):
                 if msgtype not in defs:
                     raise BagError(f"topic {name!r}: no embedded definition of {msgtype}", src)
-                out.add(tid, name, msgtype, defs[msgtype], "transient_local" in (qos or ""))
+                out.add(tid, name, msgtype, defs[msgtype], qos)
             for tid, t_ns, data in conn.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id"):
                 if tid not in out.conns:
                     raise BagError(f"message on unknown topic id {tid}", src)
