@@ -443,3 +443,47 @@ def test_recorder_puts_a_restarted_plants_run_into_a_new_bag(tmp_path, ros_domai
         assert [m.data for m in read_topic(bag, "session_info")] == ['{"profile": "unit"}']
         assert [round(m.command, 6) for m in read_topic(bag, "command")] == [0.3]
     assert "the plant restarted" in rec.err() and f"bag: {second}" in rec.out()
+
+
+def test_mcap_channels_carry_the_type_hash_as_rosbag2_writes_them(tmp_path):
+    """rosbag2's MCAP storage writes ``topic_type_hash`` into each Channel's metadata and reads a
+    topic's type_description_hash back from there (ros2 bag info of the .mcap alone, reindex).
+    The hash is rosidl's (the installed <pkg>/msg/<Type>.json), in the closed bag and in one
+    recovered from a killed recording."""
+    import yaml
+    from ament_index_python.packages import get_package_share_directory
+    from mcap.reader import make_reader
+
+    from bike_session.recorder_node import TOPICS, BagSink, build_typestore
+    from bike_session.recover import recover
+
+    def rosidl_hash(msgtype):
+        pkg, _, name = msgtype.split("/")
+        desc = json.loads((pathlib.Path(get_package_share_directory(pkg)) / "msg" / f"{name}.json").read_text())
+        return next(h["hash_string"] for h in desc["type_hashes"] if h["type_name"] == msgtype)
+
+    topics = [(t if t.startswith("/") else f"{NS}/{t}", msgtype, hdr, False) for t, msgtype, hdr in TOPICS]
+    want = {topic: rosidl_hash(msgtype) for topic, msgtype, *_ in topics}
+    assert all(h.startswith("RIHS01_") for h in want.values())
+
+    def channel_hashes(bag):
+        with open(next(bag.glob("*.mcap")), "rb") as fh:
+            summary = make_reader(fh).get_summary()
+        return {c.topic: c.metadata.get("topic_type_hash") for c in summary.channels.values()}
+
+    ts = build_typestore()
+    closed = BagSink(tmp_path / "closed", "mcap", ts, topics)
+    closed.write(f"{NS}/session_info", 0, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="x"),
+                                                           "std_msgs/msg/String"))
+    closed.close()
+    assert channel_hashes(tmp_path / "closed") == want
+    meta = yaml.safe_load((tmp_path / "closed" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert {t["topic_metadata"]["name"]: t["topic_metadata"]["type_description_hash"]
+            for t in meta["topics_with_message_count"]} == want
+
+    killed = BagSink(tmp_path / "killed", "mcap", ts, topics)
+    killed.write(f"{NS}/session_info", 0, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data="x"),
+                                                           "std_msgs/msg/String"))
+    killed.flush()                    # then killed: no metadata.yaml, no summary
+    out = pathlib.Path(recover(tmp_path / "killed")["out"])
+    assert channel_hashes(out) == want

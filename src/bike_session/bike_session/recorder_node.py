@@ -192,6 +192,48 @@ def _rosbags_qos(latched: bool, durable: bool | None = None):
                zero, zero, QosLiveliness.AUTOMATIC, zero, False)
 
 
+def new_writer(path: pathlib.Path, storage: str):
+    """A rosbags Writer of a rosbag2 format 9 bag (Jazzy) whose MCAP channels carry the
+    ``topic_type_hash`` metadata entry besides ``offered_qos_profiles``, as rosbag2 writes
+    them: its MCAP reader takes a topic's type_description_hash from there (rosbag2_storage_mcap
+    mcap_storage.cpp, create_topic / read_metadata), e.g. for ``ros2 bag info`` of the .mcap
+    alone or ``ros2 bag reindex``; rosbags wrote only the QoS, so the hash read back empty."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    writer = Writer(path, version=9, storage_plugin=plugin)
+    if storage == "mcap":
+        writer.STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _mcap_storage_class()}
+    return writer
+
+
+def _mcap_storage_class():
+    from io import BytesIO
+
+    from rosbags.rosbag2 import storage_mcap as sm
+
+    if not all(hasattr(sm, name) for name in ("McapWriter", "Channel", "write_string", "write_channel")):
+        raise SetupError("this rosbags version does not expose the MCAP channel writer the recorder needs "
+                         "(tested with the version pinned in constraints.txt)")
+
+    class McapStorage(sm.McapWriter):
+        """rosbags' MCAP storage (the pinned version), its Channel records with the type hash."""
+
+        def add_connection(self, connection, offered_qos_profiles: str) -> None:
+            metadata = BytesIO()
+            for key, value in (("offered_qos_profiles", offered_qos_profiles),
+                               ("topic_type_hash", connection.digest or "")):
+                sm.write_string(metadata, key)
+                sm.write_string(metadata, value)
+            channel = sm.Channel(connection.id, connection.msgtype, connection.topic,
+                                 connection.ext.serialization_format, metadata.getvalue())
+            self.channels.append(channel)
+            self.channel_stats[connection.id] = 0
+            sm.write_channel(self.chunk.bio, channel, self.schemas)
+
+    return McapStorage
+
+
 class BagSink:
     """The rosbags writer with one connection per recorded topic (no rclpy).
 
@@ -201,8 +243,6 @@ class BagSink:
 
     def __init__(self, path: pathlib.Path, storage: str, typestore, topics: list[tuple[str, str, bool, bool]],
                  flush_period_s: float = 0.5, durable: Iterable[str] = ()):
-        from rosbags.rosbag2 import StoragePlugin, Writer
-
         if storage not in STORAGES:
             raise SetupError(f"storage must be one of {', '.join(STORAGES)}, got {storage!r}")
         if path.exists():
@@ -211,9 +251,8 @@ class BagSink:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise SetupError(f"cannot create record_dir {path.parent}: {exc.strerror}") from None
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         self.path = path
-        self.writer = Writer(path, version=9, storage_plugin=plugin)
+        self.writer = new_writer(path, storage)
         try:
             self.writer.open()
         except Exception as exc:  # noqa: BLE001 - rosbags raises several kinds

@@ -81,11 +81,10 @@ class _Out:
             raise self._failed(exc) from None
 
     def _open_writer(self):
-        from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
 
-        plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
-        self.writer = Writer(self.out, version=9, storage_plugin=plugin)
+        from bike_session.recorder_node import new_writer
+        self.writer = new_writer(self.out, self.storage)
         self.writer.open()
         self.typestore = get_typestore(Stores.EMPTY)
 
