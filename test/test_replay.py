@@ -161,3 +161,32 @@ def test_a_profiles_road_brakes_in_the_graph_is_recorded_and_replays(tmp_path, r
     same = _bag_in(tmp_path / "same")
     assert command_timeline(same)[0] == timeline
     assert _values(same, "plant_state") == _values(orig, "plant_state")
+
+
+@pytest.mark.slow
+def test_a_replay_on_a_bike_of_other_ranges_rides_the_recorded_targets(tmp_path, ros_domain):
+    """A BLDC ride at ERG 180 W (Command 0.177 of its 1017 W range) replayed with --config
+    spmsm_default.yaml (ERG range 345 W) was sent Command 0.177: 61 W. Now the replay rides the
+    recorded 180 W on the SPMSM; a recorded target beyond the other bike's range is one error."""
+    prof = tmp_path / "erg.yaml"
+    prof.write_text(yaml.safe_dump({"name": "erg", "segments": [
+        {"kind": "step", "duration_s": 0.6, "target": 180, "mode": "erg"},
+        {"kind": "step", "duration_s": 0.6, "target": 4, "mode": "slope"}]}))
+    res = bike_command("run", "--workout", str(prof), "--record", str(tmp_path / "orig"), *FAST_BATCHES)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    orig = _bag_in(tmp_path / "orig")
+    spmsm = ROOT / "config/spmsm_default.yaml"
+    res = bike_command("replay", str(orig), "--config", str(spmsm), "--record", str(tmp_path / "spmsm"))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    targets = {(s.mode, round(s.mode_target, 6)) for s in read_topic(_bag_in(tmp_path / "spmsm"), "controller_status")}
+    assert targets == {(2, 180.0), (3, 0.04)}, targets
+
+    prof.write_text(yaml.safe_dump({"name": "hard", "segments": [
+        {"kind": "step", "duration_s": 0.3, "target": 600, "mode": "erg"}]}))
+    res = bike_command("run", "--workout", str(prof), "--record", str(tmp_path / "hard"), *FAST_BATCHES)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    res = bike_command("replay", str(_bag_in(tmp_path / "hard")), "--config", str(spmsm),
+                       "--record", str(tmp_path / "refused"))
+    assert res.returncode == 2 and res.stderr.count("error:") == 1, res.stderr[-2000:]
+    assert str(spmsm) in res.stderr and "600" in res.stderr and "t=0 s" in res.stderr, res.stderr
+    assert not (tmp_path / "refused").exists()

@@ -148,6 +148,37 @@ def _machine_only_load_keys(recorded_machine, other_machine) -> set:
     return names(classes[recorded_machine]) - names(classes[other_machine])
 
 
+def _mode_units(params: dict):
+    """The bike's ranges (bike_session.profiles.ModeUnits) of a config's parameters; None when
+    they cannot be derived (the config check that follows names the problem)."""
+    import copy
+
+    from bike_session.profiles import mode_units_from_config
+    try:
+        return mode_units_from_config(copy.deepcopy(params))
+    except Exception:  # noqa: BLE001 - a config the replay's check refuses with one error
+        return None
+
+
+def retarget(timeline, recorded_units, other_units) -> list:
+    """The timeline with each ERG, slope and isokinetic Command re-expressed on the other bike's
+    ranges, so that it rides the recorded target (180 W, 4 %, 70 rpm), not the recorded fraction
+    of a range that is not this bike's (a BLDC's ERG 180 W, Command 0.177 of 1017 W, was 61 W on
+    the SPMSM's 345 W). ValueError naming the first target outside the other bike's range."""
+    if recorded_units is None or other_units is None or recorded_units == other_units:
+        return list(timeline)
+    out = []
+    for t, c, m, *rest in timeline:
+        target = recorded_units.target_of(m, c)
+        if target is not None:
+            try:
+                c = other_units.to_command(m, target[0])[0]
+            except ValueError as exc:
+                raise ValueError(f"the recorded {MODE_TO_NAME.get(m, m)} Command at t={t * 1e-9:g} s: {exc}") from None
+        out.append((t, c, m, *rest))
+    return out
+
+
 def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded") -> dict:
     """Write the replay's profile and config into out_dir; returns their paths + facts."""
     from bike_plant.config import ConfigError, absolute_file_paths, load_config
@@ -158,6 +189,13 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     timeline, info = command_timeline(bag_path)
     duration_s = float(info.get("duration_s") or 0.0) or timeline[-1][0] * 1e-9
     recorded = _recorded_config(info, bag_path) if (config is None or load == "recorded") else None
+    if recorded is None and info.get("config_text"):
+        try:
+            recorded = _recorded_config(info, bag_path)     # its ranges, for the recorded targets
+        except BagError:
+            recorded = None
+    recorded_units = (_mode_units(recorded["/**"]["ros__parameters"])
+                      if config is not None and recorded is not None else None)
     if config is not None:
         path = pathlib.Path(config).resolve()
         load_config(path)                                 # one clear ConfigError if it is bad
@@ -201,6 +239,11 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
         stem = f"replay_{bag_path.name}_{suffix}"
     profile_path = out_dir / f"{stem}_profile.yaml"
     config_path = out_dir / f"{stem}_config.yaml"
+    if recorded_units is not None:
+        try:
+            timeline = retarget(timeline, recorded_units, _mode_units(params))
+        except ValueError as exc:
+            raise ConfigError(str(exc), path) from None
     profile = profile_from_timeline(timeline, duration_s, f"replay of {bag_path.name}")
     profile_path.write_text(yaml.safe_dump(profile, sort_keys=False))
     params["session"]["profile"] = str(profile_path.resolve())
