@@ -190,3 +190,35 @@ def test_a_replay_on_a_bike_of_other_ranges_rides_the_recorded_targets(tmp_path,
     assert res.returncode == 2 and res.stderr.count("error:") == 1, res.stderr[-2000:]
     assert str(spmsm) in res.stderr and "600" in res.stderr and "t=0 s" in res.stderr, res.stderr
     assert not (tmp_path / "refused").exists()
+
+
+@pytest.mark.slow
+def test_a_replay_of_a_bag_that_ends_early_rides_what_was_recorded(tmp_path, ros_domain):
+    """A recovered bag (its data file cut short, as by a kill or a full disk) holds the first part
+    of the ride, and its session_info the session's whole duration: the replay rode the whole of
+    it, the last recorded Command held for the rest (a 2.9 s part of a 6 s ride rode 6 s). Now it
+    rides to the bag's end, says so, and what it rides is the recording's part, bit for bit."""
+    from bike_session.bags import open_bag
+    from bike_session.recover import recover
+
+    res = bike_command("run", "--workout", str(ROOT / "config/profiles/all_modes.yaml"), "--duration", "3",
+                       "--record", str(tmp_path / "orig"), *FAST_BATCHES)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    orig = _bag_in(tmp_path / "orig")
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    (data,) = orig.glob("*.mcap")
+    (cut / data.name).write_bytes(data.read_bytes()[:data.stat().st_size // 2])
+    rescued = pathlib.Path(recover(cut)["out"])
+    with open_bag(rescued) as bag:
+        end_s = round(bag.end_ns * 1e-9, 6)
+    assert 0.5 < end_s < 2.5, end_s
+
+    res = bike_command("replay", str(rescued), "--record", str(tmp_path / "again"))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    assert f"the bag ends at t = {end_s:g} s, before its session's 3 s" in res.stdout, res.stdout[-2000:]
+    last = read_topic(_bag_in(tmp_path / "again"), "plant_state")[-1].header.stamp
+    assert last.sec + last.nanosec * 1e-9 == pytest.approx(end_s, abs=1e-9), last
+    again = _values(_bag_in(tmp_path / "again"), "plant_state")
+    # all but the last, which ends the run (its end-of-run flag set)
+    assert len(again) > 100 and again[:-1] == _values(orig, "plant_state")[:len(again) - 1]

@@ -179,6 +179,17 @@ def retarget(timeline, recorded_units, other_units) -> list:
     return out
 
 
+def _bag_end_s(bag_path) -> float | None:
+    """The sim time of the bag's last message (the recorder logs each at its stamp); None when it
+    cannot be opened (command_timeline has already said why, or was given the timeline)."""
+    try:
+        with open_bag(bag_path) as bag:
+            # to the microsecond: rosbags' end_time is the last stamp + 1 ns, MCAP's the last stamp
+            return round(bag.end_ns * 1e-9, 6) if bag.message_counts() else None
+    except BagError:
+        return None
+
+
 def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded") -> dict:
     """Write the replay's profile and config into out_dir; returns their paths + facts."""
     from bike_plant.config import ConfigError, absolute_file_paths, load_config
@@ -188,6 +199,13 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     bag_path = pathlib.Path(bag_path)
     timeline, info = command_timeline(bag_path)
     duration_s = float(info.get("duration_s") or 0.0) or timeline[-1][0] * 1e-9
+    # a bag that ends before its session did (recovered after a kill, a realtime ride stopped with
+    # Ctrl-C) holds the Commands up to its end only: the replay rides that much, not the session's
+    # duration_s with the last Command held for the rest (a 2.9 s recovered part rode 6 s)
+    end_s = _bag_end_s(bag_path)
+    shortened_from = None
+    if end_s is not None and 0 < end_s < duration_s:
+        shortened_from, duration_s = duration_s, end_s
     recorded = _recorded_config(info, bag_path) if (config is None or load == "recorded") else None
     if recorded is None and info.get("config_text"):
         try:
@@ -266,7 +284,7 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
         given = str(path) if config is not None else f"{bag_path} (its recorded config)"
         raise ConfigError(str(exc).replace(f"{config_path.resolve()}: ", "").replace(f"{config_path}: ", ""),
                           given) from None
-    return {"profile": profile_path, "config": config_path, "duration_s": duration_s,
+    return {"profile": profile_path, "config": config_path, "duration_s": duration_s, "shortened_from": shortened_from,
             "commands": len(timeline), "segments": len(profile["segments"]), "base_dir": str(base_dir)}
 
 
@@ -314,6 +332,9 @@ def main(argv: list[str]) -> int:
         if made_record_dir and not any(pathlib.Path(opts.record).iterdir()):
             pathlib.Path(opts.record).rmdir()          # made for this replay, which did not start
         return 2
+    if prep["shortened_from"] is not None:
+        print(f"[bike] the bag ends at t = {prep['duration_s']:g} s, before its session's {prep['shortened_from']:g} s "
+              f"(recovered, or stopped early): the replay rides the {prep['duration_s']:g} s recorded", flush=True)
     print(f"[bike] replaying {prep['commands']} Commands ({prep['segments']} steps, {prep['duration_s']:g} s) "
           f"of {opts.bag} with {prep['config']}", flush=True)
     code = cli.main(["run", "--config", str(prep["config"]), "--duration", repr(prep["duration_s"]),
