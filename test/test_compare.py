@@ -180,3 +180,33 @@ def test_columns_stay_apart_at_any_width(tmp_path):
     m.update(a=1.0, b=123456789.0, delta=123456788.0, delta_pct=12345678800.0)
     line = next(x for x in format_compare(r).splitlines() if x.startswith(m["label"]))
     assert line.split()[-5:] == ["1.00", "123456789.00", "123456788.00", "+12345678800.0", "%"], line
+
+
+def test_a_config_copy_naming_the_same_profile_is_no_difference(tmp_path):
+    """./bike run --set rides a copy of the config in a folder of its own, its relative
+    session.profile made absolute: compare listed "session.profile: profiles/demo_intervals.yaml
+    -> /.../config/profiles/demo_intervals.yaml" between two rides of the same profile. A file
+    parameter is read against its config's folder (session_info's config_path); another file
+    still differs."""
+    import pathlib
+
+    import yaml
+
+    from bike_plant.config import absolute_file_paths
+    from bike_session.compare import config_diff
+
+    source = pathlib.Path(__file__).resolve().parents[1] / "config" / "bldc_default.yaml"
+    doc = yaml.safe_load(source.read_text())
+    absolute_file_paths(doc["/**"]["ros__parameters"], source.parent)
+    doc["/**"]["ros__parameters"]["load"]["rider_target_cadence_rpm"] = 90.0
+    copy = tmp_path / "bike-config-x" / "bldc_default.yaml"
+    copy.parent.mkdir()
+    copy.write_text(yaml.safe_dump(doc))
+    a = write_session_bag(tmp_path / "a", config_text=source.read_text(), config_path=source)
+    b = write_session_bag(tmp_path / "b", config_text=copy.read_text(), config_path=copy)
+    changed = compare(a, b)[0]["config_diff"]["parameters"]
+    assert [p["key"] for p in changed] == ["load.rider_target_cadence_rpm"], changed
+    doc["/**"]["ros__parameters"]["session"]["profile"] = str(source.parent / "profiles" / "all_modes.yaml")
+    copy.write_text(yaml.safe_dump(doc))
+    d = config_diff(source.read_text(), copy.read_text(), str(source), str(copy))
+    assert [p["key"] for p in d["parameters"]] == ["load.rider_target_cadence_rpm", "session.profile"]

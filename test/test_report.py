@@ -234,7 +234,7 @@ def session_mode(k, erg_targets=(90.0, 120.0)):
 def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg_targets=(90.0, 120.0),
                       status=True, plant_dups=False, conflict_at=None, typestore=None, status_type=None,
                       modes=None, virtual_mps=None, segment=None, friction=None, cadence=None, heart=None,
-                      hr_target=None, lead=0, heard_at=None, truth=None):
+                      hr_target=None, lead=0, heard_at=None, truth=None, config_path=None):
     """A 1 kHz session of n PlantStates (t = i ms; with ``lead``, a drive on CAN: t = (i - lead) ms
     after ``lead`` PlantStates at t = 0, at speed 0 before the ``heard_at``-th): 100 rad/s, 1 N m
     of braking (100 W),
@@ -254,6 +254,8 @@ def write_session_bag(path, n=1001, storage="mcap", config_text=CONFIG_TEXT, erg
     topics = [(_full(t), m, h, t == "session_info") for t, m, h in TOPICS]
     sink = BagSink(path, storage, typestore or build_typestore(), topics)
     info = {"profile_name": "modes", "software_version": "test-1", "config_text": config_text}
+    if config_path is not None:
+        info["config_path"] = str(config_path)
     sink.write(_full("session_info"), 0, serialize_message(String(data=json.dumps(info))))
     ms = 1_000_000
     for i in range(n):

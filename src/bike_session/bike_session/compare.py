@@ -119,8 +119,23 @@ def _delta(a, b):
     return delta, pct
 
 
-def config_diff(text_a: str | None, text_b: str | None) -> dict:
-    """Parameters that differ and a shortened unified diff of the two config texts."""
+def _same_file(key: str, va, vb, path_a, path_b) -> bool:
+    """Whether a file parameter (session.profile ...) names the same file on both sides: a config
+    copy (./bike run --set, --calibration) names it absolute, its source relative to its folder."""
+    from bike_plant.config import RELATIVE_FILE_KEYS, resolve_config_path
+
+    if key not in {".".join(k) for k in RELATIVE_FILE_KEYS} or not (isinstance(va, str) and isinstance(vb, str)):
+        return False
+    if not (va and vb and path_a and path_b):
+        return False
+    return resolve_config_path(va, path_a).resolve() == resolve_config_path(vb, path_b).resolve()
+
+
+def config_diff(text_a: str | None, text_b: str | None, path_a: str | None = None,
+                path_b: str | None = None) -> dict:
+    """Parameters that differ and a shortened unified diff of the two config texts (``path_a`` /
+    ``path_b``: the configs' files, session_info's config_path, against which a relative file
+    parameter is read)."""
     notes = []
     params = {}
     for side, text in (("a", text_a), ("b", text_b)):
@@ -135,7 +150,7 @@ def config_diff(text_a: str | None, text_b: str | None) -> dict:
     changed = []
     for key in sorted(set(params["a"]) | set(params["b"])):
         va, vb = params["a"].get(key, missing), params["b"].get(key, missing)
-        if va != vb:
+        if va != vb and not _same_file(key, va, vb, path_a, path_b):
             changed.append({"key": key, "a": None if va is missing else va, "b": None if vb is missing else vb,
                             "only_in": "b" if va is missing else ("a" if vb is missing else None)})
     lines = list(difflib.unified_diff((text_a or "").splitlines(), (text_b or "").splitlines(),
@@ -229,7 +244,8 @@ def compare(bag_a, bag_b, progress: str | None = None) -> tuple[dict, SessionDat
                             "delta": delta, "delta_pct": pct, "digits": digits})
     result = {
         "a": a, "b": b, "overlap": overlap, "metrics": metrics, "tracking": track,
-        "config_diff": config_diff((da.info or {}).get("config_text"), (db.info or {}).get("config_text")),
+        "config_diff": config_diff((da.info or {}).get("config_text"), (db.info or {}).get("config_text"),
+                                   (da.info or {}).get("config_path"), (db.info or {}).get("config_path")),
         "same_software": a["software_version"] == b["software_version"],
     }
     return result, da, db, n
