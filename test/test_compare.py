@@ -210,3 +210,20 @@ def test_a_config_copy_naming_the_same_profile_is_no_difference(tmp_path):
     copy.write_text(yaml.safe_dump(doc))
     d = config_diff(source.read_text(), copy.read_text(), str(source), str(copy))
     assert [p["key"] for p in d["parameters"]] == ["load.rider_target_cadence_rpm", "session.profile"]
+
+
+def test_a_key_only_one_config_sets_is_not_shown_as_null(tmp_path):
+    """compare listed a key that only B's config sets as "modes.virtual_gears: null -> [1.5, 2.75]",
+    as if A's config set it to null. Now "(not set)"; a null a config does write stays null."""
+    from bike_session.compare import format_compare
+
+    a = write_session_bag(tmp_path / "a")
+    text_b = CONFIG_TEXT.replace("    load:\n", "    extra_null: null\n    load:\n      virtual_gears: [1.5, 2.75]\n",
+                                 1)
+    b = write_session_bag(tmp_path / "b", config_text=text_b)
+    r = compare(a, b)[0]
+    text = format_compare(r)
+    assert "  load.virtual_gears: (not set) -> [1.5, 2.75]" in text, text
+    assert "  extra_null: (not set) -> null" in text, text
+    text = format_compare(compare(b, a)[0])
+    assert "  load.virtual_gears: [1.5, 2.75] -> (not set)" in text, text

@@ -290,7 +290,10 @@ def format_compare(r: dict) -> str:
     else:
         lines.append(f"config: {len(cd['parameters'])} parameter(s) differ")
         for p in cd["parameters"]:
-            lines.append(f"  {p['key']}: {_short(p['a'])} -> {_short(p['b'])}")
+            # a key one config does not set is not one it sets to null (YAML's ~)
+            va, vb = ("(not set)" if p["only_in"] == only else _short(p[side])
+                      for only, side in (("b", "a"), ("a", "b")))
+            lines.append(f"  {p['key']}: {va} -> {vb}")
         if cd["text_diff"]:
             lines.append("config_text diff (shortened):")
             lines += ["  " + ln for ln in cd["text_diff"]]
