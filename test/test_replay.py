@@ -222,3 +222,25 @@ def test_a_replay_of_a_bag_that_ends_early_rides_what_was_recorded(tmp_path, ros
     again = _values(_bag_in(tmp_path / "again"), "plant_state")
     # all but the last, which ends the run (its end-of-run flag set)
     assert len(again) > 100 and again[:-1] == _values(orig, "plant_state")[:len(again) - 1]
+
+
+@pytest.mark.slow
+def test_a_replay_rides_the_recorded_duration_on_a_config_with_a_session_duration(tmp_path, ros_domain):
+    """--config OTHER whose session.duration_s (which the session takes before duration_s) was
+    shorter than the recording: the replay's session ended at OTHER's 0.5 s and the rest of the
+    1.2 s rode the session's final Command, not the recorded ERG step. Now the recorded timeline."""
+    prof = tmp_path / "steps.yaml"
+    prof.write_text(yaml.safe_dump({"name": "steps", "mode": "erg", "segments": [
+        {"kind": "step", "duration_s": 0.4, "target": 100}, {"kind": "step", "duration_s": 0.8, "target": 200}]}))
+    res = bike_command("run", "--workout", str(prof), "--record", str(tmp_path / "orig"), *FAST_BATCHES)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    orig = _bag_in(tmp_path / "orig")
+    recorded = yaml.safe_load(command_timeline(orig)[1]["config_text"])
+    recorded["/**"]["ros__parameters"]["session"]["duration_s"] = 0.5
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(recorded))
+    res = bike_command("replay", str(orig), "--config", str(other), "--record", str(tmp_path / "again"))
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
+    timeline = command_timeline(_bag_in(tmp_path / "again"))[0]
+    assert timeline == command_timeline(orig)[0]
+    assert sum(1 for t, c, m, *_ in timeline if t < 1.2e9 and m == 2 and c > 0.15) >= 7     # 200 W from 0.4 s

@@ -271,6 +271,10 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     if "period_s" in info:
         params["session"]["period_s"] = float(info["period_s"])
     params["duration_s"] = duration_s
+    if "duration_s" in params["session"]:
+        # the session's own length wins over duration_s: OTHER's session.duration_s 3 ended a 6 s
+        # replay's Commands at 3 s (the rest rode the session's final Command)
+        params["session"]["duration_s"] = duration_s
     header = (f"# Replay of {bag_path.resolve()} ({'recorded' if config is None else config} bike, "
               f"{load} load); written by ./bike replay\n")
     config_path.write_text(header + yaml.safe_dump(doc, sort_keys=False))
