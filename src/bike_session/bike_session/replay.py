@@ -2,7 +2,9 @@
 
 The recorded Command timeline (stamp, value, mode of every ``command`` message) becomes a
 profile of steps, so the new session publishes exactly the same Commands at exactly the
-same sim times. The bike is ``--config OTHER`` (another controller, machine, battery ...)
+same sim times (on a bike of other ranges, ERG / slope / isokinetic Commands that ask for the
+recorded targets: :func:`retarget`), up to the session's end or the bag's, if that is earlier
+(a recovered bag). The bike is ``--config OTHER`` (another controller, machine, battery ...)
 or, without it, the recorded config (``session_info.config_text``). The load:
 
 - ``--load recorded`` (default): the recorded config's ``load`` section (the same rider
