@@ -327,25 +327,24 @@ def test_replay_of_an_spmsm_ride_on_the_bldc_bike_keeps_the_rider_without_the_dy
         replay.prepare(tmp_path / "session_x", tmp_path / "runs3", str(CONFIG), "recorded")
 
 def test_replay_leaves_nothing_when_the_run_refuses_it_after_the_config_checks(tmp_path, monkeypatch, capsys):
-    """A refusal from ./bike run's checks after the config's (here: calibration_file under a
-    regular file) left the replay's generated profile and config in --record. Now --record is
-    as it was, and the one error names the key."""
-    import yaml
-
-    from bike_session import replay
+    """A refusal from ./bike run's checks after the config's (it was a calibration_file under a
+    regular file; the replay no longer hands the config's files on, so one of those checks is
+    made to refuse here) left the replay's generated profile and config in --record. Now
+    --record is as it was, and the run's one error is the only one."""
+    from bike_session import cli, replay
     info = {"duration_s": 1.0, "period_s": 0.1, "config_text": CONFIG.read_text()}
     monkeypatch.setattr(replay, "command_timeline", lambda _bag: ([(0, 0.5, 0, 0.0, None)], info))
-    blocker = tmp_path / "file"
-    blocker.write_text("")
-    doc = yaml.safe_load(CONFIG.read_text())
-    doc["/**"]["ros__parameters"]["calibration_file"] = str(blocker / "cal.yaml")
-    other = tmp_path / "other.yaml"
-    other.write_text(yaml.safe_dump(doc))
+
+    def refuse(_cfg, _args, recording):
+        print("error: output_file: refused by a check after the config's", file=sys.stderr)
+        return False
+
+    monkeypatch.setattr(cli, "_config_launch_args", refuse)
     record = tmp_path / "runs"
     record.mkdir()
-    code = replay.main([str(tmp_path / "session_x"), "--config", str(other), "--record", str(record)])
+    code = replay.main([str(tmp_path / "session_x"), "--config", str(CONFIG), "--record", str(record)])
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
-    assert code == 2 and len(err) == 1 and err[0].startswith("error: calibration_file "), err
+    assert code == 2 and err == ["error: output_file: refused by a check after the config's"], err
     assert list(record.iterdir()) == []
 
 
@@ -873,3 +872,23 @@ def test_a_bags_recorded_config_nested_too_deeply_is_one_error(tmp_path, monkeyp
     code = replay.main([str(tmp_path / "session_x"), "--record", str(tmp_path / "runs")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "the recorded config is nested too deeply" in err[0], err
+
+
+def test_a_replay_writes_neither_the_rides_calibration_nor_its_can_log(tmp_path, monkeypatch, capsys):
+    """A config that keeps its calibration (calibration_file) or logs its CAN traffic to a file
+    (can_log_file) is recorded with them: its replay wrote into those files, the kept calibration
+    overwritten by the replay's spin-down (another bike's with --config OTHER), the ride's CAN
+    log by the replay's. The replay's config now names neither, and says so."""
+    import yaml
+
+    from bike_plant.config import load_config
+    from bike_session import replay
+    recorded = yaml.safe_load(CONFIG.read_text())
+    kept = {"calibration_file": str(tmp_path / "kept_calibration.yaml"), "can_log_file": str(tmp_path / "ride.asc")}
+    recorded["/**"]["ros__parameters"].update(kept)
+    info = {"duration_s": 1.0, "period_s": 0.1, "config_text": yaml.safe_dump(recorded)}
+    monkeypatch.setattr(replay, "command_timeline", lambda _bag: ([(0, 0.5, 0, 0.0, None)], info))
+    prep = replay.prepare(tmp_path / "session_x", tmp_path / "runs", None, "recorded")
+    cfg = load_config(prep["config"])
+    assert not cfg.get("calibration_file") and not cfg.get("can_log_file"), cfg
+    assert "calibration_file, can_log_file of the config not written by the replay" in capsys.readouterr().out

@@ -117,6 +117,10 @@ def profile_from_timeline(timeline, duration_s: float, name: str) -> dict:
     return {"name": name, "description": "Command timeline replayed from a recorded bag", "segments": segments}
 
 
+# top-level config keys naming a file the ride writes into (see prepare)
+REPLAY_DROPPED_FILE_KEYS = ("calibration_file", "can_log_file")
+
+
 def _recorded_config(info: dict, bag_path) -> dict:
     text = info.get("config_text")
     if not text:
@@ -270,6 +274,12 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     # the recorded Commands are the ride: a workout the recorded config names (./bike run rides a
     # config's session.workout in place of its profile) must not be ridden instead of them
     params["session"].pop("workout", None)
+    # files the ride wrote are the ride's: a replay writing into them would overwrite the kept
+    # calibration with the replay's spin-down (another bike's with --config OTHER) and the CAN
+    # ride's log beside its bag (--record gives the replay a CAN log of its own)
+    dropped = [key for key in REPLAY_DROPPED_FILE_KEYS if params.pop(key, None)]
+    if dropped:
+        print(f"[bike] replay: {', '.join(dropped)} of the config not written by the replay", flush=True)
     if "period_s" in info:
         params["session"]["period_s"] = float(info["period_s"])
     params["duration_s"] = duration_s
