@@ -418,3 +418,14 @@ def test_bad_batch_inputs_are_rejected(cfg):
             plant.step_batch(duties)
     with pytest.raises(ValueError):
         plant.step_batch(np.full((2, 3), 0.5), relay_request=np.nan)
+
+
+def test_the_plant_state_carries_the_packs_open_circuit_voltage(cfg):
+    """PlantState.battery_ocv_v of the SPMSM plant is its pack's voltage (an ideal source at
+    battery.nominal_v): it was left out, the message carried 0 V and ./bike report's battery
+    figure drew an 'open-circuit voltage' at 0 V beside the 24 V bus."""
+    from bike_plant import msgconv
+    plant = plant_with(cfg, battery={"nominal_v": 36.0})
+    snap = plant.snapshot()
+    assert snap["battery_ocv_v"] == 36.0
+    assert msgconv.plant_state_msg(snap, 0).battery_ocv_v == 36.0

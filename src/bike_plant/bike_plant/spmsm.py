@@ -1623,6 +1623,9 @@ class SpmsmPlant:
             # the session's torque trim then closed on)
             "torque_em_nm": s[S_TEM] if self.last_torque_em_nm is None else self.last_torque_em_nm,
             "load_torque_nm": s[S_TLOAD],
+            # the pack is an ideal source at its nominal voltage (its SOC books energy / (V_nom Q)):
+            # its open-circuit voltage. Absent, PlantState carried 0 V, and the report drew it
+            "battery_ocv_v": float(p[P_BATT_V]),
             "battery_soc": s[S_SOC],
             "battery_current_a": s[S_IBATT],
             "energy_mech_in_j": e_mech,
