@@ -631,6 +631,37 @@ def test_spmsm_isokinetic_says_when_the_rider_outpushes_it(command, flagged):
         assert abs(np.mean(shaft) - target_rpm) < 2.0 and not any(saturated), (np.mean(shaft), np.mean(saturated))
 
 
+@pytest.mark.parametrize("command, generating", [(0.5, True), (0.8, False)], ids=["70rpm-brakes", "100rpm-assists"])
+def test_spmsm_isokinetic_reports_the_quadrant_its_speed_loop_is_in(command, generating):
+    """ControllerStatus.quadrant and torque_cmd_nm of the SPMSM's isokinetic speed loop are its
+    own torque (iq*): against a rider who wants 80 rpm, held at 70 it brakes (generating, into the
+    battery), held at 100 it assists. The status said quadrant I (motoring) throughout, and
+    DriveCommand.torque_cmd_nm (motoring positive by the quadrant) carried the brake as assist."""
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    cfg = _spmsm_cfg()
+    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+    ctrl = ModedSpmsmController(cfg)
+    ctrl.set_command(command, MODE_ISOKINETIC)
+    said, braked = [], []
+    for k in range(2000):
+        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)
+        duties, relay, buck, status = ctrl.decide(snap)
+        res = plant.step_batch(duties, relay, buck)
+        if k >= 1000:
+            sign = 1.0 if status["quadrant"] == 2 else -1.0
+            said.append(sign * status["torque_cmd_nm"])
+            braked.append(-res.torque_em_nm)
+    said, braked = np.array(said), np.array(braked)
+    assert (np.mean(braked) > 1.0) == generating and (np.mean(braked) < -0.3) != generating, np.mean(braked)
+    # the torque said is the one the machine gives, within the stroke's ripple
+    assert np.mean(said) == pytest.approx(np.mean(braked), abs=0.15 + 0.05 * abs(np.mean(braked)))
+    # and so is its sign in 10 ms means, through the pedal stroke
+    said_10, braked_10 = said.reshape(-1, 10).mean(axis=1), braked.reshape(-1, 10).mean(axis=1)
+    sure = np.abs(braked_10) > 0.3
+    assert np.mean(np.sign(said_10[sure]) == np.sign(braked_10[sure])) > 0.9, np.mean(sure)
+
+
 def test_plant_slope_uphill_brakes_and_downhill_assists():
     r, ctrl = _ride_plant(lambda t: (0.5 + 0.04 / 0.4, MODE_SLOPE), 5.0, {"virtual_inertia": False})
     m, w, p_brake = _tail(r, 3.0)

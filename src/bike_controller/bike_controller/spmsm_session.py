@@ -362,13 +362,19 @@ class ModedSpmsmController(SessionCommand):
     def _status(self, st: dict) -> dict:
         out = self.last_out
         speed = st["speed_est_rpm"]
-        torque = abs(out.brake_torque_nm) if out is not None else 0.0
+        if self.speed_loop_active:
+            # the isokinetic speed loop's torque is its iq* (braking positive), not the mode law's: it
+            # brakes a rider who outpushes the cadence, and that is the generating quadrant (it was
+            # reported as motoring throughout: all_modes' 70 rpm segment braked ~75 W as quadrant I)
+            brake = -self.kt * float(st["iq_ref_a"])
+        else:
+            brake = out.brake_torque_nm if out is not None else 0.0
         region = int(st["region"])
         status = {
             "command": self.command, "mode": self.mode, "command_rejected": self.command_rejected,
-            "speed_est_rpm": speed, "torque_cmd_nm": torque, "k_factor": 1.0, "ktg_nm_per_a": self.kt,
+            "speed_est_rpm": speed, "torque_cmd_nm": abs(brake), "k_factor": 1.0, "ktg_nm_per_a": self.kt,
             "current_cmd_a": st["iq_ref_a"], "region": region,
-            "quadrant": 2 if (out is not None and out.brake_torque_nm >= 0.0 and self.mode != MODE_ISOKINETIC) else 1,
+            "quadrant": 2 if (out is not None and brake >= 0.0) else 1,
             "prediction_error_a": 0.0,
             "mode_target": float(out.target) if out is not None else self.command,
             "mode_saturated": bool(out is not None and out.saturated) or self.trim.saturated,
