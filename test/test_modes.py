@@ -662,6 +662,38 @@ def test_spmsm_isokinetic_reports_the_quadrant_its_speed_loop_is_in(command, gen
     assert np.mean(np.sign(said_10[sure]) == np.sign(braked_10[sure])) > 0.9, np.mean(sure)
 
 
+def test_spmsm_asking_no_torque_leaves_the_inverter():
+    """After an assist (motoring, a descent) the relay is on the inverter; a Command that then asks
+    no torque (resistance at Command 0) never moved it back, because the running mean had to pass
+    +band: the inverter held zero torque at 80 rpm (320 r/min, above the base speed) with the
+    flux-weakening id and drew 41 W from the battery into its copper while the rider pedalled
+    freely. Now the relay goes to the rectifier path, whose buck at duty 0 carries nothing."""
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    cfg = _spmsm_cfg()
+    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+    ctrl = ModedSpmsmController(cfg)
+    ctrl.set_command(0.02, MODE_MOTORING)             # 0.33 N m of assist: the inverter
+    relay = []
+    for k in range(5000):
+        if k == 2000:
+            assert plant.state[M.S_RELAY] == M.REL_INVERTER
+            ctrl.set_command(0.0, MODE_RESISTANCE)
+        if k == 3000:
+            e0 = M.ledger_of(plant.state, plant.p)
+        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)
+        duties, relay_req, buck, status = ctrl.decide(snap)
+        plant.step_batch(duties, relay_req, buck)
+        if k >= 3000:
+            relay.append(plant.state[M.S_RELAY])
+            assert not status["mode_saturated"]
+    e1 = M.ledger_of(plant.state, plant.p)
+    assert plant.snapshot()["speed_rpm"] > 1.2 * cfg["spmsm"]["rated_speed_rpm"], "above the base speed"
+    assert all(r == M.REL_RECTIFIER for r in relay)
+    assert abs(e1["energy_battery_j"] - e0["energy_battery_j"]) < 1e-6
+    assert e1["energy_copper_j"] - e0["energy_copper_j"] < 1e-6
+
+
 def test_plant_slope_uphill_brakes_and_downhill_assists():
     r, ctrl = _ride_plant(lambda t: (0.5 + 0.04 / 0.4, MODE_SLOPE), 5.0, {"virtual_inertia": False})
     m, w, p_brake = _tail(r, 3.0)
