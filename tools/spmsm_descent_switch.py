@@ -4,7 +4,7 @@ told the isokinetic segment's 70 rpm), the slope's error over 0.1 s windows whol
 as ./bike report takes it (rms, worst windows); ``trace``: also the -5 % descent's first second
 every 10 ms (relay, true / estimated / virtual speed, rider / asked / braked torque, trim, the
 slope law's integral). The graph's ride (./bike run --config config/spmsm_default.yaml
---workout config/profiles/all_modes.yaml --record DIR) reports the same 0.226 / 0.778 m/s. ``descents``: ERG 180 W for 4 s, then -4/-5/-6/-8 % for 10 s, rms over the
+--workout config/profiles/all_modes.yaml --record DIR) reports the same 0.222 / 0.65 m/s (2026-12-07). ``descents``: ERG 180 W for 4 s, then -4/-5/-6/-8 % for 10 s, rms over the
 last 7 s (test_spmsm_virtual_bike_descent_tracks_with_the_light_assist's ride).
 
     source tools/env.sh && python tools/spmsm_descent_switch.py [all_modes|descents|trace]
