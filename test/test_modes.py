@@ -694,6 +694,37 @@ def test_spmsm_asking_no_torque_leaves_the_inverter():
     assert e1["energy_copper_j"] - e0["energy_copper_j"] < 1e-6
 
 
+@pytest.mark.parametrize("assist_max_nm", [0.0, 0.1], ids=["no-cap", "cap-0.1"])
+def test_spmsm_isokinetic_speed_loop_keeps_modes_assist_max(assist_max_nm):
+    """modes.assist_max_nm caps the isokinetic mode's assist (the mode law's PI holds it there and
+    says so). On the SPMSM bike the paper's speed loop runs that mode, and it motored up to the
+    current limit whatever the setting said: a rider who stops pedalling at 60 rpm was driven on
+    at 59.7 rpm with 0.23 N m (peaks 1.1) under a 0.1 N m cap, unflagged. Now the loop holds its
+    motoring current at the cap, and the batches it binds are flagged mode_saturated."""
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    from bike_plant.config import config_variant
+    cfg = config_variant(_spmsm_cfg(), modes={"assist_max_nm": assist_max_nm})
+    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+    ctrl = ModedSpmsmController(cfg)
+    ctrl.set_command(0.4, MODE_ISOKINETIC)              # 60 rpm
+    plant.set_rider_cadence(0.0, stop=True)            # the motor alone turns his cranks
+    assist, saturated, cadence = [], [], []
+    for k in range(3000):
+        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)
+        duties, relay, buck, status = ctrl.decide(snap)
+        res = plant.step_batch(duties, relay, buck)
+        if k >= 2000:
+            assist.append(res.torque_em_nm)
+            saturated.append(status["mode_saturated"])
+            cadence.append(snap["speed_rpm"] / cfg["load"]["gear_ratio"])
+    if assist_max_nm:
+        assert max(assist) < 1.05 * assist_max_nm and np.mean(saturated) > 0.9 and np.mean(cadence) < 30.0
+    else:
+        assert np.mean(cadence) == pytest.approx(60.0, abs=1.0) and not any(saturated)
+        assert np.mean(assist) > 0.2, "the friction's torque, given by the loop"
+
+
 def test_plant_slope_uphill_brakes_and_downhill_assists():
     r, ctrl = _ride_plant(lambda t: (0.5 + 0.04 / 0.4, MODE_SLOPE), 5.0, {"virtual_inertia": False})
     m, w, p_brake = _tail(r, 3.0)

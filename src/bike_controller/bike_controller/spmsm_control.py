@@ -203,7 +203,10 @@ C_PREDRAIN_N = 68
 # torque control: 1 while the current loop was voltage limited during the whole last speed period
 # (stuck at the edge): limit_voltage then moves along the edge first (speed_loop, control_period)
 C_EDGE = 69
-C_SIZE = 70
+# > 0: the most motoring current the speed loop may ask [A] (a session's modes.assist_max_nm / Kt);
+# 0: no cap but the current limit
+C_ASSIST_CAP_A = 70
+C_SIZE = 71
 
 
 def pack_controller(cp: SpmsmControllerParams, nominal: M.SpmsmPlantParams) -> np.ndarray:
@@ -758,6 +761,11 @@ def speed_loop(cs, q):
         # the pack is empty: a torque along the rotation (or from rest) would motor; hold it at zero (the
         # reference then restarts from zero: no wind-up while held)
         iq_dem = 0.0
+    cap = cs[C_ASSIST_CAP_A]
+    if cap > 0.0 and cs[C_TORQUE_MODE] == 0.0 and iq_dem * w >= 0.0 and abs(iq_dem) > cap:
+        # speed control: the session's assist limit (modes.assist_max_nm), as the mode law's isokinetic
+        # PI holds it (torque control gets its torque from that law, capped there)
+        iq_dem = math.copysign(cap, iq_dem)
     vlim = q[Q_VMARGIN] * vmax_mod - cs[C_DV]
     idr, iqr, reg, lim = current_reference(iq_dem, q[Q_PP] * w, vlim, q[Q_IMAX], q[Q_R], q[Q_L], q[Q_LAM],
                                            q[Q_FW])
@@ -1088,8 +1096,11 @@ class SpmsmController:
         q[Q_OBS_L1], q[Q_OBS_L2], q[Q_OBS_L3] = observer_gains(pole_hz, self.nominal.control_period_s)
 
     def reset_from(self, plant_state: np.ndarray) -> None:
-        """Start as an already running drive at the plant's state (offline runs)."""
+        """Start as an already running drive at the plant's state (offline runs); the assist cap
+        (set_assist_cap, a setting, not a state) is kept."""
+        cap = self.cs[C_ASSIST_CAP_A]
         self.cs = init_controller_state(self.q, self.cp, plant_state)
+        self.cs[C_ASSIST_CAP_A] = cap
         self._next_periods = None
 
     def _bridge_skipped_periods(self, periods: int, count: float) -> None:
@@ -1136,6 +1147,19 @@ class SpmsmController:
     def set_no_assist(self, hold: bool) -> None:
         """Hold the speed loop's motoring torque at zero (an empty pack), braking kept."""
         self.cs[C_NO_ASSIST] = 1.0 if hold else 0.0
+
+    def set_assist_cap(self, current_a: float) -> None:
+        """The most motoring current the speed loop may ask [A] (0: none but the current limit);
+        ValueError for a negative or non-finite one."""
+        if not (math.isfinite(current_a) and current_a >= 0.0):
+            raise ValueError(f"assist cap must be a finite current >= 0 A, got {current_a!r}")
+        self.cs[C_ASSIST_CAP_A] = float(current_a)
+
+    def assist_capped(self) -> bool:
+        """The speed loop's last demand was held at the assist cap (set_assist_cap)."""
+        cs = self.cs
+        return bool(cs[C_ASSIST_CAP_A] > 0.0 and cs[C_TORQUE_MODE] == 0.0 and abs(cs[C_IQ_DEMAND]) >= cs[C_ASSIST_CAP_A]
+                    and cs[C_IQ_DEMAND] * cs[C_SPEED_EST] >= 0.0)
 
     def set_relay(self, rectifier: bool) -> None:
         self.cs[C_RELAY_REQ] = 1.0 if rectifier else 0.0

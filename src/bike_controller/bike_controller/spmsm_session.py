@@ -214,6 +214,9 @@ class ModedSpmsmController(SessionCommand):
         self.full_holds = 0              # batches whose braking the inverter path held at zero
         self.full_active = False
         self.base_speed_rpm = base
+        # modes.assist_max_nm (0: Tmax) holds the isokinetic speed loop's assist as it holds the mode law's:
+        # the paper's loop motored up to the current limit whatever it said (1.26 N m for 0.5)
+        self.inner.set_assist_cap(mp.assist_max_nm / self.kt if mp.assist_max_nm > 0.0 else 0.0)
         # the last batch's torque command on the inverter was beyond its reach (the region logic
         # clipped iq* at the voltage / current limit: assist above ~150 r/min on the 24 V link)
         self.inverter_limited = False
@@ -350,7 +353,8 @@ class ModedSpmsmController(SessionCommand):
         # ... and so is the isokinetic speed loop's torque, which the region logic clipped at the
         # current or the link's voltage limit: a rider who outpushes the brake (one who wants 80
         # rpm held at 50 averaged 75 rpm, and nothing said so)
-        limited = self.inverter_limited or (self.speed_loop_active and int(status["limits"]) != 0)
+        limited = self.inverter_limited or (self.speed_loop_active and (int(status["limits"]) != 0
+                                                                        or inner.assist_capped()))
         if limited and self.last_out is not None and not self.last_out.saturated:
             self.last_out = dataclasses.replace(self.last_out, saturated=True)
         return duties, relay, buck, self._status(status)
