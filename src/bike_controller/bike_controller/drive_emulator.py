@@ -1639,10 +1639,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"bike-drive-emulator: {text}", file=sys.stderr, flush=True)
 
     try:
-        node_id_max = PROTOCOLS[args.protocol].node_id_max
-        if not 0 <= args.node_id <= node_id_max:
-            raise ValueError(f"--node-id must be in 0..{node_id_max} for {args.protocol}, got {args.node_id}"
-                             + PROTOCOLS[args.protocol].node_id_note)
+        problem = PROTOCOLS[args.protocol].node_id_problem(args.node_id)
+        if problem:
+            raise ValueError(f"--node-id {problem}")
         for name in ("heartbeat_ms", "encoder_ms", "iq_ms", "bus_ms", "torques_ms", "powers_ms", "error_ms",
                      "watchdog_s", "garbage_rate"):
             value = getattr(args, name)

@@ -182,9 +182,9 @@ class CanParams:
         if self.protocol not in PROTOCOLS:
             raise ValueError(f"protocol: unknown {self.protocol!r} (known: {', '.join(sorted(PROTOCOLS))})")
         drive = PROTOCOLS[self.protocol]
-        if not 0 <= self.node_id <= drive.node_id_max:
-            raise ValueError(f"node_id must be in 0..{drive.node_id_max} for {self.protocol}, got {self.node_id}"
-                             + drive.node_id_note)
+        problem = drive.node_id_problem(self.node_id)
+        if problem:
+            raise ValueError(f"node_id {problem}")
         if not (math.isfinite(self.torque_constant_nm_per_a) and self.torque_constant_nm_per_a >= 0):
             raise ValueError(f"torque_constant_nm_per_a must be >= 0, got {self.torque_constant_nm_per_a!r}")
         if not drive.can_request and self.request:

@@ -539,6 +539,14 @@ class DriveProtocol(abc.ABC):
     #: messages and which side sends which (``host_to_drive``)
     codec: DbcCodec
 
+    @classmethod
+    def node_id_problem(cls, node_id: int) -> str | None:
+        """Why ``node_id`` is no id a host may command with this protocol, None when it is one
+        (the plant's config check and the emulator's --node-id say it after the key's name)."""
+        if 0 <= node_id <= cls.node_id_max:
+            return None
+        return f"must be in 0..{cls.node_id_max} for {cls.protocol_name}, got {node_id}{cls.node_id_note}"
+
     def __init__(self, bus: can.BusABC, node_id: int, *, heartbeat_timeout_s: float = 0.5,
                  watchdog_feed_interval_s: float = 0.1, clock: Callable[[], float] = time.monotonic,
                  filter_echo: bool = True):
