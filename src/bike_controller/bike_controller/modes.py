@@ -342,7 +342,7 @@ class ModeLaw:
         self.offset_nm = 0.0                  # what is left of a mode switch's step
         self.integral_nm = 0.0
         self.integral_step_nm = 0.0           # what the last step added to integral_nm (hold_integral)
-        self.last_mode_before_reset = self.last_mode
+        erg_was_in_force = self.last_mode == MODE_ERG
         self.last_mode = None
         self.obs_w = None                     # observer: low-passed speed ...
         self.obs_tb = float(torque_nm)        # ... and low-passed applied braking torque
@@ -354,7 +354,7 @@ class ModeLaw:
         self.observed_s = 0.0                 # the rider-torque observer's time since it started
         # ERG with erg_speed_from_power: the virtual bike's kinetic energy is kept across a reset
         # (a lost drive): it rolled on meanwhile, and rolls on when ERG comes back (_start_erg_bike)
-        self.erg_bike_rolling = self.last_mode_before_reset == MODE_ERG
+        self.erg_bike_rolling = erg_was_in_force
         self.erg_ramp_w = None                # ERG smoothing: the power the brake takes now (None: the target)
         # (the heart-rate ERG keeps its power across a reset, e.g. a lost drive: the switch ramp
         # brings the torque back, the heart has not changed)
