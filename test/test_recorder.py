@@ -445,6 +445,88 @@ def test_recorder_puts_a_restarted_plants_run_into_a_new_bag(tmp_path, ros_domai
     assert "the plant restarted" in rec.err() and f"bag: {second}" in rec.out()
 
 
+def _progress_heard(node):
+    """A recorder_progress reader of the test's plant node; returns the list of seqs heard."""
+    from std_msgs.msg import UInt64
+
+    heard: list[int] = []
+    node.create_subscription(UInt64, "recorder_progress", lambda m: heard.append(int(m.data)),
+                             _qos(depth=1, latched=True))
+    return heard
+
+
+def test_seq_0_is_confirmed_once_the_sessions_writers_have_matched_the_recorder(tmp_path, ros_domain, procs):
+    """Nothing else orders the session-recorder match before a lockstep run: a 1.2 s replay on a
+    busy CI host ended before it and its bag had no Commands. The recorder confirms seq 0 (the
+    plant holds seq 1 until then) only once the session's Command and session_info writers have
+    matched it, and then the session's Commands sent before the match are in the bag."""
+    from bike_msgs.msg import Command, PlantState
+    from std_msgs.msg import String
+
+    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=held",
+                                 "-p", "writers_wait_s:=60.0"], tmp_path)
+    procs.append(rec)
+    with _publisher_node("plant", ros_domain) as (node, executor):
+        heard = _progress_heard(node)
+        pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
+        assert wait_for(lambda: pub_ps.get_subscription_count() >= 1, 15.0), rec.err()[-2000:]
+        pub_ps.publish(_stamp(PlantState(seq=0), 0))
+        deadline = time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert heard == [], heard                        # held: no session writer has matched
+        with _publisher_node("session", ros_domain) as (session, session_exec):
+            pub_cmd = session.create_publisher(Command, "command", _qos(latched=True))
+            pub_info = session.create_publisher(String, "session_info", _qos(depth=1, latched=True))
+            pub_cmd.publish(_stamp(Command(command=0.4), 0))       # before any match: history
+            pub_info.publish(String(data='{"profile": "unit"}'))
+            t0 = time.monotonic()
+            while not heard and time.monotonic() - t0 < 15.0:
+                executor.spin_once(timeout_sec=0.05)
+                session_exec.spin_once(timeout_sec=0.0)
+            assert heard == [0], (heard, rec.err()[-2000:])
+            pub_ps.publish(_stamp(PlantState(seq=1, end_of_run=True), STEP_NS))
+            t0 = time.monotonic()
+            while heard[-1] != 1 and time.monotonic() - t0 < 15.0:
+                executor.spin_once(timeout_sec=0.05)
+            rec.signal(signal.SIGINT)
+            assert rec.wait(10.0) == 0, rec.err()[-2000:]
+    from bike_session.bags import read_topic
+
+    assert [round(m.command, 6) for m in read_topic(tmp_path / "held", "command")] == [0.4]
+    assert [m.data for m in read_topic(tmp_path / "held", "session_info")] == ['{"profile": "unit"}']
+    assert "have not matched" not in rec.err()
+
+
+def test_a_recorder_without_a_session_confirms_seq_0_after_its_wait_and_says_so(tmp_path, ros_domain, procs):
+    """A graph without a session (a plant and a controller only) is still recorded: seq 0 is
+    confirmed after writers_wait_s, with one warning; a bad wait is one error, exit 2."""
+    from bike_msgs.msg import PlantState
+
+    bad = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=bad",
+                                 "-p", "writers_wait_s:=-1.0"], tmp_path)
+    assert bad.wait(30.0) == 2
+    assert "writers_wait_s must be a number of seconds >= 0, got -1.0" in bad.err(), bad.err()[-2000:]
+    assert "Traceback" not in bad.err()
+    bad.kill()
+    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=alone",
+                                 "-p", "writers_wait_s:=0.5"], tmp_path)
+    procs.append(rec)
+    with _publisher_node("plant", ros_domain) as (node, executor):
+        heard = _progress_heard(node)
+        pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
+        assert wait_for(lambda: pub_ps.get_subscription_count() >= 1, 15.0), rec.err()[-2000:]
+        pub_ps.publish(_stamp(PlantState(seq=0), 0))
+        t0 = time.monotonic()
+        while not heard and time.monotonic() - t0 < 15.0:
+            executor.spin_once(timeout_sec=0.05)
+        assert heard == [0] and time.monotonic() - t0 >= 0.45, (heard, time.monotonic() - t0)
+        rec.signal(signal.SIGINT)
+        assert rec.wait(10.0) == 0, rec.err()[-2000:]
+    assert rec.err().count("the writers of /bike/command, /bike/session_info have not matched this recorder "
+                           "in 0.5s") == 1, rec.err()[-2000:]
+
+
 def test_mcap_channels_carry_the_type_hash_as_rosbag2_writes_them(tmp_path):
     """rosbag2's MCAP storage writes ``topic_type_hash`` into each Channel's metadata and reads a
     topic's type_description_hash back from there (ros2 bag info of the .mcap alone, reindex).

@@ -10,12 +10,18 @@ Node name ``recorder`` (namespace ``/bike`` by default). Parameters:
   time, the open MCAP chunk is closed and written out (sqlite3: the transaction is
   committed) and the file is fsync'ed. A recorder killed with kill -9 therefore loses at
   most this much data; ``./bike bag recover BAG`` turns what survived into a normal bag.
+- ``writers_wait_s`` (float, 5): how long seq 0 waits to be confirmed on ``recorder_progress``
+  until the session's Command and session_info writers (and every writer the graph lists on
+  a recorded topic) have matched this recorder (see Flow control).
 
 Flow control: after every ``PROGRESS_EVERY`` PlantStates written (and at end of run) the node
 publishes the last written ``seq`` on ``recorder_progress`` (std_msgs/UInt64). A lockstep plant
 with ``recorder_window_batches`` > 0 never runs more than that many batches ahead of it, so a
 recorder that is slower than the loop (a loaded machine, a slow disk) slows the run down
-instead of losing messages from a DDS history.
+instead of losing messages from a DDS history. Seq 0 is confirmed (the plant holds seq 1
+until then) only once the session's writers (and the graph's others) have matched, at most
+``writers_wait_s``: nothing else orders the session-recorder match before the run, and a short
+run could end before it, leaving a bag without Commands.
 
 Subscriptions take the serialized CDR bytes (``raw=True``): nothing is deserialized. The
 bag is written with rosbags (format version 9, rosbag2 Jazzy) and embeds the message
@@ -76,6 +82,13 @@ QOS_DEPTH = 1000
 PROGRESS_EVERY = 10
 RESENT_COMMAND_WINDOW = 16          # the session re-sends at most the 2 Commands in force
 SILENCE_S = 3.0
+# Lockstep: seq 0 is confirmed (the plant holds seq 1 until then) only once the session's
+# Command and session_info writers, and every writer the graph lists, have matched this
+# recorder, at most this long (below the plant's recorder_timeout_s, 10 s by default). The
+# plant waits for the recorder's reader of its states, and the controller for the session's
+# Commands, but nothing waited for the session-recorder match: a 1.2 s run on a busy host
+# ended before it, and the bag had no Commands (CI, 2026-12-07).
+WRITERS_WAIT_S = 5.0
 # after a burst, let the next samples gather this long before taking them: waking for every
 # message (3 per lockstep batch) cost the 2 cores the loop needs. 3 ms is a few batches,
 # far inside the plant's recorder window (50 batches) and the readers' depth (QOS_DEPTH).
@@ -337,6 +350,7 @@ def _make_node_class():
             storage = self.declare_parameter("storage", "mcap").value
             self.stop_on_end_of_run = bool(self.declare_parameter("stop_on_end_of_run", False).value)
             flush_period_s = self.declare_parameter("flush_period_s", 0.5).value
+            self.writers_wait_s = self.declare_parameter("writers_wait_s", WRITERS_WAIT_S).value
             if "/" in bag_name or bag_name in (".", ".."):
                 raise SetupError(f"bag_name must be a plain name, got {bag_name!r}")
             path = pathlib.Path(os.path.expanduser(record_dir or ".")).resolve() / bag_name
@@ -351,8 +365,10 @@ def _make_node_class():
                 raise
             except Exception as exc:  # noqa: BLE001
                 raise SetupError(f"cannot load bike_msgs definitions: {exc}") from None
-            if not isinstance(flush_period_s, (int, float)) or isinstance(flush_period_s, bool):
-                raise SetupError(f"flush_period_s must be a number, got {flush_period_s!r}")
+            for name, value in (("flush_period_s", flush_period_s),
+                                ("writers_wait_s", self.writers_wait_s)):
+                if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < 1e6:
+                    raise SetupError(f"{name} must be a number of seconds >= 0, got {value!r}")
             # the topics our own publishers offer transient_local (session, drive emulator)
             durable = {self.resolve_topic_name(t) for t in PREFER_LATCHED}
             self.sink = BagSink(path, storage, typestore, topics, float(flush_period_s), durable)
@@ -404,6 +420,10 @@ def _make_node_class():
                 QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL))
             self.plant_states_written = 0
+            self.info_topic = self.resolve_topic_name("session_info")
+            self._pending_progress: int | None = None    # a seq to confirm once the session is matched
+            self._writers_matched = False
+            self._hold_since: float | None = None
             # every recorded topic is taken straight from one reused wait set (HotWait): the
             # executor's spin_once rebuilt a wait set over the whole node and ran a task per
             # message, ~2/3 of the recorder's CPU, and a recorder slower than the loop holds
@@ -537,10 +557,50 @@ def _make_node_class():
                     # a restarted one again from its first report (a held plant sends no new states)
                     if end or seq == 0 or self.plant_states_written == 1 \
                             or self.plant_states_written % PROGRESS_EVERY == 0:
-                        self._progress_msg.data = seq
-                        self.pub_progress.publish(self._progress_msg)
+                        self._pending_progress = seq
+                        self.release_progress()
 
             return callback
+
+        def unmatched_writers(self) -> list[str]:
+            """Recorded topics with a writer not yet matched to this recorder's reader: the
+            session's Command and session_info (always expected; their transient_local history
+            arrives however late the match), and any topic whose writers the graph lists beyond
+            the matched count (the controller's answers: while seq 0 is held the plant re-sends
+            it and the controller its answer, so a late match still records them)."""
+            out = []
+            for topic, sub in self.subs.items():
+                matched = sub.get_publisher_count()
+                if topic in (self.command_topic, self.info_topic) and matched < 1:
+                    out.append(topic)
+                elif matched < len(self.get_publishers_info_by_topic(topic)):
+                    out.append(topic)
+            return out
+
+        def release_progress(self) -> None:
+            """Report the pending written seq, held until the graph's writers have matched this
+            recorder (``writers_wait_s`` at most, then said once). Called per report and by main()'s
+            loop while one is held; graph queries only until the first match."""
+            if self._pending_progress is None:
+                return
+            if not self._writers_matched:
+                unmatched = self.unmatched_writers()
+                if not unmatched:
+                    self._writers_matched = True
+                else:
+                    now = time.monotonic()
+                    if self._hold_since is None:
+                        self._hold_since = now
+                    if now - self._hold_since < self.writers_wait_s:
+                        return
+                    self._writers_matched = True        # given up on: said once, not held again
+                    self.get_logger().warning(
+                        f"the writers of {', '.join(unmatched)} have not matched this recorder in "
+                        f"{self.writers_wait_s:g}s: recording on without waiting for them (the bag may lack "
+                        "their first messages)")
+            self._progress_msg.data = self._pending_progress
+            self._pending_progress = None
+            self.pub_progress.publish(self._progress_msg)
 
         def _flush_idle(self) -> None:
             if time.monotonic() - self.sink.last_flush_wall >= self.sink.flush_wall_s:
@@ -594,6 +654,7 @@ def main(args=None) -> int:
                 time.sleep(GATHER_S)
             elif node.check_deaf_start():
                 node = _start_over(node_class, node, args)
+            node.release_progress()
             if node.stop_on_end_of_run and node.end_of_run_seen:
                 break
         # drain: until end_of_run is recorded or SILENCE_S without messages (a second signal stops now)
