@@ -445,14 +445,24 @@ def test_recorder_puts_a_restarted_plants_run_into_a_new_bag(tmp_path, ros_domai
     assert "the plant restarted" in rec.err() and f"bag: {second}" in rec.out()
 
 
-def _progress_heard(node):
-    """A recorder_progress reader of the test's plant node; returns the list of seqs heard."""
+@contextlib.contextmanager
+def _plant_at_seq_0(tmp_path, domain, procs, bag_name: str, writers_wait_s: float):
+    """A recorder process (``writers_wait_s``) and the test's plant node, which has published
+    PlantState seq 0 and reads recorder_progress: yields (recorder, node, executor, seqs heard)."""
+    from bike_msgs.msg import PlantState
     from std_msgs.msg import UInt64
 
-    heard: list[int] = []
-    node.create_subscription(UInt64, "recorder_progress", lambda m: heard.append(int(m.data)),
-                             _qos(depth=1, latched=True))
-    return heard
+    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", f"bag_name:={bag_name}",
+                                 "-p", f"writers_wait_s:={writers_wait_s!r}"], tmp_path)
+    procs.append(rec)
+    with _publisher_node("plant", domain) as (node, executor):
+        heard: list[int] = []
+        node.create_subscription(UInt64, "recorder_progress", lambda m: heard.append(int(m.data)),
+                                 _qos(depth=1, latched=True))
+        node.pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
+        assert wait_for(lambda: node.pub_ps.get_subscription_count() >= 1, 15.0), rec.err()[-2000:]
+        node.pub_ps.publish(_stamp(PlantState(seq=0), 0))
+        yield rec, node, executor, heard
 
 
 def test_seq_0_is_confirmed_once_the_sessions_writers_have_matched_the_recorder(tmp_path, ros_domain, procs):
@@ -463,14 +473,7 @@ def test_seq_0_is_confirmed_once_the_sessions_writers_have_matched_the_recorder(
     from bike_msgs.msg import Command, PlantState
     from std_msgs.msg import String
 
-    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=held",
-                                 "-p", "writers_wait_s:=60.0"], tmp_path)
-    procs.append(rec)
-    with _publisher_node("plant", ros_domain) as (node, executor):
-        heard = _progress_heard(node)
-        pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
-        assert wait_for(lambda: pub_ps.get_subscription_count() >= 1, 15.0), rec.err()[-2000:]
-        pub_ps.publish(_stamp(PlantState(seq=0), 0))
+    with _plant_at_seq_0(tmp_path, ros_domain, procs, "held", 60.0) as (rec, node, executor, heard):
         deadline = time.monotonic() + 1.5
         while time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
@@ -485,7 +488,7 @@ def test_seq_0_is_confirmed_once_the_sessions_writers_have_matched_the_recorder(
                 executor.spin_once(timeout_sec=0.05)
                 session_exec.spin_once(timeout_sec=0.0)
             assert heard == [0], (heard, rec.err()[-2000:])
-            pub_ps.publish(_stamp(PlantState(seq=1, end_of_run=True), STEP_NS))
+            node.pub_ps.publish(_stamp(PlantState(seq=1, end_of_run=True), STEP_NS))
             t0 = time.monotonic()
             while heard[-1] != 1 and time.monotonic() - t0 < 15.0:
                 executor.spin_once(timeout_sec=0.05)
@@ -501,22 +504,13 @@ def test_seq_0_is_confirmed_once_the_sessions_writers_have_matched_the_recorder(
 def test_a_recorder_without_a_session_confirms_seq_0_after_its_wait_and_says_so(tmp_path, ros_domain, procs):
     """A graph without a session (a plant and a controller only) is still recorded: seq 0 is
     confirmed after writers_wait_s, with one warning; a bad wait is one error, exit 2."""
-    from bike_msgs.msg import PlantState
-
     bad = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=bad",
                                  "-p", "writers_wait_s:=-1.0"], tmp_path)
     assert bad.wait(30.0) == 2
     assert "writers_wait_s must be a number of seconds >= 0, got -1.0" in bad.err(), bad.err()[-2000:]
     assert "Traceback" not in bad.err()
     bad.kill()
-    rec = Proc("recorder_node", ["-p", f"record_dir:={tmp_path}", "-p", "bag_name:=alone",
-                                 "-p", "writers_wait_s:=0.5"], tmp_path)
-    procs.append(rec)
-    with _publisher_node("plant", ros_domain) as (node, executor):
-        heard = _progress_heard(node)
-        pub_ps = node.create_publisher(PlantState, "plant_state", _qos())
-        assert wait_for(lambda: pub_ps.get_subscription_count() >= 1, 15.0), rec.err()[-2000:]
-        pub_ps.publish(_stamp(PlantState(seq=0), 0))
+    with _plant_at_seq_0(tmp_path, ros_domain, procs, "alone", 0.5) as (rec, _node, executor, heard):
         t0 = time.monotonic()
         while not heard and time.monotonic() - t0 < 15.0:
             executor.spin_once(timeout_sec=0.05)
