@@ -604,26 +604,32 @@ def test_spmsm_isokinetic_holds_the_shaft_not_only_its_estimate(pole_hz):
         assert est_rms > 10.0 and swing_rms > 12.0, (est_rms, swing_rms)
 
 
+def _spmsm_isokinetic_ride(cfg, command: float, batches: int):
+    """The SPMSM bike (plant and moded controller of ``cfg``) held isokinetic at ``command``:
+    yields (batch k, the plant's snapshot the controller decided on, its status, the batch's result)."""
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant import spmsm as M
+    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
+    ctrl = ModedSpmsmController(cfg)
+    ctrl.set_command(command, MODE_ISOKINETIC)
+    for k in range(batches):
+        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)
+        duties, relay, buck, status = ctrl.decide(snap)
+        yield k, snap, status, plant.step_batch(duties, relay, buck)
+
+
 @pytest.mark.parametrize("command, flagged", [(0.6, False), (0.3, True)], ids=["80rpm-held", "50rpm-outpushed"])
 def test_spmsm_isokinetic_says_when_the_rider_outpushes_it(command, flagged):
     """Isokinetic on the SPMSM bike against a rider who wants 80 rpm: held at 80 the speed loop
     has torque to spare; held at 50 the region logic clips its brake at the current and the
     link's voltage limits and the rider averages ~75 rpm. That was said nowhere (mode_saturated
     0 %); the clipped batches are flagged now (64 %), the held ride's none."""
-    from bike_controller.spmsm_session import ModedSpmsmController
-    from bike_plant import spmsm as M
     cfg = _spmsm_cfg()
-    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
-    ctrl = ModedSpmsmController(cfg)
-    ctrl.set_command(command, MODE_ISOKINETIC)
     saturated, shaft = [], []
-    for k in range(3000):
-        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)
-        duties, relay, buck, status = ctrl.decide(snap)
+    for k, snap, status, _res in _spmsm_isokinetic_ride(cfg, command, 3000):
         if k >= 1000:
             saturated.append(bool(status["mode_saturated"]))
             shaft.append(snap["speed_rpm"] / cfg["load"]["gear_ratio"])
-        plant.step_batch(duties, relay, buck)
     target_rpm = 20.0 + command * 100.0
     if flagged:
         assert np.mean(shaft) > target_rpm + 15.0 and np.mean(saturated) > 0.3, (np.mean(shaft), np.mean(saturated))
@@ -637,17 +643,8 @@ def test_spmsm_isokinetic_reports_the_quadrant_its_speed_loop_is_in(command, gen
     own torque (iq*): against a rider who wants 80 rpm, held at 70 it brakes (generating, into the
     battery), held at 100 it assists. The status said quadrant I (motoring) throughout, and
     DriveCommand.torque_cmd_nm (motoring positive by the quadrant) carried the brake as assist."""
-    from bike_controller.spmsm_session import ModedSpmsmController
-    from bike_plant import spmsm as M
-    cfg = _spmsm_cfg()
-    plant = M.SpmsmPlant(M.plant_params_from_config(cfg))
-    ctrl = ModedSpmsmController(cfg)
-    ctrl.set_command(command, MODE_ISOKINETIC)
     said, braked = [], []
-    for k in range(2000):
-        snap = dict(plant.snapshot(), batch_periods=ctrl.batch_periods)
-        duties, relay, buck, status = ctrl.decide(snap)
-        res = plant.step_batch(duties, relay, buck)
+    for k, _snap, status, res in _spmsm_isokinetic_ride(_spmsm_cfg(), command, 2000):
         if k >= 1000:
             sign = 1.0 if status["quadrant"] == 2 else -1.0
             said.append(sign * status["torque_cmd_nm"])
