@@ -70,6 +70,27 @@ def test_bad_config_values_name_the_key(cfg, key, value, needle):
     assert needle in str(exc.value)
 
 
+@pytest.mark.parametrize("section,values,key", [
+    ("load", {"kind": "prime_mover", "speed_rpm": -3000.0}, "load.speed_rpm"),
+    ("load", {"kind": "prime_mover", "schedule_time_s": [0.0, 1.0], "schedule_speed_rpm": [2000.0, -1000.0]},
+     "load.schedule_speed_rpm"),
+    ("mechanics", {"speed0_rpm": -500.0}, "mechanics.speed0_rpm"),
+])
+def test_reverse_rotation_is_refused_naming_the_key(cfg, section, values, key):
+    """The controller commutates for forward rotation only (paper 000, quadrants I and II of
+    Fig. 3): turned backwards, its generating pattern (low switch of the +E phase of forward
+    rotation) builds no current. A prime mover at -3000 rpm braked 0.000 N m and 0 A for
+    Command 0.5 while the status showed 1.47 N m and 30 A commanded; refused up front."""
+    bad = config_variant(cfg, **{section: values})
+    with pytest.raises(ConfigError) as exc:
+        P.plant_params_from_config(bad)
+    msg = str(exc.value)
+    assert key in msg and "forward" in msg and msg.count("error") <= 1
+    # forward and standstill stay accepted
+    ok = config_variant(cfg, load={"kind": "prime_mover", "speed_rpm": 0.0}, mechanics={"speed0_rpm": 0.0})
+    P.plant_params_from_config(ok)
+
+
 def test_nominal_params_switch_off_nonidealities(cfg):
     c = config_variant(cfg, bldc={"inductance_variation": 0.2, "emf_nonideal": True}, controller={"model": "nominal"})
     nom = P.nominal_params_from_config(c)

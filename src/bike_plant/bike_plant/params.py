@@ -331,7 +331,30 @@ def plant_params_from_config(cfg: dict) -> PlantParams:
     emf_problem = riding_emf_problem(params)
     if emf_problem:
         raise ConfigError(emf_problem, path, "bldc.ke_v_per_rpm")
+    reverse = reverse_speed_problem(params)
+    if reverse:
+        raise ConfigError(reverse[1], path, reverse[0])
     return params
+
+
+def reverse_speed_problem(p: PlantParams) -> tuple[str, str] | None:
+    """(key, message) of a speed the load would turn the shaft backwards at, or None. The
+    controller commutates for forward rotation only (paper 000 brakes in quadrant II and
+    assists in quadrant I of Fig. 3; reverse braking, quadrant IV, is not implemented):
+    turned backwards, the phase its generating pattern chops is at -E, no current builds and
+    nothing brakes, while the status reports the torque commanded (a prime mover at -3000 rpm:
+    0 N m and 0 A for 1.47 N m and 30 A asked)."""
+    load = p.load
+    speeds = [("mechanics.speed0_rpm", p.mech.speed0_rpm)]
+    if load.kind == "prime_mover":
+        speeds += [("load.speed_rpm", load.speed_rpm)] + [
+            ("load.schedule_speed_rpm", float(v)) for v in load.schedule_speed_rpm]
+    for key, rpm in speeds:
+        if rpm < 0.0:
+            return key, (f"{rpm:g} rpm turns the BLDC bike backwards: its controller brakes and assists forward "
+                         "rotation only (paper 000, quadrants II and I of Fig. 3), backwards it would brake nothing "
+                         "under any Command; give a speed >= 0")
+    return None
 
 
 def emf_speed_limit_rpm(p: PlantParams) -> float:
