@@ -12,6 +12,14 @@ f_x is the 120-degree flat-top trapezoid (paper 000, Fig. 4), optionally blended
 sinusoid at low speed (section 4.3, Fig. 11: the reason for k < 1). Torque (motoring
 positive): T = sum(kph f_x i_x) + 1/2 sum(i_x^2 dL_x/dtheta_m).
 
+Switches and diodes are ideal (no forward drop, no switching loss; r_phase_ohm lumps the
+switch on-resistance into the winding): Table 1 gives no device data and Eq. 6 neglects
+losses. They would matter at the low end of Fig. 14: with a typical IGBT's ~1.5 V and a
+diode's ~1 V in the Q2-D4 loop of Fig. 6(a) no current builds until E_LL = ke n > ~2.5 V,
+i.e. below ~460 rpm nothing brakes. So the ledger's losses are copper + friction only, and
+the battery's share is at its terminals (its internal resistance's heat included: 4.6 % of
+it at 3000 rpm, Command 1).
+
 Integration: per segment of constant switch pattern, one trapezoidal (Crank-Nicolson)
 step per phase with the back-EMF held at the mid-period angle:
     g_x = t / (L_x + R_x t / 2),  w_x = v_x - e_x - R_x i0_x,
@@ -1341,7 +1349,10 @@ def new_state(p: np.ndarray, speed_rpm: float, soc0: float) -> np.ndarray:
 
 
 def ledger_of(state: np.ndarray, p: np.ndarray) -> dict:
-    """Energy ledger [J], cumulative since start. residual = in - out - stored (should be ~0)."""
+    """Energy ledger [J], cumulative since start. residual = in - out - stored (should be ~0).
+
+    energy_battery_j is at the pack's terminals (its internal resistance's heat included);
+    energy_loss_j is copper + friction (ideal switches and diodes: module docstring)."""
     e_mech = state[S_E_MECH]
     e_batt = state[S_E_BATT]
     e_res = state[S_E_RES]
