@@ -1013,6 +1013,58 @@ def test_against_the_drive_emulator_in_process(rig):
     assert emu.counters.get("rx:Set_Input_Torque", 0) >= 100
 
 
+def _batches_until(b, torque_nm, done, seconds: float = 30.0) -> None:
+    """Batches of 5 ms with DriveCommand ``torque_nm`` (None: the safe state's) until ``done()``."""
+    give_up = time.monotonic() + seconds
+    while not done():
+        assert time.monotonic() < give_up, "timed out"
+        b.service()
+        if torque_nm is None:
+            b.safe_batch(1)
+        else:
+            msg = Cmd(torque_nm)
+            b.submit(msg)
+            b.apply(msg)
+        time.sleep(0.005)
+
+
+def test_the_safe_state_idles_the_drive_whatever_feeds_its_watchdog(rig):
+    """A drive whose watchdog every frame to the axis feeds (the open 0.5.x firmware does, RTR
+    requests included; what feeds 0.6.x's is not published) stayed armed through the safe state:
+    the plant's RTR requests fed it, so "the drive disarms itself" did not hold. The plant now
+    sets it IDLE when the safe state begins (and again if it shows armed), re-arms it when
+    DriveCommands are back, and leaves it IDLE when it closes."""
+    r = rig(watchdog_feed_s=0.1)
+    params = DriveModelParams.from_config(r.cfg)
+    fw = DriveFirmware(AverageTorqueDrive(params), watchdog_timeout_s=0.5, watchdog_fed_by="any")
+    emu = DriveEmulator(r.drive_bus, fw, 0)
+    stop = threading.Event()
+    thread = threading.Thread(target=emu.run, args=(stop,), daemon=True)
+    thread.start()
+    b = r.backend
+    try:
+        _batches_until(b, -0.5, lambda: b.drive_enabled and fw.input_torque_nm == pytest.approx(-0.5))
+        b.set_safe(True)                                  # the node's DriveCommand timeout
+        requests = emu.counters.get("rx:Get_Torques?", 0)
+        end = time.monotonic() + 1.0                      # twice the drive's watchdog timeout
+        _batches_until(b, None, lambda: time.monotonic() > end)
+        assert emu.counters.get("rx:Get_Torques?", 0) > requests + 20, "the plant kept requesting"
+        assert fw.axis_state == AxisState.IDLE, "the safe state left the drive armed"
+        assert not fw.active_errors & WATCHDOG, "IDLE by request, not a watchdog trip"
+        assert b.faults == FAULT_DRIVE_DISARMED and b.time_frozen
+        b.set_safe(False)                                 # DriveCommands are back: re-armed
+        _batches_until(b, -0.5, lambda: b.drive_enabled and fw.input_torque_nm == pytest.approx(-0.5))
+        assert fw.armed and b.faults == 0 and b.stats()["arm_gave_up"] == 0
+        b.close()                                         # end of run / Ctrl-C
+        end = time.monotonic() + 0.2
+        while time.monotonic() < end and fw.armed:
+            time.sleep(0.01)
+        assert fw.axis_state == AxisState.IDLE, "a clean shutdown leaves the drive IDLE"
+    finally:
+        stop.set()
+        thread.join(5.0)
+
+
 # ----------------------------------------------------------------------------- config
 def test_config_section_and_emulator_arguments(tmp_path):
     cfg = load_config(CAN_CONFIG)

@@ -734,7 +734,9 @@ def test_spmsm_plant_physics_over_the_bus_with_its_realtime_margin(emulator_fact
                                         (["--node-id", "64"], "--node-id must be in 0..62"),
                                         # 0x3F: ODrive 0.6.x broadcast id (ODriveResources can_enumerate.py)
                                         (["--node-id", "63"], "0..62 for odrive_cansimple_0.6, got 63 (63 = 0x3F "
-                                                              "is the ODrive broadcast id")])
+                                                              "is the ODrive broadcast id"),
+                                        (["--protocol", "vesc_can", "--watchdog-fed-by", "any"],
+                                         "a VESC resets its command timeout on commands only")])
 def test_a_bad_option_is_one_error_and_exit_2(args, words):
     """Bad options are one line naming the option, exit 2, no traceback (before any bus work)."""
     import contextlib

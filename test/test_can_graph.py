@@ -42,7 +42,6 @@ LOST = PlantState.FAULT_DRIVE_LOST
 HEARTBEAT_TIMEOUT_S = 0.3                 # 3 x 100 ms (config/bldc_can.yaml)
 SLACK_S = 0.3                             # scheduling + DDS on a loaded 2-core machine
 COMPILE_S = 120.0                         # a cold numba cache: the controller compiles first
-WATCHDOG_NAME = "WATCHDOG_TIMER_EXPIRED"
 
 
 def _port() -> int:
@@ -491,23 +490,27 @@ def test_garbage_is_counted_then_a_silent_drive_pauses_the_session(rig):
         "the silent drive stopped itself: its watchdog was no longer fed"
 
 
-def test_controller_killed_the_drive_watchdog_trips_and_the_plant_reports_it(rig):
+def test_controller_killed_the_plant_idles_the_drive_and_a_dead_plant_trips_its_watchdog(rig):
+    """The controller dies: the plant's command timeout sets the drive IDLE itself (on a drive whose
+    watchdog every frame feeds, as the open 0.5.x firmware's, its RTR requests kept it armed before);
+    a new controller re-arms it. The plant dies: the drive's own watchdog stops the torque."""
     r = rig()
-    r.emulator("--watchdog-s", "0.5")
+    r.emulator("--watchdog-s", "0.5", "--watchdog-fed-by", "any")
     r.wait_for(r.braking, 40, "braking through the drive")
     n = len(r.col.data["/diagnostics"])
     k_kill = len(r.states)
     t_kill = time.monotonic()
     os.killpg(r.controller.pid, signal.SIGKILL)
-    # the plant's command timeout (0.25 s) -> zero torque, watchdog no longer fed -> the drive disarms
-    r.wait_for(lambda: any(value(s, "can_axis_error") == WATCHDOG_NAME for s in r.diagnostics(n)), 5,
-               "the drive's watchdog error in the plant's diagnostic")
-    s = next(s for s in r.diagnostics(n) if value(s, "can_axis_error") == WATCHDOG_NAME)
-    assert s.level == DiagnosticStatus.ERROR and WATCHDOG_NAME in s.message
-    assert "no DriveCommand" in s.message
-    r.wait_for(lambda: any(err & int(ODriveError.WATCHDOG_TIMER_EXPIRED) and state == 1
-                           for err, state in r.listener.heartbeats_after(t_kill)), 3,
-               "the drive's heartbeat: IDLE with WATCHDOG_TIMER_EXPIRED")
+    # the plant's command timeout (0.25 s) -> zero torque and Set_Axis_State IDLE
+    r.wait_for(lambda: any("set IDLE by this plant" in s.message for s in r.diagnostics(n)), 5,
+               "the plant's diagnostic: the drive set IDLE for the safe state")
+    s = next(s for s in r.diagnostics(n) if "set IDLE by this plant" in s.message)
+    assert s.level == DiagnosticStatus.ERROR and "no DriveCommand" in s.message
+    r.wait_for(lambda: any(state == 1 for err, state in r.listener.heartbeats_after(t_kill)), 3,
+               "the drive's heartbeat: IDLE")
+    assert _frames_after(r.listener, t_kill, 0x07, 1), "Set_Axis_State IDLE on the bus"
+    assert not any(err & int(ODriveError.WATCHDOG_TIMER_EXPIRED) for err, _ in r.listener.heartbeats_after(t_kill)), \
+        "IDLE by the plant's request, not by a watchdog trip"
     assert r.listener.torques_after(t_kill)[-1] == 0.0, "zero torque was the last setpoint"
     # from the plant's first timed-out state on, every state says so. (In the stream's own
     # order: on a loaded host this test's reader lags, and states published before the
@@ -521,7 +524,7 @@ def test_controller_killed_the_drive_watchdog_trips_and_the_plant_reports_it(rig
     frozen = max(r.clock_ns())
     time.sleep(0.3)
     assert max(r.clock_ns()) == frozen, "sim time stands while the drive is disarmed"
-    # a new controller: Clear_Errors + closed loop, braking again
+    # a new controller: re-armed (Clear_Errors + closed loop), braking again
     ctrl2 = r.node("bike_controller", "controller_node")
     k = len(r.states)
     r.wait_for(lambda: len(r.states) > k + 20 and r.braking(), 30, "recovery with a new controller")

@@ -84,7 +84,11 @@ Modelling choices (what a host sees):
   by the drive incl. its brake resistor (positive = discharging); Electrical_Power =
   mechanical power + copper loss;
 * watchdog (0.6.x: axis.config.watchdog_timeout): fed by Set_Input_Torque,
-  Set_Input_Vel and Set_Axis_State; checked only in CLOSED_LOOP_CONTROL; on expiry the
+  Set_Input_Vel and Set_Axis_State (``--watchdog-fed-by any``: by every frame addressed to
+  the axis, RTR requests included, as the open 0.5.x firmware does: odriverobotics/ODrive
+  Firmware/communication/can/can_simple.cpp, do_command() calls axis.watchdog_feed() before
+  it looks at the command; what the closed 0.6.x firmware feeds it with is not published
+  beyond the can_watchdog.py example); checked only in CLOSED_LOOP_CONTROL; on expiry the
   axis drops to IDLE with ODRIVE_ERROR_WATCHDOG_TIMER_EXPIRED = 0x01000000 (source:
   odriverobotics/ros_odrive odrive_base/include/odrive_enums.h) in Axis_Error,
   Active_Errors and Disarm_Reason, Procedure_Result DISARMED (3), torque zero;
@@ -706,15 +710,25 @@ def make_drive_model(cfg: dict, physics: str = "plant", *, load_kind: str | None
 
 # =======================================================================================
 # firmware
+#: What feeds the emulated axis's watchdog (see the module doc): 'commands' or 'any' frame to the axis
+WATCHDOG_FED_BY = ("commands", "any")
+
+
 class DriveFirmware:
     """ODrive-like axis logic (no CAN, no clock: callers pass monotonic times in seconds)."""
 
     def __init__(self, model: AverageTorqueDrive, *, watchdog_timeout_s: float = 0.5,
                  velocity_limit_rev_s: float = 100.0, current_limit_a: float | None = None,
                  vel_gain_nm_per_rev_s: float = 0.5, vel_integrator_gain_nm_per_rev: float = 2.0,
-                 vel_ramp_rate_rev_s2: float = 50.0, log: Callable[[str], None] | None = None):
+                 vel_ramp_rate_rev_s2: float = 50.0, watchdog_fed_by: str = "commands",
+                 log: Callable[[str], None] | None = None):
+        if watchdog_fed_by not in WATCHDOG_FED_BY:
+            raise ValueError(f"watchdog_fed_by must be one of {', '.join(WATCHDOG_FED_BY)}, got {watchdog_fed_by!r}")
         self.model = model
         self.watchdog_timeout_s = float(watchdog_timeout_s)     # 0: watchdog disabled
+        # 'commands': Set_Input_Torque / Set_Input_Vel / Set_Axis_State feed it (the 0.6.x example);
+        # 'any': every frame to the axis does, RTR requests included (0.5.x can_simple.cpp)
+        self.watchdog_fed_by = watchdog_fed_by
         self.velocity_limit_rev_s = float(velocity_limit_rev_s)
         self.current_limit_a = float(current_limit_a if current_limit_a is not None
                                      else model.params.current_limit_a)
@@ -1222,6 +1236,8 @@ class DriveEmulator:
                 self._count("echo")
                 return
             result = self.codec.classify(msg, self.host_to_drive, answers_requests=True)
+            if self.firmware.watchdog_fed_by == "any" and self._addressed_to_axis(msg):
+                self.firmware.feed_watchdog(now_s)      # 0.5.x: before the command is even looked at
             if isinstance(result, str):
                 self._count(result)
                 return
@@ -1232,6 +1248,15 @@ class DriveEmulator:
             self._apply(result.name, result.signals, now_s)
         except Exception:  # noqa: BLE001 -- a frame must never crash the drive
             self._count("decode_error")
+
+    def _addressed_to_axis(self, msg: can.Message) -> bool:
+        """A data or RTR frame with this axis's node id in the protocol's id format (what an
+        ODrive's CAN filter hands to the axis), whatever its command."""
+        arb = msg.arbitration_id
+        if msg.is_error_frame or bool(msg.is_extended_id) != self.codec.extended_id or \
+                not isinstance(arb, int) or not 0 <= arb <= self.codec.id_max:
+            return False
+        return self.codec.split_id(arb)[0] == self.node_id
 
     def _apply(self, name: str, s, now_s: float) -> None:
         fw = self.firmware
@@ -1537,6 +1562,10 @@ def build_arg_parser() -> argparse.ArgumentParser:
                        ("Get_Powers", "powers"), ("Get_Error", "error")):
         drv.add_argument(f"--{flag}-ms", type=float, default=0.0, help=f"{name} period (default 0: RTR only)")
     drv.add_argument("--watchdog-s", type=float, default=0.5, help="watchdog timeout (default 0.5; 0 disables)")
+    drv.add_argument("--watchdog-fed-by", choices=WATCHDOG_FED_BY, default="commands",
+                     help="what feeds the watchdog: commands (default: Set_Input_Torque, Set_Input_Vel, "
+                          "Set_Axis_State, as ODrive's 0.6.x can_watchdog.py example says) or any frame to the axis, "
+                          "RTR requests included (the open 0.5.x firmware's can_simple.cpp)")
     drv.add_argument("--current-limit-a", type=float, default=None,
                      help="initial current limit (default: controller.current_limit_a of the config)")
     drv.add_argument("--velocity-limit-rev-s", type=float, default=100.0, help="initial velocity limit (motor)")
@@ -1653,6 +1682,9 @@ def main(argv: list[str] | None = None) -> int:
         if not (args.physics_hz > 0 and args.current_tau_s > 0 and args.substeps >= 1):
             raise ValueError("--physics-hz, --current-tau-s must be > 0 and --substeps >= 1")
         fault_error = parse_fault(args.fault)
+        if args.watchdog_fed_by != "commands" and EMULATED_PROTOCOLS[args.protocol] is VescEmulator:
+            raise ValueError("--watchdog-fed-by any: a VESC resets its command timeout on commands only "
+                             "(vedderb/bldc comm_can.c: timeout_reset() after SET_CURRENT, SET_RPM, ...)")
         if args.fault_persist < -1:
             raise ValueError(f"--fault-persist must be >= -1, got {args.fault_persist}")
         if not all(math.isfinite(t) and t >= 0 for t in args.fault_at_s):
@@ -1701,7 +1733,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     firmware_kwargs = dict(watchdog_timeout_s=args.watchdog_s, velocity_limit_rev_s=args.velocity_limit_rev_s,
                            current_limit_a=args.current_limit_a, vel_gain_nm_per_rev_s=args.vel_gain,
-                           vel_integrator_gain_nm_per_rev=args.vel_integrator_gain, log=log)
+                           vel_integrator_gain_nm_per_rev=args.vel_integrator_gain,
+                           watchdog_fed_by=args.watchdog_fed_by, log=log)
     emulator_class = EMULATED_PROTOCOLS[args.protocol]
     if emulator_class is VescEmulator:
         firmware = VescFirmware(model, pole_pairs=pole_pairs, **firmware_kwargs)

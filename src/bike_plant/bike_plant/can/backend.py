@@ -83,9 +83,14 @@ What it does
     loop by other means, or it was lost and is back (a reboot; not a late gap, a blip seen
     only after the fact), or in a new run; DriveCommands that stop and resume (a stalled
     controller) change nothing at the drive, so they neither restart nor add to the count;
-  - :meth:`set_safe` (the node's DriveCommand timeout): zero torque, then the watchdog is
-    no longer fed, so the drive disarms itself after its own watchdog timeout
-    (WATCHDOG_TIMER_EXPIRED, reported in the diagnostic); re-armed when commands return;
+  - :meth:`set_safe` (the node's DriveCommand timeout): zero torque and Set_Axis_State IDLE
+    (again whenever a Heartbeat shows the axis armed while it lasts), and the watchdog is no
+    longer fed; re-armed when commands return. The plant does not leave the disarming to the
+    drive's watchdog: the RTR requests it keeps sending would feed that watchdog on a firmware
+    that feeds it on every frame to the axis (the open 0.5.x firmware does:
+    odriverobotics/ODrive Firmware/communication/can/can_simple.cpp, do_command(); what feeds
+    the closed 0.6.x firmware's is not published), keeping the drive armed at zero torque.
+    A VESC has no IDLE: its SET_CURRENT 0 is not repeated, so its command timeout releases it;
   - frames that are error frames, of unknown ids, of the wrong length, NaN / inf or
     outside the DBC's ranges are counted and ignored by the protocol layer, never raised.
 * Statistics (:meth:`stats`), shown in the plant's diagnostic (keys ``can_*``) and by
@@ -330,7 +335,13 @@ class CanBackend:
 
     name = "can"
     measured_by_drive = True
-    safe_state_text = "zero torque, then the drive's watchdog is no longer fed"
+
+    @property
+    def safe_state_text(self) -> str:
+        """What the node's diagnostic says the safe state is on this drive."""
+        if self.drive.has_arming:
+            return "zero torque and the drive set IDLE"
+        return "zero torque, not repeated: the drive's command timeout releases the motor"
 
     def __init__(self, cfg: dict, *, bus: can.BusABC | None = None, log_file: str | None = None,
                  clock: Callable[[], float] = time.monotonic, wall_clock: Callable[[], float] = time.time):
@@ -413,6 +424,7 @@ class CanBackend:
         self.seen = False              # a heartbeat arrived once
         self.lost = False              # seen, then silent for heartbeat_timeout_s
         self.safe = False              # the node's DriveCommand timeout
+        self.safe_idle_s = -math.inf   # when the safe state last sent Set_Axis_State IDLE
         self.commanded = False         # valid DriveCommands are flowing: the drive should be armed
         self.was_enabled = False
         self.configured = False        # Set_Controller_Mode (torque) sent since the link came up
@@ -609,6 +621,10 @@ class CanBackend:
                                      "): FAULT_DRIVE_DISARMED, sim time paused")
             self.was_enabled = enabled
             self._arming(now, enabled)
+            if self.safe and enabled and now - self.safe_idle_s >= self.params.heartbeat_period_s:
+                # armed in the safe state (an arming still in flight, or armed by other means): IDLE
+                # again, once per heartbeat period at most
+                self._idle_for_safe_state(now)
             self._request(now)
         self._update_stale(now)
         if self.link_alive:
@@ -1096,11 +1112,12 @@ class CanBackend:
         self._advance()
 
     def set_safe(self, on: bool) -> None:
-        """The node's DriveCommand timeout: zero torque and stop feeding the watchdog (the
-        drive disarms itself after its watchdog timeout); off: re-arm with the next command.
+        """The node's DriveCommand timeout: zero torque, Set_Axis_State IDLE (not left to the
+        drive's watchdog, which this plant's RTR requests may feed; see the module doc), and
+        the setpoint is no longer repeated; off: re-arm with the next command.
 
         A stalled controller is no news about the drive: a drive armed when the safe state
-        begins is released by this plant (its watchdog trip is no failed attempt), so its
+        begins is released by this plant (its IDLE is no failed attempt), so its
         count starts over; one that was refusing keeps its count and backoff, and a give-up
         stands when DriveCommands resume (see :meth:`_arming`)."""
         if on and not self.safe:
@@ -1114,10 +1131,20 @@ class CanBackend:
             self.sent_msg = None
             if self.link_alive:
                 self._send_setpoint(0.0)
+                self._idle_for_safe_state(self.clock())
             self.drive.forget_setpoint()
             self.counters["safe_state"] += 1
         elif not on and self.safe:
             self.safe = False
+
+    def _idle_for_safe_state(self, now: float) -> None:
+        """Set_Axis_State IDLE (drives with an armed state): the safe state does not rely on the
+        drive's watchdog, which this plant's own RTR requests may feed (see the module doc)."""
+        if not self.drive.has_arming:
+            return
+        self.safe_idle_s = now
+        if self.drive.disable():
+            self.counters["safe_idle"] += 1
 
     # ------------------------------------------------------------------ time and ledger
     def _advance(self) -> None:
@@ -1205,7 +1232,8 @@ class CanBackend:
             "torque_clamped": self.counters["torque_clamped"], "drive_lost": self.counters["drive_lost"],
             "drive_back": self.counters["drive_back"], "armed": self.counters["armed"],
             "disarmed": self.counters["disarmed"], "enable_attempts": self.counters["enable_attempts"],
-            "safe_state": self.counters["safe_state"], "frozen_batches": self.counters["frozen_batches"],
+            "safe_state": self.counters["safe_state"], "safe_idle": self.counters["safe_idle"],
+            "frozen_batches": self.counters["frozen_batches"],
             "arm_gave_up": self.counters["arm_gave_up"], "ramped_setpoints": self.counters["ramped_setpoints"],
             "heartbeat_gaps": self.counters["heartbeat_gaps"], "taken_over": self.counters["taken_over"],
             "foreign_commands": self.counters["foreign_commands"],
@@ -1274,6 +1302,8 @@ class CanBackend:
                 elif self.commanded and not self.safe:
                     why = (f"re-arming (Clear_Errors + closed loop), attempt {self.arm_attempts} of {max_attempts}, "
                            f"next in {max(0.0, self.last_enable_s + self.retry_interval_s() - now):.1f}s")
+                elif self.safe and drive.has_arming:
+                    why = "set IDLE by this plant: no DriveCommands (safe state), re-armed when they are back"
                 else:
                     why = "waiting for DriveCommands"
                 reasons.append(f"drive {'disarmed' if disarmed else 'idle'}: alive but not in closed-loop control "
