@@ -790,6 +790,35 @@ def test_a_disarmed_drive_is_a_fault_and_re_arming_is_bounded(rig):
     assert b.faults == 0 and b.time_s > t_frozen and b.diagnostic()[0] == 0
 
 
+ESTOP = int(ODriveError.ESTOP_REQUESTED)
+
+
+def test_an_emergency_stop_is_never_cleared_by_the_plant(rig):
+    """A drive disarmed with ESTOP_REQUESTED (an Estop frame from an e-stop node or another host)
+    is held: the plant's re-arming sent Clear_Errors and closed loop at once, so the rider had the
+    torque back one batch after the emergency stop. FAULT_DRIVE_DISARMED and an ERROR that say so;
+    armed again when the e-stop is cleared on the drive (its errors change)."""
+    clock = Clock()
+    r = armed(rig, clock, enable_retry_s=0.2, enable_max_attempts=3)
+    b = r.backend
+    _ride(r, clock, 0.2, AxisState.CLOSED_LOOP_CONTROL)
+    b.pop_events()
+    frames = _ride(r, clock, 3.0, AxisState.IDLE, ESTOP)
+    assert [n for _, n, _ in frames if n in ("Clear_Errors", "Set_Axis_State")] == [], "the e-stop was cleared"
+    assert b.faults == FAULT_DRIVE_DISARMED and b.time_frozen
+    level, reasons, values = b.diagnostic()
+    assert level == 2 and any("emergency stop" in x and "never clears" in x for x in reasons), reasons
+    assert values["can_arming"] == "estop" and values["can_axis_error"] == "ESTOP_REQUESTED"
+    events = b.pop_events()
+    assert sum(level == "error" and "emergency stop" in text for level, text in events) == 1, events
+    frames = _ride(r, clock, 3.0, AxisState.IDLE, ESTOP | DRV_FAULT)      # with another error: still held
+    assert [n for _, n, _ in frames if n in ("Clear_Errors", "Set_Axis_State")] == []
+    frames = _ride(r, clock, 0.05, AxisState.IDLE, 0)                    # cleared on the drive: re-armed
+    assert len(_arm_times(frames)) == 1
+    _ride(r, clock, 0.1, AxisState.CLOSED_LOOP_CONTROL)
+    assert b.faults == 0 and b.stats()["arm_gave_up"] == 0
+
+
 def _flaky_drive(r, clock, seconds: float, hold_s: float, step_s: float = 0.05) -> list[float]:
     """A scripted drive that arms when the host asks (Clear_Errors + Set_Axis_State 8) and
     trips with DRV_FAULT after ``hold_s`` in closed loop. Returns the host's arm times."""

@@ -82,7 +82,9 @@ What it does
     counts as failed), then it gives up until the drive's errors change, it reaches closed
     loop by other means, or it was lost and is back (a reboot; not a late gap, a blip seen
     only after the fact), or in a new run; DriveCommands that stop and resume (a stalled
-    controller) change nothing at the drive, so they neither restart nor add to the count;
+    controller) change nothing at the drive, so they neither restart nor add to the count.
+    An emergency stop (ESTOP_REQUESTED) is never cleared or re-armed by the plant: it waits
+    until someone clears it on the drive;
   - :meth:`set_safe` (the node's DriveCommand timeout): zero torque and Set_Axis_State IDLE
     (again whenever a Heartbeat shows the axis armed while it lasts), and the watchdog is no
     longer fed; re-armed when commands return. The plant does not leave the disarming to the
@@ -433,6 +435,7 @@ class CanBackend:
         self.arm_attempts = 0
         self.gave_up = False
         self.gave_up_errors = 0        # drive errors when we gave up (a change starts a new episode)
+        self.estop = False             # the drive reports ESTOP_REQUESTED: never cleared here
         self.ever_armed = False        # the drive was in closed loop at least once
         self.armed_since_s = None
         self.first_attempt_s = None
@@ -940,6 +943,7 @@ class CanBackend:
         p = self.params
         drive = self.drive
         if enabled:
+            self.estop = False               # (cleared and armed on the drive by someone else)
             if self.gave_up:
                 self._new_arming_episode("the drive is in closed-loop control")
             if self.arm_attempts and self.armed_since_s is not None and now - self.armed_since_s >= p.armed_stable_s:
@@ -951,6 +955,8 @@ class CanBackend:
                 self._new_arming_episode(f"the drive's errors changed to {error_names(drive.active_errors) or 'none'}")
             else:
                 return
+        if self._estop_held(drive.active_errors):
+            return
         if not self.commanded or self.safe:
             return
         if now - self.last_enable_s < self.retry_interval_s():
@@ -967,6 +973,21 @@ class CanBackend:
                                  "when it is armed by other means (odrivetool)")
             return
         self._arm(now)
+
+    def _estop_held(self, errors: int) -> bool:
+        """An emergency stop (ESTOP_REQUESTED: an Estop frame from an e-stop node or another host)
+        is someone's decision, not a trip: this plant never clears it (Clear_Errors would, and the
+        closed loop after it would give the rider the torque back at once). True while it holds;
+        logged once; when it is cleared on the drive, a new arming episode starts."""
+        estop = bool(errors & ODriveError.ESTOP_REQUESTED)
+        if estop and not self.estop:
+            self._event("error", f"emergency stop on the drive ({self._axis_text()}, errors "
+                                 f"{', '.join(error_names(errors))}): this plant never clears it; FAULT_DRIVE_DISARMED,"
+                                 " sim time paused; clear it on the drive (odrivetool: odrv0.clear_errors()) to go on")
+        elif self.estop and not estop:
+            self._new_arming_episode("the emergency stop was cleared on the drive")
+        self.estop = estop
+        return estop
 
     def _take_over_armed_drive(self) -> None:
         """The drive is in closed-loop control, but not because this plant armed it since the
@@ -1295,7 +1316,10 @@ class CanBackend:
                 disarmed = self.disarmed
                 level = max(level, ERROR if disarmed else WARN)
                 max_attempts = p.enable_max_attempts or "unlimited"
-                if self.gave_up:
+                if self.estop:
+                    why = ("emergency stop (ESTOP_REQUESTED): this plant never clears it; clear it on the drive "
+                           "(odrivetool: odrv0.clear_errors()) and it re-arms")
+                elif self.gave_up:
                     why = (f"gave up re-arming after {self.arm_attempts} attempts; the plant tries again when the "
                            "drive's errors change or after it reboots (or in a new run), or takes it over when it "
                            "is armed by other means")
@@ -1316,7 +1340,8 @@ class CanBackend:
         values.update({
             "can_interface": p.interface, "can_channel": p.channel, "can_node_id": str(p.node_id),
             "can_link": "lost" if self.lost else ("alive" if self.seen else "waiting"),
-            "can_arming": ("gave_up" if self.gave_up else "armed" if self.drive_enabled
+            "can_arming": ("estop" if self.estop and not self.drive_enabled else "gave_up" if self.gave_up
+                           else "armed" if self.drive_enabled
                            else f"attempt {self.arm_attempts}" if self.arm_attempts else "idle"),
             "can_axis_state": str(drive.axis_state) if drive.has_arming else "none",
             "can_axis_error": "|".join(error_names(drive.active_errors)) or "none",
