@@ -790,6 +790,31 @@ def test_a_disarmed_drive_is_a_fault_and_re_arming_is_bounded(rig):
     assert b.faults == 0 and b.time_s > t_frozen and b.diagnostic()[0] == 0
 
 
+def test_a_drive_armed_by_other_means_after_the_give_up_is_taken_over(rig):
+    """After the plant gave up (or while an e-stop holds it) it sends no arming frame, so a drive
+    that reaches closed loop then was armed by someone else (odrivetool), in a control mode of
+    their choosing: the plant said it takes it over, but it sent torques straight away (in
+    velocity control Input_Torque is only a feed-forward). Now zero torque and
+    Set_Controller_Mode torque / passthrough first, as for a drive found armed at start."""
+    for error in (DRV_FAULT, ESTOP):
+        clock = Clock()
+        r = armed(rig, clock, enable_retry_s=0.2, enable_max_attempts=3)
+        b = r.backend
+        _ride(r, clock, 0.2, AxisState.CLOSED_LOOP_CONTROL)
+        _ride(r, clock, 3.0, AxisState.IDLE, error)
+        assert b.gave_up or b.estop
+        taken_over = b.stats()["taken_over"]             # (1: the rig's drive was found armed)
+        frames = [(n, v) for _, n, v in _ride(r, clock, 0.2, AxisState.CLOSED_LOOP_CONTROL)]   # errors cleared
+        names = [n for n, _ in frames]
+        assert "Set_Controller_Mode" in names, f"not taken over (error {error:#x}): {names}"
+        first_mode = names.index("Set_Controller_Mode")
+        assert frames[first_mode][1] == {"Control_Mode": 1, "Input_Mode": 1}
+        assert all(v["Input_Torque"] == 0.0 for n, v in frames[:first_mode] if n == "Set_Input_Torque")
+        assert b.stats()["taken_over"] == taken_over + 1 and b.faults == 0
+        assert any("armed by other means" in text for _, text in b.pop_events())
+
+
+ESTOP = int(ODriveError.ESTOP_REQUESTED)
 ESTOP = int(ODriveError.ESTOP_REQUESTED)
 
 

@@ -604,8 +604,12 @@ class CanBackend:
         if self.link_alive:
             enabled = drive.enabled
             if enabled and not self.was_enabled:
-                if not self.configured and drive.has_arming:
-                    self._take_over_armed_drive()
+                # armed, but not by this plant's arming: it had not configured it since the link came
+                # up, or it had stopped arming it (given up, or an e-stop held): someone else did
+                by_others = "after this plant gave up arming it" if self.gave_up else \
+                    "while an emergency stop held it" if self.estop else ""
+                if (not self.configured or by_others) and drive.has_arming:
+                    self._take_over_armed_drive(by_others)
                 self.configured = True
                 self.counters["armed"] += 1
                 self.ever_armed = True
@@ -989,12 +993,13 @@ class CanBackend:
         self.estop = estop
         return estop
 
-    def _take_over_armed_drive(self) -> None:
-        """The drive is in closed-loop control, but not because this plant armed it since the
-        link came up (left armed by a previous run or odrivetool, or it arms itself at boot): its
-        control and input modes and its input torque are unknown, e.g. velocity control, where
-        Input_Torque is only a feed-forward. Zero torque first, then the limits and torque
-        control / passthrough; the setpoint then ramps up from zero as after any arming."""
+    def _take_over_armed_drive(self, by_others: str = "") -> None:
+        """The drive is in closed-loop control, but not because this plant armed it (left armed by
+        a previous run or odrivetool, it arms itself at boot, or someone armed it ``by_others``:
+        after this plant stopped arming it): its control and input modes and its input torque are
+        unknown, e.g. velocity control, where Input_Torque is only a feed-forward. Zero torque
+        first, then the limits and torque control / passthrough; the setpoint then ramps up from
+        zero as after any arming."""
         p = self.params
         self.configured = True
         self.counters["taken_over"] += 1
@@ -1004,7 +1009,9 @@ class CanBackend:
         self.drive.select_control("torque")
         sent = "zero torque, then " + ("Set_Limits and " if p.current_limit_a > 0 else "") + \
             "Set_Controller_Mode torque / passthrough"
-        if self.ever_armed:
+        if by_others:
+            self._event("warning", f"drive armed by other means {by_others} (its control mode unknown): {sent}")
+        elif self.ever_armed:
             self._event("info", f"drive back in closed-loop control (it may have rebooted into a mode of its "
                                 f"own): {sent}")
         else:
