@@ -981,6 +981,29 @@ def test_an_idle_drive_is_only_a_fault_when_it_should_be_armed(rig):
     assert [n for n, v in r.host_frames() if v != "RTR"] == [] and b.faults == FAULT_DRIVE_DISARMED
 
 
+def test_a_bus_that_goes_away_is_reopened(rig):
+    """A USB adapter unplugged and plugged back: a receive raised (python-can's CanOperationError)
+    and the plant's bus object never brought a frame again (the kernel unbinds a SocketCAN socket
+    from an interface that goes away; here the closed bus raises on every call), so the drive
+    stayed lost until the plant was restarted. Now RX_FAILING_REOPEN_S after a failed receive
+    with no frame since, the plant reopens its bus (every second until it opens): the drive is
+    back."""
+    clock = Clock()
+    r = armed(rig, clock)
+    b = r.backend
+    old = b.bus
+    old.shutdown()                                        # the adapter is gone: every call raises
+    for _ in range(40):                                   # 2 s
+        clock.t += 0.05
+        r.heartbeat()
+        b.service()
+    assert b.bus is not old and b.stats()["bus_reopened"] == 1
+    assert b.link_alive and b.stats()["drive_back"] == 1
+    events = b.pop_events()
+    assert any(level == "warning" and "reopened" in text and "Cannot operate on a closed bus" in text
+               for level, text in events), events
+
+
 def test_safe_state_zero_torque_and_no_more_watchdog_feeding(rig):
     clock = Clock()
     r = armed(rig, clock, watchdog_feed_s=0.1)

@@ -93,6 +93,10 @@ What it does
     odriverobotics/ODrive Firmware/communication/can/can_simple.cpp, do_command(); what feeds
     the closed 0.6.x firmware's is not published), keeping the drive armed at zero torque.
     A VESC has no IDLE: its SET_CURRENT 0 is not repeated, so its command timeout releases it;
+  - a bus that raised on a receive call and brought no frame for RX_FAILING_REOPEN_S since (an
+    adapter unplugged: the kernel unbinds a SocketCAN socket from an interface that goes away,
+    with one ENODEV, so it stays silent when the adapter is back) is reopened, again every
+    RX_FAILING_REOPEN_S until it opens (a bus this plant opened itself);
   - frames that are error frames, of unknown ids, of the wrong length, NaN / inf or
     outside the DBC's ranges are counted and ignored by the protocol layer, never raised.
 * Statistics (:meth:`stats`), shown in the plant's diagnostic (keys ``can_*``) and by
@@ -140,6 +144,12 @@ RX_STAMP_PROMPT_S = 1e-3
 
 # diagnostic levels (diagnostic_msgs/DiagnosticStatus)
 OK, WARN, ERROR = 0, 1, 2
+
+# a receive call failed and no frame came since for this long (an adapter unplugged: a SocketCAN
+# socket reports ENODEV once and is unbound by the kernel, so it stays silent even when the adapter is
+# back; other interfaces fail on every call): the plant reopens a bus it opened itself, then tries
+# again every RX_FAILING_REOPEN_S until one opens
+RX_FAILING_REOPEN_S = 1.0
 
 # no Heartbeat of our node this long (at start, or since the drive was lost): log what the bus
 # does carry (other nodes' heartbeats, our node's dropped heartbeats, nothing at all, ...)
@@ -401,7 +411,8 @@ class CanBackend:
             except ConfigError:
                 self._shutdown_bus()
                 raise
-        self.drive = drive_cls(_BusTap(bus, self), p.node_id, heartbeat_timeout_s=p.heartbeat_timeout_s,
+        self._tap = _BusTap(bus, self)
+        self.drive = drive_cls(self._tap, p.node_id, heartbeat_timeout_s=p.heartbeat_timeout_s,
                                watchdog_feed_interval_s=p.watchdog_feed_s, clock=clock, **motor)
         if self.torque_limit_nm > self.drive.max_torque_nm:
             # a setpoint the protocol cannot encode would raise in the node's callback: refuse at start
@@ -466,6 +477,9 @@ class CanBackend:
         # diagnostic and a logged hint (a drive on another node id, heartbeats we drop, silence)
         self._reset_bus_watch()
         self._closed = False
+        self.rx_failing_since_s = None     # a receive call failed then, and no frame came since
+        self.rx_error = ""                 # the last one's error
+        self.last_reopen_s = -math.inf
         # sim time and ledger
         self.time_s = 0.0
         self.omega0 = None
@@ -562,6 +576,7 @@ class CanBackend:
         Call once per batch tick; never blocks, never raises for bus trouble."""
         now = self.clock() if now_s is None else now_s
         self._receive(now, self.wall_clock(), max_frames)
+        self._reopen_if_gone(now)
         drive = self.drive
         alive = drive.link_alive(now)
         late_gap, self.late_gap_s = self.late_gap_s, None
@@ -639,6 +654,31 @@ class CanBackend:
                 if drive.keepalive(now):
                     self.counters["keepalive"] += 1
 
+    def _reopen_if_gone(self, now: float) -> None:
+        """A receive call failed and no frame came for RX_FAILING_REOPEN_S since: the interface went
+        away (an adapter unplugged, perhaps back under the same name; the kernel unbinds a SocketCAN
+        socket from an interface that goes away, with one ENODEV). Reopen a bus this plant opened
+        itself, every RX_FAILING_REOPEN_S until it opens; the drive was lost meanwhile (no
+        Heartbeat) and is back by the usual path."""
+        since = self.rx_failing_since_s
+        if not self._own_bus or self._closed or since is None or now - since < RX_FAILING_REOPEN_S or \
+                now - self.last_reopen_s < RX_FAILING_REOPEN_S:
+            return
+        self.last_reopen_s = now
+        p = self.params
+        try:
+            bus = can.Bus(**p.bus_kwargs())
+        except Exception as exc:  # noqa: BLE001 -- still gone: try again later
+            self._event("warning", f"the CAN bus {p.describe()} fails ({self.rx_error}) for {now - since:.0f}s and "
+                                   f"does not reopen yet: {exc}{_open_hint(p, exc)}")
+            return
+        self._shutdown_bus()
+        self.bus = self._tap._bus = bus
+        self.rx_failing_since_s = None
+        self.counters["bus_reopened"] += 1
+        self._event("warning", f"the CAN bus {p.describe()} failed for {now - since:.1f}s ({self.rx_error}): "
+                               "reopened")
+
     def _receipt_s(self, msg: can.Message, now: float, wall_now_s: float) -> float:
         """When ``msg`` arrived, on the host clock: its own receive stamp (wall clock: the kernel's
         on socketcan / udp_multicast, python-can's on virtual) moved onto the host clock by the
@@ -662,11 +702,15 @@ class CanBackend:
         for _ in range(max_frames):
             try:
                 msg = self.bus.recv(timeout=0.0)
-            except Exception:  # noqa: BLE001 -- e.g. udp_multicast cannot unpack a datagram
+            except Exception as exc:  # noqa: BLE001 -- e.g. udp_multicast cannot unpack a datagram
                 drive.counters["bus_error"] += 1
+                if self.rx_failing_since_s is None:
+                    self.rx_failing_since_s = now
+                self.rx_error = str(exc) or type(exc).__name__
                 return
             if msg is None:
                 return
+            self.rx_failing_since_s = None
             echoes = drive.counters["echo"]
             rx_s = self._receipt_s(msg, now, wall_now_s)
             measurements = drive.receive(msg, rx_s)
@@ -1264,7 +1308,7 @@ class CanBackend:
             "frozen_batches": self.counters["frozen_batches"],
             "arm_gave_up": self.counters["arm_gave_up"], "ramped_setpoints": self.counters["ramped_setpoints"],
             "heartbeat_gaps": self.counters["heartbeat_gaps"], "taken_over": self.counters["taken_over"],
-            "foreign_commands": self.counters["foreign_commands"],
+            "foreign_commands": self.counters["foreign_commands"], "bus_reopened": self.counters["bus_reopened"],
             "heartbeat_gap_max_ms": round(self.heartbeat_gap_max_s * 1e3, 1),
             "stale_episodes": self.counters["stale_episodes"], "stale_batches": self.counters["stale_batches"],
         }
