@@ -814,6 +814,31 @@ def test_a_drive_armed_by_other_means_after_the_give_up_is_taken_over(rig):
         assert any("armed by other means" in text for _, text in b.pop_events())
 
 
+def test_a_drive_that_leaves_closed_loop_is_asked_why(rig):
+    """ODrive 0.6.x keeps the error that disarmed the axis in Get_Error's Disarm_Reason; the
+    Heartbeat's Axis_Error carries the errors active now, so a trip whose cause is already gone
+    (a regenerative current spike) read "no error" in the plant's log and diagnostic. The plant
+    now requests Get_Error when the drive leaves closed loop (before its Clear_Errors, which
+    clears the reason) and names the disarm reason."""
+    clock = Clock()
+    r = armed(rig, clock)
+    b = r.backend
+    _ride(r, clock, 0.2, AxisState.CLOSED_LOOP_CONTROL)
+    b.pop_events()
+    clock.t += 0.05
+    r.heartbeat(AxisState.IDLE, error=0)
+    b.service()
+    names = [n for n, v in r.host_frames()]
+    assert "Get_Error" in names and names.index("Get_Error") < names.index("Clear_Errors"), names
+    r.send("Get_Error", Active_Errors=0, Disarm_Reason=int(ODriveError.DC_BUS_OVER_REGEN_CURRENT))
+    clock.t += 0.01
+    b.service()
+    level, reasons, values = b.diagnostic()
+    assert values["can_disarm_reason"] == "DC_BUS_OVER_REGEN_CURRENT"
+    assert any("disarm reason DC_BUS_OVER_REGEN_CURRENT" in x for x in reasons), reasons
+    assert any("DC_BUS_OVER_REGEN_CURRENT" in text for _, text in b.pop_events())
+
+
 ESTOP = int(ODriveError.ESTOP_REQUESTED)
 ESTOP = int(ODriveError.ESTOP_REQUESTED)
 

@@ -447,6 +447,8 @@ class CanBackend:
         self.gave_up = False
         self.gave_up_errors = 0        # drive errors when we gave up (a change starts a new episode)
         self.estop = False             # the drive reports ESTOP_REQUESTED: never cleared here
+        self.errors_seen = None        # the last Get_Error answer looked at
+        self.disarm_reason = 0         # its Disarm_Reason
         self.ever_armed = False        # the drive was in closed loop at least once
         self.armed_since_s = None
         self.first_attempt_s = None
@@ -637,11 +639,16 @@ class CanBackend:
             elif not enabled and self.was_enabled:
                 self.counters["disarmed"] += 1
                 self.armed_since_s = None
+                if drive.has_arming:
+                    # why: the Heartbeat carries the errors active now, Get_Error's Disarm_Reason the one
+                    # that disarmed it (gone already after a transient); asked before Clear_Errors clears it
+                    drive.request("errors")
                 errors = error_names(drive.active_errors)
                 self._event("error", f"drive alive but left closed-loop control ({self._axis_text()}"
                                      + (f", errors {', '.join(errors)}" if errors else ", no error") +
                                      "): FAULT_DRIVE_DISARMED, sim time paused")
             self.was_enabled = enabled
+            self._note_disarm_reason()
             self._arming(now, enabled)
             if self.safe and enabled and now - self.safe_idle_s >= self.params.heartbeat_period_s:
                 # armed in the safe state (an arming still in flight, or armed by other means): IDLE
@@ -1022,6 +1029,17 @@ class CanBackend:
             return
         self._arm(now)
 
+    def _note_disarm_reason(self) -> None:
+        """Log the drive's Disarm_Reason once per new Get_Error answer that names one."""
+        m = self.drive.last.get("errors")
+        if m is None or m is self.errors_seen:
+            return
+        self.errors_seen = m
+        reason = int(m.values.get("disarm_reason", 0))
+        if reason and reason != self.disarm_reason:
+            self._event("warning", f"the drive's disarm reason (Get_Error): {', '.join(error_names(reason))}")
+        self.disarm_reason = reason
+
     def _estop_held(self, errors: int) -> bool:
         """An emergency stop (ESTOP_REQUESTED: an Estop frame from an e-stop node or another host)
         is someone's decision, not a trip: this plant never clears it (Clear_Errors would, and the
@@ -1381,8 +1399,9 @@ class CanBackend:
                     why = "set IDLE by this plant: no DriveCommands (safe state), re-armed when they are back"
                 else:
                     why = "waiting for DriveCommands"
+                because = f", disarm reason {', '.join(error_names(self.disarm_reason))}" if self.disarm_reason else ""
                 reasons.append(f"drive {'disarmed' if disarmed else 'idle'}: alive but not in closed-loop control "
-                               f"({self._axis_text()}): {why}; sim time paused")
+                               f"({self._axis_text()}{because}): {why}; sim time paused")
             if self.stale:
                 level = max(level, WARN)
                 reasons.append(self._stale_text() + ": the controller holds its trim")
@@ -1399,6 +1418,8 @@ class CanBackend:
             "can_heartbeat_age_ms": f"{drive.heartbeat_age_s(now) * 1e3:.0f}" if self.seen else "inf",
             "can_torque_setpoint_nm": f"{self.setpoint_nm:.4f}",
         })
+        if drive.has_arming:
+            values["can_disarm_reason"] = "|".join(error_names(self.disarm_reason)) or "none"
         if p.protocol != CanParams.protocol:      # (the default, ODrive, keeps its diagnostic as it was)
             values["can_protocol"] = p.protocol
         if "torque_target_nm" in v:
