@@ -506,6 +506,7 @@ def test_controller_killed_the_plant_idles_the_drive_and_a_dead_plant_trips_its_
                "the plant's diagnostic: the drive set IDLE for the safe state")
     s = next(s for s in r.diagnostics(n) if "set IDLE by this plant" in s.message)
     assert s.level == DiagnosticStatus.ERROR and "no DriveCommand" in s.message
+    assert "safe state (zero torque and the drive set IDLE;" in r.plant.output(), "the log says what it does"
     r.wait_for(lambda: any(state == 1 for err, state in r.listener.heartbeats_after(t_kill)), 3,
                "the drive's heartbeat: IDLE")
     assert _frames_after(r.listener, t_kill, 0x07, 1), "Set_Axis_State IDLE on the bus"

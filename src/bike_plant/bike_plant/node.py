@@ -908,7 +908,8 @@ class PlantNode(Node):
                     if not timed_out:
                         log.error(f"no DriveCommand for {now - self.latest_rx:.3f}s wall / "
                                   f"{self.backend.time_s - self.latest_rx_sim_s:.3f}s sim > command_timeout_s="
-                                  f"{self.command_timeout_s:g}s: safe state (all gates off; last seq "
+                                  f"{self.command_timeout_s:g}s: safe state "
+                                  f"({getattr(self.backend, 'safe_state_text', 'all gates off')}; last seq "
                                   f"{self.latest.seq if self.latest is not None else -1} at batch {self.k}, "
                                   f"overruns {self.stats['overruns']})")
                         self.backend.set_safe(True)
