@@ -1,7 +1,8 @@
 """numba's cache=True keys a compiled function on its own source file; the kernels inline
 code from other modules, so bike_plant.jit.invalidate_stale_numba_cache removes a module's
 cache files when one of those is newer. It must look where numba really keeps them: beside
-the source, or under NUMBA_CACHE_DIR when that is set (numba then uses it alone)."""
+the source, or under NUMBA_CACHE_DIR when that is set (numba then uses it alone). Also the
+jit module's JIT_COLD: a rare path stays a call under a forceinline caller."""
 from __future__ import annotations
 
 import os
@@ -69,3 +70,48 @@ def test_the_user_cache_dir_is_the_one_numba_writes(tmp_path):
     written = list(user_cache.rglob("kernel.*.nb*"))
     assert written and {p.parent for p in written} == {pathlib.Path(where)}, (written, where)
     assert not list(kernel.parent.rglob("kernel.*.nb*"))      # nothing beside the source
+
+
+def _called_from_loop(cold_opts, mark):
+    """Compiles loop -> step (JIT_INLINE) -> rare (cold_opts, out_of_line() if mark), afresh;
+    returns whether the loop's machine code still calls rare (it is out of line)."""
+    import re
+
+    import numpy as np
+    from numba import njit
+
+    from bike_plant.jit import JIT_HOT, JIT_INLINE, out_of_line
+
+    @njit(**dict(cold_opts, cache=False))
+    def rare(a):
+        if mark:
+            out_of_line()
+        a[0] += 1.0
+        return 0
+
+    @njit(**dict(JIT_INLINE, cache=False))
+    def step(a):
+        if a[1] > 0.0:
+            return rare(a)
+        return 1
+
+    @njit(**dict(JIT_HOT, cache=False))
+    def loop(a, n):
+        s = 0
+        for _ in range(n):
+            s += step(a)
+        return s
+
+    a = np.array([0.0, 1.0])
+    assert loop(a, 3) == 0 and a[0] == 3.0
+    name = rare.overloads[rare.signatures[0]].fndesc.mangled_name
+    return re.search(r"call [^\n]*@" + re.escape(name) + r"\(", loop.inspect_llvm(loop.signatures[0])) is not None
+
+
+def test_a_jit_cold_function_stays_out_of_line_under_a_forceinline_caller():
+    """numba hands forceinline down to what a JIT_INLINE function calls, and LLVM inlines what
+    it likes: the fused loop's rare paths (_overcurrent_trip, _segment_general, _hall_edges)
+    were all inlined into it. JIT_COLD + out_of_line() keep such a function a call."""
+    from bike_plant.jit import JIT_COLD, JIT_HOT
+    assert _called_from_loop(JIT_COLD, True)
+    assert not _called_from_loop(JIT_HOT, False)      # what the rare paths had: inlined

@@ -329,6 +329,14 @@ def closed_loop_period(cs, q, model, p, c, ws, wi, edge_counts, edge_states):
         a, b, s, _fs = closed_loop_period_sym(cs, q, model, p, c, ws, wi, edge_counts, edge_states,
                                               K.fast_state(model))
         return a, b, s
+    return _closed_loop_period_general(cs, q, model, p, c, ws, wi, edge_counts, edge_states)
+
+
+@njit(**dict(JIT, forceinline=False))
+def _closed_loop_period_general(cs, q, model, p, c, ws, wi, edge_counts, edge_states):
+    """closed_loop_period for any machine (the position-dependent L), kept out of line: inlined, its
+    topology iteration shared the fused loop's registers with the symmetric machine's period."""
+    _jit.out_of_line()
     a, b, s = control_period(cs, q, model, p, ws, wi)
     s = np.float64(np.float32(s))
     ne = K.step_period(model, p, c, a, b, s, edge_counts, edge_states, 0, ws, wi, True)

@@ -37,7 +37,7 @@ from numba import njit
 
 from . import jit as _jit
 from . import params as P
-from .jit import JIT, JIT_HOT, JIT_INLINE, KERNEL_FASTMATH, invalidate_stale_numba_cache  # noqa: F401
+from .jit import JIT, JIT_COLD, JIT_HOT, JIT_INLINE, KERNEL_FASTMATH, invalidate_stale_numba_cache  # noqa: F401
 
 
 invalidate_stale_numba_cache(__file__, [P.__file__, _jit.__file__])
@@ -916,10 +916,11 @@ def sym_segment(cur, co, i0, i1, i2, gates, t, vdc, emf, legs, c, ledger, a1, a2
     return _segment_general(cur, co, i0, i1, i2, gates, rest, vdc, emf, c, ledger, a1, a2, a3, a4, ws, wi)
 
 
-@njit(**JIT_HOT)
+@njit(**JIT_COLD)
 def _segment_general(cur, co, i0, i1, i2, gates, t, vdc, emf, c, ledger, a1, a2, a3, a4, ws, wi):
     """electrical_segment (topology iteration, sub-steps) for what sym_segment does not do,
     on cur[co:co+3] with ws set up as period_setup would for the symmetric machine."""
+    _jit.out_of_line()
     _ws_setup_sym(ws, emf, c)
     cur[co] = i0
     cur[co + 1] = i1
@@ -971,12 +972,13 @@ def trial_sym_i(i0, i1, i2, vdc, gates, emf, legs, c, ws, wi, hold_at_zero):
     return abs(j0) + abs(j1) + abs(j2), legs
 
 
-@njit(**JIT_HOT, inline="never")
+@njit(**JIT_COLD)
 def _overcurrent_trip(state):
     """Count a tripped period and set FAULT_OVERCURRENT. Returns the gates of the period (0).
 
     Kept out of line: the rare path of the hot loop (the check itself costs ~1.5 ns per
     period of the fused loop's ~70 ns)."""
+    _jit.out_of_line()
     state[S_OC_TRIPS] += 1.0
     state[S_FAULTS] = int(state[S_FAULTS]) | FAULT_OVERCURRENT
     return 0
@@ -1221,10 +1223,11 @@ def period_tail_i(state, p, c, omega, th0, vdc, a_charge, a_cu, a_conv, a_tdt, e
     return n_edges, vdc_next, w_new, th1
 
 
-@njit(**JIT)
+@njit(**JIT_COLD)
 def _hall_edges(state, p, k, u0, u1, du, periods, direction, edge_counts, edge_states, n_edges):
     """Hall edges k, k +- 1, ... of a period that crosses sector boundaries (u in sixths of
     a turn from 30 deg; direction +1 forward, -1 backward). Returns n_edges."""
+    _jit.out_of_line()
     fc_dt = p[P.P_TIMER_HZ] * p[P.P_DT]
     if direction > 0.0:
         while k <= u1:

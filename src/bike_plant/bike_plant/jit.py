@@ -9,6 +9,7 @@ JIT_HOT: per-period kernels that allocate nothing: no reference counting of thei
 arguments (numba's NRT would incref / decref each one with an atomic instruction per call).
 JIT_INLINE: ... and inlined into the fused loops (numba passes each array as 7 scalars; the
 per-period chain plant -> controller -> plant is otherwise call bound).
+JIT_COLD: ... and never inlined (with out_of_line() in its body): the rare paths of those loops.
 unlikely(cond): cond, marked rarely true for LLVM (branch weights only, no change of value).
 """
 from __future__ import annotations
@@ -21,6 +22,10 @@ KERNEL_FASTMATH = {"contract", "arcp"}
 JIT = dict(cache=True, error_model="numpy", fastmath=KERNEL_FASTMATH)
 JIT_HOT = dict(JIT, _nrt=False)
 JIT_INLINE = dict(JIT_HOT, forceinline=True)
+# a rare path kept out of the hot loop: forceinline=False, set explicitly, as numba otherwise
+# inherits forceinline from the caller (everything a JIT_INLINE kernel calls was inlined);
+# the function's body also calls out_of_line(), so that LLVM does not inline it either
+JIT_COLD = dict(JIT_HOT, forceinline=False)
 
 
 @intrinsic
@@ -36,6 +41,17 @@ def unlikely(typingctx, cond):
         fn = builder.module.declare_intrinsic("llvm.expect", [i1], ir.FunctionType(i1, [i1, i1]))
         return builder.call(fn, [args[0], ir.Constant(i1, 0)])
     return types.boolean(cond), codegen
+
+
+@intrinsic
+def out_of_line(typingctx):
+    """Marks the compiled function it is called in noinline for LLVM (no code emitted). numba
+    links a callee's LLVM IR into its caller and LLVM inlines it at will: a rare path inlined
+    into a hot loop adds its live values and code to the loop's register allocation."""
+    def codegen(context, builder, signature, args):
+        builder.function.attributes.add("noinline")
+        return context.get_dummy_value()
+    return types.none(), codegen
 
 
 def numba_cache_dirs(module_file: str) -> list:
