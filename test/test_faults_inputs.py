@@ -597,19 +597,31 @@ def test_hostile_workouts_are_bounded(tmp_path):
 
 
 # ------------------------------------------------------------------ bags
-def _small_bag(path: pathlib.Path, storage: str) -> None:
+def _small_bag(path: pathlib.Path, storage: str, count: int = 200, writer=None, compress=None,
+               compressor=None) -> None:
+    """A bag of ``count`` Commands through the recorder's BagSink; or (``writer``) through a rosbags
+    writer that ``compress`` set up and whose chunks ``compressor`` makes."""
     from bike_session.recorder_node import BagSink, build_typestore
     ts = build_typestore()
-    sink = BagSink(path, storage, ts, [("/bike/command", "bike_msgs/msg/Command", True, False)])
     Command = ts.types["bike_msgs/msg/Command"]
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
-    for k in range(200):
+    if writer is None:
+        sink = BagSink(path, storage, ts, [("/bike/command", "bike_msgs/msg/Command", True, False)])
+        write, close = (lambda t, data: sink.write("/bike/command", t, data)), sink.close
+    else:
+        w = writer(path)
+        compress(w)
+        w.open()
+        w.storage.compressor = compressor
+        conn = w.add_connection("/bike/command", "bike_msgs/msg/Command", typestore=ts)
+        write, close = (lambda t, data: w.write(conn, t, data)), w.close
+    for k in range(count):
         msg = Command(header=Header(stamp=Time(sec=0, nanosec=k * 1000), frame_id=""), command=0.5, mode=0,
                       virtual_gear_ratio=0.0, road_from_command=False, crr=0.0, cw_kg_m=0.0, wind_mps=0.0,
                       cadence_rpm=0.0, heart_rate_bpm=0.0)
-        sink.write("/bike/command", k * 1000, ts.serialize_cdr(msg, "bike_msgs/msg/Command"))
-    sink.close()
+        write(k * 1000, ts.serialize_cdr(msg, "bike_msgs/msg/Command"))
+    close()
 
 
 def _read_all(path: pathlib.Path) -> int:
@@ -754,7 +766,7 @@ HOSTILE_READER = textwrap.dedent("""
                 recover(path)
             print(action, "ok")
         except BagError as exc:
-            print(action, "BagError", str(exc)[:200])
+            print(action, "BagError", str(exc)[:400])
 """)
 
 
@@ -788,6 +800,74 @@ def test_bag_reader_bounded_on_huge_declared_sizes(tmp_path, declared):
         lines = run.stdout.splitlines()
         assert [line.split()[0] for line in lines] == ["read", "recover"], run.stdout
         assert all(line.split()[1] == "BagError" for line in lines), run.stdout
+
+
+def _zstd_zeros_frame(n_bytes: int) -> bytes:
+    """A zstd frame of RLE blocks: 4 bytes for each 128 kB of zeros (1 GB in 32 kB), no content
+    size in its header (so nothing up front says how much it inflates to)."""
+    block = 128 * 1024
+    frame = bytearray(struct.pack("<I", 0xFD2FB528) + bytes([0x00, 7 << 3]))      # 128 kB window
+    n = n_bytes // block
+    for i in range(n):
+        frame += struct.pack("<I", (block << 3) | (1 << 1) | (i == n - 1))[:3] + b"\x00"
+    return bytes(frame)
+
+
+def _bomb_bag(path: pathlib.Path, declared: int | None) -> None:
+    """A closed MCAP bag of 10 Commands in one zstd chunk that inflates to 1 GB of zeros; the
+    chunk (and its index) declare the true records' size, or ``declared``."""
+    from rosbags.rosbag2.writer import CompressionFormat, CompressionMode
+
+    from bike_session.recorder_node import new_writer
+    _small_bag(path, "mcap", count=10,
+               writer=lambda p: new_writer(p, "mcap"),
+               compress=lambda w: w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD),
+               compressor=lambda _data: _zstd_zeros_frame(2**30))
+    if declared is None:
+        return
+    data_file = next(path.glob("*.mcap"))
+    b = bytearray(data_file.read_bytes())
+    pos = 8
+    while pos + 9 <= len(b):
+        op, length = b[pos], struct.unpack_from("<Q", b, pos + 1)[0]
+        if op == 0x06:                               # Chunk: start, end, uncompressed_size
+            struct.pack_into("<Q", b, pos + 9 + 16, declared)
+        elif op == 0x08:                             # ChunkIndex: ..., compressed, uncompressed size
+            struct.pack_into("<Q", b, pos + 9 + length - 8, declared)
+        elif op == 0x02:                             # Footer
+            break
+        pos += 9 + length
+    data_file.write_bytes(bytes(b))
+
+
+BOMB_READER = HOSTILE_READER + textwrap.dedent("""
+    try:
+        with open_bag(next(path.glob("*.mcap"))) as bag:
+            for _ in bag.messages():
+                pass
+        print("bare ok")
+    except BagError as exc:
+        print("bare BagError", str(exc)[:400])
+""")
+
+
+@pytest.mark.parametrize("declared", [None, 2**30])
+def test_bag_reader_bounded_on_a_decompression_bomb(tmp_path, declared):
+    """A 35 kB MCAP bag whose zstd chunk inflates to 1 GB: reading it took 2.1 GB of memory and
+    10 s before rosbags found the chunk's size wrong (declared 1 GB: 172 s; the bare .mcap file
+    334 s and 1.1 GB), and under the 400 MB limit the MemoryError was what ended it. Reading the
+    directory, the bare file and recovery each end with one BagError of the reader's own bound,
+    not of running out of memory."""
+    bag = tmp_path / "bomb"
+    _bomb_bag(bag, declared)
+    assert next(bag.glob("*.mcap")).stat().st_size < 64 * 1024
+    run = subprocess.run([sys.executable, "-c", BOMB_READER, str(bag)], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "Traceback" not in run.stderr, (run.stdout, run.stderr[-3000:])
+    lines = run.stdout.splitlines()
+    assert [line.split()[:2] for line in lines] == [["read", "BagError"], ["recover", "BagError"],
+                                                   ["bare", "BagError"]], run.stdout
+    assert all("Memory" not in line and "allocate" not in line and "chunk" in line and "inflates" in line
+               for line in lines), run.stdout
 
 
 # ------------------------------------------------------------------ DDS discovery

@@ -17,9 +17,17 @@ from __future__ import annotations
 
 import os
 import pathlib
+import struct
 from typing import Iterable, Iterator
 
 import numpy as np
+
+
+# An MCAP chunk's records, decompressed. rosbags' zstd / lz4 decompression has no bound (a
+# 35 kB chunk of RLE blocks inflated to 1 GB, 2.1 GB of memory, before its size was checked) and
+# mcap's takes the chunk's own declared size: both are checked here first, streamed.
+MAX_CHUNK_BYTES = 256 * 2**20
+_INFLATE_STEP_BYTES = 2**20
 
 
 class BagError(Exception):
@@ -59,6 +67,7 @@ class Bag:
     def _open_rosbag2(self) -> None:
         from rosbags.highlevel import AnyReader
 
+        _check_mcap_chunks(sorted(self.path.glob("*.mcap")))
         try:
             reader = AnyReader([self.path])
             reader.open()
@@ -85,6 +94,7 @@ class Bag:
             from mcap.reader import make_reader
         except ImportError:
             raise BagError("reading a bare .mcap file needs the 'mcap' package", self.path) from None
+        _check_mcap_chunks([self.path])
         try:
             fh = open(self.path, "rb")
             reader = make_reader(fh)
@@ -180,6 +190,95 @@ class Bag:
             raise
         except Exception as exc:  # noqa: BLE001 - truncated chunks, bad CDR, sqlite errors
             raise BagError(f"cannot read messages: {_reason(exc)}", self.path) from None
+
+
+def _inflated_bytes(fh, compression: str, size: int, cap: int) -> int:
+    """Bytes the ``size`` compressed bytes at ``fh`` inflate to (frame after frame, as the readers
+    take them), counted in steps and stopped once past ``cap`` (nothing kept); -1 for a
+    compression this check does not know (the readers refuse it)."""
+    if compression == "zstd":
+        try:
+            from compression import zstd
+        except ImportError:
+            from backports import zstd
+        new = zstd.ZstdDecompressor
+    elif compression == "lz4":
+        import lz4.frame
+        new = lz4.frame.LZ4FrameDecompressor
+    else:
+        return -1
+    dec, out, pending = new(), 0, b""
+    try:
+        while out <= cap:
+            if not pending:
+                pending = fh.read(min(size, _INFLATE_STEP_BYTES)) if size > 0 else b""
+                if not pending:
+                    break
+                size -= len(pending)
+            step = len(dec.decompress(pending, _INFLATE_STEP_BYTES))
+            out, pending = out + step, b""
+            while out <= cap and step and not dec.eof and not dec.needs_input:
+                step = len(dec.decompress(b"", _INFLATE_STEP_BYTES))
+                out += step
+            if dec.eof:                               # the next frame, if any
+                pending, dec = dec.unused_data, new()
+    except Exception:  # noqa: BLE001 - corrupt data: the readers' own error says so
+        pass
+    return out
+
+
+def mcap_chunk_problem(path: str | os.PathLike) -> tuple[int, str] | None:
+    """(byte offset, reason) of the first Chunk record of the MCAP file ``path`` that declares or
+    inflates to more than MAX_CHUNK_BYTES or to more than it declares, or of a ChunkIndex that
+    does not describe a chunk checked so; None if there is none. Reads the records' headers
+    and streams compressed chunks in 1 MB steps: memory stays bounded whatever the file claims.
+    A torn record ends the walk (the readers report it, ``bag recover`` keeps what precedes it)."""
+    chunks = {}
+    with open(path, "rb") as fh:
+        end = os.fstat(fh.fileno()).st_size
+        pos = 8                                         # after the magic
+        while pos + 9 <= end:
+            fh.seek(pos)
+            opcode, length = struct.unpack("<BQ", fh.read(9))
+            body = pos + 9
+            if body + length > end:
+                break
+            if opcode == 0x06 and length >= 40:         # Chunk
+                _start, _stop, declared, _crc, name_len = struct.unpack("<QQQII", fh.read(32))
+                if name_len > 64:
+                    return pos, f"chunk at byte {pos}: compression name of {name_len} bytes"
+                compression = fh.read(name_len).decode("utf-8", "replace")
+                (size,) = struct.unpack("<Q", fh.read(8))
+                if declared > MAX_CHUNK_BYTES:
+                    return pos, (f"chunk at byte {pos} declares {declared} bytes of records: past the "
+                                 f"{MAX_CHUNK_BYTES} this reader inflates")
+                if compression and size <= length:
+                    cap = min(declared, MAX_CHUNK_BYTES)
+                    out = _inflated_bytes(fh, compression, size, cap)
+                    if out > cap:
+                        return pos, (f"chunk at byte {pos} inflates past the {declared} bytes it declares "
+                                     f"(bound {MAX_CHUNK_BYTES}): a decompression bomb or a corrupt chunk")
+                chunks[pos] = (compression, size, declared)
+            elif opcode == 0x08 and length >= 48:       # ChunkIndex (summary): what the readers seek by
+                _start, _stop, offset, _length, map_len = struct.unpack("<QQQQI", fh.read(36))
+                fh.seek(map_len + 8, 1)
+                (name_len,) = struct.unpack("<I", fh.read(4))
+                compression = fh.read(min(name_len, 64)).decode("utf-8", "replace")
+                size, declared = struct.unpack("<QQ", fh.read(16)) if name_len <= 64 else (-1, -1)
+                if chunks.get(offset) != (compression, size, declared):
+                    return pos, (f"chunk index at byte {pos} does not describe the chunk at byte {offset} "
+                                 f"(its sizes or compression differ, or no chunk starts there): not inflated")
+            elif opcode == 0x02:                        # Footer
+                break
+            pos = body + length
+    return None
+
+
+def _check_mcap_chunks(files) -> None:
+    for path in files:
+        problem = mcap_chunk_problem(path)
+        if problem is not None:
+            raise BagError(problem[1], path)
 
 
 def _reason(exc: BaseException) -> str:

@@ -150,12 +150,17 @@ def _recover_mcap(src: pathlib.Path, out: _Out) -> str:
     from mcap.records import Channel, Message, Schema
     from mcap.stream_reader import StreamReader
 
+    from bike_session.bags import mcap_chunk_problem
+
     schemas = {}
     channels = {}
     stop = "end of file"
+    # a chunk that would inflate past its bound ends the recording there, as a torn record does
+    problem = mcap_chunk_problem(src)
     with open(src, "rb") as fh:
         try:
-            reader = StreamReader(fh, skip_magic=False, emit_chunks=False, validate_crcs=True,
+            stream = fh if problem is None else _UpTo(fh, problem[0])
+            reader = StreamReader(stream, skip_magic=False, emit_chunks=False, validate_crcs=True,
                                   record_size_limit=MAX_RECORD_BYTES)
             for rec in reader.records:
                 if isinstance(rec, Schema):
@@ -176,7 +181,20 @@ def _recover_mcap(src: pathlib.Path, out: _Out) -> str:
         except Exception as exc:  # noqa: BLE001 - McapError, EndOfFile, struct.error, ... from a torn tail
             # the torn tail of a killed writer ends up here; everything before it is kept
             stop = f"stopped at a torn or invalid record ({type(exc).__name__}: {exc})"
+    if problem is not None:
+        stop = f"stopped before an invalid chunk ({problem[1]})"
     return stop
+
+
+class _UpTo:
+    """The file ``fh`` read as if it ended at byte ``end``."""
+
+    def __init__(self, fh, end: int):
+        self.fh, self.end = fh, end
+
+    def read(self, n: int = -1) -> bytes:
+        left = max(self.end - self.fh.tell(), 0)
+        return self.fh.read(left if n is None or n < 0 else min(n, left))
 
 
 def _recover_sqlite3(src: pathlib.Path, out: _Out) -> str:
