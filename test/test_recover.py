@@ -166,6 +166,34 @@ def test_a_closed_bag_whose_data_file_was_cut_short_is_recovered(tmp_path):
     assert [m.data for m in got] == [f"m{k:05d}" * 50 for k in range(len(got))]
 
 
+def test_a_whole_data_file_without_its_metadata_is_recovered(tmp_path):
+    """A recorder killed after its MCAP was closed but before metadata.yaml was written (rosbags
+    writes the file first), or a .mcap copied alone: the file's summary repeats the Schema and
+    Channel records, and recover failed on the repeat with "cannot write the recovered bag ...
+    (--out): WriterError: Connection can only be added once". Every message is recovered; a
+    repeated channel id naming another topic is still one error."""
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    sink = BagSink(tmp_path / "whole", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)])
+    for k in range(50):
+        sink.write("/x", k * 1_000_000, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=f"m{k}"),
+                                                         "std_msgs/msg/String"))
+    sink.close()
+    (tmp_path / "whole" / "metadata.yaml").unlink()
+    result = recover(tmp_path / "whole")
+    assert result["messages"] == 50 and result["topics"] == {"/x": 50}, result
+    assert [m.data for m in read_topic(result["out"], "/x")] == [f"m{k}" for k in range(50)]
+    (data,) = (tmp_path / "whole").glob("*.mcap")
+    body = data.read_bytes()
+    at = body.rindex(b"\x02\x00\x00\x00/x")      # the summary's Channel record: its topic string
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / data.name).write_bytes(body[:at] + b"\x02\x00\x00\x00/y" + body[at + 6:])
+    with pytest.raises(BagError, match="channel 1 .*'/y'.*'/x'|channel 1 .*'/x'.*'/y'"):
+        recover(other)
+
+
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_a_failure_to_write_the_recovered_bag_is_not_taken_for_a_torn_recording(tmp_path, monkeypatch, storage):
     """The source readers take any exception inside their loop for the torn tail of the crashed

@@ -165,6 +165,11 @@ def _recover_mcap(src: pathlib.Path, out: _Out) -> str:
             for rec in reader.records:
                 if isinstance(rec, Schema):
                     schemas[rec.id] = rec
+                elif isinstance(rec, Channel) and rec.id in channels:
+                    # a whole file's summary repeats its channels (metadata.yaml lost, or a .mcap alone)
+                    if rec.topic != channels[rec.id].topic:
+                        raise BagError(f"channel {rec.id} is {rec.topic!r} here and {channels[rec.id].topic!r} "
+                                       f"before: not one recording", src)
                 elif isinstance(rec, Channel):
                     schema = schemas.get(rec.schema_id)
                     if schema is None or schema.encoding != "ros2msg" or rec.message_encoding != "cdr":
