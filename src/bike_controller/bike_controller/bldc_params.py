@@ -68,7 +68,10 @@ class ControllerParams:
             raise ValueError(f"k_interp must be 'step' or 'linear', got {self.k_interp!r}")
         if self.model not in ("nominal", "actual"):
             raise ValueError(f"model must be 'nominal' or 'actual', got {self.model!r}")
-        validate_command(self.command0, self.mode0)
+        try:
+            validate_command(self.command0, self.mode0)
+        except ValueError as exc:                   # the keys the config has: command0, mode0
+            raise ValueError(f"command0 / mode0: {exc}") from None
 
     def _check_command_rows(self) -> None:
         cs, xs, ys = self.k_command, self.k_speed_rpm, self.k_factor

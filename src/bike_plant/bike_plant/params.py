@@ -266,7 +266,7 @@ def load_section_with_preset(load: Mapping, path=None) -> dict:
     preset = load.pop("rider_preset", "custom")
     if preset == "custom":
         return load
-    if preset not in RIDER_PRESETS:
+    if not isinstance(preset, str) or preset not in RIDER_PRESETS:      # a list or map is unhashable
         raise ConfigError(f"unknown rider_preset {preset!r} (custom | {' | '.join(RIDER_PRESETS)})", path,
                           "load.rider_preset")
     load.update(RIDER_PRESETS[preset])
