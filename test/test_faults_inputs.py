@@ -704,7 +704,9 @@ def test_fuzzed_bags_give_one_clear_error_each(tmp_path, storage):
             try:
                 action(bag)
             except BagError as exc:
-                assert str(exc).strip()
+                # clear: a length field that claims more than memory holds ended reading with
+                # "cannot open bag: MemoryError" (4 of the 30 mcap variants)
+                assert str(exc).strip() and "MemoryError" not in str(exc), (i, str(exc))
                 errors += 1
             except Exception as exc:  # noqa: BLE001
                 pytest.fail(f"bag variant {i} ({action}): {type(exc).__name__}: {exc}")

@@ -282,6 +282,9 @@ def _check_mcap_chunks(files) -> None:
 
 
 def _reason(exc: BaseException) -> str:
+    if isinstance(exc, MemoryError):
+        # a flipped length field asks for more than memory holds (the allocation fails at once)
+        return "a record claims more bytes than memory holds: a corrupt or hostile file"
     text = str(exc).strip() or type(exc).__name__
     return text.splitlines()[0][:300]
 

@@ -185,7 +185,9 @@ def _recover_mcap(src: pathlib.Path, out: _Out) -> str:
             raise
         except Exception as exc:  # noqa: BLE001 - McapError, EndOfFile, struct.error, ... from a torn tail
             # the torn tail of a killed writer ends up here; everything before it is kept
-            stop = f"stopped at a torn or invalid record ({type(exc).__name__}: {exc})"
+            from bike_session.bags import _reason
+            what = _reason(exc) if isinstance(exc, MemoryError) else f"{type(exc).__name__}: {exc}"
+            stop = f"stopped at a torn or invalid record ({what})"
     if problem is not None:
         stop = f"stopped before an invalid chunk ({problem[1]})"
     return stop
