@@ -263,13 +263,17 @@ def test_lockstep_rejects_malformed_drive_command(domain):
     try:
         pub = col.publisher(DriveCommand, "drive_command")
         zeros = np.zeros(n, np.uint8)
-        good = lambda k: msgconv.drive_command_msg(k, zeros, zeros, np.ones(n), 0)  # noqa: E731
+        # the three low-side switches on: the back-EMF drives a braking current through them. The
+        # malformed commands carry them too (gate >= 64: 64 + them), so a batch that applied one
+        # instead of all gates off shows a current (with all-zero gates it could not be told apart)
+        low = np.full(n, 0b101010, np.uint8)
+        good = lambda k: msgconv.drive_command_msg(k, low if k == 1 else zeros, zeros, np.ones(n), 0)  # noqa: E731
         bad = {
-            3: msgconv.drive_command_msg(3, np.zeros(n - 1, np.uint8), zeros, np.ones(n), 0),   # wrong length
-            5: msgconv.drive_command_msg(5, zeros, zeros, np.full(n, np.nan), 0),              # NaN split
-            7: msgconv.drive_command_msg(7, np.full(n, 64, np.uint8), zeros, np.ones(n), 0),  # gate >= 64
-            9: msgconv.drive_command_msg(9, zeros, zeros, np.full(n, 1.5), 0),                # split > 1
-            10: msgconv.drive_command_msg(10, zeros, zeros, np.zeros(0), 0),                   # empty split
+            3: msgconv.drive_command_msg(3, low[:-1], low[:-1], np.ones(n), 0),                # wrong length
+            5: msgconv.drive_command_msg(5, low, low, np.full(n, np.nan), 0),                  # NaN split
+            7: msgconv.drive_command_msg(7, low + 64, low, np.ones(n), 0),                     # gate >= 64
+            9: msgconv.drive_command_msg(9, low, low, np.full(n, 1.5), 0),                     # split > 1
+            10: msgconv.drive_command_msg(10, low, low, np.zeros(0), 0),                       # empty split
         }
 
         def answer(state):
@@ -286,6 +290,11 @@ def test_lockstep_rejects_malformed_drive_command(domain):
         seqs, states = _check_lockstep_states(list(col.data["plant_state"]), n, duration)
         faulty = {int(m.seq) for m in states if m.faults & PlantState.FAULT_BAD_COMMAND}
         assert faulty == {4, 6, 8, 10, 11}, faulty        # state k+1 reports the rejected batch k
+        # all gates off for a rejected batch: no current, where the one good batch with the same
+        # gates (batch 1, state 2) drove one
+        peak = {int(m.seq): float(np.max(np.abs(np.asarray(m.current_samples_a)), initial=0.0)) for m in states}
+        assert peak[2] > 1.0, peak
+        assert all(peak[k] < 1e-9 for k in faulty), peak
         diag = [s for a in col.data["/diagnostics"] for s in a.status
                 if s.name.endswith("plant") and "DriveCommand rejected" in s.message]
         assert diag and all(s.level == DiagnosticStatus.WARN for s in diag)
