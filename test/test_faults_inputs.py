@@ -922,6 +922,41 @@ def test_bag_reader_bounded_on_a_decompression_bomb(tmp_path, declared):
                for line in lines), run.stdout
 
 
+def test_an_mcap_chunk_index_or_chunk_cut_off_is_one_bag_error(tmp_path):
+    """The chunk check's own reading of hostile fields: a ChunkIndex whose offsets map claims
+    4 GB (it read past the file and raised struct.error out of open_bag), a chunk whose
+    compression name runs past the file's end. One BagError each, from reading and recovery."""
+    good = tmp_path / "good"
+    _small_bag(good, "mcap")
+    data = next(good.glob("*.mcap")).read_bytes()
+    pos, index_at = 8, None
+    while pos + 9 <= len(data):
+        opcode, length = data[pos], struct.unpack_from("<Q", data, pos + 1)[0]
+        if opcode == 0x08:
+            index_at = pos
+            break
+        pos += 9 + length
+    assert index_at is not None
+    overrun = bytearray(data)
+    struct.pack_into("<I", overrun, index_at + 9 + 32, 0xFFFFFFF0)
+    torn_chunk = (b"\x89MCAP0\r\n" + struct.pack("<BQ", 0x06, 40) + struct.pack("<QQQII", 0, 0, 10, 0, 60)
+                  + b"\x00" * 8)
+    for name, body in {"overrun": bytes(overrun), "torn": torn_chunk}.items():
+        bag = tmp_path / name
+        bag.mkdir()
+        (bag / f"{name}.mcap").write_bytes(body)
+        (bag / "metadata.yaml").write_text((good / "metadata.yaml").read_text().replace("good", name))
+        with pytest.raises(BagError):
+            _read_all(bag)
+        with pytest.raises(BagError):
+            _read_all(bag / f"{name}.mcap")
+        (bag / "metadata.yaml").unlink()
+        try:
+            recover(bag)
+        except BagError:
+            pass
+
+
 # ------------------------------------------------------------------ DDS discovery
 def test_discovery_is_limited_to_localhost_unless_configured():
     """tools/env.sh sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless the user chose a

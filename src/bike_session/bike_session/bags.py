@@ -233,6 +233,13 @@ def mcap_chunk_problem(path: str | os.PathLike) -> tuple[int, str] | None:
     does not describe a chunk checked so; None if there is none. Reads the records' headers
     and streams compressed chunks in 1 MB steps: memory stays bounded whatever the file claims.
     A torn record ends the walk (the readers report it, ``bag recover`` keeps what precedes it)."""
+    try:
+        return _walk_mcap_chunks(path)
+    except struct.error:                                # a field past the file's end: the readers say so
+        return None
+
+
+def _walk_mcap_chunks(path) -> tuple[int, str] | None:
     chunks = {}
     with open(path, "rb") as fh:
         end = os.fstat(fh.fileno()).st_size
@@ -261,6 +268,8 @@ def mcap_chunk_problem(path: str | os.PathLike) -> tuple[int, str] | None:
                 chunks[pos] = (compression, size, declared)
             elif opcode == 0x08 and length >= 48:       # ChunkIndex (summary): what the readers seek by
                 _start, _stop, offset, _length, map_len = struct.unpack("<QQQQI", fh.read(36))
+                if 36 + map_len + 8 + 4 > length:
+                    return pos, f"chunk index at byte {pos}: its offsets map overruns the record"
                 fh.seek(map_len + 8, 1)
                 (name_len,) = struct.unpack("<I", fh.read(4))
                 compression = fh.read(min(name_len, 64)).decode("utf-8", "replace")
@@ -276,7 +285,10 @@ def mcap_chunk_problem(path: str | os.PathLike) -> tuple[int, str] | None:
 
 def _check_mcap_chunks(files) -> None:
     for path in files:
-        problem = mcap_chunk_problem(path)
+        try:
+            problem = mcap_chunk_problem(path)
+        except OSError as exc:
+            raise BagError(f"cannot read: {exc.strerror or exc}", path) from None
         if problem is not None:
             raise BagError(problem[1], path)
 
