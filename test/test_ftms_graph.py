@@ -268,8 +268,11 @@ def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_i
     workout = tmp_path / "steps.yaml"
     workout.write_text(WORKOUT)
     done = {}
+    # the bridge is up before the plant and controller (their kernels), so the app has connected
+    # when sim time starts, and its 21 s workout (wall clock) ends by ~21 s of sim time; 5 s more
+    # for an app that starts late, the rest of the run would only be waited out
     run = threading.Thread(target=lambda: done.update(r=bike_command(
-        "run", "--ftms", "--ftms-port", str(port), "--duration", "32", "--record", str(tmp_path / "rec"))))
+        "run", "--ftms", "--ftms-port", str(port), "--duration", "26", "--record", str(tmp_path / "rec"))))
     run.start()
     try:
         _connect(port, run).close()                       # the trainer is up
@@ -315,8 +318,10 @@ def test_an_apps_spin_down_teaches_the_bike_its_friction(tmp_path, ros_domain):
     record = tmp_path / "rec"
     calibration = tmp_path / "trainer" / "calibration.yaml"
     done = {}
+    # the app asks for the spin-down before sim time starts (the bridge is up before the plant and
+    # controller) and it is done ~2 s of sim time later: 8 s leaves an app that starts late 6 s
     run = threading.Thread(target=lambda: done.update(r=bike_command(
-        "run", "--config", str(config), "--ftms", "--ftms-port", str(port), "--duration", "14",
+        "run", "--config", str(config), "--ftms", "--ftms-port", str(port), "--duration", "8",
         "--record", str(record), "--calibration", str(calibration))))
     run.start()
     try:
