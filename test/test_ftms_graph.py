@@ -252,7 +252,7 @@ mode: erg
 segments:
   - {kind: step, duration_s: 6, target: 150}
   - {kind: step, duration_s: 10, target: 250, cadence: 95}
-  - {kind: step, duration_s: 5, target: 3, mode: slope}
+  - {kind: step, duration_s: 2, target: 3, mode: slope}
 """
 
 
@@ -269,10 +269,10 @@ def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_i
     workout.write_text(WORKOUT)
     done = {}
     # the bridge is up before the plant and controller (their kernels), so the app has connected
-    # when sim time starts, and its 21 s workout (wall clock) ends by ~21 s of sim time; 5 s more
+    # when sim time starts, and its 18 s workout (wall clock) ends by ~18 s of sim time; 5 s more
     # for an app that starts late, the rest of the run would only be waited out
     run = threading.Thread(target=lambda: done.update(r=bike_command(
-        "run", "--ftms", "--ftms-port", str(port), "--duration", "26", "--record", str(tmp_path / "rec"))))
+        "run", "--ftms", "--ftms-port", str(port), "--duration", "23", "--record", str(tmp_path / "rec"))))
     run.start()
     try:
         _connect(port, run).close()                       # the trainer is up
@@ -282,7 +282,7 @@ def test_bike_trainer_rides_a_workout_on_the_simulated_trainer_and_reports_how_i
         run.join(240)
     out = ride.stdout + ride.stderr
     assert ride.returncode == 0, out
-    assert "workout 'app_steps': 21 s" in out
+    assert "workout 'app_steps': 18 s" in out
     assert "target power 150 W" in out and "target power 250 W" in out and "refused" not in out
     assert "step to 250 W at" in out and "ERG:" in out
     rows = list(csv.DictReader(open(tmp_path / "ride.csv")))
