@@ -252,6 +252,30 @@ def test_an_interrupted_node_import_ends_with_exit_130_and_no_traceback(tmp_path
     assert "Traceback" not in run.stderr + run.stdout and "KeyboardInterrupt" not in run.stderr, run.stderr
 
 
+def test_a_node_whose_main_returned_exits_with_its_code_and_all_its_output_without_finalising(tmp_path):
+    """bike_plant.entry.start: once a node's main() has returned (the node shut itself down),
+    the process ends with main()'s exit code at once: the interpreter's finalisation (its
+    garbage collection of the kernels took seconds per node at the end of a run) does not run,
+    as an atexit handler shows, while what the node wrote, in Python's buffers and C's (an
+    rcutils log line), still comes out whole on the pipe."""
+    import subprocess
+
+    (tmp_path / "finished_node_module.py").write_text(
+        "import atexit, ctypes, sys\n"
+        "atexit.register(lambda: print('finalised', file=sys.stderr, flush=True))\n"
+        "def main():\n"
+        "    sys.stdout.write('bag closed' + 5000 * '.')  # no newline: still in the buffer\n"
+        "    ctypes.CDLL(None).printf(b'from C without a newline')\n"
+        "    return 3\n")
+    code = (f"import sys; sys.path.insert(0, {str(tmp_path)!r}); from bike_plant.entry import start; "
+            f"sys.exit(start('finished_node_module'))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 3, run
+    assert run.stdout == "bag closed" + 5000 * "." + "from C without a newline" or \
+        run.stdout == "from C without a newline" + "bag closed" + 5000 * ".", run.stdout[-200:]
+    assert "finalised" not in run.stderr and "Traceback" not in run.stderr, run.stderr
+
+
 def _ctrl_c_bike_run(tmp_path, started, args, env=None):
     """`./bike run` (60 s) with its output in a file; SIGINT once every string of ``started``
     is in it. Returns (output, exit code)."""
