@@ -212,6 +212,13 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
     shortened_from = None
     if end_s is not None and 0 < end_s < duration_s:
         shortened_from, duration_s = duration_s, end_s
+        # its Commands may end before its other topics do (a cut file's chunks need not end
+        # together: CI, 2026-12-07, Commands to 1.3 s, states to 1.5 s, and the replay held 1.3 s's
+        # Command to the end): each holds one session period, and past that the ride is unknown
+        period_s = float(info.get("period_s") or 0.0)
+        commands_end_s = round(timeline[-1][0] * 1e-9 + period_s, 6)
+        if period_s > 0 and commands_end_s < duration_s:
+            duration_s = commands_end_s
     recorded = _recorded_config(info, bag_path) if (config is None or load == "recorded") else None
     if recorded is None and info.get("config_text"):
         try:
@@ -301,6 +308,7 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
         raise ConfigError(str(exc).replace(f"{config_path.resolve()}: ", "").replace(f"{config_path}: ", ""),
                           given) from None
     return {"profile": profile_path, "config": config_path, "duration_s": duration_s, "shortened_from": shortened_from,
+            "bag_end_s": end_s,
             "commands": len(timeline), "segments": len(profile["segments"]), "base_dir": str(base_dir)}
 
 
@@ -349,7 +357,9 @@ def main(argv: list[str]) -> int:
             pathlib.Path(opts.record).rmdir()          # made for this replay, which did not start
         return 2
     if prep["shortened_from"] is not None:
-        print(f"[bike] the bag ends at t = {prep['duration_s']:g} s, before its session's {prep['shortened_from']:g} s "
+        ends = (f"the bag ends at t = {prep['bag_end_s']:g} s and its Commands at {prep['duration_s']:g} s"
+                if prep["bag_end_s"] > prep["duration_s"] else f"the bag ends at t = {prep['duration_s']:g} s")
+        print(f"[bike] {ends}, before its session's {prep['shortened_from']:g} s "
               f"(recovered, or stopped early): the replay rides the {prep['duration_s']:g} s recorded", flush=True)
     print(f"[bike] replaying {prep['commands']} Commands ({prep['segments']} steps, {prep['duration_s']:g} s) "
           f"of {opts.bag} with {prep['config']}", flush=True)
