@@ -566,7 +566,7 @@ class PlantNode(Node):
         reasons = []
         if faults & PlantState.FAULT_COMMAND_TIMEOUT:
             reasons.append(f"no DriveCommand for more than command_timeout_s={self.command_timeout_s:g}s: "
-                           f"safe state, {getattr(self.backend, 'safe_state_text', 'all gates off')}")
+                           f"safe state, {self.safe_state_text}")
         if faults & PlantState.FAULT_BAD_COMMAND:
             reasons.append(f"DriveCommand rejected: {self.problem}; all gates off for that batch")
         if faults & PlantState.FAULT_INTERLOCK:
@@ -852,6 +852,12 @@ class PlantNode(Node):
         self.stop_requested = True
         return True
 
+    @property
+    def safe_state_text(self) -> str:
+        """What the safe state does on this backend, for the diagnostic and the log (a drive on
+        CAN says its own; the simulated bridges switch all gates off)."""
+        return getattr(self.backend, "safe_state_text", "all gates off")
+
     def _recorder_ready(self) -> bool:
         """The recorder is up and this plant's PlantState writer has matched its reader (seq 0
         sent before that match would be missing from the bag)."""
@@ -909,7 +915,7 @@ class PlantNode(Node):
                         log.error(f"no DriveCommand for {now - self.latest_rx:.3f}s wall / "
                                   f"{self.backend.time_s - self.latest_rx_sim_s:.3f}s sim > command_timeout_s="
                                   f"{self.command_timeout_s:g}s: safe state "
-                                  f"({getattr(self.backend, 'safe_state_text', 'all gates off')}; last seq "
+                                  f"({self.safe_state_text}; last seq "
                                   f"{self.latest.seq if self.latest is not None else -1} at batch {self.k}, "
                                   f"overruns {self.stats['overruns']})")
                         self.backend.set_safe(True)
