@@ -385,6 +385,49 @@ def test_lockstep_controller_waits_for_the_session(domain):
         col.close()
 
 
+def test_a_recorder_whose_clock_and_battery_readers_match_late_still_records_t_0(domain, tmp_path):
+    """DDS matches endpoint by endpoint: a recorder can confirm seq 0 (its PlantState reader got
+    the copy the held plant re-publishes) while /clock 0 and the first BatteryState went out
+    before its readers of those matched. The plant sends those two again then, only then, and
+    the bag starts at t = 0 on each. Here the test's node stands in for the recorder until seq 0
+    is out (it reads plant_state and writes recorder_progress, nothing else); the real recorder
+    comes after."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import UInt64
+
+    from bike_session.bags import read_topic, read_topic_stamped
+
+    col = Collector(domain, {"plant_state": PlantState})
+    procs = []
+    try:
+        col.node.create_publisher(
+            UInt64, "recorder_progress",
+            QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        col.publisher(Command, "command")
+        _start_plant_and_wait(col, domain, {"duration_s": 0.3, "recorder_window_batches": 10,
+                                            "recorder_timeout_s": 30.0}, procs)
+        procs.append(_controller(domain, {"command_wait_s": 0.1}))
+        states = col.data["plant_state"]
+        col.wait_for(lambda: sum(int(m.seq) == 0 for m in states) >= 3, 20, "seq 0 held", procs)
+        rec = NodeProcess("bike_session", "recorder_node", domain,
+                          {"record_dir": str(tmp_path), "bag_name": "late", "writers_wait_s": 0.5,
+                           "stop_on_end_of_run": "true"})
+        procs.append(rec)
+        assert rec.wait(60.0) == 0, rec.output()[-3000:]
+        bag = tmp_path / "late"
+        seqs = [int(m.seq) for m in read_topic(bag, "plant_state")]
+        assert seqs == list(range(len(seqs))) and len(seqs) >= 2, seqs
+        clock_ns = [t for t, _ in read_topic_stamped(bag, "/clock")]
+        battery_ns = [t for t, _ in read_topic_stamped(bag, "battery")]
+        assert clock_ns[0] == 0 and battery_ns[0] == 0, (clock_ns[:3], battery_ns[:3])
+        # sent again once, and only to readers that lacked them: no copy in the bag
+        assert len(set(clock_ns)) == len(clock_ns) and len(set(battery_ns)) == len(battery_ns)
+    finally:
+        stop_all(procs)
+        col.close()
+
+
 def test_lockstep_flow_control_waits_for_a_slow_recorder(domain):
     """With recorder_window_batches the plant stays within the window of the recorder's
     reported progress (nothing can overflow a DDS history), not fooled by a previous run's

@@ -77,6 +77,7 @@ from .memory import LoadTimePageReleaser
 # longer than a recorder_timeout_s chosen to notice a lost recorder quickly
 RECORDER_START_MIN_S = 10.0
 FIRST_STATE_REPUBLISH_S = 0.1    # recording: seq 0 again this often until the recorder reports it [wall s]
+LATE_READER_WAIT_S = 1.0         # lockstep: at most this long for listed /clock and battery readers to match
 PROGRESS_EVERY_S = 10.0          # lockstep: a progress line this often [wall s]
 PLANT_DEFAULTS = {
     "backend": "sim",
@@ -364,6 +365,9 @@ class PlantNode(Node):
             self.sub_heart_rate = self.create_subscription(HeartRate, "heart_rate", self._on_heart_rate, AUX_QOS)
         self.recorder_seq = -1       # last plant_state seq the recorder reports written
         self.recorder_rx = 0.0
+        # lockstep: seq 0's /clock and BatteryState as sent, each with its writer's matched
+        # readers then (_resend_seq_0_to_late_readers)
+        self._seq0_sent: list = []
         if self.recorder_window > 0:
             from std_msgs.msg import UInt64
             self.sub_progress = self.create_subscription(
@@ -453,6 +457,7 @@ class PlantNode(Node):
         meanwhile (the recorder writes a copy once): on a starved machine a reader can match
         after the writer saw the graph list it, and seq 0 would be missing from the bag."""
         if self.recorder_window <= 0 or not self._recorder_behind():
+            self._resend_seq_0_to_late_readers()
             return
         since = sent = time.monotonic()
         while not self.stop_requested and self._recorder_behind():
@@ -469,6 +474,31 @@ class PlantNode(Node):
                 self.node_faults |= PlantState.FAULT_RECORDER_LOST
                 self.recorder_window = 0
                 return
+        self._resend_seq_0_to_late_readers()
+
+    def _resend_seq_0_to_late_readers(self) -> None:
+        """Lockstep, once the recorder has confirmed seq 0: seq 0's /clock and BatteryState
+        again, each only if its writer has matched a reader since it went out.
+
+        The recorder confirms seq 0 once every writer the graph lists has matched it, but
+        DDS matches endpoint by endpoint: its PlantState reader can match in time (the plant
+        waits for that one) and its /clock or battery reader just after t = 0 went out, and
+        the bag would lack them (and differ from a run's twin). Nothing else sends them again.
+        The recorder drops a copy it already has (byte-identical); the session takes /clock 0
+        again as a held plant and sends its Commands in force again, which the recorder drops
+        too. Graph queries: once per run, up to LATE_READER_WAIT_S while a listed reader is
+        still unmatched."""
+        if not self._seq0_sent or self.recorder_seq < 0:
+            return
+        sent, self._seq0_sent = self._seq0_sent, []
+        deadline = time.monotonic() + LATE_READER_WAIT_S
+        for pub, msg, readers_then in sent:
+            listed = len(self.get_subscriptions_info_by_topic(pub.topic_name))
+            while pub.get_subscription_count() < listed and time.monotonic() < deadline and not self.stop_requested:
+                self._spin(0.02)
+            if pub.get_subscription_count() > readers_then:
+                pub.publish(msg)
+                self.stats["republished"] += 1
 
     def _on_heart_rate(self, msg) -> None:
         bpm = float(msg.heart_rate_bpm)
@@ -497,12 +527,18 @@ class PlantNode(Node):
         # the other core while this process publishes /clock, the battery and diagnostics
         # (measured: 7 % more batches per second than the state last)
         self.pub_state.publish(state)
+        first = self.k == 0 and self.recorder_window > 0 and not self._seq0_sent
         if (stamp >= self.next_clock_ns or end_of_run) and not getattr(self.backend, "time_frozen", False):
             # (CAN: no /clock while the drive is not armed)
             self._publish_clock(stamp)
+            if first:
+                self._seq0_sent.append((self.pub_clock, msgconv.clock_cdr(stamp),
+                                        self.pub_clock.get_subscription_count()))
         self._last_snap, self._last_stamp, self._last_state = snap, stamp, state
         if self.k % self.battery_every == 0 or end_of_run:
-            self._publish_battery(snap, stamp)
+            battery = self._publish_battery(snap, stamp)
+            if first:
+                self._seq0_sent.append((self.pub_battery, battery, self.pub_battery.get_subscription_count()))
         now = time.monotonic()
         drive_level_of = getattr(self.backend, "diagnostic_level", None)
         drive_level = drive_level_of() if drive_level_of is not None else 0
@@ -536,7 +572,7 @@ class PlantNode(Node):
         self.pub_state.publish(self._last_state)
         self.stats["republished"] += 1
 
-    def _publish_battery(self, snap: dict, stamp: int) -> None:
+    def _publish_battery(self, snap: dict, stamp: int) -> BatteryState:
         msg = BatteryState()
         msg.header.stamp = msgconv.time_msg(stamp)
         msg.voltage = float(snap.get("dc_bus_v", math.nan))
@@ -552,6 +588,7 @@ class PlantNode(Node):
         msg.power_supply_technology = BatteryState.POWER_SUPPLY_TECHNOLOGY_LION
         msg.present = True
         self.pub_battery.publish(msg)
+        return msg
 
     def _publish_diag(self, snap: dict, stamp: int, faults: int) -> None:
         status = DiagnosticStatus()

@@ -30,7 +30,8 @@ definitions (bike_msgs from the installed .msg files), so ROS 2 tools, MCAP view
 stamp of messages that have one, the clock value for /clock, the latest clock otherwise.
 A PlantState or /clock byte-identical to the one before it on its topic is the lockstep
 plant re-publishing an unanswered batch (and a DriveCommand or ControllerStatus likewise the
-controller's answer to it, sent again), and a Command byte-identical to one of the last
+controller's answer to it, sent again; a BatteryState likewise the plant's seq 0 sent again
+for a reader that matched late), and a Command byte-identical to one of the last
 ``RESENT_COMMAND_WINDOW`` is the session sending the Commands in force again for a reader
 that matched late; both are counted, not written (two runs' bags stay identical).
 
@@ -400,10 +401,13 @@ def _make_node_class():
             self.command_topic = self.resolve_topic_name("command")
             self.plant_state_topic = self.resolve_topic_name("plant_state")
             self.clock_topic = "/clock"
-            # topics whose copies arrive right after the original (one seq per batch)
+            # topics whose copies arrive right after the original (one seq per batch); the
+            # battery's only at seq 0, for a reader that matched late (the plant's
+            # _resend_seq_0_to_late_readers), none other is ever byte-identical (its stamp)
             self._copied_topics = {self.clock_topic, self.plant_state_topic,
                                    self.resolve_topic_name("drive_command"),
-                                   self.resolve_topic_name("controller_status")}
+                                   self.resolve_topic_name("controller_status"),
+                                   self.resolve_topic_name("battery")}
             self.subs = {}
             self._to_volatile: set[str] = set()
             prefer = {self.resolve_topic_name(t) for t in PREFER_LATCHED}
