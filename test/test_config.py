@@ -121,18 +121,25 @@ def test_both_machines_check_the_shared_load_fields_alike(values, message):
 
 
 @pytest.mark.parametrize("values", [
-    {"v_empty_v": 30.0, "v_full_v": 42.0},                    # a 36 V pack with the 48 V pack's S0 (54.6 / 54.0 V)
+    {"v_empty_v": 30.0, "v_full_v": 42.0},                    # a 36 V pack with the 48 V pack's S0 (54.65 / 54.62 V)
     {"v_empty_v": 60.0, "v_full_v": 84.0, "s0_on_v": 60.0, "s0_off_v": 59.0},   # S0 at the empty pack's voltage
+    {"s0_on_v": 54.6, "s0_off_v": 54.0},                      # the old release, below a pack's OCV above SOC 0.95
+    {"s0_on_v": 54.65, "s0_off_v": 54.6},                     # release at the full pack's OCV itself
+    {"s0_on_v": 54.7, "s0_off_v": 54.62},                     # on above the OCV at SOC 1.005: 54.663 V
 ])
-def test_the_brake_resistor_switch_must_lie_within_the_pack_voltages(values):
+def test_the_brake_resistor_switch_must_lie_just_above_the_full_pack(values):
     """A 36 V pack whose S0 thresholds stayed at the 48 V pack's: S0 never closed, and the
-    demo charged a full pack to SOC 1.2 without a fault. One error naming s0_on_v instead."""
+    demo charged a full pack to SOC 1.2 without a fault. A release voltage at or below the
+    full pack's OCV (54.0 V on the 54.6 V pack): the resistor drained a nearly full pack
+    (test_faults_kernel). One error naming both thresholds and their range instead."""
     from bike_plant.params import BatteryParams
 
-    with pytest.raises(ConfigError, match="battery: s0_on_v .*must be above v_empty_v and at most v_full_v"):
+    with pytest.raises(ConfigError, match=r"battery: s0_off_v and s0_on_v .*must lie above v_full_v, the full "
+                                          r"pack's open-circuit voltage.*< s0_off_v < s0_on_v <= "):
         build_dataclass(BatteryParams, values, "battery")
-    build_dataclass(BatteryParams, {"v_empty_v": 30.0, "v_full_v": 42.0, "s0_on_v": 42.0, "s0_off_v": 41.5},
+    build_dataclass(BatteryParams, {"v_empty_v": 30.0, "v_full_v": 42.0, "s0_on_v": 42.05, "s0_off_v": 42.02},
                     "battery")
+    build_dataclass(BatteryParams, {}, "battery")      # the defaults, as config/bldc_*.yaml
 
 
 def test_a_back_emf_above_the_pack_at_the_ridden_speed_is_refused():

@@ -70,6 +70,8 @@ S_TEM = 25             # mean T_em of the last period
 S_TLOAD = 26           # mean external load torque of the last period
 S_IBATT = 27           # mean battery current (charging positive) of the last period
 S_OC_TRIPS = 28        # periods blanked by the cycle-by-cycle overcurrent trip (cumulative)
+S_IDC_AVG = 29         # S0 on: the bridge current smoothed by the comparator's filter [A]
+S_I_CHOP = 30          # S0 on: the current the chopper takes in the next period [A] (v_dc / R_brake at most)
 S_SIZE = 32
 
 FAULT_INTERLOCK = 1
@@ -80,9 +82,10 @@ FAULT_OVERCURRENT = 512   # = PlantState.FAULT_OVERCURRENT: a period's gates wer
 FAULT_UNCONTROLLED_GENERATION = 128
 # FAULT_OVERVOLTAGE also while a pack past full takes charge: S0's resistor cannot take the
 # regenerated power (a 100 ohm resistor charged the pack to SOC 1.15 with no fault); a real
-# pack's BMS opens there. The margin lies beyond the charge a full pack takes before S0's
-# filtered voltage closes it (well under 1e-5 of the capacity in the shipped configs)
-SOC_OVERCHARGE = 1.005
+# pack's BMS opens there. The margin lies beyond the charge a full pack takes with S0 working:
+# up to its OCV at s0_on_v, below that at SOC_OVERCHARGE by config (SOC 1.004 for the shipped
+# 54.65 V), and while S0 holds the bus at s0_off_v, up to its OCV there (SOC 1.0016)
+SOC_OVERCHARGE = P.SOC_OVERCHARGE
 
 # Hall code -> 60-degree sector (sector k spans theta_e in [30 + 60k, 90 + 60k) deg)
 HALL_TO_SECTOR = np.array([-1, 0, 2, 1, 4, 5, 3, -1], dtype=np.int64)
@@ -696,7 +699,7 @@ KC_INV_DT = 5          # 1 / dt
 KC_INV_RB = 6          # 1 / R_batt
 KC_INV_RR = 7          # 1 / R_brake
 KC_INV_DEN_S0_OFF = 8  # 1 / (1 / R_batt): DC node with S0 off
-KC_INV_DEN_S0_ON = 9   # 1 / (1 / R_batt + 1 / R_brake)
+KC_S0_ON_RATIO = 9     # R_brake / (R_brake + R_batt): DC node with S0 fully on over that with it off
 KC_DT_PER_CAP = 10     # dt / capacity [s / (A s)]: state-of-charge step per ampere
 KC_SYM = 11            # 1: no position-dependent L, the scalar fast path (sym_segment) applies
 KC_G_DT = 12           # cn_gain(dt, L0, R): the Crank-Nicolson gain of a whole period (no division per trial)
@@ -713,7 +716,7 @@ def plant_constants(p):
     rb = p[P.P_R_BATT]
     rr = p[P.P_R_BRAKE]
     return (dt, p[P.P_L0], p[P.P_R], p[P.P_KPH], p[P.P_POLE_PAIRS], 1.0 / dt, 1.0 / rb, 1.0 / rr,
-            1.0 / (1.0 / rb), 1.0 / (1.0 / rb + 1.0 / rr), dt / p[P.P_CAP_AS],
+            1.0 / (1.0 / rb), rr / (rr + rb), dt / p[P.P_CAP_AS],
             1.0 if p[P.P_EPS] == 0.0 else 0.0, cn_gain(dt, p[P.P_L0], p[P.P_R]), dt / p[P.P_J],
             1.0 / p[P.P_GEAR], 1.0 / p[P.P_RIDER_CADMAX], 0.5 * p[P.P_R] * dt)
 
@@ -1166,7 +1169,7 @@ def period_tail_i(state, p, c, omega, th0, vdc, a_charge, a_cu, a_conv, a_tdt, e
     s0 = state[S_S0]
     i_res = 0.0
     if s0 != 0.0:
-        i_res = vdc * c[KC_INV_RR]
+        i_res = min(vdc * c[KC_INV_RR], state[S_I_CHOP])     # the chopper's current, at most fully on
         state[S_E_RES] += vdc * i_res * dt
     i_batt = i_dc - i_res                     # KCL with this period's bridge current
     state[S_E_BATT] += vdc * i_batt * dt
@@ -1178,13 +1181,17 @@ def period_tail_i(state, p, c, omega, th0, vdc, a_charge, a_cu, a_conv, a_tdt, e
     state[S_IDC] = i_dc
     vfilt = state[S_VFILT] + p[P.P_S0_ALPHA] * (vdc - state[S_VFILT])
     state[S_VFILT] = vfilt
-    if s0 == 0.0 and vfilt > p[P.P_S0_ON]:
-        s0 = 1.0
-    elif s0 != 0.0 and vfilt < p[P.P_S0_OFF]:
-        s0 = 0.0
-    state[S_S0] = s0
     voc = battery_voc(soc, p)
-    vdc_next = (voc * c[KC_INV_RB] + i_dc) * (c[KC_INV_DEN_S0_ON] if s0 != 0.0 else c[KC_INV_DEN_S0_OFF])
+    vdc_next = (voc * c[KC_INV_RB] + i_dc) * c[KC_INV_DEN_S0_OFF]
+    if s0 == 0.0:
+        if vfilt > p[P.P_S0_ON]:
+            s0 = 1.0
+            state[S_IDC_AVG] = (vfilt - voc) * c[KC_INV_RB]    # the filtered bus with S0 open is Voc + Rb i
+    else:
+        state[S_IDC_AVG] += p[P.P_S0_ALPHA] * (i_dc - state[S_IDC_AVG])
+    if s0 != 0.0:
+        vdc_next, s0 = _s0_chopper(state, p, c, voc, vdc_next)
+    state[S_S0] = s0
     state[S_VDC] = vdc_next
     # (unlikely: a branch, not a select added to the period's chain; bike_plant.jit)
     if vdc_next > p[P.P_OVERVOLTAGE] or _jit.unlikely(soc > SOC_OVERCHARGE and i_batt > 0.0):
@@ -1221,6 +1228,25 @@ def period_tail_i(state, p, c, omega, th0, vdc, a_charge, a_cu, a_conv, a_tdt, e
     state[S_THETA_E] = th1
     state[S_PERIODS] = periods + 1.0
     return n_edges, vdc_next, w_new, th1
+
+
+@njit(**JIT_INLINE)
+def _s0_chopper(state, p, c, voc, vdc_free):
+    """S0 closed (paper 000, Fig. 2: dynamic braking): a chopper switching faster than the
+    period, modelled by its mean current, holds the bus at s0_off_v (above the full pack's OCV,
+    BatteryParams). The pack takes what it takes there, (s0_off_v - Voc) / Rb (none once its OCV
+    is above), the resistor the rest of the filtered bridge current, at most v_dc / R_brake
+    (fully on), so it never takes the pack's energy (a plain switch with its 54.0 V release below
+    the OCV took 27.6 J from a pack at SOC 0.99 in 0.5 s at Command 0.3). The period's ripple
+    goes to the pack, standing in for the bus capacitor the model lacks. S0 opens once nothing
+    is left for the resistor. vdc_free: the bus with S0 open. Returns (v_dc next, s0)."""
+    i_chop = state[S_IDC_AVG] - max(p[P.P_S0_OFF] - voc, 0.0) * c[KC_INV_RB]
+    if i_chop <= 0.0:
+        state[S_I_CHOP] = 0.0
+        return vdc_free, 0.0
+    state[S_I_CHOP] = i_chop
+    # held at Voc + Rb (i_dc - i_chop), or below it fully on
+    return max(vdc_free * c[KC_S0_ON_RATIO], vdc_free - i_chop * c[KC_INV_DEN_S0_OFF]), 1.0
 
 
 @njit(**JIT_COLD)

@@ -76,6 +76,12 @@ class BldcParams:
         return self.ke_v_per_rpm * RPM_PER_RAD_S
 
 
+# The state of charge past which a pack taking charge is an overvoltage fault (bike_plant.bldc,
+# FAULT_OVERVOLTAGE: a real pack's BMS opens). BatteryParams keeps S0's switch-on voltage at or
+# below the pack's OCV at this SOC, so regeneration alone never charges a pack past it.
+SOC_OVERCHARGE = 1.005
+
+
 @dataclass
 class BatteryParams:
     """48 V pack (13S li-ion) + S0 brake resistor (paper 000, Fig. 2, dynamic braking)."""
@@ -85,8 +91,8 @@ class BatteryParams:
     capacity_ah: float = 10.0
     soc0: float = 0.7
     r_brake_ohm: float = 4.0
-    s0_on_v: float = 54.6
-    s0_off_v: float = 54.0
+    s0_on_v: float = 54.65        # S0 chopper: on above the full pack's OCV (v_full_v) ...
+    s0_off_v: float = 54.62       # ... holds the bus here, above v_full_v, so it never takes the pack's energy
     s0_filter_s: float = 1.0e-3   # RC filter of the S0 comparator input (no bus capacitor in the model)
 
     def validate(self) -> None:
@@ -98,13 +104,21 @@ class BatteryParams:
             raise ValueError(f"soc0 must be in [0, 1], got {self.soc0!r}")
         if self.s0_off_v >= self.s0_on_v:
             raise ValueError("s0_off_v must be < s0_on_v (hysteresis)")
-        if not self.v_empty_v < self.s0_on_v <= self.v_full_v:
-            # above the full pack's voltage S0 never closes and a full pack takes the regenerated
-            # energy on (SOC 1.2 after 10 s of the demo on a 36 V pack with the 48 V pack's 54.6 V);
-            # at or below the empty pack's it is closed throughout and drains the pack into the resistor
-            raise ValueError(f"s0_on_v (the brake resistor's switch-on voltage) must be above v_empty_v "
-                             f"and at most v_full_v ({self.v_empty_v:g} < s0_on_v <= {self.v_full_v:g} V), "
-                             f"got {self.s0_on_v:g} V: set it with the pack's voltages")
+        v_top = self.ocv_v(SOC_OVERCHARGE)
+        if not self.v_full_v < self.s0_off_v < self.s0_on_v <= v_top:
+            # S0 open below the full pack's OCV (54.0 V on the 54.6 V pack): with the pack above
+            # SOC 0.95 S0 stayed on and the pack fed the resistor (27.6 J in 0.5 s at SOC 0.99,
+            # Command 0.3); S0 closed only above the OCV at SOC_OVERCHARGE: a full pack charged on
+            # past it (SOC 1.2 after 10 s of the demo on a 36 V pack with the 48 V pack's 54.6 V)
+            raise ValueError(f"s0_off_v and s0_on_v (the brake resistor's switch-off and -on voltages) must lie "
+                             f"above v_full_v, the full pack's open-circuit voltage, and at most its OCV at SOC "
+                             f"{SOC_OVERCHARGE:g}: {self.v_full_v:g} < s0_off_v < s0_on_v <= {v_top:.5g} V, got "
+                             f"s0_off_v {self.s0_off_v:g} V, s0_on_v {self.s0_on_v:g} V: below it S0 drains a nearly "
+                             f"full pack into the resistor, above it a full pack charges on past full")
+
+    def ocv_v(self, soc: float) -> float:
+        """Open-circuit voltage [V] at state of charge soc (linear, as bike_plant.bldc.battery_voc)."""
+        return self.v_empty_v + (self.v_full_v - self.v_empty_v) * soc
 
 
 # Upper bounds of a friction figure (config, calibration file, spin-down): far above any bike's
