@@ -184,6 +184,26 @@ def test_bus_sags_when_motoring_and_rises_when_braking(params):
             m.mechanical_power_w + params.copper_resistance_ohm * m.iq_a ** 2)
 
 
+@pytest.mark.parametrize("soc0,torque_nm", [(0.99, -1.0), (1.0, -1.0), (1.0, -3.0)])
+def test_the_average_models_brake_resistor_never_drains_a_nearly_full_pack(params, soc0, torque_nm):
+    """Braking into a nearly full pack (the average model's bus, as bike_plant's S0 chopper):
+    S0 switches in and stays in, the bus sits at or above s0_off_v (above the pack's OCV), and
+    the pack is never discharged, with the resistor taking the rest (a plain S0 with its old
+    54.0 V release toggled and drained the pack at -1 N m)."""
+    fw = DriveFirmware(model_with(params, load_kind="prime_mover", soc0=soc0), watchdog_timeout_s=0.0)
+    fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 0.0)
+    fw.set_input_torque(torque_nm, 0.0)
+    m, on = fw.model, []
+    for _ in range(2000):                                    # 0.5 s
+        fw.step(0.25e-3)
+        assert m.bus_current_a <= 1e-12, m.bus_current_a      # charging or nothing, never discharging
+        on.append(m.brake_on)
+    assert all(on[100:]), "S0 must switch in and stay in"
+    assert m.bus_voltage_v >= params.s0_off_v and m.soc >= soc0
+    p_pack_w = -m.bus_current_a * m.bus_voltage_v
+    assert 0.0 <= p_pack_w < -m.electrical_power_w
+
+
 def test_firmware_watchdog_refusal_and_recovery(params):
     fw = DriveFirmware(model_with(params, load_kind="prime_mover"), watchdog_timeout_s=0.5)
     fw.request_state(AxisState.CLOSED_LOOP_CONTROL, 10.0)

@@ -79,8 +79,8 @@ Modelling choices (what a host sees):
   L/R (117 uH / 6 mOhm = 20 ms for the default BLDC) is the open-loop constant a PI
   cancels, not the closed-loop response. No voltage limit is modelled there; copper
   loss: BLDC 2 R_phase iq^2 (two phases conduct), SPMSM 1.5 R_s iq^2; bus: the battery of
-  the config (OCV(soc), internal resistance) with the brake resistor switched by its
-  hysteresis (s0_on_v / s0_off_v); Bus_Current is the DC current drawn from the battery
+  the config (OCV(soc), internal resistance) with the brake resistor's S0 chopper (as the
+  plant's: s0_on_v / s0_off_v, never draining the pack); Bus_Current is the DC current drawn from the battery
   by the drive incl. its brake resistor (positive = discharging); Electrical_Power =
   mechanical power + copper loss;
 * watchdog (0.6.x: axis.config.watchdog_timeout): fed by Set_Input_Torque,
@@ -389,22 +389,33 @@ class AverageTorqueDrive(_DriveReadouts):
 
     def _dc_bus(self, dt_s: float) -> None:
         """Battery (OCV, R_int) || brake resistor feeding the drive's power P:
-        V = OCV - R_int (P / V + s0 V / R_brake)  ->  a V^2 - OCV V + R_int P = 0."""
+        V = OCV - R_int (P / V + i_res)  ->  with S0 fully on (i_res = V / R_brake)
+        a V^2 - OCV V + R_int P = 0. S0 is a chopper (as bike_plant.bldc._s0_chopper): on above
+        s0_on_v, it holds the bus at s0_off_v (never below the OCV) with the regenerated current
+        the pack does not take there, at most fully on, and opens when nothing is left, so the
+        resistor never takes the pack's energy."""
         p = self.params
         voc = self.ocv_v()
-        s0 = 1.0 if (self.brake_on and p.r_brake_ohm > 0) else 0.0
-        a = 1.0 + s0 * p.r_internal_ohm / p.r_brake_ohm if s0 else 1.0
-        disc = voc * voc - 4.0 * a * p.r_internal_ohm * self.electrical_power_w
-        v = (voc + math.sqrt(max(disc, 0.0))) / (2.0 * a)    # max(): overload collapses the bus
+        v = self._bus_v(voc, 1.0)
+        i_res = 0.0
+        if self.brake_on:
+            v_hold = max(p.s0_off_v, voc)
+            if v > v_hold:
+                v = max(self._bus_v(voc, 1.0 + p.r_internal_ohm / p.r_brake_ohm), v_hold)
+                i_res = (voc - v) / p.r_internal_ohm - self.electrical_power_w / v
+            else:
+                self.brake_on = False
+        elif v > p.s0_on_v and p.r_brake_ohm > 0:
+            self.brake_on = True
         i_drive = self.electrical_power_w / v if v > 1e-6 else 0.0
-        i_res = s0 * v / p.r_brake_ohm if s0 else 0.0
         self.bus_voltage_v = v
         self.bus_current_a = i_drive + i_res
         self.soc -= self.bus_current_a * dt_s / (p.capacity_ah * 3600.0)
-        if not self.brake_on and v > p.s0_on_v:
-            self.brake_on = True
-        elif self.brake_on and v < p.s0_off_v:
-            self.brake_on = False
+
+    def _bus_v(self, voc: float, a: float) -> float:
+        """The bus voltage [V] solving a V^2 - OCV V + R_int P = 0 (a = 1: S0 open)."""
+        disc = voc * voc - 4.0 * a * self.params.r_internal_ohm * self.electrical_power_w
+        return (voc + math.sqrt(max(disc, 0.0))) / (2.0 * a)    # max(): overload collapses the bus
 
 
 # =======================================================================================
