@@ -64,6 +64,27 @@ def test_bad_config_values_name_the_key(cfg, section, key, value, needle):
     assert str(CFG_PATH.name) in str(exc.value)
 
 
+@pytest.mark.parametrize("section,values,key", [
+    ("load", {"kind": "prime_mover", "speed_rpm": -300.0}, "load.speed_rpm"),
+    ("load", {"kind": "prime_mover", "schedule_time_s": [0.0, 1.0], "schedule_speed_rpm": [200.0, -100.0]},
+     "load.schedule_speed_rpm"),
+    ("mechanics", {"speed0_rpm": -50.0}, "mechanics.speed0_rpm"),
+])
+def test_reverse_rotation_is_refused_naming_the_key(section, values, key):
+    """The session's mode laws (shared with the BLDC bike) brake and assist forward rotation
+    only: a prime mover at -300 r/min was braked 0 N m by the resistance mode at Command 0.5
+    (its status 0.000, unflagged) and the isokinetic loop's brake was reported as motoring.
+    Refused up front, naming the key; forward and standstill stay accepted."""
+    from bike_plant.config import load_config
+    bike = load_config(CFG_PATH)
+    with pytest.raises(ConfigError) as exc:
+        M.plant_params_from_config(config_variant(bike, **{section: values}))
+    msg = str(exc.value)
+    assert key in msg and "forward" in msg and msg.count("error") <= 1
+    M.plant_params_from_config(config_variant(bike, load={"kind": "prime_mover", "speed_rpm": 0.0},
+                                              mechanics={"speed0_rpm": 0.0}))
+
+
 def test_wrong_machine_and_period_are_config_errors(cfg):
     for key, value in (("machine", "bldc"), ("control_period_s", 0.5), ("control_period_s", "fast")):
         bad = dict(cfg, **{key: value})

@@ -358,16 +358,26 @@ def reverse_speed_problem(p: PlantParams) -> tuple[str, str] | None:
     turned backwards, the phase its generating pattern chops is at -E, no current builds and
     nothing brakes, while the status reports the torque commanded (a prime mover at -3000 rpm:
     0 N m and 0 A for 1.47 N m and 30 A asked)."""
-    load = p.load
-    speeds = [("mechanics.speed0_rpm", p.mech.speed0_rpm)]
+    found = negative_config_speed(p.mech, p.load)
+    if found is None:
+        return None
+    key, rpm = found
+    return key, (f"{rpm:g} rpm turns the BLDC bike backwards: its controller brakes and assists forward "
+                 "rotation only (paper 000, quadrants II and I of Fig. 3), backwards it would brake nothing "
+                 "under any Command; give a speed >= 0")
+
+
+def negative_config_speed(mech: MechParams, load) -> tuple[str, float] | None:
+    """(key, r/min) of the first configured shaft speed below zero (the start speed, a prime
+    mover's speed and schedule), or None: either machine refuses it (reverse_speed_problem,
+    bike_plant.spmsm_params.plant_params_from_config)."""
+    speeds = [("mechanics.speed0_rpm", mech.speed0_rpm)]
     if load.kind == "prime_mover":
         speeds += [("load.speed_rpm", load.speed_rpm)] + [
             ("load.schedule_speed_rpm", float(v)) for v in load.schedule_speed_rpm]
     for key, rpm in speeds:
         if rpm < 0.0:
-            return key, (f"{rpm:g} rpm turns the BLDC bike backwards: its controller brakes and assists forward "
-                         "rotation only (paper 000, quadrants II and I of Fig. 3), backwards it would brake nothing "
-                         "under any Command; give a speed >= 0")
+            return key, rpm
     return None
 
 

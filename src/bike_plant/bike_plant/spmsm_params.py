@@ -9,7 +9,8 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from .config import ConfigError, build_dataclass, require_positive, section
-from .params import LoadParams, MechParams, ShaftLoadParams, friction_problem, load_section_with_preset
+from .params import (LoadParams, MechParams, ShaftLoadParams, friction_problem, load_section_with_preset,
+                     negative_config_speed)
 
 MAX_DYNO_POINTS = 16
 
@@ -247,6 +248,17 @@ def plant_params_from_config(cfg: dict) -> SpmsmPlantParams:
                           "regen.relay_dead_s")
     if params.inverter.dead_time_s * 4 > params.control_period_s / params.inverter.carrier_multiple:
         raise ConfigError("dead time must be < 1/4 of a carrier period", path, "inverter.dead_time_s")
+    reverse = negative_config_speed(params.mech, params.load)
+    if reverse is not None:
+        # the dq model and its speed loop run both ways (./bike paper's sine and triangle commands
+        # cross zero), but the session's mode laws (bike_controller.modes, shared with the BLDC
+        # bike) brake and assist forward rotation: at -300 r/min the resistance mode braked 0 N m
+        # for Command 0.5 (0.000 in its status, unflagged), ERG 5.45 N m for 10.3, and the
+        # isokinetic loop's brake was reported as motoring (quadrant I)
+        key, rpm = reverse
+        raise ConfigError(f"{rpm:g} r/min turns the SPMSM bike backwards: its session modes brake and assist "
+                          "forward rotation only (backwards the resistance mode brakes nothing under any "
+                          "Command); give a speed >= 0", path, key)
     return params
 
 
