@@ -156,17 +156,21 @@ def test_tracking_commands_and_helpers():
 
 
 @pytest.mark.slow
-def test_overmodulation_raises_the_thd_but_not_to_the_papers_level():
+def test_overmodulation_does_not_raise_the_thd_to_the_papers_level():
     """inverter.overmodulation: clamp (voltage limit 2 Vdc/pi, per-phase duty clamp) at 200 r/min
-    and 1 N m: less flux-weakening current, more 5th / 7th voltage, a higher THD for both
-    families, still below half the paper's 8.8 / 12.5 % (why: paper_spmsm docstring)."""
+    and 1 N m: less flux-weakening current and more 5th / 7th voltage; the predictive family's
+    THD rises (0.9 -> 2.0 %), the PI's falls with its smaller fundamental (1.8 -> 1.6 %; 2.3 %
+    while the switching model lost a leg's dead time past the carrier's end), both below half
+    the paper's 8.8 / 12.5 % (why: paper_spmsm docstring)."""
     cfg = config_variant(P._load(CFG_PATH), inverter={"overmodulation": "clamp"})
     base = P._load(CFG_PATH)
     for fam, paper in zip(P.FAMILIES, P.PAPER[("thd", "phase_current_thd")]):
         lin, om = P.current_thd(base, fam), P.current_thd(cfg, fam)
-        assert abs(om["speed_rpm"] - P.SPEED_RPM) < 2.0
+        assert abs(om["speed_rpm"] - P.SPEED_RPM) < 3.0
         assert om["id"] > lin["id"] + 0.5                       # less flux weakening
-        assert lin["thd_percent"] < om["thd_percent"] < 0.5 * paper
+        assert om["thd_percent"] < 0.5 * paper
+        if fam == "predictive":
+            assert om["thd_percent"] > lin["thd_percent"] + 0.5
 
 
 @pytest.mark.parametrize("config", ["bldc_default.yaml", "bldc_can.yaml"])

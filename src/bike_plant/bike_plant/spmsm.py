@@ -524,6 +524,13 @@ def _leg_edges(d, cur, hc, td):
         else:
             r += 0.5 * td
             f += 0.5 * td
+        if f > hc:
+            # the low pulse, [f, hc) here and [0, r) of the next (identical) carrier, starts late
+            # by what runs past this carrier's end: taken off its [0, r) part (the volt-seconds
+            # exact, the pulse moved by at most td). Clipped at hc, a duty above 1 - 2 td / hc with
+            # i < 0 lost up to td / hc of its dead-time error (0.08 V of a leg's 0.36 V at 0.98)
+            r = max(r - (f - hc), 0.0)
+            f = hc
     return min(max(r, 0.0), hc), min(max(f, 0.0), hc)
 
 

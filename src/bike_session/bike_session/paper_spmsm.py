@@ -85,9 +85,9 @@ What it reproduces and what it does not (the test pins both):
   harmonics of the paper's size come from a modulator driven out of its linear range
   (six-step would give ~15 %), i.e. a flux-weakening implementation running into
   overmodulation, which the paper does not describe. Modelled (``inverter.overmodulation:
-  clamp``: voltage limit 2 Vdc/pi, per-phase duty clamp) it gives 1.7 % / 2.3 %: the
+  clamp``: voltage limit 2 Vdc/pi, per-phase duty clamp) it gives 2.0 % / 1.6 %: the
   current loops correct most of the clipping, and the extra voltage cuts the flux-weakening
-  current (fundamental 2.8 / 2.2 A instead of 4.0 / 3.1 A). A one-period computation delay
+  current (fundamental 2.7 / 2.1 A instead of 4.0 / 3.1 A). A one-period computation delay
   with the small current weight it then needs for stability (beta_c 0.03-0.1) gives 1.3-2.4 %
   and drives id to -8.8 A (the loop saturates and the region logic backs off). The default
   stays in the linear range;
