@@ -581,3 +581,35 @@ def test_a_controller_that_skipped_plant_states_keeps_its_speed_estimate(skipped
     worst, worst_ref = np.max(np.abs(errors)), np.max(np.abs(errors_ref))
     assert worst < worst_ref + (0.04 if estimator == "observer" else 0.15), (worst_ref, worst)
     assert ctrl.inner.skipped_state_gaps == 1 and ctrl.inner.skipped_periods == skipped * ctrl.batch_periods
+
+
+@pytest.mark.parametrize("speed_rpm, command, floored", [(600.0, 0.0, True), (600.0, 0.2, True), (330.0, 0.0, False),
+                                                         (600.0, 1.0, False)])
+def test_a_brake_below_the_rectifier_paths_least_is_flagged(speed_rpm, command, floored):
+    """With the buck at its lowest duty (the link at regen.link_max_v, 60 V) the rectifier's
+    diodes still conduct once the back-EMF passes that link (~510 r/min, 127 rpm cadence at gear
+    4): at 600 r/min the resistance mode at Command 0 braked 4.9 N m while its status said 0.000
+    and mode_saturated was False. The brake the path cannot go below is flagged now; one it can
+    give (Command 1, 5.5 N m; or 330 r/min, where nothing conducts at the lowest duty) is not."""
+    from bike_controller.modes import MODE_RESISTANCE
+    from bike_controller.spmsm_session import ModedSpmsmController
+    from bike_plant.config import load_config
+    from conftest import SPMSM_CONFIG
+    c = variant(load_config(SPMSM_CONFIG), load={"kind": "prime_mover", "speed_rpm": speed_rpm})
+    plant = M.SpmsmPlant(M.plant_params_from_config(c))
+    ctrl = ModedSpmsmController(c)
+    ctrl.set_command(command, MODE_RESISTANCE)
+    flags, torque = [], []
+    for k in range(600):
+        duties, relay, buck, status = ctrl.decide(dict(plant.snapshot(), batch_periods=ctrl.batch_periods))
+        res = plant.step_batch(duties, relay, buck)
+        if k >= 300:
+            flags.append(bool(status["mode_saturated"]))
+            torque.append(res.torque_em_nm)
+    assert plant.state[M.S_RELAY] == M.REL_RECTIFIER
+    if floored:
+        assert -np.mean(torque) > status["torque_cmd_nm"] + 0.5
+        assert all(flags), np.mean(flags)
+        assert ctrl.rectifier_floor_nm(speed_rpm) == pytest.approx(-np.mean(torque), rel=0.05)
+    else:
+        assert not any(flags), np.mean(flags)

@@ -38,7 +38,8 @@ from bike_plant.params import RPM_PER_RAD_S
 from .modes import (BRAKE_ONLY_MODES, MODE_ISOKINETIC, MODE_RESISTANCE, MODE_SPINDOWN, ModeLaw, ModeOutput, TorqueTrim,
                     machine_figures, modes_from_config)
 from .session_control import DriveTorqueLaw, EmptyPackGuard, SessionCommand, drive_status, skipped_time_s
-from .spmsm_control import C_IQ_REF, C_SPEED_EST, C_TORQUE_MODE, SpmsmController, controller_params_from_config
+from .spmsm_control import (C_IQ_REF, C_SPEED_EST, C_TORQUE_MODE, Q_LINK_MAX, Q_PP, SpmsmController, brake_torque_nm,
+                            controller_params_from_config)
 from .spindown import EncoderSpeed
 
 _log = logging.getLogger(__name__)
@@ -281,6 +282,11 @@ class ModedSpmsmController(SessionCommand):
             # the rectifier path brakes only: an assist wanted before the relay may switch is not given
             clipped = torque < -self.clip_tolerance_nm
             torque = max(torque, 0.0)
+            # ... nor a brake below the path's least: with the buck at its lowest duty (the link at
+            # regen.link_max_v) the diodes still conduct once the back-EMF passes that link (about
+            # 510 r/min with the paper's machine): a rider at 150 rpm, at resistance 0 or asking
+            # less than that floor, was braked 4.9 N m while the status said 0 and nothing was flagged
+            clipped = clipped or self.rectifier_floor_nm(speed_rpm) > torque + self.clip_tolerance_nm
             inner.set_relay(True)
             inner.set_brake_torque(torque)
             self._torque_command(None)
@@ -295,6 +301,13 @@ class ModedSpmsmController(SessionCommand):
                 inner.set_speed_ref(speed_rpm, speed_rpm)
         if (self.trim.clamped or self.pack.active or clipped) and not out.saturated:
             self.last_out = out = dataclasses.replace(out, saturated=True)
+
+    def rectifier_floor_nm(self, speed_rpm: float) -> float:
+        """The least braking torque of the rectifier path at ``speed_rpm`` (motor): the steady state
+        of Fig. 8 with the buck at its lowest duty, the link at regen.link_max_v (0 below the
+        speed at which the back-EMF passes it)."""
+        q = self.inner.q
+        return float(brake_torque_nm(q[Q_LINK_MAX], q[Q_PP] * speed_rpm / RPM_PER_RAD_S, q))
 
     def _pack_full(self) -> bool:
         soc = self.battery_soc
