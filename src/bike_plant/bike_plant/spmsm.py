@@ -109,6 +109,11 @@ positive accelerating (the BLDC plant's sign); the dynamometer's TL is its negat
 Energy ledger [J], cumulative: mechanical in (load work) = copper + friction + converter
 (diodes, buck, charger, relay) losses + battery + dump resistor + stored (kinetic +
 magnetic) change; ``residual_j`` closes to round-off.
+The pack is an ideal source at ``battery.nominal_v`` whose SOC books energy / (V Q) without
+bounds: above 1 through the inverter it is flagged (FAULT_PACK_OVERCHARGE; the charger's dump
+keeps the rectifier path from it), below 0 nothing in the plant stops the inverter (the session's
+EmptyPackGuard holds assist at SOC <= 0; a bare speed loop drains on). The inverter's link is
+``inverter.dc_link_v``, read independently of the pack's voltage (the paper: one 24 V set).
 """
 from __future__ import annotations
 

@@ -76,7 +76,10 @@ MODULATIONS = ("svpwm", "sine_triangle")
 # (the most a bridge can make); a vector beyond the linear range is clipped per phase by the
 # duty clamp (0 <= d <= 1), which adds 5th / 7th (6k +- 1) voltage harmonics. Used by the
 # flux-weakening drives that trade waveform quality for voltage (Holtz, "Pulsewidth
-# modulation - a survey", overmodulation; Kwon & Sul, flux weakening into overmodulation).
+# modulation - a survey", overmodulation; Kwon & Sul, flux weakening into overmodulation). The clamp of a
+# min-max-centred reference delivers less than it is asked beyond the linear range: 98.7 % of a 0.6 Vdc
+# vector, 95 % of 2 Vdc/pi (14.5 V of 15.3 at 24 V); the controller counts the vector it asked as applied,
+# and its current loops and slow voltage feedback (spmsm_control.speed_loop) take up the rest.
 OVERMODULATIONS = ("none", "clamp")
 
 
@@ -175,7 +178,10 @@ class SpmsmLoadParams(ShaftLoadParams):
     """External load on the shaft (paper 001, Fig. 9b: dynamometer; ARCHITECTURE.md loads).
 
     dynamometer: TL(t) piecewise constant, TL = dyno_torque_nm[k] from dyno_time_s[k] on
-    (Eq. 3 sign: positive opposes positive rotation). prime_mover: speed held at speed_rpm
+    (Eq. 3 sign: positive opposes positive rotation). TL is a torque source, whatever the speed:
+    the paper's dynamometer (a magnetic-powder brake, section 7) opposes the rotation and holds a
+    shaft at rest, which this one does not (1 N m turns a free shaft at rest backwards); the
+    paper's runs (and ./bike paper's load_fn) apply it at speed only. A negative TL drives. prime_mover: speed held at speed_rpm
     (optional schedule). rider: the torque-cadence rider of bike_plant.mechanics
     (:class:`bike_plant.params.RiderParams`) through the gear motor/crank (the outer rotor
     turns ~2.5x the crank). none: free shaft.
