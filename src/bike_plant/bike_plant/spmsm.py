@@ -56,7 +56,10 @@ constant-switch-state segment is integrated exactly, in the stationary frame whe
 voltage is constant and, around the rotating particular solution p0 exp(j theta), the decay
 is real (:func:`_solve_switching`: two short series per segment, no libm call, the same
 result as the rotor-frame :func:`segment` per segment to ~1e-14); optional dead time (edge
-delay by the sign of the phase current at the period start).
+delay by the sign of the phase current at the period start). The bridge is lossless while
+its gates run (no conduction or switching loss: the battery's energy is the terminals'); its
+diodes' drop (``inverter.diode_drop_v``) counts only with the gates off (path 2 below), so
+braking through the inverter books none of the converter loss the rectifier path books.
 
 Non-idealities of the real machine and bridge (``spmsm.*`` / ``inverter.dead_time_s``; the
 paper gives none of them, config/spmsm_default.yaml documents the chosen values; 0 = the
