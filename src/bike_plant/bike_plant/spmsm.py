@@ -130,7 +130,7 @@ from numba import njit
 from . import jit as _jit
 from . import mechanics
 from .heart import RiderHeart
-from .jit import JIT, JIT_HOT, JIT_INLINE, invalidate_stale_numba_cache  # noqa: F401
+from .jit import JIT, JIT_COLD, JIT_HOT, JIT_INLINE, invalidate_stale_numba_cache  # noqa: F401
 from .params import RPM_PER_RAD_S, TWO_PI
 from .spmsm_params import (  # noqa: F401 - re-exported: the parameters live there, without numba
     MAX_DYNO_POINTS, SpmsmParams, INVERTER_MODELS, MODULATIONS, OVERMODULATIONS, InverterParams, RegenParams,
@@ -315,8 +315,9 @@ S_SPEED_TARGET = 22        # prime mover [rad/s]
 S_TEXT = 23                # hook load torque on the shaft [N m], accelerating positive
 S_TEM = 24                 # mean Te of the last period
 S_TLOAD = 25               # mean external torque of the last period (accelerating positive)
-# 26, 27: free (held the plant's mean applied dq voltage, computed every period and read by
-# nothing; the applied voltage is the controller's vd / vq telemetry)
+# 26, 27: the bracket (lo, hi) of a stiff shaft's midpoint iteration (_stiff_step; scratch within a
+# period, in the state so that the usual iteration carries no values for it)
+S_SHAFT_LO, S_SHAFT_HI = 26, 27
 S_IBATT = 28               # mean battery current of the last period, charging positive
 S_VLINK = 29               # rectifier DC link of the last period
 S_FAULTS = 30
@@ -949,19 +950,23 @@ def friction_torque(w, p):
     return f
 
 
-@njit(**JIT_INLINE)
-def _stiff_step(wg, wn, lo, hi, p):
+@njit(**JIT_COLD)
+def _stiff_step(state, wg, wn, p):
     """Next guess of the period's mid speed for a stiff shaft (small J: P_SHAFT_STIFF). The
     midpoint map F(wg) = w0 + (T / 2J)(torques at wg) falls with wg (friction, back-EMF), so the
     root lies between wg and F(wg) = wn: the bracket (lo, hi) narrows to it. The step is Newton's
     on the friction's and the EMF's slope, (wn - wg) / (1 + (T / 2J)(B + Tc / w_s sech^2 + Ke')),
     bisected when it leaves the bracket. The plain pass wg <- wn contracts by that factor's
     denominator - 1 and cycled beyond 1: with J = 1e-5 kg m^2 and the default Coulomb friction
-    the shaft never settled (|w| 1 rad/s at rest, the ledger 5e-4 J off after 0.2 s)."""
+    the shaft never settled (|w| 1 rad/s at rest, the ledger 5e-4 J off after 0.2 s). The
+    bracket lives in state[S_SHAFT_LO / HI]; out of line, so the usual pass carries none of it."""
+    _jit.out_of_line()
     if wn > wg:
-        lo = wg
+        state[S_SHAFT_LO] = wg
     else:
-        hi = wg
+        state[S_SHAFT_HI] = wg
+    lo = state[S_SHAFT_LO]
+    hi = state[S_SHAFT_HI]
     w = wg
     slope = p[P_B] + p[P_KE_SPEED]
     if p[P_DRY_T] != 0.0 and -p[P_DRY_W19] <= w <= p[P_DRY_W19]:
@@ -970,7 +975,7 @@ def _stiff_step(wg, wn, lo, hi, p):
     wx = wg + (wn - wg) / (1.0 + p[P_HALF_DT_J] * slope)
     if not (lo < wx < hi):
         wx = 0.5 * (lo + hi)
-    return wx, lo, hi
+    return wx
 
 
 @njit(**JIT)
@@ -1224,9 +1229,11 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
         n_it = 0
         h6 = z0
         stiff = p[P_SHAFT_STIFF] != 0.0
-        n_max = 64 if stiff else 8
-        lo = -math.inf
-        hi = math.inf
+        n_max = 8
+        if _jit.unlikely(stiff):
+            n_max = 64
+            state[S_SHAFT_LO] = -math.inf
+            state[S_SHAFT_HI] = math.inf
         for it in range(n_max):
             if emf_on or cog_on:
                 h6 = _sixth(ej0, e1h)
@@ -1246,8 +1253,8 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             wn = w0 + 0.5 * dt * (tem + tcog + t_ext - fr) / J
             if abs(wn - wg) <= tol or it == n_max - 1:
                 break
-            if stiff:
-                wx, lo, hi = _stiff_step(wg, wn, lo, hi, p)
+            if _jit.unlikely(stiff):
+                wx = _stiff_step(state, wg, wn, p)
                 e1h = _rot_small(e1h, pp * (wx - wg) * dt)
                 wg = wx
                 continue
