@@ -132,7 +132,7 @@ def test_long_regeneration_into_a_full_battery_engages_s0_and_holds_the_bus():
 @pytest.mark.parametrize("soc0", [0.99, 1.0])
 def test_a_nearly_full_pack_never_feeds_the_brake_resistor(soc0):
     """Light braking (Command 0.3, about 0.27 kW at 3000 rpm) into a nearly full pack. S0's
-    release (54.0 V) lay below the pack's OCV above SOC 0.95 and, once closed, the 4 ohm
+    release (54.0 V) lay below the pack's OCV above SOC 0.95 and, once closed, the then 4 ohm
     resistor's 0.74 kW came from the pack too: at SOC 0.99 it took 164.6 J in 0.5 s while the
     machine gave 143.7 J, and the pack lost 27.6 J (S0 toggling at ~500 batches a second).
     Now S0 is a chopper holding the bus above the full pack's OCV: it switches in (the pack is
@@ -154,6 +154,26 @@ def test_a_nearly_full_pack_never_feeds_the_brake_resistor(soc0):
     assert 0.0 < led["energy_resistor_j"] < led["energy_mech_in_j"]
     assert plant.snapshot()["battery_soc"] >= soc0
     assert abs(led["residual_j"]) < 1e-6 * led["energy_mech_in_j"]
+
+
+@pytest.mark.parametrize("speed_rpm", [3000.0, 4500.0])
+def test_the_default_brake_resistor_takes_the_full_regenerated_power(speed_rpm):
+    """A full pack braked hard (Command 1, about 1 kW at 90-130 rpm cadence): the resistor takes
+    all but the trickle S0's hold voltage lets into the pack, so no ride reaches the overcharge
+    fault. The 4 ohm once configured took 0.75 kW at most: the pack took about 0.2 kW and its SOC
+    rose 1.1e-4 a second, SOC_OVERCHARGE within a minute."""
+    c, plant, ctrl = _bike(soc0=1.0, kind="prime_mover", speed_rpm=speed_rpm)
+    ctrl.set_command(1.0, 0)
+    for _ in range(int(round(2.0 / BATCH_S))):
+        plant.step_batch(*ctrl.decide(plant.snapshot())[:3])
+    led = plant.ledger()
+    dc_node_j = led["energy_resistor_j"] + led["energy_battery_j"]       # what the bridge regenerated
+    assert led["energy_resistor_j"] > 0.98 * dc_node_j, led                 # 4 ohm: 0.86 / 0.77
+    soc_rise_per_s = (plant.snapshot()["battery_soc"] - 1.0) / 2.0
+    # 4e-6 (4 ohm: 6e-5 / 1.1e-4); the trickle ends where the pack's OCV reaches s0_off_v (SOC
+    # 1.0013), far below the fault
+    assert soc_rise_per_s < 1e-5, soc_rise_per_s
+    assert not plant.snapshot()["faults"] & K.FAULT_OVERVOLTAGE
 
 
 def test_a_full_pack_charged_on_past_what_s0_takes_is_an_overvoltage_fault():

@@ -90,7 +90,10 @@ class BatteryParams:
     r_internal_ohm: float = 0.15
     capacity_ah: float = 10.0
     soc0: float = 0.7
-    r_brake_ohm: float = 4.0
+    # sized for the regenerated peak (about 1 kW at Command 1, 3000-4500 rpm): 54.6 V^2 / 2.5 ohm = 1.19 kW.
+    # The 4 ohm once here took 0.75 kW at most, and a full pack braked at Command 1 at 3000 rpm took the
+    # other ~0.2 kW: SOC 1.005, the overcharge fault, within a minute
+    r_brake_ohm: float = 2.5
     s0_on_v: float = 54.65        # S0 chopper: on above the full pack's OCV (v_full_v) ...
     s0_off_v: float = 54.62       # ... holds the bus here, above v_full_v, so it never takes the pack's energy
     s0_filter_s: float = 1.0e-3   # RC filter of the S0 comparator input (no bus capacitor in the model)
