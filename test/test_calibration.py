@@ -169,7 +169,11 @@ def test_set_changes_config_values_for_one_run_and_refuses_bad_ones(capsys):
            "modes.crr=nan": "crr must be", "load.kind=dragon": "dragon",
            "bldc.inductance_h=-1": "inductance_h", "modes.friction_nms=-1": "friction_nms",
            "modes.friction_nms=1e300": "modes: friction_nms must be a number in [0, 1]",
-           "mechanics.friction_nms=1e300": "friction_nms must be a number in [0, 1]"}
+           "mechanics.friction_nms=1e300": "friction_nms must be a number in [0, 1]",
+           # beyond the ROS clock's int64 nanoseconds: the session node's OverflowError traceback
+           "duration_s=1e300": "duration_s: must be at most 9.2e+09",
+           "session.duration_s=1e300": "session.duration_s: must be at most 9.2e+09 s",
+           "session.period_s=1e300": "session.period_s: must be at most 9.2e+09 s"}
     for item, words in bad.items():
         assert _set_run_config([item], config) is None, item
         err = capsys.readouterr().err.strip().splitlines()

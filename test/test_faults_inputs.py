@@ -722,10 +722,12 @@ def test_cli_on_a_corrupt_bag_prints_one_error(tmp_path):
         _one_error(_cli(*args))
 
 
-@pytest.mark.parametrize("duration", ["inf", "nan", "-1", "0"])
+@pytest.mark.parametrize("duration", ["inf", "nan", "-1", "0", "1e300"])
 def test_run_refuses_a_duration_that_is_not_a_finite_positive_number(duration):
     """`--duration inf` passed the CLI's > 0 check; the session node then refused it while the
-    plant and the controller had started (a traceback when they were stopped mid-import)."""
+    plant and the controller had started (a traceback when they were stopped mid-import).
+    `--duration 1e300` (beyond the ROS clock's int64 nanoseconds) was the session node's
+    OverflowError traceback."""
     assert "--duration" in _one_error(_cli("run", "--duration", duration, timeout=60))
 
 

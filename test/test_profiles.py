@@ -234,6 +234,15 @@ def test_profile_error_is_value_error_and_text_source():
     assert isinstance(p, Profile) and p.text.startswith("segments")
 
 
+def test_a_profile_longer_than_the_sim_clock_counts_is_refused():
+    """A step of 1e+300 s loaded, and the session node's int(duration * 1e9) ended in an
+    OverflowError traceback once the graph had started: ./bike run --workout refuses it now."""
+    with pytest.raises(ProfileError, match=r"segments\[1\]: total duration beyond 9.2e\+09 s"):
+        parse_profile_text("segments:\n  - {kind: step, duration_s: 1, command: 0.1}\n"
+                           "  - {kind: step, duration_s: 1.0e+300, command: 0.1}\n")
+    assert parse_profile_text("segments:\n  - {kind: step, duration_s: 9.0e+9, command: 0.1}\n").duration_s == 9e9
+
+
 def test_targets_in_each_modes_unit(tmp_path):
     from bike_session.profiles import ModeUnits, load_profile
 

@@ -325,6 +325,11 @@ def require_positive(obj, *names: str) -> None:
             raise ValueError(f"{name} must be > 0, got {value!r}")
 
 
+# the longest sim time a run counts: the ROS clock is int64 nanoseconds (292 years). A duration or
+# period beyond it (--duration 1e300, a profile step of 1e+300 s) ended in the session node's
+# OverflowError traceback once the graph had started
+MAX_SIM_TIME_S = 9.2e9
+
 # the plant node's top-level numbers: (kind, minimum); the node reads them with plant_number,
 # ./bike run checks a config's with check_plant_numbers before it starts a node
 PLANT_NUMBERS = {
@@ -409,7 +414,7 @@ def sync_mode_of(cfg: dict, path) -> str:
 def plant_number(cfg: dict, key: str, path):
     """The plant node's parameter ``key`` (PLANT_NUMBERS), checked; ConfigError naming it."""
     kind, minimum = PLANT_NUMBERS[key]
-    return number_param(cfg, key, kind, minimum, path)
+    return number_param(cfg, key, kind, minimum, path, MAX_SIM_TIME_S if key == "duration_s" else math.inf)
 
 
 def check_plant_numbers(cfg: dict, path=None) -> None:
@@ -435,14 +440,16 @@ def check_plant_numbers(cfg: dict, path=None) -> None:
             raise ConfigError(f"unknown {key} {cfg[key]!r} ({' | '.join(known)})", path, key)
 
 
-def number_param(cfg: dict, key: str, kind, minimum, path):
-    """A node parameter ``cfg[key]`` that must be a finite number >= ``minimum`` (``kind`` int:
-    also a whole number); one ConfigError naming the key otherwise."""
+def number_param(cfg: dict, key: str, kind, minimum, path, maximum=math.inf):
+    """A node parameter ``cfg[key]`` that must be a finite number >= ``minimum`` and <= ``maximum``
+    (``kind`` int: also a whole number); one ConfigError naming the key otherwise."""
     value = cfg.get(key)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"expected a number, got {value!r}", path, key)
     if not math.isfinite(value) or value < minimum:
         raise ConfigError(f"must be finite and >= {minimum}, got {value!r}", path, key)
+    if value > maximum:
+        raise ConfigError(f"must be at most {maximum:g}, got {value!r}", path, key)
     if kind is int:
         if float(value) != int(value):
             raise ConfigError(f"expected an integer, got {value!r}", path, key)

@@ -154,6 +154,12 @@ def _cmd_run(opts) -> int:
     if not (duration_s > 0 and math.isfinite(duration_s)):
         print(f"error: --duration must be a finite number > 0, got {duration_s}", file=sys.stderr)
         return 2
+    from bike_plant.config import MAX_SIM_TIME_S
+    if duration_s > MAX_SIM_TIME_S:
+        # the session counts its time in int64 nanoseconds: 1e300 was its OverflowError traceback
+        print(f"error: --duration must be at most {MAX_SIM_TIME_S:g} s (the ROS clock's int64 nanoseconds), "
+              f"got {duration_s:g}", file=sys.stderr)
+        return 2
     namespace = opts.namespace.strip("/")
     from rclpy.validate_namespace import InvalidNamespaceException, validate_namespace
     try:

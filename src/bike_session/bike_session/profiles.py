@@ -71,7 +71,7 @@ import pathlib
 from typing import Any, Mapping
 
 import yaml
-from bike_plant.config import YamlFileError, parse_yaml_text
+from bike_plant.config import MAX_SIM_TIME_S, YamlFileError, parse_yaml_text
 from bike_plant.heart import heart_rate_target_problem
 from bike_plant.mechanics import rider_cadence_problem, road_problem, virtual_gear_problem
 
@@ -468,8 +468,10 @@ class _Builder:
             self.leaves.append(Segment(len(self.leaves), where + rep, self.t, duration, start, end, mode,
                                        label if label is not None else kind))
             self.t += duration
-            if not math.isfinite(self.t):
-                raise self.err(where, "total duration is not finite")
+            if not self.t <= MAX_SIM_TIME_S:
+                # the session counts its time in int64 nanoseconds: an OverflowError traceback
+                raise self.err(where, f"total duration beyond {MAX_SIM_TIME_S:g} s (the ROS clock's int64 "
+                                      f"nanoseconds), got {self.t:g} s")
             return
         count = self.repeat(seg["repeat"], f"{where}.repeat")
         if kind == "intervals":

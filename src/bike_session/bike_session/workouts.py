@@ -93,6 +93,7 @@ import warnings
 from typing import Any, Iterable, Mapping
 from xml.parsers import expat
 
+from bike_plant.config import MAX_SIM_TIME_S
 from bike_plant.heart import HEART_RATE_MAX_BPM
 from bike_plant.mechanics import RIDER_CADENCE_MAX_RPM, rider_cadence_problem
 from bike_session.profiles import (MAX_LEAF_SEGMENTS, MAX_REPEAT, MODES, Profile, ProfileError, Segment,
@@ -134,7 +135,7 @@ SESSION_KEYS = ("profile", "period_s", "duration_s", "workout", "ftp_w", "max_hr
 def session_number_problem(name: str, value) -> str | None:
     """What is wrong with the session node's number parameter ``name`` (session.period_s,
     duration_s, session.duration_s, session.ftp_w, session.max_hr_bpm), None when it is good:
-    each a finite number, the period > 0, the durations >= 0, the FTP and maximum heart rate
+    each a finite number, the period > 0, the durations >= 0, both at most MAX_SIM_TIME_S, the FTP and maximum heart rate
     0 (not given) up to what load_workout takes. The session node and ./bike
     run (before a node starts) check them with it."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -143,6 +144,9 @@ def session_number_problem(name: str, value) -> str | None:
         return f"must be > 0, got {value!r}"
     if name.endswith("duration_s") and value < 0:
         return f"must be >= 0 (0 = profile length), got {value!r}"
+    if value > MAX_SIM_TIME_S and (name.endswith("duration_s") or name == "session.period_s"):
+        # the session counts its time in int64 nanoseconds: 1e300 was an OverflowError traceback
+        return f"must be at most {MAX_SIM_TIME_S:g} s (the ROS clock's int64 nanoseconds), got {value!r}"
     # the rider's figures ./bike run also reads from the config (0: not given; else load_workout's bounds)
     upper = {"session.ftp_w": (MAX_FTP_W, "W"), "session.max_hr_bpm": (MAX_HR_BPM, "bpm")}.get(name)
     if upper is not None and not 0 <= value <= upper[0]:
