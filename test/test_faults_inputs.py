@@ -745,6 +745,17 @@ def test_shift_refuses_an_invalid_namespace(namespace):
     assert "--namespace" in line and "Invalid namespace" in line, line
 
 
+@pytest.mark.parametrize("args, words", [
+    (["--ftp", "200"], "--ftp needs --workout FILE"), (["--max-hr", "190"], "--max-hr needs --workout FILE"),
+    (["--ftms-port", "5000"], "--ftms-port needs --ftms"), (["--ftms-host", "0.0.0.0"], "--ftms-host needs --ftms"),
+    (["--ftms-advertise", "true"], "--ftms-advertise needs --ftms"), (["--storage", "sqlite3"], "--storage needs --record")])
+def test_run_refuses_an_option_its_partner_is_missing_for(args, words):
+    """Each rode the config's profile, unrecorded or without FTMS, the option dropped without a
+    word (a newcomer's `./bike run --ftp 250` rode the demo's Commands as ever). One error."""
+    line = _one_error(_cli("run", "--duration", "1", *args, timeout=60))
+    assert words in line, line
+
+
 def test_run_ftms_refuses_an_address_it_cannot_listen_on():
     """--ftms-host 999.1.1.1 or a --ftms-port in use started the graph, and the bridge node's
     'cannot listen' came among the other nodes' lines, exit 1. One error naming both options,

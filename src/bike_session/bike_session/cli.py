@@ -112,6 +112,8 @@ def _cmd_run(opts) -> int:
 
     from bike_session import launcher
 
+    if not _run_options_paired(opts):
+        return 2
     config = pathlib.Path(opts.config or repo_root() / "config" / "bldc_default.yaml").resolve()
     try:
         cfg = load_config(config)
@@ -136,6 +138,13 @@ def _cmd_run(opts) -> int:
         opts.workout = _config_workout(cfg, config)
     if ftms_on and not opts.workout:
         opts.workout = str(repo_root() / "config" / "profiles" / "app_ride.yaml")
+    rider_flags = [flag for flag, value in (("--ftp", opts.ftp), ("--max-hr", getattr(opts, "max_hr", None)))
+                   if value is not None]
+    if rider_flags and not opts.workout:
+        # they are read with a workout only: the config's profile rode without them, without a word
+        print(f"error: {' / '.join(rider_flags)} needs --workout FILE (or session.workout in the config): only a "
+              f"workout's targets are read with it, and the profile of {source_config.name} has none", file=sys.stderr)
+        return 2
     if ftms_on and not 0 <= opts.ftms_port <= 65535:
         print(f"error: --ftms-port must be 0..65535, got {opts.ftms_port}", file=sys.stderr)
         return 2
@@ -234,6 +243,27 @@ def _cmd_run(opts) -> int:
         print(f"error: the recorder wrote no bag at {bag_path}", file=sys.stderr)
         code = code or 1
     return code
+
+
+# options that only mean something beside another, with their defaults (the parser's are None,
+# so that a given one is seen): each had been dropped without a word when its partner was missing
+RUN_PAIRED_OPTIONS = (("ftms_host", "--ftms-host", "--ftms", "127.0.0.1"),
+                      ("ftms_port", "--ftms-port", "--ftms", 36866),
+                      ("ftms_advertise", "--ftms-advertise", "--ftms", "auto"),
+                      ("storage", "--storage", "--record DIR", "mcap"))
+
+
+def _run_options_paired(opts) -> bool:
+    """--ftms-host / --ftms-port / --ftms-advertise without --ftms, --storage without --record:
+    one error (False); otherwise the options not given take their defaults."""
+    partners = {"--ftms": getattr(opts, "ftms", False), "--record DIR": getattr(opts, "record", None)}
+    for attr, flag, partner, default in RUN_PAIRED_OPTIONS:
+        if getattr(opts, attr, None) is None:
+            setattr(opts, attr, default)
+        elif not partners[partner]:
+            print(f"error: {flag} needs {partner}: without it, it changes nothing", file=sys.stderr)
+            return False
+    return True
 
 
 def _config_launch_args(cfg: dict, args: dict, recording: bool) -> bool:
@@ -917,7 +947,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                                  "heart-rate targets in %% of it (session.max_hr_bpm)")
     run.add_argument("--record", metavar="DIR", type=path_arg,
                      help="record every topic to an MCAP bag under DIR and summarise it")
-    run.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap", help="bag storage (default mcap)")
+    run.add_argument("--storage", choices=["mcap", "sqlite3"], help="bag storage with --record (default mcap)")
     run.add_argument("--namespace", default="bike", help="ROS namespace of the bike (default bike)")
     run.add_argument("--launch", type=path_arg, help="launch description (default config/launch/bike.launch.yaml)")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -931,11 +961,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="serve the bike as a smart trainer (Bluetooth FTMS over Wahoo Direct Connect, TCP) "
                           "for a training app to ride in real time; without --workout the app rides "
                           "config/profiles/app_ride.yaml (2 h, or Ctrl-C)")
-    run.add_argument("--ftms-host", default="127.0.0.1",
+    run.add_argument("--ftms-host",
                      help="address the FTMS bridge listens on (default 127.0.0.1, this host only; 0.0.0.0 for "
                           "an app on the network)")
-    run.add_argument("--ftms-port", type=int, default=36866, help="its TCP port (default 36866, DIRCON's)")
-    run.add_argument("--ftms-advertise", choices=["auto", "true", "false"], default="auto",
+    run.add_argument("--ftms-port", type=int, help="its TCP port (default 36866, DIRCON's)")
+    run.add_argument("--ftms-advertise", choices=["auto", "true", "false"],
                      help="announce the bike by mDNS (_wahoo-fitness-tnp._tcp), as apps find DIRCON trainers; "
                           "auto (default): when --ftms-host is not loopback")
     run.set_defaults(func=_cmd_run)
