@@ -794,6 +794,26 @@ def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
     assert blocker.read_text() == "" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
 
 
+def test_an_output_file_never_replaces_the_commands_input(tmp_path):
+    """`./bike report BAG --fit BAG/BAG.mcap` wrote the FIT activity over the recording (the bag
+    no longer opened), `torque-map --from-csv DYNO.csv --out DYNO.csv` its map over the dyno's
+    points. One error naming the option; the input unchanged. A new file in the bag's folder is fine."""
+    from test_report import write_session_bag
+    bag = write_session_bag(tmp_path / "bag", n=3001)      # a ride the FIT export takes
+    data = next(bag.glob("*.mcap"))
+    csv = tmp_path / "dyno.csv"
+    csv.write_text("speed_rpm,setpoint_nm,reported_nm,true_nm\n1000,1,1,0.98\n")
+    before = {path: path.read_bytes() for path in (data, bag / "metadata.yaml", csv)}
+    for args in (["report", str(bag), "--fit", str(data)], ["report", str(data), "--fit", str(data)],
+                 ["report", str(bag), "--fit", str(bag / "metadata.yaml")],
+                 ["torque-map", "--from-csv", str(csv), "--out", str(csv)]):
+        line = _one_error(_cli(*args, timeout=60))
+        assert "would write over the input" in line, line
+    assert {path: path.read_bytes() for path in before} == before
+    from bike_session import cli
+    assert cli.output_spares_inputs(bag / "ride.fit", [bag], "--fit")
+
+
 @pytest.mark.parametrize("argv", [
     ["run", "--record", ""], ["run", "--config", " "], ["run", "--calibration", ""], ["run", "--workout", ""],
     ["report", "b", "--out", ""], ["compare", "a", "b", "--out", ""], ["paper", "seed1-fig14", "--out", ""],

@@ -97,6 +97,19 @@ def output_file_ok(path, flag: str) -> bool:
     return True
 
 
+def output_spares_inputs(path, inputs, flag: str) -> bool:
+    """A result file at ``path`` does not replace one of the command's ``inputs`` (files, or
+    folders whose files count too: a bag; a new file beside them is fine): else one error naming
+    the option. `./bike report BAG --fit BAG/x.mcap` wrote the FIT file over the recording."""
+    target = pathlib.Path(path).resolve()
+    for given in inputs:
+        source = pathlib.Path(given).resolve()
+        if target == source or (source.is_dir() and source in target.parents and target.exists()):
+            print(f"error: {flag} {path}: would write over the input {given}", file=sys.stderr)
+            return False
+    return True
+
+
 def write_output(path, text: str, flag: str) -> bool:
     """Write a result file; a failure (disk full, removed meanwhile) is one error line."""
     try:
@@ -869,6 +882,8 @@ def _cmd_torque_map(opts) -> int:
 
     from bike_controller import drive_torque_map as DTM
 
+    if not output_spares_inputs(opts.out, [x for x in (opts.from_csv, opts.config) if x], "--out"):
+        return 2
     if opts.from_csv:
         # a real drive's map: the points a dynamometer with a torque sensor logged
         try:

@@ -1916,7 +1916,9 @@ def main(argv=None) -> int:
                                                      "intervals.icu or GoldenCheetah")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.fit:
-        from bike_session.cli import output_file_ok
+        from bike_session.cli import output_file_ok, output_spares_inputs
+        if not output_spares_inputs(args.fit, [args.bag], "--fit"):     # the recording itself
+            return 2
         if not output_file_ok(args.fit, "--fit"):       # before the bag is read: one error, no work lost
             return 2
     if args.out:
