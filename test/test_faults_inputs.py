@@ -748,7 +748,8 @@ def test_shift_refuses_an_invalid_namespace(namespace):
 @pytest.mark.parametrize("args, words", [
     (["--ftp", "200"], "--ftp needs --workout FILE"), (["--max-hr", "190"], "--max-hr needs --workout FILE"),
     (["--ftms-port", "5000"], "--ftms-port needs --ftms"), (["--ftms-host", "0.0.0.0"], "--ftms-host needs --ftms"),
-    (["--ftms-advertise", "true"], "--ftms-advertise needs --ftms"), (["--storage", "sqlite3"], "--storage needs --record")])
+    (["--ftms-advertise", "true"], "--ftms-advertise needs --ftms"),
+    (["--storage", "sqlite3"], "--storage needs --record")])
 def test_run_refuses_an_option_its_partner_is_missing_for(args, words):
     """Each rode the config's profile, unrecorded or without FTMS, the option dropped without a
     word (a newcomer's `./bike run --ftp 250` rode the demo's Commands as ever). One error."""
