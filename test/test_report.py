@@ -159,8 +159,16 @@ def test_corrupt_inputs(tmp_path, capsys):
     unclosed = tmp_path / "unclosed"
     shutil.copytree(good, unclosed)
     (unclosed / "metadata.yaml").unlink()
-    with pytest.raises(BagError, match="not closed properly"):
+    with pytest.raises(BagError, match="not closed properly; ./bike bag recover .*unclosed rescues"):
         summarise(unclosed)
+    # 4b. the folder a run records into (`./bike report runs` after make demo): its bags named
+    runs = tmp_path / "runs"
+    shutil.copytree(good, runs / "session_1")
+    with pytest.raises(BagError, match=f"a folder holding the bag {runs / 'session_1'}: give that"):
+        summarise(runs)
+    shutil.copytree(good, runs / "session_2")
+    with pytest.raises(BagError, match=f"a folder holding 2 bags: give one, e.g. {runs / 'session_2'}"):
+        summarise(runs)
     # 5. metadata.yaml that is not a rosbag2 metadata file
     badmeta = tmp_path / "badmeta"
     shutil.copytree(good, badmeta)

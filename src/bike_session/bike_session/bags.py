@@ -38,6 +38,15 @@ class BagError(Exception):
         self.path = path
 
 
+def _bags_in(folder: pathlib.Path) -> list[str]:
+    """Names of the closed rosbag2 bags directly in ``folder``, sorted (session_<UTC time> sorts
+    by time); [] when it cannot be listed."""
+    try:
+        return sorted(p.name for p in folder.iterdir() if (p / "metadata.yaml").is_file())
+    except OSError:
+        return []
+
+
 class Bag:
     """An open bag: topics, time range, decoded messages in log-time order."""
 
@@ -59,7 +68,15 @@ class Bag:
         if not (self.path / "metadata.yaml").is_file():
             hint = ""
             if any(self.path.glob("*.mcap")) or any(self.path.glob("*.db3")):
-                hint = " (data files are present: the recording was not closed properly)"
+                hint = (" (data files are present: the recording was not closed properly; "
+                        f"./bike bag recover {self.path} rescues what it flushed)")
+            else:
+                # `./bike report runs` (the folder make demo records into): name the bags in it
+                bags = _bags_in(self.path)
+                if len(bags) == 1:
+                    hint = f" (a folder holding the bag {self.path / bags[0]}: give that)"
+                elif bags:
+                    hint = f" (a folder holding {len(bags)} bags: give one, e.g. {self.path / bags[-1]})"
             raise BagError(f"not a rosbag2 bag: metadata.yaml missing{hint}", self.path)
         self._open_rosbag2()
 
