@@ -786,11 +786,15 @@ def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
              (["report", str(tmp_path / "no_bag"), "--fit", str(blocker / "r.fit")], "--fit"),
              (["report", str(tmp_path / "no_bag"), "--fit", str(tmp_path)], "--fit"),
              (["report", str(tmp_path / "no_bag"), "--out", bad_dir], "--out"),
-             (["compare", str(tmp_path / "no_bag"), str(tmp_path / "no_bag"), "--out", bad_dir], "--out")]
+             (["compare", str(tmp_path / "no_bag"), str(tmp_path / "no_bag"), "--out", bad_dir], "--out"),
+             # a file where the folder goes: it said "cannot create the directory (File exists)"
+             (["run", "--duration", "1", "--record", str(blocker)], "--record"),
+             (["report", str(tmp_path / "no_bag"), "--out", str(blocker)], "--out")]
     for args, flag in cases:
         run = _cli(*args, timeout=60)
         line = _one_error(run)
         assert flag in line and str(tmp_path) in line, line
+        assert "File exists" not in line and (str(blocker) + ":" not in line or "not a directory" in line), line
         assert run.stdout == "", (args, run.stdout[-2000:])   # refused up front: nothing ran, no figures
     assert blocker.read_text() == "" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
 

@@ -64,6 +64,10 @@ def output_dir(path, flag: str) -> pathlib.Path | None:
     option and return None (a run must not end in a traceback, nor work be lost, because
     its output path was bad)."""
     out = pathlib.Path(path)
+    if out.exists() and not out.is_dir():
+        # mkdir said "cannot create the directory (File exists)"
+        print(f"error: {flag} {out}: not a directory (a file is there)", file=sys.stderr)
+        return None
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
