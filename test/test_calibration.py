@@ -164,6 +164,7 @@ def test_set_changes_config_values_for_one_run_and_refuses_bad_ones(capsys):
     bad = {"modes.auto_shift": "expected KEY=VALUE", "=3": "expected KEY=VALUE", "modes..x=1": "expected KEY=VALUE",
            "battery.soc0.x=1": "battery.soc0 is a value, not a section",
            "modes.grade_min=[1": "not valid YAML", "modes.crr=": "give one value",
+           "modes.crr=ab\x02": "not valid YAML at line 1, column 3: unacceptable character #x0002",
            "modes.crr=" + "[" * 2000 + "]" * 2000: "nested too deeply",
            "modes.auto_shift=1": "auto_shift must be true or false", "modes.nope=1": "unknown key(s) nope",
            "modes.crr=nan": "crr must be", "load.kind=dragon": "dragon",

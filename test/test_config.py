@@ -40,13 +40,16 @@ def test_flatten_roundtrip():
     ("!!python/object/apply:os.system ['true']", "not valid YAML"),
     # PyYAML's constructors recurse per level: a RecursionError traceback before
     ("/**:\n  ros__parameters:\n    a: " + "[" * 2000 + "]" * 2000 + "\n", "nested too deeply"),
+    # a control character: PyYAML's own text is two lines ('  in "<unicode string>", position 41')
+    ("/**:\n  ros__parameters:\n    machine: bldc\x01\n",
+     r"not valid YAML at line 3, column 18: unacceptable character #x0001 \(special characters are not allowed\)$"),
 ])
 def test_malformed_config_names_the_file_and_problem(tmp_path, text, message):
     path = tmp_path / "bad.yaml"
     path.write_text(text)
     with pytest.raises(ConfigError, match=message) as info:
         load_config(path)
-    assert str(path) in str(info.value)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
 
 
 @pytest.mark.parametrize("value, message", [

@@ -59,6 +59,12 @@ def parse_yaml_text(text: str) -> Any:
         # not libyaml's parser (7x faster on the 125 kB torque map): its composer recurses in C
         # and a hostile nesting (a 400 kB file) crashed the process with a segmentation fault
         return yaml.safe_load(text)
+    except yaml.reader.ReaderError as exc:
+        # its own text is two lines ('  in "<unicode string>", position 41'): one error line
+        at = min(max(int(exc.position), 0), len(text))
+        line, column = text.count("\n", 0, at) + 1, at - text.rfind("\n", 0, at)
+        raise YamlFileError(f"not valid YAML at line {line}, column {column}: unacceptable character "
+                            f"#x{exc.character:04x} ({exc.reason})") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
