@@ -757,6 +757,16 @@ def test_run_refuses_an_option_its_partner_is_missing_for(args, words):
     assert words in line, line
 
 
+def test_run_refuses_a_bad_launch_file_before_it_says_anything(tmp_path):
+    """A --launch file that is no launch description (or a folder) was refused after the
+    domain's and the run's [bike] lines, which read as a run starting. Now the one line."""
+    text = tmp_path / "notes.yaml"
+    text.write_text("just: notes\n")
+    for launch, words in ((text, "expected a top-level 'launch:' list"), (tmp_path, "Is a directory")):
+        run = _cli("run", "--duration", "1", "--launch", str(launch), timeout=60)
+        assert words in _one_error(run) and run.stdout == "", run.stdout
+
+
 def test_run_ftms_refuses_an_address_it_cannot_listen_on():
     """--ftms-host 999.1.1.1 or a --ftms-port in use started the graph, and the bridge node's
     'cannot listen' came among the other nodes' lines, exit 1. One error naming both options,

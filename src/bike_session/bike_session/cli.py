@@ -233,6 +233,13 @@ def _cmd_run(opts) -> int:
             args["can_log"] = str(record_dir / f"{bag_path.name}.can.{can_params.log_format}")
     if not _config_launch_args(cfg, args, recording=bag_path is not None):
         return 2
+    try:
+        # read again to start: here a bad --launch file is the one line printed, before the
+        # domain's and the run's [bike] lines (which said the run was starting)
+        launcher.parse_launch(str(opts.launch or default_launch_file()), args)
+    except launcher.LaunchError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     # a private DDS domain: two simulations on one host must not ride each other's /clock and
     # commands (an explicit ROS_DOMAIN_ID is always respected)
     from bike_session import domains
