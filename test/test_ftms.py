@@ -495,6 +495,42 @@ def test_control_is_one_apps_until_it_resets_or_disconnects():
         server.close()
 
 
+def test_bike_trainer_says_a_refused_request_in_one_error_line():
+    """A trainer's refusal (--level 500 beyond its 0..100: invalid parameter; another app in
+    control: control not permitted) was one more line on stdout, no 'error:', exit 1. Now the
+    one error line on stderr, exit 1; the trainer's description stays on stdout."""
+    from conftest import bike_command
+    control = ftms.FtmsControl(UNITS)
+    server = dircon.DirconServer("127.0.0.1", 0, services_for(
+        control, lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]),
+        lambda text, warning: None, on_close=control.release)
+    stop = [False]
+    import threading
+    pump = threading.Thread(target=lambda: [server.poll(0.01) for _ in iter(lambda: stop[0], True)])
+    pump.start()
+    try:
+        port = str(server.port)
+        for args, words in ((["--level", "500"], "error: resistance level 500: the trainer answered invalid parameter"),
+                            (["--power", "150"], "error: request control: the trainer answered control not "
+                                                 "permitted")):
+            holder = None
+            if "--power" in args:              # another app holds control
+                holder = dircon.DirconClient("127.0.0.1", server.port)
+                holder.subscribe(ftms.CONTROL_POINT)
+                holder.write(ftms.CONTROL_POINT, bytes([ftms.OP_REQUEST_CONTROL]))
+                assert holder.wait_notification(ftms.CONTROL_POINT)[2] == ftms.RESULT_SUCCESS
+            result = bike_command("trainer", "--port", port, "--seconds", "1", *args, timeout=60)
+            lines = [line for line in result.stderr.splitlines() if line.strip()]
+            assert result.returncode == 1 and lines == [words], (result.stdout, result.stderr)
+            assert "resistance level range 0 .. 100" in result.stdout and "error" not in result.stdout
+            if holder is not None:
+                holder.close()
+    finally:
+        stop[0] = True
+        pump.join()
+        server.close()
+
+
 def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer():
     from zeroconf import IPVersion, Zeroconf
     logs = []

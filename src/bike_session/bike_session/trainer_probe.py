@@ -106,19 +106,26 @@ def describe(app: dircon.DirconClient, say) -> bool:
     return has_ftms
 
 
+def trainer_error(text: str) -> None:
+    """A refused or unfinished one-shot request: the command's one error line (stderr); it
+    was a line among the others on stdout, no 'error:' (--level 500: 'invalid parameter')."""
+    print(f"error: {text}", file=sys.stderr, flush=True)
+
+
 def control(app: dircon.DirconClient, op: int, param: bytes, what: str, say) -> bool:
     app.subscribe(ftms.CONTROL_POINT)
     for code, text in ((ftms.OP_REQUEST_CONTROL, b""), (op, param)):
         reply = app.write(ftms.CONTROL_POINT, bytes([code]) + text)
         if reply.code != dircon.RESP_SUCCESS:
-            say(f"error: the trainer refused the Control Point write (DIRCON code {reply.code})")
+            trainer_error(f"the trainer refused the Control Point write (DIRCON code {reply.code})")
             return False
         response = app.wait_notification(ftms.CONTROL_POINT)
         result = response[2] if len(response) >= 3 else 0
         name = "request control" if code == ftms.OP_REQUEST_CONTROL else what
-        say(f"{name}: {RESULTS.get(result, f'result {result}')}")
         if result != ftms.RESULT_SUCCESS:
+            trainer_error(f"{name}: the trainer answered {RESULTS.get(result, f'result {result}')}")
             return False
+        say(f"{name}: {RESULTS[result]}")
     return True
 
 
@@ -129,13 +136,14 @@ def spin_down(app: dircon.DirconClient, seconds: float, say) -> int:
     for code, param in ((ftms.OP_REQUEST_CONTROL, b""), (ftms.OP_SPIN_DOWN, b"\x01")):
         reply = app.write(ftms.CONTROL_POINT, bytes([code]) + param)
         if reply.code != dircon.RESP_SUCCESS:
-            say(f"error: the trainer refused the Control Point write (DIRCON code {reply.code})")
+            trainer_error(f"the trainer refused the Control Point write (DIRCON code {reply.code})")
             return 1
         response = app.wait_notification(ftms.CONTROL_POINT)
         result = response[2] if len(response) >= 3 else 0
-        say(f"{ftms.OP_NAMES[code]}: {RESULTS.get(result, f'result {result}')}")
         if result != ftms.RESULT_SUCCESS:
+            trainer_error(f"{ftms.OP_NAMES[code]}: the trainer answered {RESULTS.get(result, f'result {result}')}")
             return 1
+        say(f"{ftms.OP_NAMES[code]}: {RESULTS[result]}")
     if len(response) >= 7:
         low, high = struct.unpack_from("<HH", response, 3)
         say(f"spin down: speed up past {high / 100:g} km/h, then stop pedalling (coast to {low / 100:g} km/h)")
@@ -159,7 +167,7 @@ def spin_down(app: dircon.DirconClient, seconds: float, say) -> int:
                     f"{fields.get('cadence_rpm', float('nan')):g} rpm")
             except ValueError as exc:
                 say(f"indoor bike data: {exc}")
-    say(f"error: the spin-down did not finish within {seconds:g} s")
+    trainer_error(f"the spin-down did not finish within {seconds:g} s")
     return 1
 
 
