@@ -114,6 +114,8 @@ def test_fleet_bad_placement_is_one_clear_error(netns_arg, message):
     (["--graph", "1", "--seconds", "0.1", "--timeout", "nan"], "--timeout must be a finite number > 0, got nan"),
     (["--graph", "0"], "--graph expects 1..64 bikes, got 0"),
     (["--graph", "1", "--seconds", "-1"], "--seconds must be > 0, got -1.0"),
+    (["--graph", "1", "--seconds", "1e300"],
+     "--seconds must be at most 9.2e+09 (the ROS clock's int64 nanoseconds), got 1e+300"),
     (["--bikes", "2", "--seconds", "0.01", "--seed", "-1"], "seed must be an integer >= 0, got -1"),
     (["--bikes", "2", "--seconds", "0.01", "--show", "-3"], "--show must be >= 0 (bikes to print), got -3")])
 def test_fleet_bad_timeout_seed_or_show_is_one_clear_error(args, message):

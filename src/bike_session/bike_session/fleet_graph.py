@@ -217,6 +217,11 @@ def check_graph_args(n_bikes: int, duration_s: float, timeout_s: float | None = 
         raise FleetError(f"--graph expects 1..64 bikes, got {n_bikes!r}")
     if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s) and duration_s > 0):
         raise FleetError(f"--seconds must be > 0, got {duration_s!r}")
+    from bike_plant.config import MAX_SIM_TIME_S
+    if duration_s > MAX_SIM_TIME_S:
+        # each bike's session refused it once the fleet had started ("fleet graph: FAILED")
+        raise FleetError(f"--seconds must be at most {MAX_SIM_TIME_S:g} (the ROS clock's int64 nanoseconds), "
+                         f"got {duration_s!r}")
     if timeout_s is not None and not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s)
                                       and timeout_s > 0):
         # a timeout <= 0 stopped every bike at once: "FAILED" with no word of the timeout
