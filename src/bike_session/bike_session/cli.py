@@ -794,6 +794,12 @@ def _cmd_bench(opts) -> int:
 
 
 FLEET_TARGET_BIKES = 1000      # issue 6: the offline batched kernel runs >= 1000 bikes in real time
+# ./bike fleet's options of one mode: (attribute, option, only with --graph); the parser's defaults
+# are None (False for a flag), so that a given one is seen, and these are taken when not given
+FLEET_MODE_OPTIONS = (("bikes", "--bikes", False), ("threads", "--threads", False), ("seed", "--seed", False),
+                      ("show", "--show", False), ("timeout", "--timeout", True), ("verbose", "--verbose", True),
+                      ("launch", "--launch", True))
+FLEET_DEFAULTS = {"bikes": FLEET_TARGET_BIKES, "threads": 2, "seed": 0, "show": 5, "timeout": 300.0}
 
 
 def _cmd_fleet(opts) -> int:
@@ -804,6 +810,16 @@ def _cmd_fleet(opts) -> int:
     from bike_plant.config import ConfigError
 
     config = str(pathlib.Path(opts.config or repo_root() / "config" / "bldc_default.yaml").resolve())
+    # each option of the other mode was dropped without a word (--graph 2 --bikes 50 rode 2 bikes)
+    wrong = [flag for attr, flag, graph_only in FLEET_MODE_OPTIONS
+             if getattr(opts, attr) not in (None, False) and graph_only != (opts.graph is not None)]
+    if wrong:
+        print(f"error: {', '.join(wrong)}: " + ("for the offline fleet, not with --graph" if opts.graph is not None
+                                                 else "only with --graph"), file=sys.stderr)
+        return 2
+    for attr, default in FLEET_DEFAULTS.items():
+        if getattr(opts, attr) is None:
+            setattr(opts, attr, default)
     if opts.json and not output_file_ok(opts.json, "--json"):
         return 2
     if opts.graph is not None:
@@ -1048,16 +1064,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     flt = sub.add_parser("fleet", help="many bikes: the offline batched kernel (bikes in real time, per-bike "
                                        "summaries) or, with --graph K, K namespaced bikes in one DDS graph")
-    flt.add_argument("--bikes", type=int, default=1000, help="offline: number of bikes (default 1000)")
+    flt.add_argument("--bikes", type=int, help="offline: number of bikes (default 1000)")
     flt.add_argument("--seconds", type=float, help="simulated seconds (default 2 offline, 1 with --graph)")
-    flt.add_argument("--threads", type=int, default=2, help="offline: numba threads (default 2)")
-    flt.add_argument("--seed", type=int, default=0, help="offline: seed of the per-bike spread of riders and commands")
-    flt.add_argument("--show", type=int, default=5, help="offline: print the first N bikes (default 5)")
+    flt.add_argument("--threads", type=int, help="offline: numba threads (default 2)")
+    flt.add_argument("--seed", type=int, help="offline: seed of the per-bike spread of riders and commands")
+    flt.add_argument("--show", type=int, help="offline: print the first N bikes (default 5)")
     flt.add_argument("--graph", type=int, metavar="K", help="start K namespaced bikes (/bike1..) in one DDS graph")
     flt.add_argument("--netns", action="append", metavar="BIKE[/NODE]=NETNS",
                      help="--graph: run a bike's nodes (or one node) in an existing network namespace; repeatable; "
                           "needs ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET")
-    flt.add_argument("--timeout", type=float, default=300.0, help="--graph: wall-clock limit in seconds (default 300)")
+    flt.add_argument("--timeout", type=float, help="--graph: wall-clock limit in seconds (default 300)")
     flt.add_argument("--verbose", action="store_true", help="--graph: show the nodes' output")
     flt.add_argument("--launch", type=path_arg,
                      help="--graph: launch description of one bike (default config/launch/bike.launch.yaml)")
