@@ -711,6 +711,21 @@ def test_bike_trainer_refuses_a_target_or_port_the_fields_cannot_carry_before_co
     assert result.returncode == 2 and len(lines) == 1 and words in lines[0], result.stderr
 
 
+@pytest.mark.parametrize("args,words", [
+    (["--port", "1", "--power", "100", "--ftp", "200"], "--ftp: only with --workout"),
+    (["--port", "1", "--max-hr", "180"], "--max-hr: only with --workout"),
+    (["--find", "--seconds", "1", "--power", "0"], "--power: not with --find"),
+    (["--find", "--seconds", "1", "--host", "10.0.0.9", "--port", "5"], "--host, --port: not with --find")])
+def test_bike_trainer_refuses_an_option_that_means_nothing_with_the_others(args, words):
+    """--ftp / --max-hr without a workout, or a trainer's address and target with --find (which
+    connects to none), were dropped without a word. One error naming them, exit 2."""
+    from conftest import bike_command
+    result = bike_command("trainer", *args, timeout=60)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and len(lines) == 1 and words in lines[0], result.stderr
+    assert result.stdout == ""
+
+
 def test_bike_trainer_sends_grades_as_zwift_does_at_a_trainer_difficulty():
     """Zwift's trainer difficulty (research notes, trainers.md section 3): the grade scaled by it,
     descents halved again (-10 % -> -2.5 % at 50 %); none given: the grade as it is. A profile's

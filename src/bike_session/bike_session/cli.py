@@ -883,8 +883,37 @@ def _cmd_fleet(opts) -> int:
     return 0
 
 
+# ./bike trainer's options that connect to one trainer (--find connects to none), and those of a
+# workout; each was dropped without a word where it means nothing
+TRAINER_CONNECTION_OPTIONS = ("host", "port", "power", "grade", "level", "cadence", "crr", "cw", "wind", "difficulty",
+                              "workout", "spindown", "ftp", "max_hr", "csv")
+TRAINER_WORKOUT_OPTIONS = ("ftp", "max_hr")
+
+
+def _trainer_options_problem(opts) -> str | None:
+    """Why the options given do not go together (None: they do); the parser's --host / --port
+    defaults are None, so that a given one is seen, and are set here."""
+    def given(attrs):
+        # (--power 0 is given: not `not in (None, False)`, where 0 == False)
+        return [f"--{attr.replace('_', '-')}" for attr in attrs
+                if getattr(opts, attr) is not None and getattr(opts, attr) is not False]
+    if opts.find and given(TRAINER_CONNECTION_OPTIONS):
+        return (f"{', '.join(given(TRAINER_CONNECTION_OPTIONS))}: not with --find, which lists the trainers "
+                "announced on the network and connects to none")
+    if not opts.workout and given(TRAINER_WORKOUT_OPTIONS):
+        return f"{', '.join(given(TRAINER_WORKOUT_OPTIONS))}: only with --workout (its targets in % of them)"
+    from bike_session.dircon import DEFAULT_PORT
+    opts.host = "127.0.0.1" if opts.host is None else opts.host
+    opts.port = DEFAULT_PORT if opts.port is None else opts.port
+    return None
+
+
 def _cmd_trainer(opts) -> int:
     from bike_session import trainer_probe
+    problem = _trainer_options_problem(opts)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
     if opts.csv and not output_file_ok(opts.csv, "--csv"):
         return 2
     opts.seconds_given = opts.seconds is not None
@@ -1092,8 +1121,8 @@ def build_parser() -> argparse.ArgumentParser:
     trn = sub.add_parser("trainer", help="the app's end of FTMS over DIRCON: find trainers on the network, show "
                                          "what one serves, set a target, print its Indoor Bike Data")
     trn.add_argument("--find", action="store_true", help="list the trainers announced by mDNS and stop")
-    trn.add_argument("--host", default="127.0.0.1", help="trainer address (default 127.0.0.1: ./bike run --ftms)")
-    trn.add_argument("--port", type=int, default=36866, help="its DIRCON port (default 36866)")
+    trn.add_argument("--host", help="trainer address (default 127.0.0.1: ./bike run --ftms)")
+    trn.add_argument("--port", type=int, help="its DIRCON port (default 36866)")
     trn.add_argument("--seconds", type=float, help="how long to print Indoor Bike Data (default 5; --find: how "
                                                    "long to listen, default 3)")
     trn.add_argument("--power", type=float, metavar="W", help="take control and set ERG target power")
