@@ -134,3 +134,11 @@ def test_a_real_drives_map_from_a_dynamometers_points(tmp_path):
         assert result.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and words in lines[0], \
             result.stderr
         assert not bad_out.exists()
+    # the emulated dyno's options mean nothing beside the CSV: they were dropped without a word
+    bad_out = tmp_path / "opts.yaml"
+    result = bike_command("torque-map", "--from-csv", str(csv_path), "--out", str(bad_out), "--speeds-rpm", "1000",
+                          "--settle-s", "1", timeout=120)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and lines == ["error: --speeds-rpm, --settle-s: not with --from-csv (they set up "
+                                                "the emulated dynamometer; the CSV's points are the map)"], result.stderr
+    assert not bad_out.exists()

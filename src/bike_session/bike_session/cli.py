@@ -940,6 +940,16 @@ def _cmd_torque_map(opts) -> int:
 
     if not output_spares_inputs(opts.out, [x for x in (opts.from_csv, opts.config) if x], "--out"):
         return 2
+    emulator_options = [flag for flag, value in (("--config", opts.config), ("--speeds-rpm", opts.speeds_rpm),
+                                                 ("--setpoints-nm", opts.setpoints_nm), ("--settle-s", opts.settle_s),
+                                                 ("--window-s", opts.window_s)) if value is not None]
+    if opts.from_csv and emulator_options:
+        # they set up the emulated dyno: with --from-csv they were dropped without a word
+        print(f"error: {', '.join(emulator_options)}: not with --from-csv (they set up the emulated dynamometer; "
+              "the CSV's points are the map)", file=sys.stderr)
+        return 2
+    opts.settle_s = DTM.DEFAULT_SETTLE_S if opts.settle_s is None else opts.settle_s
+    opts.window_s = DTM.DEFAULT_WINDOW_S if opts.window_s is None else opts.window_s
     if opts.from_csv:
         # a real drive's map: the points a dynamometer with a torque sensor logged
         try:
@@ -1164,8 +1174,8 @@ def build_parser() -> argparse.ArgumentParser:
     tqm.add_argument("--from-csv", metavar="FILE", type=path_arg,
                      help="a real drive's map instead: a dynamometer's points (columns speed_rpm, setpoint_nm, "
                           "reported_nm, true_nm: the drive's Torque_Estimate and the torque sensor)")
-    tqm.add_argument("--settle-s", type=float, default=0.05, help="settling time per point (default 0.05 s)")
-    tqm.add_argument("--window-s", type=float, default=0.1,
+    tqm.add_argument("--settle-s", type=float, help="settling time per point (default 0.05 s)")
+    tqm.add_argument("--window-s", type=float,
                      help="averaging window per point, rounded up to whole electrical revolutions (default 0.1 s)")
     tqm.set_defaults(func=_cmd_torque_map)
     return parser
