@@ -139,6 +139,7 @@ def test_a_real_drives_map_from_a_dynamometers_points(tmp_path):
     result = bike_command("torque-map", "--from-csv", str(csv_path), "--out", str(bad_out), "--speeds-rpm", "1000",
                           "--settle-s", "1", timeout=120)
     lines = result.stderr.strip().splitlines()
-    assert result.returncode == 2 and lines == ["error: --speeds-rpm, --settle-s: not with --from-csv (they set up "
-                                                "the emulated dynamometer; the CSV's points are the map)"], result.stderr
+    said = ("error: --speeds-rpm, --settle-s: not with --from-csv (they set up the emulated dynamometer; the CSV's "
+            "points are the map)")
+    assert result.returncode == 2 and lines == [said], result.stderr
     assert not bad_out.exists()
