@@ -116,6 +116,12 @@ def test_bench_rejects_bad_sections_and_lengths(capsys):
     assert "unknown bench section(s) bogus" in capsys.readouterr().err
     assert bench.main(only=["memory"], memory_s=-5.0) == 2
     assert "--memory-s must be > 0" in capsys.readouterr().err
+    # inf: the memory run's session refused it, "the run did not complete", and the bench exited 0
+    assert bench.main(only=["memory"], memory_s=math.inf) == 2
+    assert "--memory-s must be > 0 and at most 9.2e+09" in capsys.readouterr().err
+    assert bench.main(only=["inner"], memory_s=5.0) == 2            # was dropped without a word
+    assert capsys.readouterr().err.strip() == "error: --memory-s: only with the memory section (--only memory), " \
+                                              "not --only inner"
 
 
 def test_the_graph_figure_falls_back_on_the_plants_own_rate(monkeypatch):

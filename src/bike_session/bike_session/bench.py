@@ -171,8 +171,16 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
         print(f"error: unknown bench section(s) {', '.join(sorted(unknown))} (choose from {', '.join(SECTIONS)})",
               file=sys.stderr)
         return 2
-    if memory_s is not None and not memory_s > 0:
-        print(f"error: --memory-s must be > 0, got {memory_s}", file=sys.stderr)
+    from bike_plant.config import MAX_SIM_TIME_S
+    if memory_s is not None and not 0 < memory_s <= MAX_SIM_TIME_S:
+        # inf / 1e300: the memory run's session refused it, "the run did not complete", exit 0
+        print(f"error: --memory-s must be > 0 and at most {MAX_SIM_TIME_S:g} (the ROS clock's int64 nanoseconds), "
+              f"got {memory_s}", file=sys.stderr)
+        return 2
+    if memory_s is not None and only and "memory" not in only:
+        # it was dropped without a word
+        print(f"error: --memory-s: only with the memory section (--only memory), not --only {' '.join(only)}",
+              file=sys.stderr)
         return 2
 
     def want(section: str) -> bool:
