@@ -76,6 +76,10 @@ def test_replay_refuses_bad_input_with_one_error(tmp_path, ros_domain):
     assert res.returncode == 2 and res.stderr.count("error:") == 1
     res = bike_command("replay", "--help")
     assert res.returncode == 0 and "--config" in res.stdout and "--load" in res.stdout
+    # --load config without --config rode the recorded load (the same either way) without a word
+    res = bike_command("replay", str(tmp_path / "missing"), "--load", "config", "--record", str(tmp_path / "r"))
+    assert res.returncode == 2 and res.stderr.count("error:") == 1 and "--load config needs --config" in res.stderr
+    assert not (tmp_path / "r").exists()
 
 
 def test_a_replayed_timeline_keeps_the_road_a_training_app_gave():

@@ -345,6 +345,11 @@ def main(argv: list[str]) -> int:
                     help="where the new bag goes (default runs/)")
     ap.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
     opts = ap.parse_args(argv)
+    if opts.load == "config" and opts.config is None:
+        # without OTHER the recorded config's load is ridden either way: it changed nothing, without a word
+        print("error: --load config needs --config OTHER (the load of OTHER); without it the replay rides the "
+              "recorded config's load", file=sys.stderr)
+        return 2
     from bike_session import cli
     made_record_dir = not pathlib.Path(opts.record).exists()
     if cli.output_dir(opts.record, "--record") is None:
