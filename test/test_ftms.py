@@ -1,6 +1,7 @@
 """FTMS over DIRCON without ROS: the Control Point's meaning for this bike's Commands, the
 bytes of the characteristics, DIRCON framing and dispatch, the TCP server on real sockets
 (a broken stream closes only its own connection), and the telemetry an app is shown."""
+import contextlib
 import dataclasses
 import math
 import os
@@ -438,6 +439,26 @@ def test_the_server_closes_only_a_broken_connection_and_drops_an_app_that_reads_
         server.close()
 
 
+@contextlib.contextmanager
+def _served_control():
+    """(FtmsControl, DirconServer) on a free port of 127.0.0.1, its Control Point answered by the
+    control, served by a thread until the block ends."""
+    import threading
+    control = ftms.FtmsControl(UNITS)
+    server = dircon.DirconServer("127.0.0.1", 0, services_for(
+        control, lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]),
+        lambda text, warning: None, on_close=control.release)
+    stop = [False]
+    pump = threading.Thread(target=lambda: [server.poll(0.01) for _ in iter(lambda: stop[0], True)])
+    pump.start()
+    try:
+        yield control, server
+    finally:
+        stop[0] = True
+        pump.join()
+        server.close()
+
+
 def test_control_is_one_apps_until_it_resets_or_disconnects():
     """FTMS 1.0, 4.16.2.1: a Request Control while another client has control gets result 5
     (control not permitted), and so does any op of a client that does not have it; control
@@ -460,20 +481,11 @@ def test_control_is_one_apps_until_it_resets_or_disconnects():
     control.write(bytes([ftms.OP_RESET]), b)              # a reset gives it up too
     assert control.write(bytes([ftms.OP_REQUEST_CONTROL]), a).response[2] == ftms.RESULT_SUCCESS
 
-    control = ftms.FtmsControl(UNITS)
-    server = dircon.DirconServer("127.0.0.1", 0, services_for(
-        control, lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]),
-        lambda text, warning: None, on_close=control.release)
-    stop = [False]
-    import threading
-    pump = threading.Thread(target=lambda: [server.poll(0.01) for _ in iter(lambda: stop[0], True)])
-    pump.start()
-
     def ask(app, data):
         assert app.write(ftms.CONTROL_POINT, data).code == dircon.RESP_SUCCESS
         return app.wait_notification(ftms.CONTROL_POINT)[2]
 
-    try:
+    with _served_control() as (control, server):
         first, second = (dircon.DirconClient("127.0.0.1", server.port) for _ in range(2))
         for app in (first, second):
             app.subscribe(ftms.CONTROL_POINT)
@@ -489,10 +501,6 @@ def test_control_is_one_apps_until_it_resets_or_disconnects():
         assert ask(second, bytes([ftms.OP_REQUEST_CONTROL])) == ftms.RESULT_SUCCESS
         assert ask(second, cp(ftms.OP_TARGET_POWER, "h", 120)) == ftms.RESULT_SUCCESS
         second.close()
-    finally:
-        stop[0] = True
-        pump.join()
-        server.close()
 
 
 def test_bike_trainer_says_a_refused_request_in_one_error_line():
@@ -500,15 +508,7 @@ def test_bike_trainer_says_a_refused_request_in_one_error_line():
     control: control not permitted) was one more line on stdout, no 'error:', exit 1. Now the
     one error line on stderr, exit 1; the trainer's description stays on stdout."""
     from conftest import bike_command
-    control = ftms.FtmsControl(UNITS)
-    server = dircon.DirconServer("127.0.0.1", 0, services_for(
-        control, lambda data, client: [(ftms.CONTROL_POINT, control.write(data, client).response)]),
-        lambda text, warning: None, on_close=control.release)
-    stop = [False]
-    import threading
-    pump = threading.Thread(target=lambda: [server.poll(0.01) for _ in iter(lambda: stop[0], True)])
-    pump.start()
-    try:
+    with _served_control() as (_control, server):
         port = str(server.port)
         for args, words in ((["--level", "500"], "error: resistance level 500: the trainer answered invalid parameter"),
                             (["--power", "150"], "error: request control: the trainer answered control not "
@@ -525,10 +525,6 @@ def test_bike_trainer_says_a_refused_request_in_one_error_line():
             assert "resistance level range 0 .. 100" in result.stdout and "error" not in result.stdout
             if holder is not None:
                 holder.close()
-    finally:
-        stop[0] = True
-        pump.join()
-        server.close()
 
 
 def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer():
