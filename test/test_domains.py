@@ -40,6 +40,24 @@ def test_an_explicit_domain_is_respected(monkeypatch):
         domains.claim(5, 4)
 
 
+@pytest.mark.parametrize("value, good", [("", True), ("0", True), ("232", True), ("abc", False), (" 5", False),
+                                         ("233", False), ("-1", False), ("1e2", False)])
+def test_a_domain_id_the_nodes_cannot_join_is_one_error_before_they_start(value, good, monkeypatch):
+    """ROS_DOMAIN_ID=abc ended in an RCLError traceback in every node ('not an integral number'),
+    999 in Fast DDS's 'Calculated port number is too high' from each: ./bike run, replay, fleet
+    and bench refuse it in one line first (shift too, without --domain)."""
+    from bike_session import cli
+    monkeypatch.setenv("ROS_DOMAIN_ID", value)
+    assert (domains.environment_problem() is None) == good
+    if not good:
+        run = subprocess.run([sys.executable, "-m", "bike_session.cli", "run", "--duration", "1"], capture_output=True,
+                             text=True, timeout=60, env=dict(os.environ, ROS_DOMAIN_ID=value))
+        lines = [line for line in run.stderr.splitlines() if line.strip()]
+        assert run.returncode == 2 and run.stdout == "" and lines == [f"error: {domains.environment_problem()}"]
+        for argv in (["replay", "no_bag"], ["fleet", "--graph", "1"], ["bench", "--only", "graph"], ["shift", "1"]):
+            assert cli.main(argv) == 2, argv
+
+
 def test_a_claiming_process_exits_without_resource_warnings(tmp_path):
     """The held lock files are closed at exit (the CI log had one ResourceWarning per id)."""
     code = ("import pathlib, sys; from bike_session import domains; domains.LOCK_DIR = pathlib.Path(sys.argv[1]); "

@@ -1181,13 +1181,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# the commands that start DDS participants in this environment's ROS_DOMAIN_ID (shift checks its own)
+DDS_COMMANDS = ("run", "replay", "fleet", "bench")
+
+
+def _domain_ok(argv: list[str]) -> bool:
+    """ROS_DOMAIN_ID, when set, is a domain the nodes can join: else one error (False) before any
+    work, not a traceback in every node (or the bench's ping-pong) once they start."""
+    from bike_session import domains
+    problem = domains.environment_problem() if argv[:1] and argv[0] in DDS_COMMANDS else None
+    if problem and not {"-h", "--help"} & set(argv):
+        print(f"error: {problem}", file=sys.stderr)
+        return False
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["replay"]:                       # its own parser (--help lists its options)
         from bike_session import replay
-        return replay.main(argv[1:])
+        return replay.main(argv[1:]) if _domain_ok(argv) else 2
     opts = build_parser().parse_args(argv)
-    return opts.func(opts)
+    return opts.func(opts) if _domain_ok(argv) else 2
 
 
 if __name__ == "__main__":

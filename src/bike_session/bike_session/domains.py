@@ -17,6 +17,7 @@ import random
 LOCK_DIR = pathlib.Path(os.environ.get("BIKE_DOMAIN_LOCK_DIR", "/tmp/bike-ros-domains"))
 FIRST_ID = 1
 LAST_ID = 200      # Fast DDS ports stay valid up to 232; keep a margin
+MAX_ID = 232       # beyond it Fast DDS's ports pass 65535: "Calculated port number is too high"
 
 _held: dict[int, object] = {}      # id -> open lock file (kept open = kept locked)
 
@@ -56,6 +57,17 @@ def _release_all() -> None:
     closing them here spares the interpreter's ResourceWarning for each open file)."""
     for domain in list(_held):
         release(domain)
+
+
+def environment_problem() -> str | None:
+    """Why the environment's ROS_DOMAIN_ID is no domain a node can join, None when it is one (or
+    unset or empty: a private one is claimed). Text ended in an RCLError traceback in every node
+    ("ROS_DOMAIN_ID is not an integral number"), an id over MAX_ID in Fast DDS's port error."""
+    text = os.environ.get("ROS_DOMAIN_ID", "")
+    if not text or (text.isdigit() and int(text) <= MAX_ID):
+        return None
+    return (f"ROS_DOMAIN_ID {text!r} is not a DDS domain id (a whole number 0..{MAX_ID}): export another, "
+            "or unset it for a private one")
 
 
 def ensure_private_domain(what: str = "run") -> int | None:

@@ -23,11 +23,12 @@ def press(steps: int, namespace: str = "bike", domain: int | None = None,
         print(f"error: gears must be a non-zero whole number in [-127, 127], got {steps}", file=sys.stderr)
         return 2
     if domain is None:
-        text = os.environ.get("ROS_DOMAIN_ID", "0") or "0"
-        if not text.isdigit():
-            print(f"error: ROS_DOMAIN_ID {text!r} is not a domain number; give --domain", file=sys.stderr)
+        from bike_session.domains import environment_problem
+        if environment_problem():
+            # ROS_DOMAIN_ID=999 was refused as '--domain must be in [0, 232]', an option not given
+            print(f"error: {environment_problem()}; or give --domain", file=sys.stderr)
             return 2
-        domain = int(text)
+        domain = int(os.environ.get("ROS_DOMAIN_ID") or 0)
     if not 0 <= domain <= 232:
         print(f"error: --domain must be in [0, 232], got {domain}", file=sys.stderr)
         return 2
