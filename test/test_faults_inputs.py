@@ -763,8 +763,22 @@ def test_run_refuses_a_bad_launch_file_before_it_says_anything(tmp_path):
     text = tmp_path / "notes.yaml"
     text.write_text("just: notes\n")
     for launch, words in ((text, "expected a top-level 'launch:' list"), (tmp_path, "Is a directory")):
-        run = _cli("run", "--duration", "1", "--launch", str(launch), timeout=60)
+        run = _cli("run", "--duration", "1", "--launch", str(launch), "--record", str(tmp_path / "rec"), timeout=60)
         assert words in _one_error(run) and run.stdout == "", run.stdout
+        assert not (tmp_path / "rec").exists(), "the --record folder made for the refused run is left"
+
+
+def test_a_refused_paper_run_leaves_no_out_folder(tmp_path):
+    """`./bike paper NAME --out DIR --config BAD` made DIR, then refused the config: an empty
+    folder was left, as if a run had written nothing. A folder that was there stays."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(b"\xff\xfe\x00")
+    for name in ("seed1-fig14", "seed2-table1"):
+        assert "not a text file" in _one_error(_cli("paper", name, "--out", str(tmp_path / "out"), "--config", str(bad)))
+        assert not (tmp_path / "out").exists()
+    (tmp_path / "kept").mkdir()
+    _one_error(_cli("paper", "seed1-fig14", "--out", str(tmp_path / "kept"), "--config", str(bad)))
+    assert (tmp_path / "kept").is_dir()
 
 
 def test_run_ftms_refuses_an_address_it_cannot_listen_on():

@@ -79,6 +79,14 @@ def output_dir(path, flag: str) -> pathlib.Path | None:
     return out
 
 
+def remove_if_made_empty(path, made: bool) -> None:
+    """A folder an output option made for a command that was then refused: removed when it is
+    still empty, so that a refused command leaves nothing behind."""
+    folder = pathlib.Path(path)
+    if made and folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()
+
+
 def output_file_ok(path, flag: str) -> bool:
     """Before any work: a result file can be written at ``path`` (its directory is created;
     the file is opened for appending, and removed again if that created it), else one error
@@ -216,6 +224,7 @@ def _cmd_run(opts) -> int:
             # only when given: a --launch file of its own need not declare the argument
             args.update(max_hr=repr(float(max_hr_bpm)))
     bag_path = None
+    made_record_dir = bool(opts.record) and not pathlib.Path(opts.record).exists()
     if opts.record:
         record_dir = output_dir(pathlib.Path(opts.record).resolve(), "--record")
         if record_dir is None:
@@ -232,6 +241,7 @@ def _cmd_run(opts) -> int:
             # the CAN traffic beside the bag, in a format CAN tools read (python-can .asc / .blf)
             args["can_log"] = str(record_dir / f"{bag_path.name}.can.{can_params.log_format}")
     if not _config_launch_args(cfg, args, recording=bag_path is not None):
+        remove_if_made_empty(opts.record, made_record_dir)
         return 2
     try:
         # read again to start: here a bad --launch file is the one line printed, before the
@@ -239,6 +249,7 @@ def _cmd_run(opts) -> int:
         launcher.parse_launch(str(opts.launch or default_launch_file()), args)
     except launcher.LaunchError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        remove_if_made_empty(opts.record, made_record_dir)
         return 2
     # a private DDS domain: two simulations on one host must not ride each other's /clock and
     # commands (an explicit ROS_DOMAIN_ID is always respected)
@@ -251,6 +262,7 @@ def _cmd_run(opts) -> int:
         code = launcher.run(str(opts.launch or default_launch_file()), args, on_line=ftms_port_said)
     except launcher.LaunchError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        remove_if_made_empty(opts.record, made_record_dir)
         return 2
     if bag_path is not None and bag_path.exists() and not (bag_path / "metadata.yaml").exists():
         # the recorder did not close the bag (killed): what it flushed is rescued by recover
@@ -745,6 +757,7 @@ def _cmd_paper(opts) -> int:
 
     from bike_session import paper
 
+    made_out = not pathlib.Path(opts.out).exists()
     out = output_dir(opts.out, "--out")
     if out is None:
         return 2
@@ -755,6 +768,7 @@ def _cmd_paper(opts) -> int:
             result = paper_spmsm.table1(config, str(out))
         except ConfigError as exc:
             print(f"error: {exc}", file=sys.stderr)
+            remove_if_made_empty(out, made_out)
             return 2
         print(paper_spmsm.summary(result))
         for path in result["files"]:
@@ -767,6 +781,7 @@ def _cmd_paper(opts) -> int:
         result = runner(config, str(out))
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        remove_if_made_empty(out, made_out)
         return 2
     verdict = "PASS" if result.get("passed") else "FAIL"
     print(f"{result['name']}: {len(result['points'])} points, largest error {result['max_error'] * 100:.2f} % "

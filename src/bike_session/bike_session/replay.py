@@ -358,8 +358,7 @@ def main(argv: list[str]) -> int:
         prep = prepare(opts.bag, opts.record, opts.config, opts.load)
     except (BagError, ConfigError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        if made_record_dir and not any(pathlib.Path(opts.record).iterdir()):
-            pathlib.Path(opts.record).rmdir()          # made for this replay, which did not start
+        cli.remove_if_made_empty(opts.record, made_record_dir)    # made for this replay, which did not start
         return 2
     if prep["shortened_from"] is not None:
         ends = (f"the bag ends at t = {prep['bag_end_s']:g} s and its Commands at {prep['duration_s']:g} s"
@@ -375,6 +374,5 @@ def main(argv: list[str]) -> int:
         # the config names): as with a refused config, nothing of this replay is left behind
         prep["profile"].unlink(missing_ok=True)
         prep["config"].unlink(missing_ok=True)
-        if made_record_dir and not any(pathlib.Path(opts.record).iterdir()):
-            pathlib.Path(opts.record).rmdir()
+        cli.remove_if_made_empty(opts.record, made_record_dir)
     return code
