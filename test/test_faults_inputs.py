@@ -774,7 +774,8 @@ def test_a_refused_paper_run_leaves_no_out_folder(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_bytes(b"\xff\xfe\x00")
     for name in ("seed1-fig14", "seed2-table1"):
-        assert "not a text file" in _one_error(_cli("paper", name, "--out", str(tmp_path / "out"), "--config", str(bad)))
+        line = _one_error(_cli("paper", name, "--out", str(tmp_path / "out"), "--config", str(bad)))
+        assert "not a text file" in line, line
         assert not (tmp_path / "out").exists()
     (tmp_path / "kept").mkdir()
     _one_error(_cli("paper", "seed1-fig14", "--out", str(tmp_path / "kept"), "--config", str(bad)))
