@@ -119,7 +119,7 @@ def test_fleet_bad_placement_is_one_clear_error(netns_arg, message):
     (["--bikes", "2", "--seconds", "0.01", "--seed", "-1"], "seed must be an integer >= 0, got -1"),
     (["--bikes", "2", "--seconds", "0.01", "--show", "-3"], "--show must be >= 0 (bikes to print), got -3"),
     # the other mode's options were dropped without a word (--graph 1 --bikes 50 rode one bike)
-    (["--graph", "1", "--bikes", "50", "--seed", "3"], "--bikes, --seed: for the offline fleet, not with --graph"),
+    (["--graph", "1", "--bikes", "50", "--seed", "0"], "--bikes, --seed: for the offline fleet, not with --graph"),
     (["--bikes", "2", "--timeout", "5", "--verbose"], "--timeout, --verbose: only with --graph")])
 def test_fleet_bad_timeout_seed_or_show_is_one_clear_error(args, message):
     """--timeout <= 0 started the bikes and stopped them at once ("fleet graph: FAILED", exit 1,

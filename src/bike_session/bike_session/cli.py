@@ -826,8 +826,9 @@ def _cmd_fleet(opts) -> int:
 
     config = str(pathlib.Path(opts.config or repo_root() / "config" / "bldc_default.yaml").resolve())
     # each option of the other mode was dropped without a word (--graph 2 --bikes 50 rode 2 bikes)
-    wrong = [flag for attr, flag, graph_only in FLEET_MODE_OPTIONS
-             if getattr(opts, attr) not in (None, False) and graph_only != (opts.graph is not None)]
+    wrong = [flag for attr, flag, graph_only in FLEET_MODE_OPTIONS   # (--seed 0 is given, though 0 == False)
+             if getattr(opts, attr) is not None and getattr(opts, attr) is not False
+             and graph_only != (opts.graph is not None)]
     if wrong:
         print(f"error: {', '.join(wrong)}: " + ("for the offline fleet, not with --graph" if opts.graph is not None
                                                  else "only with --graph"), file=sys.stderr)
