@@ -82,9 +82,8 @@ def output_dir(path, flag: str) -> pathlib.Path | None:
 def remove_if_made_empty(path, made: bool) -> None:
     """A folder an output option made for a command that was then refused: removed when it is
     still empty, so that a refused command leaves nothing behind."""
-    folder = pathlib.Path(path)
-    if made and folder.is_dir() and not any(folder.iterdir()):
-        folder.rmdir()
+    if made and pathlib.Path(path).is_dir() and not any(pathlib.Path(path).iterdir()):
+        pathlib.Path(path).rmdir()
 
 
 def output_file_ok(path, flag: str) -> bool:
