@@ -136,7 +136,8 @@ def test_run_refuses_a_bad_or_foreign_calibration_before_anything_starts(tmp_pat
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     for path, words in ((foreign, "'spmsm' bike's calibration"), (bad, "modes.friction_nms must be"),
-                        (blocker / "cal.yaml", "cannot"), (pathlib.Path("/dev/null"), "not a regular file")):
+                        (blocker / "cal.yaml", "a_file: not a directory (a file is there)"),
+                        (pathlib.Path("/dev/null"), "not a regular file")):
         run = _bike("run", "--duration", "1", "--calibration", str(path))
         assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr[-2000:]
         lines = [line for line in run.stderr.splitlines() if line.strip()]
