@@ -12,7 +12,7 @@
     ./bike bag recover BAG [--out DIR]                         rescue a crashed recording
     ./bike paper NAME --out DIR                                reproduce a figure of a paper
     ./bike bench [--json FILE] [--only SECTION] [--memory-s S] speed / memory figures and ratios, peers
-    ./bike fleet [--bikes N] [--seconds S] [--graph K [--netns bikeK=NS]]  many bikes: batched kernel or DDS graph
+    ./bike fleet [--bikes N | --graph K [--netns bikeK=NS]] [--seconds S]  many bikes: batched kernel or DDS graph
     ./bike torque-map --config FILE --out MAP.yaml             measure the drive's torque map on the emulator
     ./bike torque-map --from-csv DYNO.csv --out MAP.yaml       a real drive's map from a dynamometer's points
 """
