@@ -14,47 +14,12 @@ import subprocess
 
 import pytest
 
-from conftest import bike_command
-
-
-def _ip(*args: str, netns: str | None = None) -> None:
-    cmd = (["ip", "netns", "exec", netns, "ip"] if netns else ["ip"]) + list(args)
-    res = subprocess.run(cmd, capture_output=True, text=True)
-    if res.returncode != 0:
-        pytest.fail(f"`{' '.join(cmd)}` failed ({res.returncode}): {res.stderr.strip()} -- this test needs "
-                    "root and network namespaces (ip netns + veth); it must not be skipped", pytrace=False)
+from conftest import bike_command, host_b  # noqa: F401 (fixture)
 
 
 def _counter(dev: str, name: str) -> int:
     with open(f"/sys/class/net/{dev}/statistics/{name}") as f:
         return int(f.read())
-
-
-@pytest.fixture
-def host_b():
-    """Network namespace 'host B' joined to this one ('host A') by a veth pair, 10.x.y.1 <-> 10.x.y.2."""
-    tag = f"{os.getpid() % 100000}{random.randint(0, 99):02d}"
-    ns, dev_a, dev_b = f"flb{tag}", f"fla{tag}", f"flc{tag}"
-    subnet = f"10.{random.randint(100, 250)}.{random.randint(0, 250)}"
-    created = []
-    try:
-        _ip("netns", "add", ns)
-        created.append("ns")
-        _ip("link", "add", dev_a, "type", "veth", "peer", "name", dev_b)
-        created.append("veth")
-        _ip("link", "set", dev_b, "netns", ns)
-        _ip("addr", "add", f"{subnet}.1/24", "dev", dev_a)
-        _ip("link", "set", dev_a, "up")
-        _ip("addr", "add", f"{subnet}.2/24", "dev", dev_b, netns=ns)
-        _ip("link", "set", dev_b, "up", netns=ns)
-        _ip("link", "set", "lo", "up", netns=ns)
-        yield {"netns": ns, "dev_a": dev_a, "addr_a": f"{subnet}.1", "addr_b": f"{subnet}.2"}
-    finally:
-        if "veth" in created:
-            subprocess.run(["ip", "link", "del", dev_a], capture_output=True)
-        if "ns" in created:
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
-    assert not os.path.exists(f"/run/netns/{ns}"), "the test's network namespace was not removed"
 
 
 def test_two_bikes_across_network_namespaces(host_b, tmp_path, ros_domain):

@@ -550,57 +550,56 @@ def test_the_bike_is_advertised_by_mdns_the_way_apps_look_for_a_dircon_trainer()
         dircon.host_addresses("0.0.0.0") == ["127.0.0.1"]
 
 
-IFF_UP, IFF_MULTICAST = 0x1, 0x1000        # linux/if.h
+# host B's bike in test_a_second_bike_of_the_same_name_...: advertised under a name host A's bike
+# holds, then an app there resolving both; prints the outcome as JSON
+_SECOND_BIKE = r"""
+import json, sys
+from zeroconf import IPVersion, Zeroconf
+from bike_session import dircon
+name, address, logs = sys.argv[1], sys.argv[2], []
+second = dircon.Advertiser(name, [address], 36998, "bike-36998", lambda t, w: logs.append([t, w]))
+out = {"logs": logs, "second": [second.done.wait(20), second.error, second.advertised_name]}
+app = Zeroconf(interfaces=[address], ip_version=IPVersion.V4Only)
+try:
+    out["ports"] = [getattr(app.get_service_info(dircon.MDNS_SERVICE, f"{n}.{dircon.MDNS_SERVICE}", timeout=5000),
+                            "port", None) for n in (name, f"{name}-2")]
+finally:
+    app.close()
+    second.close()
+print(json.dumps(out))
+"""
 
 
-def _multicast_address() -> str:
-    """An IPv4 address whose interface carries multicast: 127.0.0.1 when loopback does, else the
-    first such address of this host. Two mDNS responders on a loopback without the MULTICAST
-    flag (some hosts' lo) never hear each other's probes, so no name conflict could be seen."""
-    import ifaddr
-
-    def flags(name: str) -> int:
-        try:
-            return int(open(f"/sys/class/net/{name}/flags").read(), 16)
-        except (OSError, ValueError):
-            return 0
-    if flags("lo") & IFF_MULTICAST:
-        return "127.0.0.1"
-    for adapter in sorted(ifaddr.get_adapters(), key=lambda a: a.name):
-        if flags(adapter.name) & (IFF_UP | IFF_MULTICAST) == IFF_UP | IFF_MULTICAST:
-            for ip in adapter.ips:
-                if isinstance(ip.ip, str) and not ip.ip.startswith("127."):
-                    return ip.ip
-    return "127.0.0.1"
-
-
-def test_a_second_bike_of_the_same_name_is_advertised_as_name_2_and_both_are_found():
+def test_a_second_bike_of_the_same_name_is_advertised_as_name_2_and_both_are_found(host_b):
     """Two testbeds with one namespace on a network: the second bike's name is taken, so it is
     advertised as "bike twin-2" (mDNS's rename), says so, and an app finds both at their ports.
-    Before, the second registration failed (NonUniqueNameException): no advert at all."""
-    from zeroconf import IPVersion, Zeroconf
+    Before, the second registration failed (NonUniqueNameException): no advert at all.
+
+    The two bikes are on two hosts, as on a lab's network: this one and a network namespace
+    joined to it by a veth pair (made by the test, as test_fleet_graph's). Two responders of one
+    host share port 5353, and the answer to the second one's first probe (QU: unicast to port
+    5353) reached either socket as the kernel picked: on one host the rename came in 2 runs of
+    4, and on a CI host (eth0 192.0.2.2, lo without MULTICAST) never."""
+    import json
+    import subprocess
+    import sys
+
     name = f"bike twin{os.getpid()}"
-    address = _multicast_address()
     logs = []
-    first = dircon.Advertiser(name, [address], 36997, "bike-36997", lambda t, w: logs.append((t, w)))
-    second = app = None
+    first = dircon.Advertiser(name, [host_b["addr_a"]], 36997, "bike-36997", lambda t, w: logs.append((t, w)))
     try:
         assert first.done.wait(20) and first.error is None and first.advertised_name == name, logs
-        second = dircon.Advertiser(name, [address], 36998, "bike-36998", lambda t, w: logs.append((t, w)))
-        assert second.done.wait(20) and second.error is None, logs
-        assert second.advertised_name == f"{name}-2", logs
-        assert (f"advertised as '{name}-2' ({dircon.MDNS_SERVICE} on {address}); '{name}' is taken on this "
-                "network", True) in logs
-        app = Zeroconf(interfaces=[address], ip_version=IPVersion.V4Only)
-        ports = [getattr(app.get_service_info(dircon.MDNS_SERVICE, f"{n}.{dircon.MDNS_SERVICE}", timeout=5000),
-                         "port", None) for n in (name, f"{name}-2")]
-        assert ports == [36997, 36998]
+        run = subprocess.run(["ip", "netns", "exec", host_b["netns"], sys.executable, "-c", _SECOND_BIKE, name,
+                              host_b["addr_b"]], capture_output=True, text=True, timeout=120)
     finally:
-        if app is not None:
-            app.close()
-        for adv in (second, first):
-            if adv is not None:
-                adv.close()
+        first.close()
+    assert run.returncode == 0, run.stderr[-3000:]
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    second_logs = [tuple(x) for x in out["logs"]]
+    assert out["second"] == [True, None, f"{name}-2"], second_logs
+    assert (f"advertised as '{name}-2' ({dircon.MDNS_SERVICE} on {host_b['addr_b']}); '{name}' is taken on this "
+            "network", True) in second_logs
+    assert out["ports"] == [36997, 36998]
 
 
 def test_fuzzed_dircon_streams_and_control_point_writes_never_raise_anything_else():
