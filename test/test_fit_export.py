@@ -48,6 +48,25 @@ def test_a_session_becomes_per_second_records_and_totals(tmp_path):
     assert [e["event_type"] for e in m["event_mesgs"]] == ["start", "stop_all"]
 
 
+def test_a_ride_ending_within_a_second_counts_that_second_as_far_as_it_went(tmp_path):
+    """2.5 s at 150 W: the last record covers 0.5 s. Counted whole, the FIT totals said 3 s and
+    450 J (a 1 ms ride: 1 s, 0.15 kJ); now 2.5 s and 375 J, the mean power still 150 W."""
+    bag = write_session_bag(tmp_path / "bag", n=2501)
+    out = tmp_path / "ride.fit"
+    totals = export_fit(bag, out)
+    m = _decode(out)
+    rec = m["record_mesgs"]
+    assert len(rec) == 3
+    stamps = [r["timestamp"] for r in rec]
+    assert [(b - a).total_seconds() for a, b in zip(stamps, stamps[1:])] == [1.0, 1.0]     # FIT: whole seconds
+    for lap_or_session in (m["lap_mesgs"][0], m["session_mesgs"][0]):
+        assert lap_or_session["total_timer_time"] == 2.5 and lap_or_session["total_work"] == 375
+        assert lap_or_session["avg_power"] == 150
+    assert totals["timer_s"] == pytest.approx(2.5) and totals["elapsed_s"] == pytest.approx(2.5)
+    speed = W * 0.335 * 2.75 / 10.0
+    assert rec[-1]["distance"] == pytest.approx(2.5 * speed, abs=0.01)
+
+
 def test_heart_rate_in_the_records_that_have_one_and_in_the_totals(tmp_path):
     """No heart rate in the first second (a strap put on at 1 s), 140 bpm in the second, 150 in
     the third: the first record has no heart_rate field, the others the second's mean; the lap

@@ -28,6 +28,7 @@ import here.
 from __future__ import annotations
 
 import datetime
+import math
 import pathlib
 
 import numpy as np
@@ -39,15 +40,24 @@ MAX_RECORDS = 7 * 24 * 3600       # one record per second: a week of riding
 
 
 def activity_arrays(data: SessionData) -> dict:
-    """Per-second arrays (t_s from the session start, power_w, cadence_rpm, speed_mps,
-    distance_m, heart_rate_bpm: 0 where none) of the seconds that hold data."""
+    """Per-second arrays (t_s from the session start: the end of the record's second, FIT's
+    whole-second stamp; start_s, end_s: the part of it ridden, width_s its length, power_w, cadence_rpm, speed_mps, distance_m,
+    heart_rate_bpm: 0 where none) of the seconds that hold data. The last second counts only as
+    far as the ride went: counted whole, a ride ending at x.5 s overstated work and timer by
+    half a second of riding (a 1 ms ride exported "1 s, 0.7 kJ")."""
     s = series(data, points=None, merge=max(1, int(round(1.0 / data.bin_s))))
     keep = np.flatnonzero(np.nan_to_num(s["p_rider"], nan=-1.0) > -1.0)     # bins with PlantStates
     speed = np.nan_to_num(s["road_mps"])        # through the virtual gear in force (report)
     width = s["bin_s"]
-    t_end = (np.arange(len(speed)) + 1) * width
-    distance = np.cumsum(speed * width)
-    return {"t_s": t_end[keep], "power_w": np.clip(np.nan_to_num(s["p_rider"][keep]), 0.0, None),
+    t_start = np.arange(len(speed)) * width
+    ride_end_s = math.inf
+    if data.first and data.summary.get("duration_s") is not None:
+        ride_end_s = data.first["t"] + data.summary["duration_s"] - data.origin_s   # the last PlantState
+    t_end = np.maximum(np.minimum(t_start + width, ride_end_s), t_start)
+    widths = t_end - t_start
+    distance = np.cumsum(speed * widths)
+    return {"t_s": t_start[keep] + width, "start_s": t_start[keep], "end_s": t_end[keep], "width_s": widths[keep],
+            "power_w": np.clip(np.nan_to_num(s["p_rider"][keep]), 0.0, None),
             "cadence_rpm": np.abs(np.nan_to_num(s["cadence"][keep])), "speed_mps": speed[keep],
             "distance_m": distance[keep], "heart_rate_bpm": np.nan_to_num(s["heart_rate"][keep]),
             "bin_s": width}
@@ -99,7 +109,7 @@ def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
     starts = segment_starts(data)
     # the lap of each record: the segment its second began in (one lap without SessionStatus)
     edges = np.array([t for t, _ in starts[1:]])
-    lap_of = np.searchsorted(edges, a["t_s"] - a["bin_s"] + 1e-6, side="right")
+    lap_of = np.searchsorted(edges, a["start_s"] + 1e-6, side="right")
     laps = [np.flatnonzero(lap_of == j) for j in range(len(starts) or 1)]
     laps = [(j, idx) for j, idx in enumerate(laps) if idx.size]
     session = _totals(a, np.arange(n), start)
@@ -132,20 +142,26 @@ def fit_activity_bytes(data: SessionData) -> tuple[bytes, dict]:
 
 def _totals(a: dict, idx: np.ndarray, session_start: datetime.datetime) -> dict:
     """Totals of the records idx (consecutive seconds of one lap, or all of them): from the
-    start of the first record's second (``start``) to the end of the last one's (``end``)."""
-    width = a["bin_s"]
+    start of the first record's second (``start``) to the end of the last one's (``end``); sums
+    and means over the time each record covers."""
     p, c, v = a["power_w"][idx], a["cadence_rpm"][idx], a["speed_mps"][idx]
+    w = a["width_s"][idx]
     hr = a["heart_rate_bpm"][idx]
     hr = hr[hr >= 0.5]                      # the records that carry one
-    t0, t1 = float(a["t_s"][idx[0]] - width), float(a["t_s"][idx[-1]])
+    t0, t1 = float(a["start_s"][idx[0]]), float(a["end_s"][idx[-1]])
+    timer_s = float(np.sum(w))
+
+    def mean(x):
+        return float(np.sum(x * w) / timer_s) if timer_s > 0 else float(np.mean(x))
     distance0_m = float(a["distance_m"][idx[0] - 1]) if idx[0] > 0 else 0.0
     return {"start": session_start + datetime.timedelta(seconds=t0),
-            "end": session_start + datetime.timedelta(seconds=t1),
-            "elapsed_s": t1 - t0, "timer_s": idx.size * width,
-            "distance_m": float(a["distance_m"][idx[-1]] - distance0_m), "work_j": float(np.sum(p) * width),
-            "avg_power_w": float(np.mean(p)), "max_power_w": float(np.max(p)),
-            "avg_cadence_rpm": float(np.mean(c)), "max_cadence_rpm": float(np.max(c)),
-            "avg_speed_mps": float(np.mean(v)), "max_speed_mps": float(np.max(v)),
+            # FIT stamps whole seconds: the last record's, so that no record comes after the end
+            "end": session_start + datetime.timedelta(seconds=float(a["t_s"][idx[-1]])),
+            "elapsed_s": t1 - t0, "timer_s": timer_s,
+            "distance_m": float(a["distance_m"][idx[-1]] - distance0_m), "work_j": float(np.sum(p * w)),
+            "avg_power_w": mean(p), "max_power_w": float(np.max(p)),
+            "avg_cadence_rpm": mean(c), "max_cadence_rpm": float(np.max(c)),
+            "avg_speed_mps": mean(v), "max_speed_mps": float(np.max(v)),
             "avg_heart_rate_bpm": float(np.mean(hr)) if hr.size else None,
             "max_heart_rate_bpm": float(np.max(hr)) if hr.size else None}
 
