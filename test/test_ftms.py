@@ -207,7 +207,10 @@ def test_characteristic_values_are_the_specs_bytes():
     assert ftms.parse_indoor_bike_data(other) == {"speed_kmh": 25.1, "cadence_rpm": 90.0, "power_w": 201}
     more = struct.pack("<HhhHHBB", 0x07C1, 180, 175, 512, 300, 6, 142) + b"\x32"
     assert ftms.parse_indoor_bike_data(more) == {"power_w": 180, "average_power_w": 175, "energy_kcal": 512,
-                                                 "heart_rate_bpm": 142, "metabolic_equivalent": pytest.approx(5.0)}
+                                                 "heart_rate_bpm": 142, "metabolic_equivalent": 5.0}
+    # the values as a --csv file writes them: the field's decimals, not raw * 0.01's round-off
+    odd = struct.pack("<HHH", 0x0002, 2781, 2781)
+    assert [repr(v) for v in ftms.parse_indoor_bike_data(odd).values()] == ["27.81", "27.81"]
     with pytest.raises(ValueError, match="shorter than its flags say"):
         ftms.parse_indoor_bike_data(other[:-1])
 

@@ -234,12 +234,13 @@ def encode_indoor_bike_data(*, speed_kmh: float, cadence_rpm: float, distance_m:
             + struct.pack("<H", _fit(elapsed_s, 0, 0xFFFF)))
 
 
-# Indoor Bike Data fields in their order: (flag bit, name, struct code, scale); bit 0 is
-# "more data", the instantaneous speed being present when it is clear
-_IBD_FIELDS = ((1, "average_speed_kmh", "H", 0.01), (2, "cadence_rpm", "H", 0.5),
-               (3, "average_cadence_rpm", "H", 0.5), (4, "distance_m", "u24", 1),
+# Indoor Bike Data fields in their order: (flag bit, name, struct code, steps per unit); bit 0 is
+# "more data", the instantaneous speed being present when it is clear. A field is its raw value /
+# steps, so that 2781 reads 27.81 km/h, not 27.810000000000002 (raw * 0.01), in a --csv file
+_IBD_FIELDS = ((1, "average_speed_kmh", "H", 100), (2, "cadence_rpm", "H", 2),
+               (3, "average_cadence_rpm", "H", 2), (4, "distance_m", "u24", 1),
                (5, "resistance_level", "h", 1), (6, "power_w", "h", 1), (7, "average_power_w", "h", 1),
-               (8, "energy_kcal", "HHB", 1), (9, "heart_rate_bpm", "B", 1), (10, "metabolic_equivalent", "B", 0.1),
+               (8, "energy_kcal", "HHB", 1), (9, "heart_rate_bpm", "B", 1), (10, "metabolic_equivalent", "B", 10),
                (11, "elapsed_s", "H", 1), (12, "remaining_s", "H", 1))
 
 
@@ -250,9 +251,9 @@ def parse_indoor_bike_data(data: bytes) -> dict:
         (flags,) = struct.unpack_from("<H", data)
         out, pos = {}, 2
         if not flags & 1:
-            out["speed_kmh"] = struct.unpack_from("<H", data, pos)[0] * 0.01
+            out["speed_kmh"] = struct.unpack_from("<H", data, pos)[0] / 100
             pos += 2
-        for bit, name, code, scale in _IBD_FIELDS:
+        for bit, name, code, steps in _IBD_FIELDS:
             if not flags & (1 << bit):
                 continue
             if code == "u24":
@@ -262,7 +263,7 @@ def parse_indoor_bike_data(data: bytes) -> dict:
                 continue
             values = struct.unpack_from("<" + code, data, pos)
             pos += struct.calcsize("<" + code)
-            out[name] = values[0] * scale
+            out[name] = values[0] / steps if steps != 1 else values[0]
     except struct.error:
         raise ValueError(f"Indoor Bike Data shorter than its flags say: {bytes(data).hex()}") from None
     return out
