@@ -79,6 +79,13 @@ def output_dir(path, flag: str) -> pathlib.Path | None:
     return out
 
 
+def given_options(opts, attrs) -> list[str]:
+    """The options of ``attrs`` (parser attributes whose default is None, or False for a flag)
+    given on the command line, as flags: --power 0 is given, though 0 == False."""
+    return [f"--{attr.replace('_', '-')}" for attr in attrs
+            if getattr(opts, attr) is not None and getattr(opts, attr) is not False]
+
+
 def remove_if_made_empty(path, made: bool) -> None:
     """A folder an output option made for a command that was then refused: removed when it is
     still empty, so that a refused command leaves nothing behind."""
@@ -808,11 +815,10 @@ def _cmd_bench(opts) -> int:
 
 
 FLEET_TARGET_BIKES = 1000      # issue 6: the offline batched kernel runs >= 1000 bikes in real time
-# ./bike fleet's options of one mode: (attribute, option, only with --graph); the parser's defaults
-# are None (False for a flag), so that a given one is seen, and these are taken when not given
-FLEET_MODE_OPTIONS = (("bikes", "--bikes", False), ("threads", "--threads", False), ("seed", "--seed", False),
-                      ("show", "--show", False), ("timeout", "--timeout", True), ("verbose", "--verbose", True),
-                      ("launch", "--launch", True))
+# ./bike fleet's options of one mode; the parser's defaults are None (False for a flag), so that a
+# given one is seen, and these are taken when not given
+FLEET_OFFLINE_OPTIONS = ("bikes", "threads", "seed", "show")
+FLEET_GRAPH_OPTIONS = ("timeout", "verbose", "launch")
 FLEET_DEFAULTS = {"bikes": FLEET_TARGET_BIKES, "threads": 2, "seed": 0, "show": 5, "timeout": 300.0}
 
 
@@ -825,9 +831,7 @@ def _cmd_fleet(opts) -> int:
 
     config = str(pathlib.Path(opts.config or repo_root() / "config" / "bldc_default.yaml").resolve())
     # each option of the other mode was dropped without a word (--graph 2 --bikes 50 rode 2 bikes)
-    wrong = [flag for attr, flag, graph_only in FLEET_MODE_OPTIONS   # (--seed 0 is given, though 0 == False)
-             if getattr(opts, attr) is not None and getattr(opts, attr) is not False
-             and graph_only != (opts.graph is not None)]
+    wrong = given_options(opts, FLEET_OFFLINE_OPTIONS if opts.graph is not None else FLEET_GRAPH_OPTIONS)
     if wrong:
         print(f"error: {', '.join(wrong)}: " + ("for the offline fleet, not with --graph" if opts.graph is not None
                                                  else "only with --graph"), file=sys.stderr)
@@ -908,15 +912,12 @@ TRAINER_WORKOUT_OPTIONS = ("ftp", "max_hr")
 def _trainer_options_problem(opts) -> str | None:
     """Why the options given do not go together (None: they do); the parser's --host / --port
     defaults are None, so that a given one is seen, and are set here."""
-    def given(attrs):
-        # (--power 0 is given: not `not in (None, False)`, where 0 == False)
-        return [f"--{attr.replace('_', '-')}" for attr in attrs
-                if getattr(opts, attr) is not None and getattr(opts, attr) is not False]
-    if opts.find and given(TRAINER_CONNECTION_OPTIONS):
-        return (f"{', '.join(given(TRAINER_CONNECTION_OPTIONS))}: not with --find, which lists the trainers "
-                "announced on the network and connects to none")
-    if not opts.workout and given(TRAINER_WORKOUT_OPTIONS):
-        return f"{', '.join(given(TRAINER_WORKOUT_OPTIONS))}: only with --workout (its targets in % of them)"
+    if opts.find and given_options(opts, TRAINER_CONNECTION_OPTIONS):
+        return (f"{', '.join(given_options(opts, TRAINER_CONNECTION_OPTIONS))}: not with --find, which lists the "
+                "trainers announced on the network and connects to none")
+    if not opts.workout and given_options(opts, TRAINER_WORKOUT_OPTIONS):
+        return (f"{', '.join(given_options(opts, TRAINER_WORKOUT_OPTIONS))}: only with --workout (its targets in % "
+                "of them)")
     from bike_session.dircon import DEFAULT_PORT
     opts.host = "127.0.0.1" if opts.host is None else opts.host
     opts.port = DEFAULT_PORT if opts.port is None else opts.port
@@ -955,9 +956,7 @@ def _cmd_torque_map(opts) -> int:
 
     if not output_spares_inputs(opts.out, [x for x in (opts.from_csv, opts.config) if x], "--out"):
         return 2
-    emulator_options = [flag for flag, value in (("--config", opts.config), ("--speeds-rpm", opts.speeds_rpm),
-                                                 ("--setpoints-nm", opts.setpoints_nm), ("--settle-s", opts.settle_s),
-                                                 ("--window-s", opts.window_s)) if value is not None]
+    emulator_options = given_options(opts, ("config", "speeds_rpm", "setpoints_nm", "settle_s", "window_s"))
     if opts.from_csv and emulator_options:
         # they set up the emulated dyno: with --from-csv they were dropped without a word
         print(f"error: {', '.join(emulator_options)}: not with --from-csv (they set up the emulated dynamometer; "
