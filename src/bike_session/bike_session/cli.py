@@ -169,8 +169,7 @@ def _cmd_run(opts) -> int:
         opts.workout = _config_workout(cfg, config)
     if ftms_on and not opts.workout:
         opts.workout = str(repo_root() / "config" / "profiles" / "app_ride.yaml")
-    rider_flags = [flag for flag, value in (("--ftp", opts.ftp), ("--max-hr", getattr(opts, "max_hr", None)))
-                   if value is not None]
+    rider_flags = given_options(opts, ("ftp", "max_hr"))
     if rider_flags and not opts.workout:
         # they are read with a workout only: the config's profile rode without them, without a word
         print(f"error: {' / '.join(rider_flags)} needs --workout FILE (or session.workout in the config): only a "
