@@ -11,17 +11,19 @@ Node name ``recorder`` (namespace ``/bike`` by default). Parameters:
   committed) and the file is fsync'ed. A recorder killed with kill -9 therefore loses at
   most this much data; ``./bike bag recover BAG`` turns what survived into a normal bag.
 - ``writers_wait_s`` (float, 5): how long seq 0 waits to be confirmed on ``recorder_progress``
-  until the session's Command and session_info writers (and every writer the graph lists on
-  a recorded topic) have matched this recorder (see Flow control).
+  until the session's Command and session_info writers have matched this recorder and sent it
+  their first message (and every writer the graph lists on a recorded topic has matched it;
+  see Flow control).
 
 Flow control: after every ``PROGRESS_EVERY`` PlantStates written (and at end of run) the node
 publishes the last written ``seq`` on ``recorder_progress`` (std_msgs/UInt64). A lockstep plant
 with ``recorder_window_batches`` > 0 never runs more than that many batches ahead of it, so a
 recorder that is slower than the loop (a loaded machine, a slow disk) slows the run down
 instead of losing messages from a DDS history. Seq 0 is confirmed (the plant holds seq 1
-until then) only once the session's writers (and the graph's others) have matched, at most
-``writers_wait_s``: nothing else orders the session-recorder match before the run, and a short
-run could end before it, leaving a bag without Commands.
+until then) only once the session's writers have matched and delivered their first message
+(and the graph's others have matched), at most ``writers_wait_s``: nothing else orders the
+session-recorder match before the run, and a short run could end before it, leaving a bag
+without Commands.
 
 Subscriptions take the serialized CDR bytes (``raw=True``): nothing is deserialized. The
 bag is written with rosbags (format version 9, rosbag2 Jazzy) and embeds the message
@@ -399,6 +401,11 @@ def _make_node_class():
             self.resent_commands_dropped = 0
             self._recent_commands: collections.deque[bytes] = collections.deque(maxlen=RESENT_COMMAND_WINDOW)
             self.command_topic = self.resolve_topic_name("command")
+            self.info_topic = self.resolve_topic_name("session_info")
+            # the session's topics that have delivered a message: a reader counts its writer
+            # matched before that writer has matched it and sent its history (discovery is one
+            # way at a time), and a recorder stopped in between lost the history (CI, 2026-12-08)
+            self._session_heard: set[str] = set()
             self.plant_state_topic = self.resolve_topic_name("plant_state")
             self.clock_topic = "/clock"
             # topics whose copies arrive right after the original (one seq per batch); the
@@ -424,7 +431,6 @@ def _make_node_class():
                 QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                            durability=DurabilityPolicy.TRANSIENT_LOCAL))
             self.plant_states_written = 0
-            self.info_topic = self.resolve_topic_name("session_info")
             self._pending_progress: int | None = None    # a seq to confirm once the session is matched
             self._writers_matched = False
             self._hold_since: float | None = None
@@ -504,10 +510,13 @@ def _make_node_class():
             is_command = topic == self.command_topic
             recent_commands = self._recent_commands
             latched = self._specs[topic][2]
+            session_heard = self._session_heard if topic in (self.command_topic, self.info_topic) else None
 
             def callback(raw: bytes) -> None:
                 self.last_msg_wall = time.monotonic()
                 self.heard_any = True
+                if session_heard is not None:
+                    session_heard.add(topic)
                 if self.sink.closed:
                     return
                 t_ns = self.latest_clock_ns
@@ -568,15 +577,18 @@ def _make_node_class():
 
         def unmatched_writers(self) -> list[str]:
             """Recorded topics with a writer not yet matched to this recorder's reader: the
-            session's Command and session_info (always expected; their transient_local history
-            arrives however late the match), and any topic whose writers the graph lists beyond
+            session's Command and session_info until a message of theirs has come (always
+            expected: the session sends its info at start and its Commands at /clock 0, which a
+            held plant sends again; one reliable writer delivers in order, so the first message
+            heard means its history before it is in), and any topic whose writers the graph lists beyond
             the matched count (the controller's answers: while seq 0 is held the plant re-sends
             it and the controller its answer, so a late match still records them)."""
             out = []
             for topic, sub in self.subs.items():
                 matched = sub.get_publisher_count()
-                if topic in (self.command_topic, self.info_topic) and matched < 1:
-                    out.append(topic)
+                if topic in (self.command_topic, self.info_topic):
+                    if matched < 1 or topic not in self._session_heard:
+                        out.append(topic)
                 elif matched < len(self.get_publishers_info_by_topic(topic)):
                     out.append(topic)
             return out
@@ -599,7 +611,7 @@ def _make_node_class():
                         return
                     self._writers_matched = True        # given up on: said once, not held again
                     self.get_logger().warning(
-                        f"the writers of {', '.join(unmatched)} have not matched this recorder in "
+                        f"the writers of {', '.join(unmatched)} have not matched this recorder (or sent it nothing) in "
                         f"{self.writers_wait_s:g}s: recording on without waiting for them (the bag may lack "
                         "their first messages)")
             self._progress_msg.data = self._pending_progress
