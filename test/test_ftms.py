@@ -605,6 +605,33 @@ def test_a_second_bike_of_the_same_name_is_advertised_as_name_2_and_both_are_fou
     assert out["ports"] == [36997, 36998]
 
 
+def test_two_bikes_of_one_name_on_one_host_are_advertised_as_name_and_name_2():
+    """Two testbeds of one namespace on ONE host (a developer's two sessions): the second is
+    advertised as "<name>-2". Both responders share port 5353, and mDNS's probes are QU
+    questions whose unicast answer reaches only one of the sockets: before, the second bike
+    often held the name too (an app found one of the two). A multicast question before the
+    probes (its answer reaches both) finds the holder."""
+    from zeroconf import IPVersion, Zeroconf
+    name = f"bike one-host{os.getpid()}"
+    logs = []
+    first = dircon.Advertiser(name, ["127.0.0.1"], 36995, "bike-36995", lambda t, w: logs.append((t, w)))
+    second = app = None
+    try:
+        assert first.done.wait(20) and first.advertised_name == name, logs
+        second = dircon.Advertiser(name, ["127.0.0.1"], 36996, "bike-36996", lambda t, w: logs.append((t, w)))
+        assert second.done.wait(20) and second.error is None, logs
+        assert second.advertised_name == f"{name}-2", logs
+        app = Zeroconf(interfaces=["127.0.0.1"], ip_version=IPVersion.V4Only)
+        assert [getattr(app.get_service_info(dircon.MDNS_SERVICE, f"{n}.{dircon.MDNS_SERVICE}", timeout=5000),
+                        "port", None) for n in (name, f"{name}-2")] == [36995, 36996]
+    finally:
+        if app is not None:
+            app.close()
+        for adv in (second, first):
+            if adv is not None:
+                adv.close()
+
+
 def test_fuzzed_dircon_streams_and_control_point_writes_never_raise_anything_else():
     """400 seeded random streams (valid headers with random bodies, and raw junk), and random
     Control Point writes: a stream either frames into answered messages or raises DirconError

@@ -53,6 +53,9 @@ PROP_NOTIFY = 0x04
 
 DEFAULT_PORT = 36866
 MDNS_SERVICE = "_wahoo-fitness-tnp._tcp.local."
+# DNS message fields (RFC 1035 s. 4.1): a standard query, a PTR question of class IN (QM: its
+# top bit clear, so the answer is multicast)
+DNS_FLAGS_QUERY, DNS_TYPE_PTR, DNS_CLASS_IN = 0x0000, 12, 1
 HEADER = struct.Struct(">BBBBH")
 MAX_DATA_BYTES = 512          # a GATT value is at most 512 bytes; more is not a DIRCON stream
 _BASE_TAIL = bytes.fromhex("00001000800000805f9b34fb")
@@ -328,6 +331,7 @@ class Advertiser:
             # the type's 17-byte name is longer than RFC 6335's 15: DIRCON's own, not ours to fix.
             # A name another bike on the network holds (two testbeds, one namespace) becomes
             # "<name>-2", ... as mDNS does it: both stay findable, this one under the name logged
+            self._ask_for_namesakes()
             self.zc.register_service(self.info, allow_name_change=True, strict=False)
             self.advertised_name = self.info.name[:-len("." + MDNS_SERVICE)]
             taken = "" if self.advertised_name == self.name else f"; {self.name!r} is taken on this network"
@@ -338,6 +342,17 @@ class Advertiser:
             self.log(f"mDNS advertisement failed ({self.error}); apps must be given the address", True)
         finally:
             self.done.set()
+
+    def _ask_for_namesakes(self) -> None:
+        """One multicast (QM) question for the service type's instances, sent before the probes:
+        its answers reach every socket on port 5353, so one a bike on this host holds lands in
+        the cache during the probing (about 1 s) and the name is changed. The probes are QU
+        (RFC 6762 s. 8.1) and a unicast answer to port 5353 reaches only one of the sockets a
+        host shares it by: without this, two bikes of one name on one host both held it."""
+        from zeroconf import DNSOutgoing, DNSQuestion
+        out = DNSOutgoing(DNS_FLAGS_QUERY)
+        out.add_question(DNSQuestion(MDNS_SERVICE, DNS_TYPE_PTR, DNS_CLASS_IN))
+        self.zc.send(out)
 
     def close(self) -> None:
         self.done.wait(5)
