@@ -454,6 +454,60 @@ def test_emulator_answers_requests_in_process(params):
         host_bus.shutdown()
 
 
+def test_an_estop_frame_from_another_node_idles_the_axis_until_clear_errors(params):
+    """CANSimple's Estop (cmd 0x02, no payload) from an e-stop node on the bus: the armed axis
+    latches ESTOP_REQUESTED and drops to IDLE (the host's heartbeat says so, torque 0), closed
+    loop is refused until Clear_Errors. An Estop to another node or as an RTR is not this
+    axis's; one to the broadcast id 0x3F is. Before, the emulator ignored Estop (unused)."""
+    channel = uuid.uuid4().hex
+    buses = [can.Bus(interface="virtual", channel=channel) for _ in range(3)]
+    drive_bus, host_bus, stop_bus = buses
+    t = [0.0]
+
+    def deliver(n_ms: int = 5) -> None:
+        for _ in range(n_ms):
+            while (msg := drive_bus.recv(0.0)) is not None:
+                emu.handle(msg, t[0])
+            t[0] += 1e-3
+            emu.tick(t[0])
+        host.poll(0.05)
+
+    def estop(node_id: int, rtr: bool = False) -> None:
+        stop_bus.send(can.Message(arbitration_id=node_id << 5 | 0x02, is_extended_id=False, dlc=0,
+                                  is_remote_frame=rtr))
+        deliver()
+
+    try:
+        emu = DriveEmulator(drive_bus, DriveFirmware(AverageTorqueDrive(params)), 3)
+        host = OdriveCanSimple(host_bus, 3)
+        emu.tick(0.0)
+        host.clear_errors()
+        host.enable("torque")
+        host.set_input_torque(0.5)
+        deliver(120)
+        assert emu.firmware.armed and host.enabled
+        estop(4)                                     # another node's
+        estop(3, rtr=True)                           # not a command
+        deliver(120)
+        assert emu.firmware.armed and emu.firmware.active_errors == 0
+        estop(3)
+        deliver(120)                                 # a heartbeat (100 ms) since
+        assert host.axis_state == AxisState.IDLE and host.active_errors == int(ODriveError.ESTOP_REQUESTED)
+        assert emu.firmware.torque_setpoint_nm == 0.0 and emu.counters["rx:Estop"] == 1
+        host.set_axis_state(AxisState.CLOSED_LOOP_CONTROL)
+        deliver(120)
+        assert not emu.firmware.armed                # refused while the e-stop is latched
+        host.clear_errors()
+        host.enable("torque")
+        deliver(120)
+        assert emu.firmware.armed and host.active_errors == 0
+        estop(0x3F)                                  # every ODrive's
+        assert not emu.firmware.armed and emu.firmware.active_errors == int(ODriveError.ESTOP_REQUESTED)
+    finally:
+        for bus in buses:
+            bus.shutdown()
+
+
 # =======================================================================================
 # the emulator as a process over udp_multicast
 def _port() -> int:

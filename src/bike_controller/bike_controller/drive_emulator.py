@@ -30,7 +30,7 @@ rider display below):
     bike_plant.params.LoadParams and bike_plant.mechanics) and battery (+ brake resistor).
 * :class:`DriveFirmware` -- the axis logic of an ODrive: states IDLE(1) and
   CLOSED_LOOP_CONTROL(8), torque (1) and velocity (2) control, limits, error latching,
-  Clear_Errors, the watchdog.
+  Clear_Errors, the watchdog, Estop (ESTOP_REQUESTED, axis IDLE).
 * :class:`VescFirmware` / :class:`VescEmulator` -- the same physics behind a VESC (vedderb/bldc
   documentation/comm_can.md): SET_CURRENT / SET_CURRENT_BRAKE / SET_CURRENT_REL / SET_RPM run
   the motor at once (no arming), the command timeout (--watchdog-s) releases it without an
@@ -125,11 +125,12 @@ from bike_plant import bldc as K
 from bike_plant import mechanics
 from bike_plant import params as P
 from bike_plant import spmsm as M
-from bike_plant.can.protocol import (DRIVE_TO_HOST, HOST_TO_DRIVE, MALFORMED_REASONS, PROTOCOLS,
-                                     RPM_PER_REV_S, VESC_CAN_PACKET_ID_MAX, VESC_DRIVE_TO_HOST, VESC_HOST_TO_DRIVE,
-                                     VESC_ID_MAX, VESC_TACHO_PER_EREV, AxisState, ControlMode, InputMode, ODriveError,
-                                     OdriveCanSimple, OdriveCanSimpleCodec, ProcedureResult, VescCan, VescCanCodec,
-                                     _EchoFilter, error_names)
+from bike_plant.can.protocol import (DRIVE_TO_HOST, ESTOP_CMD, HOST_TO_DRIVE, MALFORMED_REASONS,
+                                     ODRIVE_BROADCAST_NODE_ID, PROTOCOLS, RPM_PER_REV_S, VESC_CAN_PACKET_ID_MAX,
+                                     VESC_DRIVE_TO_HOST, VESC_HOST_TO_DRIVE, VESC_ID_MAX, VESC_TACHO_PER_EREV,
+                                     AxisState, ControlMode, InputMode, ODriveError, OdriveCanSimple,
+                                     OdriveCanSimpleCodec, ProcedureResult, VescCan, VescCanCodec, _EchoFilter,
+                                     error_names)
 from bike_plant.config import ConfigError, load_config, section
 from bike_plant.heart import RiderHeart
 from bike_plant.memory import LoadTimePageReleaser, release_clean_library_pages
@@ -846,6 +847,13 @@ class DriveFirmware:
                 self.log("axis state IDLE (injected, no error)")
             self._to_idle()
 
+    def estop(self) -> None:
+        """An Estop frame: ESTOP_REQUESTED latched and the axis IDLE, armed or not, as the
+        ODrive does it; Clear_Errors clears it (the bike's plant never sends that for it)."""
+        if not self.active_errors & ODriveError.ESTOP_REQUESTED:
+            self.log("Estop frame: ESTOP_REQUESTED, axis IDLE until Clear_Errors")
+        self.disarm(int(ODriveError.ESTOP_REQUESTED))
+
     # ------------------------------------------------------------ supervision
     def disarm(self, error: int) -> None:
         """Latch ``error``, drop to IDLE, zero torque."""
@@ -1121,6 +1129,8 @@ class DriveEmulator:
     host_to_drive = HOST_TO_DRIVE
     drive_to_host = DRIVE_TO_HOST
     default_cyclic_s = {"Heartbeat": 0.1, "Get_Encoder_Estimates": 0.01}
+    # CANSimple's Estop (cmd 0x02, no payload): from an e-stop node or any host, to this axis
+    estop_cmd: int | None = ESTOP_CMD
 
     def __init__(self, bus: can.BusABC, firmware: DriveFirmware, node_id: int = 0, *,
                  cyclic_s: dict[str, float] | None = None, tick_s: float = 1.0e-3, substeps: int = 4,
@@ -1246,6 +1256,10 @@ class DriveEmulator:
             if self._echo.is_echo(msg, now_s):
                 self._count("echo")
                 return
+            if self._is_estop(msg):
+                self._count("rx:Estop")
+                self.firmware.estop()
+                return
             result = self.codec.classify(msg, self.host_to_drive, answers_requests=True)
             if self.firmware.watchdog_fed_by == "any" and self._addressed_to_axis(msg):
                 self.firmware.feed_watchdog(now_s)      # 0.5.x: before the command is even looked at
@@ -1260,14 +1274,25 @@ class DriveEmulator:
         except Exception:  # noqa: BLE001 -- a frame must never crash the drive
             self._count("decode_error")
 
-    def _addressed_to_axis(self, msg: can.Message) -> bool:
-        """A data or RTR frame with this axis's node id in the protocol's id format (what an
-        ODrive's CAN filter hands to the axis), whatever its command."""
+    def _node_and_cmd(self, msg: can.Message) -> tuple[int, int] | None:
+        """(node id, command) of a data or RTR frame in the protocol's id format, else None."""
         arb = msg.arbitration_id
         if msg.is_error_frame or bool(msg.is_extended_id) != self.codec.extended_id or \
                 not isinstance(arb, int) or not 0 <= arb <= self.codec.id_max:
-            return False
-        return self.codec.split_id(arb)[0] == self.node_id
+            return None
+        return self.codec.split_id(arb)
+
+    def _addressed_to_axis(self, msg: can.Message) -> bool:
+        """A data or RTR frame with this axis's node id (what an ODrive's CAN filter hands to
+        the axis), whatever its command."""
+        ids = self._node_and_cmd(msg)
+        return ids is not None and ids[0] == self.node_id
+
+    def _is_estop(self, msg: can.Message) -> bool:
+        """A data frame of the Estop command to this axis or to every ODrive (node 0x3F, the
+        broadcast id); any payload, the firmware reads none."""
+        ids = None if self.estop_cmd is None or msg.is_remote_frame else self._node_and_cmd(msg)
+        return ids is not None and ids[1] == self.estop_cmd and ids[0] in (self.node_id, ODRIVE_BROADCAST_NODE_ID)
 
     def _apply(self, name: str, s, now_s: float) -> None:
         fw = self.firmware
@@ -1445,6 +1470,7 @@ class VescEmulator(DriveEmulator):
     codec_class = VescCanCodec
     host_to_drive = VESC_HOST_TO_DRIVE
     drive_to_host = VESC_DRIVE_TO_HOST
+    estop_cmd = None                     # VESC's CAN has no emergency stop command
     default_cyclic_s = {name: 0.02 for name in sorted(VESC_DRIVE_TO_HOST)}
 
     def _apply(self, name: str, s, now_s: float) -> None:

@@ -213,7 +213,10 @@ IGNORED_REASONS = ("other_node", "other_direction", "echo", "unused_message")
 #: malformed. Sources: odriverobotics/ros_odrive odrive_base/include/can_simple_messages.hpp (generated
 #: from the 0.6 DBC) and the message table of docs.odriverobotics.com/v/latest/manual/can-protocol.html
 #: (RxSdo 0x04, TxSdo 0x05).
-ODRIVE_UNUSED_MESSAGES = {0x00: "Get_Version", 0x02: "Estop", 0x04: "RxSdo", 0x05: "TxSdo", 0x06: "Address",
+#: Estop (no payload): the drive latches ESTOP_REQUESTED and drops to IDLE. Never sent by this
+#: plant, which never clears it either (can.backend); the drive emulator acts on it.
+ESTOP_CMD = 0x02
+ODRIVE_UNUSED_MESSAGES = {0x00: "Get_Version", ESTOP_CMD: "Estop", 0x04: "RxSdo", 0x05: "TxSdo", 0x06: "Address",
                           0x0C: "Set_Input_Pos", 0x11: "Set_Traj_Vel_Limit", 0x12: "Set_Traj_Accel_Limits",
                           0x13: "Set_Traj_Inertia", 0x15: "Get_Temperature", 0x16: "Reboot",
                           0x19: "Set_Absolute_Position", 0x1A: "Set_Pos_Gain", 0x1B: "Set_Vel_Gains",
