@@ -89,6 +89,18 @@ def test_bad_grids_are_refused_before_any_measurement(speeds, setpoints, words):
         DTM.check_grid(speeds, setpoints, 6.2)
 
 
+def test_speeds_outside_the_drives_range_are_refused_by_name_and_range():
+    cfg = load_config(BLDC_CAN)
+    # 2 pole pairs: two electrical revolutions in 10 s at 6 rpm; 42 V / 0.00545 V/rpm = 7706.4 rpm
+    assert DTM.speed_range_rpm(cfg)[:2] == (6.0, pytest.approx(42.0 / 0.00545))
+    for speed in (1e9, 7706.5, 5.9, 0.0):
+        with pytest.raises(ValueError, match=r"^speeds: .* outside this drive's range, 6 \.\. 7706 rpm"):
+            DTM.measure_grid(cfg, [1000.0, speed], [1.0])
+    DTM.check_speeds([6.0, 7706.0], cfg)
+    spmsm = load_config(ROOT / "config" / "spmsm_can.yaml")
+    assert DTM.speed_range_rpm(spmsm)[:2] == (2.0, float("inf"))      # 6 pole pairs; no back-EMF refusal
+
+
 def test_grid_tokens_take_lists_and_ranges():
     assert DTM.parse_grid(["1000,1500", "2000:3000:500"], "--speeds-rpm") == [1000, 1500, 2000, 2500, 3000]
     for bad in (["abc"], ["nan"], ["1:2"], ["3:1:1"], ["1:2:0"]):
@@ -186,6 +198,11 @@ def test_cli_writes_a_map_that_reads_back_as_measured(tmp_path):
     (["--speeds-rpm", "abc"], "--speeds-rpm: 'abc' is not a number"),
     (["--setpoints-nm", "9"], "beyond the drive's current limit"),
     (["--speeds-rpm", "0"], "speeds must be > 0"),
+    # the option typed and the range, not the emulated dyno's key load.speed_rpm (its back-EMF check's error)
+    (["--speeds-rpm", "1e9"], "--speeds-rpm: 1e+09 rpm is outside this drive's range, 6 .. 7706 rpm (at 7706 rpm its "
+                              "back-EMF"),
+    (["--speeds-rpm", "1000", "0.0001"], "--speeds-rpm: 0.0001 rpm is outside this drive's range, 6 .. 7706 rpm "
+                                         "(below 6 rpm two electrical revolutions"),
     (["--window-s", "0"], "--window-s must be in"),
     (["--config", "/nonexistent/bike.yaml"], "cannot read config"),
 ])
@@ -196,6 +213,7 @@ def test_cli_bad_input_is_one_error_line_and_exit_2(tmp_path, args, words):
     assert run.returncode == 2
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and words in lines[0], run.stderr
+    assert "load." not in lines[0]
     assert not out.exists()
 
 

@@ -205,6 +205,43 @@ def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float) -> tuple[np.nda
     return speeds, setpoints
 
 
+def speed_range_rpm(cfg: dict) -> tuple[float, float, str]:
+    """(lowest, highest, why) motor speeds the emulated dynamometer measures on this config.
+    Lowest: two electrical revolutions (the shortest window, :func:`window_for`) within
+    MAX_SECONDS. Highest (excluded), the BLDC's: the speed whose line-to-line back-EMF reaches the
+    empty pack's voltage (bike_plant.params.emf_speed_limit_rpm: above it the bridge's diodes brake
+    whatever the setpoint, and the plant refuses the prime mover's speed); the SPMSM's config sets
+    none (a speed its voltage cannot reach fails as a point not delivered). ConfigError for a bad config."""
+    from bike_plant import params as P
+
+    lowest = 2.0 * 60.0 / (pole_pairs_of(cfg) * MAX_SECONDS)
+    if cfg.get("machine", "bldc") != "bldc":
+        return lowest, math.inf, ""
+    p = P.plant_params_from_config(prime_mover_config(cfg, 0.0))
+    why = (f"at {P.emf_speed_limit_rpm(p):.0f} rpm its back-EMF ({p.bldc.ke_v_per_rpm:g} V/rpm) reaches the empty "
+           f"pack's {p.battery.v_empty_v:g} V and the bridge diodes brake beyond any setpoint")
+    return lowest, P.emf_speed_limit_rpm(p), why
+
+
+def check_speeds(speeds_rpm, cfg: dict, name: str = "speeds") -> None:
+    """ValueError naming ``name`` (the CLI's --speeds-rpm) and the range for a speed outside
+    :func:`speed_range_rpm`: before, 1e9 rpm failed in the plant's check of the prime mover, naming
+    its config key load.speed_rpm, and 0.0001 rpm measured a 300000 s window."""
+    lowest, highest, why = speed_range_rpm(cfg)
+    span = f"{lowest:g} .. {math.floor(highest):g} rpm" if math.isfinite(highest) else f"from {lowest:g} rpm"
+    for speed in speeds_rpm:
+        if speed <= 0:
+            reason = "speeds must be > 0 rpm: braking needs forward rotation"
+        elif speed < lowest:
+            reason = (f"below {lowest:g} rpm two electrical revolutions, the shortest window, take over "
+                      f"{MAX_SECONDS:g} s")
+        elif speed >= highest:
+            reason = why
+        else:
+            continue
+        raise ValueError(f"{name}: {speed:g} rpm is outside this drive's range, {span} ({reason})")
+
+
 def setpoint_top_nm(cfg: dict, kt_nm_per_a: float, current_limit_a: float) -> float:
     """The largest setpoint the map should cover: SETPOINT_HEADROOM x the shaft torque the plant
     asks at most (can.torque_limit_nm, else controller.tmax_nm: the CAN backend's clamp, which a
@@ -337,6 +374,7 @@ def measure_grid(cfg: dict, speeds_rpm, setpoints_nm, *, settle_s: float = DEFAU
     check_times(settle_s, window_s)
     drive = DriveModelParams.from_config(cfg)
     kt = drive.torque_constant_nm_per_a
+    check_speeds([float(s) for s in speeds_rpm], cfg)
     speeds, setpoints = check_grid(speeds_rpm, setpoints_nm, drive.current_limit_a * kt)
     pole_pairs = pole_pairs_of(cfg)
     shape = (speeds.size, setpoints.size)

@@ -986,6 +986,10 @@ def _cmd_torque_map(opts) -> int:
         speeds = DTM.parse_grid(opts.speeds_rpm, "--speeds-rpm") if opts.speeds_rpm else DTM.default_speeds_rpm(cfg)
         setpoints = (DTM.parse_grid(opts.setpoints_nm, "--setpoints-nm") if opts.setpoints_nm
                      else DTM.default_setpoints_nm(DTM.setpoint_top_nm(cfg, kt, limit_a)))
+        # the option and the range, not the emulated dyno's config key (load.speed_rpm)
+        DTM.check_speeds(speeds, cfg, "--speeds-rpm" if opts.speeds_rpm else
+                         f"the default speeds (cadence {DTM.DEFAULT_CADENCE_RPM[0]:g}..{DTM.DEFAULT_CADENCE_RPM[1]:g} "
+                         "rpm x load.gear_ratio; give --speeds-rpm)")
         DTM.check_grid(speeds, setpoints, limit_a * kt)    # before the output file is touched
         DTM.check_times(opts.settle_s, opts.window_s, ("--settle-s", "--window-s"))
     except ValueError as exc:
