@@ -145,6 +145,26 @@ def test_the_brake_resistor_switch_must_lie_just_above_the_full_pack(values):
     build_dataclass(BatteryParams, {}, "battery")      # the defaults, as config/bldc_*.yaml
 
 
+def test_an_overvoltage_threshold_at_the_packs_own_voltage_is_refused():
+    """The BLDC's DC bus is its pack (no link voltage of its own): bldc.overvoltage_v at or below
+    battery.s0_on_v, the top of the healthy bus while braking, loaded, and 50 V on the 48 V pack
+    set FAULT_OVERVOLTAGE at rest (the bus 50.8 V at SOC 0.7). One error naming both keys."""
+    from bike_plant.config import config_variant
+    from bike_plant.node import SimBackend
+    from bike_plant.params import plant_params_from_config
+
+    cfg = load_config(DEFAULT_CONFIG)
+    for volts in (50.0, 54.65):
+        with pytest.raises(ConfigError, match=rf"bldc\.overvoltage_v: {volts:g} V is at or below battery\.s0_on_v "
+                                              r"54\.65 V: the DC bus is the pack \(42\.\.54\.6 V"):
+            plant_params_from_config(config_variant(cfg, bldc={"overvoltage_v": volts}))
+        with pytest.raises(ConfigError, match=r"bldc\.overvoltage_v"):
+            SimBackend(config_variant(cfg, bldc={"overvoltage_v": volts}), 0)
+    just_above = SimBackend(config_variant(cfg, bldc={"overvoltage_v": 54.7}), 0)
+    just_above.safe_batch(20)
+    assert just_above.snapshot()["faults"] == 0
+
+
 def test_a_back_emf_above_the_pack_at_the_ridden_speed_is_refused():
     """4 x the default ke on the 48 V pack: 61 V line-to-line at the rider's 80 rpm x 35, above
     the pack, so the bridge diodes braked 10 N m for 1.2 N m asked, and the summary said no

@@ -488,10 +488,29 @@ def test_the_plant_state_carries_the_packs_open_circuit_voltage(cfg):
     battery.nominal_v): it was left out, the message carried 0 V and ./bike report's battery
     figure drew an 'open-circuit voltage' at 0 V beside the 24 V bus."""
     from bike_plant import msgconv
-    plant = plant_with(cfg, battery={"nominal_v": 36.0})
+    plant = plant_with(cfg, battery={"nominal_v": 36.0}, inverter={"dc_link_v": 36.0})     # a 36 V set
     snap = plant.snapshot()
     assert snap["battery_ocv_v"] == 36.0
     assert msgconv.plant_state_msg(snap, 0).battery_ocv_v == 36.0
+
+
+@pytest.mark.parametrize("link_v, nominal_v", [(400.0, 24.0), (20.9, 24.0), (28.9, 24.0), (24.0, 36.0)])
+def test_a_dc_link_that_is_not_the_battery_sets_voltage_is_refused(cfg, link_v, nominal_v):
+    """The inverter runs from the battery set (paper 001: one 24 V set, charged through the rectifier,
+    buck and charger): inverter.dc_link_v and battery.nominal_v were read apart, and a 400 V link on
+    the 24 V set loaded. One error naming both keys and values, and the set's span."""
+    bad = config_variant(cfg, inverter={"dc_link_v": link_v}, battery={"nominal_v": nominal_v})
+    lo, hi = 0.875 * nominal_v, 1.2 * nominal_v
+    with pytest.raises(ConfigError, match=rf"inverter\.dc_link_v: {link_v:g} V does not fit battery\.nominal_v "
+                                          rf"{nominal_v:g} V: .*\({lo:.4g}\.\.{hi:.4g} V"):
+        M.plant_params_from_config(bad)
+
+
+@pytest.mark.parametrize("link_v, nominal_v", [(24.0, 24.0), (21.0, 24.0), (28.8, 24.0), (36.0, 36.0)])
+def test_a_dc_link_within_the_battery_sets_span_loads(cfg, link_v, nominal_v):
+    params = M.plant_params_from_config(config_variant(cfg, inverter={"dc_link_v": link_v},
+                                                       battery={"nominal_v": nominal_v}))
+    assert (params.inverter.dc_link_v, params.battery.nominal_v) == (link_v, nominal_v)
 
 
 def test_the_plant_state_battery_current_is_the_batchs_mean():

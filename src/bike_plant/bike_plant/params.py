@@ -345,6 +345,9 @@ def plant_params_from_config(cfg: dict) -> PlantParams:
         raise ConfigError(f"the capture timer must tick at least once per control period "
                           f"(timer_hz * control_period_s = {params.hall.timer_hz * params.control_period_s:g})",
                           path, "hall.timer_hz")
+    bus_problem = overvoltage_problem(params)
+    if bus_problem:
+        raise ConfigError(bus_problem, path, "bldc.overvoltage_v")
     emf_problem = riding_emf_problem(params)
     if emf_problem:
         raise ConfigError(emf_problem, path, "bldc.ke_v_per_rpm")
@@ -352,6 +355,21 @@ def plant_params_from_config(cfg: dict) -> PlantParams:
     if reverse:
         raise ConfigError(reverse[1], path, reverse[0])
     return params
+
+
+def overvoltage_problem(p: PlantParams) -> str | None:
+    """Why bldc.overvoltage_v does not fit the pack (a message), or None. The DC bus is the pack
+    (its OCV plus Rb i; no link voltage of its own, unlike the SPMSM's inverter.dc_link_v), and
+    while braking S0's chopper holds it near battery.s0_on_v, the top of its healthy range: a
+    threshold at or below it set FAULT_OVERVOLTAGE on a healthy bus (overvoltage_v 50 V on the
+    48 V pack: faulted at rest, the bus at 50.8 V at SOC 0.7)."""
+    b, bt = p.bldc, p.battery
+    if b.overvoltage_v > bt.s0_on_v:
+        return None
+    return (f"{b.overvoltage_v:g} V is at or below battery.s0_on_v {bt.s0_on_v:g} V: the DC bus "
+            f"is the pack ({bt.v_empty_v:g}..{bt.v_full_v:g} V, battery.v_empty_v..v_full_v), held up to s0_on_v "
+            f"by the brake resistor's chopper while braking, so the fault would flag a healthy bus; give an "
+            f"overvoltage_v above {bt.s0_on_v:g} V")
 
 
 def reverse_speed_problem(p: PlantParams) -> tuple[str, str] | None:

@@ -116,7 +116,8 @@ The pack is an ideal source at ``battery.nominal_v`` whose SOC books energy / (V
 bounds: above 1 through the inverter it is flagged (FAULT_PACK_OVERCHARGE; the charger's dump
 keeps the rectifier path from it), below 0 nothing in the plant stops the inverter (the session's
 EmptyPackGuard holds assist at SOC <= 0; a bare speed loop drains on). The inverter's link is
-``inverter.dc_link_v``, read independently of the pack's voltage (the paper: one 24 V set).
+``inverter.dc_link_v``, a voltage of the pack (the paper: one 24 V set): the config is refused
+unless it lies within 0.875..1.2 x ``battery.nominal_v`` (spmsm_params.link_voltage_problem).
 """
 from __future__ import annotations
 

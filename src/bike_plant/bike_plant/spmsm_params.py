@@ -227,6 +227,27 @@ class SpmsmPlantParams:
     control_period_s: float = 1.0e-4
 
 
+# The inverter's DC link is the battery set's terminals (paper 001: one 24 V set feeds the inverter when
+# motoring and takes the rectifier + buck (~25 V) + charger's output when generating), so
+# inverter.dc_link_v must be a voltage that set has: within the span of a "24 V" set from empty to
+# charging, 21-28.8 V (lead-acid, 1.75-2.4 V per 2 V cell), as a share of battery.nominal_v
+LINK_PER_NOMINAL = (0.875, 1.2)
+
+
+def link_voltage_problem(params: "SpmsmPlantParams") -> str | None:
+    """Why inverter.dc_link_v and battery.nominal_v are no one battery set (a message), or None.
+    Before, each was read on its own: a 400 V link on the 24 V set loaded, and its inverter drove
+    the machine from a voltage no part of the bike has, while the pack booked the energy at 24 V."""
+    link, nominal = params.inverter.dc_link_v, params.battery.nominal_v
+    lo, hi = (share * nominal for share in LINK_PER_NOMINAL)
+    if lo * (1.0 - 1e-9) <= link <= hi * (1.0 + 1e-9):       # 1.2 x 24 is 28.799999999999997
+        return None
+    return (f"{link:g} V does not fit battery.nominal_v {nominal:g} V: the inverter runs from "
+            f"the battery set (paper 001: one 24 V set, charged through the rectifier, buck and charger), so its "
+            f"link is the set's voltage, {LINK_PER_NOMINAL[0]:g}..{LINK_PER_NOMINAL[1]:g} x nominal_v "
+            f"({lo:.4g}..{hi:.4g} V: the set empty to charging); change them together")
+
+
 def plant_params_from_config(cfg: dict) -> SpmsmPlantParams:
     """The plant's (authoritative) parameters from a loaded config (``machine: spmsm``)."""
     path = cfg.get("_config_path")
@@ -254,6 +275,9 @@ def plant_params_from_config(cfg: dict) -> SpmsmPlantParams:
                           "regen.relay_dead_s")
     if params.inverter.dead_time_s * 4 > params.control_period_s / params.inverter.carrier_multiple:
         raise ConfigError("dead time must be < 1/4 of a carrier period", path, "inverter.dead_time_s")
+    link_problem = link_voltage_problem(params)
+    if link_problem:
+        raise ConfigError(link_problem, path, "inverter.dc_link_v")
     reverse = negative_config_speed(params.mech, params.load)
     if reverse is not None:
         # the dq model and its speed loop run both ways (./bike paper's sine and triangle commands
