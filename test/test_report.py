@@ -82,6 +82,17 @@ def write_bag(path, storage="mcap"):
     return path
 
 
+def test_the_report_counts_every_plant_fault_bit():
+    """Each PlantState.FAULT_* bit has its fault-batch count under its own name (FAULT_PACK_EMPTY
+    came without one: a ride on an empty pack said "fault batches: none")."""
+    from bike_msgs.msg import PlantState
+
+    bits = {name[len("FAULT_"):].lower(): getattr(PlantState, name) for name in dir(PlantState)
+            if name.startswith("FAULT_")}
+    assert FAULT_BITS == bits
+    assert FAULT_BITS["pack_empty"] == 2048
+
+
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_summary_numbers(tmp_path, storage):
     bag = write_bag(tmp_path / "bag", storage)

@@ -37,6 +37,7 @@ import numpy as np
 
 from bike_plant.heart import heart_rate_command_problem
 from bike_plant.mechanics import road_problem
+from bike_plant.params import PACK_EMPTY_SOC
 
 from .bldc_control import C_COMMAND, C_ICMD, C_IOVERRIDE, C_MODE, C_NC, C_SPEED_EST, BatchController
 from .modes import (BRAKE_ONLY_MODES, MODE_MOTORING, MODE_NAMES, MODE_RESISTANCE, MODE_SPINDOWN, ModeLaw,
@@ -50,7 +51,7 @@ MAX_SKIPPED_S = 0.5          # the most skipped time the mode laws' clocks count
 
 
 _log = logging.getLogger("bike_controller.session_control")
-EMPTY_PACK_SOC = 0.0         # the pack's empty mark: below it a BMS allows charging only
+EMPTY_PACK_SOC = PACK_EMPTY_SOC   # the pack's empty mark (the plant's FAULT_PACK_EMPTY): a BMS allows charging only
 
 
 class EmptyPackGuard:

@@ -277,6 +277,12 @@ class ModedSpmsmController(SessionCommand):
                                    brake_only=self.mode in BRAKE_ONLY_MODES, saturated=out.saturated,
                                    released=self.mode == MODE_SPINDOWN)
         torque = self.pack.limit(torque, self.battery_soc)
+        if torque <= 0.0 and not self.relay.rectifier and self.pack.empty(self.battery_soc):
+            # an empty pack's BMS has opened its discharge path: the rectifier path now, not after
+            # the relay's hold. The inverter's zero torque above the base speed still drew the
+            # flux-weakening current from the pack: 2-5 A (~80 W) at 330-490 r/min, a 0.5 mAh pack
+            # emptied under assist went on to SOC -3.4 within 2 s with the assist held at 0
+            self.relay.force(True)
         clipped = False
         if self.relay.choose(torque, dt_s, skipped_s):
             # the rectifier path brakes only: an assist wanted before the relay may switch is not given

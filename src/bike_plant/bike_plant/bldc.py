@@ -80,6 +80,8 @@ FAULT_OVERCURRENT = 512   # = PlantState.FAULT_OVERCURRENT: a period's gates wer
 # = PlantState.FAULT_UNCONTROLLED_GENERATION: the line-to-line back-EMF above the DC bus, so the
 # bridge's diodes rectify it whatever the gates do (set by BldcPlant.snapshot, per batch)
 FAULT_UNCONTROLLED_GENERATION = 128
+# = PlantState.FAULT_PACK_EMPTY: SOC at or below params.PACK_EMPTY_SOC (set by BldcPlant.snapshot, per batch)
+FAULT_PACK_EMPTY = 2048
 # FAULT_OVERVOLTAGE also while a pack past full takes charge: S0's resistor cannot take the
 # regenerated power (a 100 ohm resistor charged the pack to SOC 1.15 with no fault); a real
 # pack's BMS opens there. The margin lies beyond the charge a full pack takes with S0 working:

@@ -135,6 +135,7 @@ FAULT_NAMES = {
     PlantState.FAULT_DRIVE_DISARMED: "DRIVE_DISARMED",
     PlantState.FAULT_OVERCURRENT: "OVERCURRENT",      # WARN: the trip already blanked the gates
     PlantState.FAULT_DRIVE_STALE: "DRIVE_STALE",      # WARN: the controller holds its trim meanwhile
+    PlantState.FAULT_PACK_EMPTY: "PACK_EMPTY",        # WARN: the session holds assist at 0 meanwhile
 }
 ERROR_FAULTS = (PlantState.FAULT_COMMAND_TIMEOUT | PlantState.FAULT_OVERVOLTAGE | PlantState.FAULT_DRIVE_LOST
                 | PlantState.FAULT_RECORDER_LOST | PlantState.FAULT_DRIVE_DISARMED)
@@ -224,7 +225,8 @@ class SpmsmSimBackend:
         # the model's own fault bits -> the PlantState bits (the numbers differ), looked up once
         self._fault_bits = ((M.FAULT_RELAY_FORCED, PlantState.FAULT_RELAY_FORCED),
                             (M.FAULT_OVERSPEED_DIODES, PlantState.FAULT_UNCONTROLLED_GENERATION),
-                            (M.FAULT_PACK_OVERCHARGE, PlantState.FAULT_OVERVOLTAGE))
+                            (M.FAULT_PACK_OVERCHARGE, PlantState.FAULT_OVERVOLTAGE),
+                            (M.FAULT_PACK_EMPTY, PlantState.FAULT_PACK_EMPTY))
 
     @property
     def time_s(self) -> float:
@@ -627,6 +629,9 @@ class PlantNode(Node):
                            if snap.get("machine") == "spmsm" else
                            "the back-EMF is above the DC bus: the bridge diodes brake whatever the gates do "
                            "(uncontrolled generation, overspeed)")
+        if faults & PlantState.FAULT_PACK_EMPTY:
+            reasons.append(f"battery empty (state of charge {float(snap.get('battery_soc', 0.0)):.4f}): no assist "
+                           "from it, the session holds assist at 0 (a BMS's undervoltage cut-off); braking charges it")
         if faults & PlantState.FAULT_RECORDER_LOST:
             reasons.append(f"the recorder went silent for recorder_timeout_s={self.recorder_timeout_s:g}s: "
                            "the rest of the run is not recorded")

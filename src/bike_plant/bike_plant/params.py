@@ -80,6 +80,12 @@ class BldcParams:
 # FAULT_OVERVOLTAGE: a real pack's BMS opens). BatteryParams keeps S0's switch-on voltage at or
 # below the pack's OCV at this SOC, so regeneration alone never charges a pack past it.
 SOC_OVERCHARGE = 1.005
+# The state of charge at and below which either machine's pack is empty: FAULT_PACK_EMPTY in its
+# PlantState (bike_plant.sim, bike_plant.spmsm), and the session's EmptyPackGuard
+# (bike_controller.session_control) holds assist at zero, as a BMS's undervoltage cut-off would.
+# The plant's pack is a model that books energy without bounds (the SPMSM's an ideal source): it
+# flags the empty pack, the session keeps assist from it; braking charges it and clears the flag
+PACK_EMPTY_SOC = 0.0
 
 
 @dataclass

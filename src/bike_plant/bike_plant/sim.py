@@ -220,6 +220,10 @@ class BldcPlant:
             # the diodes brake beyond any Command (4 x the default ke in the demo: 10 N m for 1.2
             # asked, and no word); slow quantities, so a check per batch, off the kernel's path
             faults |= K.FAULT_UNCONTROLLED_GENERATION
+        if soc <= P.PACK_EMPTY_SOC:
+            # the pack model runs on below empty (its OCV falls below v_empty_v): said, so that the
+            # session keeps assist from it and the report counts it
+            faults |= K.FAULT_PACK_EMPTY
         return {
             "seq": int(self.seq),
             "batch_periods": int(self.batch_periods),

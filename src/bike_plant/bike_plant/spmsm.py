@@ -114,8 +114,9 @@ Energy ledger [J], cumulative: mechanical in (load work) = copper + friction + c
 magnetic) change; ``residual_j`` closes to round-off.
 The pack is an ideal source at ``battery.nominal_v`` whose SOC books energy / (V Q) without
 bounds: above 1 through the inverter it is flagged (FAULT_PACK_OVERCHARGE; the charger's dump
-keeps the rectifier path from it), below 0 nothing in the plant stops the inverter (the session's
-EmptyPackGuard holds assist at SOC <= 0; a bare speed loop drains on). The inverter's link is
+keeps the rectifier path from it); at or below 0 too (FAULT_PACK_EMPTY, PlantState's bit of that
+name), but nothing in the plant stops the inverter: the session's EmptyPackGuard holds assist at
+0 while the pack is empty (a BMS's undervoltage cut-off); a bare speed loop drains on, flagged. The inverter's link is
 ``inverter.dc_link_v``, a voltage of the pack (the paper: one 24 V set): the config is refused
 unless it lies within 0.875..1.2 x ``battery.nominal_v`` (spmsm_params.link_voltage_problem).
 """
@@ -132,7 +133,7 @@ from . import jit as _jit
 from . import mechanics
 from .heart import RiderHeart
 from .jit import JIT, JIT_COLD, JIT_HOT, JIT_INLINE, invalidate_stale_numba_cache  # noqa: F401
-from .params import RPM_PER_RAD_S, TWO_PI
+from .params import PACK_EMPTY_SOC, RPM_PER_RAD_S, TWO_PI
 from .spmsm_params import (  # noqa: F401 - re-exported: the parameters live there, without numba
     MAX_DYNO_POINTS, SpmsmParams, INVERTER_MODELS, MODULATIONS, OVERMODULATIONS, InverterParams, RegenParams,
     SpmsmBatteryParams, EncoderParams, SPMSM_LOAD_KINDS, SpmsmLoadParams, SpmsmPlantParams,
@@ -343,6 +344,7 @@ REL_INVERTER, REL_RECTIFIER, REL_DRAIN, REL_DEAD = 0, 1, 2, 3
 FAULT_RELAY_FORCED = 32      # relay opened under current after the drain timeout
 FAULT_OVERSPEED_DIODES = 64  # gates off but the inverter diodes conduct (uncontrolled generation)
 FAULT_PACK_OVERCHARGE = 128  # charge into a full pack (SOC > 1) through the inverter: its BMS would open
+FAULT_PACK_EMPTY = 256       # SOC at or below params.PACK_EMPTY_SOC (set by SpmsmPlant.snapshot, per batch)
 
 # workspace (switching segments) layout
 W_NSEG = 0
@@ -1711,5 +1713,5 @@ class SpmsmPlant:
             "energy_loss_j": e_loss,
             "energy_stored_j": stored_energy(self.state, p) - s[S_E_STORED0],
             "heart_rate_bpm": self.heart.bpm if self.heart is not None else 0.0,
-            "faults": int(s[S_FAULTS]),
+            "faults": int(s[S_FAULTS]) | (FAULT_PACK_EMPTY if s[S_SOC] <= PACK_EMPTY_SOC else 0),
         }

@@ -110,6 +110,7 @@ FAULT_BITS = {
     "drive_disarmed": 256,
     "overcurrent": 512,
     "drive_stale": 1024,
+    "pack_empty": 2048,
 }
 SESSION_STATES = {0: "WAITING", 1: "RUNNING", 2: "DONE"}
 MODE_NAMES = {0: "resistance", 1: "motoring", 2: "erg", 3: "slope", 4: "isokinetic", 5: "spindown"}
