@@ -320,13 +320,58 @@ def test_dead_time_near_full_duty_keeps_its_mean_error(cfg, carrier_multiple):
 def test_random_duties_ledger_closes(cfg, model, dead):
     rng = np.random.default_rng(3)
     plant = plant_with(cfg, inverter={"model": model, "dead_time_s": dead}, mechanics={"speed0_rpm": 60.0},
-                       load={"kind": "dynamometer", "dyno_time_s": [0.0, 0.02], "dyno_torque_nm": [0.2, -0.5]})
+                       load={"kind": "dynamometer", "dyno_mode": "drive", "dyno_time_s": [0.0, 0.02],
+                             "dyno_torque_nm": [0.2, -0.5]})
     for _ in range(40):
         plant.step_batch(rng.uniform(0.2, 0.8, size=(10, 3)))
     led = plant.ledger()
     scale = abs(led["energy_battery_j"]) + led["energy_loss_j"] + abs(led["energy_mech_in_j"])
     assert led["energy_copper_j"] > 0 and scale > 0.1
     assert abs(led["residual_j"]) < 1e-11 * scale
+
+
+def _coast(cfg, mode, speed0_rpm, batches, torque_nm=1.0):
+    """A shaft with all phases shorted (duties 0.5) and a 1 N m dynamometer in ``mode``; speeds per batch."""
+    plant = plant_with(cfg, mechanics={"speed0_rpm": speed0_rpm},
+                       load={"kind": "dynamometer", "dyno_mode": mode, "dyno_time_s": [0.0],
+                             "dyno_torque_nm": [torque_nm]})
+    speeds = []
+    for _ in range(batches):
+        plant.step_batch(np.full((20, 3), 0.5))
+        speeds.append(plant.snapshot()["speed_rpm"])
+    return plant, np.array(speeds)
+
+
+def test_the_dynamometer_brake_stops_a_shaft_and_does_not_reverse_it(cfg):
+    """The paper's dynamometer is a magnetic-powder brake (section 7): it opposes the rotation and
+    holds a stopped shaft. The load was a pure torque source at any speed: a 1 N m step on a shaft
+    coasting from 100 r/min stopped it and drove it backwards to -76 r/min (dyno_mode drive keeps
+    that, for a negative TL that drives). As a brake it stops the shaft and holds it: what is left
+    is the creep of the tanh smoothing under the cogging torque (0.05 / 1.1 N m of w_s: 0.045 r/min)."""
+    plant, brake = _coast(cfg, "brake", 100.0, 500)
+    assert brake[0] > 90.0 and brake.min() > -0.01 and abs(brake[-1]) < 0.1
+    led = plant.ledger()
+    assert led["energy_mech_in_j"] < 0.0 and abs(led["residual_j"]) < 1e-11 * abs(led["energy_mech_in_j"])
+    _, drive = _coast(cfg, "drive", 100.0, 500)
+    assert drive[-1] < -50.0
+    # at rest it drives nothing either (the torque source turned a free shaft backwards)
+    _, rest = _coast(cfg, "brake", 0.0, 50)
+    assert np.all(np.abs(rest) < 0.1)
+    # at speed (beyond 19 w_s) the brake is the torque source's TL (to round-off: its smoothing's
+    # slope TL / w_s makes the shaft's iteration the safeguarded one, P_SHAFT_STIFF)
+    (a, sa), (b, sb) = _coast(cfg, "brake", 200.0, 20), _coast(cfg, "drive", 200.0, 20)
+    assert sa.min() > 19.0 and a.p[M.P_SHAFT_STIFF] == 1.0
+    np.testing.assert_allclose(sa, sb, rtol=1e-12)
+    assert a.snapshot()["load_torque_nm"] == b.snapshot()["load_torque_nm"] == -1.0
+
+
+def test_a_negative_torque_on_the_brake_is_refused(cfg):
+    bad = config_variant(cfg, load={"kind": "dynamometer", "dyno_time_s": [0.0, 1.0], "dyno_torque_nm": [0.0, -1.0]})
+    with pytest.raises(ConfigError, match=r"load: dyno_torque_nm -1 N m: a brake \(dyno_mode brake\) only opposes "
+                                          r"the rotation; .*dyno_mode drive"):
+        M.plant_params_from_config(bad)
+    with pytest.raises(ConfigError, match=r"dyno_mode must be one of brake, drive"):
+        M.plant_params_from_config(config_variant(cfg, load={"dyno_mode": "motor"}))
 
 
 @pytest.mark.parametrize("inertia_kgm2", [1e-4, 1e-5, 1e-6])

@@ -103,7 +103,9 @@ with both paths off, then closes onto the requested path. Both paths are never c
 at once (S_OVERLAP counts it: always 0).
 
 Loads (``load.kind``): dynamometer (piecewise-constant torque TL(t) of Eq. 3, positive
-opposes positive rotation; the paper's 1 N m step), prime_mover (speed held; schedule),
+opposes positive rotation; the paper's 1 N m step; ``dyno_mode`` brake: the passive powder
+brake, TL tanh(w / w_s), which holds a stopped shaft (:func:`brake_torque`), drive: a torque
+source at any speed), prime_mover (speed held; schedule),
 rider (bike_plant.mechanics rider model through :class:`RiderLoad`, evaluated per batch
 and held), none. Any Python callable can be the load hook (:class:`SpmsmPlant` load_hook).
 In the state and telemetry ``load_torque_nm`` is the torque the load applies to the shaft,
@@ -171,7 +173,7 @@ P_DRAIN_N = 21          # periods
 P_BATT_V = 22
 P_BATT_CAP_J = 23
 P_DUMP_SOC = 24
-P_LOAD_KIND = 25        # 0 dynamometer, 1 prime mover, 2 rider / hook (S_TEXT), 3 none
+P_LOAD_KIND = 25        # 0 dynamometer (drive), 1 prime mover, 2 rider / hook (S_TEXT), 3 none, 4 dyno brake
 P_CPR = 26
 P_FCAP = 27
 P_DYNO_N = 28
@@ -213,7 +215,7 @@ P_KE_SPEED = P_HALF_DT_J + 1            # Ke' [N m s/rad]
 P_SIZE = P_KE_SPEED + 1
 SHAFT_STIFF_C = 0.02
 
-LOAD_DYNO, LOAD_PRIME_MOVER, LOAD_HOOK, LOAD_NONE = 0, 1, 2, 3
+LOAD_DYNO, LOAD_PRIME_MOVER, LOAD_HOOK, LOAD_NONE, LOAD_DYNO_BRAKE = 0, 1, 2, 3, 4
 
 
 def pack_params(p: SpmsmPlantParams) -> np.ndarray:
@@ -264,7 +266,10 @@ def pack_params(p: SpmsmPlantParams) -> np.ndarray:
     v[P_HALF_DT_J] = 0.5 * p.control_period_s / p.mech.inertia_kgm2
     lam_act = m.flux_linkage_vs * m.flux_scale
     v[P_KE_SPEED] = 1.5 * (m.pole_pairs * lam_act) ** 2 * p.control_period_s / (2.0 * ind)
-    stiff_c = v[P_HALF_DT_J] * (p.mech.friction_nms + m.dry_friction_nm / v[P_DRY_WS] + v[P_KE_SPEED])
+    # the passive dynamometer brake is smoothed over the same speed as the Coulomb friction
+    brake_nm = max(p.load.dyno_torque_nm) if p.load.kind == "dynamometer" and p.load.dyno_mode == "brake" else 0.0
+    stiff_c = v[P_HALF_DT_J] * (p.mech.friction_nms + (m.dry_friction_nm + brake_nm) / v[P_DRY_WS]
+                                + v[P_KE_SPEED])
     v[P_SHAFT_STIFF] = 1.0 if stiff_c > SHAFT_STIFF_C else 0.0
     v[P_COG_SIX] = 1.0 if m.cogging_per_rev == 6 * m.pole_pairs else 0.0
     v[P_COG_C] = math.cos(math.radians(m.cogging_phase_deg))
@@ -277,8 +282,8 @@ def pack_params(p: SpmsmPlantParams) -> np.ndarray:
     v[P_SOC_PER_A] = p.control_period_s * bt.nominal_v * v[P_SOC_PER_J]
     v[P_DUMP_SOC] = bt.dump_above_soc
     kind = p.load.kind
-    v[P_LOAD_KIND] = {"dynamometer": LOAD_DYNO, "prime_mover": LOAD_PRIME_MOVER, "rider": LOAD_HOOK,
-                      "none": LOAD_NONE}[kind]
+    v[P_LOAD_KIND] = {"dynamometer": LOAD_DYNO if p.load.dyno_mode == "drive" else LOAD_DYNO_BRAKE,
+                      "prime_mover": LOAD_PRIME_MOVER, "rider": LOAD_HOOK, "none": LOAD_NONE}[kind]
     v[P_CPR] = p.encoder.counts_per_rev
     v[P_RAD_PER_COUNT] = TWO_PI / p.encoder.counts_per_rev
     v[P_INV_L] = 1.0 / ind
@@ -953,6 +958,19 @@ def friction_torque(w, p):
     return f
 
 
+@njit(**JIT_HOT)
+def brake_torque(w, tl, p):
+    """The passive dynamometer's torque opposing the rotation [N m] (load.dyno_mode brake: the
+    paper's magnetic-powder brake, section 7): TL tanh(w / w_s), smoothed through standstill
+    over the Coulomb friction's w_s (spmsm.dry_friction_speed_rpm), so it holds a stopped shaft
+    against up to TL and never turns it; beyond 19 w_s it is TL, the torque source's value."""
+    if w > p[P_DRY_W19]:
+        return tl
+    if w < -p[P_DRY_W19]:
+        return -tl
+    return tl * math.tanh(w / p[P_DRY_WS])
+
+
 @njit(**JIT_COLD)
 def _stiff_step(state, wg, wn, p):
     """Next guess of the period's mid speed for a stiff shaft (small J: P_SHAFT_STIFF). The
@@ -1148,8 +1166,13 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
     J = p[P_J]
     B = p[P_B]
     t_ext = 0.0
+    tl_brake = 0.0
     if kind == LOAD_DYNO:
         t_ext = -dyno_torque_nm(t0, p)
+    elif kind == LOAD_DYNO_BRAKE:
+        # opposes the rotation at the period's mid speed (set again in the iteration below)
+        tl_brake = dyno_torque_nm(t0, p)
+        t_ext = -brake_torque(w0, tl_brake, p)
     elif kind == LOAD_HOOK:
         t_ext = state[S_TEXT]
     # ---- electrical + shaft (implicit midpoint by fixed-point iteration)
@@ -1253,6 +1276,8 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
             if cog_on:
                 tcog = _cogging_mean(th_m0, wg * dt, h6, p)
             fr = friction_torque(wg, p)
+            if kind == LOAD_DYNO_BRAKE:
+                t_ext = -brake_torque(wg, tl_brake, p)
             wn = w0 + 0.5 * dt * (tem + tcog + t_ext - fr) / J
             if abs(wn - wg) <= tol or it == n_max - 1:
                 break

@@ -171,6 +171,7 @@ class EncoderParams:
 
 
 SPMSM_LOAD_KINDS = ("dynamometer", "prime_mover", "rider", "none")
+DYNO_MODES = ("brake", "drive")
 
 
 @dataclass
@@ -178,15 +179,18 @@ class SpmsmLoadParams(ShaftLoadParams):
     """External load on the shaft (paper 001, Fig. 9b: dynamometer; ARCHITECTURE.md loads).
 
     dynamometer: TL(t) piecewise constant, TL = dyno_torque_nm[k] from dyno_time_s[k] on
-    (Eq. 3 sign: positive opposes positive rotation). TL is a torque source, whatever the speed:
-    the paper's dynamometer (a magnetic-powder brake, section 7) opposes the rotation and holds a
-    shaft at rest, which this one does not (1 N m turns a free shaft at rest backwards); the
-    paper's runs (and ./bike paper's load_fn) apply it at speed only. A negative TL drives. prime_mover: speed held at speed_rpm
+    (Eq. 3 sign: positive opposes positive rotation). ``dyno_mode`` brake (default): the paper's
+    magnetic-powder brake (section 7), passive: TL tanh(w / w_s) opposes the rotation and holds a
+    stopped shaft against up to TL (w_s = spmsm.dry_friction_speed_rpm; TL exactly beyond 19 w_s),
+    so TL >= 0. drive: a torque source whatever the speed (as before; 1 N m turned a free shaft at
+    rest backwards), a negative TL drives. ./bike paper's runs apply TL through their load_fn (a
+    torque source, at speed only). prime_mover: speed held at speed_rpm
     (optional schedule). rider: the torque-cadence rider of bike_plant.mechanics
     (:class:`bike_plant.params.RiderParams`) through the gear motor/crank (the outer rotor
     turns ~2.5x the crank). none: free shaft.
     """
     kind: str = "dynamometer"
+    dyno_mode: str = "brake"           # brake (passive, TL >= 0) | drive (a torque source, any sign)
     dyno_time_s: list = field(default_factory=lambda: [0.0])
     dyno_torque_nm: list = field(default_factory=lambda: [0.0])
     speed_rpm: float = 200.0
@@ -204,6 +208,11 @@ class SpmsmLoadParams(ShaftLoadParams):
             raise ValueError(f"at most {MAX_DYNO_POINTS} dynamometer profile points")
         if any(b <= a for a, b in zip(self.dyno_time_s, self.dyno_time_s[1:])):
             raise ValueError("dyno_time_s must be strictly increasing")
+        if self.dyno_mode not in DYNO_MODES:
+            raise ValueError(f"dyno_mode must be one of {', '.join(DYNO_MODES)}, got {self.dyno_mode!r}")
+        if self.kind == "dynamometer" and self.dyno_mode == "brake" and min(self.dyno_torque_nm) < 0.0:
+            raise ValueError(f"dyno_torque_nm {min(self.dyno_torque_nm):g} N m: a brake (dyno_mode brake) only "
+                             "opposes the rotation; a negative torque drives the shaft: dyno_mode drive")
         self.validate_shaft_load()
 
     def rider_load_params(self) -> LoadParams:
