@@ -196,11 +196,12 @@ def test_cli_writes_a_map_that_reads_back_as_measured(tmp_path):
 
 @pytest.mark.parametrize("args, words", [
     (["--speeds-rpm", "abc"], "--speeds-rpm: 'abc' is not a number"),
-    (["--setpoints-nm", "9"], "beyond the drive's current limit"),
+    (["--setpoints-nm", "9"], "--setpoints-nm: setpoint 9 N m is beyond the drive's current limit (6.245 N m)"),
     (["--speeds-rpm", "0"], "speeds must be > 0"),
     # the option typed and the range, not the emulated dyno's key load.speed_rpm (its back-EMF check's error)
     (["--speeds-rpm", "1e9"], "--speeds-rpm: 1e+09 rpm is outside this drive's range, 6 .. 7706 rpm (at 7706 rpm its "
                               "back-EMF"),
+    (["--speeds-rpm", "1000", "1000"], "--speeds-rpm: speed 1000 rpm is given twice"),
     (["--speeds-rpm", "1000", "0.0001"], "--speeds-rpm: 0.0001 rpm is outside this drive's range, 6 .. 7706 rpm "
                                          "(below 6 rpm two electrical revolutions"),
     (["--window-s", "0"], "--window-s must be in"),

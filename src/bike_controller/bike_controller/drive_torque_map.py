@@ -180,9 +180,11 @@ def check_times(settle_s: float, window_s: float, names=("settle_s", "window_s")
             raise ValueError(f"{name} must be in (0, {MAX_SECONDS:g}] s, got {value!r}")
 
 
-def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted speeds and setpoints (0 added: the map's zero is measured too), or ValueError:
-    speeds must be > 0 (braking needs forward rotation; the map is looked up by |speed|), no value
+def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float,
+               names: tuple[str, str] = ("speeds", "setpoints")) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted speeds and setpoints (0 added: the map's zero is measured too), or ValueError
+    starting with the grid's name (``names``: the CLI's --speeds-rpm / --setpoints-nm): speeds
+    must be > 0 (braking needs forward rotation; the map is looked up by |speed|), no value
     twice, no setpoint beyond what the drive's current limit lets through (the firmware clamps it:
     a flat row, no inverse)."""
     speeds = np.asarray([float(s) for s in speeds_rpm], dtype=float)
@@ -190,18 +192,19 @@ def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float) -> tuple[np.nda
     if speeds.size == 0 or not np.all(np.isfinite(speeds)) or not np.all(np.isfinite(setpoints)):
         raise ValueError("speeds and setpoints must be finite numbers, at least one speed")
     if np.any(speeds <= 0):
-        raise ValueError(f"speeds must be > 0 rpm (braking needs forward rotation), got {speeds.min():g} rpm")
+        raise ValueError(f"{names[0]}: speeds must be > 0 rpm (braking needs forward rotation), got "
+                         f"{speeds.min():g} rpm")
     speeds = np.sort(speeds)
     if np.any(np.diff(speeds) == 0):
-        raise ValueError(f"speed {speeds[np.flatnonzero(np.diff(speeds) == 0)[0]]:g} rpm is given twice")
+        raise ValueError(f"{names[0]}: speed {speeds[np.flatnonzero(np.diff(speeds) == 0)[0]]:g} rpm is given twice")
     if setpoints.size < 2:
-        raise ValueError("at least one setpoint besides 0 is needed")
+        raise ValueError(f"{names[1]}: at least one setpoint besides 0 is needed")
     if speeds.size * setpoints.size > MAX_POINTS:
         raise ValueError(f"{speeds.size} x {setpoints.size} points, more than {MAX_POINTS}")
     worst = float(np.max(np.abs(setpoints)))
     if worst > max_setpoint_nm * (1.0 + 1e-9):
-        raise ValueError(f"setpoint {worst:g} N m is beyond the drive's current limit ({max_setpoint_nm:.4g} N m): "
-                         "it would be clamped there")
+        raise ValueError(f"{names[1]}: setpoint {worst:g} N m is beyond the drive's current limit "
+                         f"({max_setpoint_nm:.4g} N m): it would be clamped there")
     return speeds, setpoints
 
 

@@ -990,7 +990,9 @@ def _cmd_torque_map(opts) -> int:
         DTM.check_speeds(speeds, cfg, "--speeds-rpm" if opts.speeds_rpm else
                          f"the default speeds (cadence {DTM.DEFAULT_CADENCE_RPM[0]:g}..{DTM.DEFAULT_CADENCE_RPM[1]:g} "
                          "rpm x load.gear_ratio; give --speeds-rpm)")
-        DTM.check_grid(speeds, setpoints, limit_a * kt)    # before the output file is touched
+        DTM.check_grid(speeds, setpoints, limit_a * kt,    # before the output file is touched
+                       ("--speeds-rpm" if opts.speeds_rpm else "the default speeds",
+                        "--setpoints-nm" if opts.setpoints_nm else "the default setpoints"))
         DTM.check_times(opts.settle_s, opts.window_s, ("--settle-s", "--window-s"))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
