@@ -73,7 +73,9 @@ def scenario(duration_s: float = 1.0, speed_ref_rpm: float = 150.0, load_step_s:
              load_torque_nm: float = 1.0, sample_every_periods: int = SAMPLE_EVERY_PERIODS) -> dict:
     """The scenario both sides run, as plain JSON-able data (the peer scripts read it)."""
     cfg = scenario_config()
-    cfg["load"] = dict(cfg.get("load") or {}, kind="dynamometer", dyno_time_s=[0.0, load_step_s],
+    # a torque source (dyno_mode drive), as the peers' load is: the passive brake's steep slope at
+    # standstill would also put the shaft on its slower stiff path for the whole run
+    cfg["load"] = dict(cfg.get("load") or {}, kind="dynamometer", dyno_mode="drive", dyno_time_s=[0.0, load_step_s],
                        dyno_torque_nm=[0.0, load_torque_nm])
     cfg = json.loads(json.dumps(cfg, default=str))
     dt = float(cfg.get("control_period_s", 1e-4))
