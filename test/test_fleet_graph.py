@@ -81,7 +81,11 @@ def test_fleet_bad_placement_is_one_clear_error(netns_arg, message):
     (["--graph", "1", "--seconds", "-1"], "--seconds must be > 0, got -1.0"),
     (["--graph", "1", "--seconds", "1e300"],
      "--seconds must be at most 9.2e+09 (the ROS clock's int64 nanoseconds), got 1e+300"),
-    (["--bikes", "2", "--seconds", "0.01", "--seed", "-1"], "seed must be an integer >= 0, got -1"),
+    (["--bikes", "2", "--seconds", "0.01", "--seed", "-1"], "--seed must be an integer >= 0, got -1"),
+    # the offline fleet's own checks named its arguments (bikes, seconds, threads), not the options
+    (["--bikes", "0"], "--bikes must be an integer in [1, 1000000], got 0"),
+    (["--bikes", "2", "--seconds", "-1"], "--seconds must be a number in (0, 3600], got -1.0"),
+    (["--bikes", "2", "--seconds", "0.01", "--threads", "0"], "--threads must be an integer >= 1, got 0"),
     (["--bikes", "2", "--seconds", "0.01", "--show", "-3"], "--show must be >= 0 (bikes to print), got -3"),
     # the other mode's options were dropped without a word (--graph 1 --bikes 50 rode one bike)
     (["--graph", "1", "--bikes", "50", "--seed", "0"], "--bikes, --seed: for the offline fleet, not with --graph"),
