@@ -170,6 +170,24 @@ def test_the_truth_is_the_physics_one_sample_per_clock_of_the_plant(config, phys
         assert true == pytest.approx(est, rel=1e-9), "the average model's torque is kt iq"
 
 
+@pytest.mark.parametrize("dyno_mode", ["brake", "drive"])
+def test_the_average_models_dynamometer_is_the_plants_passive_brake_unless_it_drives(dyno_mode):
+    """The SPMSM config's dynamometer (1 N m) on a coasting shaft at 100 r/min, no current, 2 s:
+    as the plant's load.dyno_mode brake it stops the shaft and holds it; as drive (a torque
+    source) it turns it backwards. Before, the average model was a torque source either way."""
+    cfg = load_config(pathlib.Path(__file__).resolve().parents[1] / "config" / "spmsm_default.yaml")
+    cfg["load"] = dict(cfg["load"], kind="dynamometer", dyno_mode=dyno_mode, dyno_time_s=[0.0], dyno_torque_nm=[1.0])
+    cfg["mechanics"] = dict(cfg["mechanics"], speed0_rpm=100.0)
+    model = make_drive_model(cfg, "average")
+    for _ in range(8000):
+        model.step(2.5e-4, 0.0)
+    speed_rpm = model.speed_rad_s * RPM_PER_RAD_S
+    if dyno_mode == "brake":
+        assert abs(speed_rpm) < 0.05, speed_rpm
+    else:
+        assert speed_rpm < -500.0, speed_rpm
+
+
 def test_bus_sags_when_motoring_and_rises_when_braking(params):
     for torque_nm, sign in ((2.0, 1.0), (-2.0, -1.0)):
         fw = DriveFirmware(model_with(params, load_kind="prime_mover"), watchdog_timeout_s=0.0)

@@ -188,6 +188,7 @@ class DriveModelParams:
     current_tau_s: float = DEFAULT_CURRENT_TAU_S
     dry_friction_nm: float = 0.0        # Coulomb friction (the SPMSM config's), next to the viscous B
     dry_friction_speed_rpm: float = 1.0
+    dyno_brake: bool = False            # load.dyno_mode brake (SPMSM): passive, holds a stopped shaft
 
     @classmethod
     def from_config(cls, cfg: dict, current_tau_s: float = DEFAULT_CURRENT_TAU_S) -> "DriveModelParams":
@@ -235,7 +236,8 @@ class DriveModelParams:
                        s0_on_v=math.inf, s0_off_v=math.inf, overvoltage_v=p.regen.link_max_v,
                        undervoltage_v=0.75 * bt.nominal_v,
                        current_limit_a=float(ctrl.get("current_limit_a", 15.0)), current_tau_s=current_tau_s,
-                       dry_friction_nm=m.dry_friction_nm, dry_friction_speed_rpm=m.dry_friction_speed_rpm)
+                       dry_friction_nm=m.dry_friction_nm, dry_friction_speed_rpm=m.dry_friction_speed_rpm,
+                       dyno_brake=ld.dyno_mode == "brake")
         raise ConfigError(f"the drive emulator supports machine 'bldc' or 'spmsm', got {machine!r}", path, "machine")
 
 
@@ -364,7 +366,12 @@ class AverageTorqueDrive(_DriveReadouts):
             if kind == "rider":
                 t_load = self._rider_torque_nm(omega, dt_s)
             elif kind == "dynamometer":
-                t_load = -self._dyno_torque_nm(self.time_s)
+                tl = self._dyno_torque_nm(self.time_s)
+                if p.dyno_brake:
+                    # the plant's passive brake (spmsm.brake_torque): TL shaped as the Coulomb friction,
+                    # so a stopped shaft is held, never turned backwards
+                    tl = mechanics.friction_torque_nm(omega, 0.0, tl, p.dry_friction_speed_rpm / RPM_PER_RAD_S)
+                t_load = -tl
             else:
                 t_load = 0.0
             omega_new = omega + dt_s * (t_em + t_load - t_friction) / p.inertia_kgm2
