@@ -23,7 +23,7 @@ DATA = pathlib.Path(__file__).resolve().parent / "data" / "workouts"
 ])
 def test_ride_a_workout_file_in_the_node_graph(tmp_path, ros_domain, name, title, text, first_w, target_w):
     result = bike_command("run", "--workout", str(DATA / name), "--ftp", "200", "--duration", "3",
-                          "--record", str(tmp_path))
+                          "--record", str(tmp_path), *FAST_BATCHES)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     assert title in result.stdout and text in result.stdout, "workout summary and text event"
     bag = next(p for p in tmp_path.iterdir() if p.is_dir())
@@ -81,7 +81,7 @@ def test_every_mode_in_the_node_graph(tmp_path, ros_domain):
 def test_ride_a_zwift_file_in_the_node_graph(tmp_path, ros_domain):
     """A .zwo (Zwift) workout: imported, ridden in ERG mode by the rider model, recorded."""
     result = bike_command("run", "--workout", str(DATA / "over_unders.zwo"), "--ftp", "250", "--duration", "2",
-                          "--record", str(tmp_path))
+                          "--record", str(tmp_path), *FAST_BATCHES)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     bag = next(p for p in tmp_path.iterdir() if p.is_dir())
     info = json.loads(read_topic(bag, "session_info")[0].data)
