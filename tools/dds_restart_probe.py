@@ -59,6 +59,8 @@ def peer_main(topic: str, rate_hz: float, reads_victim: bool, payload_bytes: int
     def tick():
         count[0] += 1
         pub.publish(String(data=payload) if payload else Float64(data=float(count[0])))
+        if count[0] == 1:
+            print("publishing", flush=True)      # the driver starts the first victim on this
     node.create_timer(1.0 / rate_hz, tick)
     try:
         rclpy.spin(node)
@@ -170,12 +172,21 @@ def main(argv=None) -> int:
     peers = {f"probe_w{i}": (rates[i % len(rates)], i % 4 < 2) for i in range(args.peers)}
     topics = list(peers) + (["probe_nobody"] if args.silent_topic else [])
     size = ["--payload-bytes", str(args.payload_bytes)]
-    procs = [subprocess.Popen([sys.executable, me, "--role", "peer", *size, t, str(rate), "1" if reads else "0"])
+    procs = [subprocess.Popen([sys.executable, me, "--role", "peer", *size, t, str(rate), "1" if reads else "0"],
+                              stdout=subprocess.PIPE, text=True)
              for t, (rate, reads) in peers.items()]
     victim_flags = (["--best-effort"] if args.best_effort else []) + size
     deaf = late = 0
     try:
-        time.sleep(2.0)
+        # every peer publishing before the first victim starts (a fixed 2 s wait before: most of
+        # it idle once the peers were up, ~0.5 s on an idle host); the victim still has --wait-s
+        # to hear each of them, as after every restart
+        started = time.monotonic()
+        for q in [_lines(p) for p in procs]:
+            try:
+                q.get(timeout=max(0.0, started + args.wait_s - time.monotonic()))
+            except queue.Empty:          # a peer that never publishes: its topic counts as deaf below
+                pass
         for i in range(args.restarts):
             victim = subprocess.Popen([sys.executable, me, "--role", "victim", *victim_flags, *topics],
                                       stdout=subprocess.PIPE, text=True)
