@@ -207,3 +207,36 @@ def test_a_ctrl_c_while_a_node_starts_over_is_not_lost(domain, tmp_path):
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
     out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=60)
     assert out.returncode == 3 and out.stdout.strip() == "stopped", (out.returncode, out.stdout, out.stderr[-2000:])
+
+
+def test_a_lockstep_plant_that_finds_a_stale_port_before_its_first_state_starts_over(ros_domain):
+    """A lockstep plant looks for a stale shared-memory port (Fast DDS's, see above) while it
+    still waits for the controller's and the recorder's match, before it has published a
+    state. Its diagnostic there read the last state's snapshot, which did not exist yet:
+    AttributeError, plant exit 1, in the middle of a kill -9 test on a loaded host (CI,
+    2026-12-07). Now it says so and asks for fresh ports as after its first state. (The stale
+    port is stood in for: the real one takes a kill in a microsecond window, see
+    test_nodes_realtime.)"""
+    import rclpy
+    from rclpy.context import Context
+
+    from bike_plant.node import PlantNode
+
+    class StalePort:                  # what StalePortWatch finds on a stale port, at once
+        def start_over(self):
+            return "pid(s) 4242 still write to a deleted segment of this node's shared-memory port 7003"
+
+        def waited_s(self):
+            return 7.0
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain)
+    try:
+        plant = PlantNode(context=ctx)
+        plant.deaf_watch = StalePort()
+        assert plant._check_deaf_start() is True
+        assert plant.fresh_ports_wanted and plant.stop_requested
+        assert "pid(s) 4242 still write to a deleted segment" in plant.wait_reason
+        plant.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)

@@ -394,6 +394,9 @@ class PlantNode(Node):
         self.latest_rx_sim_s = math.nan  # realtime: sim time of the batch during which it arrived
         self.holding_start = False       # realtime: t = 0 held for the first DriveCommand (_hold_start)
         self.wait_reason = ""        # lockstep: why the run is held (no answer), for the diagnostic
+        # the last published state's snapshot and stamp, for diagnostics; empty before the first
+        # (a deaf start found while lockstep still waits for the controller's match says so too)
+        self._last_snap, self._last_stamp = {}, 0
         self.wait_level = _level(DiagnosticStatus.WARN)
         self.node_faults = 0
         self.last_faults = -1
