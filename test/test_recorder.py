@@ -470,7 +470,7 @@ def test_seq_0_is_confirmed_once_the_sessions_writers_have_matched_the_recorder(
     busy CI host ended before it and its bag had no Commands. The recorder confirms seq 0 (the
     plant holds seq 1 until then) only once the session's Command and session_info writers have
     matched it and sent it their first message (a reader counts a writer matched before the
-    writer has sent it its history: a recorder stopped then lost the Command, CI 2026-12-08),
+    writer has sent it its history: a recorder stopped then lost the Command, CI 2026-12-07),
     and then the session's Commands sent before the match are in the bag."""
     from bike_msgs.msg import Command, PlantState
     from std_msgs.msg import String

@@ -404,7 +404,7 @@ def _make_node_class():
             self.info_topic = self.resolve_topic_name("session_info")
             # the session's topics that have delivered a message: a reader counts its writer
             # matched before that writer has matched it and sent its history (discovery is one
-            # way at a time), and a recorder stopped in between lost the history (CI, 2026-12-08)
+            # way at a time), and a recorder stopped in between lost the history (CI, 2026-12-07)
             self._session_heard: set[str] = set()
             self.plant_state_topic = self.resolve_topic_name("plant_state")
             self.clock_topic = "/clock"
