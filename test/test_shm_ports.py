@@ -89,6 +89,28 @@ def test_the_stale_port_watch_looks_every_period_from_its_start(monkeypatch):
     assert started.start_over(52.0) == "" and len(looks) == 2
 
 
+def test_the_stale_peer_watch_starts_over_at_two_looks_in_a_row_once_and_stops_looking(monkeypatch):
+    """Running nodes (session, controller): a stale writer seen once is a watchdog still to
+    re-open the port; seen at two looks in a row it is named and the node starts over, once.
+    Clean looks end the watch after ``looks``; a look that found one keeps it going."""
+    stale, clean = ("pid(s) 4242 still write ...", True), ("", False)
+    answers = iter([stale, clean, stale, stale])
+    monkeypatch.setattr(shm_ports, "stale_port_check", lambda: next(answers))
+    watch = shm_ports.StalePeerWatch(looks=3, period_s=3.0, since=0.0)
+    assert watch.look(2.0) == "" and watch.done == 0                  # not due
+    assert watch.look(3.0) == "" and watch.in_a_row == 1               # once: not yet
+    assert watch.look(6.0) == "" and watch.in_a_row == 0               # healed by its watchdog
+    assert watch.look(9.0) == "" and watch.done == 3                   # its looks are over, but ...
+    assert not watch.finished                                          # ... the last one found one
+    assert watch.look(12.0) == "pid(s) 4242 still write ..., 3s after it was first seen"
+    assert watch.finished and watch.look(15.0) == ""                   # said once
+    clean = iter([("", False)] * 3)
+    monkeypatch.setattr(shm_ports, "stale_port_check", lambda: next(clean))
+    quiet = shm_ports.StalePeerWatch(looks=2, period_s=3.0, since=0.0)
+    assert quiet.look(3.0) == quiet.look(6.0) == "" and quiet.finished
+    assert quiet.look(9.0) == "" and quiet.done == 2                   # no look after its last
+
+
 def test_the_repro_tools_guard_holds_only_zombie_ports_a_live_process_maps(tmp_path):
     tool = tool_module("shm_stale_port_repro")
     shm, proc = tmp_path / "shm", tmp_path / "proc"

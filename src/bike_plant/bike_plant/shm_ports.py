@@ -147,6 +147,49 @@ class StalePortWatch:
         return (time.monotonic() if now is None else now) - self.since
 
 
+STALE_PEER_LOOKS = 5    # a running node looks this many times for a peer that cannot reach it (StalePeerWatch)
+
+
+class StalePeerWatch:
+    """The look of a node that already hears some of its peers (session, recorder, controller)
+    for one that still cannot reach it: a live process that writes to a deleted segment of this
+    node's ports at two looks in a row (``period_s`` apart). After a kill -9 the killed node's
+    peers keep such a handle until their port watchdog re-opens the port, 0.5-3 s after the
+    restarted node took it (6 of 8 restarts measured), or for good when the kill landed in the
+    listener's window; one watchdog may heal while another does not (a restarted session that
+    followed /clock but whose status never reached a reader, CI 2026-12-07). Such a handle is
+    one taken before this node started (nobody deletes the segment of a port whose lock a live
+    node holds), so it looks ``looks`` times from ``since`` (start-up) and then stops, unless
+    the last look found one: then it goes on until the second in a row."""
+
+    def __init__(self, looks: int = STALE_PEER_LOOKS, period_s: float = DEAF_CHECK_S, since: float | None = None):
+        self.watch = StalePortWatch(period_s, since)
+        self.looks = looks
+        self.done = 0            # looks taken
+        self.in_a_row = 0        # ... of which the last ones in a row found a stale writer
+        self.fired = False
+
+    @property
+    def finished(self) -> bool:
+        """Nothing more to look for: it fired, or its looks are over and the last was clean."""
+        return self.fired or (self.done >= self.looks and self.in_a_row == 0)
+
+    def look(self, now: float | None = None) -> str:
+        """The writers named and since when (stale_port_check's ``why``) when the node should
+        start over on fresh ports now (once); "" otherwise (not due, clean, or finished)."""
+        if self.finished:
+            return ""
+        why = self.watch.look(now)
+        if why is None:
+            return ""
+        self.done += 1
+        self.in_a_row = self.in_a_row + 1 if why else 0
+        if self.in_a_row < 2:
+            return ""
+        self.fired = True
+        return f"{why}, {(self.in_a_row - 1) * self.watch.period_s:g}s after it was first seen"
+
+
 def hold_ports(ports, shm_dir: str = SHM_DIR) -> list:
     """Take and keep, for the life of the process, the listener locks of ``ports`` (this
     process's old ports, after its participant left them), so that no participant started

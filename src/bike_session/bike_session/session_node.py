@@ -65,9 +65,6 @@ COMMAND_QOS_DEPTH = 100
 # keeps this many samples so that none is lost meanwhile (every value is handled, in order)
 CLOCK_QOS_DEPTH = 1000
 NO_CLOCK_WARN_S = 5.0          # no /clock this long after start-up: say so once [wall s]
-# running, a live process writing to a deleted segment of this node's ports is looked for this
-# many times (shm_ports.DEAF_CHECK_S apart, from start-up; such a handle is inherited at start)
-STALE_PEER_CHECKS = 5
 GATHER_MAX_S = 0.02            # longest pause between bursts [wall s]
 GATHER_SHARE_OF_PERIOD = 0.25  # a burst lags sim time by at most this share of session.period_s
 
@@ -294,9 +291,7 @@ def _make_node_class():
             self.started_wall = time.monotonic()
             from bike_plant import shm_ports
             self.deaf_watch = shm_ports.StalePortWatch(since=self.started_wall)
-            self.stale_checks = 0            # running: looks for a stale peer done (_check_stale_peers)
-            self.stale_in_a_row = 0          # ... of which the last ones in a row found one
-            self.peer_watch = shm_ports.StalePortWatch(since=self.started_wall)
+            self.peer_watch = shm_ports.StalePeerWatch(since=self.started_wall)   # running (_check_stale_peers)
             self.no_clock_warned = False
             self.commands_published = 0
             self.readers_at_publish = 0      # matched Command readers when the last Command went out
@@ -587,31 +582,20 @@ def _make_node_class():
             self.fresh_ports_wanted = True
 
         def _check_stale_peers(self) -> None:
-            """Running: a live process that still writes to a deleted segment of this node's
-            shared-memory ports at two looks in a row (DEAF_CHECK_S apart) cannot reach it.
-            After a kill -9 the killed node's peers keep such a handle until their port watchdog
-            re-opens the port: 0.5-3 s after a restarted node took it (measured here, 6 of 8
-            restarts), for good when the kill landed in the listener's window (bike_plant.shm_ports).
-            The /clock writer may be healed while another is not: seen once in CI, a restarted
-            session that followed the plant's /clock but whose SessionStatus never reached the
-            test's reader (most likely its handle, and with it its discovery data, stayed on the
-            deleted segment). It says so and starts over
-            on fresh ports (main()): the profile is a function of sim time, so the new participant
-            follows /clock with the same Commands. Looked for STALE_PEER_CHECKS times from
-            start-up; a handle on a deleted segment is one taken before this node started."""
-            from bike_plant.shm_ports import DEAF_CHECK_S
-            why = None if self.fresh_ports_wanted else self.peer_watch.look()
-            if why is None:                              # (not due yet)
-                return
-            self.stale_checks += 1
-            self.stale_in_a_row = self.stale_in_a_row + 1 if why else 0
-            if self.stale_in_a_row >= 2:
-                text = (f"{why}, {(self.stale_in_a_row - 1) * DEAF_CHECK_S:g}s after it was first seen: starting "
-                        "over with a new DDS participant on fresh ports (the profile follows /clock on)")
+            """Running: a peer that still cannot reach this node (shm_ports.StalePeerWatch: a
+            live process writing to a deleted segment of its ports at two looks in a row). Seen
+            once in CI: a restarted session that followed the plant's /clock but whose
+            SessionStatus never reached the test's reader (most likely its handle, and with it
+            its discovery data, stayed on the deleted segment). It says so and starts over on
+            fresh ports (main()): the profile is a function of sim time, so the new participant
+            follows /clock with the same Commands."""
+            why = "" if self.fresh_ports_wanted else self.peer_watch.look()
+            if why:
+                text = f"{why}: starting over with a new DDS participant on fresh ports (the profile follows /clock on)"
                 self.get_logger().warning(text)
                 self._publish_diag(text, self._DiagnosticStatus.WARN)
                 self.fresh_ports_wanted = True
-            elif self.stale_checks >= STALE_PEER_CHECKS and self.stale_in_a_row == 0:
+            elif self.peer_watch.finished:
                 self.wait_timer.cancel()
 
         def _on_clock(self, msg) -> None:
