@@ -3,6 +3,7 @@ timeout -> safe state, recovery; and each node (controller, plant, session, reco
 restarted onto a stale Fast DDS shared-memory port heals itself (bike_plant.shm_ports)."""
 from __future__ import annotations
 
+import os
 import re
 import signal
 import time
@@ -494,6 +495,24 @@ def test_a_controller_restarted_on_a_stale_shared_memory_port_starts_over_on_fre
         col.close()
 
 
+def _braking_under_a_controller(col, domain, procs):
+    """A realtime plant and controller (added to ``procs``), the test as the session, braking:
+    (plant, controller, the PlantStates heard, braking(since=0)), where braking(k) re-sends the
+    Command and says whether the states since index k brake with current and no fault."""
+    cmd_pub = col.publisher(Command, "command")
+    plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
+    ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
+    procs += [plant, ctrl]
+    states = col.data["plant_state"]
+
+    def braking(since=0):
+        cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
+        new = states[since:]
+        return len(new) > 50 and all(m.faults == 0 and _peak_current(m) > 10 for m in new[-20:])
+    col.wait_for(braking, 30, "braking under the controller", procs)
+    return plant, ctrl, states, braking
+
+
 def test_a_plant_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_ports(domain):
     """The same failure the other way round: a plant killed in its listener's window and
     restarted (a new run, t = 0 held for the first DriveCommand) gets none of the running
@@ -504,17 +523,7 @@ def test_a_plant_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_po
     col = Collector(domain, {"plant_state": PlantState})
     procs = []
     try:
-        cmd_pub = col.publisher(Command, "command")
-        plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
-        ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
-        procs += [plant, ctrl]
-        states = col.data["plant_state"]
-
-        def braking(since=0):
-            cmd_pub.publish(msgconv.command_msg(0.5, 0, 0))
-            new = states[since:]
-            return len(new) > 50 and all(m.faults == 0 and _peak_current(m) > 10 for m in new[-20:])
-        col.wait_for(braking, 30, "braking under the controller", procs)
+        plant, ctrl, states, braking = _braking_under_a_controller(col, domain, procs)
         marks = []
 
         def restart():
@@ -528,6 +537,9 @@ def test_a_plant_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_po
             return "heard" if any(m.seq > 20 for m in states[marks[-1]:]) else None
         plant2 = _restart_onto_a_stale_port(repro, plant, restart, verdict, lambda: braking(marks[-1]),
                                             col, [ctrl], procs)
+        # the restarted plant is the one on the stale port: nobody writes to a deleted segment of
+        # the running controller's (its lock was held all along), which stays reachable
+        assert not shm_ports.writers_to_deleted(shm_ports.own_ports(ctrl.pid))
         k = len(states)
         col.wait_for(lambda: braking(k) and states[-1].seq > 50, 60, "the new run braking", [ctrl, plant2])
         _started_over(plant2, ctrl.pid)
@@ -572,6 +584,41 @@ def test_a_session_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh_
         col.close()
 
 
+def _unlink_port_segments(pid: int) -> list:
+    """Force the stale-port signature on a running node without the kill: map its data port's
+    segment and remove its name, as the new participant that takes a killed one's port does
+    (its writers then map a deleted segment, and a writer that opens the port later makes a new
+    segment the node never reads). The data port is the highest: the other one is the domain's
+    shared discovery port (tools/shm_stale_port_repro.find_data_listener). Returns the map
+    (close it at the end)."""
+    import mmap
+    ports = shm_ports.own_ports(pid)
+    assert ports, f"the shared-memory ports of pid {pid}"
+    maps = []
+    for port in ports[-1:]:
+        path = os.path.join(shm_ports.SHM_DIR, f"fastrtps_port{port}")
+        with open(path, "r+b") as f:
+            maps.append(mmap.mmap(f.fileno(), 0))
+        os.unlink(path)
+    return maps
+
+
+def _end(procs, col, maps) -> None:
+    stop_all(procs)
+    col.close()
+    for m in maps:
+        m.close()
+
+
+def _force_a_stale_peer(node, col, procs, maps) -> str:
+    """_unlink_port_segments on a running ``node`` (its maps added to ``maps``), then wait for
+    it to start over; returns its log, which names this test process among the writers."""
+    maps += _unlink_port_segments(node.pid)
+    col.wait_for(lambda: "on fresh shared-memory ports" in node.output(), 30,
+                 f"the {node.name} starting over on fresh ports", procs)
+    return _started_over(node, os.getpid(), stop=False)
+
+
 def test_a_running_session_that_its_peers_cannot_reach_starts_over_on_fresh_ports(domain):
     """Running, the session hears the plant's /clock, yet a peer writes to a deleted segment of
     its port: after a kill -9 a restarted session took the killed one's port, the plant's
@@ -582,8 +629,6 @@ def test_a_running_session_that_its_peers_cannot_reach_starts_over_on_fresh_port
     a deleted segment too). Seen at two looks in a row (DEAF_CHECK_S apart) it is no healing
     watchdog's: the session says so, names the writers, starts over on fresh ports and goes on
     following /clock: its statuses and Commands reach the test again."""
-    import mmap
-    import os
     col = Collector(domain, {"session_status": SessionStatus, "command": Command})
     procs = []
     maps = []
@@ -596,17 +641,7 @@ def test_a_running_session_that_its_peers_cannot_reach_starts_over_on_fresh_port
         statuses = col.data["session_status"]
         col.wait_for(lambda: any(m.state == SessionStatus.STATE_RUNNING for m in statuses), 30,
                      "the session running", procs)
-        ports = shm_ports.own_ports(session.pid)
-        assert ports, "the session's shared-memory ports"
-        for port in ports:
-            path = os.path.join(shm_ports.SHM_DIR, f"fastrtps_port{port}")
-            with open(path, "r+b") as f:
-                maps.append(mmap.mmap(f.fileno(), 0))
-            os.unlink(path)
-        col.wait_for(lambda: "on fresh shared-memory ports" in session.output(), 30,
-                     "the session starting over on fresh ports", procs)
-        out = session.output()
-        assert re.search(rf"pid\(s\) [\d, ]*\b{os.getpid()}\b[\d, ]* still write to a deleted segment", out), out[-3000:]
+        _force_a_stale_peer(session, col, procs, maps)
         mark, commands = len(statuses), col.data["command"]
         command_mark = len(commands)
         col.wait_for(lambda: any(m.state == SessionStatus.STATE_RUNNING for m in statuses[mark:]), 30,
@@ -614,11 +649,72 @@ def test_a_running_session_that_its_peers_cannot_reach_starts_over_on_fresh_port
         col.wait_for(lambda: len(commands) > command_mark + 10, 30, "the started-over session's Commands", procs)
         _started_over(session, plant.pid)
     finally:
-        stop_all(procs)
-        col.close()
-        for m in maps:
-            m.close()
+        _end(procs, col, maps)
 
+
+def test_a_running_controller_that_a_peer_cannot_reach_starts_over_on_fresh_ports(domain):
+    """A controller restarted after a kill -9 that hears the plant while another peer (the
+    session here) still writes to the killed one's deleted segment: the plant's watchdog
+    re-opened the port, the session's did not. Forced as for the session (_unlink_port_segments):
+    seen at two looks in a row the controller says so once (log and a WARN diagnostic naming
+    the writers), starts over on fresh ports, and the lockstep exchange resumes: braking again."""
+    col = Collector(domain, {"plant_state": PlantState, "/diagnostics": DiagnosticArray})
+    procs = []
+    maps = []
+    try:
+        plant, ctrl, states, braking = _braking_under_a_controller(col, domain, procs)
+        out = _force_a_stale_peer(ctrl, col, procs, maps)
+        assert out.count("after it was first seen: starting over") == 1, out[-3000:]
+        warns = [st.message for arr in col.data["/diagnostics"] for st in arr.status
+                 if st.level == DiagnosticStatus.WARN and "after it was first seen" in st.message]
+        assert warns and str(plant.pid) in warns[0], warns
+        k = len(states)
+        col.wait_for(lambda: braking(k) and len(states) > k + 100, 30, "braking again after the start over", procs)
+        _started_over(ctrl, plant.pid)
+    finally:
+        _end(procs, col, maps)
+
+
+
+def test_a_running_recorder_that_a_peer_cannot_reach_goes_on_in_the_same_bag_on_fresh_ports(domain, tmp_path):
+    """A recorder restarted after a kill -9 that hears the plant while another peer still
+    writes to the killed one's deleted segment would miss that peer's data for good. Forced as
+    for the session (_unlink_port_segments): seen at two looks in a row it says so once (log and
+    a WARN diagnostic naming the writers) and hands the bag over to a new participant on fresh
+    ports (recorder_node._hand_over). The same bag goes on, nothing lost or written twice: the
+    PlantState seqs in it are contiguous and each once, and so are the controller's answers."""
+    from std_msgs.msg import UInt64
+
+    from bike_session.bags import read_topic
+    col = Collector(domain, {"plant_state": PlantState, "recorder_progress": UInt64, "/diagnostics": DiagnosticArray})
+    procs = []
+    maps = []
+    try:
+        plant, ctrl, states, braking = _braking_under_a_controller(col, domain, procs)
+        rec = NodeProcess("bike_session", "recorder_node", domain, {"record_dir": str(tmp_path), "bag_name": "run1"})
+        procs.append(rec)
+        progress = col.data["recorder_progress"]
+        col.wait_for(lambda: braking() and len(progress) > 3, 30, "the recorder's progress", procs)
+        out = _force_a_stale_peer(rec, col, procs, maps)
+        assert out.count("after it was first seen: starting over") == 1, out[-3000:]
+        col.wait_for(lambda: f"recording on into {tmp_path / 'run1'}" in rec.output(), 10, "the hand-over", procs)
+        warns = [st.message for arr in col.data["/diagnostics"] for st in arr.status
+                 if st.level == DiagnosticStatus.WARN and "after it was first seen" in st.message]
+        assert warns and str(plant.pid) in warns[0], warns
+        k = len(progress)
+        col.wait_for(lambda: braking() and len(progress) > k + 3, 30, "the recorder's progress after the hand-over",
+                     procs)
+        plant.stop()                  # the recorder drains until the graph falls silent
+        _started_over(rec, plant.pid)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["run1"]
+        seqs = [m.seq for m in read_topic(tmp_path / "run1", "plant_state")]
+        assert len(seqs) > 200 and seqs == list(range(seqs[0], seqs[0] + len(seqs))), seqs
+        answered = [m.seq for m in read_topic(tmp_path / "run1", "controller_status")]
+        assert len(answered) == len(set(answered)) and len(answered) > 200
+        assert any("after it was first seen" in st.message for arr in read_topic(tmp_path / "run1", "/diagnostics")
+                   for st in arr.status)
+    finally:
+        _end(procs, col, maps)
 
 def test_a_session_without_a_plant_says_waiting_every_second(domain):
     """Before the first /clock the session re-publishes its WAITING status every second (and

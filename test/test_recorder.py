@@ -572,3 +572,20 @@ def test_mcap_channels_carry_the_type_hash_as_rosbag2_writes_them(tmp_path):
     killed.flush()                    # then killed: no metadata.yaml, no summary
     out = pathlib.Path(recover(tmp_path / "killed")["out"])
     assert channel_hashes(out) == want
+
+
+def test_a_hand_over_drops_only_what_the_old_participant_wrote_while_its_window_lasts():
+    """recorder_node.HandOverLog: the durable topics are remembered always (their history comes
+    again at a new reader's match), every topic from the hand-over's start; the new node's copies
+    are dropped for HANDOVER_DEDUP_S, new messages never, and then only the durable topics are kept."""
+    from bike_session.recorder_node import HANDOVER_DEDUP_S, HandOverLog
+    log = HandOverLog({"/bike/command"})
+    assert not log.again("/bike/command", b"c1", 0.0)
+    log.start(["/bike/command", "/bike/plant_state"])
+    assert not log.again("/bike/plant_state", b"s1", 1.0)
+    log.open_window(2.0)
+    assert log.again("/bike/plant_state", b"s1", 2.5) and log.again("/bike/command", b"c1", 2.5)
+    assert not log.again("/bike/plant_state", b"s2", 3.0) and log.dropped == 2
+    assert not log.again("/bike/plant_state", b"s3", 2.0 + HANDOVER_DEDUP_S)      # the window is over
+    assert set(log.seen) == {"/bike/command"} and log.capped
+    assert not log.again("/bike/command", b"c1", 10.0)                               # a copy later is not ours

@@ -163,6 +163,7 @@ class ControllerNode(Node):
         self.state_writer_since = None     # before the first PlantState: since when a plant_state writer matched
         self.stateless_warned = False      # ... and one warning when it delivered nothing
         self.unmatched_watch = shm_ports.StalePortWatch(PLANT_SILENT_S, since=time.monotonic())   # no writer matched
+        self.peer_watch = shm_ports.StalePeerWatch(since=self.started_s)   # hearing the plant (_check_stale_peers)
         # the plant waits for the recorder's reader of plant_state, not for its readers of this
         # node's topics; a graph that runs at 2x (or a realtime run) would otherwise ride its
         # first seconds before discovery matched them (a bag without ControllerStatus). Both
@@ -479,11 +480,28 @@ class ControllerNode(Node):
             self.hot.replace(old, self.sub_state)
             self.destroy_subscription(old)
 
+    def _check_stale_peers(self) -> None:
+        """Hearing the plant, yet a peer still cannot reach this node (a controller restarted
+        after a kill -9 whose session, or recorder, kept its handle on the killed one's port:
+        shm_ports.StalePeerWatch). Say so once and start over on fresh ports (run_loop_node):
+        the lockstep exchange resumes, the plant re-publishes its unanswered state and the
+        session re-sends the Commands in force."""
+        why = self.peer_watch.look()
+        if why:
+            text = f"{why}: starting over with a new DDS participant on fresh ports"
+            self.get_logger().warning(text)
+            self._publish_diag(DiagnosticStatus.WARN, text)
+            self.fresh_ports_wanted = True
+            self.stop_requested = True
+
     def run(self) -> int:
         while not self.stop_requested:
             self.hot.spin(0.1, self.busy.busy_s())
-            if self.first_state_s is None and not self.stateless_warned:
-                self._check_stateless()
+            if self.first_state_s is None:
+                if not self.stateless_warned:
+                    self._check_stateless()
+            elif not self.peer_watch.finished:
+                self._check_stale_peers()
             if self.pending is not None:
                 self._try_answer()                         # command_wait_s expiry
             if (self.state_rx is not None and not self.plant_silent

@@ -275,17 +275,20 @@ class BusyWaitGuard:
         return 0.0 if self.observers else self.configured_s
 
 
-def start_over_on_fresh_ports(node_factory, old, args, old_executor=None):
+def start_over_on_fresh_ports(node_factory, old, args, old_executor=None, before_leaving=None):
     """A node that a live writer cannot reach over shared memory (Fast DDS's stale port after
     a kill -9, bike_plant.shm_ports) starts over in a new rclpy context: a new DDS participant,
     created while the old one still holds its ports, takes fresh ones, which the writer opens
     anew. Then the old participant leaves cleanly (the others drop it at once), and its ports'
     locks are held for the rest of the process, so no later participant inherits them.
-    ``old_executor``: the old node's executor when it is not its ``executor_`` (session_node)."""
+    ``old_executor``: the old node's executor when it is not its ``executor_`` (session_node);
+    ``before_leaving(node)``: runs while both participants are up (the recorder's hand-over)."""
     old_ports = shm_ports.own_ports()
     context = rclpy.Context()
     rclpy.init(args=args, context=context)
     node = node_factory(context=context)
+    if before_leaving is not None:
+        before_leaving(node)
     old_executor = old_executor or old.executor_
     old_executor.remove_node(old)
     old_executor.shutdown()

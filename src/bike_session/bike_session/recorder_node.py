@@ -97,11 +97,61 @@ WRITERS_WAIT_S = 5.0
 # far inside the plant's recorder window (50 batches) and the readers' depth (QOS_DEPTH).
 # Measured, recorded 20 s demo: 0.97-0.98x real time waking per message, 1.09-1.21x gathering.
 GATHER_S = 0.003
+# a running recorder that starts over on fresh ports (_hand_over) records on with the old
+# participant until the new one's readers have matched as many writers, at most this long
+HANDOVER_WAIT_S = 5.0
+# ... and then drops what the new one takes that the old one wrote (its readers' queue, and the
+# transient_local history it gets at its match) for this long
+HANDOVER_DEDUP_S = 5.0
+# what a recorder's new node takes over from the old one at the hand-over (_hand_over)
+RECORDING_STATE = ("sink", "bag_paths", "run_seq_max", "_latched_raw", "_dropped_since_state", "latest_clock_ns",
+                   "last_msg_wall", "heard_any", "end_of_run_seen", "bad_stamps", "republished_dropped", "_last_raw",
+                   "resent_commands_dropped", "plant_states_written", "_pending_progress", "_writers_matched",
+                   "_hold_since", "handover")
 STORAGES = ("mcap", "sqlite3")
 
 
 class SetupError(Exception):
     """A start-up problem reported as one line on stderr (exit code 2)."""
+
+
+class HandOverLog:
+    """What a recorder wrote, per topic, so that a new participant on fresh ports (_hand_over)
+    writes nothing twice: the durable topics' last QOS_DEPTH messages always (their history
+    comes again at the new reader's match), every topic's while both participants listen
+    (:meth:`start`), and the copies the new one takes for HANDOVER_DEDUP_S after it takes over
+    (:meth:`open_window`) are dropped. Then only the durable topics are kept again."""
+
+    def __init__(self, durable_topics):
+        self.durable = set(durable_topics)
+        self.seen: dict[str, dict] = {t: {} for t in self.durable}     # insertion-ordered sets of raw messages
+        self.capped = True
+        self.dedup_until = 0.0
+        self.dropped = 0
+
+    def start(self, topics) -> None:
+        for topic in topics:
+            self.seen.setdefault(topic, {})
+        self.capped = False
+
+    def open_window(self, now: float) -> None:
+        self.dedup_until = now + HANDOVER_DEDUP_S
+
+    def again(self, topic: str, raw: bytes, now: float) -> bool:
+        """True when ``raw`` is a copy to drop (written before the hand-over); else remembers it."""
+        seen = self.seen[topic]
+        if raw in seen:
+            if now < self.dedup_until:
+                self.dropped += 1
+                return True
+            return False
+        seen[raw] = None
+        if not self.capped and self.dedup_until and now >= self.dedup_until:
+            self.seen = {t: dict.fromkeys(list(d)[-QOS_DEPTH:]) for t, d in self.seen.items() if t in self.durable}
+            self.capped = True
+        elif self.capped and len(seen) > QOS_DEPTH:
+            del seen[next(iter(seen))]
+        return False
 
 
 # ------------------------------------------------------------------- CDR helpers (no rclpy)
@@ -345,7 +395,8 @@ def _make_node_class():
     from bike_plant.loop import take_sim_time_from_messages
 
     class RecorderNode(Node):
-        def __init__(self, **kwargs):
+        def __init__(self, carry=None, **kwargs):
+            """``carry``: the recorder this one takes over from (_hand_over): its bag goes on."""
             super().__init__("recorder", **kwargs)
             take_sim_time_from_messages(self)
             record_dir = self.declare_parameter("record_dir", ".").value
@@ -374,7 +425,8 @@ def _make_node_class():
                     raise SetupError(f"{name} must be a number of seconds >= 0, got {value!r}")
             # the topics our own publishers offer transient_local (session, drive emulator)
             durable = {self.resolve_topic_name(t) for t in PREFER_LATCHED}
-            self.sink = BagSink(path, storage, typestore, topics, float(flush_period_s), durable)
+            self.sink = carry.sink if carry is not None else BagSink(path, storage, typestore, topics,
+                                                                     float(flush_period_s), durable)
             # what a new run's bag is made with (a restarted plant: _next_run_bag)
             self._bag_args = (storage, typestore, topics, float(flush_period_s), durable)
             self.bag_paths = [path]           # the first, then one per restarted plant's run
@@ -389,6 +441,9 @@ def _make_node_class():
             self.heard_any = False               # any message yet (check_deaf_start)
             from bike_plant.shm_ports import StalePortWatch
             self.deaf_watch = StalePortWatch(since=self.last_msg_wall)
+            from bike_plant.shm_ports import StalePeerWatch
+            self.peer_watch = StalePeerWatch(since=self.last_msg_wall)    # heard some (check_stale_peers)
+            self.handover = HandOverLog(durable | {self.resolve_topic_name(t) for t in LATCHED_TOPICS})
             self.fresh_ports_wanted = False
             self.end_of_run_seen = False
             self.bad_stamps = 0
@@ -419,13 +474,17 @@ def _make_node_class():
             self._to_volatile: set[str] = set()
             prefer = {self.resolve_topic_name(t) for t in PREFER_LATCHED}
             self._specs = {}
+            # topics a volatile publisher made volatile stay so in a hand-over's new node (_hand_over)
+            self._downgraded: set[str] = set(carry._downgraded) if carry is not None else set()
             for full, msgtype, has_header, latched in topics:
                 self._specs[full] = (msgtype, has_header, latched)
-                self._subscribe(full, transient_local=latched or full in prefer)
+                self._subscribe(full, transient_local=(latched or full in prefer) and full not in self._downgraded)
             self._downgrade_timer = self.create_timer(0.2, self._apply_downgrades)
             from std_msgs.msg import UInt64
             self._progress_msg = UInt64()
             # transient_local: a plant that (re)matches late still learns where the recorder is
+            from diagnostic_msgs.msg import DiagnosticArray
+            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)   # check_stale_peers
             self.pub_progress = self.create_publisher(
                 UInt64, "recorder_progress",
                 QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -466,6 +525,7 @@ def _make_node_class():
         def _apply_downgrades(self) -> None:
             while self._to_volatile:
                 full = self._to_volatile.pop()
+                self._downgraded.add(full)
                 self.get_logger().warning(f"{full}: a volatile publisher appeared; recording it with a volatile "
                                           "subscription (messages sent before it matched are not in the bag)")
                 old = self.subs.pop(full)
@@ -519,6 +579,10 @@ def _make_node_class():
                     session_heard.add(topic)
                 if self.sink.closed:
                     return
+                if topic in self.handover.seen:
+                    raw = bytes(raw)
+                    if self.handover.again(topic, raw, self.last_msg_wall):
+                        return                             # the old participant wrote it (_hand_over)
                 t_ns = self.latest_clock_ns
                 if has_header:
                     try:
@@ -641,6 +705,37 @@ def _make_node_class():
             self.fresh_ports_wanted = True
             return True
 
+        def check_stale_peers(self) -> bool:
+            """Recording, yet a peer still cannot reach this recorder (a recorder restarted after
+            a kill -9 whose plant re-opened the killed one's port while the controller, say, did
+            not: its data would be missing from the bag for good; shm_ports.StalePeerWatch). Says
+            so once (log and WARN diagnostic, naming the writers) and asks main() to hand the bag
+            over to a new participant on fresh ports (_hand_over)."""
+            if not self.heard_any or self.fresh_ports_wanted or self.peer_watch.finished:
+                return False
+            why = self.peer_watch.look()
+            if not why:
+                return False
+            text = (f"{why}: starting over with a new DDS participant on fresh ports (the bag {self.sink.path} "
+                    "goes on, nothing lost or written twice)")
+            self.get_logger().warning(text)
+            from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+            self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
+                level=DiagnosticStatus.WARN, name=self.get_fully_qualified_name(), message=text,
+                hardware_id="bike_session")]))
+            self.fresh_ports_wanted = True
+            return True
+
+        def take_over(self, old) -> None:
+            """Go on with ``old``'s recording (_hand_over): its bag and bookkeeping; the Commands
+            the callbacks hold are added in place. What this node then takes that ``old`` wrote
+            is dropped for HANDOVER_DEDUP_S."""
+            for name in RECORDING_STATE:
+                setattr(self, name, getattr(old, name))
+            self._recent_commands.extend(old._recent_commands)
+            self._session_heard.update(old._session_heard)
+            self.handover.open_window(time.monotonic())
+
     return RecorderNode
 
 
@@ -670,6 +765,8 @@ def main(args=None) -> int:
                 time.sleep(GATHER_S)
             elif node.check_deaf_start():
                 node = _start_over(node_class, node, args)
+            if node.check_stale_peers():                  # a look is due every DEAF_CHECK_S, busy or not
+                node = _hand_over(node_class, node, args)
             node.release_progress()
             if node.stop_on_end_of_run and node.end_of_run_seen:
                 break
@@ -691,6 +788,8 @@ def main(args=None) -> int:
                    if node.republished_dropped else "")
         if node.resent_commands_dropped:
             dropped += f", {node.resent_commands_dropped} re-sent Command copies not written"
+        if node.handover.dropped:
+            dropped += f", {node.handover.dropped} messages taken again at the hand-over not written"
         node.get_logger().info(f"bag closed: {node.sink.path} {counts}{dropped}")
     except SetupError as exc:
         print(f"recorder_node: error: {exc}", file=sys.stderr, flush=True)
@@ -727,6 +826,37 @@ def _start_over(node_class, old, args):
     node = start_over_on_fresh_ports(node_class, old, args)
     signal.signal(signal.SIGINT, _on_signal)        # rclpy.init of the new context installed its own
     signal.signal(signal.SIGTERM, _on_signal)
+    return node
+
+
+def _hand_over(node_class, old, args):
+    """A running recorder that a peer cannot reach (RecorderNode.check_stale_peers) goes on in
+    the same bag with a new node in a new context, on fresh ports: the old one records on
+    until the new one's readers have matched as many writers (HANDOVER_WAIT_S at most) and
+    has taken all that came; the new one then takes its bag over and drops what it takes
+    again (its queue since its match, the transient_local history)."""
+    import functools
+
+    from bike_plant.loop import start_over_on_fresh_ports
+
+    def overlap(new) -> None:
+        until = time.monotonic() + HANDOVER_WAIT_S
+        while time.monotonic() < until and any(new.subs[t].get_publisher_count() < sub.get_publisher_count()
+                                               for t, sub in old.subs.items()):
+            old.spin(0.05)
+        while old.spin(0.0):
+            pass
+        late = [t for t, sub in old.subs.items() if new.subs[t].get_publisher_count() < sub.get_publisher_count()]
+        if late:
+            old.get_logger().warning(f"the new participant's readers of {', '.join(late)} have not matched every "
+                                     f"writer in {HANDOVER_WAIT_S:g}s: their messages until they do are not in the bag")
+        new.take_over(old)
+
+    old.handover.start(old.subs)                        # every topic remembered while both listen
+    node = start_over_on_fresh_ports(functools.partial(node_class, carry=old), old, args, before_leaving=overlap)
+    signal.signal(signal.SIGINT, _on_signal)        # rclpy.init of the new context installed its own
+    signal.signal(signal.SIGTERM, _on_signal)
+    node.get_logger().info(f"recording on into {node.sink.path}")
     return node
 
 
