@@ -11,6 +11,7 @@ JIT_INLINE: ... and inlined into the fused loops (numba passes each array as 7 s
 per-period chain plant -> controller -> plant is otherwise call bound).
 JIT_COLD: ... and never inlined (with out_of_line() in its body): the rare paths of those loops.
 unlikely(cond): cond, marked rarely true for LLVM (branch weights only, no change of value).
+rmul(x, y): x * y rounded on its own (LLVM fuses it into no add): numba's complex * float.
 """
 from __future__ import annotations
 
@@ -41,6 +42,22 @@ def unlikely(typingctx, cond):
         fn = builder.module.declare_intrinsic("llvm.expect", [i1], ir.FunctionType(i1, [i1, i1]))
         return builder.call(fn, [args[0], ir.Constant(i1, 0)])
     return types.boolean(cond), codegen
+
+
+@intrinsic
+def rmul(typingctx, x, y):
+    """x * y of two float64, rounded before any add it feeds: the fmul carries only the arcp flag, so
+    the fast-math pass (which flags only instructions without flags) leaves it without 'contract'
+    and LLVM fuses it into no FMA. numba's complex * float multiplies by complex(y, 0): four
+    products, two of them by zero, each part rounded as a product before the sum it enters;
+    complex(rmul(z.real, y), rmul(z.imag, y)) gives the same bits (but for the sign of an exact
+    zero) with two."""
+    if not (x == types.float64 and y == types.float64):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fmul(args[0], args[1], flags=("arcp",))
+    return types.float64(x, y), codegen
 
 
 @intrinsic
