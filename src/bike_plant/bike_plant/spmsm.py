@@ -1157,10 +1157,12 @@ def step_period(state, p, da, db, dc, relay_request, buck_duty, ws):
         else:
             switching_segments(_clip01(da), _clip01(db), _clip01(dc), state[S_IA], state[S_IB], state[S_IC], p, ws)
             # the period's mean voltage vector (the shaft guess; the solution uses the segments)
-            vsum = complex(0.0, 0.0)
+            va_s = 0.0
+            vb_s = 0.0
             for k in range(int(ws[W_NSEG])):
-                vsum += complex(ws[W_VA + k], ws[W_VB + k]) * ws[W_T + k]
-            v1 = vsum * ej0.conjugate() * (1.0 / dt)
+                va_s += rmul(ws[W_VA + k], ws[W_T + k])        # (numba's complex * float's bits, bike_plant.jit)
+                vb_s += rmul(ws[W_VB + k], ws[W_T + k])
+            v1 = complex(va_s, vb_s) * ej0.conjugate() * (1.0 / dt)
     elif path == 2:
         vlink = p[P_VDC]
         vr = rectifier_voltage(vlink, p[P_INV_DIODE_V])
