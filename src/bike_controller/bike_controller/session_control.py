@@ -51,7 +51,6 @@ MAX_SKIPPED_S = 0.5          # the most skipped time the mode laws' clocks count
 
 
 _log = logging.getLogger("bike_controller.session_control")
-EMPTY_PACK_SOC = PACK_EMPTY_SOC   # the pack's empty mark (the plant's FAULT_PACK_EMPTY): a BMS allows charging only
 
 
 class EmptyPackGuard:
@@ -61,7 +60,7 @@ class EmptyPackGuard:
     untouched. Without it a motoring session drove the model's state of charge below zero.
     Each held step is counted (``holds``); the first of an episode is logged."""
 
-    def __init__(self, empty_soc: float = EMPTY_PACK_SOC):
+    def __init__(self, empty_soc: float = PACK_EMPTY_SOC):
         self.empty_soc = float(empty_soc)
         self.holds = 0
         self.active = False
