@@ -956,32 +956,35 @@ def cogging_mean_torque(theta_m0, dtheta, p):
 
 
 @njit(**JIT_INLINE)
+def _plus_coulomb(f, w, t_nm, p):
+    """f + t_nm tanh(w / w_s): a dry torque of magnitude t_nm opposing the rotation, smoothed
+    through standstill over w_s (spmsm.dry_friction_speed_rpm). Beyond 19 w_s it is t_nm:
+    tanh(19) = 1 - 6e-17, so no tanh and no division on that path. The sum is taken here so
+    that the product and the add stay one fused step (the kernels' bits)."""
+    if w > p[P_DRY_W19]:
+        return f + t_nm
+    if w < -p[P_DRY_W19]:
+        return f - t_nm
+    return f + t_nm * math.tanh(w / p[P_DRY_WS])
+
+
+@njit(**JIT_INLINE)
 def friction_torque(w, p):
     """Friction opposing the rotation [N m]: viscous B w (paper 001, Eq. 3) + Coulomb
     Tc tanh(w / w_s) (smoothed through standstill)."""
     f = p[P_B] * w
     if p[P_DRY_T] != 0.0:
-        # |w| > 19 w_s: tanh(19) = 1 - 6e-17, so no tanh and no division on that path
-        if w > p[P_DRY_W19]:
-            f += p[P_DRY_T]
-        elif w < -p[P_DRY_W19]:
-            f -= p[P_DRY_T]
-        else:
-            f += p[P_DRY_T] * math.tanh(w / p[P_DRY_WS])
+        f = _plus_coulomb(f, w, p[P_DRY_T], p)
     return f
 
 
 @njit(**JIT_HOT)
 def brake_torque(w, tl, p):
     """The passive dynamometer's torque opposing the rotation [N m] (load.dyno_mode brake: the
-    paper's magnetic-powder brake, section 7): TL tanh(w / w_s), smoothed through standstill
-    over the Coulomb friction's w_s (spmsm.dry_friction_speed_rpm), so it holds a stopped shaft
-    against up to TL and never turns it; beyond 19 w_s it is TL, the torque source's value."""
-    if w > p[P_DRY_W19]:
-        return tl
-    if w < -p[P_DRY_W19]:
-        return -tl
-    return tl * math.tanh(w / p[P_DRY_WS])
+    paper's magnetic-powder brake, section 7): TL tanh(w / w_s), the Coulomb friction's shape
+    (_plus_coulomb), so it holds a stopped shaft against up to TL and never turns it; beyond
+    19 w_s it is TL, the torque source's value."""
+    return _plus_coulomb(0.0, w, tl, p)
 
 
 @njit(**JIT_COLD)
