@@ -69,3 +69,16 @@ def test_fleet_figures_keys(cfg):
 def test_fleet_bad_input_is_one_clear_error(cfg, bikes, seconds):
     with pytest.raises(ValueError, match="bikes|seconds"):
         fleet.fleet_real_time(bikes, seconds)
+
+
+@pytest.mark.parametrize("check, value, message", [
+    (fleet.check_bikes, 0, "--bikes must be an integer in [1, 1000000], got 0"),
+    (fleet.check_seconds, float("inf"), "--seconds must be a number in (0, 3600], got inf"),
+    (fleet.check_threads, 0, "--threads must be an integer >= 1, got 0"),
+    (fleet.check_seed, -1, "--seed must be an integer >= 0, got -1")])
+def test_fleet_checks_name_what_the_caller_calls_the_argument(check, value, message):
+    """The CLI's option names come through the checks (as the torque map's check_grid takes them):
+    before, the CLI prefixed "--" to a message's first word when it looked like an argument."""
+    with pytest.raises(ValueError) as info:
+        check(value, message.split(" ", 1)[0])
+    assert str(info.value) == message

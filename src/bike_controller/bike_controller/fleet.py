@@ -82,24 +82,34 @@ class Fleet:
         return self.states.shape[0]
 
 
-def _check_bikes(n_bikes) -> int:
+def check_bikes(n_bikes, name: str = "bikes") -> int:
+    """The bike count as an int, or ValueError naming ``name`` (the CLI's --bikes)."""
     if isinstance(n_bikes, bool) or not isinstance(n_bikes, (int, np.integer)) or not 1 <= int(n_bikes) <= 1_000_000:
-        raise ValueError(f"bikes must be an integer in [1, 1000000], got {n_bikes!r}")
+        raise ValueError(f"{name} must be an integer in [1, 1000000], got {n_bikes!r}")
     return int(n_bikes)
 
 
-def _check_seconds(seconds) -> float:
+def check_seconds(seconds, name: str = "seconds") -> float:
+    """The simulated time as a float, or ValueError naming ``name`` (the CLI's --seconds)."""
     if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not math.isfinite(seconds) \
             or not 0.0 < seconds <= 3600.0:
-        raise ValueError(f"seconds must be a number in (0, 3600], got {seconds!r}")
+        raise ValueError(f"{name} must be a number in (0, 3600], got {seconds!r}")
     return float(seconds)
 
 
-def _check_seed(seed) -> int:
+def check_seed(seed, name: str = "seed") -> int:
+    """The seed as an int, or ValueError naming ``name`` (the CLI's --seed)."""
     # numpy's default_rng said only "expected non-negative integer"
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+        raise ValueError(f"{name} must be an integer >= 0, got {seed!r}")
     return int(seed)
+
+
+def check_threads(threads, name: str = "threads") -> int | None:
+    """The worker thread count (None: all numba has), or ValueError naming ``name`` (the CLI's --threads)."""
+    if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+        raise ValueError(f"{name} must be an integer >= 1, got {threads!r}")
+    return threads
 
 
 def make_fleet(cfg: dict, n_bikes: int, seed: int = 0, spread: bool = True) -> Fleet:
@@ -107,8 +117,8 @@ def make_fleet(cfg: dict, n_bikes: int, seed: int = 0, spread: bool = True) -> F
     bike draws its own (seeded) start speed, resistance Command and rider: start 1500-3000
     rpm, Command 0.2-1.0 (Eq. 5, resistance mode), crank torque T0 80-200 N m, target
     cadence 70-95 rpm; without it every bike is the config's bike at Command 1."""
-    n_bikes = _check_bikes(n_bikes)
-    seed = _check_seed(seed)
+    n_bikes = check_bikes(n_bikes)
+    seed = check_seed(seed)
     cfg = dict(cfg)
     cfg["load"] = dict(cfg.get("load") or {}, kind="rider")
     plant = P.plant_params_from_config(cfg)
@@ -150,9 +160,7 @@ def make_fleet(cfg: dict, n_bikes: int, seed: int = 0, spread: bool = True) -> F
 def set_threads(threads: int | None) -> int:
     """numba worker threads for the fleet (None: all numba has); returns the count in use."""
     import numba
-    if threads is not None:
-        if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-            raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
+    if check_threads(threads) is not None:
         numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     return numba.get_num_threads()
 
@@ -160,7 +168,7 @@ def set_threads(threads: int | None) -> int:
 def run(fleet: Fleet, seconds: float, chunk_periods: int = CHUNK_PERIODS) -> dict:
     """Advance every bike of `fleet` by `seconds` of simulated time (in place); returns
     wall time, throughput and the cadence trace."""
-    seconds = _check_seconds(seconds)
+    seconds = check_seconds(seconds)
     dt = fleet.control_period_s
     n = int(round(seconds / dt))
     chunk = max(1, min(int(chunk_periods), n))
@@ -218,9 +226,10 @@ def fleet_real_time(n_bikes: int = 1000, seconds: float = 2.0, threads: int | No
     and with `summaries` the per-bike list and its aggregate."""
     from bike_plant.config import load_config
 
-    n_bikes = _check_bikes(n_bikes)
-    seconds = _check_seconds(seconds)
-    seed = _check_seed(seed)
+    n_bikes = check_bikes(n_bikes)
+    seconds = check_seconds(seconds)
+    seed = check_seed(seed)
+    check_threads(threads)
     cfg = load_config(cfg_path)
     used = set_threads(threads)
     t0 = time.perf_counter()

@@ -871,15 +871,15 @@ def _cmd_fleet(opts) -> int:
     from bike_controller import fleet as F
     seconds = 2.0 if opts.seconds is None else opts.seconds
     try:
+        # the library's checks, with the names the user typed (the library's own name its arguments)
+        F.check_bikes(opts.bikes, "--bikes")
+        F.check_seconds(seconds, "--seconds")
+        F.check_threads(opts.threads, "--threads")
+        F.check_seed(opts.seed, "--seed")
         r = F.fleet_real_time(opts.bikes, seconds, threads=opts.threads, cfg_path=config, seed=opts.seed,
                               summaries=True)
     except (ValueError, ConfigError) as exc:
-        text = str(exc)
-        # the library's checks name its arguments; the user typed the options of those names
-        word = text.split(" ", 1)[0]
-        if word in ("bikes", "seconds", "threads", "seed"):
-            text = f"--{text}"
-        print(f"error: {text}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"fleet: {r['bikes']} bikes x {r['sim_s']:g} s simulated on {r['threads']} threads in {r['wall_s']:.2f} s wall "
           f"(JIT/cache load {r['jit_compile_s']:.1f} s, apart)")
