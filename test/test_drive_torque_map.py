@@ -101,6 +101,22 @@ def test_speeds_outside_the_drives_range_are_refused_by_name_and_range():
     assert DTM.speed_range_rpm(spmsm)[:2] == (2.0, float("inf"))      # 6 pole pairs; no back-EMF refusal
 
 
+@pytest.mark.parametrize("config", ["spmsm_can.yaml", "bldc_can.yaml"])
+@pytest.mark.parametrize("speed", [float("inf"), float("nan")])
+def test_a_speed_that_is_no_number_says_why_on_either_drive(config, speed):
+    """check_speeds on the SPMSM (no upper speed limit) refused inf with an empty reason, "... from 2 rpm ()",
+    and let nan through to check_grid; both checks now share one guard (finite, > 0) and say it."""
+    cfg = load_config(ROOT / "config" / config)
+    message = f"speeds: speeds must be finite numbers, got {speed:g} rpm"
+    for check in (lambda: DTM.check_speeds([1000.0, speed], cfg), lambda: DTM.measure_grid(cfg, [1000.0, speed], [1.0]),
+                  lambda: DTM.check_grid([1000.0, speed], [1.0], 6.2)):
+        with pytest.raises(ValueError) as info:
+            check()
+        assert str(info.value) == message
+    with pytest.raises(ValueError, match=r"^setpoints: setpoints must be finite numbers$"):
+        DTM.check_grid([1000.0], [speed], 6.2)
+
+
 def test_grid_tokens_take_lists_and_ranges():
     assert DTM.parse_grid(["1000,1500", "2000:3000:500"], "--speeds-rpm") == [1000, 1500, 2000, 2500, 3000]
     for bad in (["abc"], ["nan"], ["1:2"], ["3:1:1"], ["1:2:0"]):

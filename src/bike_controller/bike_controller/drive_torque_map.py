@@ -180,6 +180,16 @@ def check_times(settle_s: float, window_s: float, names=("settle_s", "window_s")
             raise ValueError(f"{name} must be in (0, {MAX_SECONDS:g}] s, got {value!r}")
 
 
+def _speed_refusal(speed_rpm: float) -> str | None:
+    """Why no drive's map holds ``speed_rpm`` (a message), or None: speeds are finite and > 0 (braking
+    needs forward rotation; the map is looked up by |speed|). check_grid's guard, which check_speeds shares."""
+    if not math.isfinite(speed_rpm):
+        return "speeds must be finite numbers"
+    if speed_rpm <= 0:
+        return "speeds must be > 0 rpm: braking needs forward rotation"
+    return None
+
+
 def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float,
                names: tuple[str, str] = ("speeds", "setpoints")) -> tuple[np.ndarray, np.ndarray]:
     """Sorted speeds and setpoints (0 added: the map's zero is measured too), or ValueError
@@ -189,11 +199,14 @@ def check_grid(speeds_rpm, setpoints_nm, max_setpoint_nm: float,
     a flat row, no inverse)."""
     speeds = np.asarray([float(s) for s in speeds_rpm], dtype=float)
     setpoints = np.asarray(sorted({float(t) for t in setpoints_nm} | {0.0}), dtype=float)
-    if speeds.size == 0 or not np.all(np.isfinite(speeds)) or not np.all(np.isfinite(setpoints)):
-        raise ValueError("speeds and setpoints must be finite numbers, at least one speed")
-    if np.any(speeds <= 0):
-        raise ValueError(f"{names[0]}: speeds must be > 0 rpm (braking needs forward rotation), got "
-                         f"{speeds.min():g} rpm")
+    if speeds.size == 0:
+        raise ValueError(f"{names[0]}: at least one speed is needed")
+    for speed in speeds:
+        reason = _speed_refusal(float(speed))
+        if reason:
+            raise ValueError(f"{names[0]}: {reason}, got {speed:g} rpm")
+    if not np.all(np.isfinite(setpoints)):
+        raise ValueError(f"{names[1]}: setpoints must be finite numbers")
     speeds = np.sort(speeds)
     if np.any(np.diff(speeds) == 0):
         raise ValueError(f"{names[0]}: speed {speeds[np.flatnonzero(np.diff(speeds) == 0)[0]]:g} rpm is given twice")
@@ -229,20 +242,21 @@ def speed_range_rpm(cfg: dict) -> tuple[float, float, str]:
 def check_speeds(speeds_rpm, cfg: dict, name: str = "speeds") -> None:
     """ValueError naming ``name`` (the CLI's --speeds-rpm) and the range for a speed outside
     :func:`speed_range_rpm`: before, 1e9 rpm failed in the plant's check of the prime mover, naming
-    its config key load.speed_rpm, and 0.0001 rpm measured a 300000 s window."""
+    its config key load.speed_rpm, and 0.0001 rpm measured a 300000 s window. A speed no map holds
+    (:func:`_speed_refusal`: not finite, <= 0) says so: inf on the SPMSM (no upper limit) ended in "()"."""
     lowest, highest, why = speed_range_rpm(cfg)
     span = f"{lowest:g} .. {math.floor(highest):g} rpm" if math.isfinite(highest) else f"from {lowest:g} rpm"
     for speed in speeds_rpm:
-        if speed <= 0:
-            reason = "speeds must be > 0 rpm: braking needs forward rotation"
-        elif speed < lowest:
+        reason = _speed_refusal(speed)
+        if reason and not math.isfinite(speed):
+            raise ValueError(f"{name}: {reason}, got {speed:g} rpm")       # no range it is outside of
+        if reason is None and speed < lowest:
             reason = (f"below {lowest:g} rpm two electrical revolutions, the shortest window, take over "
                       f"{MAX_SECONDS:g} s")
-        elif speed >= highest:
+        elif reason is None and speed >= highest:
             reason = why
-        else:
-            continue
-        raise ValueError(f"{name}: {speed:g} rpm is outside this drive's range, {span} ({reason})")
+        if reason:
+            raise ValueError(f"{name}: {speed:g} rpm is outside this drive's range, {span} ({reason})")
 
 
 def setpoint_top_nm(cfg: dict, kt_nm_per_a: float, current_limit_a: float) -> float:
