@@ -533,7 +533,8 @@ def test_the_plant_state_carries_the_packs_open_circuit_voltage(cfg):
     battery.nominal_v): it was left out, the message carried 0 V and ./bike report's battery
     figure drew an 'open-circuit voltage' at 0 V beside the 24 V bus."""
     from bike_plant import msgconv
-    plant = plant_with(cfg, battery={"nominal_v": 36.0}, inverter={"dc_link_v": 36.0})     # a 36 V set
+    plant = plant_with(cfg, battery={"nominal_v": 36.0}, inverter={"dc_link_v": 36.0},     # a 36 V set
+                       regen={"buck_output_v": 37.5})
     snap = plant.snapshot()
     assert snap["battery_ocv_v"] == 36.0
     assert msgconv.plant_state_msg(snap, 0).battery_ocv_v == 36.0
@@ -554,8 +555,30 @@ def test_a_dc_link_that_is_not_the_battery_sets_voltage_is_refused(cfg, link_v, 
 @pytest.mark.parametrize("link_v, nominal_v", [(24.0, 24.0), (21.0, 24.0), (28.8, 24.0), (36.0, 36.0)])
 def test_a_dc_link_within_the_battery_sets_span_loads(cfg, link_v, nominal_v):
     params = M.plant_params_from_config(config_variant(cfg, inverter={"dc_link_v": link_v},
-                                                       battery={"nominal_v": nominal_v}))
+                                                       battery={"nominal_v": nominal_v},
+                                                       regen={"buck_output_v": nominal_v * 25.0 / 24.0}))
     assert (params.inverter.dc_link_v, params.battery.nominal_v) == (link_v, nominal_v)
+
+
+@pytest.mark.parametrize("bus_v, nominal_v", [(5.0, 24.0), (20.9, 24.0), (28.9, 24.0), (48.0, 24.0), (25.0, 36.0)])
+def test_a_buck_bus_the_sets_charger_cannot_take_is_refused(cfg, bus_v, nominal_v):
+    """The buck's ~25 V bus feeds the 24 V set's charger (paper 001, Fig. 2/8), which the plant models
+    as one efficiency: regen.buck_output_v was read apart from battery.nominal_v, and a 5 V or 48 V
+    bus charged the 24 V set at 92 % without a word. One error naming the key, the set and the span."""
+    bad = config_variant(cfg, regen={"buck_output_v": bus_v}, battery={"nominal_v": nominal_v},
+                         inverter={"dc_link_v": nominal_v})
+    lo, hi = 0.875 * nominal_v, 1.2 * nominal_v
+    with pytest.raises(ConfigError, match=rf"regen\.buck_output_v: {bus_v:g} V does not fit battery\.nominal_v "
+                                          rf"{nominal_v:g} V: .*\({lo:.4g}\.\.{hi:.4g} V\)"):
+        M.plant_params_from_config(bad)
+
+
+@pytest.mark.parametrize("bus_v, nominal_v", [(25.0, 24.0), (21.0, 24.0), (28.8, 24.0), (37.5, 36.0)])
+def test_a_buck_bus_within_the_sets_span_loads(cfg, bus_v, nominal_v):
+    params = M.plant_params_from_config(config_variant(cfg, regen={"buck_output_v": bus_v},
+                                                       battery={"nominal_v": nominal_v},
+                                                       inverter={"dc_link_v": nominal_v}))
+    assert (params.regen.buck_output_v, params.battery.nominal_v) == (bus_v, nominal_v)
 
 
 def test_the_plant_state_battery_current_is_the_batchs_mean():

@@ -120,7 +120,8 @@ keeps the rectifier path from it); at or below 0 too (FAULT_PACK_EMPTY, PlantSta
 name), but nothing in the plant stops the inverter: the session's EmptyPackGuard holds assist at
 0 while the pack is empty (a BMS's undervoltage cut-off); a bare speed loop drains on, flagged. The inverter's link is
 ``inverter.dc_link_v``, a voltage of the pack (the paper: one 24 V set): the config is refused
-unless it lies within 0.875..1.2 x ``battery.nominal_v`` (spmsm_params.link_voltage_problem).
+unless it lies within 0.875..1.2 x ``battery.nominal_v`` (spmsm_params.link_voltage_problem), and so
+is a buck bus ``regen.buck_output_v`` outside that span (the charger's input; buck_voltage_problem).
 """
 from __future__ import annotations
 
