@@ -63,7 +63,10 @@ BAD_FILES = [
     ("- 1\n- 2\n", "expected a mapping with a 'modes:'"),
     ("machine: bldc\n", "expected a mapping with a 'modes:'"),
     ("machine: spmsm\nmodes: {friction_nms: 0.005, dry_friction_nm: 0.1}\n", "'spmsm' bike's calibration"),
-    ("modes: {friction_nms: 1.0e-4, dry_friction_nm: 0.0}\n", "None bike's calibration"),
+    # it said "a None bike's calibration"
+    ("modes: {friction_nms: 1.0e-4, dry_friction_nm: 0.0}\n", "no 'machine:' key: the controller writes the bike's "
+                                                             "kind (bldc or spmsm) with its spin-down, and this bike "
+                                                             "is 'bldc'"),
     ("machine: bldc\nmodes: {friction_nms: -1.0e-4, dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
     ("machine: bldc\nmodes: {friction_nms: .nan, dry_friction_nm: 0.0}\n", "modes.friction_nms must be"),
     ("machine: bldc\nmodes: {friction_nms: 1.0e-4, dry_friction_nm: .inf}\n", "modes.dry_friction_nm must be"),

@@ -97,6 +97,10 @@ def read_calibration(path, machine: str) -> Calibration:
     if not isinstance(doc, dict) or not isinstance(doc.get("modes"), dict):
         raise CalibrationError("expected a mapping with a 'modes:' mapping of friction_nms and dry_friction_nm "
                                "(a file the controller wrote after a spin-down)", path)
+    if "machine" not in doc:
+        # it said "a None bike's calibration"
+        raise CalibrationError(f"no 'machine:' key: the controller writes the bike's kind (bldc or spmsm) "
+                               f"with its spin-down, and this bike is {machine!r}", path)
     if doc.get("machine") != machine:
         raise CalibrationError(f"it is a {doc.get('machine')!r} bike's calibration, and this bike is {machine!r}", path)
     modes = doc["modes"]
