@@ -78,7 +78,8 @@ def test_fleet_bad_placement_is_one_clear_error(netns_arg, message):
     (["--graph", "1", "--seconds", "0.1", "--timeout", "0"], "--timeout must be a finite number > 0, got 0.0"),
     (["--graph", "1", "--seconds", "0.1", "--timeout", "nan"], "--timeout must be a finite number > 0, got nan"),
     (["--graph", "0"], "--graph expects 1..64 bikes, got 0"),
-    (["--graph", "1", "--seconds", "-1"], "--seconds must be > 0, got -1.0"),
+    (["--graph", "1", "--seconds", "-1"], "--seconds must be a finite number > 0, got -1.0"),
+    (["--graph", "1", "--seconds", "inf"], "--seconds must be a finite number > 0, got inf"),   # "must be > 0"
     (["--graph", "1", "--seconds", "1e300"],
      "--seconds must be at most 9.2e+09 (the ROS clock's int64 nanoseconds), got 1e+300"),
     (["--bikes", "2", "--seconds", "0.01", "--seed", "-1"], "--seed must be an integer >= 0, got -1"),

@@ -216,7 +216,7 @@ def check_graph_args(n_bikes: int, duration_s: float, timeout_s: float | None = 
     if isinstance(n_bikes, bool) or not isinstance(n_bikes, int) or not 1 <= n_bikes <= 64:
         raise FleetError(f"--graph expects 1..64 bikes, got {n_bikes!r}")
     if not (isinstance(duration_s, (int, float)) and math.isfinite(duration_s) and duration_s > 0):
-        raise FleetError(f"--seconds must be > 0, got {duration_s!r}")
+        raise FleetError(f"--seconds must be a finite number > 0, got {duration_s!r}")   # inf was "must be > 0"
     from bike_plant.config import MAX_SIM_TIME_S
     if duration_s > MAX_SIM_TIME_S:
         # each bike's session refused it once the fleet had started ("fleet graph: FAILED")
