@@ -860,6 +860,23 @@ def test_an_empty_path_option_is_refused_not_taken_as_not_given(argv, capsys):
     assert err.count("error:") == 1 and f"argument {argv[-2]}: empty path" in err, err
 
 
+@pytest.mark.parametrize("argv, message", [
+    ([], "the following arguments are required: COMMAND (./bike --help)"),
+    (["fleet", "--show", "nan"], "argument --show: invalid int value: 'nan' (./bike fleet --help)"),
+    (["shift", "nan"], "argument gears: invalid int value: 'nan' (./bike shift --help)"),
+    (["paper", "seed2-table1"], "the following arguments are required: --out (./bike paper --help)"),
+    (["bag", "nope"], "argument TOOL: invalid choice: 'nope' (choose from 'recover') (./bike bag --help)"),
+    (["replay"], "the following arguments are required: bag (./bike replay --help)")])
+def test_a_usage_error_is_one_line(argv, message, capsys):
+    """argparse printed the usage (up to 5 lines) before "bike fleet: error: ...": one line now,
+    "error: ..." as every other bad input, with where the usage is."""
+    from bike_session import cli
+    with pytest.raises(SystemExit) as info:
+        cli.main(argv)
+    assert info.value.code == 2
+    assert capsys.readouterr().err == f"error: {message}\n"
+
+
 HOSTILE_READER = textwrap.dedent("""
     import resource, sys, pathlib
     # at most 400 MB more address space than the interpreter with its imports already has

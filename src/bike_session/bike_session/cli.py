@@ -50,6 +50,15 @@ def default_launch_file() -> pathlib.Path:
     return repo_root() / "config" / "launch" / "bike.launch.yaml"
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with a usage error as one line, "error: ... (./bike fleet --help)": it printed the
+    usage (up to 5 lines), then "bike fleet: error: argument --show: invalid int value: 'nan'"."""
+
+    def error(self, message: str):
+        sys.stderr.write(f"error: {message} (./{self.prog} --help)\n")
+        sys.exit(2)
+
+
 def path_arg(text: str) -> str:
     """argparse type of a file or folder option: an empty value (an unset shell variable) is
     refused, not taken as not given (--record "" rode without recording, --config "" the
@@ -1033,7 +1042,7 @@ def _save_torque_map(tmap, out) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="bike", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

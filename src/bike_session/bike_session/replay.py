@@ -328,14 +328,13 @@ def _check_replay_config(config_path: pathlib.Path) -> None:
 
 def main(argv: list[str]) -> int:
     """``bike replay BAG [--config OTHER] [--load recorded|config] [--record DIR]``."""
-    import argparse
     import sys
 
     from bike_plant.config import ConfigError
 
-    from bike_session.cli import path_arg
+    from bike_session.cli import Parser, path_arg
 
-    ap = argparse.ArgumentParser(prog="bike replay", description=__doc__.split("\n\n")[0])
+    ap = Parser(prog="bike replay", description=__doc__.split("\n\n")[0])
     ap.add_argument("bag")
     ap.add_argument("--config", type=path_arg, help="the bike to ride it on (default: the recorded config)")
     ap.add_argument("--load", choices=["recorded", "config"], default="recorded",
