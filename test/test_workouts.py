@@ -608,6 +608,9 @@ def test_file_errors_and_bounds(tmp_path):
     folder.mkdir()
     with pytest.raises(WorkoutError, match="not a regular file"):
         load_workout(folder, ftp_w=250, pmax_w=PMAX)
+    # a folder without a suffix was "unsupported workout extension '(none)'"
+    with pytest.raises(WorkoutError, match=r"not a regular file \(a directory\)$"):
+        load_workout(tmp_path, ftp_w=250, pmax_w=PMAX)
     big = tmp_path / "big.erg"
     big.write_bytes(b";" * (MAX_WORKOUT_BYTES + 1))
     with pytest.raises(WorkoutError, match="too large") as info:

@@ -275,6 +275,9 @@ def load_workout(path: str | os.PathLike, *, ftp_w: float | None = None, pmax_w:
     is the rider's maximum heart rate (for a FIT target in percent of it; None: not known)."""
     path = pathlib.Path(path)
     fmt = FORMATS.get(path.suffix.lower())
+    if fmt is None and path.is_dir():
+        # a folder without a suffix was "unsupported workout extension '(none)'"
+        raise WorkoutError("not a regular file (a directory)", path)
     if fmt is None:
         known = ", ".join(sorted(FORMATS))
         raise WorkoutError(f"unsupported workout extension {path.suffix or '(none)'!r}; expected one of {known}",
