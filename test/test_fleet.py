@@ -82,3 +82,15 @@ def test_fleet_checks_name_what_the_caller_calls_the_argument(check, value, mess
     with pytest.raises(ValueError) as info:
         check(value, message.split(" ", 1)[0])
     assert str(info.value) == message
+
+
+@pytest.mark.parametrize("machine_cfg", [
+    {"machine": "spmsm", "battery": {"nominal_v": 24.0}},      # it said "battery: unknown parameter(s) nominal_v"
+    {"machine": "spmsm"},                                      # it rode the BLDC bike's defaults without a word
+    {"machine": "foo"}])
+def test_a_config_of_another_machine_is_refused_naming_the_key(cfg, machine_cfg):
+    from bike_plant.config import ConfigError
+    other = dict(cfg, **machine_cfg)
+    with pytest.raises(ConfigError, match=rf"machine: the offline fleet is the BLDC bike's batched kernel "
+                                          rf"\(paper 000\), and this config is a '{machine_cfg['machine']}' bike$"):
+        fleet.make_fleet(other, 2)

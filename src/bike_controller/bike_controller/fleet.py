@@ -24,6 +24,7 @@ from numba import njit, prange
 
 from bike_plant import bldc as K
 from bike_plant import params as P
+from bike_plant.config import machine_config
 
 from . import bldc_control as BC
 from . import speed_estimator as _se
@@ -119,7 +120,9 @@ def make_fleet(cfg: dict, n_bikes: int, seed: int = 0, spread: bool = True) -> F
     cadence 70-95 rpm; without it every bike is the config's bike at Command 1."""
     n_bikes = check_bikes(n_bikes)
     seed = check_seed(seed)
-    cfg = dict(cfg)
+    # an SPMSM config said "battery: unknown parameter(s) dump_above_soc, nominal_v", or, with none of
+    # those keys, rode the BLDC bike's defaults without a word
+    cfg = machine_config(cfg, "bldc", "the offline fleet is the BLDC bike's batched kernel (paper 000)")
     cfg["load"] = dict(cfg.get("load") or {}, kind="rider")
     plant = P.plant_params_from_config(cfg)
     nominal = P.nominal_params_from_config(cfg)
