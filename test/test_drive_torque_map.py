@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from bike_plant.can.torque_map import load_torque_map
-from bike_plant.config import load_config
+from bike_plant.config import ConfigError, load_config
 from bike_controller import drive_torque_map as DTM
 
 from conftest import bike_command
@@ -115,6 +115,22 @@ def test_a_speed_that_is_no_number_says_why_on_either_drive(config, speed):
         assert str(info.value) == message
     with pytest.raises(ValueError, match=r"^setpoints: setpoints must be finite numbers$"):
         DTM.check_grid([1000.0], [speed], 6.2)
+
+
+@pytest.mark.parametrize("machine, pole_pairs", [("bldc", 2), ("spmsm", 6)])
+def test_a_config_without_pole_pairs_takes_the_plants_default(tmp_path, machine, pole_pairs):
+    """The plant's loader takes its dataclass default for an absent pole_pairs; the torque map's
+    (and the drive emulator's) pole_pairs_of said "bldc.pole_pairs: ... got None" for such a config."""
+    from bike_controller.drive_emulator import pole_pairs_of
+    path = tmp_path / "bike.yaml"
+    path.write_text(f"/**:\n  ros__parameters: {{machine: {machine}}}\n")
+    cfg = load_config(path)
+    assert pole_pairs_of(cfg) == pole_pairs
+    assert DTM.speed_range_rpm(cfg)[0] == pytest.approx(2.0 * 60.0 / (pole_pairs * DTM.MAX_SECONDS))
+    bad = load_config(path)
+    bad[machine] = {"pole_pairs": 0}
+    with pytest.raises(ConfigError, match=rf"{machine}\.pole_pairs: pole_pairs must be an integer >= 1, got 0"):
+        pole_pairs_of(bad)
 
 
 def test_grid_tokens_take_lists_and_ranges():

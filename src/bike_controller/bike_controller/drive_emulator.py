@@ -1654,10 +1654,13 @@ EMULATED_PROTOCOLS = {OdriveCanSimple.protocol_name: DriveEmulator, VescCan.prot
 
 
 def pole_pairs_of(cfg: dict) -> int:
-    """The machine section's pole_pairs (VESC speaks electrical rpm); ConfigError if absent or bad."""
+    """The machine section's pole_pairs (VESC speaks electrical rpm), absent: the plant's default
+    (its loader's, BldcParams / SpmsmParams; a config without it said "got None"); ConfigError if bad."""
     machine = cfg.get("machine", "bldc")
     path = cfg.get("_config_path")
     value = section(cfg, machine, path).get("pole_pairs")
+    if value is None:
+        value = (M.SpmsmParams if machine == "spmsm" else P.BldcParams).pole_pairs
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ConfigError(f"pole_pairs must be an integer >= 1, got {value!r}", path, f"{machine}.pole_pairs")
     return value
