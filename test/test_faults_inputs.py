@@ -736,6 +736,7 @@ def test_run_refuses_an_invalid_namespace(namespace):
     """Every node died in rclpy.init with a traceback (an invalid remap rule)."""
     line = _one_error(_cli("run", "--duration", "1", "--namespace", namespace, timeout=60))
     assert "--namespace" in line and "Invalid namespace" in line, line
+    assert not line.endswith(":"), line            # rclpy's first line led to the two it leaves out
 
 
 @pytest.mark.parametrize("namespace", ["a b", "9bike", "bike//x"])
@@ -743,6 +744,7 @@ def test_shift_refuses_an_invalid_namespace(namespace):
     """`./bike shift 1 --namespace 'a b'` ended in rclpy's InvalidTopicNameException (a traceback)."""
     line = _one_error(_cli("shift", "1", "--domain", "7", "--namespace", namespace, timeout=60))
     assert "--namespace" in line and "Invalid namespace" in line, line
+    assert not line.endswith(":"), line
 
 
 @pytest.mark.parametrize("args, words", [

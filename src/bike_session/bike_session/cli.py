@@ -59,6 +59,18 @@ class Parser(argparse.ArgumentParser):
         sys.exit(2)
 
 
+def namespace_problem(namespace: str) -> str | None:
+    """Why ``namespace`` (--namespace, leading / trailing '/' taken off) is no ROS namespace, one line; or None.
+    rclpy's message is three lines (the name and a caret under the bad character): its first
+    ended in ':', so the name is quoted in front instead."""
+    from rclpy.validate_namespace import InvalidNamespaceException, validate_namespace
+    try:
+        validate_namespace("/" + namespace.strip("/"))
+    except InvalidNamespaceException as exc:
+        return f"--namespace {namespace!r}: {str(exc).splitlines()[0].rstrip(' :')}"
+    return None
+
+
 def path_arg(text: str) -> str:
     """argparse type of a file or folder option: an empty value (an unset shell variable) is
     refused, not taken as not given (--record "" rode without recording, --config "" the
@@ -209,12 +221,10 @@ def _cmd_run(opts) -> int:
               f"got {duration_s:g}", file=sys.stderr)
         return 2
     namespace = opts.namespace.strip("/")
-    from rclpy.validate_namespace import InvalidNamespaceException, validate_namespace
-    try:
-        validate_namespace("/" + namespace)
-    except InvalidNamespaceException as exc:
+    problem = namespace_problem(opts.namespace)
+    if problem:
         # each node would otherwise die in rclpy.init with a traceback (an invalid remap rule)
-        print(f"error: --namespace {opts.namespace!r}: {str(exc).splitlines()[0]}", file=sys.stderr)
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": namespace,
             "overrides": str(repo_root() / "config" / "launch" / "no_overrides.yaml")}

@@ -32,12 +32,11 @@ def press(steps: int, namespace: str = "bike", domain: int | None = None,
     if not 0 <= domain <= 232:
         print(f"error: --domain must be in [0, 232], got {domain}", file=sys.stderr)
         return 2
-    from rclpy.validate_namespace import InvalidNamespaceException, validate_namespace
-    try:
-        validate_namespace("/" + namespace.strip("/"))
-    except InvalidNamespaceException as exc:
+    from bike_session.cli import namespace_problem
+    problem = namespace_problem(namespace)
+    if problem:
         # create_publisher would raise InvalidTopicNameException (a traceback)
-        print(f"error: --namespace {namespace!r}: {str(exc).splitlines()[0]}", file=sys.stderr)
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     import rclpy
     from rclpy.duration import Duration
