@@ -418,6 +418,18 @@ def test_run_set_refuses_a_key_no_node_reads(capsys):
     assert cfg["clock_period_s"] == 0.005 and cfg["modes"]["auto_shift"] is True
 
 
+def test_run_set_of_another_machine_is_one_error_naming_it(capsys):
+    """--set machine=spmsm on the BLDC config said "battery: unknown parameter(s) r_brake_ohm, ..."
+    (the SPMSM loader reading the BLDC bike's sections); --set machine=bldc there changes nothing."""
+    from bike_session.cli import _set_run_config
+    assert _set_run_config(["machine=spmsm"], CONFIG) is None
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: --set: 'machine=spmsm': the sections of bldc_default.yaml are its 'bldc' bike's; ride "
+                   "another machine with --config (config/bldc_default.yaml, config/spmsm_default.yaml)"], err
+    path, cfg = _set_run_config(["machine=bldc"], CONFIG)
+    assert cfg["machine"] == "bldc"
+
+
 def test_run_set_of_a_rider_value_is_ridden_not_overridden_by_the_rider_preset(capsys):
     """The README's `--set load.rider_target_cadence_rpm=90` rode 80 rpm: load.rider_preset
     (recreational in the shipped configs) sets the rider's values over the section's own, so the

@@ -471,6 +471,11 @@ def _set_run_config(sets: list[str], config: pathlib.Path):
                 except ValueError:
                     pass
             top = parts[0].strip()
+            if top == "machine" and value != params.get("machine", "bldc"):
+                # the other machine's loader said "battery: unknown parameter(s) r_brake_ohm, ..."
+                raise ValueError(f"{item!r}: the sections of {config.name} are its {params.get('machine', 'bldc')!r} "
+                                 "bike's; ride another machine with --config (config/bldc_default.yaml, "
+                                 "config/spmsm_default.yaml)")
             if top not in params and top not in RUN_TOP_LEVEL_KEYS:
                 import difflib
                 near = difflib.get_close_matches(top, sorted(RUN_TOP_LEVEL_KEYS | set(params)), n=1)
