@@ -718,7 +718,13 @@ def test_bike_trainer_refuses_a_road_or_cadence_the_ftms_fields_cannot_carry(tmp
     (["--level", "nan"], "--level nan outside [0, 3276.7]"), (["--level", "-1"], "--level -1 outside"),
     (["--port", "70000", "--power", "100"], "--port must be 1..65535, got 70000"),
     (["--port", "-1", "--power", "100"], "--port must be 1..65535, got -1"),
-    (["--workout", "test/data/workouts/over_unders.zwo", "--ftp", "nan"], "ftp_w must be a number > 0"),
+    # the option's own error, as ./bike run's ("bad workout: FILE: ftp_w: parameter ftp_w must be ..."), and a
+    # .yaml profile (no relative targets) connected with --ftp 5000 / --max-hr -1 without a word
+    (["--workout", "test/data/workouts/over_unders.zwo", "--ftp", "nan"],
+     "error: --ftp must be in (0, 2000] W, got nan"),
+    (["--workout", "config/profiles/demo_intervals.yaml", "--ftp", "5000"], "error: --ftp must be in (0, 2000] W"),
+    (["--workout", "config/profiles/demo_intervals.yaml", "--max-hr", "-1"],
+     "error: --max-hr must be in (0, 250] bpm, got -1.0"),
     (["--workout", "test/data/workouts/over_unders.zwo"], "power targets are fractions of FTP: pass the rider's ftp_w"),
     (["--workout", "no_such_workout.erg"], "bad workout: no_such_workout.erg: cannot read workout"),
     (["--workout", "README.md"], "bad workout: README.md: unsupported workout extension '.md'")])

@@ -723,19 +723,27 @@ def _rider_figures(opts, cfg) -> tuple[float | None, float | None]:
     return ftp_w, max_hr_bpm
 
 
+def rider_options_problem(ftp_w: float | None, max_hr_bpm: float | None) -> str | None:
+    """Why --ftp / --max-hr (None: not given) are no rider's figures, one line; or None
+    (./bike run and ./bike trainer, before a workout is read)."""
+    from bike_session.workouts import MAX_FTP_W, MAX_HR_BPM
+    if ftp_w is not None and not 0 < ftp_w <= MAX_FTP_W:
+        return f"--ftp must be in (0, {MAX_FTP_W:g}] W, got {ftp_w}"
+    if max_hr_bpm is not None and not 0 < max_hr_bpm <= MAX_HR_BPM:
+        return f"--max-hr must be in (0, {MAX_HR_BPM:g}] bpm, got {max_hr_bpm}"
+    return None
+
+
 def _load_workout_for_run(opts, cfg):
     """Read the workout once before anything starts: a bad file is one error, nothing runs."""
     import warnings
 
     from bike_session.profiles import ProfileError, mode_units_from_config
-    from bike_session.workouts import MAX_HR_BPM, WorkoutWarning, describe, load_workout, pmax_w_from_config
+    from bike_session.workouts import WorkoutWarning, describe, load_workout, pmax_w_from_config
 
-    if opts.ftp is not None and not (0 < opts.ftp <= 2000):
-        print(f"error: --ftp must be in (0, 2000] W, got {opts.ftp}", file=sys.stderr)
-        return None
-    max_hr = getattr(opts, "max_hr", None)
-    if max_hr is not None and not (0 < max_hr <= MAX_HR_BPM):
-        print(f"error: --max-hr must be in (0, {MAX_HR_BPM:g}] bpm, got {max_hr}", file=sys.stderr)
+    problem = rider_options_problem(opts.ftp, getattr(opts, "max_hr", None))
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
         return None
     try:
         with warnings.catch_warnings(record=True) as caught:

@@ -189,9 +189,15 @@ def workout_problem(opts) -> str | None:
     trainer's own (where a target beyond them is said)."""
     import warnings
 
+    from bike_session.cli import rider_options_problem
     from bike_session.profiles import ModeUnits, ProfileError
     from bike_session.workouts import load_workout
 
+    # the options' own error, as ./bike run's: a .zwo's was "bad workout: FILE: ftp_w: parameter ftp_w must
+    # be ...", and a .yaml profile (no relative targets) took --ftp 5000 without a word
+    rider = rider_options_problem(opts.ftp, getattr(opts, "max_hr", None))
+    if rider:
+        return rider
     widest = ModeUnits(float(0x7FFF), -0x8000 / 1000.0, 0x7FFF / 1000.0, 0.0, 1.0)
     try:
         with warnings.catch_warnings():
