@@ -430,6 +430,19 @@ def test_run_set_of_another_machine_is_one_error_naming_it(capsys):
     assert cfg["machine"] == "bldc"
 
 
+@pytest.mark.parametrize("map_text, words", [("- 1\n", "expected a mapping 'drive_torque_map:' at the top"),
+                                             (None, "cannot read it (No such file or directory)")])
+def test_run_refuses_a_torque_map_the_plant_cannot_use_before_any_node_starts(tmp_path, map_text, words):
+    """A can.torque_map_file the plant node could not use was its error once the graph (and the drive
+    emulator) had started: "[launcher] node 'plant' exited with code 2", exit 1. One error now."""
+    bad = tmp_path / "map.yaml"
+    if map_text is not None:
+        bad.write_text(map_text)
+    line = _one_error(_cli("run", "--config", str(ROOT / "config" / "bldc_can.yaml"), "--duration", "1",
+                           "--set", f"can.torque_map_file={bad}", timeout=90))
+    assert line == f"error: --set: {ROOT / 'config' / 'bldc_can.yaml'}: can.torque_map_file: {bad}: {words}", line
+
+
 def test_run_set_of_a_rider_value_is_ridden_not_overridden_by_the_rider_preset(capsys):
     """The README's `--set load.rider_target_cadence_rpm=90` rode 80 rpm: load.rider_preset
     (recreational in the shipped configs) sets the rider's values over the section's own, so the

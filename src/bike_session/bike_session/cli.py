@@ -397,7 +397,7 @@ def _check_config(cfg: dict) -> None:
     """What the nodes build first from a config, without building them: ValueError naming the
     key (the plant node's top-level numbers, the session's keys, numbers and over_range, the
     modes section, the friction figures, the machine's plant and controller parameters, the
-    controller node's own numbers)."""
+    controller node's own numbers, a CAN drive's torque map)."""
     from bike_plant.config import ConfigError, check_plant_numbers
 
     from bike_controller.modes import modes_from_config
@@ -432,6 +432,10 @@ def _check_config(cfg: dict) -> None:
     plant_params_from_config(cfg)
     controller_params_from_config(cfg)
     controller_node_numbers(cfg)        # the controller node's own (command_wait_s, ...)
+    if str(cfg.get("backend", "sim")) == "can":
+        # the plant node's: a map it cannot use was its error once the graph (and the drive emulator) had started
+        from bike_plant.can.backend import can_params_from_config, torque_map_of
+        torque_map_of(cfg, can_params_from_config(cfg))
 
 
 # the top-level keys a node reads (besides the config's own): --set of another is a typo that
