@@ -1185,7 +1185,11 @@ def test_config_section_and_emulator_arguments(tmp_path):
                              ("velocity_limit_rev_s", 0.0, "go together"), ("current_limit_a", 0.0, "go together"),
                              # a drive at heartbeat_msg_rate_ms 500 told in the config, the timeout left at 0.3 s
                              ("heartbeat_period_s", 0.5, "must be longer than heartbeat_period_s"),
-                             ("watchdog_feed_s", 0.5, "must be shorter than the drive's watchdog")):
+                             ("watchdog_feed_s", 0.5, "must be shorter than the drive's watchdog"),
+                             # it failed in the plant and the drive emulator once the graph had started
+                             ("channel", "nope", r"channel: udp_multicast takes a multicast group address .*, "
+                                                 "got 'nope'"),
+                             ("channel", "10.0.0.1", "got '10.0.0.1'")):
         bad = load_config(CAN_CONFIG)
         bad["can"][key] = value
         with pytest.raises(ConfigError, match=text):

@@ -209,6 +209,11 @@ class CanParams:
                              f"set request: [] (got {self.request})")
         if not 0 <= self.port <= 65535:
             raise ValueError(f"port must be in 0..65535, got {self.port}")
+        if self.interface == "udp_multicast" and not _is_multicast(self.channel):
+            # python-can's UdpMulticastBus joins a group: channel nope failed in the plant and the drive
+            # emulator once the graph had started ("Name or service not known", two nodes)
+            raise ValueError(f"channel: udp_multicast takes a multicast group address (IPv4 224.0.0.0/4 or IPv6 "
+                             f"ff00::/8, e.g. 239.74.163.2), got {self.channel!r}")
         for name in ("heartbeat_period_s", "heartbeat_timeout_s", "measurement_timeout_s", "watchdog_feed_s",
                      "request_period_s",
                      "enable_retry_s", "bitrate"):
@@ -254,6 +259,14 @@ class CanParams:
     def describe(self) -> str:
         port = f" port {self.port}" if self.interface == "udp_multicast" and self.port else ""
         return f"node {self.node_id} on {self.interface} {self.channel}{port}"
+
+
+def _is_multicast(channel) -> bool:
+    import ipaddress
+    try:
+        return ipaddress.ip_address(str(channel)).is_multicast
+    except ValueError:
+        return False
 
 
 def can_params_from_config(cfg: dict) -> CanParams:
