@@ -94,3 +94,15 @@ def test_a_config_of_another_machine_is_refused_naming_the_key(cfg, machine_cfg)
     with pytest.raises(ConfigError, match=rf"machine: the offline fleet is the BLDC bike's batched kernel "
                                           rf"\(paper 000\), and this config is a '{machine_cfg['machine']}' bike$"):
         fleet.make_fleet(other, 2)
+
+
+def test_less_than_one_control_period_is_refused_naming_the_argument(cfg):
+    """--seconds 1e-5 (a tenth of a 50 us period) ran no period and ended in a ZeroDivisionError
+    traceback (ns per bike-period); one period runs."""
+    with pytest.raises(ValueError) as info:
+        fleet.fleet_real_time(2, 1e-5, threads=2, names={"seconds": "--seconds"})
+    assert str(info.value) == "--seconds must be at least one control period (5e-05 s), got 1e-05"
+    f = fleet.make_fleet(cfg, 2)
+    with pytest.raises(ValueError, match=r"^seconds must be at least one control period \(5e-05 s\), got 1e-09$"):
+        fleet.run(f, 1e-9)
+    assert fleet.run(f, f.control_period_s)["periods"] == 1

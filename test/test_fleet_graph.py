@@ -86,6 +86,8 @@ def test_fleet_bad_placement_is_one_clear_error(netns_arg, message):
     # the offline fleet's own checks named its arguments (bikes, seconds, threads), not the options
     (["--bikes", "0"], "--bikes must be an integer in [1, 1000000], got 0"),
     (["--bikes", "2", "--seconds", "-1"], "--seconds must be a number in (0, 3600], got -1.0"),
+    # no period ran: a ZeroDivisionError traceback
+    (["--bikes", "2", "--seconds", "1e-5"], "--seconds must be at least one control period (5e-05 s), got 1e-05"),
     (["--bikes", "2", "--seconds", "0.01", "--threads", "0"], "--threads must be an integer >= 1, got 0"),
     (["--bikes", "2", "--seconds", "0.01", "--show", "-3"], "--show must be >= 0 (bikes to print), got -3"),
     # the other mode's options were dropped without a word (--graph 1 --bikes 50 rode one bike)

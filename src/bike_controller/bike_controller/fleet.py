@@ -90,11 +90,15 @@ def check_bikes(n_bikes, name: str = "bikes") -> int:
     return int(n_bikes)
 
 
-def check_seconds(seconds, name: str = "seconds") -> float:
-    """The simulated time as a float, or ValueError naming ``name`` (the CLI's --seconds)."""
+def check_seconds(seconds, name: str = "seconds", period_s: float = 0.0) -> float:
+    """The simulated time as a float, or ValueError naming ``name`` (the CLI's --seconds); with
+    ``period_s`` (the bikes' control period) at least one period: less ran no period and ended in a
+    ZeroDivisionError traceback (ns per bike-period)."""
     if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not math.isfinite(seconds) \
             or not 0.0 < seconds <= 3600.0:
         raise ValueError(f"{name} must be a number in (0, 3600], got {seconds!r}")
+    if seconds < period_s:
+        raise ValueError(f"{name} must be at least one control period ({period_s:g} s), got {seconds!r}")
     return float(seconds)
 
 
@@ -171,7 +175,7 @@ def set_threads(threads: int | None) -> int:
 def run(fleet: Fleet, seconds: float, chunk_periods: int = CHUNK_PERIODS) -> dict:
     """Advance every bike of `fleet` by `seconds` of simulated time (in place); returns
     wall time, throughput and the cadence trace."""
-    seconds = check_seconds(seconds)
+    seconds = check_seconds(seconds, period_s=fleet.control_period_s)
     dt = fleet.control_period_s
     n = int(round(seconds / dt))
     chunk = max(1, min(int(chunk_periods), n))
@@ -221,22 +225,26 @@ def bike_summaries(fleet: Fleet, sim_s: float, speed_trace: np.ndarray) -> list[
 
 
 def fleet_real_time(n_bikes: int = 1000, seconds: float = 2.0, threads: int | None = 2, cfg_path=None,
-                    seed: int = 0, summaries: bool = False) -> dict:
+                    seed: int = 0, summaries: bool = False, names: dict[str, str] | None = None) -> dict:
     """Compile (or load from cache), then run `n_bikes` for `seconds`: the fleet figures.
+    ValueError for a bad argument, naming it as ``names`` says (the CLI: bikes -> --bikes, seconds,
+    threads, seed), checked before the config is read (seconds against its control period after).
 
     Keys: bikes, threads, sim_s, wall_s, real_time (sim s per wall s of the whole fleet),
     bikes_in_real_time (= bike-seconds per wall second), ns_per_bike_period, jit_compile_s,
     and with `summaries` the per-bike list and its aggregate."""
     from bike_plant.config import load_config
 
-    n_bikes = check_bikes(n_bikes)
-    seconds = check_seconds(seconds)
-    seed = check_seed(seed)
-    check_threads(threads)
+    names = {key: (names or {}).get(key, key) for key in ("bikes", "seconds", "threads", "seed")}
+    n_bikes = check_bikes(n_bikes, names["bikes"])
+    seconds = check_seconds(seconds, names["seconds"])
+    seed = check_seed(seed, names["seed"])
+    check_threads(threads, names["threads"])
     cfg = load_config(cfg_path)
     used = set_threads(threads)
     t0 = time.perf_counter()
     warm = make_fleet(cfg, min(n_bikes, 2 * max(used, 1)), seed)
+    check_seconds(seconds, names["seconds"], warm.control_period_s)
     run(warm, 20 * warm.control_period_s, 10)
     compile_s = time.perf_counter() - t0
     fleet = make_fleet(cfg, n_bikes, seed)

@@ -907,13 +907,9 @@ def _cmd_fleet(opts) -> int:
     from bike_controller import fleet as F
     seconds = 2.0 if opts.seconds is None else opts.seconds
     try:
-        # the library's checks, with the names the user typed (the library's own name its arguments)
-        F.check_bikes(opts.bikes, "--bikes")
-        F.check_seconds(seconds, "--seconds")
-        F.check_threads(opts.threads, "--threads")
-        F.check_seed(opts.seed, "--seed")
+        # the library's checks name the options the user typed (its own name its arguments)
         r = F.fleet_real_time(opts.bikes, seconds, threads=opts.threads, cfg_path=config, seed=opts.seed,
-                              summaries=True)
+                              summaries=True, names={k: f"--{k}" for k in ("bikes", "seconds", "threads", "seed")})
     except (ValueError, ConfigError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
