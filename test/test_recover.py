@@ -166,6 +166,26 @@ def test_a_closed_bag_whose_data_file_was_cut_short_is_recovered(tmp_path):
     assert [m.data for m in got] == [f"m{k:05d}" * 50 for k in range(len(got))]
 
 
+def test_a_data_file_cut_inside_its_first_record_says_so(tmp_path):
+    """mcap's EndOfFile carries no text: the error ended in "(EndOfFile: )"."""
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    sink = BagSink(tmp_path / "cut", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)], flush_period_s=0.1)
+    for k in range(200):
+        sink.write("/x", k * 1_000_000, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=f"m{k:05d}" * 50),
+                                             "std_msgs/msg/String"))
+    sink.close()
+    (data,) = (tmp_path / "cut").glob("*.mcap")
+    with open(data, "r+b") as fh:
+        fh.truncate(3000)
+    (tmp_path / "cut" / "metadata.yaml").unlink()
+    with pytest.raises(BagError) as err:
+        recover(tmp_path / "cut")
+    assert str(err.value).endswith("no complete message survived (stopped at a torn or invalid record "
+                                   "(EndOfFile: the data ends inside it))"), err.value
+
+
 def test_a_whole_data_file_without_its_metadata_is_recovered(tmp_path):
     """A recorder killed after its MCAP was closed but before metadata.yaml was written (rosbags
     writes the file first), or a .mcap copied alone: the file's summary repeats the Schema and

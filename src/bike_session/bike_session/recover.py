@@ -186,7 +186,14 @@ def _recover_mcap(src: pathlib.Path, out: _Out) -> str:
         except Exception as exc:  # noqa: BLE001 - McapError, EndOfFile, struct.error, ... from a torn tail
             # the torn tail of a killed writer ends up here; everything before it is kept
             from bike_session.bags import _reason
-            what = _reason(exc) if isinstance(exc, MemoryError) else f"{type(exc).__name__}: {exc}"
+            name, text = type(exc).__name__, str(exc).strip()
+            if isinstance(exc, MemoryError):
+                what = _reason(exc)
+            elif text:
+                what = f"{name}: {text}"
+            else:
+                # mcap's EndOfFile carries no text: it read "(EndOfFile: )"
+                what = f"{name}: the data ends inside it" if name == "EndOfFile" else name
             stop = f"stopped at a torn or invalid record ({what})"
     if problem is not None:
         stop = f"stopped before an invalid chunk ({problem[1]})"
