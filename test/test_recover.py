@@ -186,6 +186,25 @@ def test_a_data_file_cut_inside_its_first_record_says_so(tmp_path):
                                    "(EndOfFile: the data ends inside it))"), err.value
 
 
+@pytest.mark.parametrize("metadata", ["", "- 1\n", "rosbag2_bagfile_information:\n  version: 5\n"])
+def test_a_bag_whose_metadata_is_damaged_says_so_and_is_recovered(tmp_path, metadata):
+    """An empty or foreign metadata.yaml read "cannot open bag: Invalid bag metadata: 'NoneType' object
+    is not subscriptable; if its data file was cut short, ./bike bag recover ...": the data file was whole."""
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    sink = BagSink(tmp_path / "b", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)], flush_period_s=0.1)
+    for k in range(20):
+        sink.write("/x", k * 1_000_000, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=f"m{k}"),
+                                             "std_msgs/msg/String"))
+    sink.close()
+    (tmp_path / "b" / "metadata.yaml").write_text(metadata)
+    with pytest.raises(BagError, match=r"cannot open bag: .*; its metadata\.yaml is damaged: ./bike bag recover "
+                                       r"rebuilds the bag from the data files$"):
+        open_bag(tmp_path / "b")
+    assert recover(tmp_path / "b")["messages"] == 20
+
+
 def test_a_whole_data_file_without_its_metadata_is_recovered(tmp_path):
     """A recorder killed after its MCAP was closed but before metadata.yaml was written (rosbags
     writes the file first), or a .mcap copied alone: the file's summary repeats the Schema and

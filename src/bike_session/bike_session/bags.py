@@ -91,9 +91,15 @@ class Bag:
         except Exception as exc:  # noqa: BLE001 - rosbags raises many error classes
             # a data file cut short (a copy or disk that ran out, a crash after the metadata)
             # reads as "File end magic is invalid": say where the rescue is
-            hint = "; if its data file was cut short, ./bike bag recover rescues what survived" \
-                if any(self.path.glob("*.mcap")) or any(self.path.glob("*.db3")) else ""
-            raise BagError(f"cannot open bag: {_reason(exc).rstrip('.')}{hint}", self.path) from None
+            reason = _reason(exc).rstrip(".")
+            hint = ""
+            if any(self.path.glob("*.mcap")) or any(self.path.glob("*.db3")):
+                # rosbags' "Invalid bag metadata: 'NoneType' object is not subscriptable" or "A metadata
+                # key is missing" is metadata.yaml's damage, not a data file's: recover rebuilds it too
+                hint = ("; its metadata.yaml is damaged: ./bike bag recover rebuilds the bag from the data files"
+                        if "metadata" in reason.lower() else
+                        "; if its data file was cut short, ./bike bag recover rescues what survived")
+            raise BagError(f"cannot open bag: {reason}{hint}", self.path) from None
         self._reader = reader
         self.typestore = reader.typestore
         self._connections = reader.connections
