@@ -757,6 +757,15 @@ def test_bike_trainer_refuses_an_option_that_means_nothing_with_the_others(args,
     assert result.stdout == ""
 
 
+@pytest.mark.parametrize("args", [["--find", "--seconds", "1e300"], ["--port", "1", "--seconds", "1e300"]])
+def test_bike_trainer_refuses_seconds_no_clock_counts(args):
+    """--find --seconds 1e300 ended in time.sleep's OverflowError traceback."""
+    from conftest import bike_command
+    result = bike_command("trainer", *args, timeout=60)
+    assert result.returncode == 2 and result.stdout == "", result.stderr
+    assert result.stderr == "error: --seconds must be at most 9.2e+09 (a clock's int64 nanoseconds), got 1e+300\n"
+
+
 def test_bike_trainer_sends_grades_as_zwift_does_at_a_trainer_difficulty():
     """Zwift's trainer difficulty (research notes, trainers.md section 3): the grade scaled by it,
     descents halved again (-10 % -> -2.5 % at 50 %); none given: the grade as it is. A profile's

@@ -974,6 +974,12 @@ def _cmd_trainer(opts) -> int:
     if not (opts.seconds > 0 and math.isfinite(opts.seconds)):
         print(f"error: --seconds must be a finite number > 0, got {opts.seconds}", file=sys.stderr)
         return 2
+    from bike_plant.config import MAX_SIM_TIME_S
+    if opts.seconds > MAX_SIM_TIME_S:
+        # --find --seconds 1e300 ended in time.sleep's OverflowError traceback
+        print(f"error: --seconds must be at most {MAX_SIM_TIME_S:g} (a clock's int64 nanoseconds), "
+              f"got {opts.seconds:g}", file=sys.stderr)
+        return 2
     return trainer_probe.main(opts)
 
 
