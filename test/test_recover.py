@@ -141,20 +141,26 @@ def test_recover_refuses_a_complete_bag(tmp_path):
         recover(tmp_path / "ok")
 
 
+def _string_bag(path: pathlib.Path, count: int) -> pathlib.Path:
+    """A closed MCAP bag at ``path`` of ``count`` std_msgs/String on /x ("m00000" x 50 ...), 1 ms
+    apart; its data file."""
+    from bike_session.recorder_node import BagSink, build_typestore
+
+    ts = build_typestore()
+    sink = BagSink(path, "mcap", ts, [("/x", "std_msgs/msg/String", False, False)], flush_period_s=0.1)
+    for k in range(count):
+        sink.write("/x", k * 1_000_000, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=f"m{k:05d}" * 50),
+                                             "std_msgs/msg/String"))
+    sink.close()
+    (data,) = path.glob("*.mcap")
+    return data
+
+
 def test_a_closed_bag_whose_data_file_was_cut_short_is_recovered(tmp_path):
     """A bag copied or kept on a disk that ran out has its metadata.yaml but half its data
     file: opening it says where the rescue is, and recover, which refused it as "closed
     properly", rescues what survived."""
-    from bike_session.recorder_node import BagSink, build_typestore
-
-    ts = build_typestore()
-    sink = BagSink(tmp_path / "cut", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)],
-                   flush_period_s=0.1)
-    for k in range(2000):
-        sink.write("/x", k * 1_000_000, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=f"m{k:05d}" * 50),
-                                             "std_msgs/msg/String"))
-    sink.close()
-    (data,) = (tmp_path / "cut").glob("*.mcap")
+    data = _string_bag(tmp_path / "cut", 2000)
     with open(data, "r+b") as fh:
         fh.truncate(data.stat().st_size // 2)
     with pytest.raises(BagError, match="cannot open bag: .*bike bag recover rescues what survived") as err:
@@ -168,15 +174,7 @@ def test_a_closed_bag_whose_data_file_was_cut_short_is_recovered(tmp_path):
 
 def test_a_data_file_cut_inside_its_first_record_says_so(tmp_path):
     """mcap's EndOfFile carries no text: the error ended in "(EndOfFile: )"."""
-    from bike_session.recorder_node import BagSink, build_typestore
-
-    ts = build_typestore()
-    sink = BagSink(tmp_path / "cut", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)], flush_period_s=0.1)
-    for k in range(200):
-        sink.write("/x", k * 1_000_000, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=f"m{k:05d}" * 50),
-                                             "std_msgs/msg/String"))
-    sink.close()
-    (data,) = (tmp_path / "cut").glob("*.mcap")
+    data = _string_bag(tmp_path / "cut", 200)
     with open(data, "r+b") as fh:
         fh.truncate(3000)
     (tmp_path / "cut" / "metadata.yaml").unlink()
@@ -190,14 +188,7 @@ def test_a_data_file_cut_inside_its_first_record_says_so(tmp_path):
 def test_a_bag_whose_metadata_is_damaged_says_so_and_is_recovered(tmp_path, metadata):
     """An empty or foreign metadata.yaml read "cannot open bag: Invalid bag metadata: 'NoneType' object
     is not subscriptable; if its data file was cut short, ./bike bag recover ...": the data file was whole."""
-    from bike_session.recorder_node import BagSink, build_typestore
-
-    ts = build_typestore()
-    sink = BagSink(tmp_path / "b", "mcap", ts, [("/x", "std_msgs/msg/String", False, False)], flush_period_s=0.1)
-    for k in range(20):
-        sink.write("/x", k * 1_000_000, ts.serialize_cdr(ts.types["std_msgs/msg/String"](data=f"m{k}"),
-                                             "std_msgs/msg/String"))
-    sink.close()
+    _string_bag(tmp_path / "b", 20)
     (tmp_path / "b" / "metadata.yaml").write_text(metadata)
     with pytest.raises(BagError, match=r"cannot open bag: .*; its metadata\.yaml is damaged: ./bike bag recover "
                                        r"rebuilds the bag from the data files$"):

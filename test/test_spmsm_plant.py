@@ -6,6 +6,7 @@ import cmath
 import copy
 import math
 import pathlib
+import re
 
 import numpy as np
 import pytest
@@ -540,45 +541,42 @@ def test_the_plant_state_carries_the_packs_open_circuit_voltage(cfg):
     assert msgconv.plant_state_msg(snap, 0).battery_ocv_v == 36.0
 
 
-@pytest.mark.parametrize("link_v, nominal_v", [(400.0, 24.0), (20.9, 24.0), (28.9, 24.0), (24.0, 36.0)])
-def test_a_dc_link_that_is_not_the_battery_sets_voltage_is_refused(cfg, link_v, nominal_v):
+def _battery_set(nominal_v: float, key: str, volts: float) -> dict:
+    """config_variant's sections of a set of ``nominal_v`` (its link at nominal_v, its buck's bus at
+    25/24 of it, as the paper's) with ``key`` (section.name) at ``volts``."""
+    sections = {"battery": {"nominal_v": nominal_v}, "inverter": {"dc_link_v": nominal_v},
+                "regen": {"buck_output_v": nominal_v * 25.0 / 24.0}}
+    section, name = key.split(".")
+    sections[section][name] = volts
+    return sections
+
+
+@pytest.mark.parametrize("key, volts, nominal_v", [
+    ("inverter.dc_link_v", 400.0, 24.0), ("inverter.dc_link_v", 20.9, 24.0), ("inverter.dc_link_v", 28.9, 24.0),
+    ("inverter.dc_link_v", 24.0, 36.0),
+    # the buck's bus feeds the set's charger (paper 001, Fig. 2/8), which the plant models as one efficiency:
+    # a 5 V or 48 V bus charged the 24 V set at 92 % without a word
+    ("regen.buck_output_v", 5.0, 24.0), ("regen.buck_output_v", 20.9, 24.0), ("regen.buck_output_v", 28.9, 24.0),
+    ("regen.buck_output_v", 48.0, 24.0), ("regen.buck_output_v", 25.0, 36.0)])
+def test_a_voltage_that_is_not_the_battery_sets_is_refused(cfg, key, volts, nominal_v):
     """The inverter runs from the battery set (paper 001: one 24 V set, charged through the rectifier,
     buck and charger): inverter.dc_link_v and battery.nominal_v were read apart, and a 400 V link on
-    the 24 V set loaded. One error naming both keys and values, and the set's span."""
-    bad = config_variant(cfg, inverter={"dc_link_v": link_v}, battery={"nominal_v": nominal_v})
+    the 24 V set loaded; so was regen.buck_output_v. One error naming both keys and values, and the set's span."""
+    bad = config_variant(cfg, **_battery_set(nominal_v, key, volts))
     lo, hi = 0.875 * nominal_v, 1.2 * nominal_v
-    with pytest.raises(ConfigError, match=rf"inverter\.dc_link_v: {link_v:g} V does not fit battery\.nominal_v "
+    with pytest.raises(ConfigError, match=rf"{re.escape(key)}: {volts:g} V does not fit battery\.nominal_v "
                                           rf"{nominal_v:g} V: .*\({lo:.4g}\.\.{hi:.4g} V"):
         M.plant_params_from_config(bad)
 
 
-@pytest.mark.parametrize("link_v, nominal_v", [(24.0, 24.0), (21.0, 24.0), (28.8, 24.0), (36.0, 36.0)])
-def test_a_dc_link_within_the_battery_sets_span_loads(cfg, link_v, nominal_v):
-    params = M.plant_params_from_config(config_variant(cfg, inverter={"dc_link_v": link_v},
-                                                       battery={"nominal_v": nominal_v},
-                                                       regen={"buck_output_v": nominal_v * 25.0 / 24.0}))
-    assert (params.inverter.dc_link_v, params.battery.nominal_v) == (link_v, nominal_v)
-
-
-@pytest.mark.parametrize("bus_v, nominal_v", [(5.0, 24.0), (20.9, 24.0), (28.9, 24.0), (48.0, 24.0), (25.0, 36.0)])
-def test_a_buck_bus_the_sets_charger_cannot_take_is_refused(cfg, bus_v, nominal_v):
-    """The buck's ~25 V bus feeds the 24 V set's charger (paper 001, Fig. 2/8), which the plant models
-    as one efficiency: regen.buck_output_v was read apart from battery.nominal_v, and a 5 V or 48 V
-    bus charged the 24 V set at 92 % without a word. One error naming the key, the set and the span."""
-    bad = config_variant(cfg, regen={"buck_output_v": bus_v}, battery={"nominal_v": nominal_v},
-                         inverter={"dc_link_v": nominal_v})
-    lo, hi = 0.875 * nominal_v, 1.2 * nominal_v
-    with pytest.raises(ConfigError, match=rf"regen\.buck_output_v: {bus_v:g} V does not fit battery\.nominal_v "
-                                          rf"{nominal_v:g} V: .*\({lo:.4g}\.\.{hi:.4g} V\)"):
-        M.plant_params_from_config(bad)
-
-
-@pytest.mark.parametrize("bus_v, nominal_v", [(25.0, 24.0), (21.0, 24.0), (28.8, 24.0), (37.5, 36.0)])
-def test_a_buck_bus_within_the_sets_span_loads(cfg, bus_v, nominal_v):
-    params = M.plant_params_from_config(config_variant(cfg, regen={"buck_output_v": bus_v},
-                                                       battery={"nominal_v": nominal_v},
-                                                       inverter={"dc_link_v": nominal_v}))
-    assert (params.regen.buck_output_v, params.battery.nominal_v) == (bus_v, nominal_v)
+@pytest.mark.parametrize("key, volts, nominal_v", [
+    ("inverter.dc_link_v", 24.0, 24.0), ("inverter.dc_link_v", 21.0, 24.0), ("inverter.dc_link_v", 28.8, 24.0),
+    ("inverter.dc_link_v", 36.0, 36.0), ("regen.buck_output_v", 25.0, 24.0), ("regen.buck_output_v", 21.0, 24.0),
+    ("regen.buck_output_v", 28.8, 24.0), ("regen.buck_output_v", 37.5, 36.0)])
+def test_a_voltage_within_the_battery_sets_span_loads(cfg, key, volts, nominal_v):
+    params = M.plant_params_from_config(config_variant(cfg, **_battery_set(nominal_v, key, volts)))
+    section, name = key.split(".")
+    assert (getattr(getattr(params, section), name), params.battery.nominal_v) == (volts, nominal_v)
 
 
 def test_the_plant_state_battery_current_is_the_batchs_mean():

@@ -243,27 +243,25 @@ class SpmsmPlantParams:
 LINK_PER_NOMINAL = (0.875, 1.2)
 
 
-def _set_span_v(nominal_v: float) -> tuple[float, float]:
-    """(lowest, highest) voltage [V] of a set of ``nominal_v``: LINK_PER_NOMINAL x nominal_v."""
-    return LINK_PER_NOMINAL[0] * nominal_v, LINK_PER_NOMINAL[1] * nominal_v
-
-
-def _within(volts: float, span: tuple[float, float]) -> bool:
-    return span[0] * (1.0 - 1e-9) <= volts <= span[1] * (1.0 + 1e-9)       # 1.2 x 24 is 28.799999999999997
+def _set_span_problem(volts: float, nominal_v: float, why: str, note: str = "") -> str | None:
+    """``volts`` outside the span of a set of ``nominal_v`` (LINK_PER_NOMINAL x nominal_v): the
+    message, ``why`` leading to the span; None inside."""
+    lo, hi = (share * nominal_v for share in LINK_PER_NOMINAL)
+    if lo * (1.0 - 1e-9) <= volts <= hi * (1.0 + 1e-9):       # 1.2 x 24 is 28.799999999999997
+        return None
+    return (f"{volts:g} V does not fit battery.nominal_v {nominal_v:g} V: {why} "
+            f"{LINK_PER_NOMINAL[0]:g}..{LINK_PER_NOMINAL[1]:g} x nominal_v ({lo:.4g}..{hi:.4g} V{note}); "
+            "change them together")
 
 
 def link_voltage_problem(params: "SpmsmPlantParams") -> str | None:
     """Why inverter.dc_link_v and battery.nominal_v are no one battery set (a message), or None.
     Before, each was read on its own: a 400 V link on the 24 V set loaded, and its inverter drove
     the machine from a voltage no part of the bike has, while the pack booked the energy at 24 V."""
-    link, nominal = params.inverter.dc_link_v, params.battery.nominal_v
-    lo, hi = _set_span_v(nominal)
-    if _within(link, (lo, hi)):
-        return None
-    return (f"{link:g} V does not fit battery.nominal_v {nominal:g} V: the inverter runs from "
-            f"the battery set (paper 001: one 24 V set, charged through the rectifier, buck and charger), so its "
-            f"link is the set's voltage, {LINK_PER_NOMINAL[0]:g}..{LINK_PER_NOMINAL[1]:g} x nominal_v "
-            f"({lo:.4g}..{hi:.4g} V: the set empty to charging); change them together")
+    return _set_span_problem(params.inverter.dc_link_v, params.battery.nominal_v,
+                             "the inverter runs from the battery set (paper 001: one 24 V set, charged through the "
+                             "rectifier, buck and charger), so its link is the set's voltage,",
+                             ": the set empty to charging")
 
 
 def buck_voltage_problem(params: "SpmsmPlantParams") -> str | None:
@@ -272,14 +270,9 @@ def buck_voltage_problem(params: "SpmsmPlantParams") -> str | None:
     plant's charger is one fixed efficiency (regen.charger_efficiency, P_ETA_CHG) whatever the bus: a
     converter for a ratio near one, its input within the set's own span (LINK_PER_NOMINAL, 21..28.8 V
     for 24 V). Before, a 5 V or 60 V bus charged the 24 V set at that efficiency without a word."""
-    bus, nominal = params.regen.buck_output_v, params.battery.nominal_v
-    lo, hi = _set_span_v(nominal)
-    if _within(bus, (lo, hi)):
-        return None
-    return (f"{bus:g} V does not fit battery.nominal_v {nominal:g} V: the buck's bus feeds the set's charger "
-            f"(paper 001: ~25 V into the 24 V set; the plant's charger is one efficiency, for a bus near the "
-            f"set's voltage), so it must be {LINK_PER_NOMINAL[0]:g}..{LINK_PER_NOMINAL[1]:g} x nominal_v "
-            f"({lo:.4g}..{hi:.4g} V); change them together")
+    return _set_span_problem(params.regen.buck_output_v, params.battery.nominal_v,
+                             "the buck's bus feeds the set's charger (paper 001: ~25 V into the 24 V set; the "
+                             "plant's charger is one efficiency, for a bus near the set's voltage), so it must be")
 
 
 def plant_params_from_config(cfg: dict) -> SpmsmPlantParams:
