@@ -443,6 +443,17 @@ def test_run_refuses_a_torque_map_the_plant_cannot_use_before_any_node_starts(tm
     assert line == f"error: --set: {ROOT / 'config' / 'bldc_can.yaml'}: can.torque_map_file: {bad}: {words}", line
 
 
+@pytest.mark.parametrize("emulator_args, words", [
+    ("[--bogus]", "unrecognized arguments: --bogus"),
+    ("[--physics, nope]", "argument --physics: invalid choice: 'nope' (choose from 'plant', 'average')")])
+def test_run_refuses_emulator_args_the_drive_emulator_refuses_before_any_node_starts(emulator_args, words):
+    """can.emulator_args the emulator's parser refused printed its usage once the graph had started,
+    its node exiting. One error naming the key, nothing starts."""
+    line = _one_error(_cli("run", "--config", str(ROOT / "config" / "bldc_can.yaml"), "--duration", "1",
+                           "--set", f"can.emulator_args={emulator_args}", timeout=90))
+    assert line == f"error: can.emulator_args: {words} (bike-drive-emulator's options)", line
+
+
 def test_run_set_of_a_rider_value_is_ridden_not_overridden_by_the_rider_preset(capsys):
     """The README's `--set load.rider_target_cadence_rpm=90` rode 80 rpm: load.rider_preset
     (recreational in the shipped configs) sets the rider's values over the section's own, so the

@@ -633,6 +633,25 @@ def _ftms_run_args(opts, cfg, args: dict):
     return None
 
 
+def _emulator_args_problem(argv: list[str]) -> str | None:
+    """What bike-drive-emulator's parser says of ``argv`` (None: it takes them), without exiting."""
+    from bike_controller.drive_emulator import build_arg_parser
+
+    parser = build_arg_parser()
+
+    def refuse(message: str):
+        raise ValueError(message)
+
+    parser.error = refuse
+    try:
+        parser.parse_args(argv)
+    except ValueError as exc:
+        return str(exc)
+    except SystemExit:
+        return "--help / --version print and stop: not for a run"
+    return None
+
+
 def _can_run_args(cfg, args: dict):
     """backend can: the emulator launch arguments from the config's can: section (None: error)."""
     import shlex
@@ -653,8 +672,13 @@ def _can_run_args(cfg, args: dict):
             return "/" + "/".join(x for x in (args.get("namespace", ""), name) if x)
         rider = ["--rider-topic", topic("drive_command"), "--heart-rate-topic", topic("heart_rate"),
                  "--truth-topic", topic("drive_truth")]
-        args.update(emulator="true",
-                    emulator_args=" ".join(shlex.quote(a) for a in emulator_args_from_config(cfg) + rider))
+        emulator_args = emulator_args_from_config(cfg) + rider
+        problem = _emulator_args_problem(emulator_args)
+        if problem:
+            # the emulator's usage and error came once the graph had started (its node exited)
+            print(f"error: can.emulator_args: {problem} (bike-drive-emulator's options)", file=sys.stderr)
+            return None
+        args.update(emulator="true", emulator_args=" ".join(shlex.quote(a) for a in emulator_args))
     print(f"[bike] drive on CAN: {params.describe()}"
           + (", started here as bike-drive-emulator" if params.emulator else ", a real drive (can.emulator false)")
           + "; sim time pauses while the drive is not armed", flush=True)
