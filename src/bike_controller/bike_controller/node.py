@@ -53,7 +53,7 @@ from bike_msgs.msg import Command, ControllerStatus, DriveCommand, PlantState, S
 from bike_plant import msgconv, shm_ports
 from bike_plant.config import ConfigError, sync_mode_of
 from bike_plant.loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
-                             recorder_reads, take_sim_time_from_messages)
+                             recorder_reads, say_stale_peer_and_start_over, take_sim_time_from_messages)
 from bike_plant.node import run_loop_node, warm_up_kernels
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import SingleThreadedExecutor
@@ -486,12 +486,8 @@ class ControllerNode(Node):
         shm_ports.StalePeerWatch). Say so once and start over on fresh ports (run_loop_node):
         the lockstep exchange resumes, the plant re-publishes its unanswered state and the
         session re-sends the Commands in force."""
-        why = self.peer_watch.look()
-        if why:
-            text = f"{why}: starting over with a new DDS participant on fresh ports"
-            self.get_logger().warning(text)
-            self._publish_diag(DiagnosticStatus.WARN, text)
-            self.fresh_ports_wanted = True
+        if say_stale_peer_and_start_over(self, self.peer_watch,
+                                         lambda text: self._publish_diag(DiagnosticStatus.WARN, text)):
             self.stop_requested = True
 
     def run(self) -> int:

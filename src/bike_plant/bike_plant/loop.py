@@ -275,6 +275,49 @@ class BusyWaitGuard:
         return 0.0 if self.observers else self.configured_s
 
 
+HANDOVER_WAIT_S = 5.0    # a running node's new participant waits at most this long for its peers (wait_for_new_matches)
+
+
+def _matched(endpoint) -> int:
+    """The peers an rclpy publisher (its readers) or subscription (its writers) has matched."""
+    count = getattr(endpoint, "get_subscription_count", None)
+    return count() if count is not None else endpoint.get_publisher_count()
+
+
+def wait_for_new_matches(pairs, wait=None, stop=None, timeout_s: float = HANDOVER_WAIT_S) -> list:
+    """A running node that starts over on fresh ports goes on only once its new participant's
+    endpoints have matched as many peers as the old one's did: what the new one sends before
+    a reader has matched it never reaches that reader (the recorder's bag would have a hole).
+    ``pairs``: (old, new) publishers or subscriptions; ``wait()`` runs between checks (default a
+    20 ms sleep), ``stop()`` ends the wait early. Returns the topics of the new endpoints still
+    behind after ``timeout_s`` (empty when all matched)."""
+    until = time.monotonic() + timeout_s
+    while True:
+        late = [new.topic_name for old, new in pairs if _matched(new) < _matched(old)]
+        if not late or time.monotonic() >= until or (stop is not None and stop()):
+            return late
+        if wait is None:
+            time.sleep(0.02)
+        else:
+            wait()
+
+
+def say_stale_peer_and_start_over(node, watch, publish_diag, goes_on: str = "") -> bool:
+    """The running look of a node that already hears its peers (shm_ports.StalePeerWatch, due
+    every DEAF_CHECK_S): when it fires, say so once, in the log (a warning) and in a WARN
+    diagnostic (``publish_diag(text)``, each node's own), and ask for fresh ports
+    (``node.fresh_ports_wanted``: start_over_on_fresh_ports follows). ``goes_on``: what the
+    node keeps across the start over, appended to the text. True when it fired."""
+    why = watch.look()
+    if not why:
+        return False
+    text = f"{why}: starting over with a new DDS participant on fresh ports{goes_on}"
+    node.get_logger().warning(text)
+    publish_diag(text)
+    node.fresh_ports_wanted = True
+    return True
+
+
 def start_over_on_fresh_ports(node_factory, old, args, old_executor=None, before_leaving=None):
     """A node that a live writer cannot reach over shared memory (Fast DDS's stale port after
     a kill -9, bike_plant.shm_ports) starts over in a new rclpy context: a new DDS participant,

@@ -98,10 +98,9 @@ WRITERS_WAIT_S = 5.0
 # Measured, recorded 20 s demo: 0.97-0.98x real time waking per message, 1.09-1.21x gathering.
 GATHER_S = 0.003
 # a running recorder that starts over on fresh ports (_hand_over) records on with the old
-# participant until the new one's readers have matched as many writers, at most this long
-HANDOVER_WAIT_S = 5.0
-# ... and then drops what the new one takes that the old one wrote (its readers' queue, and the
-# transient_local history it gets at its match) for this long
+# participant until the new one's readers have matched as many writers (at most
+# bike_plant.loop.HANDOVER_WAIT_S), and then drops what the new one takes that the old one
+# wrote (its readers' queue, and the transient_local history it gets at its match) for this long
 HANDOVER_DEDUP_S = 5.0
 # what a recorder's new node takes over from the old one at the hand-over (_hand_over)
 RECORDING_STATE = ("sink", "bag_paths", "run_seq_max", "_latched_raw", "_dropped_since_state", "latest_clock_ns",
@@ -713,18 +712,14 @@ def _make_node_class():
             over to a new participant on fresh ports (_hand_over)."""
             if not self.heard_any or self.fresh_ports_wanted or self.peer_watch.finished:
                 return False
-            why = self.peer_watch.look()
-            if not why:
-                return False
-            text = (f"{why}: starting over with a new DDS participant on fresh ports (the bag {self.sink.path} "
-                    "goes on, nothing lost or written twice)")
-            self.get_logger().warning(text)
             from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-            self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
-                level=DiagnosticStatus.WARN, name=self.get_fully_qualified_name(), message=text,
-                hardware_id="bike_session")]))
-            self.fresh_ports_wanted = True
-            return True
+
+            from bike_plant.loop import say_stale_peer_and_start_over
+            return say_stale_peer_and_start_over(
+                self, self.peer_watch, lambda text: self.pub_diag.publish(DiagnosticArray(status=[DiagnosticStatus(
+                    level=DiagnosticStatus.WARN, name=self.get_fully_qualified_name(), message=text,
+                    hardware_id="bike_session")])),
+                f" (the bag {self.sink.path} goes on, nothing lost or written twice)")
 
         def take_over(self, old) -> None:
             """Go on with ``old``'s recording (_hand_over): its bag and bookkeeping; the Commands
@@ -837,16 +832,12 @@ def _hand_over(node_class, old, args):
     again (its queue since its match, the transient_local history)."""
     import functools
 
-    from bike_plant.loop import start_over_on_fresh_ports
+    from bike_plant.loop import HANDOVER_WAIT_S, start_over_on_fresh_ports, wait_for_new_matches
 
     def overlap(new) -> None:
-        until = time.monotonic() + HANDOVER_WAIT_S
-        while time.monotonic() < until and any(new.subs[t].get_publisher_count() < sub.get_publisher_count()
-                                               for t, sub in old.subs.items()):
-            old.spin(0.05)
+        late = wait_for_new_matches([(sub, new.subs[t]) for t, sub in old.subs.items()], lambda: old.spin(0.05))
         while old.spin(0.0):
             pass
-        late = [t for t, sub in old.subs.items() if new.subs[t].get_publisher_count() < sub.get_publisher_count()]
         if late:
             old.get_logger().warning(f"the new participant's readers of {', '.join(late)} have not matched every "
                                      f"writer in {HANDOVER_WAIT_S:g}s: their messages until they do are not in the bag")

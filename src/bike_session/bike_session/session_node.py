@@ -194,7 +194,7 @@ def _make_node_class():
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     from bike_msgs.msg import Command, SessionStatus
-    from bike_plant.loop import take_sim_time_from_messages
+    from bike_plant.loop import say_stale_peer_and_start_over, take_sim_time_from_messages
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from rosgraph_msgs.msg import Clock
     from std_msgs.msg import Int8, String
@@ -589,13 +589,11 @@ def _make_node_class():
             its discovery data, stayed on the deleted segment). It says so and starts over on
             fresh ports (main()): the profile is a function of sim time, so the new participant
             follows /clock with the same Commands."""
-            why = "" if self.fresh_ports_wanted else self.peer_watch.look()
-            if why:
-                text = f"{why}: starting over with a new DDS participant on fresh ports (the profile follows /clock on)"
-                self.get_logger().warning(text)
-                self._publish_diag(text, self._DiagnosticStatus.WARN)
-                self.fresh_ports_wanted = True
-            elif self.peer_watch.finished:
+            if self.fresh_ports_wanted or say_stale_peer_and_start_over(
+                    self, self.peer_watch, lambda text: self._publish_diag(text, self._DiagnosticStatus.WARN),
+                    " (the profile follows /clock on)"):
+                return
+            if self.peer_watch.finished:
                 self.wait_timer.cancel()
 
         def _on_clock(self, msg) -> None:
