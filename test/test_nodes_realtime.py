@@ -716,6 +716,116 @@ def test_a_running_recorder_that_a_peer_cannot_reach_goes_on_in_the_same_bag_on_
     finally:
         _end(procs, col, maps)
 
+
+def test_a_running_plant_that_a_peer_cannot_reach_starts_over_on_fresh_ports_and_runs_on(domain, tmp_path):
+    """A plant restarted after a kill -9 that hears the controller while another peer (a
+    recorder, a session) still writes to the killed one's deleted segment: everything that peer
+    sends the plant goes there, its discovery data too, so the plant never learns of its
+    readers and sends it nothing: the bag (or the session) gets no PlantState, /clock, battery
+    or diagnostics of the new run, for good. Forced without the kill (_unlink_port_segments):
+    the recorder started afterwards opens the plant's port by its name, a new segment the plant
+    never reads, as the stale writer's handle does. Seen at two looks in a row the plant says
+    so once (log and a WARN diagnostic naming the writers) and starts over on fresh ports with
+    its simulation as it was (PlantNode.hand_over): the recorder gets its states from then on,
+    the seqs go on without a gap or a repeat in the bag and at the test, and the energy ledger
+    goes on from where it was (no physics reset)."""
+    from std_msgs.msg import UInt64
+
+    from bike_session.bags import read_topic
+    col = Collector(domain, {"plant_state": PlantState, "recorder_progress": UInt64, "/diagnostics": DiagnosticArray})
+    procs = []
+    maps = []
+    try:
+        plant, ctrl, states, braking = _braking_under_a_controller(col, domain, procs)
+        maps += _unlink_port_segments(plant.pid)
+        rec = NodeProcess("bike_session", "recorder_node", domain, {"record_dir": str(tmp_path), "bag_name": "run1"})
+        procs.append(rec)
+        col.wait_for(lambda: "on fresh shared-memory ports" in plant.output(), 30,
+                     "the plant starting over on fresh ports", procs)
+        out = _started_over(plant, ctrl.pid, stop=False)
+        assert out.count("after it was first seen: starting over") == 1, out[-3000:]
+        warns = [st.message for arr in col.data["/diagnostics"] for st in arr.status
+                 if st.level == DiagnosticStatus.WARN and "after it was first seen" in st.message]
+        assert warns and str(ctrl.pid) in warns[0], warns
+        k = len(states)
+        progress = col.data["recorder_progress"]
+        col.wait_for(lambda: braking(k) and len(states) > k + 200 and len(progress) > 3, 30,
+                     "braking on, and recorded, after the start over", procs)
+        run = [m for m in states if m.seq > 0]           # (t = 0 is re-published until the first DriveCommand)
+        seqs = [m.seq for m in run]
+        assert seqs == list(range(1, len(seqs) + 1)), "the seqs at the test go on without a gap or a repeat"
+        # the energy ledger is cumulative since the start: a new simulation would begin it again at 0
+        jumps = [(a.seq, a.energy_mech_in_j, b.energy_mech_in_j) for a, b in zip(run, run[1:])
+                 if abs(b.energy_mech_in_j - a.energy_mech_in_j) > 10.0]
+        assert run[-1].energy_mech_in_j > 100.0 and not jumps, (run[-1].energy_mech_in_j, jumps)
+        plant.stop()                  # the recorder drains until the graph falls silent
+        assert rec.stop(15.0) == 0, rec.output()[-3000:]
+        bagged = [m.seq for m in read_topic(tmp_path / "run1", "plant_state")]
+        assert len(bagged) > 200 and bagged == list(range(bagged[0], bagged[0] + len(bagged))), bagged[:20]
+        assert bagged[0] > 0, "the run went on: no seq 0 again"
+    finally:
+        _end(procs, col, maps)
+
+
+
+@pytest.mark.timeout(120)
+def test_a_running_lockstep_plant_that_a_restarted_recorder_cannot_reach_starts_over_and_keeps_pace(ros_domain,
+                                                                                                   tmp_path):
+    """What a running plant loses to a peer that cannot reach it, recorded in lockstep: the
+    recorder's progress reports. Forced (_unlink_port_segments) with a second recorder started
+    mid-run: it opens the plant's port by its name, a new segment the plant never reads, as a
+    stale writer's handle after a kill -9 does. It records every state, but once the first
+    recorder is gone, its reports reach the plant no more: without the running look the plant
+    stops its window ahead of the first one's last report, hears nothing for recorder_timeout_s,
+    says "the recorder reported nothing ... going on without waiting for it" (ERROR,
+    FAULT_RECORDER_LOST) and runs on unthrottled. With it the
+    plant says so once, names the writers to its deleted segment, starts over on fresh ports
+    with the same run (PlantNode.hand_over), and the new recorder's reports pace it to the end:
+    no RECORDER_LOST, the seqs at the test go on without a gap or a repeat (no seq 0 again),
+    and the new bag holds every state from its first to the end_of_run."""
+    from bike_session.bags import read_topic
+    from test_faults_kill import _graph
+    col = Collector(ros_domain, {"plant_state": PlantState})
+    maps = []
+    # recorder_timeout_s: the plant's default (the look fires 3-6 s after the signature appears)
+    procs = _graph(col, ros_domain, tmp_path, 10.0, plant_extra={"recorder_timeout_s": 10.0})
+    everyone = list(procs.values())
+    plant, rec = procs["plant"], procs["recorder"]
+    try:
+        states = col.data["plant_state"]
+        col.wait_for(lambda: states and states[-1].seq >= 300, 60, "seq 300", everyone)
+        maps += _unlink_port_segments(plant.pid)
+        rec2 = NodeProcess("bike_session", "recorder_node", ros_domain,
+                           {"record_dir": str(tmp_path), "bag_name": "run2", "flush_period_s": 0.5})
+        everyone.append(rec2)
+        readers = len(col.node.get_subscriptions_info_by_topic("/bike/plant_state"))
+        col.wait_for(lambda: len(col.node.get_subscriptions_info_by_topic("/bike/plant_state")) > readers, 30,
+                     "the second recorder's plant_state reader", everyone)
+        mark = len(states)
+        col.wait_for(lambda: len(states) > mark + 1000, 30, "the run going on with two recorders", everyone)
+        rec.signal(signal.SIGINT)
+        time.sleep(0.3)
+        rec.signal(signal.SIGINT)             # a second one stops it now (no drain)
+        assert rec.wait(15) == 0, rec.output()[-3000:]
+        assert plant.wait(90) == 0, plant.output()[-3000:]
+        out = _started_over(plant, procs["controller"].pid, stop=False)
+        assert out.count("after it was first seen: starting over") == 1, out[-3000:]
+        assert "reported nothing" not in out, out[-3000:]
+        assert procs["session"].wait(15) == 0, procs["session"].output()[-3000:]
+        rec2.signal(signal.SIGINT)
+        assert rec2.wait(15) == 0, rec2.output()[-3000:]
+    finally:
+        stop_all(everyone)
+        col.close()
+        for m in maps:
+            m.close()
+    assert not any(m.faults & PlantState.FAULT_RECORDER_LOST for m in states)
+    seqs = [m.seq for m in states]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))) and states[-1].end_of_run, "one run, no gap, no repeat"
+    bagged = read_topic(tmp_path / "run2", "plant_state")
+    assert [m.seq for m in bagged] == list(range(bagged[0].seq, 10001)) and bagged[-1].end_of_run
+
+
 def test_a_session_without_a_plant_says_waiting_every_second(domain):
     """Before the first /clock the session re-publishes its WAITING status every second (and
     looks for a stale port then): its timer runs on the steady clock, because under the

@@ -47,6 +47,7 @@ the plant's diagnostic (``can_*``).
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 import signal
@@ -70,7 +71,8 @@ from .config import (BATCH_PERIODS, CLOCK_PERIOD_S, CONTROL_PERIOD_S, check_back
                      check_clock_period, plant_number, recorder_window_batches, sync_mode_of)
 from .heart import heart_rate_reading_problem
 from .loop import (AUX_QOS, LOCKSTEP_BUSY_WAIT_S, LOOP_QOS, BusyWaitGuard, HotWait, loop_reader_qos,
-                   recorder_progress, recorder_reads, start_over_on_fresh_ports, take_sim_time_from_messages)
+                   recorder_progress, recorder_reads, say_stale_peer_and_start_over, start_over_on_fresh_ports,
+                   take_sim_time_from_messages, wait_for_new_matches)
 from .memory import LoadTimePageReleaser
 
 # the start-up wait for a recorder: matching its reader took ~3 s on a loaded 2-core machine,
@@ -309,8 +311,16 @@ def make_backend(kind: str, cfg: dict, seed: int):
 
 
 # ---------------------------------------------------------------- the node
+# what a running plant's new node on fresh ports takes over from the old one (PlantNode.hand_over):
+# the simulation (the backend: model state, a CAN drive's bus) and the run's bookkeeping
+RUN_STATE = ("backend", "k", "next_clock_ns", "clock_ns", "recorder_seq", "recorder_rx", "recorder_window",
+             "node_faults", "stats", "wall0", "problem", "heart_rate", "drive_heard", "latest", "latest_rx",
+             "latest_rx_sim_s", "_last_snap", "_last_stamp", "_last_state")
+
+
 class PlantNode(Node):
-    def __init__(self, **kwargs):
+    def __init__(self, carry=None, **kwargs):
+        """``carry``: the running plant this node goes on from on fresh ports (hand_over)."""
         super().__init__("plant", **kwargs)
         from .rosparams import declare_config
 
@@ -341,12 +351,13 @@ class PlantNode(Node):
         self.recorder_window_cfg = self.recorder_window        # restored when a lost recorder reports again
         self.recorder_timeout_s = plant_number(cfg, "recorder_timeout_s", path)
         self.start_timeout_s = plant_number(cfg, "start_timeout_s", path)
-        self.backend = make_backend(str(cfg.get("backend")), cfg, plant_number(cfg, "seed", path))
+        self.backend = carry.backend if carry is not None else make_backend(
+            str(cfg.get("backend")), cfg, plant_number(cfg, "seed", path))
         from .params import rider_preset_overrides
         preset_note = rider_preset_overrides(cfg["load"]) if isinstance(cfg.get("load"), dict) else None
-        if preset_note:
+        if preset_note and carry is None:
             self.get_logger().warning(preset_note)
-        if hasattr(self.backend, "warm_up"):
+        if hasattr(self.backend, "warm_up") and carry is None:
             # before the node joins the graph: a compile inside the run held its first batches
             # for ~30 s and made the controller report a stopped plant
             warm_up_kernels(self.get_logger(), lambda: self.backend.warm_up(self.n))
@@ -386,6 +397,9 @@ class PlantNode(Node):
         self.stop_requested = False
         self.drive_heard = False     # any DriveCommand bytes yet (_check_deaf_start)
         self.deaf_watch = shm_ports.StalePortWatch()     # from the wait for the first DriveCommand
+        self.peer_watch = shm_ports.StalePeerWatch()     # running: from the first DriveCommand (_check_stale_peers)
+        self.carry_on = False        # fresh ports wanted for a running plant: run_loop_node hands over
+        self.carried = carry is not None
         self.k = 0                   # batches applied
         self.pending_seq = -1        # lockstep: seq we wait for
         self.answer = None           # lockstep: DriveCommand(seq=pending_seq)
@@ -408,6 +422,12 @@ class PlantNode(Node):
         # time, and the wall time they skipped (sim time lags wall time by exactly that)
         self.stats = {"stale_commands": 0, "bad_commands": 0, "republished": 0, "held_batches": 0,
                       "timeout_batches": 0, "overruns": 0, "overrun_dropped_s": 0.0}
+        if carry is not None:
+            for name in RUN_STATE:
+                setattr(self, name, getattr(carry, name))
+            self.peer_watch.fired = True     # once per process (shm_ports.stale_port_check)
+            self.get_logger().info(f"going on with the run at seq {self.k}, t={self.backend.time_s:.6f}s")
+            return
         self.get_logger().info(
             f"plant: backend={self.backend.name} sync_mode={self.sync_mode} N={self.n} "
             f"T={self.dt:g}s duration={self.duration_s:g}s config={path}")
@@ -467,6 +487,8 @@ class PlantNode(Node):
         since = sent = time.monotonic()
         while not self.stop_requested and self._recorder_behind():
             self._spin(0.05)
+            if self._check_stale_peers():    # (a restarted recorder whose reports go to a deleted segment)
+                return
             if self.recorder_seq < 0 and time.monotonic() - sent > FIRST_STATE_REPUBLISH_S:
                 # the state only: /clock again would make the session send its Commands again
                 # (and say so) ten times a second; the controller answers with its cached reply
@@ -714,10 +736,14 @@ class PlantNode(Node):
             else:
                 self._run_realtime()
         finally:
-            close = getattr(self.backend, "close", None)
-            if close is not None:                # CAN: zero torque + IDLE, close the log and the bus
-                close()
+            if not self.carry_on:                # (a new node goes on with it: hand_over)
+                self.close_backend()
         return 0
+
+    def close_backend(self) -> None:
+        close = getattr(self.backend, "close", None)
+        if close is not None:                    # CAN: zero torque + IDLE, close the log and the bus
+            close()
 
     def _end_of_run(self) -> None:
         self._publish_state(end_of_run=True)
@@ -761,7 +787,10 @@ class PlantNode(Node):
                          + (" and the recorder" if self.recorder_window > 0 else ""))
                 next_log = time.monotonic() + 5.0
             self._recorder_absent(start)
-        t1 = None                    # wall time of the first answer (rate excludes start-up waits)
+        t1 = None                    # wall time of the first answer (rate excludes start-up waits) ...
+        k1 = 1                       # ... and the batches applied then (a carried run: hand_over)
+        if self.carried:
+            t1, k1 = time.monotonic(), self.k
         next_progress = time.monotonic() + PROGRESS_EVERY_S
         while not self.stop_requested:
             if self.k == 1:
@@ -771,16 +800,20 @@ class PlantNode(Node):
                 next_progress = time.monotonic() + PROGRESS_EVERY_S
                 done = f" of {self.duration_s:g} s ({100.0 * self.backend.time_s / self.duration_s:.0f} %)" \
                     if self.duration_s > 0 else ""
-                rate = (self.k - 1) / max(time.monotonic() - t1, 1e-9) * self.batch_s if t1 and self.k > 1 else 0.0
+                rate = (self.k - k1) / max(time.monotonic() - t1, 1e-9) * self.batch_s if t1 and self.k > k1 else 0.0
                 log.info(f"t = {self.backend.time_s:.1f} s{done}, {rate:.2f} x real time")
             if self._finished():
-                if t1 is not None and self.k > 1:
-                    rate = (self.k - 1) / max(time.monotonic() - t1, 1e-9)
+                if t1 is not None and self.k > k1:
+                    rate = (self.k - k1) / max(time.monotonic() - t1, 1e-9)
                     log.info(f"lockstep rate {rate:.0f} batches per wall second "
                              f"({rate * self.batch_s:.2f} x real time)")
                 self._end_of_run()
                 return
+            if self._check_stale_peers():
+                return
             self._wait_for_recorder()
+            if self.stop_requested:          # (a Ctrl-C, or the look there)
+                return
             self.pending_seq = self.k
             self.answer = None
             self._publish_state()
@@ -897,6 +930,48 @@ class PlantNode(Node):
         self.stop_requested = True
         return True
 
+    def _check_stale_peers(self) -> bool:
+        """Running, and hearing the controller, yet a peer still cannot reach this plant (a
+        plant restarted after a kill -9 whose controller re-opened the killed one's port while
+        the recorder, or the session, did not: shm_ports.StalePeerWatch). Measured with the
+        signature forced (docs/RELIABILITY.md): discovery does not go that way (the plant's
+        writers still match that peer's readers and deliver), but the rest that peer sends
+        this plant goes into the deleted segment: its readers' acknowledgments and repair
+        requests (a sample lost on the way, e.g. a full port queue, is never sent again: a
+        hole in the bag; the end_of_run state waits its full END_ACK_TIMEOUT_S) and its data (the recorder's progress: lockstep flow control gives
+        the recorder up after recorder_timeout_s and the run goes on unthrottled, with an
+        ERROR; a CAN rig's heart rate). Say so once (log and WARN diagnostic, naming the
+        writers) and stop between two batches: run_loop_node goes on with the same simulation
+        in a new participant on fresh ports (hand_over). Looked for every DEAF_CHECK_S;
+        True when stopping."""
+        if not self.drive_heard or self.peer_watch.finished:
+            return False
+
+        def say(text: str) -> None:
+            self.wait_reason = text
+            self._publish_diag(self._last_snap, self._last_stamp, max(self.last_faults, 0))
+            self.wait_reason = ""
+        if not say_stale_peer_and_start_over(self, self.peer_watch, say,
+                                             f" (the run goes on from seq {self.k}, nothing reset or lost)"):
+            return False
+        self.carry_on = self.stop_requested = True
+        return True
+
+    def hand_over(self, new) -> None:
+        """Before this participant leaves (start_over_on_fresh_ports' before_leaving), with the
+        run stopped between two batches: the new node's endpoints match as many peers as this
+        one's (HANDOVER_WAIT_S at most), so that its first state reaches every reader this one
+        had (the recorder's bag goes on without a hole). Realtime: the wall time this takes is
+        not sim time (the batches resume from now; the held DriveCommand's timeout too)."""
+        pairs = [(self.pub_state, new.pub_state), (self.pub_clock, new.pub_clock), (self.pub_battery, new.pub_battery),
+                 (self.pub_diag, new.pub_diag), (self.sub_drive, new.sub_drive)]
+        if self.recorder_window_cfg > 0:
+            pairs.append((self.sub_progress, new.sub_progress))
+        late = wait_for_new_matches(pairs, stop=lambda: getattr(self, "signalled", False))
+        if late:
+            new.get_logger().warning(f"the new participant's {', '.join(late)} did not match every peer of the old "
+                                     "one in time: those peers may miss what it sends until they do")
+
     @property
     def safe_state_text(self) -> str:
         """What the safe state does on this backend, for the diagnostic and the log (a drive on
@@ -922,13 +997,16 @@ class PlantNode(Node):
 
     def _run_realtime(self) -> None:
         log = self.get_logger()
-        applied = None
-        timed_out = False
+        applied = self.latest if self.carried else None     # (carried: held on, as it was)
+        timed_out = bool(self.node_faults & PlantState.FAULT_COMMAND_TIMEOUT)     # (carried: hand_over)
         self._wait_for_recorder_start()
         if self.stop_requested:
             return
         self._service_backend()
-        self._hold_start()
+        if not self.carried:
+            self._hold_start()
+        elif self.latest_rx is not None:
+            self.latest_rx = time.monotonic()    # the hand-over's pause is not the controller's silence
         next_tick = time.monotonic() + self.batch_s
         while not self.stop_requested:
             now = time.monotonic()
@@ -984,6 +1062,8 @@ class PlantNode(Node):
                 self._end_of_run()
                 return
             self._publish_state()
+            if self._check_stale_peers():
+                return
 
 
 def _level(level) -> int:
@@ -1101,7 +1181,11 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
         code = node.run()
         while getattr(node, "fresh_ports_wanted", False) and not getattr(node, "signalled", False):
             old = node
-            node = start_over_on_fresh_ports(node_factory, old, args)
+            if getattr(old, "carry_on", False):     # a running plant: the new node goes on with its run
+                node = start_over_on_fresh_ports(functools.partial(node_factory, carry=old), old, args,
+                                                 before_leaving=old.hand_over)
+            else:
+                node = start_over_on_fresh_ports(node_factory, old, args)
             install_signal_handlers(node)
             if getattr(old, "signalled", False):
                 # a Ctrl-C while the new node was made went to the old one's handler: not lost
@@ -1117,6 +1201,8 @@ def run_loop_node(node_factory, label: str, args=None) -> int:
         code = 0
     finally:
         if node is not None:
+            if getattr(node, "carry_on", False):         # a Ctrl-C came before the hand-over (PlantNode.hand_over)
+                node.close_backend()
             node.executor_.remove_node(node)
             # its guard conditions now, while the context lives: left to Executor.__del__ at
             # interpreter exit, Python 3.12 printed an InvalidHandle traceback (context gone)
