@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import pathlib
+import re
 import signal
 import subprocess
 import tempfile
@@ -269,6 +270,21 @@ def tool_module(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+_FAST_DDS_LOG = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d+ \[\w+ (Error|Warning|Info)\] ")
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
+def printed(stdout: str) -> list[str]:
+    """The lines a process with DDS participants printed itself: its stdout without Fast
+    DDS's own log lines, which Fast DDS 2.14 writes to stdout, e.g. "[RTPS_TRANSPORT_SHM Error]
+    Failed init_port fastrtps_port<N>: open_and_lock_file failed" when a participant tried a
+    shared-memory port whose lock another process on this host holds (a node that started over
+    on fresh ports keeps its old ones, bike_plant.shm_ports.hold_ports; or a participant that
+    took the port first). That depends on what else runs on the host: under load, with other
+    tests' nodes, it came before a test script's own line."""
+    return [line for line in stdout.splitlines() if not _FAST_DDS_LOG.match(_ANSI.sub("", line))]
 
 
 def stamp_ns(stamp) -> int:

@@ -13,7 +13,7 @@ import sys
 import time
 
 import pytest
-from node_harness import domain, tool_module  # noqa: F401
+from node_harness import domain, printed, tool_module  # noqa: F401
 
 from bike_plant import shm_ports
 
@@ -228,7 +228,7 @@ def test_a_ctrl_c_while_a_node_starts_over_is_not_lost(domain, tmp_path):
         "sys.exit(bn.run_loop_node(Fake, 'fake'))\n")
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
     out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=60)
-    assert out.returncode == 3 and out.stdout.strip() == "stopped", (out.returncode, out.stdout, out.stderr[-2000:])
+    assert out.returncode == 3 and printed(out.stdout) == ["stopped"], (out.returncode, out.stdout, out.stderr[-2000:])
 
 
 def test_a_lockstep_plant_that_finds_a_stale_port_before_its_first_state_starts_over(ros_domain):
