@@ -28,6 +28,10 @@ TIMEOUT = CFG["command_timeout_s"]
 RT = {"sync_mode": "realtime"}
 # pace check windows (test_realtime_timeout_safe_state_and_recovery)
 PACE_WINDOWS = 3
+# a recorder in a graph without a session: its seq 0 waits for the session's writers, which never
+# come, writers_wait_s (5 s by default) before its first recorder_progress; a realtime plant does
+# not wait for that report, the tests do
+NO_SESSION_RECORDER = {"writers_wait_s": 0.5}
 
 
 def _peak_current(m) -> float:
@@ -691,7 +695,8 @@ def test_a_running_recorder_that_a_peer_cannot_reach_goes_on_in_the_same_bag_on_
     maps = []
     try:
         plant, ctrl, states, braking = _braking_under_a_controller(col, domain, procs)
-        rec = NodeProcess("bike_session", "recorder_node", domain, {"record_dir": str(tmp_path), "bag_name": "run1"})
+        rec = NodeProcess("bike_session", "recorder_node", domain,
+                          dict(NO_SESSION_RECORDER, record_dir=str(tmp_path), bag_name="run1"))
         procs.append(rec)
         progress = col.data["recorder_progress"]
         col.wait_for(lambda: braking() and len(progress) > 3, 30, "the recorder's progress", procs)
@@ -875,7 +880,8 @@ def test_a_recorder_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh
     try:
         plant = NodeProcess("bike_plant", "plant_node", domain, dict(RT, duration_s=0.0))
         ctrl = NodeProcess("bike_controller", "controller_node", domain, RT)
-        rec = NodeProcess("bike_session", "recorder_node", domain, {"record_dir": str(tmp_path), "bag_name": "run1"})
+        rec = NodeProcess("bike_session", "recorder_node", domain,
+                          dict(NO_SESSION_RECORDER, record_dir=str(tmp_path), bag_name="run1"))
         procs += [plant, ctrl, rec]
         progress = col.data["recorder_progress"]
         cmd_pub = col.publisher(Command, "command")      # the session's part: t = 0 waits for it
@@ -890,7 +896,7 @@ def test_a_recorder_restarted_on_a_stale_shared_memory_port_starts_over_on_fresh
         def restart():
             marks.append(len(progress))
             return NodeProcess("bike_session", "recorder_node", domain,
-                               {"record_dir": str(tmp_path), "bag_name": next(names)})
+                               dict(NO_SESSION_RECORDER, record_dir=str(tmp_path), bag_name=next(names)))
 
         def verdict(r):
             return "deaf" if "starting over" in r.output() else "heard" if recording() else None
