@@ -322,9 +322,10 @@ def test_an_apps_spin_down_teaches_the_bike_its_friction(tmp_path, ros_domain):
     calibration = tmp_path / "trainer" / "calibration.yaml"
     done = {}
     # the app asks for the spin-down before sim time starts (the bridge is up before the plant and
-    # controller) and it is done ~2 s of sim time later: 8 s leaves an app that starts late 6 s
+    # controller) and it is done ~2 s of sim time later (1.3 s here): 6 s leaves an app that starts
+    # late 4 s
     run = threading.Thread(target=lambda: done.update(r=bike_command(
-        "run", "--config", str(config), "--ftms", "--ftms-port", str(port), "--duration", "8",
+        "run", "--config", str(config), "--ftms", "--ftms-port", str(port), "--duration", "6",
         "--record", str(record), "--calibration", str(calibration))))
     run.start()
     try:
