@@ -231,7 +231,8 @@ def test_an_spmsm_heart_rate_erg_beyond_its_brake_does_not_overshoot_the_target(
     """The SPMSM bike with its rider at 80 rpm takes at most ~200 W (its rectifier path's
     envelope through the pedal stroke); a 150 bpm target asks more. The power target wound up to
     300 W, unwound at 0.35 W/s once the heart passed the target, and the heart went on to
-    154.6 bpm at 200 s. Now it comes down from what the bike takes: at most 150.1 bpm."""
+    154.6 bpm at 200 s (past 150.5 from 153 s on, 152.5 at the 170 s ridden here). Now it comes
+    down from what the bike takes: at most 150.1 bpm (148.9 at 170 s)."""
     import pathlib
 
     from bike_controller.modes import MODE_ERG
@@ -243,7 +244,7 @@ def test_an_spmsm_heart_rate_erg_beyond_its_brake_does_not_overshoot_the_target(
     plant, ctrl = M.SpmsmPlant(M.plant_params_from_config(cfg)), ModedSpmsmController(cfg)
     ctrl.set_command(100.0 / ctrl.law.erg_power_max_w, MODE_ERG, heart_rate_bpm=150.0)
     hr_bpm, saturated = [], []
-    while plant.time_s < 200.0:
+    while plant.time_s < 170.0:
         snap = plant.snapshot()
         snap.update(batch_periods=ctrl.batch_periods)
         *cmd, status = ctrl.decide(snap)
