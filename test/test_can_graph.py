@@ -636,11 +636,11 @@ def test_the_emulated_rider_follows_the_trainers_instructions_and_a_spin_down_wo
         "name": "can spin-down", "segments": [
             {"kind": "step", "mode": "erg", "target": 100, "duration_s": 4, "cadence": 95},
             {"kind": "step", "mode": "spindown", "duration_s": 6},
-            {"kind": "step", "mode": "erg", "target": 100, "duration_s": 2}]})
+            {"kind": "step", "mode": "erg", "target": 100, "duration_s": 0.5}]})
     doc = yaml.safe_load(config.read_text())
     doc["/**"]["ros__parameters"].setdefault("modes", {}).update(friction_nms=0.0025, dry_friction_nm=0.0)
     config.write_text(yaml.safe_dump(doc, sort_keys=False))
-    result, out, bag = recorded_run(tmp_path, config, 12, timeout=120)
+    result, out, bag = recorded_run(tmp_path, config, 10.5, timeout=120)
     assert "killed by" not in out, out[-6000:]
     assert "spin-down done" in out, out[-6000:]
     emulator_exit = json.loads(out.split("bike-drive-emulator: exit ", 1)[1].splitlines()[0])
