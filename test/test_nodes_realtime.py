@@ -744,7 +744,8 @@ def test_a_running_plant_that_a_peer_cannot_reach_starts_over_on_fresh_ports_and
     try:
         plant, ctrl, states, braking = _braking_under_a_controller(col, domain, procs)
         maps += _unlink_port_segments(plant.pid)
-        rec = NodeProcess("bike_session", "recorder_node", domain, {"record_dir": str(tmp_path), "bag_name": "run1"})
+        rec = NodeProcess("bike_session", "recorder_node", domain,
+                          dict(NO_SESSION_RECORDER, record_dir=str(tmp_path), bag_name="run1"))
         procs.append(rec)
         col.wait_for(lambda: "on fresh shared-memory ports" in plant.output(), 30,
                      "the plant starting over on fresh ports", procs)
