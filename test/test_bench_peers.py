@@ -114,6 +114,13 @@ def test_bench_rejects_bad_sections_and_lengths(capsys):
     from bike_session import bench
     assert bench.main(only=["peers", "bogus"]) == 2
     assert "unknown bench section(s) bogus" in capsys.readouterr().err
+    # a comma list is split ("nope,inner" was one unknown name), an empty name is refused (it ran everything)
+    assert bench.main(only=["nope,inner"]) == 2
+    assert "unknown bench section(s) nope (choose from" in capsys.readouterr().err
+    assert bench.main(only=["inner,"]) == 2
+    assert capsys.readouterr().err.startswith("error: --only: an empty section name")
+    assert bench.main(only=["inner, fleet"], memory_s=5.0) == 2       # both names taken, neither is memory
+    assert capsys.readouterr().err.strip().endswith("not --only inner fleet")
     assert bench.main(only=["memory"], memory_s=-5.0) == 2
     assert "--memory-s must be > 0" in capsys.readouterr().err
     # inf: the memory run's session refused it, "the run did not complete", and the bench exited 0

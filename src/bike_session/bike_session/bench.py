@@ -26,7 +26,7 @@ Figures (keys of the JSON; real-time factors end in `_real_time`):
 - host_cpu / host_cores / host_clock_ghz: the machine, with its effective clock measured in the
   run (bench_kernels.host_summary), and *_ns_per_period / inner_loop_bldc_cycles_per_period:
   the inner loops' cost per period, which compares across hosts better than a real-time factor.
-Sections (`./bike bench --only SECTION`, repeatable): inner, fleet, graph, can, peers, memory.
+Sections (`./bike bench --only SECTION`, repeatable or a comma list): inner, fleet, graph, can, peers, memory.
 Timing assertions live here, not in the tests: this machine is shared and noisy.
 """
 from __future__ import annotations
@@ -166,7 +166,13 @@ def main(json_path: str | None = None, quick: bool = False, only=None, memory_s:
 
     from bike_session import pingpong
 
+    if only is not None:
+        # "--only inner,fleet" as well as "--only inner --only fleet" (a comma list was one unknown name)
+        only = [name.strip() for item in only for name in str(item).split(",")]
     unknown = set(only or ()) - set(SECTIONS)
+    if "" in unknown:
+        print(f"error: --only: an empty section name (choose from {', '.join(SECTIONS)})", file=sys.stderr)
+        return 2
     if unknown:
         print(f"error: unknown bench section(s) {', '.join(sorted(unknown))} (choose from {', '.join(SECTIONS)})",
               file=sys.stderr)

@@ -1182,7 +1182,7 @@ def build_parser() -> argparse.ArgumentParser:
     ben.add_argument("--json", type=path_arg, help="also write the figures to this JSON file")
     ben.add_argument("--quick", action="store_true", help="shorter runs (noisier figures)")
     ben.add_argument("--only", action="append", metavar="SECTION",
-                     help="run only this section (repeatable): inner, fleet, graph, can, peers, memory")
+                     help="run only this section (repeatable, or a comma list): inner, fleet, graph, can, peers, memory")
     ben.add_argument("--memory-s", type=float, metavar="S",
                      help="simulated seconds of the memory run (default 600; 3600 for the full hour)")
     ben.set_defaults(func=_cmd_bench)
