@@ -57,13 +57,63 @@ def test_malformed_config_names_the_file_and_problem(tmp_path, text, message):
     ("[1, 'a']", r"controller.k_factor: a list parameter holds one type, got integer and text"),
     ("[[0.8], [1.0]]", r"controller.k_factor: a list parameter holds numbers, text or true/false, not \[0.8\]"),
     ("[0, 100000000000000000000]", r"controller.k_factor: integer 100000000000000000000 outside the 64-bit range"),
+    # rcl types unquoted scalars itself (parse.c get_value): text to yaml.safe_load, a number or
+    # true/false to rcl ([--watchdog-s, nan] passed the checks, then every node refused the mixed list)
+    ("[--watchdog-s, nan]", r"controller.k_factor: unquoted 'nan' \(line 4\) is text to this config's loader "
+                            r"but decimal to ROS 2's parameter parser \(the nodes'\): quote it"),
+    ("[a, y]", r"controller.k_factor: unquoted 'y' .* is text .* but true/false to ROS 2's"),
+    ("1e5", r"controller.k_factor: unquoted '1e5' .* is text .* but decimal .* \(1.0e\+5\)"),
+    ("1.0e5", r"unquoted '1.0e5' .* is text .* but decimal"),
+    ("09", r"unquoted '09' .* is text .* but decimal"),
+    # the other way: a number or null to yaml.safe_load, text to rcl
+    ("1_000", r"unquoted '1_000' .* is integer to this config's loader but text"),
+    ("0b11", r"unquoted '0b11' .* is integer .* but text"),
+    ("1.0e+400", r"unquoted '1.0e\+400' .* is decimal .* but text"),
+    ("2001-12-14", r"unquoted '2001-12-14' .* is date .* but text"),
+    ("~", r"unquoted '~' .* is null .* but text"),
+    ("", r"controller.k_factor: no value \(line 4\): ROS 2's parameter parser refuses an empty value"),
 ])
-def test_a_list_the_ros_parameter_parser_refuses_is_one_error(tmp_path, value, message):
+def test_a_value_the_ros_parameter_parser_refuses_or_types_otherwise_is_one_error(tmp_path, value, message):
     # every node gets the file as --params-file: rcl refused a mixed list at start, a traceback per node
     path = tmp_path / "c.yaml"
     path.write_text(f"/**:\n  ros__parameters:\n    controller:\n      k_factor: {value}\n")
-    with pytest.raises(ConfigError, match=message):
+    with pytest.raises(ConfigError, match=message) as info:
         load_config(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_quoted_scalars_and_plain_numbers_are_taken(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    a: [--watchdog-s, 'nan']\n    b: \"y\"\n    c: 1.0e+5\n"
+                    "    d: 0x1F\n    e: [1, 2]\n    f: on\n    g: .inf\n    h: 'x'\n")
+    cfg = load_config(path)
+    assert cfg["a"] == ["--watchdog-s", "nan"] and cfg["b"] == "y" and cfg["c"] == 1e5 and cfg["d"] == 31
+    assert cfg["f"] is True and cfg["g"] == float("inf")
+
+
+def test_rcl_reads_the_types_the_loader_reads_from_a_written_params_file(tmp_path):
+    """dump_ros_params quotes the text rcl would type (nan, y, 1e5, 09): a real rclpy node started
+    with the file gets the values load_config reads."""
+    import rclpy
+    from rclpy.node import Node
+
+    from bike_plant.config import dump_ros_params, rcl_scalar_kind
+    params = {"a": ["--watchdog-s", "nan"], "b": "y", "c": "1e5", "d": "09", "e": "on", "f": "x", "g": 1e5,
+              "h": float("inf"), "i": 3, "j": True, "k": [1.5, 2.0], "l": "1:30", "m": "0x10"}
+    path = tmp_path / "p.yaml"
+    path.write_text(dump_ros_params({"/**": {"ros__parameters": params}}, sort_keys=False))
+    assert rcl_scalar_kind("nan") == "decimal" and rcl_scalar_kind("y") == "true/false"
+    assert load_config(path)["a"] == params["a"]
+    context = rclpy.Context()
+    rclpy.init(args=["--ros-args", "--params-file", str(path)], context=context)
+    try:
+        node = Node("written_params", context=context, automatically_declare_parameters_from_overrides=True)
+        got = {name: node.get_parameter(name).value for name in params}
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+    got["k"] = list(got["k"])
+    assert got == params
 
 
 def test_missing_and_binary_files(tmp_path):

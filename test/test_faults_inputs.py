@@ -454,6 +454,26 @@ def test_run_refuses_emulator_args_the_drive_emulator_refuses_before_any_node_st
     assert line == f"error: can.emulator_args: {words} (bike-drive-emulator's options)", line
 
 
+def test_run_refuses_a_value_ros_types_otherwise_before_any_node_starts(tmp_path):
+    """rcl's parameter parser types an unquoted nan, 1e5 or y itself (a number, true/false) where the
+    config's loader reads text: [--watchdog-s, nan] passed every check, then each node exited with
+    a traceback ('Sequence should be of same type'). One error naming the key and the quoting."""
+    line = _refused_config_file(tmp_path, lambda p: p.update(can={"emulator_args": ["--watchdog-s", "nan"]}))
+    assert ": can.emulator_args: unquoted 'nan' (line " in line, line
+    assert line.endswith(") is text to this config's loader but decimal to ROS 2's parameter parser (the nodes'): "
+                         "quote it ('...') if it is text"), line
+
+
+def test_run_set_of_text_rcl_would_type_is_ridden_as_text():
+    """--set can.emulator_args=[--heartbeat-ms, 1e2]: text to the --set parser, written quoted into the
+    run's config (it was written bare: a double to rcl, each node's mixed-list traceback), so the
+    emulator gets the option as text and the run rides."""
+    run = _cli("run", "--config", str(ROOT / "config" / "bldc_can.yaml"), "--duration", "0.3",
+               "--set", "can.emulator_args=[--heartbeat-ms, 1e2]", timeout=120)
+    assert run.returncode == 0, (run.returncode, run.stdout[-2000:], run.stderr[-2000:])
+    assert "Traceback" not in run.stderr + run.stdout and "error" not in run.stderr.lower(), run.stderr[-2000:]
+
+
 def test_run_set_of_a_rider_value_is_ridden_not_overridden_by_the_rider_preset(capsys):
     """The README's `--set load.rider_target_cadence_rpm=90` rode 80 rpm: load.rider_preset
     (recreational in the shipped configs) sets the rider's values over the section's own, so the

@@ -14,7 +14,8 @@ import dataclasses
 import math
 import os
 import pathlib
-from typing import Any, Mapping
+import re
+from typing import Any, Callable, Mapping
 
 import yaml
 
@@ -51,14 +52,23 @@ class YamlFileError(ValueError):
     """Why a small YAML file could not be read (the reason only: callers add the file)."""
 
 
-def parse_yaml_text(text: str) -> Any:
+def parse_yaml_text(text: str, check_node: Callable[[yaml.Node], None] | None = None) -> Any:
     """``yaml.safe_load`` of ``text``. YamlFileError with one reason: not valid YAML (line and
     column), nested too deeply. For text that comes from outside (a file, a bag's recorded
-    config, a command line), so that none of it ends in a traceback."""
+    config, a command line), so that none of it ends in a traceback. ``check_node`` sees the
+    composed document (its scalars' text and quoting) before it is constructed."""
+    # not libyaml's parser (7x faster on the 125 kB torque map): its composer recurses in C
+    # and a hostile nesting (a 400 kB file) crashed the process with a segmentation fault
+    loader = None
     try:
-        # not libyaml's parser (7x faster on the 125 kB torque map): its composer recurses in C
-        # and a hostile nesting (a 400 kB file) crashed the process with a segmentation fault
-        return yaml.safe_load(text)
+        loader = yaml.SafeLoader(text)     # its reader refuses an unprintable character here
+        # yaml.safe_load's steps, with the check between them (one parse)
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        if check_node is not None:
+            check_node(node)
+        return loader.construct_document(node)
     except yaml.reader.ReaderError as exc:
         # its own text is two lines ('  in "<unicode string>", position 41'): one error line
         at = min(max(int(exc.position), 0), len(text))
@@ -72,9 +82,13 @@ def parse_yaml_text(text: str) -> Any:
     except RecursionError:
         # the constructors recurse per level (~300 levels here): an error, not a traceback
         raise YamlFileError("nested too deeply") from None
+    finally:
+        if loader is not None:
+            loader.dispose()
 
 
-def read_yaml_file(path: pathlib.Path, max_bytes: int, what: str = "it") -> Any:
+def read_yaml_file(path: pathlib.Path, max_bytes: int, what: str = "it",
+                   check_node: Callable[[yaml.Node], None] | None = None) -> Any:
     """:func:`parse_yaml_text` of a file that must be at most ``max_bytes`` (refused before
     parsing: a hostile or mistaken file is not read into memory). YamlFileError with one reason:
     cannot read ``what``, too large, not valid YAML (line and column), nested too deeply, not a
@@ -92,7 +106,7 @@ def read_yaml_file(path: pathlib.Path, max_bytes: int, what: str = "it") -> Any:
     except OSError as exc:
         # a directory, or a file stat could see but not read
         raise YamlFileError(f"cannot read {what} ({exc.strerror or exc})") from None
-    return parse_yaml_text(text)
+    return parse_yaml_text(text, check_node)
 
 
 def load_config(path: str | os.PathLike | None = None, node_name: str | None = None) -> dict:
@@ -104,7 +118,7 @@ def load_config(path: str | os.PathLike | None = None, node_name: str | None = N
     """
     path = pathlib.Path(path) if path else default_config_path()
     try:
-        doc = read_yaml_file(path, MAX_CONFIG_BYTES, "config")
+        doc = read_yaml_file(path, MAX_CONFIG_BYTES, "config", lambda node: check_rcl_scalars(node, path))
     except YamlFileError as exc:
         raise ConfigError(str(exc), path) from None
     if not isinstance(doc, dict):
@@ -191,6 +205,120 @@ def _check_ros_lists(params: Mapping, path, prefix: str) -> None:
                     if set(kinds) == {"integer", "decimal"} else ""
                 raise ConfigError(f"a list parameter holds one type, got {' and '.join(sorted(set(kinds)))} "
                                   f"in {value!r}{hint}", path, name)
+
+
+# ROS 2's parameter file parser (rcl_yaml_param_parser, parse.c get_value) types every scalar that is
+# not single- or double-quoted itself, by its own rules, not YAML 1.1's: these words are true / false,
+# then C strtol (base 0) and strtod decide, with errno set meaning "not that type"
+_RCL_TRUE = frozenset(("Y", "y", "yes", "Yes", "YES", "true", "True", "TRUE", "on", "On", "ON"))
+_RCL_FALSE = frozenset(("N", "n", "no", "No", "NO", "false", "False", "FALSE", "off", "Off", "OFF"))
+_RCL_DOT_FLOATS = frozenset(sign + dot for sign in ("", "+", "-") for dot in (".inf", ".Inf", ".INF")) | {
+    ".nan", ".NaN", ".NAN"}
+_YAML_KINDS = {"tag:yaml.org,2002:bool": "true/false", "tag:yaml.org,2002:int": "integer",
+               "tag:yaml.org,2002:float": "decimal", "tag:yaml.org,2002:str": "text",
+               "tag:yaml.org,2002:null": "null", "tag:yaml.org,2002:timestamp": "date"}
+_libc = None
+# what C's strtol / strtod can start with (after white space), and numbers they read without a
+# range error: decimal integers within 64 bits, decimals of few digits (leading 0: octal, to C)
+_C_NUMBER_STARTS = frozenset("+-.0123456789iInN \t\n\v\f\r")
+_SHORT_INT = re.compile(r"[-+]?(?:0|[1-9][0-9]{0,17})")
+_SHORT_DECIMAL = re.compile(r"[-+]?(?:0|[1-9][0-9]{0,14})(?:\.[0-9]{0,15})?(?:[eE][-+]?[0-9]{1,2})?")
+
+
+def _c_parses(func: str, text: str) -> bool:
+    """Whether C's strtol (base 0) / strtod reads all of ``text`` without errno (the C library rcl uses)."""
+    global _libc
+    import ctypes
+    if _libc is None:
+        _libc = ctypes.CDLL(None, use_errno=True)
+        _libc.strtol.restype, _libc.strtol.argtypes = ctypes.c_long, [
+            ctypes.c_char_p, ctypes.POINTER(ctypes.c_char_p), ctypes.c_int]
+        _libc.strtod.restype, _libc.strtod.argtypes = ctypes.c_double, [
+            ctypes.c_char_p, ctypes.POINTER(ctypes.c_char_p)]
+    raw = text.encode()
+    if not raw or b"\0" in raw:
+        return False
+    buf = ctypes.create_string_buffer(raw)
+    end = ctypes.c_char_p()
+    ctypes.set_errno(0)
+    if func == "strtol":
+        _libc.strtol(buf, ctypes.byref(end), 0)
+    else:
+        _libc.strtod(buf, ctypes.byref(end))
+    stop = ctypes.cast(end, ctypes.c_void_p).value - ctypes.addressof(buf)
+    return ctypes.get_errno() == 0 and 0 < stop == len(raw)
+
+
+def rcl_scalar_kind(text: str) -> str:
+    """The type ROS 2's parameter file parser gives an unquoted scalar ``text``: true/false,
+    integer, decimal or text (``nan``, ``1e5`` and ``y`` are text to yaml.safe_load, not to rcl)."""
+    if text in _RCL_TRUE or text in _RCL_FALSE:
+        return "true/false"
+    # fast answers for the common texts (a ctypes call costs ~10 us, a config has hundreds of values)
+    if text[:1] not in _C_NUMBER_STARTS:
+        return "text"
+    if _SHORT_INT.fullmatch(text):
+        return "integer"
+    if _SHORT_DECIMAL.fullmatch(text):
+        return "decimal"
+    if _c_parses("strtol", text):
+        return "integer"
+    if text in _RCL_DOT_FLOATS or _c_parses("strtod", text):
+        return "decimal"
+    return "text"
+
+
+def check_rcl_scalars(root: yaml.Node, path) -> None:
+    """ConfigError naming the key of an unquoted value that yaml.safe_load (this loader, every check
+    before a node starts) and ROS 2's parameter parser (the nodes, started with the file) read as
+    different types: [--watchdog-s, nan] passed every check as text, then each node exited with a
+    traceback ('Sequence should be of same type'), and 1e5 was a number to the nodes only."""
+    stack: list[tuple[yaml.Node, str]] = [(root, "")]
+    seen: set[int] = set()
+    while stack:
+        node, name = stack.pop()
+        if id(node) in seen:
+            continue                    # an alias of a node already checked (or of its own parent)
+        seen.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            for key, value in node.value:
+                part = str(key.value) if isinstance(key, yaml.ScalarNode) else "?"
+                # named as the other checks name it: dotted below a section's ros__parameters
+                stack.append((value, "" if part == "ros__parameters" else f"{name}.{part}".lstrip(".")))
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend((item, name) for item in node.value)
+        elif isinstance(node, yaml.ScalarNode) and node.style not in ("'", '"') and node.tag in _YAML_KINDS:
+            ours = _YAML_KINDS[node.tag]        # (another tag: the constructor's error follows)
+            if node.value == "" and ours == "null":
+                raise ConfigError(f"no value (line {node.start_mark.line + 1}): ROS 2's parameter parser "
+                                  "refuses an empty value; write one", path, name or None)
+            theirs = rcl_scalar_kind(node.value)
+            if ours == theirs or (ours, theirs) == ("integer", "decimal"):
+                continue                # an integer beyond 64 bits: _check_ros_lists names it
+            hint = "quote it ('...') if it is text" if theirs != "text" else "quote it ('...') for text"
+            if "decimal" in (ours, theirs) and "e" in node.value.lower():
+                hint += ", write a number with a point and a signed exponent (1.0e+5)"
+            raise ConfigError(f"unquoted {node.value!r} (line {node.start_mark.line + 1}) is {ours} to this "
+                              f"config's loader but {theirs} to ROS 2's parameter parser (the nodes'): {hint}",
+                              path, name or None)
+
+
+class _RosParamDumper(yaml.SafeDumper):
+    """yaml.safe_dump that quotes the text ROS 2's parameter parser would read as another type."""
+
+    def represent_str(self, data):
+        if rcl_scalar_kind(data) != "text":
+            return self.represent_scalar("tag:yaml.org,2002:str", data, style="'")
+        return super().represent_str(data)
+
+
+_RosParamDumper.add_representer(str, _RosParamDumper.represent_str)
+
+
+def dump_ros_params(doc: Any, **kwargs) -> str:
+    """``doc`` as a ROS 2 parameter file: yaml.safe_dump, with text that rcl would type otherwise
+    ('nan', 'y', '1e5') quoted, so that it stays text to the nodes as to :func:`load_config`."""
+    return yaml.dump(doc, Dumper=_RosParamDumper, **kwargs)
 
 
 def machine_config(cfg_or_path, machine: str, command: str, hint: str = "") -> dict:

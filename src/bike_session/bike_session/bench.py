@@ -40,7 +40,7 @@ import threading
 import time
 
 import yaml
-from bike_plant.config import absolute_file_paths
+from bike_plant.config import absolute_file_paths, dump_ros_params
 
 TARGET_INNER_LOOP_REAL_TIME = 1000.0
 TARGET_GRAPH_SHARE_OF_PINGPONG = 0.80  # the lockstep graph vs the DDS ping-pong limit (issue 6)
@@ -74,7 +74,7 @@ def _config_with(batch_periods: int, duration_s: float, base: pathlib.Path, out_
     params["duration_s"] = duration_s
     absolute_file_paths(params, base.parent)
     path = out_dir / f"bench_n{batch_periods}.yaml"
-    path.write_text(yaml.safe_dump(doc))
+    path.write_text(dump_ros_params(doc))
     return path
 
 

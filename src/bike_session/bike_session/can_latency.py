@@ -34,7 +34,7 @@ import threading
 import time
 
 import yaml
-from bike_plant.config import absolute_file_paths
+from bike_plant.config import absolute_file_paths, dump_ros_params
 
 GROUP = "239.74.163.2"
 SET_INPUT_TORQUE = 0x0E
@@ -58,7 +58,7 @@ def _config(base: pathlib.Path, out_dir: pathlib.Path, port: int) -> pathlib.Pat
                        torque_map_file="")
     absolute_file_paths(p, base.parent)
     path = out_dir / f"can_latency_{port}.yaml"
-    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    path.write_text(dump_ros_params(doc, sort_keys=False))
     return path
 
 

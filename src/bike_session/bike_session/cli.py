@@ -372,8 +372,7 @@ def _config_copy(config: pathlib.Path, doc: dict, note: str):
     import shutil
     import tempfile
 
-    import yaml
-    from bike_plant.config import absolute_file_paths, load_config
+    from bike_plant.config import absolute_file_paths, dump_ros_params, load_config
 
     for body in doc.values():
         params = body.get("ros__parameters") if isinstance(body, dict) else None
@@ -383,7 +382,7 @@ def _config_copy(config: pathlib.Path, doc: dict, note: str):
     folder = tempfile.mkdtemp(prefix="bike-config-")
     atexit.register(shutil.rmtree, folder, True)
     path = pathlib.Path(folder) / config.name
-    path.write_text(f"# {config} {note}; written by ./bike run\n" + yaml.safe_dump(doc, sort_keys=False))
+    path.write_text(f"# {config} {note}; written by ./bike run\n" + dump_ros_params(doc, sort_keys=False))
     try:
         cfg = load_config(path)
         _check_config(cfg)

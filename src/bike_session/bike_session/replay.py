@@ -25,7 +25,7 @@ import pathlib
 
 import yaml
 
-from bike_plant.config import YamlFileError, parse_yaml_text
+from bike_plant.config import YamlFileError, dump_ros_params, parse_yaml_text
 from bike_session.bags import BagError, open_bag
 from bike_session.profiles import MODE_NAMES as MODE_TO_NAME
 
@@ -296,7 +296,7 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
         params["session"]["duration_s"] = duration_s
     header = (f"# Replay of {bag_path.resolve()} ({'recorded' if config is None else config} bike, "
               f"{load} load); written by ./bike replay\n")
-    config_path.write_text(header + yaml.safe_dump(doc, sort_keys=False))
+    config_path.write_text(header + dump_ros_params(doc, sort_keys=False))
     try:
         _check_replay_config(config_path)
     except ValueError as exc:
