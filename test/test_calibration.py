@@ -34,6 +34,21 @@ def test_the_file_written_after_a_spin_down_reads_back_the_same_figures(tmp_path
     assert os.listdir(tmp_path) == ["cal.yaml"]                    # no temporary file left beside it
 
 
+def test_the_file_reads_alike_to_its_loader_and_ros(tmp_path):
+    """write_calibration writes through bike_plant.config.dump_ros_params: numbers as 1.0e-05, text
+    rcl would type otherwise quoted (a config named 'nan' was written bare: a number to rcl)."""
+    from bike_plant.config import check_rcl_scalars, parse_yaml_text
+    tiny = SpinDownResult(friction_nms=1e-05, dry_friction_nm=2e-07, coast_s=1e-06, samples=20,
+                          rms_residual_rpm=1e-12)
+    path = write_calibration(tmp_path / "cal.yaml", "bldc", tiny, sim_time_s=1e-05, config_path="nan")
+    text = path.read_text()
+    parse_yaml_text(text, lambda node: check_rcl_scalars(node, path))       # ConfigError if not alike
+    assert "friction_nms: 1.0e-05" in text and "config: 'nan'" in text
+    c = read_calibration(path, "bldc")
+    assert (c.friction_nms, c.dry_friction_nm) == (1e-05, 2e-07)
+    assert yaml.safe_load(text)["rms_residual_rpm"] == 1e-12
+
+
 def test_a_calibration_is_never_renamed_over_a_device(tmp_path):
     """The write renames a new file over the old one: as root, --calibration /dev/null replaced
     the device with the calibration. Refused with an OSError, the device untouched."""

@@ -1,5 +1,6 @@
 """Config files: ROS 2 parameter-file format, read without ROS, with clear errors."""
 import dataclasses
+import math
 
 import pytest
 
@@ -91,6 +92,22 @@ def test_quoted_scalars_and_plain_numbers_are_taken(tmp_path):
     assert cfg["f"] is True and cfg["g"] == float("inf")
 
 
+@pytest.mark.parametrize("value, text, back", [
+    (1e-05, "1.0e-05", 1e-05), (1e+16, "1.0e+16", 1e+16), (-2.5e-300, "-2.5e-300", -2.5e-300), (0.1, "0.1", 0.1),
+    (3.0, "3.0", 3.0), (float("inf"), ".inf", float("inf")), (-float("inf"), "-.inf", -float("inf")),
+    (5e-324, "0.0", 0.0),           # a subnormal: a range error to C's strtod (text to rcl)
+])
+def test_yaml_float_is_the_same_number_to_the_loader_and_rcl(value, text, back):
+    """repr's 1e-05 is text to yaml.safe_load and a number to rcl: a config holding it is refused."""
+    import numpy as np
+
+    from bike_plant.config import parse_yaml_text, rcl_scalar_kind, yaml_float
+    assert yaml_float(value) == text == yaml_float(np.float64(value))
+    assert parse_yaml_text(text) == back and rcl_scalar_kind(text) == "decimal"
+    nan = yaml_float(float("nan"))
+    assert math.isnan(parse_yaml_text(nan)) and rcl_scalar_kind(nan) == "decimal"
+
+
 def test_rcl_reads_the_types_the_loader_reads_from_a_written_params_file(tmp_path):
     """dump_ros_params quotes the text rcl would type (nan, y, 1e5, 09): a real rclpy node started
     with the file gets the values load_config reads."""
@@ -99,7 +116,8 @@ def test_rcl_reads_the_types_the_loader_reads_from_a_written_params_file(tmp_pat
 
     from bike_plant.config import dump_ros_params, rcl_scalar_kind
     params = {"a": ["--watchdog-s", "nan"], "b": "y", "c": "1e5", "d": "09", "e": "on", "f": "x", "g": 1e5,
-              "h": float("inf"), "i": 3, "j": True, "k": [1.5, 2.0], "l": "1:30", "m": "0x10"}
+              "h": float("inf"), "i": 3, "j": True, "k": [1.5, 2.0], "l": "1:30", "m": "0x10", "n": 1e-05,
+              "o": [2.5e+20, -3e-300]}
     path = tmp_path / "p.yaml"
     path.write_text(dump_ros_params({"/**": {"ros__parameters": params}}, sort_keys=False))
     assert rcl_scalar_kind("nan") == "decimal" and rcl_scalar_kind("y") == "true/false"

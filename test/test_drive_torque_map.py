@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import pathlib
+import re
 import subprocess
 import sys
 
@@ -224,6 +225,29 @@ def test_cli_writes_a_map_that_reads_back_as_measured(tmp_path):
     for name in ("speed_rpm", "setpoint_nm", "reported_nm", "true_nm"):
         assert np.array_equal(getattr(back, name), getattr(tmap, name))
     assert back.source == tmap.source
+
+
+def test_a_saved_map_reads_back_alike_to_its_loader_and_ros(tmp_path):
+    """save writes through bike_plant.config.dump_ros_params: numbers as 1.0e-05 and text rcl would
+    type otherwise quoted (a source 'y' was written bare, true/false to ROS 2's parameter parser),
+    so the loader and rcl read every value alike, and load_torque_map reads back the same map."""
+    import dataclasses
+
+    from bike_plant.config import check_rcl_scalars, parse_yaml_text
+    shipped = load_torque_map(ROOT / "config" / "bldc_can_torque_map.yaml")
+    tiny = dataclasses.replace(shipped, reported_nm=shipped.reported_nm * 1e-5, true_nm=shipped.true_nm * 1e-5,
+                               setpoint_nm=shipped.setpoint_nm * 1e-5, source="y", path="")
+    path = tmp_path / "tiny.yaml"
+    tiny.save(path)
+    text = path.read_text()
+    exponents = re.findall(r"[-+]?[0-9.]+e[-+]?[0-9]+", text)
+    assert exponents and all("." in number for number in exponents), exponents    # 1.0e-05, never 1e-05
+    parse_yaml_text(text, lambda node: check_rcl_scalars(node, path))       # ConfigError if not alike
+    back = load_torque_map(path)
+    for name in ("speed_rpm", "setpoint_nm", "reported_nm", "true_nm"):
+        # the file keeps 6 significant digits
+        np.testing.assert_allclose(getattr(back, name), getattr(tiny, name), rtol=1e-5, atol=0, err_msg=name)
+    assert back.source == "y"
 
 
 @pytest.mark.parametrize("args, words", [

@@ -93,6 +93,28 @@ def test_resistance_mode_brakes_eq3_4_at_light_commands_too(tmp_path):
     assert over[(1750.0, 0.2)] > 0.10 and over[(2750.0, 0.4)] > 0.10, over
 
 
+def _k_table_as_config(k_table_path: pathlib.Path, tmp_path: pathlib.Path) -> dict:
+    """load_config of a config holding k_table.yaml's text as it is (what a user pastes into one)."""
+    import textwrap
+
+    from bike_plant.config import load_config
+    path = tmp_path / "with_k_table.yaml"
+    path.write_text("/**:\n  ros__parameters:\n" + textwrap.indent(k_table_path.read_text(), "    "))
+    return load_config(path)
+
+
+def test_k_table_numbers_read_alike_by_load_config_and_ros(tmp_path):
+    """repr wrote 1e-05 (text to the config's loader, a number to ROS 2's parameter parser), so
+    load_config refused the config a user put the table into; yaml_float writes 1.0e-05."""
+    from bike_plant.config import rcl_scalar_kind
+    table = {"k_speed_rpm": [0.0, 1e-05, 500.0, 1e+16], "k_command": [1e-05, 0.5, 1.0],
+             "k_factor": [0.85, 0.9, 1.0, 1.1] * 3, "k_interp": "linear"}
+    path = tmp_path / "k_table.yaml"
+    path.write_text(paper.k_table_yaml(table, "a test table", dropped=[0.05]))
+    assert _k_table_as_config(path, tmp_path)["controller"] == table
+    assert "1.0e-05" in path.read_text() and rcl_scalar_kind("1.0e-05") == "decimal"
+
+
 def test_k_table_measures_the_shipped_table_and_another_machines(tmp_path, capsys):
     """./bike paper seed1-k-table: on the default machine it measures the shipped table value for
     value (the same procedure made it); on a machine with 1.5 x the inductance, where the shipped
@@ -107,6 +129,7 @@ def test_k_table_measures_the_shipped_table_and_another_machines(tmp_path, capsy
     assert cli.main(["paper", "seed1-k-table", "--out", str(tmp_path / "default")]) == 0
     assert "put the values of" in capsys.readouterr().out
     got = yaml.safe_load((tmp_path / "default" / "k_table.yaml").read_text())["controller"]
+    assert _k_table_as_config(tmp_path / "default" / "k_table.yaml", tmp_path)["controller"] == got
     for key in ("k_speed_rpm", "k_command", "k_factor", "k_interp"):
         assert got[key] == cfg["controller"][key], key
         assert all(isinstance(v, float) for v in got[key] if key != "k_interp")   # rcl: one type per list

@@ -24,9 +24,8 @@ import pathlib
 import tempfile
 from dataclasses import dataclass
 
-import yaml
 
-from bike_plant.config import YamlFileError, read_yaml_file
+from bike_plant.config import YamlFileError, dump_ros_params, read_yaml_file
 from bike_plant.params import friction_problem
 
 MAX_CALIBRATION_BYTES = 64 * 1024   # the file is a few hundred bytes; refuse anything absurd unparsed
@@ -75,7 +74,7 @@ def write_calibration(path, machine: str, result, *, sim_time_s: float, config_p
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as fh:
-            fh.write(HEADER + yaml.safe_dump(doc, sort_keys=False))
+            fh.write(HEADER + dump_ros_params(doc, sort_keys=False))
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)

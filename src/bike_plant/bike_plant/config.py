@@ -15,6 +15,7 @@ import math
 import os
 import pathlib
 import re
+import sys
 from typing import Any, Callable, Mapping
 
 import yaml
@@ -303,21 +304,52 @@ def check_rcl_scalars(root: yaml.Node, path) -> None:
                               path, name or None)
 
 
+def yaml_float(value: float) -> str:
+    """``value`` as YAML text that this project's loader and ROS 2's parameter parser both read
+    as this same float: always a point and a signed exponent (``1.0e-05``, ``1.0e+16``), not
+    ``repr``'s ``1e-05`` (text to yaml.safe_load, a number to rcl: a config holding it is refused);
+    ``.nan`` / ``.inf`` / ``-.inf`` for the non-finite; a subnormal as 0.0."""
+    value = float(value)
+    if 0.0 < abs(value) < sys.float_info.min:
+        # a subnormal (< 2.2e-308): C's strtod reads it with a range error, text to rcl; 0 to both
+        value = math.copysign(0.0, value)
+    if math.isnan(value):
+        return ".nan"
+    if math.isinf(value):
+        return ".inf" if value > 0 else "-.inf"
+    text = repr(value)      # the shortest text that reads back as this float; its exponent is signed
+    if "e" in text and "." not in text:
+        text = text.replace("e", ".0e", 1)
+    elif "e" not in text and "." not in text:
+        text += ".0"        # repr has no bare integers for finite floats; kept as a guard
+    return text
+
+
 class _RosParamDumper(yaml.SafeDumper):
-    """yaml.safe_dump that quotes the text ROS 2's parameter parser would read as another type."""
+    """yaml.safe_dump that writes what this project's loader and ROS 2's parameter parser read
+    alike: text rcl would read as another type quoted, floats by :func:`yaml_float` (numpy's
+    too: a float subclass)."""
 
     def represent_str(self, data):
         if rcl_scalar_kind(data) != "text":
             return self.represent_scalar("tag:yaml.org,2002:str", data, style="'")
         return super().represent_str(data)
 
+    def represent_float(self, data):
+        return self.represent_scalar("tag:yaml.org,2002:float", yaml_float(data))
+
 
 _RosParamDumper.add_representer(str, _RosParamDumper.represent_str)
+_RosParamDumper.add_representer(float, _RosParamDumper.represent_float)
+_RosParamDumper.add_multi_representer(float, _RosParamDumper.represent_float)
 
 
 def dump_ros_params(doc: Any, **kwargs) -> str:
-    """``doc`` as a ROS 2 parameter file: yaml.safe_dump, with text that rcl would type otherwise
-    ('nan', 'y', '1e5') quoted, so that it stays text to the nodes as to :func:`load_config`."""
+    """``doc`` as YAML that reads back the same through :func:`load_config` (and
+    :func:`read_yaml_file`) and ROS 2's parameter parser: yaml.dump with text that rcl would type
+    otherwise ('nan', 'y', '1e5') quoted and floats by :func:`yaml_float`. For every YAML file
+    the project writes for a config or a loader to read back (params files, a torque map, a
+    calibration, a replay's profile)."""
     return yaml.dump(doc, Dumper=_RosParamDumper, **kwargs)
 
 

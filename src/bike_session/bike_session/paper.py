@@ -206,6 +206,34 @@ def resistance(cfg_path, out_dir) -> dict:
                          [csv_path, png_path])
 
 
+def k_table_yaml(table: dict, source, dropped=()) -> str:
+    """The text of k_table.yaml: a ``controller:`` section with ``table``'s k_speed_rpm, k_command
+    and k_factor (Eq. 7; rows one after the other, a comment naming each row's Command), for a
+    user to put into a config. Numbers by bike_plant.config.yaml_float (1.0e-05, not repr's 1e-05:
+    text to the config's loader, a number to ROS 2's parameter parser, so load_config refuses it)."""
+    from bike_plant.config import yaml_float
+
+    lines = [f"# Eq. 7 k table of {source}, measured by ./bike paper seed1-k-table (bike_session.paper.calibrate_k).",
+             "# Put these values into the config's controller: section. k_factor holds one row per",
+             "# k_command, each over k_speed_rpm, row after row (a ROS parameter file takes no nested lists).",
+             *([f"# Not in it: Command {', '.join(f'{c:g}' for c in dropped)} (the machine brakes nothing there at "
+                "some speed: the current asked stays inside the hysteresis band; lighter Commands take the lightest "
+                "row)."] if dropped else []),
+             "controller:",
+             # floats written as floats: a ROS parameter file takes no list of mixed 0 and 0.5
+             f"  k_speed_rpm: [{', '.join(yaml_float(v) for v in table['k_speed_rpm'])}]",
+             f"  k_command: [{', '.join(yaml_float(v) for v in table['k_command'])}]"]
+    n = len(table["k_speed_rpm"])
+    for r, c in enumerate(table["k_command"]):
+        # k is rounded to 4 places (_measure_k): a fixed point reads alike to both parsers
+        row = ", ".join(f"{v:.4f}" for v in table["k_factor"][r * n:(r + 1) * n])
+        head = "  k_factor: [" if r == 0 else " " * len("  k_factor: [")
+        tail = "]" if r == len(table["k_command"]) - 1 else ","
+        lines.append(f"{head}{row}{tail}   # Command {c:g}")
+    lines.append(f"  k_interp: {table.get('k_interp', 'linear')}")
+    return "\n".join(lines) + "\n"
+
+
 def k_table(cfg_path, out_dir) -> dict:
     """seed1-k-table: the Eq. 7 k table of the config's machine over speed and Command
     (calibrate_k at K_SPEEDS_RPM below the back-EMF limit and K_COMMANDS),
@@ -226,25 +254,7 @@ def k_table(cfg_path, out_dir) -> dict:
                           cfg.get("_config_path"), "controller.tmax_nm")
     table["k_interp"] = "linear"
     yaml_path = out_dir / "k_table.yaml"
-    source = cfg.get("_config_path") or "the given config"
-    lines = [f"# Eq. 7 k table of {source}, measured by ./bike paper seed1-k-table (bike_session.paper.calibrate_k).",
-             "# Put these values into the config's controller: section. k_factor holds one row per",
-             "# k_command, each over k_speed_rpm, row after row (a ROS parameter file takes no nested lists).",
-             *([f"# Not in it: Command {', '.join(f'{c:g}' for c in dropped)} (the machine brakes nothing there at "
-                "some speed: the current asked stays inside the hysteresis band; lighter Commands take the lightest "
-                "row)."] if dropped else []),
-             "controller:",
-             # floats written as floats: a ROS parameter file takes no list of mixed 0 and 0.5
-             f"  k_speed_rpm: [{', '.join(repr(float(v)) for v in table['k_speed_rpm'])}]",
-             f"  k_command: [{', '.join(repr(float(v)) for v in table['k_command'])}]"]
-    n = len(table["k_speed_rpm"])
-    for r, c in enumerate(table["k_command"]):
-        row = ", ".join(f"{v:.4f}" for v in table["k_factor"][r * n:(r + 1) * n])
-        head = "  k_factor: [" if r == 0 else " " * len("  k_factor: [")
-        tail = "]" if r == len(table["k_command"]) - 1 else ","
-        lines.append(f"{head}{row}{tail}   # Command {c:g}")
-    lines.append("  k_interp: linear")
-    yaml_path.write_text("\n".join(lines) + "\n")
+    yaml_path.write_text(k_table_yaml(table, cfg.get("_config_path") or "the given config", dropped))
     result = resistance(config_variant(cfg, controller=table), out_dir)
     result.update(name="seed1-k-table", table=table, dropped_commands=dropped,
                   files=[str(yaml_path)] + result["files"])

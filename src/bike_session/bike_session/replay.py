@@ -276,7 +276,7 @@ def prepare(bag_path, out_dir, config: str | None = None, load: str = "recorded"
         except ValueError as exc:
             raise ConfigError(str(exc), path) from None
     profile = profile_from_timeline(timeline, duration_s, f"replay of {bag_path.name}")
-    profile_path.write_text(yaml.safe_dump(profile, sort_keys=False))
+    profile_path.write_text(dump_ros_params(profile, sort_keys=False))
     params["session"]["profile"] = str(profile_path.resolve())
     # the recorded Commands are the ride: a workout the recorded config names (./bike run rides a
     # config's session.workout in place of its profile) must not be ridden instead of them

@@ -48,9 +48,8 @@ import os
 import pathlib
 
 import numpy as np
-import yaml
 
-from ..config import YamlFileError, read_yaml_file
+from ..config import YamlFileError, dump_ros_params, read_yaml_file
 
 MAP_KEY = "drive_torque_map"
 # in the ``source`` of a map measured on bike-drive-emulator's physics (./bike torque-map): a real
@@ -170,7 +169,8 @@ class TorqueMap:
                 "reported_nm": _floats(self.reported_nm), "true_nm": _floats(self.true_nm)}
         head = ("# Drive torque map (bike_plant.can.torque_map): per speed_rpm row, the drive's reported\n"
                 "# torque (kt Iq) and the shaft's true torque at each torque setpoint; rows one after the other.\n")
-        return head + yaml.safe_dump({MAP_KEY: body}, sort_keys=False, width=100, default_flow_style=None)
+        # numbers and text as load_torque_map and ROS 2's parameter parser both read them back
+        return head + dump_ros_params({MAP_KEY: body}, sort_keys=False, width=100, default_flow_style=None)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write atomically (a reader never sees half a map)."""
