@@ -817,6 +817,32 @@ def test_spmsm_plant_physics_over_the_bus_with_its_realtime_margin(emulator_fact
     assert rc == 0 and summary["tx:Heartbeat"] >= 1
 
 
+@pytest.mark.parametrize("args,words", [
+    (["--watchdog-s", "nan"], "argument --watchdog-s: must be a finite number >= 0, got 'nan'"),
+    (["--heartbeat-ms", "inf"], "argument --heartbeat-ms: must be a finite number >= 0, got 'inf'"),
+    (["--garbage-rate", "-1"], "argument --garbage-rate: must be a finite number >= 0, got '-1'"),
+    (["--physics-hz", "0"], "argument --physics-hz: must be a finite number > 0, got '0'"),
+    (["--vel-gain", "nan"], "argument --vel-gain: must be a finite number > 0, got 'nan'"),
+    (["--fault-at-s", "1", "--fault-at-s", "inf"], "argument --fault-at-s: must be a finite number >= 0, got 'inf'"),
+    (["--substeps", "0"], "argument --substeps: must be an integer >= 1, got '0'"),
+    (["--fault-persist", "-2"], "argument --fault-persist: must be an integer >= -1, got '-2'"),
+    (["--port", "70000"], "argument --port: must be an integer >= 1 and <= 65535, got '70000'"),
+    (["--bench-s", "x"], "argument --bench-s: must be a finite number > 0, got 'x'")])
+def test_the_parser_refuses_a_number_out_of_range(args, words):
+    """The numbers' ranges are the parser's: ./bike run checks can.emulator_args with it before any
+    node starts, and --watchdog-s nan passed it, refused by the emulator once the graph was up."""
+    from bike_controller.drive_emulator import build_arg_parser
+    parser = build_arg_parser()
+
+    def refuse(message):
+        raise ValueError(message)
+    parser.error = refuse
+    with pytest.raises(ValueError) as info:
+        parser.parse_args(args)
+    assert str(info.value) == words
+    assert parser.parse_args(["--watchdog-s", "0", "--fault-persist", "-1", "--physics-hz", "1e3"]).physics_hz == 1000.0
+
+
 @pytest.mark.parametrize("args,words", [(["--rider-topic", "bad topic!"], "--rider-topic 'bad topic!': Invalid topic"),
                                         (["--truth-topic", "bad topic!"], "--truth-topic 'bad topic!': Invalid topic"),
                                         (["--heart-rate-topic", "/bike/hr", "--truth-topic", "/bike/hr"],

@@ -445,7 +445,10 @@ def test_run_refuses_a_torque_map_the_plant_cannot_use_before_any_node_starts(tm
 
 @pytest.mark.parametrize("emulator_args, words", [
     ("[--bogus]", "unrecognized arguments: --bogus"),
-    ("[--physics, nope]", "argument --physics: invalid choice: 'nope' (choose from 'plant', 'average')")])
+    ("[--physics, nope]", "argument --physics: invalid choice: 'nope' (choose from 'plant', 'average')"),
+    # text on both sides since rcl_scalar_kind, and the emulator refused it only once the graph was up
+    ("[--watchdog-s, nan]", "argument --watchdog-s: must be a finite number >= 0, got 'nan'"),
+    ("[--heartbeat-ms, '-5']", "argument --heartbeat-ms: must be a finite number >= 0, got '-5'")])
 def test_run_refuses_emulator_args_the_drive_emulator_refuses_before_any_node_starts(emulator_args, words):
     """can.emulator_args the emulator's parser refused printed its usage once the graph had started,
     its node exiting. One error naming the key, nothing starts."""

@@ -1555,6 +1555,32 @@ def _f32(value: float) -> bytes:
 
 # =======================================================================================
 # command line
+def option_number(convert=float, low: float | None = None, *, above: bool = False, high: float | None = None):
+    """argparse ``type=`` of a numeric option: ``convert`` (float or int) of the text, finite and
+    >= ``low`` (> with ``above``, <= ``high``), else an ArgumentTypeError naming the bound. In the
+    parser, not after it: ./bike run checks can.emulator_args with this parser before any node
+    starts, and --watchdog-s nan passed it, to be refused once the graph was up."""
+    bounds = ([f"{'>' if above else '>='} {low:g}"] if low is not None else []) + (
+        [f"<= {high:g}"] if high is not None else [])
+    want = ("an integer" if convert is int else "a finite number") + (f" {' and '.join(bounds)}" if bounds else "")
+
+    def parse(text: str):
+        try:
+            value = convert(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {want}, got {text!r}") from None
+        if not (math.isfinite(value) and (low is None or (value > low if above else value >= low))
+                and (high is None or value <= high)):
+            raise argparse.ArgumentTypeError(f"must be {want}, got {text!r}")
+        return value
+    parse.__name__ = convert.__name__
+    return parse
+
+
+_POSITIVE = option_number(float, 0.0, above=True)
+_AT_LEAST_0 = option_number(float, 0.0)
+
+
 def build_arg_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="bike-drive-emulator",
@@ -1566,9 +1592,11 @@ def build_arg_parser() -> argparse.ArgumentParser:
     bus.add_argument("--channel", default=None,
                      help="channel, e.g. can0; for udp_multicast a multicast group such as 239.74.163.2 "
                           "(default: the interface's default)")
-    bus.add_argument("--port", type=int, default=None, help="udp_multicast UDP port (one per test / bench)")
-    bus.add_argument("--bitrate", type=int, default=1000000, help="CAN bitrate (real interfaces)")
-    bus.add_argument("--node-id", type=int, default=0,
+    bus.add_argument("--port", type=option_number(int, 1, high=65535), default=None,
+                     help="udp_multicast UDP port (one per test / bench)")
+    bus.add_argument("--bitrate", type=option_number(int, 0, above=True), default=1000000,
+                     help="CAN bitrate (real interfaces)")
+    bus.add_argument("--node-id", type=option_number(int, 0), default=0,
                      help="ODrive node id 0..62 / VESC ID 0..254, not the broadcast id (default 0)")
     bus.add_argument("--protocol", choices=sorted(EMULATED_PROTOCOLS), default=OdriveCanSimple.protocol_name,
                      help="what the drive speaks: odrive_cansimple_0.6 (default) or vesc_can (a VESC: STATUS .. "
@@ -1584,53 +1612,56 @@ def build_arg_parser() -> argparse.ArgumentParser:
                       help="SPMSM plant physics: the current-loop family of bike_controller.spmsm_control "
                            "(pi: pole placement at controller.pi_current_pole_hz; predictive: paper 001's one-step "
                            "law). The BLDC drive uses the paper 000 hysteresis law")
-    phys.add_argument("--speed-observer-hz", type=float, default=DEFAULT_SPEED_OBSERVER_HZ,
+    phys.add_argument("--speed-observer-hz", type=_POSITIVE, default=DEFAULT_SPEED_OBSERVER_HZ,
                       help="SPMSM plant physics: pole of the drive's encoder speed observer (default 160 Hz, about "
                            "an ODrive's 1000 rad/s encoder bandwidth)")
     phys.add_argument("--load", choices=("config",) + LOAD_KINDS, default="config",
                       help="override the config's load.kind")
-    phys.add_argument("--current-tau-s", type=float, default=DEFAULT_CURRENT_TAU_S,
+    phys.add_argument("--current-tau-s", type=_POSITIVE, default=DEFAULT_CURRENT_TAU_S,
                       help="average physics: closed current-loop time constant (default 1 ms = 1/1000 rad/s)")
-    phys.add_argument("--physics-hz", type=float, default=1000.0,
+    phys.add_argument("--physics-hz", type=_POSITIVE, default=1000.0,
                       help="real-time tick rate (default 1000): plant physics advance the control periods due in "
                            "one compiled batch per tick")
-    phys.add_argument("--substeps", type=int, default=4, help="average physics: sub-steps per tick (default 4)")
-    phys.add_argument("--bench-s", type=float, default=None, metavar="S",
+    phys.add_argument("--substeps", type=option_number(int, 1), default=4,
+                      help="average physics: sub-steps per tick (default 4)")
+    phys.add_argument("--bench-s", type=_POSITIVE, default=None, metavar="S",
                       help="no bus: advance S simulated seconds of the armed drive as fast as possible in tick-"
                            "sized batches, print the real-time factor as JSON and exit")
     drv = ap.add_argument_group("drive")
-    drv.add_argument("--heartbeat-ms", type=float, default=100.0,
+    drv.add_argument("--heartbeat-ms", type=_AT_LEAST_0, default=100.0,
                      help="Heartbeat period (default 100; 0 off); vesc_can: the period of each status broadcast")
-    drv.add_argument("--encoder-ms", type=float, default=10.0, help="Get_Encoder_Estimates period (default 10; 0 off)")
+    drv.add_argument("--encoder-ms", type=_AT_LEAST_0, default=10.0,
+                     help="Get_Encoder_Estimates period (default 10; 0 off)")
     for name, flag in (("Get_Iq", "iq"), ("Get_Bus_Voltage_Current", "bus"), ("Get_Torques", "torques"),
                        ("Get_Powers", "powers"), ("Get_Error", "error")):
-        drv.add_argument(f"--{flag}-ms", type=float, default=0.0, help=f"{name} period (default 0: RTR only)")
-    drv.add_argument("--watchdog-s", type=float, default=0.5, help="watchdog timeout (default 0.5; 0 disables)")
+        drv.add_argument(f"--{flag}-ms", type=_AT_LEAST_0, default=0.0, help=f"{name} period (default 0: RTR only)")
+    drv.add_argument("--watchdog-s", type=_AT_LEAST_0, default=0.5, help="watchdog timeout (default 0.5; 0 disables)")
     drv.add_argument("--watchdog-fed-by", choices=WATCHDOG_FED_BY, default="commands",
                      help="what feeds the watchdog: commands (default: Set_Input_Torque, Set_Input_Vel, "
                           "Set_Axis_State, as ODrive's 0.6.x can_watchdog.py example says) or any frame to the axis, "
                           "RTR requests included (the open 0.5.x firmware's can_simple.cpp)")
-    drv.add_argument("--current-limit-a", type=float, default=None,
+    drv.add_argument("--current-limit-a", type=_POSITIVE, default=None,
                      help="initial current limit (default: controller.current_limit_a of the config)")
-    drv.add_argument("--velocity-limit-rev-s", type=float, default=100.0, help="initial velocity limit (motor)")
-    drv.add_argument("--vel-gain", type=float, default=0.5,
+    drv.add_argument("--velocity-limit-rev-s", type=_POSITIVE, default=100.0,
+                     help="initial velocity limit (motor)")
+    drv.add_argument("--vel-gain", type=_POSITIVE, default=0.5,
                      help="velocity gain [N m/(rev/s)] of velocity control and of the torque-mode velocity limiter "
                           "(ODrive controller.config.vel_gain; default 0.5): torque mode allows T in "
                           "[(-v_lim - v) k, (v_lim - v) k], so a machine with large torques needs a larger one")
-    drv.add_argument("--vel-integrator-gain", type=float, default=2.0,
+    drv.add_argument("--vel-integrator-gain", type=_AT_LEAST_0, default=2.0,
                      help="velocity integrator gain [N m/rev] (controller.config.vel_integrator_gain; default 2)")
     fault = ap.add_argument_group("test faults")
-    fault.add_argument("--silent-after-s", type=float, default=None,
+    fault.add_argument("--silent-after-s", type=_AT_LEAST_0, default=None,
                        help="stop transmitting after this many seconds but keep running")
-    fault.add_argument("--garbage-rate", type=float, default=0.0,
+    fault.add_argument("--garbage-rate", type=_AT_LEAST_0, default=0.0,
                        help="inject this many random malformed/foreign frames per second")
-    fault.add_argument("--seed", type=int, default=0, help="random seed of the garbage")
-    fault.add_argument("--fault-at-s", type=float, action="append", default=[], metavar="T",
+    fault.add_argument("--seed", type=option_number(int), default=0, help="random seed of the garbage")
+    fault.add_argument("--fault-at-s", type=_AT_LEAST_0, action="append", default=[], metavar="T",
                        help="inject --fault T seconds after start (repeatable); SIGUSR1 injects it at once")
     fault.add_argument("--fault", default="DRV_FAULT",
                        help="the injected fault: an ODrive error name (DRV_FAULT, MOTOR_OVER_TEMP, ...; the axis "
                             "disarms with it latched) or IDLE (drop to IDLE without an error). Default DRV_FAULT")
-    fault.add_argument("--fault-persist", type=int, default=0, metavar="N",
+    fault.add_argument("--fault-persist", type=option_number(int, -1), default=0, metavar="N",
                        help="the injected error survives the next N Clear_Errors (-1: all of them; default 0)")
     ap.add_argument("--rider-topic", default=None, metavar="TOPIC",
                     help="let the emulated rider follow the trainer's instructions on this DriveCommand topic "
@@ -1644,7 +1675,8 @@ def build_arg_parser() -> argparse.ArgumentParser:
                          "the shaft's true torque and speed; e.g. /bike/drive_truth, which the recorder records and "
                          "the report compares the trainer's power with; ./bike run sets it), one sample per /clock "
                          "of the plant, stamped with it")
-    ap.add_argument("--duration-s", type=float, default=None, help="exit 0 after this many seconds")
+    ap.add_argument("--duration-s", type=_POSITIVE, default=None,
+                    help="exit 0 after this many seconds")
     ap.add_argument("--quiet", action="store_true", help="no event log on stderr")
     return ap
 
@@ -1718,26 +1750,11 @@ def main(argv: list[str] | None = None) -> int:
         problem = PROTOCOLS[args.protocol].node_id_problem(args.node_id)
         if problem:
             raise ValueError(f"--node-id {problem}")
-        for name in ("heartbeat_ms", "encoder_ms", "iq_ms", "bus_ms", "torques_ms", "powers_ms", "error_ms",
-                     "watchdog_s", "garbage_rate"):
-            value = getattr(args, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
-        if not (args.vel_gain > 0 and args.vel_integrator_gain >= 0 and math.isfinite(args.vel_gain)
-                and math.isfinite(args.vel_integrator_gain)):
-            raise ValueError("--vel-gain must be > 0 and --vel-integrator-gain >= 0")
-        if not (args.physics_hz > 0 and args.current_tau_s > 0 and args.substeps >= 1):
-            raise ValueError("--physics-hz, --current-tau-s must be > 0 and --substeps >= 1")
+        # the numbers' ranges: the parser's (option_number)
         fault_error = parse_fault(args.fault)
         if args.watchdog_fed_by != "commands" and EMULATED_PROTOCOLS[args.protocol] is VescEmulator:
             raise ValueError("--watchdog-fed-by any: a VESC resets its command timeout on commands only "
                              "(vedderb/bldc comm_can.c: timeout_reset() after SET_CURRENT, SET_RPM, ...)")
-        if args.fault_persist < -1:
-            raise ValueError(f"--fault-persist must be >= -1, got {args.fault_persist}")
-        if not all(math.isfinite(t) and t >= 0 for t in args.fault_at_s):
-            raise ValueError(f"--fault-at-s must be >= 0, got {args.fault_at_s}")
-        if args.bench_s is not None and not (math.isfinite(args.bench_s) and args.bench_s > 0):
-            raise ValueError(f"--bench-s must be > 0, got {args.bench_s}")
         topics = {}
         for flag, topic in topic_flags:
             if topic:
