@@ -856,6 +856,35 @@ def test_run_ftms_refuses_an_address_it_cannot_listen_on():
     assert f"--ftms-port {port}: cannot listen there (Address already in use" in line, line
 
 
+def test_run_ftms_refuses_a_host_the_launch_file_reads_as_a_number():
+    """--ftms-host 127.1 (the C library's short form of 127.0.0.1) could be listened on, then
+    reached the bridge's text parameter ftms.host as a number: its node's error once the graph had
+    started. One error, nothing started."""
+    line = _one_error(_cli("run", "--ftms", "--ftms-host", "127.1", "--ftms-port", "0", "--duration", "1",
+                           timeout=90))
+    assert line == ("error: --ftms-host 127.1: a number to the launch file (ROS parameters are typed), not a host "
+                    "name; write the address in full (e.g. 127.0.0.1)"), line
+
+
+def test_run_with_files_named_y_and_nan_rides(tmp_path):
+    """Names rcl types (y: true/false, nan: a number) as a run's --calibration, --record and config
+    files: the launch passes them to the nodes' text parameters as text (absolute paths, and
+    launcher.ros_param_value quotes text), and the run rides and records."""
+    import shutil
+    (tmp_path / "y").mkdir()
+    config = tmp_path / "y" / "nan"
+    shutil.copy(CONFIG, config)
+    doc = config.read_text().replace("profiles/", str(ROOT / "config" / "profiles") + "/")
+    config.write_text(doc)
+    run = subprocess.run([str(ROOT / "bike"), "run", "--config", "y/nan", "--duration", "0.3", "--calibration", "y/y",
+                          "--record", "nan"], capture_output=True, text=True, timeout=180, cwd=tmp_path,
+                         env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
+    assert run.returncode == 0, (run.stdout[-2000:], run.stderr[-2000:])
+    assert "Traceback" not in run.stdout + run.stderr and "error" not in run.stderr.lower(), run.stderr[-2000:]
+    assert f"no calibration in {tmp_path / 'y' / 'y'} yet" in run.stdout
+    assert list((tmp_path / "nan").glob("session_*/metadata.yaml")), run.stdout[-2000:]
+
+
 def test_unwritable_output_paths_give_one_error_before_any_work(tmp_path):
     """An output path that cannot be made (under a regular file) or is a directory where a
     file goes: one error naming the option, exit 2, before the command runs (a bench or a

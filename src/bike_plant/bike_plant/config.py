@@ -353,6 +353,14 @@ def dump_ros_params(doc: Any, **kwargs) -> str:
     return yaml.dump(doc, Dumper=_RosParamDumper, **kwargs)
 
 
+def ros_param_text(value: Any) -> str:
+    """``value`` as the one-line YAML of a ROS command-line parameter (``-p name:=VALUE``), which
+    rcl types by the same rules as a params file: text it would read as another type quoted
+    (``'y'``, ``'nan'``), floats by :func:`yaml_float`, lists in flow style."""
+    text = dump_ros_params(value, default_flow_style=True, width=2 ** 30, allow_unicode=True)
+    return text[:-len("\n...\n")] if text.endswith("\n...\n") else text.rstrip("\n")
+
+
 def machine_config(cfg_or_path, machine: str, command: str, hint: str = "") -> dict:
     """A deep copy of a loaded config (or the config at a path) of a ``machine`` bike; one
     ConfigError naming the ``machine`` key and what ``command`` needs otherwise (the other

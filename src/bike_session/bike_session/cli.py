@@ -199,7 +199,7 @@ def _cmd_run(opts) -> int:
     if ftms_on and not 0 <= opts.ftms_port <= 65535:
         print(f"error: --ftms-port must be 0..65535, got {opts.ftms_port}", file=sys.stderr)
         return 2
-    if ftms_on and not _ftms_address_ok(opts.ftms_host, opts.ftms_port):
+    if ftms_on and not (_ftms_address_ok(opts.ftms_host, opts.ftms_port) and _ftms_host_is_text(opts.ftms_host)):
         return 2
     if opts.workout:
         workout = _load_workout_for_run(opts, cfg)
@@ -226,7 +226,10 @@ def _cmd_run(opts) -> int:
         # each node would otherwise die in rclpy.init with a traceback (an invalid remap rule)
         print(f"error: {problem}", file=sys.stderr)
         return 2
-    args = {"config": str(config), "duration": repr(float(duration_s)), "namespace": namespace,
+    from bike_plant.config import yaml_float
+
+    # numbers as the launch file's YAML reads them back (repr's 1e+16 is text to it)
+    args = {"config": str(config), "duration": yaml_float(duration_s), "namespace": namespace,
             "overrides": str(repo_root() / "config" / "launch" / "no_overrides.yaml")}
     if getattr(opts, "calibration", None):
         calibrated = _calibration_run_args(opts.calibration, config, cfg, args)
@@ -243,10 +246,10 @@ def _cmd_run(opts) -> int:
             return 2
     if workout is not None:
         ftp_w, max_hr_bpm = _rider_figures(opts, cfg)
-        args.update(workout=str(pathlib.Path(opts.workout).resolve()), ftp=repr(float(ftp_w or 0.0)))
+        args.update(workout=str(pathlib.Path(opts.workout).resolve()), ftp=yaml_float(ftp_w or 0.0))
         if max_hr_bpm:
             # only when given: a --launch file of its own need not declare the argument
-            args.update(max_hr=repr(float(max_hr_bpm)))
+            args.update(max_hr=yaml_float(max_hr_bpm))
     bag_path = None
     made_record_dir = bool(opts.record) and not pathlib.Path(opts.record).exists()
     if opts.record:
@@ -583,6 +586,21 @@ def _ftms_address_ok(host: str, port: int) -> bool:
               f"({getattr(exc, 'strerror', None) or exc})", file=sys.stderr)
         return False
     return True
+
+
+def _ftms_host_is_text(host: str) -> bool:
+    """--ftms-host reaches the bridge as its text parameter ftms.host (a launch argument), else one
+    error: the C library's short forms of an address (127.1, 0x7f000001, 2130706433 for 127.0.0.1)
+    are numbers to the launch file's YAML, and the bridge refused the number once the graph had
+    started (its node's error among the others' lines, exit 1)."""
+    from bike_session import launcher
+
+    typed = launcher.typed_value(host)
+    if typed is None:
+        return True
+    print(f"error: --ftms-host {host}: a number to the launch file (ROS parameters are typed), not a host "
+          "name; write the address in full (e.g. 127.0.0.1)", file=sys.stderr)
+    return False
 
 
 FTMS_LISTENING = re.compile(r"FTMS over DIRCON on (\S+):(\d+) \(service ")     # the bridge node's line

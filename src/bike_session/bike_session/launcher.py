@@ -32,7 +32,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-from bike_plant.config import YamlFileError, parse_yaml_text
+from bike_plant.config import YamlFileError, parse_yaml_text, ros_param_text
 
 _SUBST = re.compile(r"\$\(([a-z-]+)((?:\s+[^()\s]+)*)\s*\)")
 TRUE_WORDS = {"true", "1", "yes", "on"}
@@ -67,9 +67,31 @@ class NodeSpec:
         for path in self.params_files:
             args += ["--params-file", path]
         for key, value in self.params.items():
-            # `-p name:=` would be a YAML null (rejected for a string parameter); '' is ""
-            args += ["-p", f"{key}:={value}" if str(value) != "" else f"{key}:=''"]
+            args += ["-p", f"{key}:={ros_param_value(value)}"]
         return args + list(self.ros_args)
+
+
+def ros_param_value(value) -> str:
+    """The text of ``-p name:=VALUE`` for a launch file's param value: a number, true/false or a
+    list when its YAML reading is one (yaml.safe_load, as this project's loader reads a config and
+    ros2 launch guesses a substituted value's type), else the text given, all of it, quoted so
+    that rcl reads it as text. rcl types an unquoted value by its own rules: a --calibration file
+    or a path named y reached the node as true/false, nan or 1e5 as a number, and ' #' began a
+    comment (a config path '/tmp/my #1/bike.yaml' reached the node as '/tmp/my')."""
+    if isinstance(value, str):
+        typed = typed_value(value)
+        value = value if typed is None else typed
+    return ros_param_text(value)
+
+
+def typed_value(text: str):
+    """The number, true/false or list a launch file's param value ``text`` is to its YAML reading,
+    None when it is text (the node gets it as text, all of it)."""
+    try:
+        parsed = parse_yaml_text(text)
+    except YamlFileError:
+        return None             # not YAML (an unclosed '['): text
+    return parsed if isinstance(parsed, (bool, int, float, list)) else None
 
 
 # the project's nodes print every thread's Python stack on SIGUSR1 and run on
