@@ -178,6 +178,24 @@ def mean_erg_power_w(states, config: pathlib.Path | str = ROOT / "config" / "bld
     return float(np.mean(erg_power_w(tem, w, friction)))
 
 
+def ros_parameters_of(ros_args: list[str], names) -> dict:
+    """The values a real rclpy node started with ``ros_args`` (``--ros-args ...``) gets for the
+    parameters ``names`` (rcl's own parsing of params files and -p overrides; arrays as lists)."""
+    import rclpy
+    from rclpy.node import Node
+
+    context = rclpy.Context()
+    rclpy.init(args=ros_args, context=context)
+    try:
+        node = Node("parameters_of", context=context, automatically_declare_parameters_from_overrides=True)
+        got = {name: node.get_parameter(name).value for name in names}
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+    return {name: list(value) if not isinstance(value, (str, bytes)) and hasattr(value, "__len__") else value
+            for name, value in got.items()}
+
+
 def wait_for(predicate, timeout_s: float, interval_s: float = 0.05) -> bool:
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:

@@ -9,7 +9,7 @@ import pytest
 from bike_session import launcher
 from bike_session.launcher import LaunchError, Launcher, NodeSpec, parse_launch
 
-from conftest import LAUNCH_FILE
+from conftest import LAUNCH_FILE, ros_parameters_of
 
 
 def write(tmp_path, text):
@@ -43,24 +43,12 @@ def test_a_node_gets_param_values_as_the_launch_files_yaml_reads_them():
     named y reached the node as true/false (the node refused it for its text parameter), nan / 1e5
     as numbers, and ' #' began a comment. A real rclpy node started with the arguments now gets the
     text as text, all of it, and numbers, true/false and lists as the YAML reading gives them."""
-    import rclpy
-    from rclpy.node import Node
-
     given = {"calibration_file": "y", "can_log_file": "nan", "a": "1e5", "b": "/tmp/my #1/bike.yaml", "c": "it's",
              "d": "~", "e": "[x", "f": "/tmp/\u00e9", "g": "", "duration_s": "60.0", "h": "0", "i": "true",
              "j": "[1, 2]", "k": 1e-05, "l": True, "m": "09"}
     want = dict(given, duration_s=60.0, h=0, i=True, j=[1, 2])
     spec = NodeSpec(pkg="p", exec="e", name="launched", params=given)
-    context = rclpy.Context()
-    rclpy.init(args=spec.arguments(), context=context)
-    try:
-        node = Node("x", context=context, automatically_declare_parameters_from_overrides=True)
-        got = {name: node.get_parameter(name).value for name in given}
-        node.destroy_node()
-    finally:
-        rclpy.shutdown(context=context)
-    got["j"] = list(got["j"])
-    assert got == want
+    assert ros_parameters_of(spec.arguments(), given) == want
 
 
 def test_substitutions_and_conditions(tmp_path, monkeypatch):
