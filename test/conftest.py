@@ -116,6 +116,48 @@ def bike_command(*args: str, timeout: float = 240, env: dict | None = None) -> s
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
 
 
+_FRONT_DOOR_USED: set[str] = set()      # the test functions whose first ./bike_cli call started ./bike
+
+
+@pytest.fixture
+def bike_cli(request):
+    """`./bike ARGS` of an input the CLI refuses before it starts anything (a node, a connection, a
+    measurement): a CompletedProcess. The first call of each test function (of its first parameter
+    set that runs) starts ./bike itself, in a subprocess; the others call bike_session.cli.main, the
+    code ./bike runs, in this process, their output captured at the file descriptors (capfd), its
+    return or SystemExit taken as the exit status: a ./bike start is 0.6-1.5 s on a loaded 2-core
+    host. In this process a refusal that came too late fails the test: the launcher, the domain claim
+    and rclpy.init raise."""
+    from bike_session import cli, domains, launcher
+
+    def started(*_args, **_kwargs):
+        raise AssertionError("the refused input got as far as starting a run")
+
+    def run(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+        domain = str(random.randint(101, 200))
+        if request.node.originalname not in _FRONT_DOOR_USED:
+            _FRONT_DOOR_USED.add(request.node.originalname)
+            return subprocess.run([str(ROOT / "bike"), *args], capture_output=True, text=True, timeout=timeout,
+                                  env=dict(os.environ, ROS_DOMAIN_ID=domain))
+        import rclpy
+        capfd = request.getfixturevalue("capfd")
+        with pytest.MonkeyPatch.context() as patched:
+            patched.setenv("ROS_DOMAIN_ID", domain)
+            for module, name in ((launcher, "run"), (domains, "ensure_private_domain"), (rclpy, "init")):
+                patched.setattr(module, name, started)
+            capfd.readouterr()
+            try:
+                code = cli.main(list(args))
+            except SystemExit as exc:       # argparse's usage errors (as python does at its exit)
+                code = exc.code
+                if code is not None and not isinstance(code, int):
+                    print(code, file=sys.stderr)
+                    code = 1
+            out = capfd.readouterr()
+        return subprocess.CompletedProcess(["cli.main (in this process)", *args], code or 0, out.out, out.err)
+    return run
+
+
 class NodeProcess:
     """One node executable in its own process group, output captured to a file."""
 

@@ -263,10 +263,9 @@ def test_a_saved_map_reads_back_alike_to_its_loader_and_ros(tmp_path):
     (["--window-s", "0"], "--window-s must be in"),
     (["--config", "/nonexistent/bike.yaml"], "cannot read config"),
 ])
-def test_cli_bad_input_is_one_error_line_and_exit_2(tmp_path, args, words):
+def test_cli_bad_input_is_one_error_line_and_exit_2(bike_cli, tmp_path, args, words):
     out = tmp_path / "map.yaml"
-    run = subprocess.run([sys.executable, "-m", "bike_session.cli", "torque-map", "--out", str(out), *args],
-                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    run = bike_cli("torque-map", "--out", str(out), *args)
     assert run.returncode == 2
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and words in lines[0], run.stderr

@@ -147,45 +147,6 @@ def _cli(*args, timeout=120):
                           env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
 
 
-_FRONT_DOOR_USED: set[str] = set()      # the test functions whose first refusal went through ./bike
-
-
-@pytest.fixture
-def bike(request):
-    """`./bike ARGS` of an input the CLI refuses before any node starts. The first call of each test
-    function (of its first parameter set that runs) starts ./bike itself, in a subprocess; the others
-    call bike_session.cli.main, the code ./bike runs, in this process, their output captured at the
-    file descriptors (capfd), its exit code or SystemExit taken as the exit status. A ./bike start is
-    0.6-1.5 s on a loaded 2-core host, and this file refuses ~80 inputs. In this process a refusal
-    that came too late fails the test: the launcher, the domain claim and rclpy.init raise."""
-    from bike_session import cli, domains, launcher
-
-    def started(*_args, **_kwargs):
-        raise AssertionError("the refused input got as far as starting a run")
-
-    def run(*args, timeout=120):
-        if request.node.originalname not in _FRONT_DOOR_USED:
-            _FRONT_DOOR_USED.add(request.node.originalname)
-            return _cli(*args, timeout=timeout)
-        import rclpy
-        capfd = request.getfixturevalue("capfd")
-        with pytest.MonkeyPatch.context() as patched:
-            patched.setenv("ROS_DOMAIN_ID", str(random.randint(101, 200)))
-            for module, name in ((launcher, "run"), (domains, "ensure_private_domain"), (rclpy, "init")):
-                patched.setattr(module, name, started)
-            capfd.readouterr()
-            try:
-                code = cli.main(list(args))
-            except SystemExit as exc:       # argparse's usage errors (as python does at its exit)
-                code = exc.code
-                if code is not None and not isinstance(code, int):
-                    print(code, file=sys.stderr)
-                    code = 1
-            out = capfd.readouterr()
-        return subprocess.CompletedProcess(["cli.main (in this process)", *args], code or 0, out.out, out.err)
-    return run
-
-
 def _one_error(run) -> str:
     assert run.returncode == 2, (run.returncode, run.stdout[-2000:], run.stderr[-2000:])
     assert "Traceback" not in run.stderr + run.stdout, run.stderr
@@ -194,7 +155,7 @@ def _one_error(run) -> str:
     return lines[0]
 
 
-def _refused_config_file(bike, tmp_path, change) -> str:
+def _refused_config_file(bike_cli, tmp_path, change) -> str:
     """`./bike run --config` of the default config changed by ``change(params)`` (its profile
     path made absolute): the one error line, which names the file; nothing started."""
     import yaml
@@ -204,7 +165,7 @@ def _refused_config_file(bike, tmp_path, change) -> str:
     params["session"]["profile"] = str(ROOT / "config" / "profiles" / "demo_intervals.yaml")
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(doc))
-    run = bike("run", "--config", str(path), "--duration", "0.5", timeout=90)
+    run = bike_cli("run", "--config", str(path), "--duration", "0.5", timeout=90)
     line = _one_error(run)
     assert str(path) in line, line
     assert run.stdout == "", run.stdout[-2000:]
@@ -216,16 +177,16 @@ def _refused_config_file(bike, tmp_path, change) -> str:
     ("batch_periods", "abc", "batch_periods: expected a number, got 'abc'"),
     ("sync_mode", "dragon", "sync_mode: must be 'lockstep' or 'realtime'"),
     ("modes", {"erg_power_max_w": float("nan")}, "erg_power_max_w must be a number >= 0, got nan")])
-def test_run_checks_the_config_before_any_node_starts(bike, tmp_path, key, value, words):
+def test_run_checks_the_config_before_any_node_starts(bike_cli, tmp_path, key, value, words):
     """A value only a node checked (the plant node's batch_periods / sync_mode; the modes section,
     which --set copies were checked for but a --config file was not) started the graph: the
     plant's configuration error among the other nodes' lines, exit 1. Now one error naming the
     file and key, exit 2, nothing started; --set names the config it changed, not its
     temporary copy."""
-    line = _refused_config_file(bike, tmp_path, lambda params: params.__setitem__(key, value))
+    line = _refused_config_file(bike_cli, tmp_path, lambda params: params.__setitem__(key, value))
     assert words in line, line
     if not isinstance(value, dict):
-        line = _one_error(bike("run", "--set", f"{key}={value}", "--duration", "0.5", timeout=90))
+        line = _one_error(bike_cli("run", "--set", f"{key}={value}", "--duration", "0.5", timeout=90))
         assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
 
 
@@ -238,16 +199,16 @@ def test_run_checks_the_config_before_any_node_starts(bike, tmp_path, key, value
     ("modes.erg_power_max_w=-1", "modes: erg_power_max_w must be a number >= 0, got -1.0"),
     ("modes.foo=1", ".yaml: modes: unknown key(s) foo"),
     ("session.profile=/nonexistent/p.yaml", "session.profile: /nonexistent/p.yaml: cannot read profile")])
-def test_run_checks_the_session_controller_and_profile_before_any_node_starts(bike, tmp_path, item, words):
+def test_run_checks_the_session_controller_and_profile_before_any_node_starts(bike_cli, tmp_path, item, words):
     """What the session node (period, profile) and the controller node (its parameters) refused
     once the graph had started: one error naming --set, the config and the key, exit 2, nothing
     started; a --config whose profile is missing too."""
-    line = _one_error(bike("run", "--set", item, "--duration", "0.5", timeout=90))
+    line = _one_error(bike_cli("run", "--set", item, "--duration", "0.5", timeout=90))
     assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
     if item.startswith("session.profile"):
         path = tmp_path / "bad.yaml"
         path.write_text(CONFIG.read_text())          # its relative profile is not beside the copy
-        run = bike("run", "--config", str(path), "--duration", "0.5", timeout=90)
+        run = bike_cli("run", "--config", str(path), "--duration", "0.5", timeout=90)
         line = _one_error(run)
         assert str(path) in line and "session.profile" in line and "cannot read profile" in line, line
         assert run.stdout == "", run.stdout[-2000:]
@@ -271,7 +232,7 @@ def test_run_checks_the_session_controller_and_profile_before_any_node_starts(bi
     (["command_wait_s=-1"], "command_wait_s: must be a number > 0, got -1"),
     (["sync_mode=realtime", "busy_wait_s=-1"], "busy_wait_s: must be finite and >= 0.0, got -1"),
 ])
-def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(bike, tmp_path, sets, words):
+def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(bike_cli, tmp_path, sets, words):
     """Checks a node made once the graph had started, its error among the other nodes' lines
     (exit 1): the plant's clock_period_s against session.period_s (the node's default clock
     period when the config gives none); its recorder_window_batches against the loop topics' DDS
@@ -280,7 +241,7 @@ def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(bike
     controller node's own numbers (command_wait_s; busy_wait_s, which it reads in realtime too). Now one error naming --set, the config and the key,
     exit 2, nothing started; a --config file with the values too."""
     import yaml
-    line = _one_error(bike("run", *(x for item in sets for x in ("--set", item)), "--duration", "0.5", timeout=90))
+    line = _one_error(bike_cli("run", *(x for item in sets for x in ("--set", item)), "--duration", "0.5", timeout=90))
     assert line.startswith("error: --set: ") and str(CONFIG) in line and words in line, line
 
     def change(params):
@@ -291,7 +252,7 @@ def test_run_checks_what_the_nodes_check_across_keys_before_any_node_starts(bike
             for part in parents:
                 node = node.setdefault(part, {})
             node[leaf] = yaml.safe_load(text)
-    assert words in _refused_config_file(bike, tmp_path, change)
+    assert words in _refused_config_file(bike_cli, tmp_path, change)
 
 
 def test_run_takes_a_lockstep_can_config_with_ftms_which_rides_it_in_real_time(capsys):
@@ -424,7 +385,7 @@ def test_replay_leaves_nothing_when_the_run_refuses_it_after_the_config_checks(t
     assert list(record.iterdir()) == []
 
 
-def test_run_refuses_a_session_key_no_node_reads(bike, tmp_path, capsys):
+def test_run_refuses_a_session_key_no_node_reads(bike_cli, tmp_path, capsys):
     """`--set session.perod_s=0.05` (a typo) or a config's unknown session: key rode the config's
     period without a word: one error naming the section and the key. SESSION_KEYS holds every
     session.* parameter the session node declares (read from its source, so a new one is seen)."""
@@ -435,7 +396,8 @@ def test_run_refuses_a_session_key_no_node_reads(bike, tmp_path, capsys):
     assert _set_run_config(["session.perod_s=0.05"], CONFIG) is None
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "session: unknown key(s) perod_s; known: profile, period_s" in err[0], err
-    assert "unknown key(s) perod_s" in _refused_config_file(bike, tmp_path, lambda p: p["session"].update(perod_s=0.05))
+    line = _refused_config_file(bike_cli, tmp_path, lambda p: p["session"].update(perod_s=0.05))
+    assert "unknown key(s) perod_s" in line, line
     source = (ROOT / "src" / "bike_session" / "bike_session" / "session_node.py").read_text()
     declared = set(re.findall(r'"session\.([a-z_0-9]+)"', source))
     assert declared and declared <= set(workouts.SESSION_KEYS), declared - set(workouts.SESSION_KEYS)
@@ -471,13 +433,13 @@ def test_run_set_of_another_machine_is_one_error_naming_it(capsys):
 
 @pytest.mark.parametrize("map_text, words", [("- 1\n", "expected a mapping 'drive_torque_map:' at the top"),
                                              (None, "cannot read it (No such file or directory)")])
-def test_run_refuses_a_torque_map_the_plant_cannot_use_before_any_node_starts(bike, tmp_path, map_text, words):
+def test_run_refuses_a_torque_map_the_plant_cannot_use_before_any_node_starts(bike_cli, tmp_path, map_text, words):
     """A can.torque_map_file the plant node could not use was its error once the graph (and the drive
     emulator) had started: "[launcher] node 'plant' exited with code 2", exit 1. One error now."""
     bad = tmp_path / "map.yaml"
     if map_text is not None:
         bad.write_text(map_text)
-    line = _one_error(bike("run", "--config", str(ROOT / "config" / "bldc_can.yaml"), "--duration", "1",
+    line = _one_error(bike_cli("run", "--config", str(ROOT / "config" / "bldc_can.yaml"), "--duration", "1",
                            "--set", f"can.torque_map_file={bad}", timeout=90))
     assert line == f"error: --set: {ROOT / 'config' / 'bldc_can.yaml'}: can.torque_map_file: {bad}: {words}", line
 
@@ -488,19 +450,19 @@ def test_run_refuses_a_torque_map_the_plant_cannot_use_before_any_node_starts(bi
     # text on both sides since rcl_scalar_kind, and the emulator refused it only once the graph was up
     ("[--watchdog-s, nan]", "argument --watchdog-s: must be a finite number >= 0, got 'nan'"),
     ("[--heartbeat-ms, '-5']", "argument --heartbeat-ms: must be a finite number >= 0, got '-5'")])
-def test_run_refuses_emulator_args_the_drive_emulator_refuses_before_any_node_starts(bike, emulator_args, words):
+def test_run_refuses_emulator_args_the_drive_emulator_refuses_before_any_node_starts(bike_cli, emulator_args, words):
     """can.emulator_args the emulator's parser refused printed its usage once the graph had started,
     its node exiting. One error naming the key, nothing starts."""
-    line = _one_error(bike("run", "--config", str(ROOT / "config" / "bldc_can.yaml"), "--duration", "1",
+    line = _one_error(bike_cli("run", "--config", str(ROOT / "config" / "bldc_can.yaml"), "--duration", "1",
                            "--set", f"can.emulator_args={emulator_args}", timeout=90))
     assert line == f"error: can.emulator_args: {words} (bike-drive-emulator's options)", line
 
 
-def test_run_refuses_a_value_ros_types_otherwise_before_any_node_starts(bike, tmp_path):
+def test_run_refuses_a_value_ros_types_otherwise_before_any_node_starts(bike_cli, tmp_path):
     """rcl's parameter parser types an unquoted nan, 1e5 or y itself (a number, true/false) where the
     config's loader reads text: [--watchdog-s, nan] passed every check, then each node exited with
     a traceback ('Sequence should be of same type'). One error naming the key and the quoting."""
-    line = _refused_config_file(bike, tmp_path, lambda p: p.update(can={"emulator_args": ["--watchdog-s", "nan"]}))
+    line = _refused_config_file(bike_cli, tmp_path, lambda p: p.update(can={"emulator_args": ["--watchdog-s", "nan"]}))
     assert ": can.emulator_args: unquoted 'nan' (line " in line, line
     assert line.endswith(") is text to this config's loader but decimal to ROS 2's parameter parser (the nodes'): "
                          "quote it ('...') if it is text"), line
@@ -811,36 +773,36 @@ def test_fuzzed_bags_give_one_clear_error_each(tmp_path, storage):
     assert errors >= 20
 
 
-def test_cli_on_a_corrupt_bag_prints_one_error(bike, tmp_path):
+def test_cli_on_a_corrupt_bag_prints_one_error(bike_cli, tmp_path):
     bag = tmp_path / "b"
     _small_bag(bag, "mcap")
     data = next(bag.glob("*.mcap"))
     data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])
     for args in (["report", str(bag), "--out", str(tmp_path / "r")], ["bag", "recover", str(tmp_path / "nope")]):
-        _one_error(bike(*args))
+        _one_error(bike_cli(*args))
 
 
 @pytest.mark.parametrize("duration", ["inf", "nan", "-1", "0", "1e300"])
-def test_run_refuses_a_duration_that_is_not_a_finite_positive_number(bike, duration):
+def test_run_refuses_a_duration_that_is_not_a_finite_positive_number(bike_cli, duration):
     """`--duration inf` passed the CLI's > 0 check; the session node then refused it while the
     plant and the controller had started (a traceback when they were stopped mid-import).
     `--duration 1e300` (beyond the ROS clock's int64 nanoseconds) was the session node's
     OverflowError traceback."""
-    assert "--duration" in _one_error(bike("run", "--duration", duration, timeout=60))
+    assert "--duration" in _one_error(bike_cli("run", "--duration", duration, timeout=60))
 
 
 @pytest.mark.parametrize("namespace", ["a-b", "9bike", "bike//x", "bike x"])
-def test_run_refuses_an_invalid_namespace(bike, namespace):
+def test_run_refuses_an_invalid_namespace(bike_cli, namespace):
     """Every node died in rclpy.init with a traceback (an invalid remap rule)."""
-    line = _one_error(bike("run", "--duration", "1", "--namespace", namespace, timeout=60))
+    line = _one_error(bike_cli("run", "--duration", "1", "--namespace", namespace, timeout=60))
     assert "--namespace" in line and "Invalid namespace" in line, line
     assert not line.endswith(":"), line            # rclpy's first line led to the two it leaves out
 
 
 @pytest.mark.parametrize("namespace", ["a b", "9bike", "bike//x"])
-def test_shift_refuses_an_invalid_namespace(bike, namespace):
+def test_shift_refuses_an_invalid_namespace(bike_cli, namespace):
     """`./bike shift 1 --namespace 'a b'` ended in rclpy's InvalidTopicNameException (a traceback)."""
-    line = _one_error(bike("shift", "1", "--domain", "7", "--namespace", namespace, timeout=60))
+    line = _one_error(bike_cli("shift", "1", "--domain", "7", "--namespace", namespace, timeout=60))
     assert "--namespace" in line and "Invalid namespace" in line, line
     assert not line.endswith(":"), line
 
@@ -850,48 +812,48 @@ def test_shift_refuses_an_invalid_namespace(bike, namespace):
     (["--ftms-port", "5000"], "--ftms-port needs --ftms"), (["--ftms-host", "0.0.0.0"], "--ftms-host needs --ftms"),
     (["--ftms-advertise", "true"], "--ftms-advertise needs --ftms"),
     (["--storage", "sqlite3"], "--storage needs --record")])
-def test_run_refuses_an_option_its_partner_is_missing_for(bike, args, words):
+def test_run_refuses_an_option_its_partner_is_missing_for(bike_cli, args, words):
     """Each rode the config's profile, unrecorded or without FTMS, the option dropped without a
     word (a newcomer's `./bike run --ftp 250` rode the demo's Commands as ever). One error."""
-    line = _one_error(bike("run", "--duration", "1", *args, timeout=60))
+    line = _one_error(bike_cli("run", "--duration", "1", *args, timeout=60))
     assert words in line, line
 
 
-def test_run_refuses_a_bad_launch_file_before_it_says_anything(bike, tmp_path):
+def test_run_refuses_a_bad_launch_file_before_it_says_anything(bike_cli, tmp_path):
     """A --launch file that is no launch description (or a folder) was refused after the
     domain's and the run's [bike] lines, which read as a run starting. Now the one line."""
     text = tmp_path / "notes.yaml"
     text.write_text("just: notes\n")
     for launch, words in ((text, "expected a top-level 'launch:' list"), (tmp_path, "Is a directory")):
-        run = bike("run", "--duration", "1", "--launch", str(launch), "--record", str(tmp_path / "rec"), timeout=60)
+        run = bike_cli("run", "--duration", "1", "--launch", str(launch), "--record", str(tmp_path / "rec"), timeout=60)
         assert words in _one_error(run) and run.stdout == "", run.stdout
         assert not (tmp_path / "rec").exists(), "the --record folder made for the refused run is left"
 
 
-def test_a_refused_paper_run_leaves_no_out_folder(bike, tmp_path):
+def test_a_refused_paper_run_leaves_no_out_folder(bike_cli, tmp_path):
     """`./bike paper NAME --out DIR --config BAD` made DIR, then refused the config: an empty
     folder was left, as if a run had written nothing. A folder that was there stays."""
     bad = tmp_path / "bad.yaml"
     bad.write_bytes(b"\xff\xfe\x00")
     for name in ("seed1-fig14", "seed2-table1"):
-        line = _one_error(bike("paper", name, "--out", str(tmp_path / "out"), "--config", str(bad)))
+        line = _one_error(bike_cli("paper", name, "--out", str(tmp_path / "out"), "--config", str(bad)))
         assert "not a text file" in line, line
         assert not (tmp_path / "out").exists()
     (tmp_path / "kept").mkdir()
-    _one_error(bike("paper", "seed1-fig14", "--out", str(tmp_path / "kept"), "--config", str(bad)))
+    _one_error(bike_cli("paper", "seed1-fig14", "--out", str(tmp_path / "kept"), "--config", str(bad)))
     assert (tmp_path / "kept").is_dir()
 
 
-def test_run_ftms_refuses_an_address_it_cannot_listen_on(bike):
+def test_run_ftms_refuses_an_address_it_cannot_listen_on(bike_cli):
     """--ftms-host 999.1.1.1 or a --ftms-port in use started the graph, and the bridge node's
     'cannot listen' came among the other nodes' lines, exit 1. One error naming both options,
     exit 2, nothing started."""
     import socket
-    line = _one_error(bike("run", "--ftms", "--ftms-host", "999.1.1.1", "--duration", "1", timeout=90))
+    line = _one_error(bike_cli("run", "--ftms", "--ftms-host", "999.1.1.1", "--duration", "1", timeout=90))
     assert "--ftms-host 999.1.1.1 --ftms-port 36866: cannot listen there" in line, line
     with socket.create_server(("127.0.0.1", 0)) as busy:
         port = busy.getsockname()[1]
-        line = _one_error(bike("run", "--ftms", "--ftms-port", str(port), "--duration", "1", timeout=90))
+        line = _one_error(bike_cli("run", "--ftms", "--ftms-port", str(port), "--duration", "1", timeout=90))
     assert f"--ftms-port {port}: cannot listen there (Address already in use" in line, line
 
 
@@ -924,7 +886,7 @@ def test_run_with_files_named_y_and_nan_rides(tmp_path):
     assert list((tmp_path / "nan").glob("session_*/metadata.yaml")), run.stdout[-2000:]
 
 
-def test_unwritable_output_paths_give_one_error_before_any_work(bike, tmp_path):
+def test_unwritable_output_paths_give_one_error_before_any_work(bike_cli, tmp_path):
     """An output path that cannot be made (under a regular file) or is a directory where a
     file goes: one error naming the option, exit 2, before the command runs (a bench or a
     fleet run must not end in a traceback after minutes of work)."""
@@ -945,7 +907,7 @@ def test_unwritable_output_paths_give_one_error_before_any_work(bike, tmp_path):
              (["run", "--duration", "1", "--record", str(blocker)], "--record"),
              (["report", str(tmp_path / "no_bag"), "--out", str(blocker)], "--out")]
     for args, flag in cases:
-        run = bike(*args, timeout=60)
+        run = bike_cli(*args, timeout=60)
         line = _one_error(run)
         assert flag in line and str(tmp_path) in line, line
         assert "File exists" not in line and (str(blocker) + ":" not in line or "not a directory" in line), line
@@ -953,7 +915,7 @@ def test_unwritable_output_paths_give_one_error_before_any_work(bike, tmp_path):
     assert blocker.read_text() == "" and sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
 
 
-def test_an_output_file_never_replaces_the_commands_input(bike, tmp_path):
+def test_an_output_file_never_replaces_the_commands_input(bike_cli, tmp_path):
     """`./bike report BAG --fit BAG/BAG.mcap` wrote the FIT activity over the recording (the bag
     no longer opened), `torque-map --from-csv DYNO.csv --out DYNO.csv` its map over the dyno's
     points. One error naming the option; the input unchanged. A new file in the bag's folder is fine."""
@@ -966,7 +928,7 @@ def test_an_output_file_never_replaces_the_commands_input(bike, tmp_path):
     for args in (["report", str(bag), "--fit", str(data)], ["report", str(data), "--fit", str(data)],
                  ["report", str(bag), "--fit", str(bag / "metadata.yaml")],
                  ["torque-map", "--from-csv", str(csv), "--out", str(csv)]):
-        line = _one_error(bike(*args, timeout=60))
+        line = _one_error(bike_cli(*args, timeout=60))
         assert "would write over the input" in line, line
     assert {path: path.read_bytes() for path in before} == before
     from bike_session import cli

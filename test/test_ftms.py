@@ -728,16 +728,14 @@ def test_bike_trainer_refuses_a_road_or_cadence_the_ftms_fields_cannot_carry(tmp
     (["--workout", "test/data/workouts/over_unders.zwo"], "power targets are fractions of FTP: pass the rider's ftp_w"),
     (["--workout", "no_such_workout.erg"], "bad workout: no_such_workout.erg: cannot read workout"),
     (["--workout", "README.md"], "bad workout: README.md: unsupported workout extension '.md'")])
-def test_bike_trainer_refuses_a_target_or_port_the_fields_cannot_carry_before_connecting(args, words):
+def test_bike_trainer_refuses_a_target_or_port_the_fields_cannot_carry_before_connecting(bike_cli, args, words):
     """--power / --grade / --level are written as sint16 fields: NaN or a value beyond the field
     ended in a ValueError / struct.error traceback once connected (and, with no trainer there,
     in "no trainer" rather than the bad value); a --port beyond 1..65535 was tried as one. A
     --workout no trainer can ride (or its --ftp) was found only once one answered. One error
     naming the option, exit 2, before connecting (--port 1: nothing listens there)."""
-    from conftest import bike_command
-
     full = args if "--port" in args else ["--port", "1", *args]
-    result = bike_command("trainer", *full, timeout=60)
+    result = bike_cli("trainer", *full, timeout=60)
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.returncode == 2 and len(lines) == 1 and words in lines[0], result.stderr
 
