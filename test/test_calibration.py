@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import pathlib
 import random
-import subprocess
 
 import pytest
 import yaml
@@ -140,12 +139,7 @@ def test_a_calibration_becomes_the_configs_modes_friction_and_the_profile_stays_
     assert profile.is_absolute() and profile.exists()
 
 
-def _bike(*args):
-    return subprocess.run([str(ROOT / "bike"), *args], capture_output=True, text=True, timeout=60,
-                          env=dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 200))))
-
-
-def test_run_refuses_a_bad_or_foreign_calibration_before_anything_starts(tmp_path):
+def test_run_refuses_a_bad_or_foreign_calibration_before_anything_starts(bike_cli, tmp_path):
     """One error naming the option and the file, exit 2, nothing started; the file is kept."""
     foreign = write_calibration(tmp_path / "spmsm_cal.yaml", "spmsm", RESULT, sim_time_s=1.0)
     before = foreign.read_text()
@@ -156,7 +150,7 @@ def test_run_refuses_a_bad_or_foreign_calibration_before_anything_starts(tmp_pat
     for path, words in ((foreign, "'spmsm' bike's calibration"), (bad, "modes.friction_nms must be"),
                         (blocker / "cal.yaml", "a_file: not a directory (a file is there)"),
                         (pathlib.Path("/dev/null"), "not a regular file")):
-        run = _bike("run", "--duration", "1", "--calibration", str(path))
+        run = bike_cli("run", "--duration", "1", "--calibration", str(path), timeout=60)
         assert run.returncode == 2 and "Traceback" not in run.stderr, run.stderr[-2000:]
         lines = [line for line in run.stderr.splitlines() if line.strip()]
         assert len(lines) == 1 and "--calibration" in lines[0] and words in lines[0], run.stderr

@@ -41,8 +41,8 @@ def test_ride_a_workout_file_in_the_node_graph(tmp_path, ros_domain, name, title
 
 
 @pytest.mark.parametrize("bad", ["bad_xml.zwo", "decreasing.erg", "entity_bomb.zwo", "workout.txt", "truncated.fit"])
-def test_a_bad_workout_file_starts_nothing(tmp_path, bad, ros_domain):
-    result = bike_command("run", "--workout", str(DATA / "bad" / bad), "--duration", "1", "--record", str(tmp_path))
+def test_a_bad_workout_file_starts_nothing(bike_cli, tmp_path, bad):
+    result = bike_cli("run", "--workout", str(DATA / "bad" / bad), "--duration", "1", "--record", str(tmp_path))
     assert result.returncode == 2
     assert result.stderr.count("error:") == 1 and bad in result.stderr, result.stderr
     assert not any(tmp_path.iterdir()), "no bag, no node started"
