@@ -140,19 +140,21 @@ def test_a_profiles_road_brakes_in_the_graph_is_recorded_and_replays(tmp_path, r
     prof = tmp_path / "windy.yaml"
     prof.write_text(yaml.safe_dump({"name": "windy", "mode": "slope", "segments": [
         {"kind": "step", "duration_s": 8, "target": 3},
-        {"kind": "step", "duration_s": 8, "target": 3, "road": dict(zip(("crr", "cw_kg_m", "wind_mps"), road))}]}))
+        {"kind": "step", "duration_s": 6, "target": 3, "road": dict(zip(("crr", "cw_kg_m", "wind_mps"), road))}]}))
     res = bike_command("run", "--workout", str(prof), "--record", str(tmp_path / "orig"), *FAST_BATCHES)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-3000:]
     orig = _bag_in(tmp_path / "orig")
     timeline = command_timeline(orig)[0]
-    assert {x[4] for x in timeline if x[0] < 8e9} == {None} and {x[4] for x in timeline if 8e9 <= x[0] < 16e9} == {road}
+    assert {x[4] for x in timeline if x[0] < 8e9} == {None} and {x[4] for x in timeline if 8e9 <= x[0] < 14e9} == {road}
 
     law = ModedController(load_config(ROOT / "config/bldc_default.yaml")).law
     states, status = read_topic(orig, "plant_state"), read_topic(orig, "controller_status")
 
     def window(msgs, t0, t1):
         return [m for m in msgs if t0 <= m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 < t1]
-    for t0, r in ((6.0, None), (14.0, road)):                # settled: the last 2 s of each
+    # settled: the last 2 s of each (lockstep, the same every run: the brake is within 6 % of the
+    # road's per second from 2 s after the change of road on; the first road's takes ~6 s)
+    for t0, r in ((6.0, None), (12.0, road)):
         brake = np.mean([-m.torque_em_nm for m in window(states, t0, t0 + 2)])
         v = np.mean([s.virtual_speed_mps for s in window(status, t0, t0 + 2)])
         law.set_road(r)
