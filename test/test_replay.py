@@ -69,15 +69,15 @@ def test_replay_same_bike_is_identical_and_other_bike_gets_the_same_commands(tmp
     assert params["controller"]["hysteresis_a"] == 0.75
 
 
-def test_replay_refuses_bad_input_with_one_error(tmp_path, ros_domain):
-    res = bike_command("replay", str(tmp_path / "missing"))
+def test_replay_refuses_bad_input_with_one_error(bike_cli, tmp_path):
+    res = bike_cli("replay", str(tmp_path / "missing"))
     assert res.returncode == 2 and res.stderr.count("error:") == 1 and "does not exist" in res.stderr
-    res = bike_command("replay", str(ROOT / "config"))
+    res = bike_cli("replay", str(ROOT / "config"))
     assert res.returncode == 2 and res.stderr.count("error:") == 1
-    res = bike_command("replay", "--help")
+    res = bike_cli("replay", "--help")
     assert res.returncode == 0 and "--config" in res.stdout and "--load" in res.stdout
     # --load config without --config rode the recorded load (the same either way) without a word
-    res = bike_command("replay", str(tmp_path / "missing"), "--load", "config", "--record", str(tmp_path / "r"))
+    res = bike_cli("replay", str(tmp_path / "missing"), "--load", "config", "--record", str(tmp_path / "r"))
     assert res.returncode == 2 and res.stderr.count("error:") == 1 and "--load config needs --config" in res.stderr
     assert not (tmp_path / "r").exists()
 
