@@ -24,7 +24,6 @@ import pathlib
 import tempfile
 from dataclasses import dataclass
 
-
 from bike_plant.config import YamlFileError, dump_ros_params, read_yaml_file
 from bike_plant.params import friction_problem
 
