@@ -250,11 +250,12 @@ def check_speeds(speeds_rpm, cfg: dict, name: str = "speeds") -> None:
         reason = _speed_refusal(speed)
         if reason and not math.isfinite(speed):
             raise ValueError(f"{name}: {reason}, got {speed:g} rpm")       # no range it is outside of
-        if reason is None and speed < lowest:
-            reason = (f"below {lowest:g} rpm two electrical revolutions, the shortest window, take over "
-                      f"{MAX_SECONDS:g} s")
-        elif reason is None and speed >= highest:
-            reason = why
+        if reason is None:
+            if speed < lowest:
+                reason = (f"below {lowest:g} rpm two electrical revolutions, the shortest window, take over "
+                          f"{MAX_SECONDS:g} s")
+            elif speed >= highest:
+                reason = why
         if reason:
             raise ValueError(f"{name}: {speed:g} rpm is outside this drive's range, {span} ({reason})")
 

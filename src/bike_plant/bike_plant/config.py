@@ -320,8 +320,6 @@ def yaml_float(value: float) -> str:
     text = repr(value)      # the shortest text that reads back as this float; its exponent is signed
     if "e" in text and "." not in text:
         text = text.replace("e", ".0e", 1)
-    elif "e" not in text and "." not in text:
-        text += ".0"        # repr has no bare integers for finite floats; kept as a guard
     return text
 
 
